@@ -1,0 +1,227 @@
+"""rosbag2 recordings of the LOMPR topics, read and written with `rosbags` (no ROS install).
+
+A `Recording` is what one bag holds of the two input topics of CONTRACT section 2, as plain
+arrays and exactly as recorded (unsorted, duplicates and NaNs kept): cleaning is the
+trainer's job, and it has to see the faults to count them. Stamps are header stamps in
+integer nanoseconds. Joint values are matched by name; a joint missing from a message is
+NaN in that row.
+
+Any failure to read a bag, whatever the layer that raised it (rosbags, sqlite3, the MCAP
+parser, the CDR deserialiser), becomes one `BagError` naming the bag; a bag that yields
+fewer messages than its metadata promises is truncated, never silently short.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+from lompr_predictor.errors import LomprError
+from lompr_predictor.robot import MEASURED_JOINTS
+
+JOINT_STATE = 'sensor_msgs/msg/JointState'
+POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
+DEFAULT_JOINT_TOPIC = '/joint_states'
+DEFAULT_REFERENCE_TOPIC = '/lompr/reference'
+STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
+
+_TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+
+
+class BagError(LomprError):
+    """A bag cannot be read completely: missing, corrupt, truncated or without a topic."""
+
+    def __init__(self, path: str | Path, reason: str) -> None:
+        self.path = str(path)
+        self.reason = reason
+        super().__init__(f'bag {self.path}: {reason}')
+
+
+@dataclass(frozen=True)
+class JointSamples:
+    """JointState messages: header stamps and the measured joints by name."""
+
+    stamps: np.ndarray  # (N,) int64 [ns]
+    positions: np.ndarray  # (N, J) float [m or rad], NaN where a joint was missing
+    names: tuple[str, ...]  # the J joint names, column order
+
+
+@dataclass(frozen=True)
+class ReferenceSamples:
+    """PoseStamped reference messages."""
+
+    stamps: np.ndarray  # (M,) int64 [ns]
+    positions: np.ndarray  # (M, 3) [m]
+    orientations: np.ndarray  # (M, 4) x, y, z, w
+
+
+@dataclass(frozen=True)
+class Recording:
+    """The LOMPR input topics of one bag, as recorded."""
+
+    joints: JointSamples
+    reference: ReferenceSamples
+    source: str = ''
+
+
+def _stamp(ns: int):  # type: ignore[no-untyped-def]
+    time = _TYPESTORE.types['builtin_interfaces/msg/Time']
+    return time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
+
+
+def _header(ns: int, frame_id: str):  # type: ignore[no-untyped-def]
+    return _TYPESTORE.types['std_msgs/msg/Header'](stamp=_stamp(ns), frame_id=frame_id)
+
+
+def write_recording(
+    path: str | Path,
+    recording: Recording,
+    *,
+    storage: str = 'mcap',
+    joint_topic: str = DEFAULT_JOINT_TOPIC,
+    reference_topic: str = DEFAULT_REFERENCE_TOPIC,
+    frame_id: str = 'world',
+) -> Path:
+    """Write a recording as one rosbag2 directory at `path`, atomically.
+
+    Messages go in the order of the arrays (so out-of-order stamps stay out of order); the
+    bag's log time of each message is its header stamp. The bag is written beside `path`
+    and renamed into place, so a reader never sees half a bag.
+    """
+    if storage not in STORAGES:
+        msg = f'unknown storage {storage!r}; choose one of {", ".join(STORAGES)}'
+        raise ValueError(msg)
+    path = Path(path)
+    if path.exists():
+        msg = f'{path} already exists; rosbag2 writes a new directory'
+        raise FileExistsError(msg)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f'.{path.name}.', dir=path.parent))
+    bag_dir = staging / path.name
+    types = _TYPESTORE.types
+    joint_state, pose_stamped = types[JOINT_STATE], types[POSE_STAMPED]
+    point, quaternion, pose = (types['geometry_msgs/msg/Point'],
+                               types['geometry_msgs/msg/Quaternion'], types['geometry_msgs/msg/Pose'])
+    joints, reference = recording.joints, recording.reference
+    events = _interleave(joints.stamps, reference.stamps)
+    try:
+        with Writer(bag_dir, version=9, storage_plugin=STORAGES[storage]) as writer:
+            joint_conn = writer.add_connection(joint_topic, JOINT_STATE, typestore=_TYPESTORE)
+            ref_conn = writer.add_connection(reference_topic, POSE_STAMPED, typestore=_TYPESTORE)
+            for topic, index in events:
+                if topic == 0:
+                    stamp = int(joints.stamps[index])
+                    message = joint_state(
+                        header=_header(stamp, ''), name=list(joints.names),
+                        position=np.asarray(joints.positions[index], dtype=np.float64),
+                        velocity=np.empty(0), effort=np.empty(0))
+                    writer.write(joint_conn, stamp,
+                                 _TYPESTORE.serialize_cdr(message, JOINT_STATE))
+                else:
+                    stamp = int(reference.stamps[index])
+                    x, y, z = (float(v) for v in reference.positions[index])
+                    qx, qy, qz, qw = (float(v) for v in reference.orientations[index])
+                    message = pose_stamped(
+                        header=_header(stamp, frame_id),
+                        pose=pose(position=point(x=x, y=y, z=z),
+                                  orientation=quaternion(x=qx, y=qy, z=qz, w=qw)))
+                    writer.write(ref_conn, stamp, _TYPESTORE.serialize_cdr(message, POSE_STAMPED))
+        os.replace(bag_dir, path)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return path
+
+
+def _interleave(joint_stamps: np.ndarray, reference_stamps: np.ndarray) -> list[tuple[int, int]]:
+    """Merge two message streams by stamp while keeping each stream's own order.
+
+    A stream's out-of-order message is written where it stands in that stream, as a real
+    recorder would have received it.
+    """
+    events: list[tuple[int, int]] = []
+    i = j = 0
+    while i < len(joint_stamps) or j < len(reference_stamps):
+        take_joint = j >= len(reference_stamps) or (
+            i < len(joint_stamps) and joint_stamps[i] <= reference_stamps[j])
+        if take_joint:
+            events.append((0, i))
+            i += 1
+        else:
+            events.append((1, j))
+            j += 1
+    return events
+
+
+def read_recording(
+    path: str | Path,
+    *,
+    joint_topic: str = DEFAULT_JOINT_TOPIC,
+    reference_topic: str = DEFAULT_REFERENCE_TOPIC,
+    joint_names: Sequence[str] = MEASURED_JOINTS,
+) -> Recording:
+    """Read the joint-state and reference topics of one rosbag2 directory.
+
+    Raises `BagError` naming the bag for a missing or corrupt bag, a topic that is absent or
+    of the wrong type, or a bag that ends before its metadata's message count.
+    """
+    path = Path(path)
+    if not (path / 'metadata.yaml').is_file():
+        raise BagError(path, 'no metadata.yaml: not a rosbag2 directory (or not one that finished)')
+    names = tuple(joint_names)
+    column = {name: i for i, name in enumerate(names)}
+    joint_stamps: list[int] = []
+    joint_rows: list[np.ndarray] = []
+    ref_stamps: list[int] = []
+    ref_rows: list[tuple[float, ...]] = []
+    try:
+        with Reader(path) as reader:
+            connections = {c.topic: c for c in reader.connections}
+            for topic, msgtype in ((joint_topic, JOINT_STATE), (reference_topic, POSE_STAMPED)):
+                if topic not in connections:
+                    raise BagError(path, f'no topic {topic}; it has {", ".join(sorted(connections)) or "none"}')
+                if connections[topic].msgtype != msgtype:
+                    raise BagError(
+                        path, f'topic {topic} is {connections[topic].msgtype}, expected {msgtype}')
+            wanted = [connections[joint_topic], connections[reference_topic]]
+            expected = sum(c.msgcount for c in wanted)
+            read = 0
+            for connection, _, raw in reader.messages(connections=wanted):
+                message = _TYPESTORE.deserialize_cdr(raw, connection.msgtype)
+                stamp = message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec
+                if connection.topic == joint_topic:
+                    row = np.full(len(names), np.nan)
+                    for name, value in zip(message.name, message.position):
+                        index = column.get(name)
+                        if index is not None:
+                            row[index] = value
+                    joint_stamps.append(stamp)
+                    joint_rows.append(row)
+                else:
+                    p, q = message.pose.position, message.pose.orientation
+                    ref_stamps.append(stamp)
+                    ref_rows.append((p.x, p.y, p.z, q.x, q.y, q.z, q.w))
+                read += 1
+    except BagError:
+        raise
+    except Exception as err:  # noqa: BLE001 - rosbags, sqlite3, the MCAP parser, CDR: all mean "corrupt"
+        raise BagError(path, f'cannot read ({type(err).__name__}: {err})') from err
+    if read != expected:
+        raise BagError(path, f'truncated: {read} messages read, metadata.yaml promises {expected}')
+    reference = np.array(ref_rows, dtype=float).reshape(-1, 7)
+    return Recording(
+        joints=JointSamples(
+            stamps=np.array(joint_stamps, dtype=np.int64),
+            positions=np.array(joint_rows, dtype=float).reshape(-1, len(names)),
+            names=names),
+        reference=ReferenceSamples(
+            stamps=np.array(ref_stamps, dtype=np.int64),
+            positions=reference[:, :3].copy(), orientations=reference[:, 3:].copy()),
+        source=str(path))

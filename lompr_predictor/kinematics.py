@@ -1,0 +1,391 @@
+"""Forward and inverse kinematics of the LOMPR (CONTRACT section 1).
+
+Three entry points, one per use:
+
+- `ForwardKinematics.solve`: one sample, as the kinematics node calls it. Newton on the three
+  branch-length equations |B_i(alpha, beta, d) - A_i| = l_i with Pinocchio's joint placement
+  and Jacobian of the platform, warm-started from an extrapolation of the last two solutions.
+- `batch_forward_kinematics`: the same equations solved for a whole recording at once,
+  vectorised with NumPy over samples (the offline trainer pushes millions through it).
+- `inverse_kinematics`: closed form for a vertical tool, tip position -> all joints, with the
+  primary head angle kept continuous along a path. The twin and the tests use it.
+
+All three take their geometry from the robot description (`robot.py`), never from constants.
+Joint arrays are ordered as `robot.MEASURED_JOINTS`: ups1, ups2, ups3, head_primary,
+head_secondary.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import pinocchio as pin
+
+from lompr_predictor.errors import (
+    ConvergenceError,
+    JointLimitError,
+    KinematicsError,
+    StrokeLimitError,
+    WorkspaceError,
+)
+from lompr_predictor.robot import (
+    BRANCH_JOINTS,
+    HEAD_JOINTS,
+    MEASURED_JOINTS,
+    TOOL_FRAME,
+    UP_JOINTS,
+    LomprGeometry,
+    RobotDescription,
+)
+
+#: Newton stops once its last step is below this (rad or m). Convergence is quadratic: in
+#: this workspace the error left after a step s is about 0.1 s^2 (a 4e-6 step was followed
+#: by a 1.6e-12 one), so stopping here leaves under 1e-11 m at the tool tip.
+STEP_TOLERANCE = 1e-5
+#: Rows per chunk in batch forward kinematics: small enough for the temporaries to stay
+#: in cache, large enough for NumPy's per-call overhead to vanish.
+BATCH_CHUNK = 8192
+MAX_ITERATIONS = 30
+#: A branch-length Jacobian with a smaller determinant is treated as a singular posture.
+SINGULAR_DETERMINANT = 1e-9
+
+
+class NonFiniteJointError(KinematicsError):
+    """A joint value is NaN or infinite."""
+
+    def __init__(self, joint: str, value: float) -> None:
+        self.joint = joint
+        self.value = value
+        super().__init__(f'joint {joint} value is not finite ({value})')
+
+
+class ToolPose(NamedTuple):
+    """Tool-tip pose in the world frame."""
+
+    position: np.ndarray  # (3,) [m]
+    quaternion: np.ndarray  # (4,) x, y, z, w
+
+
+@dataclass(frozen=True)
+class JointPath:
+    """Joint values along a path, one row per sample (inverse kinematics result)."""
+
+    up: np.ndarray  # (N, 3) alpha [rad], beta [rad], d [m] of the passive UP branch
+    lengths: np.ndarray  # (N, 3) branch lengths of ups1..ups3 [m]
+    head: np.ndarray  # (N, 2) head_primary, head_secondary [rad]
+
+    @property
+    def joints(self) -> np.ndarray:
+        """(N, 5) measured joints in `MEASURED_JOINTS` order."""
+        return np.hstack([self.lengths, self.head])
+
+
+@dataclass(frozen=True)
+class BatchPoses:
+    """Batch forward kinematics result; rows that could not be solved are NaN."""
+
+    position: np.ndarray  # (N, 3) tool-tip position [m]
+    up: np.ndarray  # (N, 3) alpha, beta, d
+    valid: np.ndarray  # (N,) bool
+
+
+def check_joint_limits(geometry: LomprGeometry, joints: Sequence[float]) -> None:
+    """Raise the specific error for a non-finite joint, a branch out of stroke or a head
+    angle out of its range."""
+    for name, value in zip(MEASURED_JOINTS, joints):
+        if not math.isfinite(value):
+            raise NonFiniteJointError(name, value)
+    for i, name in enumerate(BRANCH_JOINTS):
+        lower, upper = float(geometry.stroke_lower[i]), float(geometry.stroke_upper[i])
+        if not lower <= joints[i] <= upper:
+            raise StrokeLimitError(name, float(joints[i]), lower, upper)
+    theta2 = joints[4]
+    if not geometry.head_secondary_lower <= theta2 <= geometry.head_secondary_upper:
+        raise JointLimitError(
+            HEAD_JOINTS[1], float(theta2),
+            geometry.head_secondary_lower, geometry.head_secondary_upper)
+
+
+def _cofactor_solve(jac, rhs):  # type: ignore[no-untyped-def]
+    """Cramer's rule for 3x3 systems, on floats or on (N,) arrays alike (no NumPy calls:
+    their per-call overhead dominates a single 3x3 solve). Returns the three numerators and
+    the determinant; the caller divides, deciding what a singular system means to it."""
+    (a, b, c), (d, e, f), (g, h, i) = jac
+    r0, r1, r2 = rhs
+    co_a, co_b, co_c = e * i - f * h, f * g - d * i, d * h - e * g
+    numerators = (
+        co_a * r0 + (c * h - b * i) * r1 + (b * f - c * e) * r2,
+        co_b * r0 + (a * i - c * g) * r1 + (c * d - a * f) * r2,
+        co_c * r0 + (b * g - a * h) * r1 + (a * e - b * d) * r2)
+    return numerators, a * co_a + b * co_b + c * co_c
+
+
+class ForwardKinematics:
+    """Single-sample forward kinematics, warm-started along a stream of samples.
+
+    Keep one instance per stream: the warm start assumes consecutive calls are consecutive
+    samples. After any failure the next call starts from the nominal posture again.
+    """
+
+    def __init__(self, description: RobotDescription) -> None:
+        self.geometry = description.geometry
+        model = description.model
+        branch_chain = [
+            model.getJointId(n) for n in model.names
+            if n not in UP_JOINTS + HEAD_JOINTS and n != 'universe']
+        neutral = pin.neutral(model)
+        # Tool model: UP chain + head (the open UPS chains locked). Newton model: UP chain only.
+        self._tool_model = pin.buildReducedModel(model, branch_chain, neutral)
+        self._tool_data = self._tool_model.createData()
+        head_ids = [model.getJointId(n) for n in HEAD_JOINTS]
+        self._up_model = pin.buildReducedModel(model, branch_chain + head_ids, neutral)
+        self._up_data = self._up_model.createData()
+        self._platform_joint = self._up_model.getJointId(UP_JOINTS[2])
+        self._tool_frame = self._tool_model.getFrameId(TOOL_FRAME)
+        self._platform_anchors = self.geometry.platform_anchors.copy()
+        self._base_anchors_list = self.geometry.base_anchors.tolist()
+        self._q_tool = pin.neutral(self._tool_model)
+        self._history: list[np.ndarray] = []
+        self.last_iterations = 0
+
+    def reset(self) -> None:
+        """Forget the warm start (e.g. after a gap in the stream)."""
+        self._history.clear()
+
+    def solve(self, joints: Sequence[float]) -> ToolPose:
+        """Tool-tip pose for measured joints (ups1..3 lengths [m], head angles [rad]).
+
+        Raises `NonFiniteJointError`, `StrokeLimitError`, `JointLimitError`,
+        `WorkspaceError` or `ConvergenceError`; the stream's warm start survives none.
+        """
+        joints = [float(v) for v in joints]
+        try:
+            check_joint_limits(self.geometry, joints)
+            up = self._solve_up(joints[:3])
+        except KinematicsError:
+            self._history.clear()
+            raise
+        self._history = [*self._history[-1:], up]
+        q = self._q_tool
+        q[:3] = up
+        q[3], q[4], q[5] = math.cos(joints[3]), math.sin(joints[3]), joints[4]
+        pin.forwardKinematics(self._tool_model, self._tool_data, q)
+        tool = pin.updateFramePlacement(self._tool_model, self._tool_data, self._tool_frame)
+        return ToolPose(tool.translation.copy(), pin.Quaternion(tool.rotation).coeffs().copy())
+
+    def _initial_guess(self) -> np.ndarray:
+        if len(self._history) == 2:
+            return 2.0 * self._history[1] - self._history[0]
+        if self._history:
+            return self._history[0].copy()
+        return self.geometry.nominal_up
+
+    def _solve_up(self, lengths: list[float]) -> np.ndarray:
+        """Newton on |B_i(q) - A_i| - l_i = 0 for q = (alpha, beta, d)."""
+        model, data, joint = self._up_model, self._up_data, self._platform_joint
+        q = self._initial_guess()
+        for iteration in range(1, MAX_ITERATIONS + 1):
+            pin.computeJointJacobians(model, data, q)
+            placement = data.oMi[joint]
+            jacobian = pin.getJointJacobian(model, data, joint, pin.LOCAL_WORLD_ALIGNED)
+            # Anchor positions relative to the platform origin, in world axes.
+            offsets = (self._platform_anchors @ placement.rotation.T).tolist()
+            origin = placement.translation.tolist()
+            lin, ang = jacobian[:3].T.tolist(), jacobian[3:].T.tolist()
+            rows, residual = [], []
+            for (cx, cy, cz), (ax, ay, az), length in zip(
+                    offsets, self._base_anchors_list, lengths):
+                vx, vy, vz = origin[0] + cx - ax, origin[1] + cy - ay, origin[2] + cz - az
+                norm = math.sqrt(vx * vx + vy * vy + vz * vz)
+                ux, uy, uz = vx / norm, vy / norm, vz / norm
+                # d|v|/dq_k = u . (v_k + w_k x c): anchor velocity from the platform twist.
+                wx, wy, wz = cy * uz - cz * uy, cz * ux - cx * uz, cx * uy - cy * ux
+                rows.append([
+                    ux * lv[0] + uy * lv[1] + uz * lv[2] + wx * av[0] + wy * av[1] + wz * av[2]
+                    for lv, av in zip(lin, ang)])
+                residual.append(norm - length)
+            (n0, n1, n2), det = _cofactor_solve(rows, residual)
+            if abs(det) < SINGULAR_DETERMINANT:
+                msg = (f'singular branch-length Jacobian (determinant {det:.3e}): '
+                       'posture out of workspace')
+                raise WorkspaceError(msg)
+            q[0] -= n0 / det
+            q[1] -= n1 / det
+            q[2] -= n2 / det
+            if not math.isfinite(q[2]):
+                break
+            if max(abs(n0), abs(n1), abs(n2)) < STEP_TOLERANCE * abs(det):
+                self.last_iterations = iteration
+                self._check_up_limits(q)
+                return q
+        raise ConvergenceError(MAX_ITERATIONS, max(abs(r) for r in residual))
+
+    def _check_up_limits(self, q: np.ndarray) -> None:
+        geometry = self.geometry
+        for i, name in enumerate(UP_JOINTS):
+            lower, upper = float(geometry.up_lower[i]), float(geometry.up_upper[i])
+            if not lower <= q[i] <= upper:
+                msg = (
+                    f'branch lengths give {name} = {q[i]:.6f}, outside [{lower:.6f}, '
+                    f'{upper:.6f}]: the pose is outside the workspace'
+                )
+                raise WorkspaceError(msg)
+
+
+def _tool_tip(geometry: LomprGeometry, up: np.ndarray, head: np.ndarray) -> np.ndarray:
+    """Tool-tip positions p + R Rz(theta1) (h1 + Ry(theta2) h2) for (N, 3) up, (N, 2) head."""
+    c1, s1, c2, s2 = np.cos(head[:, 0]), np.sin(head[:, 0]), np.cos(head[:, 1]), np.sin(head[:, 1])
+    hx, hy, hz = geometry.tool_offset
+    ox, oy, oz = geometry.head_offset
+    # Ry(theta2) h2 + h1, then Rz(theta1), then up the UP axis by d: a point in the P frame.
+    lx, ly, lz = c2 * hx + s2 * hz + ox, hy + oy, c2 * hz - s2 * hx + oz
+    return np.stack(_rotate(_trig(up), c1 * lx - s1 * ly, s1 * lx + c1 * ly, lz + up[:, 2]), -1)
+
+
+def _trig(up: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(cos alpha, sin alpha, cos beta, sin beta) of (N, 3) UP-branch joints."""
+    return np.cos(up[:, 0]), np.sin(up[:, 0]), np.cos(up[:, 1]), np.sin(up[:, 1])
+
+
+def _rotate(trig: tuple[np.ndarray, ...], x, y, z):  # type: ignore[no-untyped-def]
+    """R (x, y, z) with R = Rx(alpha) Ry(beta), per sample, as three component arrays."""
+    ca, sa, cb, sb = trig
+    rx, rz = cb * x + sb * z, cb * z - sb * x  # Ry(beta) first, then Rx(alpha)
+    return rx, ca * y - sa * rz, sa * y + ca * rz
+
+
+def _branch_vectors(
+    geometry: LomprGeometry, d: np.ndarray, trig: tuple[np.ndarray, ...]
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per branch i, B_i in world as three (N,) component arrays, for UP-branch length d
+    and trig = (cos alpha, sin alpha, cos beta, sin beta)."""
+    return [_rotate(trig, bx, by, bz + d) for bx, by, bz in geometry.platform_anchors]
+
+
+def batch_forward_kinematics(geometry: LomprGeometry, joints: np.ndarray) -> BatchPoses:
+    """Tool-tip positions for (N, 5) measured joints, solved for all samples at once.
+
+    Rows with a non-finite value, a branch out of stroke, a head angle out of range, or a
+    solve that does not converge to a posture inside the UP joint limits come back NaN with
+    `valid` False; the caller decides what to drop and counts it.
+    """
+    joints = np.asarray(joints, dtype=float)
+    if joints.ndim != 2 or joints.shape[1] != len(MEASURED_JOINTS):
+        msg = f'joints must have shape (N, {len(MEASURED_JOINTS)}), got {joints.shape}'
+        raise ValueError(msg)
+    lengths = joints[:, :3]
+    with np.errstate(invalid='ignore'):
+        valid = (
+            np.isfinite(joints).all(axis=1)
+            & (lengths >= geometry.stroke_lower).all(axis=1)
+            & (lengths <= geometry.stroke_upper).all(axis=1)
+            & (joints[:, 4] >= geometry.head_secondary_lower)
+            & (joints[:, 4] <= geometry.head_secondary_upper))
+    target = np.where(valid[:, None], lengths, 0.5 * (geometry.stroke_lower + geometry.stroke_upper))
+    up = np.empty((len(joints), 3))
+    for start in range(0, len(joints), BATCH_CHUNK):
+        rows = slice(start, start + BATCH_CHUNK)
+        up[rows], converged = _newton_batch(geometry, target[rows].T)
+        valid[rows] &= converged
+    with np.errstate(invalid='ignore'):
+        valid &= (up >= geometry.up_lower).all(axis=1) & (up <= geometry.up_upper).all(axis=1)
+    with np.errstate(invalid='ignore'):
+        position = _tool_tip(geometry, up, joints[:, 3:5])
+    position[~valid] = np.nan
+    up[~valid] = np.nan
+    return BatchPoses(position=position, up=up, valid=valid)
+
+
+def _newton_batch(geometry: LomprGeometry, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Newton on |B_i(q) - A_i| = l_i for (3, N) target lengths; (N, 3) q and converged.
+
+    The start is one chord step from the nominal posture (its Jacobian computed once),
+    which saves a full Newton iteration on every row.
+    """
+    nominal = geometry.nominal_up[None, :]
+    rows, lengths = _lengths_and_jacobian(geometry, nominal)
+    chord = np.array(rows)[:, :, 0]
+    up = nominal + np.linalg.solve(chord, target - np.array(lengths)).T
+    converged = np.zeros(target.shape[1], dtype=bool)
+    for _ in range(MAX_ITERATIONS):
+        rows, lengths = _lengths_and_jacobian(geometry, up)
+        numerators, det = _cofactor_solve(rows, [n - t for n, t in zip(lengths, target)])
+        with np.errstate(invalid='ignore', divide='ignore'):
+            steps = [numerator / det for numerator in numerators]
+        converged = np.ones(len(up), dtype=bool)
+        for column, step in enumerate(steps):
+            up[:, column] -= step
+            converged &= np.abs(step) < STEP_TOLERANCE
+        if converged.all():
+            break
+    return up, converged
+
+
+def _lengths_and_jacobian(geometry: LomprGeometry, up: np.ndarray):  # type: ignore[no-untyped-def]
+    """Branch lengths |B_i - A_i| and their Jacobian rows in (alpha, beta, d), per sample."""
+    trig = _trig(up)
+    ca, sa, cb, sb = trig
+    rows, lengths = [], []
+    for (px, py, pz), (ax, ay, az) in zip(
+            _branch_vectors(geometry, up[:, 2], trig), geometry.base_anchors):
+        vx, vy, vz = px - ax, py - ay, pz - az
+        norm = np.sqrt(vx * vx + vy * vy + vz * vz)
+        ux, uy, uz = vx / norm, vy / norm, vz / norm
+        rows.append((
+            uz * py - uy * pz,  # d/d alpha: e_x x B_i
+            ux * (ca * pz - sa * py) + (uy * sa - uz * ca) * px,  # d/d beta: (Rx e_y) x B_i
+            ux * sb - uy * sa * cb + uz * ca * cb))  # d/d d: R e_z
+        lengths.append(norm)
+    return rows, lengths
+
+
+def branch_lengths(geometry: LomprGeometry, up: np.ndarray) -> np.ndarray:
+    """(N, 3) UPS branch lengths for (N, 3) UP-branch joints (alpha, beta, d)."""
+    points = _branch_vectors(geometry, up[:, 2], _trig(up))
+    return np.stack([np.sqrt((px - ax) ** 2 + (py - ay) ** 2 + (pz - az) ** 2)
+                     for (px, py, pz), (ax, ay, az) in zip(points, geometry.base_anchors)], -1)
+
+
+def inverse_kinematics(
+    geometry: LomprGeometry, tips: np.ndarray, theta1_start: float = 0.0
+) -> JointPath:
+    """All joints for (N, 3) tool-tip positions with the tool axis vertical (+Z).
+
+    The tool axis vertical fixes R Rz(theta1) Ry(theta2) e_z = e_z, so the point h2 above the
+    tip lies on the UP axis: that gives alpha, beta and d in closed form, and the head angles
+    tilt the tool back to vertical. theta1 is chosen continuous along the path, starting
+    nearest `theta1_start`; the pair (theta1 + pi, -theta2) is the same pose, which is how
+    theta2 changes sign when the path crosses the centre. Needs h1 and h2 along z.
+    """
+    tips = np.atleast_2d(np.asarray(tips, dtype=float))
+    h1, h2 = geometry.head_offset, geometry.tool_offset
+    if np.abs(h1[:2]).max() > 1e-12 or np.abs(h2[:2]).max() > 1e-12:
+        msg = 'closed-form inverse kinematics needs the head and tool offsets along z'
+        raise KinematicsError(msg)
+    wrist = tips - np.array([0.0, 0.0, h2[2]])
+    reach = np.linalg.norm(wrist, axis=1)
+    beta = np.arcsin(wrist[:, 0] / reach)
+    alpha = np.arctan2(-wrist[:, 1], wrist[:, 2])
+    d = reach - h1[2]
+    # The world vertical seen in the platform frame: (-ca sb, sa, ca cb) = Rz(t1) Ry(t2) e_z.
+    ca, sa, sb = np.cos(alpha), np.sin(alpha), np.sin(beta)
+    horizontal = np.hypot(ca * sb, sa)
+    theta2 = np.arctan2(horizontal, ca * np.cos(beta))
+    raw = np.arctan2(sa, -ca * sb)
+    # Where the tool is already vertical (theta2 = 0) theta1 is free: keep the previous one.
+    defined = horizontal > 1e-12
+    theta1 = np.full(len(tips), float(theta1_start))
+    if defined.any():
+        unwrapped = np.unwrap(raw[defined], period=np.pi)
+        unwrapped += np.pi * np.round((theta1_start - unwrapped[0]) / np.pi)
+        theta1[defined] = unwrapped
+        last_defined = np.maximum.accumulate(np.where(defined, np.arange(len(tips)), -1))
+        theta1 = np.where(last_defined >= 0, theta1[np.maximum(last_defined, 0)], theta1)
+    flipped = np.round((theta1 - raw) / np.pi).astype(int) % 2 == 1
+    theta2 = np.where(defined & flipped, -theta2, theta2)
+    up = np.stack([alpha, beta, d], -1)
+    return JointPath(up=up, lengths=branch_lengths(geometry, up), head=np.stack([theta1, theta2], -1))

@@ -1,0 +1,196 @@
+"""The LOMPR robot description: load the URDF with Pinocchio and extract its geometry.
+
+The URDF is the only place the geometry lives (CONTRACT section 1). This module loads it
+(from a file or an XML string), checks that it has the joints and frames the kinematics
+relies on, and exposes both the Pinocchio model and a `LomprGeometry` value: the anchor
+points, head offsets and joint limits read from that model, used by the vectorised batch
+kinematics. A calibrated machine ships its own URDF; nothing here is a geometric constant.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+from lompr_predictor.errors import NameNotFoundError, RobotDescriptionError
+
+#: Joints of the passive UP branch, in Newton order: alpha (about X), beta (about the
+#: rotated Y), d (prismatic along the rotated Z).
+UP_JOINTS: tuple[str, str, str] = ('up_alpha', 'up_beta', 'up_d')
+#: Driven UPS branches; the prismatic joint value is the branch length (encoder reading).
+BRANCH_JOINTS: tuple[str, str, str] = ('ups1', 'ups2', 'ups3')
+#: Rotary head joints: primary about the platform z, secondary about the rotated y.
+HEAD_JOINTS: tuple[str, str] = ('head_primary', 'head_secondary')
+#: The measured joints, in the order every array in this package uses.
+MEASURED_JOINTS: tuple[str, ...] = BRANCH_JOINTS + HEAD_JOINTS
+TOOL_FRAME = 'tool_tip'
+WORLD_FRAME = 'world'
+
+# Pinocchio joint model short names the closed-form kinematics is written for.
+_EXPECTED_JOINT_TYPES = {
+    'up_alpha': 'JointModelRX',
+    'up_beta': 'JointModelRY',
+    'up_d': 'JointModelPZ',
+    'head_primary': 'JointModelRUBZ',
+    'head_secondary': 'JointModelRY',
+    'ups1': 'JointModelPZ',
+    'ups2': 'JointModelPZ',
+    'ups3': 'JointModelPZ',
+}
+
+
+def base_anchor_frame(branch: str) -> str:
+    """Name of the fixed frame at the base U-joint centre A_i of a UPS branch."""
+    return f'{branch}_base_anchor'
+
+
+def platform_anchor_frame(branch: str) -> str:
+    """Name of the fixed frame at the platform S-joint centre B_i of a UPS branch."""
+    return f'{branch}_platform_anchor'
+
+
+@dataclass(frozen=True)
+class LomprGeometry:
+    """Geometry and limits of the LOMPR, as read from its robot description (SI units)."""
+
+    base_anchors: np.ndarray  # (3, 3) A_i in world
+    platform_anchors: np.ndarray  # (3, 3) B_i in the platform frame P
+    head_offset: np.ndarray  # (3,) head_secondary axis origin in the head_primary frame (h1)
+    tool_offset: np.ndarray  # (3,) tool tip in the head_secondary frame (h2)
+    stroke_lower: np.ndarray  # (3,) shortest branch length of ups1..ups3 [m]
+    stroke_upper: np.ndarray  # (3,) longest branch length [m]
+    up_lower: np.ndarray  # (3,) lower limits of alpha [rad], beta [rad], d [m]
+    up_upper: np.ndarray  # (3,) upper limits of alpha, beta, d
+    head_secondary_lower: float  # [rad]
+    head_secondary_upper: float  # [rad]
+
+    @property
+    def nominal_up(self) -> np.ndarray:
+        """A start point for Newton: untilted platform, d at the middle of its range."""
+        return np.array([0.0, 0.0, 0.5 * (self.up_lower[2] + self.up_upper[2])])
+
+
+class RobotDescription:
+    """A loaded LOMPR robot description: URDF text, its sha256, Pinocchio model, geometry."""
+
+    def __init__(self, urdf_xml: str, source: str) -> None:
+        self.urdf_xml = urdf_xml
+        self.source = source
+        self.sha256 = hashlib.sha256(urdf_xml.encode('utf-8')).hexdigest()
+        try:
+            self.model: pin.Model = pin.buildModelFromXML(urdf_xml)
+        except (RuntimeError, ValueError) as err:
+            msg = f'cannot parse robot description {source}: {err}'
+            raise RobotDescriptionError(msg) from err
+        self._check_joints()
+        self.geometry = self._extract_geometry()
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> RobotDescription:
+        """Load a URDF file."""
+        path = Path(path)
+        try:
+            xml = path.read_text(encoding='utf-8')
+        except OSError as err:
+            msg = f'cannot read robot description {path}: {err.strerror or err}'
+            raise RobotDescriptionError(msg) from err
+        return cls(xml, str(path))
+
+    def joint_id(self, name: str) -> int:
+        """Pinocchio joint index of `name`, or a `NameNotFoundError` listing the joints."""
+        if not self.model.existJointName(name):
+            raise NameNotFoundError('joint', name, list(self.model.names)[1:])
+        return int(self.model.getJointId(name))
+
+    def frame_id(self, name: str) -> int:
+        """Pinocchio frame index of `name`, or a `NameNotFoundError` listing the frames."""
+        if not self.model.existFrame(name):
+            raise NameNotFoundError('frame', name, [f.name for f in self.model.frames])
+        return int(self.model.getFrameId(name))
+
+    def joint_limits(self, name: str) -> tuple[float, float]:
+        """Position limits of a one-coordinate joint."""
+        idx = self.model.joints[self.joint_id(name)].idx_q
+        return float(self.model.lowerPositionLimit[idx]), float(self.model.upperPositionLimit[idx])
+
+    def _check_joints(self) -> None:
+        for name, expected in _EXPECTED_JOINT_TYPES.items():
+            found = self.model.joints[self.joint_id(name)].shortname()
+            if found != expected:
+                msg = (
+                    f'robot description {self.source}: joint {name!r} is {found}, '
+                    f'the LOMPR kinematics needs {expected}'
+                )
+                raise RobotDescriptionError(msg)
+        for name in UP_JOINTS:
+            placement = self.model.jointPlacements[self.joint_id(name)]
+            if not placement.isIdentity(1e-12):
+                msg = (
+                    f'robot description {self.source}: joint {name!r} must sit at the origin '
+                    'of its parent (the UP branch is a U-joint at O and a prismatic joint)'
+                )
+                raise RobotDescriptionError(msg)
+        self._check_child_of('head_primary', 'up_d', joint=True)
+        self._check_child_of('head_secondary', 'head_primary', joint=True)
+        self._check_child_of(TOOL_FRAME, 'head_secondary', joint=False)
+        for branch in BRANCH_JOINTS:
+            self._check_child_of(platform_anchor_frame(branch), 'up_d', joint=False)
+            self.frame_id(base_anchor_frame(branch))
+
+    def _check_child_of(self, name: str, parent_joint: str, *, joint: bool) -> None:
+        model = self.model
+        parent = model.parents[self.joint_id(name)] if joint else (
+            model.frames[self.frame_id(name)].parentJoint)
+        if model.names[parent] != parent_joint:
+            msg = (
+                f'robot description {self.source}: {name!r} must be attached to joint '
+                f'{parent_joint!r}, found {model.names[parent]!r}'
+            )
+            raise RobotDescriptionError(msg)
+
+    def _extract_geometry(self) -> LomprGeometry:
+        model = self.model
+        data = model.createData()
+        pin.framesForwardKinematics(model, data, pin.neutral(model))
+        base = np.array([
+            data.oMf[self.frame_id(base_anchor_frame(b))].translation for b in BRANCH_JOINTS])
+        platform = np.array([
+            model.frames[self.frame_id(platform_anchor_frame(b))].placement.translation
+            for b in BRANCH_JOINTS])
+        head_placement = model.jointPlacements[self.joint_id('head_primary')]
+        if not head_placement.isIdentity(1e-12):
+            msg = (
+                f'robot description {self.source}: head_primary must sit at the platform '
+                'origin, on the UP branch axis'
+            )
+            raise RobotDescriptionError(msg)
+        strokes = np.array([self.joint_limits(b) for b in BRANCH_JOINTS])
+        up = np.array([self.joint_limits(j) for j in UP_JOINTS])
+        sec_lower, sec_upper = self.joint_limits('head_secondary')
+        return LomprGeometry(
+            base_anchors=base,
+            platform_anchors=platform,
+            head_offset=model.jointPlacements[self.joint_id('head_secondary')].translation.copy(),
+            tool_offset=model.frames[self.frame_id(TOOL_FRAME)].placement.translation.copy(),
+            stroke_lower=strokes[:, 0].copy(),
+            stroke_upper=strokes[:, 1].copy(),
+            up_lower=up[:, 0].copy(),
+            up_upper=up[:, 1].copy(),
+            head_secondary_lower=sec_lower,
+            head_secondary_upper=sec_upper,
+        )
+
+
+def default_description_path() -> Path:
+    """Path of the packaged nominal LOMPR URDF."""
+    return Path(str(resources.files('lompr_predictor') / 'description' / 'lompr.urdf'))
+
+
+def load_robot_description(path: str | Path | None = None) -> RobotDescription:
+    """Load a LOMPR URDF file, by default the packaged nominal description."""
+    return RobotDescription.from_file(path if path else default_description_path())

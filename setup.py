@@ -1,0 +1,51 @@
+"""ament_python / pip build script of lompr_predictor."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'lompr_predictor'
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'test.*', 'bench']),
+    package_data={PACKAGE: ['description/*.urdf', 'config/*.yaml']},
+    data_files=[
+        ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
+        (f'share/{PACKAGE}', ['package.xml']),
+        (f'share/{PACKAGE}/description', glob(f'{PACKAGE}/description/*.urdf')),
+        (f'share/{PACKAGE}/config', glob(f'{PACKAGE}/config/*.yaml')),
+    ],
+    python_requires='>=3.11',
+    # Runtime libraries: requirements.txt pins the exact versions for a pip install; a ROS
+    # install gets them through package.xml and rosdep. torch is pinned here too: a looser
+    # requirement pulls a multi-GB CUDA build.
+    install_requires=[
+        'setuptools',
+        'numpy',
+        'scipy',
+        'pin',
+        'rosbags',
+        'optuna',
+        'torch==2.13.0',
+        'matplotlib',
+        'pyyaml',
+        'tqdm',
+    ],
+    extras_require={'test': ['pytest', 'hypothesis']},
+    zip_safe=True,
+    maintainer='lompr_predictor developers',
+    maintainer_email='lompr@example.com',
+    description='Predicts and compensates the end-trajectory error of the LOMPR '
+                '(BO-LSTM, Jin et al. 2022) as ROS 2 nodes and offline tools.',
+    license='Apache-2.0',
+    entry_points={
+        'console_scripts': [
+            'kinematics_node = lompr_predictor.nodes.kinematics_node:main',
+            'predictor_node = lompr_predictor.nodes.predictor_node:main',
+            'twin_node = lompr_predictor.nodes.twin_node:main',
+            'lompr = lompr_predictor.cli:main',
+        ],
+    },
+)
