@@ -1,0 +1,185 @@
+"""The model file (CONTRACT section 5): one TorchScript file carrying `metadata.json`.
+
+Export and load live here and only here, so that the serialisation format (TorchScript
+today, deprecated upstream in favour of `torch.export`) can change in one place.
+
+The scripted module's contract: `forward(window)` takes a float64 tensor (B, window,
+len(features)) of raw feature rows in SI units (see `features.py`) and returns (B, 2): the
+predicted plant X/Y error [m] `horizon` samples after the window's last row. Normalisation
+happens inside the module; its constants are also in the metadata for people and tools.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from lompr_predictor.errors import LomprError
+
+FORMAT_VERSION = 1
+METADATA_NAME = 'metadata.json'
+
+
+class ModelFileError(LomprError):
+    """A model file cannot be opened, is not ours, or fails its checks."""
+
+
+class MetadataMismatchError(ModelFileError):
+    """A model file's metadata disagrees with the configuration that wants to use it."""
+
+    def __init__(self, path: str, field_name: str, expected: Any, found: Any) -> None:
+        self.path = path
+        self.field = field_name
+        self.expected = expected
+        self.found = found
+        super().__init__(
+            f'model {path}: metadata field {field_name!r} is {found!r}, '
+            f'this configuration needs {expected!r}')
+
+
+@dataclass(frozen=True)
+class ModelMetadata:
+    """Everything needed to use, check and reproduce a trained predictor."""
+
+    features: tuple[str, ...]
+    window: int  # samples per input window
+    horizon: int  # samples between the window's last row and the predicted instant
+    sample_period: float  # [s]
+    targets: tuple[str, ...]  # output axes, in order
+    normalisation: Mapping[str, Any]  # min/max of features and targets (training range)
+    model_type: str  # 'lstm', 'mlp', ...
+    hyperparameters: Mapping[str, Any]
+    robot_description_sha256: str
+    training_bags: tuple[Mapping[str, str], ...]  # {'path': ..., 'sha256': ...}
+    seed: int
+    library_versions: Mapping[str, str]
+    test_metrics: Mapping[str, Any] = field(default_factory=dict)
+    format_version: int = FORMAT_VERSION
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), indent=2, sort_keys=True)
+
+    @classmethod
+    def from_json(cls, text: str, path: str = '<memory>') -> ModelMetadata:
+        try:
+            raw = json.loads(text)
+        except json.JSONDecodeError as err:
+            msg = f'model {path}: {METADATA_NAME} is not valid JSON ({err})'
+            raise ModelFileError(msg) from err
+        if raw.get('format_version') != FORMAT_VERSION:
+            raise MetadataMismatchError(
+                path, 'format_version', FORMAT_VERSION, raw.get('format_version'))
+        try:
+            raw['features'] = tuple(raw['features'])
+            raw['targets'] = tuple(raw['targets'])
+            raw['training_bags'] = tuple(raw['training_bags'])
+            return cls(**raw)
+        except (KeyError, TypeError) as err:
+            msg = f'model {path}: {METADATA_NAME} lacks or has unknown fields ({err})'
+            raise ModelFileError(msg) from err
+
+
+@dataclass(frozen=True)
+class LoadedModel:
+    """A checked, warmed-up predictor ready for inference."""
+
+    module: torch.jit.ScriptModule
+    metadata: ModelMetadata
+    path: str
+    sha256: str
+
+    def predict(self, windows: torch.Tensor) -> torch.Tensor:
+        """(B, window, features) float64 SI windows -> (B, 2) predicted error [m]."""
+        with torch.inference_mode():
+            return self.module(windows)
+
+
+def file_sha256(path: str | Path) -> str:
+    """sha256 of a file's bytes, read in blocks."""
+    digest = hashlib.sha256()
+    with open(path, 'rb') as stream:
+        for block in iter(lambda: stream.read(1 << 20), b''):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def save_model(path: str | Path, module: torch.nn.Module, metadata: ModelMetadata) -> Path:
+    """Script `module` and write it with its metadata to `path`, atomically."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    scripted = module if isinstance(module, torch.jit.ScriptModule) else torch.jit.script(module)
+    descriptor, staging = tempfile.mkstemp(prefix=f'.{path.name}.', dir=path.parent)
+    os.close(descriptor)
+    try:
+        torch.jit.save(scripted, staging, _extra_files={METADATA_NAME: metadata.to_json()})
+        os.replace(staging, path)
+    finally:
+        if os.path.exists(staging):
+            os.unlink(staging)
+    return path
+
+
+def load_model(
+    path: str | Path,
+    *,
+    expected: Mapping[str, Any] | None = None,
+    sha256: str | None = None,
+) -> LoadedModel:
+    """Open, check and warm up a model file.
+
+    `sha256`, when given, is checked before the file is deserialised (a TorchScript file is
+    code). `expected` maps metadata field names to the values the caller's configuration
+    needs; the first disagreement raises `MetadataMismatchError` naming the field. A warm-up
+    inference on a zero window checks the output shape before anyone relies on it.
+    """
+    path = Path(path)
+    if not path.is_file():
+        msg = f'model {path}: no such file'
+        raise ModelFileError(msg)
+    digest = file_sha256(path)
+    if sha256 and digest != sha256.lower():
+        raise MetadataMismatchError(str(path), 'sha256', sha256.lower(), digest)
+    extra = {METADATA_NAME: ''}
+    try:
+        module = torch.jit.load(str(path), map_location='cpu', _extra_files=extra)
+    except (RuntimeError, ValueError, OSError) as err:
+        msg = f'model {path}: not a TorchScript file ({str(err).splitlines()[0]})'
+        raise ModelFileError(msg) from err
+    if not extra[METADATA_NAME]:
+        msg = f'model {path}: no {METADATA_NAME} inside; not a lompr_predictor model'
+        raise ModelFileError(msg)
+    metadata = ModelMetadata.from_json(extra[METADATA_NAME], str(path))
+    for name, value in (expected or {}).items():
+        found = getattr(metadata, name)
+        if _normalised(found) != _normalised(value):
+            raise MetadataMismatchError(str(path), name, value, found)
+    module.eval()
+    loaded = LoadedModel(module=module, metadata=metadata, path=str(path), sha256=digest)
+    warm = torch.zeros((1, metadata.window, len(metadata.features)), dtype=torch.float64)
+    try:
+        output = loaded.predict(warm)
+    except RuntimeError as err:
+        msg = f'model {path}: warm-up inference failed ({str(err).splitlines()[0]})'
+        raise ModelFileError(msg) from err
+    if tuple(output.shape) != (1, len(metadata.targets)):
+        msg = (f'model {path}: warm-up output has shape {tuple(output.shape)}, '
+               f'expected (1, {len(metadata.targets)})')
+        raise ModelFileError(msg)
+    return loaded
+
+
+def _normalised(value: Any) -> Any:
+    """Compare lists and tuples alike, floats to 1e-12 relative."""
+    if isinstance(value, (list, tuple)):
+        return tuple(_normalised(v) for v in value)
+    if isinstance(value, float):
+        return round(value, 12)
+    return value
