@@ -1,0 +1,1 @@
+"""lompr_predictor: LOMPR end-trajectory error prediction and compensation (ROS 2 Jazzy)."""

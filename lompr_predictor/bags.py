@@ -121,7 +121,7 @@ def write_recording(
                     stamp = int(joints.stamps[index])
                     message = joint_state(
                         header=_header(stamp, ''), name=list(joints.names),
-                        position=np.asarray(joints.positions[index], dtype=np.float64),
+                        position=np.ascontiguousarray(joints.positions[index], dtype=np.float64),
                         velocity=np.empty(0), effort=np.empty(0))
                     writer.write(joint_conn, stamp,
                                  _TYPESTORE.serialize_cdr(message, JOINT_STATE))

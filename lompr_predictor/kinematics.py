@@ -4,7 +4,7 @@ Three entry points, one per use:
 
 - `ForwardKinematics.solve`: one sample, as the kinematics node calls it. Newton on the three
   branch-length equations |B_i(alpha, beta, d) - A_i| = l_i with Pinocchio's joint placement
-  and Jacobian of the platform, warm-started from an extrapolation of the last two solutions.
+  and Jacobian of the platform, warm-started from an extrapolation of the last solutions.
 - `batch_forward_kinematics`: the same equations solved for a whole recording at once,
   vectorised with NumPy over samples (the offline trainer pushes millions through it).
 - `inverse_kinematics`: closed form for a vertical tool, tip position -> all joints, with the
@@ -169,7 +169,7 @@ class ForwardKinematics:
         except KinematicsError:
             self._history.clear()
             raise
-        self._history = [*self._history[-1:], up]
+        self._history = [*self._history[-2:], up]
         q = self._q_tool
         q[:3] = up
         q[3], q[4], q[5] = math.cos(joints[3]), math.sin(joints[3]), joints[4]
@@ -178,16 +178,28 @@ class ForwardKinematics:
         return ToolPose(tool.translation.copy(), pin.Quaternion(tool.rotation).coeffs().copy())
 
     def _initial_guess(self) -> np.ndarray:
-        if len(self._history) == 2:
-            return 2.0 * self._history[1] - self._history[0]
-        if self._history:
-            return self._history[0].copy()
-        return self.geometry.nominal_up
+        # Quadratic extrapolation of the last three solutions: at 25 Hz along the spiral it
+        # starts within ~1e-6 (linear: ~5e-5), so one Newton step usually converges.
+        history = self._history
+        if len(history) == 3:
+            return 3.0 * (history[2] - history[1]) + history[0]
+        if len(history) == 2:
+            return 2.0 * history[1] - history[0]
+        return history[0].copy()
 
     def _solve_up(self, lengths: list[float]) -> np.ndarray:
-        """Newton on |B_i(q) - A_i| - l_i = 0 for q = (alpha, beta, d)."""
+        """Newton from the warm start; if that fails (a jump in the stream can extrapolate
+        far away), once more from the nominal posture before reporting the failure."""
+        if self._history:
+            try:
+                return self._newton(lengths, self._initial_guess())
+            except KinematicsError:
+                pass
+        return self._newton(lengths, self.geometry.nominal_up)
+
+    def _newton(self, lengths: list[float], q: np.ndarray) -> np.ndarray:
+        """Newton on |B_i(q) - A_i| - l_i = 0 for q = (alpha, beta, d), from q (modified)."""
         model, data, joint = self._up_model, self._up_data, self._platform_joint
-        q = self._initial_guess()
         for iteration in range(1, MAX_ITERATIONS + 1):
             pin.computeJointJacobians(model, data, q)
             placement = data.oMi[joint]
@@ -195,7 +207,7 @@ class ForwardKinematics:
             # Anchor positions relative to the platform origin, in world axes.
             offsets = (self._platform_anchors @ placement.rotation.T).tolist()
             origin = placement.translation.tolist()
-            lin, ang = jacobian[:3].T.tolist(), jacobian[3:].T.tolist()
+            columns = jacobian.T.tolist()  # per q_k: linear (3) then angular (3) velocity
             rows, residual = [], []
             for (cx, cy, cz), (ax, ay, az), length in zip(
                     offsets, self._base_anchors_list, lengths):
@@ -204,9 +216,8 @@ class ForwardKinematics:
                 ux, uy, uz = vx / norm, vy / norm, vz / norm
                 # d|v|/dq_k = u . (v_k + w_k x c): anchor velocity from the platform twist.
                 wx, wy, wz = cy * uz - cz * uy, cz * ux - cx * uz, cx * uy - cy * ux
-                rows.append([
-                    ux * lv[0] + uy * lv[1] + uz * lv[2] + wx * av[0] + wy * av[1] + wz * av[2]
-                    for lv, av in zip(lin, ang)])
+                rows.append([ux * vx_k + uy * vy_k + uz * vz_k + wx * ox_k + wy * oy_k + wz * oz_k
+                             for vx_k, vy_k, vz_k, ox_k, oy_k, oz_k in columns])
                 residual.append(norm - length)
             (n0, n1, n2), det = _cofactor_solve(rows, residual)
             if abs(det) < SINGULAR_DETERMINANT:

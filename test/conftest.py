@@ -18,3 +18,14 @@ from lompr_predictor.robot import RobotDescription, load_robot_description  # no
 def description() -> RobotDescription:
     """The packaged nominal LOMPR description."""
     return load_robot_description()
+
+
+@pytest.fixture
+def ros():  # type: ignore[no-untyped-def]
+    """A `ros_helpers.RosHarness`: own rclpy Context, executor and helper node, shut down
+    after the test. rclpy is imported only by tests that use it."""
+    from ros_helpers import RosHarness
+
+    harness = RosHarness()
+    yield harness
+    harness.shutdown()

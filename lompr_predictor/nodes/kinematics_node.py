@@ -1,0 +1,313 @@
+"""kinematics_node: measured joints (/joint_states) -> tool-tip pose (/lompr/end_pose).
+
+A thin node: it matches joints by name, calls `kinematics.ForwardKinematics.solve`, and
+publishes the pose with the JointState's own stamp in frame `world`. A sample it cannot
+answer (malformed message, missing joint, NaN/inf, branch out of stroke, head angle out of
+range, pose out of workspace, no convergence) gets no output: the reason is counted for
+/diagnostics, a throttled warning says what was wrong, and the next good sample is
+answered. A bad sample or a gap in the stamps restarts the FK warm start.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+from geometry_msgs.msg import PoseStamped
+from rclpy.context import Context
+from rclpy.exceptions import InvalidParameterValueException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+
+from lompr_predictor.errors import (
+    ConvergenceError,
+    JointLimitError,
+    KinematicsError,
+    LomprError,
+    StrokeLimitError,
+    WorkspaceError,
+)
+from lompr_predictor.kinematics import ForwardKinematics, NonFiniteJointError
+from lompr_predictor.monitoring import (
+    LatencyRecorder,
+    Level,
+    LogThrottle,
+    RateMeter,
+    RejectionCounter,
+    Status,
+    latency_values,
+    rejection_values,
+)
+from lompr_predictor.nodes.common import (
+    DiagnosticsPublisher,
+    ParameterSpec,
+    declare_parameters,
+    qos_from_parameters,
+    qos_parameter_specs,
+    run_node,
+)
+from lompr_predictor.robot import MEASURED_JOINTS, WORLD_FRAME, load_robot_description
+
+NODE_NAME = 'kinematics_node'
+
+#: Why a joint state got no end pose; each is a key `rejected.<reason>` in /diagnostics.
+KINEMATICS_REASONS: dict[type[KinematicsError], str] = {
+    NonFiniteJointError: 'non_finite',
+    StrokeLimitError: 'stroke_limit',
+    JointLimitError: 'joint_limit',
+    WorkspaceError: 'workspace',
+    ConvergenceError: 'no_convergence',
+}
+MESSAGE_REASONS = ('malformed', 'unstamped', 'missing_joint')
+REJECTION_REASONS = (*MESSAGE_REASONS, *KINEMATICS_REASONS.values())
+
+PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec(
+        'robot_description_file', '',
+        'URDF of the robot (its calibrated geometry); empty: the packaged nominal LOMPR '
+        'description', read_only=True),
+    ParameterSpec(
+        'joint_names', list(MEASURED_JOINTS),
+        'names, as they appear in the JointState, of the joints ups1, ups2, ups3, '
+        'head_primary, head_secondary (in this order); other names are ignored',
+        read_only=True),
+    ParameterSpec('joint_state_topic', '/joint_states', 'JointState input topic', read_only=True),
+    ParameterSpec('end_pose_topic', '/lompr/end_pose', 'PoseStamped output topic', read_only=True),
+    ParameterSpec('diagnostics_topic', '/diagnostics', 'DiagnosticArray topic', read_only=True),
+    ParameterSpec('frame_id', WORLD_FRAME, 'header.frame_id of the end poses (the frame the '
+                  'robot description calls world)', read_only=True),
+    *qos_parameter_specs('input_qos', depth=100, what='the joint state subscription'),
+    *qos_parameter_specs('output_qos', depth=100, what='the end pose publisher'),
+    ParameterSpec(
+        'warm_start_max_gap', 0.5,
+        'stamp gap [s] above which (or a stamp going backwards) forward kinematics restarts '
+        'from the nominal posture instead of extrapolating the last two solutions',
+        minimum=0.0, maximum=3600.0),
+    ParameterSpec('diagnostics_period', 1.0, 'seconds between /diagnostics messages',
+                  minimum=0.05, maximum=60.0, read_only=True),
+    ParameterSpec('rate_window', 5.0, 'seconds over which input/output rates are averaged',
+                  minimum=0.1, maximum=600.0, read_only=True),
+    ParameterSpec('latency_samples', 1000, 'last solve times kept for the p50/p99',
+                  minimum=10, maximum=1_000_000, read_only=True),
+    ParameterSpec('solve_time_warn', 0.001,
+                  'p99 solve time [s] above which the kinematics status is WARN',
+                  minimum=1e-6, maximum=10.0),
+    ParameterSpec('warning_throttle_period', 5.0,
+                  'seconds between two warnings of the same kind of rejected input',
+                  minimum=0.0, maximum=3600.0),
+)
+
+
+class JointStateError(LomprError):
+    """A JointState message that cannot be turned into the five measured joints."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        self.reason = reason
+        super().__init__(message)
+
+
+@dataclass(frozen=True)
+class KinematicsNodeSettings:
+    """Snapshot of the node's parameters (see `PARAMETERS` for meanings and ranges)."""
+
+    robot_description_file: str
+    joint_names: tuple[str, ...]
+    joint_state_topic: str
+    end_pose_topic: str
+    diagnostics_topic: str
+    frame_id: str
+    warm_start_max_gap: float
+    diagnostics_period: float
+    rate_window: float
+    latency_samples: int
+    solve_time_warn: float
+    warning_throttle_period: float
+
+    @classmethod
+    def from_values(cls, values: Mapping[str, Any]) -> KinematicsNodeSettings:
+        names = tuple(values['joint_names'])
+        if len(names) != len(MEASURED_JOINTS) or len(set(names)) != len(names) or '' in names:
+            raise InvalidParameterValueException(
+                'joint_names', list(names),
+                f'needs {len(MEASURED_JOINTS)} distinct names, for {", ".join(MEASURED_JOINTS)}')
+        fields = {name: values[name] for name in cls.__dataclass_fields__}
+        return cls(**{**fields, 'joint_names': names})
+
+
+class KinematicsNode(Node):
+    """Forward kinematics of every measured JointState, with diagnostics.
+
+    Extra keyword arguments go to `rclpy.node.Node` (`context`, `parameter_overrides`,
+    `namespace`, ...), so tests and one-process pipelines create it on their own context.
+    """
+
+    def __init__(self, node_name: str = NODE_NAME, **node_kwargs: Any) -> None:
+        super().__init__(node_name, **node_kwargs)
+        values = declare_parameters(self, PARAMETERS)
+        self.settings = KinematicsNodeSettings.from_values(values)
+        self.description = load_robot_description(self.settings.robot_description_file or None)
+        self._fk = ForwardKinematics(self.description)
+        self._last_names: tuple[str, ...] | None = None
+        self._indices: list[int] | None = None  # where the joints are in _last_names
+        self._missing = ''  # why _indices is None
+        self._last_stamp_ns: int | None = None
+        self.warm_start_resets = 0
+
+        self.rejected = RejectionCounter(REJECTION_REASONS)
+        self.solve_time = LatencyRecorder(self.settings.latency_samples)
+        self.input_rate = RateMeter(self.settings.rate_window)
+        self.output_rate = RateMeter(self.settings.rate_window)
+        self._throttle = LogThrottle(self.settings.warning_throttle_period)
+        self._rejected_at_last_report = 0
+
+        self._publisher = self.create_publisher(
+            PoseStamped, self.settings.end_pose_topic, qos_from_parameters(values, 'output_qos'))
+        self._subscription = self.create_subscription(
+            JointState, self.settings.joint_state_topic, self.on_joint_state,
+            qos_from_parameters(values, 'input_qos'))
+        self._diagnostics = DiagnosticsPublisher(
+            self, self.settings.diagnostics_topic, self.settings.diagnostics_period,
+            hardware_id=f'urdf sha256 {self.description.sha256[:16]}')
+        self._diagnostics.add('joint states', self.input_status)
+        self._diagnostics.add('forward kinematics', self.kinematics_status)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+        self.get_logger().info(
+            f'forward kinematics of {self.settings.joint_state_topic} -> '
+            f'{self.settings.end_pose_topic} with {self.description.source} '
+            f'(sha256 {self.description.sha256[:16]})')
+
+    def on_joint_state(self, msg: JointState) -> None:
+        """Publish the end pose of one JointState, or count why it has none."""
+        self.input_rate.tick()
+        try:
+            stamp_ns = self._stamp_ns(msg)
+            joints = self._measured_joints(msg)
+            self._check_gap(stamp_ns)
+            with self.solve_time.measure():
+                pose = self._fk.solve(joints)
+        except JointStateError as err:
+            self._fk.reset()
+            self._reject(err.reason, msg, err)
+            return
+        except KinematicsError as err:  # the FK has already dropped its warm start
+            self._reject(KINEMATICS_REASONS.get(type(err), 'kinematics'), msg, err)
+            return
+        out = PoseStamped()
+        out.header.stamp = msg.header.stamp
+        out.header.frame_id = self.settings.frame_id
+        position, orientation = out.pose.position, out.pose.orientation
+        position.x, position.y, position.z = (float(v) for v in pose.position)
+        (orientation.x, orientation.y, orientation.z,
+         orientation.w) = (float(v) for v in pose.quaternion)
+        self._publisher.publish(out)
+        self.output_rate.tick()
+
+    def _stamp_ns(self, msg: JointState) -> int:
+        stamp = msg.header.stamp
+        if stamp.sec == 0 and stamp.nanosec == 0:
+            raise JointStateError('unstamped', 'header.stamp is zero: the sample instant is '
+                                  'unknown, so its pose could not be aligned with anything')
+        return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+    def _measured_joints(self, msg: JointState) -> list[float]:
+        """The five measured joints in `MEASURED_JOINTS` order, matched by name."""
+        if len(msg.position) != len(msg.name):
+            raise JointStateError(
+                'malformed', f'{len(msg.name)} names but {len(msg.position)} positions')
+        names = tuple(msg.name)
+        if names != self._last_names:  # a robot sends the same names every time: match once
+            index = {name: i for i, name in enumerate(names)}
+            missing = [name for name in self.settings.joint_names if name not in index]
+            self._last_names = names
+            self._indices = None if missing else [index[n] for n in self.settings.joint_names]
+            self._missing = (f'missing joint(s) {", ".join(missing)} '
+                             f'(got {", ".join(names) or "none"})')
+        if self._indices is None:
+            raise JointStateError('missing_joint', self._missing)
+        positions = msg.position
+        return [positions[i] for i in self._indices]
+
+    def _check_gap(self, stamp_ns: int) -> None:
+        """Drop the warm start after a gap or a stamp that does not move forward, measured
+        from the previous sample that reached the solver."""
+        last, self._last_stamp_ns = self._last_stamp_ns, stamp_ns
+        if last is None:
+            return
+        gap = (stamp_ns - last) * 1e-9
+        if gap <= 0.0 or gap > self.settings.warm_start_max_gap:
+            self._fk.reset()
+            self.warm_start_resets += 1
+
+    def _reject(self, reason: str, msg: JointState, err: Exception) -> None:
+        self.rejected.add(reason)
+        stamp = msg.header.stamp
+        text = self._throttle.filter(
+            reason, f'no end pose for the joint state at {stamp.sec}.{stamp.nanosec:09d} '
+                    f'({reason}): {err}')
+        if text is not None:
+            self.get_logger().warning(text)
+
+    def input_status(self) -> Status:
+        """Diagnostics of /joint_states: rate, counts, rejections by reason."""
+        rejected = self.rejected.total
+        new_rejections = rejected - self._rejected_at_last_report
+        self._rejected_at_last_report = rejected
+        silence = self.input_rate.seconds_since_last()
+        values: dict[str, object] = {
+            'input_rate_hz': round(self.input_rate.rate(), 3),
+            'received_total': self.input_rate.total,
+            **rejection_values(self.rejected),
+        }
+        topic = self.settings.joint_state_topic
+        if silence is None:
+            return Status(Level.WARN, f'no joint states on {topic} for '
+                                      f'{self.settings.rate_window:g} s', values)
+        if new_rejections:
+            reasons = ', '.join(f'{r}: {n}' for r, n in self.rejected.counts().items() if n)
+            return Status(Level.WARN, f'{new_rejections} joint states rejected since the last '
+                                      f'report (totals {reasons})', values)
+        return Status(Level.OK, f'{values["input_rate_hz"]} Hz', values)
+
+    def kinematics_status(self) -> Status:
+        """Diagnostics of the FK: solve times, output rate, warm-start resets."""
+        summary = self.solve_time.summary()
+        values: dict[str, object] = {
+            **latency_values('solve_time', summary),
+            'output_rate_hz': round(self.output_rate.rate(), 3),
+            'published_total': self.output_rate.total,
+            'warm_start_resets': self.warm_start_resets,
+            'newton_iterations_last': self._fk.last_iterations,
+            'robot_description': self.description.source,
+            'robot_description_sha256': self.description.sha256,
+        }
+        if summary.count == 0:
+            return Status(Level.OK, 'no joint state solved yet', values)
+        timing = f'solve p50 {summary.p50 * 1e6:.1f} us, p99 {summary.p99 * 1e6:.1f} us'
+        if summary.p99 > self.settings.solve_time_warn:
+            limit = self.settings.solve_time_warn * 1e6
+            return Status(Level.WARN, f'{timing} (over {limit:.0f} us)', values)
+        return Status(Level.OK, timing, values)
+
+    def _apply_parameters(self, parameters: Sequence[Parameter]) -> None:
+        """Take the runtime-changeable parameters (the read-only ones never reach here)."""
+        changes = {p.name: p.value for p in parameters
+                   if p.name in KinematicsNodeSettings.__dataclass_fields__}
+        self.settings = replace(self.settings, **changes)
+        if 'warning_throttle_period' in changes:
+            self._throttle.period = self.settings.warning_throttle_period
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console script `kinematics_node` (`ros2 run lompr_predictor kinematics_node`)."""
+    def build(context: Context) -> KinematicsNode:
+        return KinematicsNode(context=context)
+
+    return run_node(build, description=__doc__.split('\n', 1)[0], parameters=PARAMETERS,
+                    argv=argv)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

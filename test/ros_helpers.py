@@ -1,0 +1,92 @@
+"""Launch-free ROS test helpers: one context, one executor, wait with deadlines.
+
+Use through the `ros` fixture of conftest.py:
+
+    def test_x(ros: RosHarness) -> None:
+        node = ros.add(KinematicsNode(context=ros.context))
+        received = ros.collect('/lompr/end_pose', PoseStamped)
+        publisher = ros.node.create_publisher(JointState, '/joint_states', 10)
+        ros.wait_for_subscribers(publisher)            # discovery, not a sleep
+        ros.wait_for_publishers('/lompr/end_pose')
+        publisher.publish(msg)
+        ros.spin_until(lambda: len(received) == 1, what='one end pose')
+
+Everything is created on the harness's own `rclpy.context.Context` and torn down with it.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import Executor, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.publisher import Publisher
+from rclpy.qos import QoSProfile
+
+from lompr_predictor.nodes.common import spin_until
+
+DEFAULT_TIMEOUT = 10.0
+
+
+class RosHarness:
+    """A context, an executor spinning every node added, and a helper node `node` for the
+    test's own publishers and subscriptions."""
+
+    def __init__(self, executor_factory: Callable[[Context], Executor] | None = None) -> None:
+        self.context = Context()
+        rclpy.init(context=self.context)
+        factory = executor_factory or (lambda context: SingleThreadedExecutor(context=context))
+        self.executor = factory(self.context)
+        self._nodes: list[Node] = []
+        self.node = self.add(Node('test_harness', context=self.context))
+
+    def add(self, node: Node) -> Any:
+        """Spin `node` on the harness executor and destroy it at shutdown; returns it."""
+        self.executor.add_node(node)
+        self._nodes.append(node)
+        return node
+
+    def collect(self, topic: str, msg_type: type, qos: QoSProfile | int = 10) -> list[Any]:
+        """Subscribe the helper node to `topic`; the returned list fills as messages arrive."""
+        received: list[Any] = []
+        self.node.create_subscription(msg_type, topic, received.append, qos)
+        return received
+
+    def spin_until(
+        self, condition: Callable[[], bool], timeout: float = DEFAULT_TIMEOUT, what: str = '',
+    ) -> None:
+        """Spin until `condition()` holds; fail the test with `what` after `timeout` s."""
+        if not spin_until(self.executor, condition, timeout):
+            raise AssertionError(f'timed out after {timeout} s waiting for {what or condition}')
+
+    def spin_for(self, seconds: float) -> None:
+        """Spin for a fixed time: only to give a message that must NOT come its chance."""
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def wait_for_subscribers(
+        self, publisher: Publisher, count: int = 1, timeout: float = DEFAULT_TIMEOUT,
+    ) -> None:
+        """Spin until `publisher` has matched `count` subscriptions (discovery done)."""
+        self.spin_until(lambda: publisher.get_subscription_count() >= count, timeout,
+                        f'{count} subscriber(s) on {publisher.topic_name}')
+
+    def wait_for_publishers(
+        self, topic: str, count: int = 1, timeout: float = DEFAULT_TIMEOUT,
+    ) -> None:
+        """Spin until the graph shows `count` publishers on `topic` (discovery done)."""
+        self.spin_until(lambda: self.node.count_publishers(topic) >= count, timeout,
+                        f'{count} publisher(s) on {topic}')
+
+    def shutdown(self) -> None:
+        """Destroy nodes, executor and context (the fixture's teardown)."""
+        for node in reversed(self._nodes):
+            self.executor.remove_node(node)
+            node.destroy_node()
+        self.executor.shutdown()
+        self.context.try_shutdown()

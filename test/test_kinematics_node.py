@@ -1,0 +1,164 @@
+"""kinematics_node in the test process: IK joints in, the same poses out to 1e-9 m; bad
+inputs dropped, counted by reason in /diagnostics, and the node keeps answering."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseStamped
+from rclpy.exceptions import InvalidParameterValueException
+from rclpy.parameter import Parameter
+from ros_helpers import RosHarness
+from sensor_msgs.msg import JointState
+
+from lompr_predictor.kinematics import inverse_kinematics
+from lompr_predictor.nodes.kinematics_node import REJECTION_REASONS, KinematicsNode
+from lompr_predictor.robot import MEASURED_JOINTS, RobotDescription
+
+MIRROR_Z = 1.097
+#: Known tool-tip poses: centre, the spiral's start, the mirror's rim, z at both ends of
+#: the +-0.05 m band.
+KNOWN_TIPS = np.array([
+    [0.0, 0.0, MIRROR_Z],
+    [0.0, 0.02, MIRROR_Z],
+    [0.2, 0.0, MIRROR_Z],
+    [-0.1, 0.15, MIRROR_Z + 0.05],
+    [0.12, -0.16, MIRROR_Z - 0.05],
+    [-0.2 / math.sqrt(2), -0.2 / math.sqrt(2), MIRROR_Z],
+])
+
+
+def joint_state(stamp_s: float, positions: Sequence[float],
+                names: Sequence[str] = MEASURED_JOINTS) -> JointState:
+    msg = JointState(name=list(names), position=[float(p) for p in positions])
+    msg.header.stamp.sec = int(stamp_s)
+    msg.header.stamp.nanosec = round((stamp_s - int(stamp_s)) * 1e9)
+    return msg
+
+
+def stamp_of(msg: JointState | PoseStamped) -> tuple[int, int]:
+    return msg.header.stamp.sec, msg.header.stamp.nanosec
+
+
+class Wiring:
+    """A kinematics node plus the test's publisher and collectors, discovery done."""
+
+    def __init__(self, ros: RosHarness, **overrides: object) -> None:
+        parameters = {'diagnostics_period': 0.1, **overrides}
+        self.ros = ros
+        self.node = ros.add(KinematicsNode(context=ros.context, parameter_overrides=[
+            Parameter(name, value=value) for name, value in parameters.items()]))
+        self.poses: list[PoseStamped] = ros.collect('/lompr/end_pose', PoseStamped, 100)
+        self.diagnostics: list[DiagnosticArray] = ros.collect('/diagnostics', DiagnosticArray)
+        self.publisher = ros.node.create_publisher(JointState, '/joint_states', 100)
+        ros.wait_for_subscribers(self.publisher)
+        ros.wait_for_publishers('/lompr/end_pose')
+
+    def publish(self, messages: Sequence[JointState]) -> None:
+        for msg in messages:
+            self.publisher.publish(msg)
+
+    def status(self, name: str) -> dict[str, str] | None:
+        """Key-values of the latest status `kinematics_node: <name>`, or None yet."""
+        for array in reversed(self.diagnostics):
+            for status in array.status:
+                if status.name == f'kinematics_node: {name}':
+                    return {kv.key: kv.value for kv in status.values} | {
+                        '_level': status.level, '_message': status.message}
+        return None
+
+
+def test_known_poses_round_trip_with_same_stamp(
+        ros: RosHarness, description: RobotDescription) -> None:
+    wiring = Wiring(ros)
+    joints = inverse_kinematics(description.geometry, KNOWN_TIPS).joints
+    sent = [joint_state(1000.0 + 0.04 * i, row) for i, row in enumerate(joints)]
+    wiring.publish(sent)
+    ros.spin_until(lambda: len(wiring.poses) == len(sent), what='an end pose per joint state')
+    for msg, pose, tip in zip(sent, wiring.poses, KNOWN_TIPS):
+        assert stamp_of(pose) == stamp_of(msg)
+        assert pose.header.frame_id == 'world'
+        position = pose.pose.position
+        np.testing.assert_allclose([position.x, position.y, position.z], tip, rtol=0, atol=1e-9)
+        q = pose.pose.orientation
+        # The tool axis (rotated z) is vertical: R[2, 2] = 1 - 2 (x^2 + y^2).
+        assert 1.0 - 2.0 * (q.x ** 2 + q.y ** 2) == pytest.approx(1.0, abs=1e-9)
+    ros.spin_until(lambda: (wiring.status('forward kinematics') or {}).get(
+        'published_total') == str(len(sent)), what='diagnostics counting the poses')
+    kinematics = wiring.status('forward kinematics')
+    assert kinematics is not None and kinematics['_level'] == DiagnosticStatus.OK
+    assert 0.0 < float(kinematics['solve_time_p50_us']) <= float(kinematics['solve_time_p99_us'])
+    assert kinematics['robot_description_sha256'] == description.sha256
+
+
+def test_bad_inputs_are_dropped_counted_and_next_good_answered(
+        ros: RosHarness, description: RobotDescription) -> None:
+    wiring = Wiring(ros)
+    geometry = description.geometry
+    good = inverse_kinematics(geometry, KNOWN_TIPS[[1, 3, 4]]).joints
+    names = list(MEASURED_JOINTS)
+    shuffled_order = [4, 2, 0, 3, 1]
+    too_long = good[0].copy()
+    too_long[1] = geometry.stroke_upper[1] + 0.01
+    nan = good[0].copy()
+    nan[3] = math.nan
+    unstamped = joint_state(0.0, good[0])
+    sent = [
+        joint_state(10.00, good[0]),                                       # answered
+        joint_state(10.04, nan),                                           # non_finite
+        joint_state(10.08, good[0][:4], names[:4]),                        # missing_joint
+        joint_state(10.12, [*good[1][shuffled_order], 0.3],                # answered
+                    [names[i] for i in shuffled_order] + ['spindle']),
+        joint_state(10.16, too_long),                                      # stroke_limit
+        joint_state(10.20, good[1][:3], names),                            # malformed
+        unstamped,                                                         # unstamped
+        joint_state(12.00, [math.inf, *good[2][1:]]),                      # non_finite
+        joint_state(12.04, good[2]),                                       # answered
+    ]
+    wiring.publish(sent)
+    ros.spin_until(lambda: len(wiring.poses) == 3, what='the three good samples answered')
+    assert [stamp_of(p) for p in wiring.poses] == [stamp_of(sent[i]) for i in (0, 3, 8)]
+    for pose, tip in zip(wiring.poses, KNOWN_TIPS[[1, 3, 4]]):
+        position = pose.pose.position
+        np.testing.assert_allclose([position.x, position.y, position.z], tip, rtol=0, atol=1e-9)
+
+    expected = {'non_finite': 2, 'missing_joint': 1, 'stroke_limit': 1, 'malformed': 1,
+                'unstamped': 1}
+    ros.spin_until(lambda: (wiring.status('joint states') or {}).get('received_total')
+                   == str(len(sent)), what='diagnostics of all joint states')
+    inputs = wiring.status('joint states')
+    assert inputs is not None
+    assert inputs['rejected_total'] == str(sum(expected.values()))
+    assert {reason: int(inputs[f'rejected.{reason}']) for reason in REJECTION_REASONS} == {
+        reason: expected.get(reason, 0) for reason in REJECTION_REASONS}
+    assert wiring.node.rejected.counts() == {r: expected.get(r, 0) for r in REJECTION_REASONS}
+    # The 1.84 s gap between 10.16 and 12.00 restarted the warm start once.
+    assert wiring.status('forward kinematics')['warm_start_resets'] == '1'
+
+
+def test_renamed_joints_and_bad_joint_names_parameter(
+        ros: RosHarness, description: RobotDescription) -> None:
+    renamed = ['l1', 'l2', 'l3', 'c_axis', 'a_axis']
+    wiring = Wiring(ros, joint_names=renamed)
+    joints = inverse_kinematics(description.geometry, KNOWN_TIPS[:2]).joints
+    wiring.publish([joint_state(5.0, joints[0], renamed),
+                    joint_state(5.04, joints[1], MEASURED_JOINTS)])  # default names: missing
+    ros.spin_until(lambda: wiring.node.input_rate.total == 2, what='both joint states')
+    ros.spin_until(lambda: len(wiring.poses) == 1, what='the renamed sample answered')
+    np.testing.assert_allclose(
+        [wiring.poses[0].pose.position.x, wiring.poses[0].pose.position.y], KNOWN_TIPS[0, :2],
+        atol=1e-9)
+    assert wiring.node.rejected['missing_joint'] == 1
+    # Runtime-changeable parameters reach the settings snapshot; read-only ones are refused.
+    node = wiring.node
+    assert node.set_parameters([Parameter('warm_start_max_gap', value=2.0)])[0].successful
+    assert node.settings.warm_start_max_gap == 2.0
+    assert not node.set_parameters([Parameter('frame_id', value='base')])[0].successful
+    assert node.settings.frame_id == 'world'
+    with pytest.raises(InvalidParameterValueException, match='5 distinct names'):
+        KinematicsNode(node_name='bad_names', context=ros.context, parameter_overrides=[
+            Parameter('joint_names', value=['a', 'a', 'b', 'c', 'd'])])

@@ -1,0 +1,142 @@
+"""Counters, rate meter, latency percentiles and log throttle, driven by a fake clock."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lompr_predictor.monitoring import (
+    LatencyRecorder,
+    LatencySummary,
+    Level,
+    LogThrottle,
+    RateMeter,
+    RejectionCounter,
+    Status,
+    latency_values,
+    rejection_values,
+)
+
+
+class FakeClock:
+    """A clock the test moves by hand."""
+
+    def __init__(self, now: float = 100.0) -> None:
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_rejection_counter_counts_by_reason_and_keeps_declared_zeros() -> None:
+    counter = RejectionCounter(['non_finite', 'missing_joint'])
+    counter.add('non_finite')
+    counter.add('non_finite', 2)
+    counter.add('stroke_limit')
+    assert counter['non_finite'] == 3
+    assert counter['missing_joint'] == 0
+    assert counter['never_seen'] == 0
+    assert counter.total == 4
+    assert counter.counts() == {'non_finite': 3, 'missing_joint': 0, 'stroke_limit': 1}
+    assert rejection_values(counter) == {
+        'rejected_total': 4, 'rejected.non_finite': 3, 'rejected.missing_joint': 0,
+        'rejected.stroke_limit': 1}
+    with pytest.raises(ValueError, match='negative'):
+        counter.add('non_finite', -1)
+
+
+def test_rate_meter_is_exact_from_start_and_over_the_window() -> None:
+    clock = FakeClock()
+    meter = RateMeter(window=2.0, clock=clock)
+    assert meter.rate() == 0.0
+    assert meter.seconds_since_last() is None
+    # 100 Hz for 0.5 s: 50 events in 0.5 s since start.
+    for _ in range(50):
+        clock.now += 0.01
+        meter.tick()
+    assert meter.rate() == pytest.approx(100.0)
+    # Then 25 Hz for 3 s: the 2 s window holds only 25 Hz events.
+    for _ in range(75):
+        clock.now += 0.04
+        meter.tick()
+    assert meter.rate() == pytest.approx(25.0)
+    assert meter.total == 125
+    # Silence: one second later half the window is empty, after the window all of it.
+    clock.now += 1.0
+    assert meter.rate() == pytest.approx(12.5)
+    assert meter.seconds_since_last() == pytest.approx(1.0)
+    clock.now += 1.0
+    assert meter.rate() == 0.0
+    assert meter.seconds_since_last() is None
+    with pytest.raises(ValueError, match='positive'):
+        RateMeter(window=0.0)
+
+
+def test_latency_recorder_percentiles_over_last_samples() -> None:
+    recorder = LatencyRecorder(capacity=100)
+    summary = recorder.summary()
+    assert summary.count == 0 and math.isnan(summary.p50) and math.isnan(summary.p99)
+    # 1..100 microseconds: p50 = 50.5 us, p99 = 99.01 us (linear interpolation).
+    for us in range(1, 101):
+        recorder.record(us * 1e-6)
+    summary = recorder.summary()
+    assert summary.count == 100
+    assert summary.p50 == pytest.approx(50.5e-6)
+    assert summary.p99 == pytest.approx(99.01e-6)
+    assert summary.max == pytest.approx(100e-6)
+    # 100 more of 1 ms push all the old ones out.
+    for _ in range(100):
+        recorder.record(1e-3)
+    assert recorder.summary() == pytest.approx(LatencySummary(100, 1e-3, 1e-3, 1e-3))
+    assert recorder.total == 200
+    assert latency_values('solve', LatencySummary(10, 35e-6, 80.5e-6, 1e-4)) == {
+        'solve_p50_us': 35.0, 'solve_p99_us': 80.5, 'solve_max_us': 100.0, 'solve_samples': 10}
+    with pytest.raises(ValueError, match='at least 1'):
+        LatencyRecorder(capacity=0)
+
+
+def test_latency_recorder_partial_buffer_matches_numpy() -> None:
+    rng = np.random.default_rng(3)
+    values = rng.exponential(40e-6, size=37)
+    recorder = LatencyRecorder(capacity=1000)
+    for value in values:
+        recorder.record(float(value))
+    summary = recorder.summary()
+    assert summary.count == 37
+    assert summary.p50 == pytest.approx(np.median(values))
+    assert summary.p99 == pytest.approx(np.percentile(values, 99))
+
+
+def test_latency_measure_records_even_when_block_raises() -> None:
+    recorder = LatencyRecorder(capacity=4)
+    with recorder.measure():
+        sum(range(1000))
+    with pytest.raises(RuntimeError), recorder.measure():
+        raise RuntimeError('boom')
+    summary = recorder.summary()
+    assert summary.count == 2
+    assert 0.0 < summary.max < 1.0
+
+
+def test_log_throttle_passes_one_per_period_and_counts_the_rest() -> None:
+    clock = FakeClock()
+    throttle = LogThrottle(period=5.0, clock=clock)
+    assert throttle.filter('nan', 'NaN in ups1') == 'NaN in ups1'
+    clock.now += 1.0
+    assert throttle.filter('nan', 'NaN in ups2') is None
+    assert throttle.filter('missing', 'no ups3') == 'no ups3'  # other keys are independent
+    clock.now += 1.0
+    assert throttle.filter('nan', 'NaN in ups1') is None
+    clock.now += 3.0
+    assert throttle.filter('nan', 'NaN in ups3') == (
+        'NaN in ups3 (2 more like this in the last 5.0 s)')
+    clock.now += 5.0
+    assert throttle.filter('nan', 'NaN in ups1') == 'NaN in ups1'
+
+
+def test_status_defaults_and_levels_match_diagnostic_msgs() -> None:
+    status = Status(Level.WARN, 'slow')
+    assert dict(status.values) == {}
+    assert [int(level) for level in Level] == [0, 1, 2, 3]
