@@ -1,0 +1,289 @@
+"""twin_node: the live digital twin of the LOMPR, a stand-in for the robot's controller.
+
+Publishes the measured joints (/joint_states) and the nominal commanded tool tip
+(/lompr/reference) of each sample, stamped on the simulated clock, and applies the
+feedforward offsets of /lompr/compensation by stamp (CONTRACT section 3): an offset is
+used at the instant it names, and dropped like a real controller drops it when it arrives
+after that instant, waited longer than `compensation_timeout`, is off the sample grid,
+non-finite or larger than `max_compensation`. For scoring it publishes, per sample, its true
+error (tool tip - reference) and its plant error (tool tip - reference - offset applied).
+
+Modes: `realtime` runs a sample every sample period divided by `speed_factor`; `lockstep`
+runs the next sample as soon as its offset has arrived, or `lockstep_timeout` seconds after
+the previous sample without one, so a closed loop runs as fast as the nodes answer. The
+physics is `twin.DigitalTwin`, one sample per step.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import PoseStamped, Vector3Stamped
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+
+from lompr_predictor.monitoring import (
+    LatencyRecorder,
+    Level,
+    RateMeter,
+    Status,
+    latency_values,
+    rejection_values,
+)
+from lompr_predictor.nodes.common import (
+    DiagnosticsPublisher,
+    ParameterSpec,
+    declare_parameters,
+    qos_from_parameters,
+    qos_parameter_specs,
+    run_node,
+)
+from lompr_predictor.paths import PATH_KINDS
+from lompr_predictor.robot import MEASURED_JOINTS, WORLD_FRAME, load_robot_description
+from lompr_predictor.twin.compensation import CompensationSchedule
+from lompr_predictor.twin.digital_twin import DigitalTwin, TwinSamples
+from lompr_predictor.twin.parameters import load_twin_parameters
+
+NODE_NAME = 'twin_node'
+MODES = ('realtime', 'lockstep')
+
+PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec('robot_description_file', '',
+                  'URDF of the robot; empty: the packaged nominal LOMPR description',
+                  read_only=True),
+    ParameterSpec('twin_parameters_file', '',
+                  'twin physics YAML overriding the packaged config/twin.yaml; empty: defaults',
+                  read_only=True),
+    ParameterSpec('path', 'spiral', 'path the robot runs, pass after pass',
+                  choices=PATH_KINDS, read_only=True),
+    ParameterSpec('seed', 0, 'random seed of the twin (tolerances, drift, noise)',
+                  minimum=0, maximum=2 ** 31 - 1, read_only=True),
+    ParameterSpec('passes', 0, 'passes to run before stopping; 0: run until shut down',
+                  minimum=0, maximum=1_000_000, read_only=True),
+    ParameterSpec('mode', 'realtime', 'realtime (a sample per period / speed_factor) or '
+                  'lockstep (a sample when its compensation arrived, or after '
+                  'lockstep_timeout)', choices=MODES, read_only=True),
+    ParameterSpec('speed_factor', 1.0, 'realtime mode: simulated seconds per wall second',
+                  minimum=0.01, maximum=1000.0, read_only=True),
+    ParameterSpec('lockstep_timeout', 0.1, 'lockstep mode: wall seconds to wait for the next '
+                  "sample's compensation before running it without", minimum=0.001,
+                  maximum=60.0, read_only=True),
+    ParameterSpec('compensation_enabled', True, 'apply /lompr/compensation offsets (false: '
+                  'count and ignore them)', read_only=True),
+    ParameterSpec('compensation_timeout', 1.0, 'simulated seconds an offset may wait between '
+                  'its arrival and its instant; older ones are dropped as stale',
+                  minimum=0.0, maximum=3600.0, read_only=True),
+    ParameterSpec('max_compensation', 1e-3, 'largest offset [m] accepted in any axis; larger '
+                  'ones are dropped', minimum=0.0, maximum=0.05, read_only=True),
+    ParameterSpec('joint_state_topic', '/joint_states', 'JointState output', read_only=True),
+    ParameterSpec('reference_topic', '/lompr/reference', 'PoseStamped output: nominal '
+                  'commanded tool tip', read_only=True),
+    ParameterSpec('compensation_topic', '/lompr/compensation', 'Vector3Stamped input: '
+                  'feedforward offset for the instant in its stamp', read_only=True),
+    ParameterSpec('true_error_topic', '/lompr/twin/true_error', 'Vector3Stamped debug output: '
+                  'true tool tip - reference [m]', read_only=True),
+    ParameterSpec('plant_error_topic', '/lompr/twin/plant_error', 'Vector3Stamped debug '
+                  'output: true tool tip - reference - applied offset [m]', read_only=True),
+    ParameterSpec('diagnostics_topic', '/diagnostics', 'DiagnosticArray topic', read_only=True),
+    ParameterSpec('frame_id', WORLD_FRAME, 'header.frame_id of the reference and the errors',
+                  read_only=True),
+    *qos_parameter_specs('output_qos', depth=100, what='the joint state, reference and error '
+                         'publishers'),
+    *qos_parameter_specs('input_qos', depth=100, what='the compensation subscription'),
+    ParameterSpec('diagnostics_period', 1.0, 'seconds between /diagnostics messages',
+                  minimum=0.05, maximum=60.0, read_only=True),
+    ParameterSpec('rate_window', 5.0, 'seconds over which the sample rate is averaged',
+                  minimum=0.1, maximum=600.0, read_only=True),
+)
+
+
+@dataclass(frozen=True)
+class TwinNodeSettings:
+    """Snapshot of the node's parameters (see `PARAMETERS`)."""
+
+    robot_description_file: str
+    twin_parameters_file: str
+    path: str
+    seed: int
+    passes: int
+    mode: str
+    speed_factor: float
+    lockstep_timeout: float
+    compensation_enabled: bool
+    compensation_timeout: float
+    max_compensation: float
+    joint_state_topic: str
+    reference_topic: str
+    compensation_topic: str
+    true_error_topic: str
+    plant_error_topic: str
+    diagnostics_topic: str
+    frame_id: str
+    diagnostics_period: float
+    rate_window: float
+
+    @classmethod
+    def from_values(cls, values: Mapping[str, Any]) -> TwinNodeSettings:
+        return cls(**{name: values[name] for name in cls.__dataclass_fields__})
+
+
+class TwinNode(Node):
+    """The digital twin as a ROS node. Extra keyword arguments go to `rclpy.node.Node`."""
+
+    def __init__(self, node_name: str = NODE_NAME, **node_kwargs: Any) -> None:
+        super().__init__(node_name, **node_kwargs)
+        values = declare_parameters(self, PARAMETERS)
+        self.settings = settings = TwinNodeSettings.from_values(values)
+        description = load_robot_description(settings.robot_description_file or None)
+        params = load_twin_parameters(settings.twin_parameters_file or None)
+        self.twin = DigitalTwin(description, params, seed=settings.seed, path=settings.path)
+        period = params.sample_period
+        self.total_samples = settings.passes * len(self.twin.cycle) or None
+        self.schedule = CompensationSchedule(
+            self.twin.epoch_ns, self.twin.period_ns,
+            timeout_samples=int(settings.compensation_timeout / period),
+            max_offset=settings.max_compensation)
+        self.ignored_compensations = 0
+        self._rejected_at_last_report = 0
+        self.step_time = LatencyRecorder()
+        self.sample_rate = RateMeter(settings.rate_window)
+        self._last_step = time.monotonic()
+
+        output_qos = qos_from_parameters(values, 'output_qos')
+        self._joint_publisher = self.create_publisher(
+            JointState, settings.joint_state_topic, output_qos)
+        self._reference_publisher = self.create_publisher(
+            PoseStamped, settings.reference_topic, output_qos)
+        self._true_error_publisher = self.create_publisher(
+            Vector3Stamped, settings.true_error_topic, output_qos)
+        self._plant_error_publisher = self.create_publisher(
+            Vector3Stamped, settings.plant_error_topic, output_qos)
+        self.create_subscription(Vector3Stamped, settings.compensation_topic,
+                                 self.on_compensation, qos_from_parameters(values, 'input_qos'))
+        if settings.mode == 'realtime':
+            self._timer = self.create_timer(period / settings.speed_factor, self.step)
+        else:
+            self._timer = self.create_timer(settings.lockstep_timeout / 4.0,
+                                            self._on_lockstep_timer)
+        self._diagnostics = DiagnosticsPublisher(
+            self, settings.diagnostics_topic, settings.diagnostics_period,
+            hardware_id=f'lompr twin seed {settings.seed}')
+        self._diagnostics.add('simulation', self.simulation_status)
+        self._diagnostics.add('compensation', self.compensation_status)
+        self.get_logger().info(
+            f'twin: {settings.path}, {settings.passes or "endless"} passes, seed {settings.seed}, '
+            f'{settings.mode}' + (f' x{settings.speed_factor:g}' if settings.mode == 'realtime'
+                                  else f' (timeout {settings.lockstep_timeout:g} s)'))
+
+    @property
+    def finished(self) -> bool:
+        return self.total_samples is not None and self.twin.next_index >= self.total_samples
+
+    def on_compensation(self, msg: Vector3Stamped) -> None:
+        """Queue an offset for its instant; in lockstep, run that instant if it is next."""
+        if not self.settings.compensation_enabled:
+            self.ignored_compensations += 1
+            return
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        offset = (msg.vector.x, msg.vector.y, msg.vector.z)
+        self.schedule.offer(stamp, offset, self.twin.next_index)
+        if self.settings.mode == 'lockstep' and self.schedule.has(self.twin.next_index):
+            self.step()
+
+    def _on_lockstep_timer(self) -> None:
+        if time.monotonic() - self._last_step >= self.settings.lockstep_timeout:
+            self.step()
+
+    def step(self) -> None:
+        """Run and publish the next sample."""
+        if self.finished:
+            return
+        with self.step_time.measure():
+            offset = self.schedule.take(self.twin.next_index)
+            samples = self.twin.step(1, offset[None])
+        self._publish(samples)
+        self._last_step = time.monotonic()
+        self.sample_rate.tick()
+        if self.finished:
+            self.get_logger().info(f'twin: {self.settings.passes} passes done')
+
+    def _publish(self, samples: TwinSamples) -> None:
+        stamp = self._stamp(int(samples.stamps[0]))
+        joints = JointState()
+        joints.header.stamp = stamp
+        joints.name = list(MEASURED_JOINTS)
+        joints.position = [float(v) for v in samples.joints.measured[0]]
+        self._joint_publisher.publish(joints)
+        reference = PoseStamped()
+        reference.header.stamp = stamp
+        reference.header.frame_id = self.settings.frame_id
+        position = reference.pose.position
+        position.x, position.y, position.z = (float(v) for v in samples.reference[0])
+        reference.pose.orientation.w = 1.0  # tool axis along world +Z
+        self._reference_publisher.publish(reference)
+        for publisher, error in ((self._true_error_publisher, samples.error_true[0]),
+                                 (self._plant_error_publisher, samples.plant_error_true[0])):
+            out = Vector3Stamped()
+            out.header.stamp = stamp
+            out.header.frame_id = self.settings.frame_id
+            out.vector.x, out.vector.y, out.vector.z = (float(v) for v in error)
+            publisher.publish(out)
+
+    @staticmethod
+    def _stamp(ns: int) -> Time:
+        return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+    def simulation_status(self) -> Status:
+        """Diagnostics of the simulation: samples, pass, rate, step time."""
+        twin = self.twin
+        expected = (1.0 / twin.params.sample_period * self.settings.speed_factor
+                    if self.settings.mode == 'realtime' else None)
+        rate = self.sample_rate.rate()
+        values: dict[str, object] = {
+            'samples_published': twin.next_index,
+            'pass': twin.next_index // len(twin.cycle),
+            'simulated_time_s': round(twin.next_index * twin.params.sample_period, 3),
+            'sample_rate_hz': round(rate, 3),
+            'mode': self.settings.mode,
+            **latency_values('step_time', self.step_time.summary()),
+        }
+        if self.finished:
+            return Status(Level.OK, f'finished {self.settings.passes} passes', values)
+        if expected is not None and self.sample_rate.total > expected * self.settings.rate_window:
+            values['expected_rate_hz'] = round(expected, 3)
+            if rate < 0.9 * expected:
+                return Status(Level.WARN, f'{rate:.1f} Hz, below the {expected:.1f} Hz asked',
+                              values)
+        return Status(Level.OK, f'{rate:.1f} Hz, pass {values["pass"]}', values)
+
+    def compensation_status(self) -> Status:
+        """Diagnostics of the offsets: applied, missing, dropped by reason."""
+        schedule = self.schedule
+        values: dict[str, object] = {
+            'enabled': self.settings.compensation_enabled,
+            'applied_total': schedule.applied, 'missing_total': schedule.missing,
+            'pending': schedule.pending, 'ignored_total': self.ignored_compensations,
+            **rejection_values(schedule.rejected),
+        }
+        new_rejections = schedule.rejected.total - self._rejected_at_last_report
+        self._rejected_at_last_report = schedule.rejected.total
+        if new_rejections:
+            reasons = ', '.join(f'{r}: {n}' for r, n in schedule.rejected.counts().items() if n)
+            return Status(Level.WARN, f'{new_rejections} offsets dropped since the last report '
+                                      f'(totals {reasons})', values)
+        return Status(Level.OK, f'{schedule.applied} offsets applied', values)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console script `twin_node` (`ros2 run lompr_predictor twin_node`)."""
+    return run_node(lambda context: TwinNode(context=context), parameters=PARAMETERS,
+                    description=__doc__.split('\n', 1)[0], argv=argv)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,166 @@
+"""`lompr simulate`: the bag, its ground truth, the injected faults."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lompr_predictor.bags import JointSamples, Recording, read_recording, write_recording
+from lompr_predictor.cli import simulate as simulate_cli
+from lompr_predictor.kinematics import ForwardKinematics
+from lompr_predictor.robot import MEASURED_JOINTS, RobotDescription
+from lompr_predictor.twin import Simulation, load_twin_parameters, simulate
+from lompr_predictor.twin.faults import FaultSpec, inject_faults
+from lompr_predictor.twin.recording import (
+    ERROR_PLOT,
+    GROUND_TRUTH_JSON,
+    read_ground_truth,
+    to_recording,
+    write_simulation,
+)
+
+PARAMS = load_twin_parameters()
+PERIOD_NS = 40_000_000
+
+
+@pytest.fixture(scope='module')
+def one_pass(description: RobotDescription) -> Simulation:
+    return simulate(description, PARAMS, passes=1, seed=11)
+
+
+def _run_cli(*argv: str) -> int:
+    parser = argparse.ArgumentParser()
+    simulate_cli.add_parser(parser.add_subparsers(dest='command'))
+    args = parser.parse_args(['simulate', *argv])
+    return args.run(args)
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+def test_bag_round_trip(tmp_path: Path, description: RobotDescription,
+                        one_pass: Simulation, storage: str) -> None:
+    bag = write_simulation(tmp_path / 'bag', one_pass, PARAMS, description.sha256,
+                           storage=storage, plot=False)
+    recording = read_recording(bag)
+    assert recording.joints.names == MEASURED_JOINTS
+    np.testing.assert_array_equal(recording.joints.stamps, one_pass.stamps)
+    np.testing.assert_array_equal(recording.joints.positions, one_pass.joints_measured)
+    np.testing.assert_array_equal(recording.reference.stamps, one_pass.stamps)
+    np.testing.assert_array_equal(recording.reference.positions, one_pass.reference)
+    np.testing.assert_array_equal(recording.reference.orientations,
+                                  np.tile([0.0, 0.0, 0.0, 1.0], (len(one_pass.stamps), 1)))
+    assert recording.joints.stamps[0] == 1_700_000_000 * 10 ** 9  # the simulated clock
+    assert set(np.diff(recording.joints.stamps)) == {PERIOD_NS}
+    # Joints are matched by name, whatever order the reader asks for.
+    reordered = read_recording(bag, joint_names=MEASURED_JOINTS[::-1])
+    np.testing.assert_array_equal(reordered.joints.positions, one_pass.joints_measured[:, ::-1])
+
+
+def test_joint_order_in_the_message_does_not_matter(tmp_path: Path, one_pass: Simulation) -> None:
+    recording, _ = to_recording(one_pass)
+    order = [4, 2, 0, 3, 1]
+    shuffled = Recording(
+        joints=JointSamples(stamps=recording.joints.stamps,
+                            positions=recording.joints.positions[:, order],
+                            names=tuple(MEASURED_JOINTS[i] for i in order)),
+        reference=recording.reference)
+    write_recording(tmp_path / 'shuffled', shuffled)
+    np.testing.assert_array_equal(read_recording(tmp_path / 'shuffled').joints.positions,
+                                  one_pass.joints_measured)
+
+
+def test_fk_of_the_bag_is_the_ground_truth_error(tmp_path: Path, description: RobotDescription,
+                                                 one_pass: Simulation) -> None:
+    bag = write_simulation(tmp_path / 'bag', one_pass, PARAMS, description.sha256, plot=False)
+    recording = read_recording(bag)
+    truth, document = read_ground_truth(bag)
+    fk = ForwardKinematics(description)  # the kinematics node's solver, sample by sample
+    rows = np.arange(0, len(recording.joints.stamps), 7)
+    error = np.array([fk.solve(recording.joints.positions[i]).position for i in rows]) - (
+        recording.reference.positions[rows])
+    np.testing.assert_allclose(error, truth['error_measured'][rows], rtol=0, atol=1e-9)
+    assert document['samples'] == len(truth['stamps']) == len(one_pass.stamps)
+    assert document['robot_description_sha256'] == description.sha256
+    irreducible = document['irreducible_rmse_um']['1']
+    assert 0.1 < irreducible['x'] < document['error_um']['measured']['x']['rms_um']
+
+
+def test_same_seed_same_bag(tmp_path: Path) -> None:
+    for name in ('a', 'b'):
+        assert _run_cli('--out', str(tmp_path / name), '--passes', '1', '--seed', '3',
+                        '--path', 'concentric', '--storage', 'sqlite3', '--nans', '2',
+                        '--no-plot') == 0
+    first, second = (read_recording(tmp_path / name) for name in 'ab')
+    np.testing.assert_array_equal(first.joints.positions, second.joints.positions)
+    np.testing.assert_array_equal(first.joints.stamps, second.joints.stamps)
+    truth_a, doc_a = read_ground_truth(tmp_path / 'a')
+    truth_b, doc_b = read_ground_truth(tmp_path / 'b')
+    np.testing.assert_array_equal(truth_a['error_true'], truth_b['error_true'])
+    assert doc_a == doc_b
+
+
+def test_cli_writes_faults_and_logs_them(tmp_path: Path) -> None:
+    out = tmp_path / 'faulty'
+    assert _run_cli('--out', str(out), '--passes', '1', '--seed', '2', '--gaps', '3',
+                    '--gap-length', '5', '--duplicates', '4', '--out-of-order', '2',
+                    '--nans', '3', '--spikes', '2', '--fault-topic', 'both') == 0
+    recording = read_recording(out)
+    truth, document = read_ground_truth(out)
+    clean = len(truth['stamps'])
+    for topic, stamps in (('joint_states', recording.joints.stamps),
+                          ('reference', recording.reference.stamps)):
+        counts = document['faults']['injected'][topic]['counts']
+        assert counts == {'gaps': 3, 'dropped_messages': 15, 'duplicates': 4,
+                          'out_of_order': 2, 'nans': 3, 'spikes': 2}
+        assert len(stamps) == clean - 15 + 4
+    with pytest.raises(FileExistsError):
+        _run_cli('--out', str(out), '--passes', '1')
+    assert json.loads((out / GROUND_TRUTH_JSON).read_text())['passes'] == 1
+    assert (out / ERROR_PLOT).read_bytes().startswith(b'\x89PNG')
+
+
+def test_each_fault_is_exactly_what_it_says() -> None:
+    stamps = 10 ** 18 + PERIOD_NS * np.arange(2000, dtype=np.int64)
+    values = np.random.default_rng(0).uniform(0.7, 0.9, (2000, 5))
+    spec = FaultSpec(gaps=4, gap_length=7, duplicates=5, out_of_order=6, nans=3, spikes=8,
+                     spike_size=0.01)
+    out, faulty, log = inject_faults(stamps, values, spec, np.random.default_rng(1))
+    assert len(out) == 2000 - 4 * 7 + 5
+    unique, counts = np.unique(out, return_counts=True)
+    assert (counts == 2).sum() == 5 and counts.max() == 2
+    assert sorted(unique[counts == 2]) == sorted(log.duplicated)
+    assert (np.diff(out) < 0).sum() == 6
+    assert (np.diff(unique) > PERIOD_NS * 1.5).sum() == 4
+    assert (np.diff(unique)[np.diff(unique) > PERIOD_NS] == 8 * PERIOD_NS).all()
+    assert np.isnan(faulty).any(axis=1).sum() == 3
+    row_of = {int(s): i for i, s in enumerate(stamps)}
+    original = values[[row_of[int(s)] for s in out]]
+    spiked = np.abs(faulty - original) > 0.005
+    assert spiked.sum() == 8
+    assert sorted(int(s) for s in out[spiked.any(axis=1)]) == sorted(int(s[0]) for s in log.spiked)
+    assert log.counts() == {'gaps': 4, 'dropped_messages': 28, 'duplicates': 5,
+                            'out_of_order': 6, 'nans': 3, 'spikes': 8}
+
+
+def test_too_many_faults_are_refused() -> None:
+    stamps = np.arange(20, dtype=np.int64)
+    with pytest.raises(ValueError, match='gaps of 10 messages do not fit'):
+        inject_faults(stamps, np.zeros((20, 5)), FaultSpec(gaps=3), np.random.default_rng(0))
+
+
+def test_sample_bag_is_what_its_command_makes(description: RobotDescription) -> None:
+    bag = Path(__file__).resolve().parents[1] / 'bags' / 'twin_spiral_seed1_3passes'
+    recording = read_recording(bag)
+    truth, document = read_ground_truth(bag)
+    assert (document['passes'], document['seed'], document['path']) == (3, 1, 'spiral')
+    again = simulate(description, PARAMS, passes=3, seed=1)
+    np.testing.assert_array_equal(recording.reference.positions, again.reference)
+    np.testing.assert_allclose(truth['error_true'], again.error_true, rtol=0, atol=1e-12)
+    # Another CPU's last-bit rounding may move a reading across an encoder step, no further.
+    step = [PARAMS.quantisation.length_step] * 3 + [PARAMS.quantisation.angle_step] * 2
+    difference = np.abs(recording.joints.positions - again.joints_measured)
+    assert (difference <= 1.01 * np.array(step)).all()
+    assert (recording.joints.positions == again.joints_measured).mean() > 0.999
