@@ -1,0 +1,104 @@
+"""`lompr evaluate MODEL BAG_DIR... --report DIR`: score a trained model on new recordings.
+
+The bags are read and cleaned as for training; every window of the new data is scored
+(they were never seen in training), against persistence, in the same report format, with
+the errors normalised by the model's own training range. A drift of the machine away from
+the model shows as metrics far above the model's `test_metrics`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lompr_predictor.cli.train import add_data_arguments, base_report, cleaning_config, load_data, score
+from lompr_predictor.dataset import LearningProblem, Split
+from lompr_predictor.errors import LomprError
+from lompr_predictor.features import FEATURES, TARGETS
+from lompr_predictor.report import irreducible_level, write_report
+from lompr_predictor.robot import load_robot_description
+
+#: Relative disagreement of the data's sample period with the model's that is refused.
+PERIOD_TOLERANCE = 0.1
+
+
+class EvaluationError(LomprError):
+    """The recordings cannot be scored with this model."""
+
+
+def add_parser(subparsers: Any) -> None:
+    parser = subparsers.add_parser(
+        'evaluate', help='score a trained model on rosbag2 recordings',
+        description=__doc__.split('\n\n')[0])
+    parser.add_argument('model', metavar='MODEL', help='model file written by lompr train')
+    parser.add_argument('bags', nargs='+', metavar='BAG_DIR', help='rosbag2 directories')
+    parser.add_argument('--report', required=True, help='report folder')
+    parser.add_argument('--closed-loop', action='store_true',
+                        help='score closed-loop recordings of the same passes instead of a '
+                             'model: MODEL and BAG_DIR... are all bags, the first without '
+                             'compensation; prints per axis the RMS and peak error of each '
+                             'and the reductions (the figures of lompr demo, which writes '
+                             'such bags)')
+    add_data_arguments(parser)
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.closed_loop:
+        from lompr_predictor.loop_score import evaluate_loop_bags
+
+        document = evaluate_loop_bags(
+            [args.model, *args.bags], geometry=load_robot_description(
+                args.robot_description).geometry, cleaning=cleaning_config(args),
+            joint_topic=args.joint_topic, reference_topic=args.reference_topic,
+            report=args.report)
+        print(f"{document['text']}\nreport in {args.report}")
+        return 0
+    import torch
+
+    from lompr_predictor.model_file import load_model
+    from lompr_predictor.models import offline_predictions, persistence
+
+    started = time.perf_counter()
+    torch.set_num_threads(args.threads)
+    description = load_robot_description(args.robot_description)
+    model = load_model(args.model, expected={'features': FEATURES, 'targets': TARGETS,
+                                             'robot_description_sha256': description.sha256})
+    meta = model.metadata
+    data, sources = load_data(args, description.geometry)
+    if abs(data.sample_period - meta.sample_period) > PERIOD_TOLERANCE * meta.sample_period:
+        msg = (f'the recordings are sampled every {data.sample_period * 1e3:.3g} ms, the model '
+               f'{args.model} was trained at {meta.sample_period * 1e3:.3g} ms')
+        raise EvaluationError(msg)
+    offline = offline_predictions(model.module, data, meta.window, meta.horizon)
+    if len(offline.ends) == 0:
+        msg = f'no window of {meta.window} samples plus horizon {meta.horizon} in the recordings'
+        raise EvaluationError(msg)
+    norm = meta.normalisation
+    ends = offline.ends
+    problem = LearningProblem(
+        rows=np.zeros((0, len(FEATURES))), error=data.error, stamps=data.stamps,
+        window=meta.window, horizon=meta.horizon, sample_period=data.sample_period,
+        split=Split(train=ends[:0], validation=ends[:0], test=ends, validation_start=0,
+                    test_start=0),
+        error_low=np.array(norm['error_low']), error_high=np.array(norm['error_high']))
+    predictions = {'persistence': persistence(data.error, ends), 'model': offline.predicted}
+    models = score(predictions, offline.actual, offline.stamps, problem.error_low,
+                   problem.error_high, args.gap_factor * data.sample_period)
+    report = base_report('evaluate', problem, data, sources, cleaning_config(args))
+    irreducible = irreducible_level([s.path for s in sources if not s.skipped_reason], meta.horizon)
+    report.update(
+        models=models, model_file=str(Path(args.model).resolve()), model_sha256=model.sha256,
+        model_test_metrics=meta.test_metrics, irreducible_rmse_um=irreducible,
+        rmse_to_irreducible=None if irreducible is None else {
+            name: {axis: m['metrics'][axis]['rmse_um'] / irreducible[axis] for axis in TARGETS}
+            for name, m in models.items()},
+        timings={'total_seconds': time.perf_counter() - started})
+    write_report(args.report, report, seconds=(offline.stamps - offline.stamps[0]) * 1e-9,
+                 actual=offline.actual, predictions=predictions)
+    print(f'report in {args.report}')
+    return 0

@@ -1,0 +1,363 @@
+"""From rosbag2 recordings to clean, gap-free error samples and learning windows (ROS-free).
+
+The paper's pre-processing, done so that every dropped sample is counted by reason:
+
+1. `read_bags`: every bag read whole by `bags.read_recording`; a corrupt one stops the run
+   (`BagError` naming it) or, with `skip_bad`, is left out and listed.
+2. `clean_recordings`: the bags are stitched in time order; per stream (joint states,
+   reference) non-finite rows are dropped, out-of-order messages sorted and duplicated stamps
+   removed; the reference is interpolated linearly to the joint stamps (never paired by
+   arrival, CONTRACT section 2), and joint samples it does not bracket closely are dropped;
+   batch forward kinematics gives the tool tip, and the error is FK - reference (CONTRACT
+   section 3); a gap longer than `gap_factor` sample periods splits the data into segments;
+   a Hampel filter, per segment, rejects spikes of the error.
+3. `window_ends` / `chronological_split`: windows of `window` rows whose last row and
+   predicted row (`horizon` samples later) lie in one segment, so no window crosses a gap;
+   the chronologically last `test_fraction` of the samples is the test part, and the
+   validation part is carved from the end of the training part.
+4. `minmax_range`: normalisation constants from the training part only.
+
+Compensation hook: the plant error of a compensated recording is e - c (CONTRACT section 3).
+`clean_recordings(compensation=...)` takes the applied compensation as a function of the
+joint stamps; today's recordings are uncompensated and pass None.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from lompr_predictor.bags import (
+    DEFAULT_JOINT_TOPIC,
+    DEFAULT_REFERENCE_TOPIC,
+    BagError,
+    Recording,
+    read_recording,
+)
+from lompr_predictor.features import FEATURES, HISTORY, feature_rows
+from lompr_predictor.kinematics import batch_forward_kinematics
+from lompr_predictor.model_file import file_sha256
+from lompr_predictor.robot import LomprGeometry
+
+#: Defaults of the cleaning rules, in one place (the CLI and the report use these).
+GAP_FACTOR = 2.5  # a step longer than this many sample periods splits the data
+HAMPEL_HALF_WINDOW = 7  # samples each side of the Hampel median
+HAMPEL_THRESHOLD = 6.0  # spike when |e - median| > threshold * robust sigma
+MAD_TO_SIGMA = 1.4826  # MAD of a Gaussian times this is its standard deviation
+NEIGHBOUR_AGREEMENT = 0.5  # a spike's neighbours differ by less than this times its excursion
+
+#: A compensation source: (N,) int64 joint stamps [ns] -> (N, 2) applied X/Y offset [m].
+Compensation = Callable[[np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class CleaningConfig:
+    """The cleaning rules' parameters."""
+
+    gap_factor: float = GAP_FACTOR
+    hampel_half_window: int = HAMPEL_HALF_WINDOW
+    hampel_threshold: float = HAMPEL_THRESHOLD
+
+
+@dataclass(frozen=True)
+class CleanData:
+    """Clean samples in time order, split into gap-free segments."""
+
+    stamps: np.ndarray  # (N,) int64 joint-state stamps [ns], strictly increasing
+    error: np.ndarray  # (N, 2) plant X/Y error [m]
+    reference: np.ndarray  # (N, 3) reference position at the stamps [m]
+    segments: np.ndarray  # (S, 2) [start, end) row ranges without a gap
+    sample_period: float  # median step [s]
+    counts: dict[str, int] = field(default_factory=dict)  # read / dropped by reason / segments
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    def features(self) -> np.ndarray:
+        """(N, len(FEATURES)) feature rows, computed segment by segment (NaN where a row
+        lacks `HISTORY` samples of its own segment)."""
+        rows = np.full((len(self), len(FEATURES)), np.nan)
+        for start, end in self.segments:
+            seconds = (self.stamps[start:end] - self.stamps[start]) * 1e-9
+            rows[start:end] = feature_rows(
+                seconds, self.error[start:end], self.reference[start:end, :2])
+        return rows
+
+
+@dataclass(frozen=True)
+class BagSource:
+    """A bag used (or skipped) by a run: path, content digest, or the reason it was skipped."""
+
+    path: str
+    sha256: str = ''
+    skipped_reason: str = ''
+
+
+def bag_sha256(path: str | Path) -> str:
+    """sha256 over a bag directory's files: each file's name and sha256, in name order."""
+    path = Path(path)
+    digest = hashlib.sha256()
+    for item in sorted(p for p in path.rglob('*') if p.is_file()):
+        digest.update(f'{item.relative_to(path).as_posix()}\0{file_sha256(item)}\n'.encode())
+    return digest.hexdigest()
+
+
+def read_bags(
+    paths: Sequence[str | Path],
+    *,
+    joint_topic: str = DEFAULT_JOINT_TOPIC,
+    reference_topic: str = DEFAULT_REFERENCE_TOPIC,
+    skip_bad: bool = False,
+) -> tuple[list[Recording], list[BagSource]]:
+    """Read every bag whole. A bad bag raises its `BagError`, or with `skip_bad` is listed
+    with its reason (and contributes nothing: never part of a bag)."""
+    recordings: list[Recording] = []
+    sources: list[BagSource] = []
+    for path in paths:
+        try:
+            recording = read_recording(path, joint_topic=joint_topic,
+                                       reference_topic=reference_topic)
+        except BagError as err:
+            if not skip_bad:
+                raise
+            sources.append(BagSource(path=str(path), skipped_reason=err.reason))
+            continue
+        recordings.append(recording)
+        sources.append(BagSource(path=str(path), sha256=bag_sha256(path)))
+    if not recordings:
+        raise BagError(', '.join(str(p) for p in paths), 'no readable bag among the inputs')
+    return recordings, sources
+
+
+def sanitise_stream(
+    stamps: np.ndarray, values: np.ndarray, name: str, counts: dict[str, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Drop non-finite rows, sort by stamp, drop repeated stamps (keeping the first
+    received); counts `{name}_nonfinite`, `{name}_out_of_order` (sorted, kept) and
+    `{name}_duplicate` (dropped)."""
+    finite = np.isfinite(values).all(axis=1)
+    counts[f'{name}_nonfinite'] = int((~finite).sum())
+    stamps, values = stamps[finite], values[finite]
+    running_max = np.maximum.accumulate(stamps) if len(stamps) else stamps
+    counts[f'{name}_out_of_order'] = int((stamps[1:] < running_max[:-1]).sum())
+    order = np.argsort(stamps, kind='stable')
+    stamps, values = stamps[order], values[order]
+    first = np.ones(len(stamps), dtype=bool)
+    first[1:] = stamps[1:] != stamps[:-1]
+    counts[f'{name}_duplicate'] = int((~first).sum())
+    return stamps[first], values[first]
+
+
+def interpolate_reference(
+    reference_stamps: np.ndarray, reference: np.ndarray, stamps: np.ndarray, max_step_ns: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Reference (M, 3) linearly interpolated to `stamps`; also a mask of the stamps that
+    lie between two reference samples at most `max_step_ns` apart (or on one)."""
+    out = np.full((len(stamps), reference.shape[1]), np.nan)
+    valid = np.zeros(len(stamps), dtype=bool)
+    if len(reference_stamps) == 0:
+        return out, valid
+    right = np.searchsorted(reference_stamps, stamps, side='left')
+    inside = (right < len(reference_stamps)) & (stamps >= reference_stamps[0])
+    right_c = np.clip(right, 0, len(reference_stamps) - 1)
+    left_c = np.clip(right - 1, 0, len(reference_stamps) - 1)
+    exact = inside & (reference_stamps[right_c] == stamps)
+    bracket = reference_stamps[right_c] - reference_stamps[left_c]
+    valid = exact | (inside & (bracket <= max_step_ns))
+    t = reference_stamps.astype(np.float64) - float(reference_stamps[0])
+    x = stamps.astype(np.float64) - float(reference_stamps[0])
+    for axis in range(reference.shape[1]):
+        out[:, axis] = np.interp(x, t, reference[:, axis])
+    out[~valid] = np.nan
+    return out, valid
+
+
+def segment_bounds(stamps: np.ndarray, max_step_ns: float) -> np.ndarray:
+    """(S, 2) [start, end) row ranges of sorted `stamps` split where a step exceeds
+    `max_step_ns`."""
+    if len(stamps) == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    breaks = np.flatnonzero(np.diff(stamps) > max_step_ns) + 1
+    starts = np.concatenate([[0], breaks])
+    ends = np.concatenate([breaks, [len(stamps)]])
+    return np.stack([starts, ends], -1).astype(np.int64)
+
+
+def hampel_outliers(values: np.ndarray, segments: np.ndarray, half_window: int,
+                    threshold: float) -> np.ndarray:
+    """Rows of (N, K) `values` that are spikes by a Hampel rule, applied per segment.
+
+    The rule looks at each sample's excursion from the midpoint of its two neighbours,
+    x = e(k) - (e(k-1) + e(k+1)) / 2, which a smooth signal's trend and curvature barely
+    move (a median filter of the signal itself would, on a steep slope). A row is a spike
+    when, on some column, x is `threshold` robust sigmas from its moving median (2
+    half_window + 1 samples: the local curvature), and its neighbours
+    agree with each other (they differ by less than `NEIGHBOUR_AGREEMENT` |x|): a spike
+    returns to where it left, whereas a sample on a genuine sharp feature (friction
+    reversing with a branch's velocity, a pass starting) has neighbours on different levels.
+    Sigma is 1.4826 times the moving median of |x - its moving median|, floored at the segment's global value, so a locally quiet or quantised stretch
+    does not flag ordinary noise. A segment's first and last samples are never flagged.
+    """
+    spikes = np.zeros(len(values), dtype=bool)
+    size = (2 * half_window + 1, 1)
+    for start, end in segments:
+        block = values[start:end]
+        if len(block) < max(size[0], 3):
+            continue
+        before = np.vstack([block[1:2], block[:-1]])  # mirrored at the segment's ends
+        after = np.vstack([block[1:], block[-2:-1]])
+        excursion = block - 0.5 * (before + after)
+        deviation = np.abs(excursion - ndimage.median_filter(excursion, size=size, mode='mirror'))
+        local = ndimage.median_filter(deviation, size=size, mode='mirror')
+        floor = np.median(deviation, axis=0, keepdims=True)
+        limit = threshold * MAD_TO_SIGMA * np.maximum(local, floor)
+        agree = np.abs(after - before) < NEIGHBOUR_AGREEMENT * np.abs(excursion)
+        flagged = (deviation > limit) & agree & (limit > 0)
+        flagged[[0, -1]] = False  # one neighbour cannot tell a spike from a step
+        spikes[start:end] = flagged.any(axis=1)
+    return spikes
+
+
+def _period_ns(stamps: np.ndarray) -> float:
+    steps = np.diff(stamps)
+    steps = steps[steps > 0]
+    if len(steps) == 0:
+        msg = 'fewer than two distinct joint-state stamps: no sample period'
+        raise ValueError(msg)
+    return float(np.median(steps))
+
+
+def clean_recordings(
+    recordings: Sequence[Recording],
+    geometry: LomprGeometry,
+    config: CleaningConfig = CleaningConfig(),
+    *,
+    compensation: Compensation | None = None,
+) -> CleanData:
+    """Stitch, clean, align and convert recordings to the plant error (module docstring)."""
+    counts: dict[str, int] = {'bags': len(recordings)}
+    ordered = sorted(recordings, key=lambda r: int(r.joints.stamps.min()) if len(r.joints.stamps) else 0)
+    joint_stamps = np.concatenate([r.joints.stamps for r in ordered]).astype(np.int64)
+    joints = np.concatenate([r.joints.positions for r in ordered])
+    ref_stamps = np.concatenate([r.reference.stamps for r in ordered]).astype(np.int64)
+    reference = np.concatenate([r.reference.positions for r in ordered])
+    counts['joint_read'] = len(joint_stamps)
+    counts['reference_read'] = len(ref_stamps)
+    joint_stamps, joints = sanitise_stream(joint_stamps, joints, 'joint', counts)
+    ref_stamps, reference = sanitise_stream(ref_stamps, reference, 'reference', counts)
+    period = _period_ns(joint_stamps)
+    max_step = config.gap_factor * period
+    aligned, bracketed = interpolate_reference(ref_stamps, reference, joint_stamps, max_step)
+    counts['no_reference'] = int((~bracketed).sum())
+    poses = batch_forward_kinematics(geometry, joints)
+    counts['fk_invalid'] = int((bracketed & ~poses.valid).sum())
+    keep = bracketed & poses.valid
+    stamps = joint_stamps[keep]
+    error = poses.position[keep, :2] - aligned[keep, :2]
+    if compensation is not None:
+        error = error - np.asarray(compensation(stamps), dtype=float)[:, :2]
+    aligned = aligned[keep]
+    segments = segment_bounds(stamps, max_step)
+    spikes = hampel_outliers(error, segments, config.hampel_half_window, config.hampel_threshold)
+    counts['spike'] = int(spikes.sum())
+    stamps, error, aligned = stamps[~spikes], error[~spikes], aligned[~spikes]
+    segments = segment_bounds(stamps, max_step)
+    counts['kept'] = len(stamps)
+    counts['segments'] = len(segments)
+    return CleanData(stamps=stamps, error=error, reference=aligned, segments=segments,
+                     sample_period=period * 1e-9, counts=counts)
+
+
+def window_ends(segments: np.ndarray, window: int, horizon: int) -> np.ndarray:
+    """Indices of the last row of every window that, with its target `horizon` rows later
+    and the `HISTORY` rows its features need, lies inside one segment."""
+    if window < 1 or horizon < 0:
+        msg = f'window must be >= 1 and horizon >= 0, got {window}, {horizon}'
+        raise ValueError(msg)
+    parts = [np.arange(start + HISTORY + window - 1, end - horizon) for start, end in segments]
+    return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class Split:
+    """Window ends of each part, and the first row of the validation and test parts."""
+
+    train: np.ndarray
+    validation: np.ndarray
+    test: np.ndarray
+    validation_start: int  # rows before this train (and set the normalisation)
+    test_start: int  # rows from here on are the test part, never seen while tuning
+
+
+def chronological_split(n_rows: int, ends: np.ndarray, horizon: int, *,
+                        test_fraction: float = 0.1,
+                        validation_fraction: float = 0.15) -> Split:
+    """Split by time: the last `test_fraction` of the rows is the test part; the last
+    `validation_fraction` of the rest validates. A window belongs to the part of its
+    predicted row, and a training or validation window's target row always precedes the
+    test part (its inputs, being earlier still, too)."""
+    if not 0 < test_fraction < 1 or not 0 < validation_fraction < 1:
+        msg = 'test and validation fractions must lie in (0, 1)'
+        raise ValueError(msg)
+    test_start = int(round(n_rows * (1 - test_fraction)))
+    validation_start = int(round(test_start * (1 - validation_fraction)))
+    target = ends + horizon
+    split = Split(train=ends[target < validation_start],
+                  validation=ends[(target >= validation_start) & (target < test_start)],
+                  test=ends[target >= test_start],
+                  validation_start=validation_start, test_start=test_start)
+    for name in ('train', 'validation', 'test'):
+        if len(getattr(split, name)) == 0:
+            msg = (f'no {name} windows: {n_rows} clean samples are too few for window and '
+                   f'horizon {horizon} (or the gaps leave no segment long enough)')
+            raise ValueError(msg)
+    return split
+
+
+def minmax_range(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-column (min, max) ignoring NaN; a constant column gets max = min + 1 so that
+    normalising by the range never divides by zero."""
+    low = np.nanmin(values, axis=0)
+    high = np.nanmax(values, axis=0)
+    high = np.where(high > low, high, low + 1.0)
+    return low, high
+
+
+@dataclass(frozen=True)
+class LearningProblem:
+    """Feature rows, errors and the split windows of one clean data set, for one window
+    length and horizon; the error's range over the training part (the metrics' scale; the
+    models take their input ranges from training windows, `training.input_range`)."""
+
+    rows: np.ndarray  # (N, F) raw feature rows (features.FEATURES)
+    error: np.ndarray  # (N, 2) plant error [m]
+    stamps: np.ndarray  # (N,) int64 [ns]
+    window: int
+    horizon: int
+    sample_period: float  # [s]
+    split: Split
+    error_low: np.ndarray  # (2,) training-part min of the error (the metrics' scale)
+    error_high: np.ndarray  # (2,)
+
+    def targets(self, ends: np.ndarray, residual: bool) -> np.ndarray:
+        """(B, 2) what a model learns for windows ending at `ends`: the error `horizon`
+        rows later, minus the window's last error when `residual`."""
+        target = self.error[ends + self.horizon]
+        return target - self.error[ends] if residual else target
+
+
+def build_problem(data: CleanData, window: int, horizon: int, *,
+                  test_fraction: float = 0.1, validation_fraction: float = 0.15) -> LearningProblem:
+    """Windows, chronological split and training-range normalisation of `data`."""
+    ends = window_ends(data.segments, window, horizon)
+    split = chronological_split(len(data), ends, horizon, test_fraction=test_fraction,
+                                validation_fraction=validation_fraction)
+    error_low, error_high = minmax_range(data.error[:split.test_start])
+    return LearningProblem(rows=data.features(), error=data.error, stamps=data.stamps,
+                           window=window, horizon=horizon, sample_period=data.sample_period,
+                           split=split, error_low=error_low, error_high=error_high)

@@ -1,0 +1,72 @@
+"""The seed paper's Table 1 metrics (CONTRACT section 6), per axis.
+
+For a prediction p and the actual error a on the test window, with the training range
+[low, high] of the error on that axis:
+
+- normalised error n = (p - a) / (high - low) (the min-max normalisation of both p and a
+  with the training range: the offsets cancel);
+- MSE, RMSE, MAE of n in percent (MSE in %^2), and the same three of p - a in micrometres
+  (MSE in um^2);
+- IAE = int |n| dt, ISE = int n^2 dt, ITAE = int t |n| dt, ITSE = int t n^2 dt with n as a
+  fraction (not %), t in seconds from the start of the test window, integrated by the
+  trapezoidal rule over the sample stamps; a step longer than `max_step` (a gap) adds
+  nothing, so a gap neither inflates nor hides the error.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from lompr_predictor.features import TARGETS
+
+METRIC_NAMES = ('mse_pct', 'rmse_pct', 'mae_pct', 'mse_um2', 'rmse_um', 'mae_um',
+                'iae', 'ise', 'itae', 'itse')
+
+
+def _integral(t: np.ndarray, f: np.ndarray, max_step: float) -> float:
+    """Trapezoidal integral of samples f(t), skipping steps longer than `max_step`."""
+    step = np.diff(t)
+    area = 0.5 * (f[1:] + f[:-1]) * step
+    return float(area[step <= max_step].sum())
+
+
+def axis_metrics(predicted: np.ndarray, actual: np.ndarray, seconds: np.ndarray,
+                 low: float, high: float, max_step: float) -> dict[str, float]:
+    """Table 1 metrics of one axis: (B,) predicted and actual [m], (B,) sample times [s]
+    from the start of the test window, training range [low, high] [m]."""
+    error = np.asarray(predicted, dtype=float) - np.asarray(actual, dtype=float)
+    normalised = error / (high - low)
+    micrometres = error * 1e6
+    magnitude, square = np.abs(normalised), normalised ** 2
+    return {
+        'mse_pct': float(np.mean((100 * normalised) ** 2)),
+        'rmse_pct': float(np.sqrt(np.mean((100 * normalised) ** 2))),
+        'mae_pct': float(np.mean(np.abs(100 * normalised))),
+        'mse_um2': float(np.mean(micrometres ** 2)),
+        'rmse_um': float(np.sqrt(np.mean(micrometres ** 2))),
+        'mae_um': float(np.mean(np.abs(micrometres))),
+        'iae': _integral(seconds, magnitude, max_step),
+        'ise': _integral(seconds, square, max_step),
+        'itae': _integral(seconds, seconds * magnitude, max_step),
+        'itse': _integral(seconds, seconds * square, max_step),
+    }
+
+
+def table_metrics(predicted: np.ndarray, actual: np.ndarray, stamps_ns: np.ndarray,
+                  low: np.ndarray, high: np.ndarray, max_step: float) -> dict[str, dict[str, float]]:
+    """{axis: metrics} for (B, 2) predictions of the instants `stamps_ns` (int64 ns);
+    t counts from the first of them."""
+    seconds = (np.asarray(stamps_ns, dtype=np.int64) - int(stamps_ns[0])) * 1e-9
+    return {axis: axis_metrics(predicted[:, i], actual[:, i], seconds, float(low[i]),
+                               float(high[i]), max_step)
+            for i, axis in enumerate(TARGETS)}
+
+
+def ratios(metrics: dict[str, dict[str, float]],
+           baseline: dict[str, dict[str, float]]) -> dict[str, dict[str, Any]]:
+    """Each metric divided by the baseline's (the paper's 'x % of BP' headline)."""
+    return {axis: {name: (value / baseline[axis][name] if baseline[axis][name] else None)
+                   for name, value in values.items()}
+            for axis, values in metrics.items()}

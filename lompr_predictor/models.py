@@ -1,0 +1,193 @@
+"""The predictors: BO-LSTM, the paper's BP (MLP) baseline, persistence, and the scripted
+wrapper that meets the model-file contract (`model_file.py`).
+
+Networks work on normalised tensors: feature columns mapped to [-1, 1] by their training
+min-max, the target likewise. `PredictorModule` wraps a network with those constants so
+that the exported module takes raw SI windows (float64, (B, window, features)) and returns
+the plant X/Y error [m] `horizon` samples after each window's last row.
+
+Learning problem (recorded in the model metadata):
+- LSTM: the target is the *change* of the error over the horizon, e(t+h) - e(t)
+  (`residual=True`): persistence is the prior and the network learns what moves the error
+  away from it, from the reference's position, velocity and acceleration and the recent
+  errors. The network adds a linear "autoregressive highway" on the flattened window to the
+  LSTM's output (as LSTNet does): the linear part carries noise averaging and the linear
+  extrapolation of the path, the LSTM the non-linear rest (friction, posture).
+- BP: the paper's baseline, an MLP with one sigmoid hidden layer on the flattened window,
+  predicting the error itself (`residual=False`).
+- Persistence: e(t+h) = e(t), the floor every model has to beat.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from lompr_predictor.dataset import CleanData, window_ends
+from lompr_predictor.features import FEATURES, TARGETS
+
+MODEL_TYPES = ('lstm', 'mlp')
+
+
+#: Rows at the end of the window the LSTM runs over; the linear highway sees the whole
+#: window. The non-linear part of the error follows the recent motion, the long memory
+#: (noise averaging, slow drift) is linear: this keeps the recurrent cost, which grows with
+#: the steps, independent of the window length.
+LSTM_STEPS = 10
+
+
+class LstmNet(nn.Module):
+    """LSTM over the window's last `LSTM_STEPS` rows, last hidden state -> outputs, plus a
+    linear highway on the flattened window."""
+
+    def __init__(self, n_features: int, window: int, hidden: int, n_outputs: int = 2) -> None:
+        super().__init__()
+        self.steps = min(window, LSTM_STEPS)
+        self.lstm = nn.LSTM(n_features, hidden, batch_first=True)
+        self.head = nn.Linear(hidden, n_outputs)
+        self.highway = nn.Linear(window * n_features, n_outputs)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        sequence, _ = self.lstm(x[:, x.shape[1] - self.steps:])
+        return self.head(sequence[:, -1]) + self.highway(x.flatten(1))
+
+
+class MlpNet(nn.Module):
+    """The paper's BP network: flattened window -> one sigmoid hidden layer -> outputs."""
+
+    def __init__(self, n_features: int, window: int, hidden: int, n_outputs: int = 2) -> None:
+        super().__init__()
+        self.hidden = nn.Linear(window * n_features, hidden)
+        self.out = nn.Linear(hidden, n_outputs)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.out(torch.sigmoid(self.hidden(x.flatten(1))))
+
+
+def build_network(model_type: str, n_features: int, window: int, hidden: int) -> nn.Module:
+    """A network of `model_type` ('lstm' or 'mlp')."""
+    if model_type == 'lstm':
+        return LstmNet(n_features, window, hidden, len(TARGETS))
+    if model_type == 'mlp':
+        return MlpNet(n_features, window, hidden, len(TARGETS))
+    msg = f'unknown model type {model_type!r}; choose one of {", ".join(MODEL_TYPES)}'
+    raise ValueError(msg)
+
+
+def range_to_affine(low: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(centre, half range) mapping [low, high] to [-1, 1]: x_n = (x - centre) / half."""
+    low, high = np.asarray(low, dtype=float), np.asarray(high, dtype=float)
+    return 0.5 * (low + high), 0.5 * (high - low)
+
+
+class PredictorModule(nn.Module):
+    """Raw SI windows (float64) -> predicted plant X/Y error [m]; TorchScript-able.
+
+    With `relative_errors`, the error columns of a window are first taken relative to its
+    last row (e(k) - e(t)): the network sees the error's recent course, not its level,
+    which neither the change over the horizon nor the noise filtering depends on, and which
+    leaves the normalised inputs a finer resolution.
+    """
+
+    def __init__(self, net: nn.Module, feature_low: np.ndarray, feature_high: np.ndarray,
+                 target_low: np.ndarray, target_high: np.ndarray, *, residual: bool,
+                 relative_errors: bool, features: Sequence[str] = FEATURES) -> None:
+        super().__init__()
+        self.net = net
+        centre, half = range_to_affine(feature_low, feature_high)
+        self.register_buffer('feature_centre', torch.tensor(centre, dtype=torch.float64))
+        self.register_buffer('feature_inverse_half', torch.tensor(1.0 / half, dtype=torch.float64))
+        centre, half = range_to_affine(target_low, target_high)
+        self.register_buffer('target_centre', torch.tensor(centre, dtype=torch.float64))
+        self.register_buffer('target_half', torch.tensor(half, dtype=torch.float64))
+        self.residual = bool(residual)
+        names = list(features)
+        error_columns = [names.index(f'error_{axis}') for axis in TARGETS]
+        mask = torch.zeros(len(names), dtype=torch.float64)
+        if relative_errors:
+            mask[error_columns] = 1.0
+        self.register_buffer('relative_mask', mask)
+        self.register_buffer('error_columns', torch.tensor(error_columns, dtype=torch.long))
+
+    def inputs(self, windows: torch.Tensor) -> torch.Tensor:
+        """Raw windows with the error columns made relative to the last row (if set)."""
+        return windows - windows[:, -1:, :] * self.relative_mask
+
+    def normalise(self, windows: torch.Tensor) -> torch.Tensor:
+        """Raw float64 windows -> normalised float32 network input."""
+        return ((self.inputs(windows) - self.feature_centre) * self.feature_inverse_half).float()
+
+    def forward(self, windows: torch.Tensor) -> torch.Tensor:
+        output = self.net(self.normalise(windows)).double() * self.target_half + self.target_centre
+        if self.residual:
+            output = output + windows[:, -1].index_select(1, self.error_columns)
+        return output
+
+
+class NoChangeNet(nn.Module):
+    """Predicts no change over the horizon: inside a residual `PredictorModule` it makes the
+    persistence predictor a model file, which the predictor node runs like any model (the
+    closed loop's persistence compensator)."""
+
+    def __init__(self, n_outputs: int = 2) -> None:
+        super().__init__()
+        self.n_outputs = n_outputs
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.zeros((x.shape[0], self.n_outputs), dtype=x.dtype)
+
+
+def persistence_module(features: Sequence[str] = FEATURES) -> PredictorModule:
+    """Persistence as a raw-SI module: the window's last plant error, for any horizon."""
+    n_features, n_targets = len(features), len(TARGETS)
+    return PredictorModule(NoChangeNet(n_targets), np.zeros(n_features), np.ones(n_features),
+                           -np.ones(n_targets), np.ones(n_targets), residual=True,
+                           relative_errors=False, features=features)
+
+
+def persistence(error: np.ndarray, ends: np.ndarray) -> np.ndarray:
+    """(B, 2) persistence prediction: the error at each window's last row."""
+    return np.asarray(error)[ends]
+
+
+def gather_windows(rows: np.ndarray | torch.Tensor, ends: np.ndarray, window: int):  # type: ignore[no-untyped-def]
+    """(B, window, F) windows of `rows` ending at rows `ends` (inclusive)."""
+    index = np.asarray(ends)[:, None] + np.arange(1 - window, 1)[None, :]
+    return rows[index]
+
+
+def predict_rows(module: nn.Module, rows: np.ndarray, ends: np.ndarray, window: int,
+                 batch: int = 4096) -> np.ndarray:
+    """(B, 2) predictions [m] of a raw-SI module for the windows of feature `rows` ending at
+    `ends`: what `LoadedModel.predict` gives for those windows, in batches."""
+    table = torch.from_numpy(np.ascontiguousarray(rows, dtype=np.float64))
+    out = []
+    with torch.inference_mode():
+        for start in range(0, len(ends), batch):
+            out.append(module(gather_windows(table, ends[start:start + batch], window)).numpy())
+    return np.concatenate(out) if out else np.zeros((0, len(TARGETS)))
+
+
+@dataclass(frozen=True)
+class OfflinePredictions:
+    """A model's predictions over clean recordings, one per admissible window."""
+
+    ends: np.ndarray  # (B,) row of each window's last sample in the clean data
+    stamps: np.ndarray  # (B,) int64 [ns] of the predicted instants (ends + horizon)
+    predicted: np.ndarray  # (B, 2) predicted plant X/Y error [m]
+    actual: np.ndarray  # (B, 2) measured plant error at those instants [m]
+
+
+def offline_predictions(module: nn.Module, data: CleanData, window: int,
+                        horizon: int) -> OfflinePredictions:
+    """Predict every window of `data` (no window crosses a gap) with a raw-SI module, e.g.
+    `model_file.load_model(path).module`: what the predictor node would have published
+    for these recordings, sample for sample."""
+    ends = window_ends(data.segments, window, horizon)
+    return OfflinePredictions(ends=ends, stamps=data.stamps[ends + horizon],
+                              predicted=predict_rows(module, data.features(), ends, window),
+                              actual=data.error[ends + horizon])

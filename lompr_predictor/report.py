@@ -1,0 +1,203 @@
+"""The training / evaluation report: `report.json`, `report.md` and PNG plots in one folder.
+
+`report.json` holds everything (counts, metrics per model and axis, ratios, times, the
+tuning history); `report.md` shows the paper's Table 1 layout per axis (persistence, BP,
+BO-LSTM, and BO-LSTM / BP); the plots are the prediction against the actual error on the
+test window (the paper's Fig. 5) and the tuning history. Files are written atomically.
+
+When a bag directory holds the twin's ground truth (`lompr_ground_truth.json`), the
+irreducible RMSE at the model's horizon is read from it and every model's RMSE is also
+given as a multiple of it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use('Agg')
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from lompr_predictor.features import TARGETS  # noqa: E402
+from lompr_predictor.metrics import METRIC_NAMES  # noqa: E402
+
+GROUND_TRUTH_JSON = 'lompr_ground_truth.json'
+PREDICTION_PLOT = 'prediction_test.png'
+TUNING_PLOT = 'tuning_history.png'
+MODEL_LABELS = {'persistence': 'Persistence', 'bp': 'BP', 'bo_lstm': 'BO-LSTM', 'model': 'Model'}
+METRIC_LABELS = {
+    'mse_pct': 'MSE (%^2)', 'rmse_pct': 'RMSE (%)', 'mae_pct': 'MAE (%)',
+    'mse_um2': 'MSE (um^2)', 'rmse_um': 'RMSE (um)', 'mae_um': 'MAE (um)',
+    'iae': 'IAE (s)', 'ise': 'ISE (s)', 'itae': 'ITAE (s^2)', 'itse': 'ITSE (s^2)'}
+
+
+def irreducible_level(bags: Sequence[str | Path], horizon: int) -> dict[str, float] | None:
+    """Irreducible RMSE [um] per axis at `horizon` from the last bag (in the given order)
+    that carries the twin's ground truth listing that horizon, else None."""
+    for bag in reversed(list(bags)):
+        path = Path(bag) / GROUND_TRUTH_JSON
+        if not path.is_file():
+            continue
+        try:
+            levels = json.loads(path.read_text(encoding='utf-8'))['irreducible_rmse_um']
+        except (OSError, ValueError, KeyError):
+            continue
+        if str(horizon) in levels:
+            return {axis: float(levels[str(horizon)][axis]) for axis in TARGETS}
+    return None
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    """Write `data` to `path` through a temporary file in the same folder and a rename."""
+    descriptor, staging = tempfile.mkstemp(prefix=f'.{path.name}.', dir=path.parent)
+    try:
+        with os.fdopen(descriptor, 'wb') as stream:
+            stream.write(data)
+        os.replace(staging, path)
+    finally:
+        if os.path.exists(staging):
+            os.unlink(staging)
+
+
+def markdown(report: Mapping[str, Any]) -> str:
+    """report.md: the Table 1 layout per axis, then data counts, times and tuning."""
+    models = report['models']
+    names = [n for n in ('persistence', 'bp', 'bo_lstm', 'model') if n in models]
+    with_bp = 'bp' in models and 'bo_lstm' in models
+    lines = [f"# lompr {report['command']} report", '',
+             f"Horizon {report['horizon']} samples ({report['horizon'] * report['sample_period']:.3g} s), "
+             f"window {report['window']} samples, sample period {report['sample_period'] * 1e3:.3g} ms; "
+             + (f"test part: {report['split']['test']} windows (chronologically last 10 % of "
+                'the clean samples).' if report['command'] == 'train' else
+                f"scored on all {report['split']['test']} windows of the recordings."), '']
+    irreducible = report.get('irreducible_rmse_um')
+    for axis in TARGETS:
+        header = ['metric'] + [MODEL_LABELS[n] for n in names] + (['BO-LSTM / BP'] if with_bp else [])
+        lines += [f'## Axis {axis.upper()}', '', '| ' + ' | '.join(header) + ' |',
+                  '|' + '---|' * len(header)]
+        for metric in METRIC_NAMES:
+            row = [METRIC_LABELS[metric]] + [f"{models[n]['metrics'][axis][metric]:.4g}" for n in names]
+            if with_bp:
+                ratio = report['ratios_to_bp'][axis][metric]
+                row.append('-' if ratio is None else f'{100 * ratio:.1f} %')
+            lines.append('| ' + ' | '.join(row) + ' |')
+        if irreducible:
+            row = ['RMSE / irreducible'] + [
+                f"{models[n]['metrics'][axis]['rmse_um'] / irreducible[axis]:.3g}" for n in names]
+            lines.append('| ' + ' | '.join(row + ([''] if with_bp else [])) + ' |')
+        lines.append('')
+    if irreducible:
+        lines += [f"Irreducible RMSE at this horizon (twin ground truth): X {irreducible['x']:.3g} um, "
+                  f"Y {irreducible['y']:.3g} um.", '']
+    lines += ['## Training and timing', '']
+    for name in names:
+        seconds = models[name].get('training_seconds')
+        if seconds is not None:
+            lines.append(f'- {MODEL_LABELS[name]} training: {seconds:.1f} s, hyperparameters '
+                         f"{models[name].get('hyperparameters')}")
+    if report.get('training_time_ratio_lstm_to_bp') is not None:
+        lines.append(f"- BO-LSTM (best trial) / BP training time: "
+                     f"{100 * report['training_time_ratio_lstm_to_bp']:.1f} %; whole Bayesian "
+                     f"tuning / BP: {100 * report['tuning_time_ratio_to_bp']:.0f} %")
+    for key, value in report.get('timings', {}).items():
+        lines.append(f'- {key}: {value:.4g}')
+    tuning = report.get('tuning')
+    if tuning:
+        lines += ['', '## Bayesian tuning', '',
+                  f"Study `{tuning['study_name']}` ({tuning['trials_spent']} trials spent, "
+                  f"{tuning['trials_run_now']} in this run); best trial {tuning['best_trial']} "
+                  f"with validation MSE {tuning['best_value']:.4g}: {tuning['best_params']}.", '',
+                  f'![tuning history]({TUNING_PLOT})']
+    lines += ['', '## Data', '']
+    lines += [f'- {key}: {value}' for key, value in report['counts'].items()]
+    skipped = [b for b in report['bags'] if b.get('skipped_reason')]
+    lines += [f"- skipped bag {b['path']}: {b['skipped_reason']}" for b in skipped]
+    lines += ['', f'![prediction vs actual on the test window]({PREDICTION_PLOT})', '']
+    return '\n'.join(lines)
+
+
+def plot_predictions(path: Path, seconds: np.ndarray, actual: np.ndarray,
+                     predictions: Mapping[str, np.ndarray], horizon: int) -> None:
+    """Prediction vs actual error on the test window per axis (the paper's Fig. 5), each
+    with a panel below of the prediction errors, where the models differ visibly."""
+    figure, axes = plt.subplots(2 * len(TARGETS), 1, figsize=(11, 9), sharex=True,
+                                gridspec_kw={'height_ratios': [2, 1] * len(TARGETS)})
+    for i, axis in enumerate(TARGETS):
+        value, miss = axes[2 * i], axes[2 * i + 1]
+        value.plot(seconds, actual[:, i] * 1e6, color='black', linewidth=1.2, label='actual')
+        for name, predicted in predictions.items():
+            label = MODEL_LABELS.get(name, name)
+            value.plot(seconds, predicted[:, i] * 1e6, linewidth=0.8, label=label)
+            miss.plot(seconds, (predicted[:, i] - actual[:, i]) * 1e6, linewidth=0.6, label=label)
+        value.set_ylabel(f'{axis.upper()} error (um)')
+        miss.set_ylabel('pred. - act. (um)')
+        for ax in (value, miss):
+            ax.grid(alpha=0.3)
+    axes[0].legend(loc='upper right', ncol=len(predictions) + 1, fontsize='small')
+    axes[0].set_title(f'Test window: predicted vs actual error, horizon {horizon} samples')
+    axes[-1].set_xlabel('time from the start of the test window (s)')
+    figure.tight_layout()
+    _save_figure(figure, path)
+
+
+def plot_tuning(path: Path, trials: Sequence[Mapping[str, Any]]) -> None:
+    """Validation loss per trial (trials the pruner stopped early marked apart) and the
+    best so far."""
+    figure, ax = plt.subplots(figsize=(8, 4))
+    valued = [t for t in trials if t['value'] is not None]
+    if valued:
+        ax.semilogy([t['number'] for t in valued],
+                    np.minimum.accumulate([t['value'] for t in valued]), '-', label='best so far')
+    groups = {'trained to the end': lambda t: t['state'] == 'COMPLETE' and not t.get('pruned_epoch'),
+              'stopped by the pruner': lambda t: t['state'] == 'PRUNED' or bool(t.get('pruned_epoch'))}
+    for (label, member), marker in zip(groups.items(), ('o', 'x')):
+        chosen = [t for t in valued if member(t)]
+        if chosen:
+            ax.semilogy([t['number'] for t in chosen], [t['value'] for t in chosen], marker,
+                        label=label)
+    ax.set_xlabel('trial')
+    ax.set_ylabel('validation MSE (normalised)')
+    ax.grid(alpha=0.3, which='both')
+    ax.legend()
+    figure.tight_layout()
+    _save_figure(figure, path)
+
+
+def _save_figure(figure: Any, path: Path) -> None:
+    descriptor, staging = tempfile.mkstemp(prefix=f'.{path.stem}.', suffix='.png', dir=path.parent)
+    os.close(descriptor)
+    try:
+        figure.savefig(staging, dpi=110)
+        os.replace(staging, path)
+    finally:
+        plt.close(figure)
+        if os.path.exists(staging):
+            os.unlink(staging)
+
+
+def write_report(folder: str | Path, report: Mapping[str, Any], *, seconds: np.ndarray,
+                 actual: np.ndarray, predictions: Mapping[str, np.ndarray]) -> Path:
+    """Write report.json, report.md and the plots into `folder`; returns the folder."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    plot_predictions(folder / PREDICTION_PLOT, seconds, actual, predictions, report['horizon'])
+    if report.get('tuning'):
+        plot_tuning(folder / TUNING_PLOT, report['tuning']['trials'])
+    write_atomic(folder / 'report.json', (json.dumps(report, indent=2, default=_jsonable) + '\n').encode())
+    write_atomic(folder / 'report.md', markdown(report).encode())
+    return folder
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return str(value)

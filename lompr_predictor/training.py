@@ -1,0 +1,196 @@
+"""Training loop: mini-batch Adam on the training windows, early stopping on validation.
+
+One function, `train_network`, trains the LSTM (during tuning and at the end) and the BP
+baseline alike, so their training times compare like for like. Each epoch reports the
+validation loss to an Optuna trial when given (which may prune it), the best epoch's
+weights are kept, and training stops after `patience` epochs without improvement.
+Everything is seeded: the same problem, hyperparameters and seed give the same model.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+from tqdm import tqdm
+
+from lompr_predictor.dataset import LearningProblem, minmax_range
+from lompr_predictor.features import FEATURES, TARGETS
+from lompr_predictor.models import PredictorModule, build_network, gather_windows
+
+#: Defaults of the training loop, in one place.
+MAX_EPOCHS = 100
+PATIENCE = 10
+GRADIENT_CLIP = 1.0  # max gradient norm: a too-high learning rate stalls instead of exploding
+LR_DECAY = 0.3  # learning-rate factor after `LR_DECAY_PATIENCE` epochs without improvement
+LR_DECAY_PATIENCE = 3
+EVAL_BATCH = 8192
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    max_epochs: int = MAX_EPOCHS
+    patience: int = PATIENCE
+    seed: int = 0
+    # One torch intra-op thread: the LSTM's matrices are small, and on a loaded 2-core
+    # machine two threads contend (measured at load 4: 7.5 ms per batch-600 step with one
+    # thread, 16.9 ms with two).
+    threads: int = 1
+
+
+@dataclass
+class TrainedModel:
+    """A trained network wrapped for raw SI windows, and how its training went."""
+
+    module: PredictorModule
+    model_type: str
+    hyperparameters: dict[str, Any]
+    residual: bool
+    relative_errors: bool
+    validation_loss: float  # best epoch's validation MSE, normalised target units
+    epochs: int  # epochs run
+    best_epoch: int
+    seconds: float  # wall time of the training loop
+    history: list[float] = field(default_factory=list)  # validation loss per epoch
+    pruned_epoch: int = 0  # epoch at which the tuning pruner stopped it (0: not stopped)
+
+
+RANGE_SAMPLE = 20000  # training windows that set the input normalisation range
+
+
+def input_range(problem: LearningProblem, relative_errors: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Per-feature (min, max) of the network's input (error columns relative to the window's
+    last row if `relative_errors`) over training windows (evenly spaced, at most
+    `RANGE_SAMPLE` of them): the training range only."""
+    ends = problem.split.train
+    ends = ends[np.linspace(0, len(ends) - 1, min(len(ends), RANGE_SAMPLE)).astype(int)]
+    windows = gather_windows(problem.rows, ends, problem.window)
+    if relative_errors:
+        columns = [FEATURES.index(f'error_{axis}') for axis in TARGETS]
+        windows[:, :, columns] -= windows[:, -1:, columns]
+    return minmax_range(windows.reshape(-1, windows.shape[-1]))
+
+
+def build_module(problem: LearningProblem, model_type: str, hidden: int, *, residual: bool,
+                 relative_errors: bool) -> PredictorModule:
+    """An untrained network wrapped with the problem's training-range normalisation."""
+    low, high = input_range(problem, relative_errors)
+    fit = np.concatenate([problem.split.train, problem.split.validation])
+    target_low, target_high = minmax_range(problem.targets(fit, residual))
+    net = build_network(model_type, problem.rows.shape[1], problem.window, hidden)
+    return PredictorModule(net, low, high, target_low, target_high, residual=residual,
+                           relative_errors=relative_errors)
+
+
+class _FastInputs:
+    """The module's input normalisation, rewritten for training speed in float32 on rows
+    scaled once: normalise(w) = w * s - w[last] * mask * s - c * s (the same affine map as
+    `PredictorModule.normalise`, to float32 rounding)."""
+
+    def __init__(self, module: PredictorModule, rows: np.ndarray) -> None:
+        scale = module.feature_inverse_half.numpy()
+        self.scaled = torch.from_numpy((rows * scale).astype(np.float32))
+        self.last_mask = module.relative_mask.float()
+        self.offset = torch.from_numpy((module.feature_centre.numpy() * scale).astype(np.float32))
+
+    def windows(self, ends: np.ndarray, window: int) -> torch.Tensor:
+        x = gather_windows(self.scaled, ends, window)
+        return x - x[:, -1:, :] * self.last_mask - self.offset
+
+
+def validation_loss(net: nn.Module, inputs: _FastInputs, ends: np.ndarray,
+                    targets: torch.Tensor, window: int) -> float:
+    """Mean squared error of `net` on normalised targets, in batches without gradients."""
+    total = 0.0
+    with torch.no_grad():
+        for start in range(0, len(ends), EVAL_BATCH):
+            x = inputs.windows(ends[start:start + EVAL_BATCH], window)
+            diff = net(x) - targets[start:start + EVAL_BATCH]
+            total += float((diff * diff).sum())
+    return total / (len(ends) * targets.shape[1])
+
+
+def train_network(
+    problem: LearningProblem,
+    model_type: str,
+    hyperparameters: Mapping[str, Any],
+    settings: TrainSettings = TrainSettings(),
+    *,
+    residual: bool = True,
+    relative_errors: bool = True,
+    trial: Any = None,
+    progress: bool = True,
+    label: str = '',
+) -> TrainedModel:
+    """Train one network on `problem`; hyperparameters: batch_size, hidden, learning_rate.
+
+    `trial` (an Optuna trial) gets the validation loss each epoch; when its pruner says
+    so, training stops there (`pruned_epoch`) and the result is the best loss so far. The
+    caller returns that as the trial's value rather than raising `TrialPruned`: Optuna's
+    GP sampler learns nothing from a pruned trial and would propose the same point again,
+    whereas a stopped trial's (poor) loss steers it away.
+    """
+    torch.set_num_threads(settings.threads)
+    torch.manual_seed(settings.seed)
+    rng = np.random.default_rng(settings.seed)
+    window, split = problem.window, problem.split
+    batch = int(hyperparameters['batch_size'])
+    module = build_module(problem, model_type, int(hyperparameters['hidden']), residual=residual,
+                          relative_errors=relative_errors)
+    net = module.net
+    inputs = _FastInputs(module, problem.rows)
+    train_y, validation_y = (
+        torch.from_numpy(((problem.targets(ends, residual) - module.target_centre.numpy())
+                          / module.target_half.numpy()).astype(np.float32))
+        for ends in (split.train, split.validation))
+    optimiser = torch.optim.Adam(net.parameters(), lr=float(hyperparameters['learning_rate']))
+    scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
+        optimiser, factor=LR_DECAY, patience=LR_DECAY_PATIENCE)
+    best, best_state, best_epoch, history = math.inf, copy.deepcopy(net.state_dict()), 0, []
+    pruned_epoch = 0
+    started = time.perf_counter()
+    epochs = tqdm(range(1, settings.max_epochs + 1), desc=label or model_type, unit='epoch',
+                  leave=False, disable=not progress)
+    epoch = 0
+    for epoch in epochs:
+        net.train()
+        order = rng.permutation(len(split.train))
+        for start in range(0, len(order), batch):
+            chosen = order[start:start + batch]
+            x = inputs.windows(split.train[chosen], window)
+            loss = nn.functional.mse_loss(net(x), train_y[chosen])
+            optimiser.zero_grad()
+            loss.backward()
+            nn.utils.clip_grad_norm_(net.parameters(), GRADIENT_CLIP)
+            optimiser.step()
+        net.eval()
+        loss_value = validation_loss(module.net, inputs, split.validation, validation_y, window)
+        if not math.isfinite(loss_value):
+            loss_value = math.inf
+        history.append(loss_value)
+        scheduler.step(loss_value)
+        epochs.set_postfix(validation=f'{loss_value:.3g}')
+        if loss_value < best:
+            best, best_state, best_epoch = loss_value, copy.deepcopy(net.state_dict()), epoch
+        if trial is not None:
+            trial.report(loss_value, epoch)
+            if trial.should_prune():
+                pruned_epoch = epoch
+                break
+        if epoch - best_epoch >= settings.patience or loss_value == math.inf:
+            break
+    seconds = time.perf_counter() - started
+    net.load_state_dict(best_state)
+    module.eval()
+    return TrainedModel(module=module, model_type=model_type,
+                        hyperparameters=dict(hyperparameters), residual=residual,
+                        relative_errors=relative_errors,
+                        validation_loss=best, epochs=epoch, best_epoch=best_epoch,
+                        seconds=seconds, history=history, pruned_epoch=pruned_epoch)

@@ -1,0 +1,140 @@
+"""Bayesian tuning of batch size, hidden units and learning rate with Optuna (the paper's BO).
+
+The sampler is Optuna's `GPSampler`: a Gaussian process surrogate with a (log) expected
+improvement acquisition, as in the seed paper. The default search space is the paper's;
+the command line widens or changes it. Trials are pruned on the validation loss
+(`MedianPruner`) and count toward the budget like finished ones.
+
+A study lives in an Optuna storage: by default a SQLite file in the report folder, opened
+with `load_if_exists`, so a run interrupted by Ctrl-C resumes with the same command and
+loses no finished trial; an RDB URL (`postgresql://...`) lets several machines share one
+study. `run_study` runs only what the budget still lacks.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import optuna
+from tqdm import tqdm
+
+#: Trial states that count toward the budget.
+SPENT = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED)
+DEFAULT_TRIALS = 20
+#: The median pruner judges a trial only after this many finished trials and, within a
+#: trial, only after this many epochs: early epochs rank learning rates by speed, not by
+#: where they end, and a pruned trial teaches the GP nothing.
+PRUNER_STARTUP_TRIALS = 5
+PRUNER_WARMUP_EPOCHS = 15
+STUDY_FILE = 'study.sqlite3'
+
+
+@dataclass(frozen=True)
+class SearchSpace:
+    """Candidate values of each tuned hyperparameter (categorical, as in the paper)."""
+
+    batch_sizes: tuple[int, ...] = (200, 600, 1000, 1500)
+    hidden_units: tuple[int, ...] = (5, 15, 35, 50)
+    learning_rates: tuple[float, ...] = (0.1, 0.01, 0.001)
+
+    def suggest(self, trial: optuna.Trial) -> dict[str, Any]:
+        """The trial's hyperparameters: batch_size, hidden, learning_rate."""
+        return {'batch_size': int(trial.suggest_categorical('batch_size', list(self.batch_sizes))),
+                'hidden': int(trial.suggest_categorical('hidden', list(self.hidden_units))),
+                'learning_rate': float(trial.suggest_categorical(
+                    'learning_rate', list(self.learning_rates)))}
+
+    def as_dict(self) -> dict[str, list[Any]]:
+        return {name: list(values) for name, values in asdict(self).items()}
+
+
+PAPER_SPACE = SearchSpace()
+
+
+def default_storage(folder: str | Path) -> str:
+    """SQLite storage URL of a study file in `folder` (created if missing)."""
+    folder = Path(folder).resolve()
+    folder.mkdir(parents=True, exist_ok=True)
+    return f'sqlite:///{folder / STUDY_FILE}'
+
+
+def study_name_for(settings: Mapping[str, Any]) -> str:
+    """A study name fixed by what defines the problem (bags, window, horizon, space, seed):
+    the same command finds its study again, a different problem gets a new one."""
+    text = json.dumps(settings, sort_keys=True, default=str)
+    return 'lompr-' + hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def open_study(storage: str, study_name: str, *, seed: int = 0,
+               startup_trials: int = 6) -> optuna.Study:
+    """Create or load (resume) a minimising study with the GP sampler and a median pruner."""
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    sampler = optuna.samplers.GPSampler(seed=seed, n_startup_trials=startup_trials)
+    pruner = optuna.pruners.MedianPruner(n_startup_trials=PRUNER_STARTUP_TRIALS,
+                                         n_warmup_steps=PRUNER_WARMUP_EPOCHS)
+    return optuna.create_study(storage=storage, study_name=study_name, sampler=sampler,
+                               pruner=pruner, direction='minimize', load_if_exists=True)
+
+
+def spent_trials(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
+    """Finished (complete or pruned) trials, which count toward the budget."""
+    return study.get_trials(deepcopy=False, states=SPENT)
+
+
+def run_study(study: optuna.Study, objective: Callable[[optuna.Trial], float], n_trials: int,
+              *, progress: bool = True) -> int:
+    """Run trials until `n_trials` are spent (finished or pruned); returns how many ran now.
+
+    A trial that fails (an exception other than pruning) stops the run with that
+    exception; Optuna has recorded it as failed and a rerun does not count it.
+    """
+    remaining = max(0, n_trials - len(spent_trials(study)))
+    if remaining == 0:
+        return 0
+    bar = tqdm(total=n_trials, initial=n_trials - remaining, desc='tuning', unit='trial',
+               disable=not progress)
+
+    def advance(study: optuna.Study, trial: optuna.trial.FrozenTrial) -> None:
+        bar.update(1)
+        if trial.state == optuna.trial.TrialState.COMPLETE and study.best_trial.number == trial.number:
+            bar.set_postfix(best=f'{trial.value:.3g}')
+
+    try:
+        study.optimize(objective, n_trials=remaining, callbacks=[advance], catch=())
+    finally:
+        bar.close()
+    return remaining
+
+
+def history(study: optuna.Study) -> list[dict[str, Any]]:
+    """Every spent trial: number, state, value, params, duration [s], epochs reported, and
+    its user attributes (e.g. `pruned_epoch`, `duplicate_of`)."""
+    return [{'number': t.number, 'state': t.state.name, 'value': t.value,
+             'params': dict(t.params),
+             'seconds': t.duration.total_seconds() if t.duration else None,
+             'epochs': len(t.intermediate_values), **t.user_attrs}
+            for t in spent_trials(study)]
+
+
+def finished_twin(study: optuna.Study, trial: optuna.Trial) -> optuna.trial.FrozenTrial | None:
+    """An earlier complete trial with exactly this trial's parameters, if any: with a
+    categorical space the sampler may propose a point again, and a seeded training run
+    would only repeat its result."""
+    for other in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,)):
+        if other.number != trial.number and other.params == trial.params:
+            return other
+    return None
+
+
+def parse_values(text: str, cast: Callable[[str], Any]) -> tuple[Any, ...]:
+    """'200,600,1000' -> (200, 600, 1000): a search-space option from the command line."""
+    values: Sequence[Any] = [cast(part) for part in text.split(',') if part.strip()]
+    if not values:
+        msg = f'empty list of values: {text!r}'
+        raise ValueError(msg)
+    return tuple(values)

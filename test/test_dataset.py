@@ -1,0 +1,182 @@
+"""Reading and cleaning rules of the trainer, one by one, on hand-made arrays and bags."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from trainer_data import (
+    EPOCH_NS,
+    PERIOD_NS,
+    line_reference,
+    synthetic_recording,
+    truncate_bag,
+    write_synthetic_bag,
+)
+
+from lompr_predictor.bags import BagError, JointSamples, Recording, ReferenceSamples
+from lompr_predictor.dataset import (
+    CleanData,
+    build_problem,
+    chronological_split,
+    clean_recordings,
+    hampel_outliers,
+    interpolate_reference,
+    minmax_range,
+    read_bags,
+    sanitise_stream,
+    segment_bounds,
+    window_ends,
+)
+from lompr_predictor.features import HISTORY
+from lompr_predictor.robot import RobotDescription
+
+
+def test_nonfinite_rows_dropped_and_counted() -> None:
+    stamps = np.array([0, 1, 2, 3, 4])
+    values = np.array([[1.0, 0], [np.nan, 0], [3, np.inf], [4, 0], [5, 0]])
+    counts: dict[str, int] = {}
+    kept_stamps, kept = sanitise_stream(stamps, values, 'joint', counts)
+    assert counts['joint_nonfinite'] == 2
+    np.testing.assert_array_equal(kept_stamps, [0, 3, 4])
+    np.testing.assert_array_equal(kept[:, 0], [1, 4, 5])
+
+
+def test_out_of_order_sorted_and_duplicates_keep_first() -> None:
+    stamps = np.array([0, 2, 1, 3, 3, 4])
+    values = np.array([[0.0], [2], [1], [3], [99], [4]])
+    counts: dict[str, int] = {}
+    kept_stamps, kept = sanitise_stream(stamps, values, 'reference', counts)
+    assert counts['reference_out_of_order'] == 1
+    assert counts['reference_duplicate'] == 1
+    np.testing.assert_array_equal(kept_stamps, [0, 1, 2, 3, 4])
+    np.testing.assert_array_equal(kept[:, 0], [0, 1, 2, 3, 4])
+
+
+def test_reference_interpolated_to_joint_stamps_and_gaps_refused() -> None:
+    ref_stamps = np.array([0, 10, 20, 100, 110])
+    reference = np.array([[0.0, 0, 0], [1, 2, 3], [2, 4, 6], [10, 20, 30], [11, 22, 33]])
+    stamps = np.array([-5, 0, 5, 15, 50, 105, 120])
+    aligned, valid = interpolate_reference(ref_stamps, reference, stamps, max_step_ns=25)
+    np.testing.assert_array_equal(valid, [False, True, True, True, False, True, False])
+    np.testing.assert_allclose(aligned[valid], [[0, 0, 0], [0.5, 1, 1.5], [1.5, 3, 4.5],
+                                                [10.5, 21, 31.5]])
+    assert np.isnan(aligned[~valid]).all()
+
+
+def test_gap_splits_segments() -> None:
+    stamps = np.array([0, 40, 80, 120, 400, 440, 480, 1000])
+    np.testing.assert_array_equal(segment_bounds(stamps, 100), [[0, 4], [4, 7], [7, 8]])
+
+
+def test_hampel_rejects_spike_but_not_step_or_trend() -> None:
+    rng = np.random.default_rng(1)
+    n = 400
+    signal = np.stack([np.linspace(0, 40e-6, n), np.where(np.arange(n) < 200, 0.0, 8e-6)], -1)
+    signal += 0.3e-6 * rng.standard_normal(signal.shape)
+    segments = np.array([[0, n]])
+    assert not hampel_outliers(signal, segments, 7, 6.0).any()
+    spiked = signal.copy()
+    spiked[[50, 300], 0] += 20e-6
+    spiked[120, 1] -= 15e-6
+    np.testing.assert_array_equal(np.flatnonzero(hampel_outliers(spiked, segments, 7, 6.0)),
+                                  [50, 120, 300])
+
+
+def test_windows_never_cross_a_gap() -> None:
+    segments = np.array([[0, 30], [30, 35], [35, 80]])
+    window, horizon = 10, 3
+    ends = window_ends(segments, window, horizon)
+    segment_of = np.searchsorted(segments[:, 1], np.arange(80), side='right')
+    for end in ends:
+        rows = np.arange(end - window + 1 - HISTORY, end + horizon + 1)
+        assert len(set(segment_of[rows])) == 1
+    # every admissible window is there: 30 - 2 - 10 - 3 + 1 = 16 and 45 - 2 - 10 - 3 + 1 = 31
+    assert len(ends) == 16 + 31
+
+
+def test_split_is_chronological_and_test_is_last_tenth() -> None:
+    ends = window_ends(np.array([[0, 1000]]), 10, 5)
+    split = chronological_split(1000, ends, 5, test_fraction=0.1, validation_fraction=0.2)
+    assert split.test_start == 900 and split.validation_start == 720
+    assert (split.train + 5 < 720).all()
+    assert ((split.validation + 5 >= 720) & (split.validation + 5 < 900)).all()
+    assert (split.test + 5 >= 900).all()
+    assert split.train.max() < split.validation.min() < split.test.min()
+    assert len(split.train) + len(split.validation) + len(split.test) == len(ends)
+
+
+def test_minmax_from_training_part_only() -> None:
+    n = 200
+    error = np.zeros((n, 2))
+    error[:150, 0] = np.linspace(-1e-5, 2e-5, 150)
+    error[195, 0] = 9e-5  # in the test part: must not widen the range
+    stamps = np.arange(n, dtype=np.int64) * PERIOD_NS
+    data = CleanData(stamps=stamps, error=error, reference=np.zeros((n, 3)),
+                     segments=np.array([[0, n]]), sample_period=0.04)
+    problem = build_problem(data, 5, 1, test_fraction=0.1, validation_fraction=0.2)
+    assert problem.split.test_start == 180
+    np.testing.assert_allclose(problem.error_low, [-1e-5, 0.0])
+    np.testing.assert_allclose(problem.error_high, [2e-5, 1.0])  # constant column: min + 1
+    low, high = minmax_range(np.array([[1.0, np.nan], [3.0, 2.0]]))
+    np.testing.assert_allclose([low, high], [[1.0, 2.0], [3.0, 3.0]])
+
+
+def test_clean_recovers_error_through_fk(description: RobotDescription) -> None:
+    recording, error = synthetic_recording(description.geometry, 600)
+    data = clean_recordings([recording], description.geometry)
+    np.testing.assert_allclose(data.error, error, atol=1e-9)
+    assert data.counts['kept'] == 600 and data.counts['segments'] == 1
+    assert data.sample_period == pytest.approx(0.04)
+
+
+def test_clean_stitches_bags_and_counts_every_fault(description: RobotDescription) -> None:
+    recording, error = synthetic_recording(description.geometry, 800, noise=2e-7,
+                                           reference=line_reference(800))
+    j, r = recording.joints, recording.reference
+    positions = j.positions.copy()
+    positions[100, 2] = np.nan
+    positions[500, 0] += 2e-3  # a 2 mm glitch of one branch length
+    order = np.arange(800)
+    order[[300, 301]] = order[[301, 300]]
+    keep = np.r_[0:600, 620:800]  # a gap of 20 samples
+    keep = np.r_[keep[:400], 399, keep[400:]]  # a duplicated message
+    stamps, positions = j.stamps[order][keep], positions[order][keep]
+    # the reference comes half a period later (none after the last joint sample), in two bags
+    ref_stamps = np.r_[r.stamps[:1], r.stamps[:-1] + PERIOD_NS // 2]
+    ref_positions = np.r_[r.positions[:1], line_reference(799, offset_s=0.02)]
+    orientations = r.orientations
+    first = Recording(joints=JointSamples(stamps[:450], positions[:450], j.names),
+                      reference=ReferenceSamples(ref_stamps[:460], ref_positions[:460],
+                                                 orientations[:460]))
+    second = Recording(joints=JointSamples(stamps[450:], positions[450:], j.names),
+                       reference=ReferenceSamples(ref_stamps[460:], ref_positions[460:],
+                                                  orientations[460:]))
+    data = clean_recordings([second, first], description.geometry)
+    counts = data.counts
+    assert counts['joint_read'] == 781
+    assert counts['joint_nonfinite'] == 1
+    assert counts['joint_out_of_order'] == 1
+    assert counts['joint_duplicate'] == 1
+    assert counts['spike'] == 1
+    assert counts['segments'] == 2
+    assert counts['no_reference'] == 1  # the last joint sample lies after the last reference
+    assert counts['kept'] == 800 - 20 - 1 - 1 - 1
+    expected = {int(s): e for s, e in zip(j.stamps, error)}
+    assert np.isin(j.stamps[[100, 500, 799]], data.stamps, invert=True).all()
+    np.testing.assert_allclose(data.error, [expected[int(s)] for s in data.stamps], atol=1e-9)
+    assert data.stamps[0] == EPOCH_NS and (np.diff(data.stamps) > 0).all()
+
+
+def test_truncated_bag_is_one_clear_error(tmp_path: Path, description: RobotDescription) -> None:
+    good = write_synthetic_bag(tmp_path / 'good', description.geometry, 300)
+    bad = write_synthetic_bag(tmp_path / 'bad', description.geometry, 300, seed=1)
+    truncate_bag(bad)
+    with pytest.raises(BagError, match=r'bag .*bad: ') as caught:
+        read_bags([good, bad])
+    assert caught.value.path == str(bad)
+    recordings, sources = read_bags([good, bad], skip_bad=True)
+    assert len(recordings) == 1
+    assert sources[0].sha256 and not sources[0].skipped_reason
+    assert sources[1].path == str(bad) and sources[1].skipped_reason and not sources[1].sha256

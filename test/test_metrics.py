@@ -1,0 +1,61 @@
+"""Table 1 metrics against values computed by hand on known signals."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lompr_predictor.metrics import axis_metrics, ratios, table_metrics
+
+
+def test_pointwise_metrics_by_hand() -> None:
+    actual = np.array([10e-6, 20e-6, 30e-6, 40e-6])
+    predicted = actual + np.array([1e-6, -2e-6, 2e-6, -1e-6])
+    seconds = np.array([0.0, 0.04, 0.08, 0.12])
+    m = axis_metrics(predicted, actual, seconds, low=0.0, high=100e-6, max_step=0.1)
+    # errors 1, -2, 2, -1 um; normalised by 100 um: 1, -2, 2, -1 %
+    assert m['mse_um2'] == pytest.approx((1 + 4 + 4 + 1) / 4)
+    assert m['rmse_um'] == pytest.approx(np.sqrt(2.5))
+    assert m['mae_um'] == pytest.approx(1.5)
+    assert m['mse_pct'] == pytest.approx(2.5)
+    assert m['rmse_pct'] == pytest.approx(np.sqrt(2.5))
+    assert m['mae_pct'] == pytest.approx(1.5)
+    # trapezoid of |n| = .01, .02, .02, .01 with steps 0.04: 0.04 * (.015 + .02 + .015)
+    assert m['iae'] == pytest.approx(0.04 * 0.05)
+    assert m['ise'] == pytest.approx(0.04 * (0.5 * (1e-4 + 4e-4) + 4e-4 + 0.5 * (4e-4 + 1e-4)))
+    # t |n| = 0, .0008, .0016, .0012
+    assert m['itae'] == pytest.approx(0.04 * (0.0004 + 0.0012 + 0.0014))
+    # t n^2 = 0, .04*4e-4, .08*4e-4, .12*1e-4
+    assert m['itse'] == pytest.approx(0.04 * (0.5 * 1.6e-5 + 0.5 * (1.6e-5 + 3.2e-5) + 0.5 * (3.2e-5 + 1.2e-5)))
+
+
+def test_integrals_of_a_constant_error_match_closed_form() -> None:
+    duration, step = 10.0, 0.04
+    seconds = np.arange(0.0, duration + step / 2, step)
+    actual = np.zeros_like(seconds)
+    predicted = np.full_like(seconds, 5e-6)  # n = 5 um / 50 um = 0.1 throughout
+    m = axis_metrics(predicted, actual, seconds, low=-20e-6, high=30e-6, max_step=0.1)
+    assert m['iae'] == pytest.approx(0.1 * duration)
+    assert m['ise'] == pytest.approx(0.01 * duration)
+    assert m['itae'] == pytest.approx(0.1 * duration ** 2 / 2)  # trapezoid exact on t
+    assert m['itse'] == pytest.approx(0.01 * duration ** 2 / 2)
+    assert m['rmse_pct'] == pytest.approx(10.0)
+
+
+def test_gaps_add_nothing_to_the_integrals() -> None:
+    seconds = np.array([0.0, 0.04, 0.08, 5.0, 5.04])
+    m = axis_metrics(np.full(5, 1e-6), np.zeros(5), seconds, 0.0, 1e-5, max_step=0.1)
+    assert m['iae'] == pytest.approx(0.1 * 0.12)
+
+
+def test_table_uses_stamps_from_the_first_and_ratios() -> None:
+    stamps = 1_700_000_000_000_000_000 + 40_000_000 * np.arange(3, dtype=np.int64)
+    actual = np.zeros((3, 2))
+    predicted = np.array([[1e-6, 2e-6]] * 3)
+    table = table_metrics(predicted, actual, stamps, np.array([0.0, 0.0]),
+                          np.array([1e-5, 1e-5]), max_step=0.1)
+    assert table['x']['itae'] == pytest.approx(0.1 * 0.08 ** 2 / 2)
+    assert table['y']['rmse_um'] == pytest.approx(2.0)
+    half = ratios(table, {'x': {k: 2 * v for k, v in table['x'].items()},
+                          'y': {k: 2 * v for k, v in table['y'].items()}})
+    assert all(v == pytest.approx(0.5) for axis in half.values() for v in axis.values())

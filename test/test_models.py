@@ -1,0 +1,109 @@
+"""Models, training and the model file: export -> load -> same predictions, refusals."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from trainer_data import lissajous_reference, synthetic_recording
+
+from lompr_predictor.dataset import LearningProblem, build_problem, clean_recordings
+from lompr_predictor.features import FEATURES, TARGETS
+from lompr_predictor.model_file import MetadataMismatchError, ModelMetadata, load_model, save_model
+from lompr_predictor.models import (
+    MlpNet,
+    PredictorModule,
+    gather_windows,
+    persistence,
+    persistence_module,
+    predict_rows,
+)
+from lompr_predictor.robot import RobotDescription
+from lompr_predictor.training import TrainSettings, train_network
+
+SETTINGS = TrainSettings(max_epochs=8, patience=3, seed=3, threads=1)
+HYPER = {'batch_size': 200, 'hidden': 8, 'learning_rate': 0.01}
+
+
+@pytest.fixture(scope='module')
+def problem(description: RobotDescription) -> LearningProblem:
+    recording, _ = synthetic_recording(description.geometry, 3000, noise=2e-7,
+                                       reference=lissajous_reference(3000))
+    data = clean_recordings([recording], description.geometry)
+    return build_problem(data, window=12, horizon=10)
+
+
+def metadata(problem: LearningProblem, description: RobotDescription) -> ModelMetadata:
+    return ModelMetadata(
+        features=FEATURES, window=problem.window, horizon=problem.horizon,
+        sample_period=problem.sample_period, targets=TARGETS, normalisation={},
+        model_type='lstm', hyperparameters=HYPER,
+        robot_description_sha256=description.sha256,
+        training_bags=({'path': 'synthetic', 'sha256': '0' * 64},), seed=SETTINGS.seed,
+        library_versions={'torch': torch.__version__})
+
+
+def test_trained_lstm_beats_persistence(problem: LearningProblem) -> None:
+    trained = train_network(problem, 'lstm', HYPER, SETTINGS, progress=False)
+    assert trained.history[-1] < trained.history[0]
+    test = problem.split.test
+    actual = problem.error[test + problem.horizon]
+    model_rmse = np.sqrt(np.mean((predict_rows(trained.module, problem.rows, test, 12) - actual) ** 2))
+    persistence_rmse = np.sqrt(np.mean((persistence(problem.error, test) - actual) ** 2))
+    assert model_rmse < 0.5 * persistence_rmse
+
+
+def test_training_never_reads_the_test_part(problem: LearningProblem) -> None:
+    start = problem.split.test_start
+    rows, error = problem.rows.copy(), problem.error.copy()
+    rows[start:] = np.nan
+    error[start:] = np.nan
+    blind = dataclasses.replace(problem, rows=rows, error=error)
+    trained = train_network(blind, 'lstm', HYPER, dataclasses.replace(SETTINGS, max_epochs=2),
+                            progress=False)
+    assert np.isfinite(trained.validation_loss)
+    assert all(torch.isfinite(p).all() for p in trained.module.parameters())
+    assert np.isfinite(trained.module.feature_centre.numpy()).all()
+
+
+def test_export_load_same_predictions(tmp_path: Path, problem: LearningProblem,
+                                      description: RobotDescription) -> None:
+    trained = train_network(problem, 'lstm', HYPER, dataclasses.replace(SETTINGS, max_epochs=2),
+                            progress=False)
+    ends = problem.split.test[:300]
+    expected = predict_rows(trained.module, problem.rows, ends, problem.window)
+    path = save_model(tmp_path / 'model.pt', trained.module, metadata(problem, description))
+    loaded = load_model(path, expected={'features': FEATURES, 'window': 12, 'horizon': 10,
+                                        'robot_description_sha256': description.sha256})
+    windows = gather_windows(torch.from_numpy(problem.rows), ends, problem.window)
+    np.testing.assert_allclose(loaded.predict(windows).numpy(), expected, rtol=1e-6, atol=1e-12)
+    assert loaded.metadata.hyperparameters == HYPER
+
+
+def test_mismatched_metadata_refused(tmp_path: Path, problem: LearningProblem,
+                                     description: RobotDescription) -> None:
+    module = PredictorModule(MlpNet(len(FEATURES), 12, 4), np.zeros(8), np.ones(8),
+                             -np.ones(2), np.ones(2), residual=False, relative_errors=False)
+    path = save_model(tmp_path / 'model.pt', module, metadata(problem, description))
+    with pytest.raises(MetadataMismatchError, match="'horizon' is 10, this configuration needs 1"):
+        load_model(path, expected={'horizon': 1})
+    with pytest.raises(MetadataMismatchError, match='robot_description_sha256'):
+        load_model(path, expected={'robot_description_sha256': 'f' * 64})
+
+
+def test_residual_module_is_persistence_plus_change_and_shift_invariant(
+        problem: LearningProblem) -> None:
+    zero = persistence_module()
+    ends = problem.split.test[:50]
+    np.testing.assert_array_equal(predict_rows(zero, problem.rows, ends, 12),
+                                  persistence(problem.error, ends))
+    trained = train_network(problem, 'lstm', HYPER, dataclasses.replace(SETTINGS, max_epochs=1),
+                            progress=False)
+    shifted = problem.rows.copy()
+    shifted[:, :2] += [3e-6, -5e-6]  # the same offset on every error: the output moves with it
+    np.testing.assert_allclose(
+        predict_rows(trained.module, shifted, ends, 12),
+        predict_rows(trained.module, problem.rows, ends, 12) + [3e-6, -5e-6], atol=1e-12)

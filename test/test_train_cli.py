@@ -1,0 +1,106 @@
+"""`lompr train` / `lompr evaluate` end to end on small synthetic bags."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import pytest
+from trainer_data import lissajous_reference, synthetic_recording, truncate_bag
+
+from lompr_predictor.bags import write_recording
+from lompr_predictor.cli import evaluate, train
+from lompr_predictor.errors import LomprError
+from lompr_predictor.features import FEATURES
+from lompr_predictor.model_file import load_model
+from lompr_predictor.robot import RobotDescription
+
+FAST = ['--trials', '2', '--max-epochs', '2', '--window', '8', '--horizon', '2', '--quiet',
+        '--batch-sizes', '500', '--hidden-units', '4,8']
+
+
+def run(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser()
+    subparsers = parser.add_subparsers()
+    train.add_parser(subparsers)
+    evaluate.add_parser(subparsers)
+    args = parser.parse_args(argv)
+    return args.run(args)
+
+
+@pytest.fixture(scope='module')
+def bags(tmp_path_factory: pytest.TempPathFactory, description: RobotDescription) -> list[Path]:
+    folder = tmp_path_factory.mktemp('bags')
+    out = []
+    for i, storage in enumerate(('mcap', 'sqlite3')):
+        recording, _ = synthetic_recording(description.geometry, 1200, noise=2e-7, seed=i,
+                                           reference=lissajous_reference(1200))
+        if i:  # the second bag continues the first in time
+            recording = type(recording)(
+                joints=type(recording.joints)(recording.joints.stamps + 1200 * 40_000_000,
+                                              recording.joints.positions, recording.joints.names),
+                reference=type(recording.reference)(
+                    recording.reference.stamps + 1200 * 40_000_000,
+                    recording.reference.positions, recording.reference.orientations))
+        out.append(write_recording(folder / f'bag{i}', recording, storage=storage))
+    return out
+
+
+def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[Path]) -> None:
+    model, report = tmp_path / 'model.pt', tmp_path / 'report'
+    assert run(['train', *map(str, bags), '--out', str(model), '--report', str(report), *FAST]) == 0
+    for name in ('report.json', 'report.md', 'prediction_test.png', 'tuning_history.png'):
+        assert (report / name).is_file()
+    content = json.loads((report / 'report.json').read_text())
+    assert content['counts']['bags'] == 2 and content['counts']['kept'] == 2400
+    assert set(content['models']) == {'persistence', 'bp', 'bo_lstm'}
+    assert content['tuning']['trials_spent'] == 2
+    assert content['split']['test_start_row'] == 2160
+    assert '| RMSE (um) |' in (report / 'report.md').read_text()
+    loaded = load_model(model, expected={'features': FEATURES, 'window': 8, 'horizon': 2})
+    assert len(loaded.metadata.training_bags) == 2
+    assert all(len(b['sha256']) == 64 for b in loaded.metadata.training_bags)
+    assert loaded.metadata.test_metrics['x']['rmse_um'] == pytest.approx(
+        content['models']['bo_lstm']['metrics']['x']['rmse_um'])
+    # the same command again: the study is resumed, its budget already spent
+    assert run(['train', *map(str, bags), '--out', str(model), '--report', str(report), *FAST]) == 0
+    again = json.loads((report / 'report.json').read_text())
+    assert again['tuning']['trials_run_now'] == 0 and again['tuning']['trials_spent'] == 2
+    scored = tmp_path / 'scored'
+    assert run(['evaluate', str(model), str(bags[1]), '--report', str(scored), '--quiet']) == 0
+    evaluation = json.loads((scored / 'report.json').read_text())
+    assert set(evaluation['models']) == {'persistence', 'model'}
+    assert evaluation['split']['test'] == 1200 - 2 - 8 + 1 - 2
+
+
+def test_truncated_bag_stops_or_is_skipped(tmp_path: Path, bags: list[Path],
+                                           description: RobotDescription) -> None:
+    recording, _ = synthetic_recording(description.geometry, 300, noise=2e-7,
+                                       reference=lissajous_reference(300))
+    bad = write_recording(tmp_path / 'bad', recording)
+    truncate_bag(bad)
+    model, report = tmp_path / 'model.pt', tmp_path / 'report'
+    with pytest.raises(LomprError, match=f'bag {bad}: '):
+        run(['train', str(bags[0]), str(bad), '--out', str(model), '--report', str(report), *FAST])
+    assert not model.exists()
+    assert run(['train', str(bags[0]), str(bad), '--out', str(model), '--report', str(report),
+                '--skip-bad', *FAST]) == 0
+    content = json.loads((report / 'report.json').read_text())
+    skipped = [b for b in content['bags'] if b['skipped_reason']]
+    assert [b['path'] for b in skipped] == [str(bad)]
+    assert content['counts']['bags'] == 1
+    assert f'skipped bag {bad}' in (report / 'report.md').read_text()
+
+
+def test_lompr_main_reports_a_truncated_bag_in_one_line(
+        tmp_path: Path, description: RobotDescription, capsys: pytest.CaptureFixture[str]) -> None:
+    from lompr_predictor.cli import main
+
+    recording, _ = synthetic_recording(description.geometry, 200, reference=lissajous_reference(200))
+    bad = write_recording(tmp_path / 'cut', recording, storage='sqlite3')
+    truncate_bag(bad)
+    code = main(['train', str(bad), '--out', str(tmp_path / 'm.pt'), '--report', str(tmp_path / 'r')])
+    assert code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f'lompr train: error: bag {bad}: ')

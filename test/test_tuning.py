@@ -1,0 +1,99 @@
+"""Bayesian tuning: finds a toy objective's best point; an interrupted study resumes."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import optuna
+import pytest
+
+from lompr_predictor.tuning import (
+    PAPER_SPACE,
+    default_storage,
+    finished_twin,
+    history,
+    open_study,
+    parse_values,
+    run_study,
+    spent_trials,
+    study_name_for,
+)
+
+
+def toy(trial: optuna.Trial) -> float:
+    """Smooth bowl with its minimum at batch 600, hidden 35, lr 0.01."""
+    p = PAPER_SPACE.suggest(trial)
+    return ((math.log10(p['learning_rate']) + 2) ** 2 + ((p['hidden'] - 35) / 15) ** 2
+            + ((p['batch_size'] - 600) / 400) ** 2)
+
+
+def test_gp_sampler_finds_the_toy_optimum(tmp_path: Path) -> None:
+    study = open_study(default_storage(tmp_path), 'toy', seed=1)
+    assert isinstance(study.sampler, optuna.samplers.GPSampler)
+    assert run_study(study, toy, 20, progress=False) == 20
+    assert study.best_params == {'batch_size': 600, 'hidden': 35, 'learning_rate': 0.01}
+    assert study.best_value == pytest.approx(0.0)
+
+
+def test_interrupted_study_resumes_with_its_finished_trials(tmp_path: Path) -> None:
+    storage = default_storage(tmp_path)
+    calls = []
+
+    def interrupted(trial: optuna.Trial) -> float:
+        calls.append(trial.number)
+        if len(calls) == 3:
+            raise KeyboardInterrupt  # Ctrl-C during the third trial
+        return toy(trial)
+
+    with pytest.raises(KeyboardInterrupt):
+        run_study(open_study(storage, 'resume', seed=2), interrupted, 6, progress=False)
+    before = {t.number: (t.params, t.value) for t in spent_trials(open_study(storage, 'resume'))}
+    assert len(before) == 2
+    study = open_study(storage, 'resume', seed=2)  # the same command, run again
+    assert run_study(study, toy, 6, progress=False) == 4
+    after = {t.number: (t.params, t.value) for t in spent_trials(study)}
+    assert len(after) == 6
+    assert all(after[number] == kept for number, kept in before.items())
+    assert run_study(study, toy, 6, progress=False) == 0  # budget spent: nothing more to do
+    assert [t['state'] for t in history(study)] == ['COMPLETE'] * 6
+
+
+def test_pruned_trials_count_toward_the_budget(tmp_path: Path) -> None:
+    def pruned_every_other(trial: optuna.Trial) -> float:
+        trial.report(1.0, 1)
+        if trial.number % 2:
+            raise optuna.TrialPruned
+        return toy(trial)
+
+    study = open_study(default_storage(tmp_path), 'pruned')
+    run_study(study, pruned_every_other, 4, progress=False)
+    assert [t['state'] for t in history(study)] == ['COMPLETE', 'PRUNED'] * 2
+
+
+def test_a_repeated_point_is_found_not_retrained(tmp_path: Path) -> None:
+    study = open_study(default_storage(tmp_path), 'twins')
+    point = {'batch_size': 200, 'hidden': 5, 'learning_rate': 0.1}
+    study.enqueue_trial(point)
+    study.enqueue_trial(point)
+    evaluated = []
+
+    def objective(trial: optuna.Trial) -> float:
+        PAPER_SPACE.suggest(trial)
+        twin = finished_twin(study, trial)
+        if twin is not None:
+            return float(twin.value) + 100.0 * twin.number  # visible: came from the twin
+        evaluated.append(trial.number)
+        return toy(trial)
+
+    run_study(study, objective, 2, progress=False)
+    assert evaluated == [0]
+    assert study.trials[1].value == study.trials[0].value
+
+
+def test_study_name_and_space_parsing() -> None:
+    assert study_name_for({'a': 1, 'b': [2]}) == study_name_for({'b': [2], 'a': 1})
+    assert study_name_for({'a': 1}) != study_name_for({'a': 2})
+    assert parse_values('200, 600,1000', int) == (200, 600, 1000)
+    with pytest.raises(ValueError, match='empty'):
+        parse_values(' , ', float)
