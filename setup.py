@@ -44,6 +44,7 @@ setup(
         'console_scripts': [
             'kinematics_node = lompr_predictor.nodes.kinematics_node:main',
             'predictor_node = lompr_predictor.nodes.predictor_node:main',
+            'lompr_pipeline = lompr_predictor.nodes.pipeline:main',
             'twin_node = lompr_predictor.nodes.twin_node:main',
             'lompr = lompr_predictor.cli:main',
         ],

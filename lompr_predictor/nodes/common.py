@@ -211,7 +211,7 @@ def _help_epilog(specs: Sequence[ParameterSpec]) -> str:
 
 
 def run_node(
-    node_factory: Callable[[Context], Node],
+    node_factory: Callable[[Context], Node | Sequence[Node]],
     *,
     description: str,
     parameters: Sequence[ParameterSpec] = (),
@@ -219,7 +219,8 @@ def run_node(
 ) -> int:
     """Run one node until Ctrl-C or shutdown (the ros2/demos pattern); returns an exit code.
 
-    `node_factory(context)` builds the node on a fresh context. Non-ROS arguments are
+    `node_factory(context)` builds the node (or several, spun by one executor, as the
+    one-process pipeline does) on a fresh context. Non-ROS arguments are
     parsed here: `--help` prints `description` and the parameters. A `LomprError`, a bad
     parameter or topic name while the node starts is printed as one line and exits with code 2.
     Uses the default context, whose SIGINT handler rclpy installs, and a
@@ -234,11 +235,13 @@ def run_node(
     parser.parse_args(remove_ros_args(argv)[1:])
     rclpy.init(args=argv)
     context = rclpy.get_default_context()
-    node: Node | None = None
+    nodes: Sequence[Node] = ()
     try:
-        node = node_factory(context)
+        built = node_factory(context)
+        nodes = [built] if isinstance(built, Node) else list(built)
         executor = SingleThreadedExecutor(context=context)
-        executor.add_node(node)
+        for node in nodes:
+            executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -246,7 +249,7 @@ def run_node(
         print(f'{parser.prog}: error: {err}', file=sys.stderr)
         return 2
     finally:
-        if node is not None:
+        for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown(context=context)
     return 0

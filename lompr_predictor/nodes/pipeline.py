@@ -1,0 +1,46 @@
+"""lompr_pipeline: the kinematics and predictor nodes in one process, on one executor.
+
+The lowest-latency way to run them: /lompr/end_pose goes from one node to the other inside
+one process (one interpreter, one executor, no second process to wake and schedule);
+bench/bench_predictor.py measures it beside the two executables. Topics, parameters and
+diagnostics are those of the two nodes; a params file with a `kinematics_node:` and a
+`predictor_node:` section configures both, e.g.
+
+    lompr_pipeline --ros-args --params-file kinematics_node.yaml \\
+        --params-file predictor_node.yaml -p predictor_node:model_path:=MODEL.pt
+
+(`-p name:=value` without the node prefix sets a parameter of both nodes.)
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+
+from rclpy.context import Context
+from rclpy.node import Node
+
+from lompr_predictor.nodes import kinematics_node, predictor_node
+from lompr_predictor.nodes.common import run_node
+
+
+def build_pipeline(context: Context) -> list[Node]:
+    """A kinematics node and a predictor node on `context` (the kinematics node is destroyed
+    again if the predictor cannot start, e.g. on a mismatched model)."""
+    kinematics = kinematics_node.KinematicsNode(context=context)
+    try:
+        return [kinematics, predictor_node.PredictorNode(context=context)]
+    except BaseException:
+        kinematics.destroy_node()
+        raise
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console script `lompr_pipeline`."""
+    return run_node(build_pipeline, description=__doc__.split('\n', 1)[0],
+                    parameters=(*kinematics_node.PARAMETERS, *predictor_node.PARAMETERS),
+                    argv=argv)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,311 @@
+"""OnlinePredictor (ROS-free): offline parity, alignment by stamp, plant error, safety."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from model_helpers import FailingModel, metadata, save_constant, save_linear
+
+from lompr_predictor.features import HISTORY, feature_rows
+from lompr_predictor.model_file import load_model, save_model
+from lompr_predictor.online import CompensationLimits, OnlinePredictor, StreamSettings
+
+PERIOD = 0.04
+PERIOD_NS = 40_000_000
+T0 = 1_700_000_000_000_000_000  # a realistic epoch stamp [ns]
+WINDOW, HORIZON = 4, 3
+NEEDED = WINDOW + HISTORY
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def stream(**overrides: float) -> StreamSettings:
+    values = dict(sample_period=PERIOD, gap_factor=2.5, min_interval_factor=0.5,
+                  stale_periods=5.0, accuracy_samples=1000)
+    values.update(overrides)
+    return StreamSettings(**values)  # type: ignore[arg-type]
+
+
+def limits(max_compensation: float = 1e-3, max_step: float = 1e-3,
+           enabled: bool = True) -> CompensationLimits:
+    return CompensationLimits(max_compensation, max_step, enabled)
+
+
+def spiral(n: int, start: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Stamps [ns], reference (n, 2) and a measured tip (n, 2) = reference + a smooth error."""
+    k = np.arange(start, start + n)
+    t_h = 10.0 * k / 1000.0
+    angle = np.pi / 2 * t_h + np.pi / 2
+    reference = np.stack([0.02 * t_h * np.cos(angle), 0.02 * t_h * np.sin(angle)], -1)
+    error = np.stack([20e-6 * np.sin(0.3 * k), 15e-6 * np.cos(0.2 * k)], -1)
+    return T0 + k * PERIOD_NS, reference, reference + error
+
+
+@pytest.fixture
+def linear_model(tmp_path):  # type: ignore[no-untyped-def]
+    return load_model(save_linear(tmp_path / 'linear.pt', window=WINDOW, horizon=HORIZON))
+
+
+def constant_core(tmp_path, value, clock=None, **limit_values):  # type: ignore[no-untyped-def]
+    model = load_model(save_constant(tmp_path / 'constant.pt', value, window=WINDOW,
+                                     horizon=HORIZON))
+    return OnlinePredictor(model, stream(), limits(**limit_values), clock or FakeClock())
+
+
+def feed(core: OnlinePredictor, stamps, reference, tips, clock=None):  # type: ignore[no-untyped-def]
+    """Reference then pose of each sample; all outputs in order."""
+    outputs = []
+    for stamp, ref, tip in zip(stamps, reference, tips):
+        if clock is not None:
+            clock.now += PERIOD
+        outputs += core.add_reference(int(stamp), *ref)
+        outputs += core.add_pose(int(stamp), *tip)
+    return outputs
+
+
+def test_predictions_equal_offline_ones_sample_for_sample(linear_model) -> None:  # type: ignore[no-untyped-def]
+    stamps, reference, tips = spiral(60)
+    core = OnlinePredictor(linear_model, stream(), limits(enabled=False), FakeClock())
+    # poses arrive before the reference for odd samples: alignment waits, never pairs.
+    outputs = []
+    for i in range(len(stamps)):
+        if i % 2:
+            outputs += core.add_pose(int(stamps[i]), *tips[i])
+            outputs += core.add_reference(int(stamps[i]), *reference[i])
+        else:
+            outputs += core.add_reference(int(stamps[i]), *reference[i])
+            outputs += core.add_pose(int(stamps[i]), *tips[i])
+    rows = feature_rows((stamps - stamps[0]) * 1e-9, tips - reference, reference)
+    ends = np.arange(NEEDED - 1, len(stamps))
+    windows = np.stack([rows[e - WINDOW + 1:e + 1] for e in ends])
+    offline = linear_model.predict(torch.from_numpy(windows)).numpy()
+    assert [o.instant_ns for o in outputs] == list(stamps[ends] + HORIZON * PERIOD_NS)
+    np.testing.assert_allclose(np.array([o.prediction for o in outputs]), offline,
+                               rtol=0, atol=1e-12)
+    assert all(np.all(o.compensation == 0.0) for o in outputs)  # shadow mode
+
+
+def test_reference_is_interpolated_to_pose_stamps(linear_model) -> None:  # type: ignore[no-untyped-def]
+    stamps, reference, tips = spiral(20)
+    core = OnlinePredictor(linear_model, stream(), limits(enabled=False), FakeClock())
+    # references half a period later than the poses, at a slightly different rate
+    ref_stamps = stamps[0] - PERIOD_NS // 2 + np.arange(25) * (PERIOD_NS * 4 // 5)
+    ref_xy = np.stack([np.interp(ref_stamps, stamps, reference[:, a]) for a in (0, 1)], -1)
+    ref_xy += np.stack([1e-4 * np.sin(ref_stamps * 1e-9), 0 * ref_stamps], -1)
+    for stamp, ref in zip(ref_stamps, ref_xy):
+        core.add_reference(int(stamp), *ref)
+    for stamp, tip in zip(stamps[:NEEDED], tips[:NEEDED]):
+        core.add_pose(int(stamp), *tip)
+    expected = np.stack([np.interp(stamps[:NEEDED], ref_stamps, ref_xy[:, a])
+                         for a in (0, 1)], -1)
+    rows = core.window_rows()
+    np.testing.assert_allclose(rows[:, 2:4], expected[HISTORY:], atol=1e-15)
+    np.testing.assert_allclose(rows[:, 0:2], (tips[:NEEDED] - expected)[HISTORY:], atol=1e-15)
+
+
+def test_no_output_before_the_window_is_full(linear_model) -> None:  # type: ignore[no-untyped-def]
+    stamps, reference, tips = spiral(NEEDED)
+    core = OnlinePredictor(linear_model, stream(), limits(), FakeClock())
+    assert feed(core, stamps[:-1], reference[:-1], tips[:-1]) == []
+    assert core.window_fill == NEEDED - 1
+    assert len(feed(core, stamps[-1:], reference[-1:], tips[-1:])) == 1
+
+
+def test_offset_is_clamped_to_max_compensation(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    core = constant_core(tmp_path, (3e-3, -4e-3), max_compensation=1e-3, max_step=1.0)
+    outputs = feed(core, *spiral(NEEDED + 3))
+    np.testing.assert_allclose(outputs[0].prediction, [3e-3, -4e-3])
+    for output in outputs:  # direction kept, norm at the limit
+        np.testing.assert_allclose(output.compensation, [-0.6e-3, 0.8e-3], atol=1e-15)
+    assert core.clamped == 4
+
+
+def test_offset_changes_at_most_max_step_per_sample(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    core = constant_core(tmp_path, (-50e-6, 0.0), max_compensation=1e-3, max_step=20e-6)
+    outputs = feed(core, *spiral(NEEDED + 4))
+    np.testing.assert_allclose([o.compensation[0] for o in outputs],
+                               [20e-6, 40e-6, 50e-6, 50e-6, 50e-6], atol=1e-15)
+
+
+def test_a_gap_zeroes_once_and_output_resumes_after_refill(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    core = constant_core(tmp_path, (-10e-6, 0.0))
+    stamps, reference, tips = spiral(40)
+    assert len(feed(core, stamps[:10], reference[:10], tips[:10])) == 10 - NEEDED + 1
+    # samples 10..12 missing: a 4-period interval > gap_factor 2.5
+    outputs = feed(core, stamps[13:13 + NEEDED], reference[13:13 + NEEDED], tips[13:13 + NEEDED])
+    zero, resumed = outputs[0], outputs[1:]
+    assert zero.reason == 'gap' and zero.prediction is None
+    np.testing.assert_array_equal(zero.compensation, [0.0, 0.0])
+    # the offsets published (up to sample 12) are all for instants before the gap sample:
+    # one zero for the next instant
+    assert zero.instant_ns == stamps[14]
+    assert len(resumed) == 1 and resumed[0].instant_ns == stamps[12 + NEEDED] + HORIZON * PERIOD_NS
+    assert core.faults['gap'] == 1
+
+
+def test_stale_input_zeroes_once(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    clock = FakeClock()
+    core = constant_core(tmp_path, (-10e-6, 0.0), clock=clock)
+    stamps, reference, tips = spiral(NEEDED + 2)
+    feed(core, stamps, reference, tips, clock)
+    clock.now += 4.9 * PERIOD
+    assert core.check_stale() == []
+    clock.now += 0.2 * PERIOD
+    assert core.check_stale() == []  # once may be a busy executor: confirmed at the next call
+    assert core.add_reference(int(stamps[-1]) + PERIOD_NS, 0.0, 0.0) == []  # no pose: no use
+    zeros = core.check_stale()  # a zero for each instant an offset was published for
+    assert [z.instant_ns for z in zeros] == [stamps[-1] + k * PERIOD_NS for k in (1, 2, 3)]
+    assert all(z.reason == 'stale' and not z.compensation.any() for z in zeros)
+    clock.now += 10.0
+    assert core.check_stale() == []
+    assert core.window_fill == 0
+
+
+def test_poses_without_references_go_stale(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    clock = FakeClock()
+    core = constant_core(tmp_path, (-10e-6, 0.0), clock=clock)
+    stamps, reference, tips = spiral(NEEDED + 8)
+    feed(core, stamps[:NEEDED], reference[:NEEDED], tips[:NEEDED], clock)
+    for stamp, tip in zip(stamps[NEEDED:], tips[NEEDED:]):  # the reference stream stopped
+        clock.now += PERIOD
+        assert core.add_pose(int(stamp), *tip) == []
+        zeros = core.check_stale()
+        if zeros:
+            break
+    assert stamp == stamps[NEEDED + 6]  # the first waiting pose waited 5 periods, confirmed
+    # the offsets published were for instants before the newest pose: one zero, next instant
+    assert [(z.reason, z.instant_ns) for z in zeros] == [('stale', stamp + PERIOD_NS)]
+    assert core.dropped['stale'] == 7 and core.window_fill == 0
+
+
+@pytest.mark.parametrize('fault', ['non_finite', 'out_of_order'])
+def test_bad_pose_zeroes_once_then_refills(tmp_path, fault: str) -> None:  # type: ignore[no-untyped-def]
+    core = constant_core(tmp_path, (-10e-6, 0.0))
+    stamps, reference, tips = spiral(30)
+    feed(core, stamps[:10], reference[:10], tips[:10])
+    core.add_reference(int(stamps[10]), *reference[10])
+    bad_stamp = int(stamps[5]) if fault == 'out_of_order' else int(stamps[10])
+    bad_x = math.nan if fault == 'non_finite' else tips[10, 0]
+    zeros = core.add_pose(bad_stamp, bad_x, tips[10, 1])
+    # the offsets for the instants of samples 10..12 (published from 7..9) are cancelled
+    assert [z.instant_ns for z in zeros] == list(stamps[10:13])
+    assert {z.reason for z in zeros} == {fault}
+    assert core.faults[fault] == 1 and core.dropped[fault] == 1
+    assert core.add_pose(bad_stamp, bad_x, tips[10, 1]) == []  # the fault is not repeated
+    outputs = feed(core, stamps[11:11 + NEEDED], reference[11:11 + NEEDED],
+                   tips[11:11 + NEEDED])
+    assert [o.reason for o in outputs] == ['']
+
+
+def test_duplicates_are_dropped_without_a_fault(linear_model) -> None:  # type: ignore[no-untyped-def]
+    core = OnlinePredictor(linear_model, stream(), limits(), FakeClock())
+    stamps, reference, tips = spiral(NEEDED + 2)
+    first = feed(core, stamps, reference, tips)
+    assert core.add_pose(int(stamps[-1]), *tips[-1]) == []
+    assert core.add_reference(int(stamps[-1]), *reference[-1]) == []
+    assert core.dropped['duplicate'] == 1 and core.dropped['reference_duplicate'] == 1
+    assert core.faults.total == 0 and len(first) == 3
+
+
+def test_plant_error_subtracts_the_compensation_published_for_that_instant(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    core = constant_core(tmp_path, (-30e-6, 12e-6), max_step=1.0)
+    stamps, reference, tips = spiral(NEEDED + HORIZON + 2)
+    outputs = feed(core, stamps, reference, tips)
+    published = {o.instant_ns: o.compensation for o in outputs}
+    rows = core.window_rows()
+    last = len(stamps) - 1
+    np.testing.assert_allclose(published[int(stamps[last])], [30e-6, -12e-6])
+    np.testing.assert_allclose(rows[-1, 0:2], tips[last] - reference[last] - [30e-6, -12e-6],
+                               atol=1e-15)
+    assert int(stamps[last - HORIZON]) not in published  # before the first offset: c = 0
+    np.testing.assert_allclose(rows[-HORIZON - 1, 0:2], tips[last - HORIZON] - reference[last - HORIZON],
+                               atol=1e-15)
+
+
+def test_live_accuracy_is_rms_of_truth_minus_prediction(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    core = constant_core(tmp_path, (5e-6, -5e-6), enabled=False)
+    stamps, reference, _ = spiral(NEEDED + HORIZON + 10)
+    tips = reference + [8e-6, 1e-6]  # a constant true error
+    feed(core, stamps, reference, tips)
+    rms, count = core.accuracy()
+    assert count == 11
+    np.testing.assert_allclose(rms, [3e-6, 6e-6], atol=1e-15)
+
+
+def test_inference_failure_zeroes_once(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    path = save_model(tmp_path / 'failing.pt', FailingModel(threshold=0.01),
+                      metadata(window=WINDOW, horizon=HORIZON))
+    core = OnlinePredictor(load_model(path), stream(), limits(), FakeClock())
+    stamps, reference, tips = spiral(120)
+    outputs = feed(core, stamps, reference, tips)
+    assert outputs[0].reason == ''
+    # one cancellation: zeros for the instants (after the failing sample) already offset
+    assert [o.reason for o in outputs if o.reason] == ['inference'] * (HORIZON - 1)
+    assert core.faults['inference'] > 1  # every later window fails again, silently
+
+
+def test_off_rate_input_never_fills_the_window(linear_model) -> None:  # type: ignore[no-untyped-def]
+    core = OnlinePredictor(linear_model, stream(), limits(), FakeClock())
+    stamps, reference, tips = spiral(30)
+    fast = T0 + np.arange(30) * (PERIOD_NS // 10)
+    assert feed(core, fast, reference, tips) == []
+    assert core.faults['off_rate'] == 29
+
+
+# -- bad input: any message sequence keeps the offset finite and bounded -----------------
+
+# Runs of samples (an event repeated), so that windows fill and offsets flow between bad ones.
+EVENT = st.tuples(
+    st.sampled_from(['both'] * 4 + ['pose', 'reference', 'stale']),
+    st.sampled_from([1] * 6 + [0, -1, -3, 2, 4]),  # stamp step in periods (0: duplicate)
+    st.sampled_from([0.0, 1e-5, -2e-4, 5e-3, 1e300, math.nan, math.inf]),  # error [m]
+    st.sampled_from([1, 2, 8, 15]),  # times in a row
+)
+
+
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(events=st.lists(EVENT, min_size=1, max_size=40))
+def test_random_sequences_never_give_a_bad_offset(tmp_path, events) -> None:  # type: ignore[no-untyped-def]
+    path = tmp_path / 'amplified.pt'
+    if not path.exists():
+        save_linear(path, window=WINDOW, horizon=HORIZON,
+                    weight=np.full((WINDOW * 8, 2), 3.0), bias=(1e-3, -1e-3))
+    clock = FakeClock()
+    core = OnlinePredictor(load_model(path), stream(),
+                           limits(max_compensation=1e-4, max_step=2e-5), clock)
+    stamp = T0
+    outputs = []
+    for kind, step, error, repeat in events:
+        for _ in range(repeat):
+            stamp += step * PERIOD_NS
+            clock.now += PERIOD
+            x = 0.1 * math.sin(stamp * 1e-9)
+            if kind == 'stale':
+                clock.now += 10 * PERIOD
+                outputs += core.check_stale()
+                continue
+            if kind in ('reference', 'both'):
+                outputs += core.add_reference(stamp, x, 0.0)
+            if kind in ('pose', 'both'):
+                outputs += core.add_pose(stamp, x + error, error)
+    previous = np.zeros(2)
+    for output in outputs:
+        assert np.isfinite(output.compensation).all()
+        assert np.hypot(*output.compensation) <= 1e-4 * (1 + 1e-12)
+        if output.reason:
+            assert not output.compensation.any()
+        else:
+            assert np.isfinite(output.prediction).all()
+            assert np.hypot(*(output.compensation - previous)) <= 2e-5 * (1 + 1e-12)
+        previous = output.compensation

@@ -1,0 +1,357 @@
+"""predictor_node in the test process: bag replay parity with the offline pipeline, safety
+over the topics, model refusal and run-time swaps, diagnostics."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped, Vector3Stamped
+from model_helpers import save_constant, save_linear
+from rclpy.parameter import Parameter
+from ros_helpers import RosHarness
+from sensor_msgs.msg import JointState
+
+from lompr_predictor.bags import (
+    JointSamples,
+    Recording,
+    ReferenceSamples,
+    read_recording,
+    write_recording,
+)
+from lompr_predictor.dataset import clean_recordings
+from lompr_predictor.features import HISTORY
+from lompr_predictor.kinematics import inverse_kinematics
+from lompr_predictor.model_file import MetadataMismatchError, load_model
+from lompr_predictor.models import predict_rows
+from lompr_predictor.nodes.kinematics_node import KinematicsNode
+from lompr_predictor.nodes.predictor_node import PredictorNode
+from lompr_predictor.robot import MEASURED_JOINTS, RobotDescription
+
+PERIOD_NS = 40_000_000
+T0 = 1_000_000_000_000
+WINDOW, HORIZON = 4, 3
+NEEDED = WINDOW + HISTORY
+PARAMS_FILE = Path(__file__).parents[1] / 'lompr_predictor' / 'config' / 'predictor_node.yaml'
+
+
+def spiral_recording(description: RobotDescription, samples: int,
+                     reference_shift_ns: int = 0) -> Recording:
+    """Joints by IK of (spiral + a smooth synthetic error); the reference is the spiral,
+    sampled `reference_shift_ns` after the joints (so it must be interpolated)."""
+    k = np.arange(samples + 1)
+    t_h = 10.0 * k / 1000.0
+
+    def spiral(t: np.ndarray) -> np.ndarray:
+        angle = np.pi / 2 * t + np.pi / 2
+        return np.stack([0.02 * t * np.cos(angle), 0.02 * t * np.sin(angle),
+                         np.full(len(t), 1.097)], -1)
+
+    error = np.stack([25e-6 * np.sin(0.05 * k), 18e-6 * np.cos(0.07 * k), 0 * k], -1)
+    joints = inverse_kinematics(description.geometry, spiral(t_h) + error).joints[:samples]
+    shift = reference_shift_ns / PERIOD_NS * 10.0 / 1000.0
+    reference = spiral(t_h + shift)
+    return Recording(
+        joints=JointSamples(T0 + k[:samples] * PERIOD_NS, joints, MEASURED_JOINTS),
+        reference=ReferenceSamples(T0 + k * PERIOD_NS + reference_shift_ns, reference,
+                                   np.tile([0.0, 0.0, 0.0, 1.0], (len(k), 1))))
+
+
+def stamp_ns(msg: Vector3Stamped) -> int:
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+def set_stamp(msg, ns: int) -> None:  # type: ignore[no-untyped-def]
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(ns), 1_000_000_000)
+
+
+class Wiring:
+    """A predictor node (optionally behind a kinematics node), the test's publishers and
+    collectors, discovery done."""
+
+    def __init__(self, ros: RosHarness, model: Path, *, kinematics: bool = False,
+                 **overrides: object) -> None:
+        parameters = {'model_path': str(model), 'diagnostics_period': 0.1, **overrides}
+        self.ros = ros
+        self.node: PredictorNode = ros.add(PredictorNode(
+            context=ros.context,
+            parameter_overrides=[Parameter(k, value=v) for k, v in parameters.items()]))
+        self.predictions: list[Vector3Stamped] = ros.collect(
+            '/lompr/predicted_error', Vector3Stamped, 1000)
+        self.compensations: list[Vector3Stamped] = ros.collect(
+            '/lompr/compensation', Vector3Stamped, 1000)
+        self.diagnostics: list[DiagnosticArray] = ros.collect('/diagnostics', DiagnosticArray)
+        self.reference = ros.node.create_publisher(PoseStamped, '/lompr/reference', 100)
+        if kinematics:
+            ros.add(KinematicsNode(context=ros.context))
+            self.joints = ros.node.create_publisher(JointState, '/joint_states', 100)
+            ros.wait_for_subscribers(self.joints)
+        else:
+            self.poses = ros.node.create_publisher(PoseStamped, '/lompr/end_pose', 100)
+            ros.wait_for_subscribers(self.poses)
+        ros.wait_for_subscribers(self.reference)
+        ros.wait_for_publishers('/lompr/compensation')
+        ros.wait_for_publishers('/lompr/predicted_error')
+
+    def publish_sample(self, ns: int, reference_xy, tip_xy) -> None:  # type: ignore[no-untyped-def]
+        reference = PoseStamped()
+        set_stamp(reference, ns)
+        reference.pose.position.x, reference.pose.position.y = map(float, reference_xy)
+        self.reference.publish(reference)
+        pose = PoseStamped()
+        set_stamp(pose, ns)
+        pose.pose.position.x, pose.pose.position.y = map(float, tip_xy)
+        self.poses.publish(pose)
+
+    def run(self, first: int, count: int, reference_xy=(0.01, 0.02), error=(1e-5, -1e-5)) -> None:  # type: ignore[no-untyped-def]
+        """Publish samples first..first+count-1 (stamps every period), each answered or not
+        before the next, as a controller's cycle would."""
+        node = self.node
+        for k in range(first, first + count):
+            received = node.pose_rate.total + node.reference_rate.total
+            xy = np.asarray(reference_xy) + 1e-3 * k
+            self.publish_sample(T0 + k * PERIOD_NS, xy, xy + error)
+            self.ros.spin_until(
+                lambda: node.pose_rate.total + node.reference_rate.total == received + 2,
+                what=f'sample {k}')
+
+    def status(self, name: str) -> dict[str, str] | None:
+        for array in reversed(self.diagnostics):
+            for status in array.status:
+                if status.name == f'predictor_node: {name}':
+                    return {kv.key: kv.value for kv in status.values} | {
+                        '_message': status.message, '_level': status.level}
+        return None
+
+
+def xy(msgs: list[Vector3Stamped]) -> np.ndarray:
+    return np.array([[m.vector.x, m.vector.y] for m in msgs])
+
+
+def test_bag_replay_matches_offline_predictions(
+        ros: RosHarness, description: RobotDescription, tmp_path: Path) -> None:
+    bag = write_recording(tmp_path / 'spiral', spiral_recording(description, 120, 13_000_000))
+    recording = read_recording(bag)
+    model_path = save_linear(tmp_path / 'model.pt', window=WINDOW, horizon=HORIZON)
+    wiring = Wiring(ros, model_path, kinematics=True, compensation_enabled=False,
+                    stale_periods=1000.0)
+    joints, reference = recording.joints, recording.reference
+    order = np.argsort(np.concatenate([joints.stamps, reference.stamps]), kind='stable')
+    for index in order:  # the bag's time order, each message answered before the next
+        if index < len(joints.stamps):
+            msg = JointState(name=list(joints.names), position=joints.positions[index].tolist())
+            set_stamp(msg, joints.stamps[index])
+            received = wiring.node.pose_rate.total
+            wiring.joints.publish(msg)
+            ros.spin_until(lambda: wiring.node.pose_rate.total > received, what='end pose')
+        else:
+            i = index - len(joints.stamps)
+            msg = PoseStamped()
+            set_stamp(msg, reference.stamps[i])
+            p = reference.positions[i]
+            msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = map(float, p)
+            wiring.reference.publish(msg)
+            received = wiring.node.reference_rate.total
+            ros.spin_until(lambda: wiring.node.reference_rate.total > received, what='reference')
+    # offline: the trainer's cleaning (interpolation, batch FK, error) and feature rows
+    data = clean_recordings([recording], description.geometry)
+    assert data.counts['spike'] == 0 and len(data.segments) == 1
+    ends = np.arange(NEEDED - 1, len(data))
+    offline = predict_rows(load_model(model_path).module, data.features(), ends, WINDOW)
+    expected_instants = data.stamps[ends] + HORIZON * PERIOD_NS
+    ros.spin_until(lambda: min(len(wiring.predictions), len(wiring.compensations)) >= len(ends),
+                   what='all predictions and offsets')
+    assert [stamp_ns(m) for m in wiring.predictions] == expected_instants.tolist()
+    np.testing.assert_allclose(xy(wiring.predictions), offline, rtol=0, atol=1e-9)
+    assert all(m.vector.z == 0.0 for m in wiring.predictions)
+    assert not xy(wiring.compensations).any()  # shadow mode: offsets all zero
+    assert len(wiring.compensations) == len(ends)
+
+
+def test_outputs_start_with_a_full_window_clamped_and_step_limited(
+        ros: RosHarness, tmp_path: Path) -> None:
+    model = save_constant(tmp_path / 'c.pt', (-0.6e-3, 0.8e-3), window=WINDOW, horizon=HORIZON)
+    wiring = Wiring(ros, model, max_compensation=0.5e-3, max_compensation_step=0.2e-3)
+    wiring.run(0, NEEDED - 1)
+    ros.spin_for(0.2)
+    assert wiring.compensations == [] and wiring.predictions == []
+    wiring.run(NEEDED - 1, 4)
+    ros.spin_until(lambda: len(wiring.compensations) == 4, what='4 offsets')
+    np.testing.assert_allclose(xy(wiring.predictions), [[-0.6e-3, 0.8e-3]] * 4)
+    # clamped to 0.5 mm along (0.6, -0.8), reached in steps of at most 0.2 mm
+    np.testing.assert_allclose(xy(wiring.compensations)[:, 0],
+                               [0.12e-3, 0.24e-3, 0.3e-3, 0.3e-3], atol=1e-12)
+    np.testing.assert_allclose(xy(wiring.compensations)[:, 1],
+                               [-0.16e-3, -0.32e-3, -0.4e-3, -0.4e-3], atol=1e-12)
+    assert [stamp_ns(m) for m in wiring.compensations] == [
+        T0 + (k + HORIZON) * PERIOD_NS for k in range(NEEDED - 1, NEEDED + 3)]
+
+
+def test_shadow_mode_switched_at_run_time(ros: RosHarness, tmp_path: Path) -> None:
+    model = save_constant(tmp_path / 'c.pt', (-20e-6, 0.0), window=WINDOW, horizon=HORIZON)
+    wiring = Wiring(ros, model)
+    wiring.run(0, NEEDED)
+    ros.spin_until(lambda: len(wiring.compensations) == 1, what='first offset')
+    assert wiring.node.set_parameters([Parameter('compensation_enabled', value=False)])[0].successful
+    # switching off cancels the offset already published for a future instant at once
+    ros.spin_until(lambda: len(wiring.compensations) == 2, what='cancelling zero')
+    assert stamp_ns(wiring.compensations[1]) == stamp_ns(wiring.compensations[0])
+    wiring.run(NEEDED, 3)
+    ros.spin_until(lambda: len(wiring.compensations) == 5, what='shadow offsets')
+    np.testing.assert_allclose(xy(wiring.compensations)[:, 0], [20e-6, 0, 0, 0, 0])
+    np.testing.assert_allclose(xy(wiring.predictions)[:, 0], [-20e-6] * 4)
+    assert wiring.node.core.faults.total == 0
+
+
+def test_gap_and_staleness_zero_once(ros: RosHarness, tmp_path: Path) -> None:
+    model = save_constant(tmp_path / 'c.pt', (-20e-6, 0.0), window=WINDOW, horizon=HORIZON)
+    wiring = Wiring(ros, model, stale_periods=5.0)  # 0.2 s of wall time
+    wiring.run(0, NEEDED)
+    ros.spin_until(lambda: len(wiring.compensations) == 1, what='first offset')
+    wiring.run(NEEDED + 3, 1)  # three samples missing: a gap
+    ros.spin_until(lambda: len(wiring.compensations) == 2, what='zero after the gap')
+    assert xy(wiring.compensations)[1].tolist() == [0.0, 0.0]
+    assert stamp_ns(wiring.compensations[1]) >= T0 + (NEEDED + 3) * PERIOD_NS
+    wiring.run(NEEDED + 4, NEEDED - 1)  # refilled (the gap sample was the first): resumes
+    ros.spin_until(lambda: len(wiring.compensations) == 3, what='resumed offset')
+    ros.spin_until(lambda: len(wiring.compensations) == 4, timeout=2.0, what='stale zero')
+    ros.spin_for(0.5)
+    assert len(wiring.compensations) == 4 and not xy(wiring.compensations)[3].any()
+    assert len(wiring.predictions) == 2
+    ros.spin_until(lambda: (wiring.status('inputs') or {}).get('faults.stale') == '1',
+                   what='stale fault in /diagnostics')
+    status = wiring.status('inputs')
+    assert status['faults.gap'] == '1' and status['last_fault'] == 'stale'
+
+
+def test_mismatched_model_is_refused_naming_the_field(ros: RosHarness, tmp_path: Path) -> None:
+    model = save_linear(tmp_path / 'm.pt', window=WINDOW, horizon=HORIZON, sample_period=0.004)
+    with pytest.raises(MetadataMismatchError, match="'sample_period' is 0.004"):
+        PredictorNode(context=ros.context,
+                      parameter_overrides=[Parameter('model_path', value=str(model))])
+    other_robot = save_linear(tmp_path / 'r.pt', robot_sha256='0' * 64)
+    with pytest.raises(MetadataMismatchError, match="'robot_description_sha256'"):
+        PredictorNode(context=ros.context,
+                      parameter_overrides=[Parameter('model_path', value=str(other_robot))])
+    good = save_linear(tmp_path / 'g.pt', window=WINDOW, horizon=HORIZON)
+    with pytest.raises(MetadataMismatchError, match="'horizon' is 3, this configuration needs 5"):
+        PredictorNode(context=ros.context, parameter_overrides=[
+            Parameter('model_path', value=str(good)), Parameter('horizon', value=5)])
+    with pytest.raises(MetadataMismatchError, match="'sha256'"):
+        PredictorNode(context=ros.context, parameter_overrides=[
+            Parameter('model_path', value=str(good)), Parameter('model_sha256', value='ab' * 32)])
+
+
+def test_bad_reload_keeps_the_old_model_and_good_reload_swaps_without_a_gap(
+        ros: RosHarness, tmp_path: Path) -> None:
+    old = save_constant(tmp_path / 'old.pt', (1e-6, 0.0), window=WINDOW, horizon=HORIZON)
+    new = save_constant(tmp_path / 'new.pt', (2e-6, 0.0), window=WINDOW, horizon=HORIZON)
+    longer = save_constant(tmp_path / 'longer.pt', (3e-6, 0.0), window=WINDOW + 1,
+                           horizon=HORIZON)
+    corrupt = tmp_path / 'corrupt.pt'
+    corrupt.write_bytes(old.read_bytes()[:200])
+    wiring = Wiring(ros, old)
+    wiring.run(0, NEEDED + 2)
+    for bad, why in ((corrupt, 'not a TorchScript file'), (longer, "'window' is 5"),
+                     (tmp_path / 'missing.pt', 'no such file')):
+        (result,) = wiring.node.set_parameters([Parameter('model_path', value=str(bad))])
+        assert not result.successful and why in result.reason
+        assert f'still running {old}' in result.reason
+    assert wiring.node.get_parameter('model_path').value == str(old)
+    wiring.run(NEEDED + 2, 2)
+    (result,) = wiring.node.set_parameters([Parameter('model_path', value=str(new))])
+    assert result.successful
+    wiring.run(NEEDED + 4, 3)
+    ros.spin_until(lambda: len(wiring.predictions) == 8, what='8 predictions')
+    instants = [stamp_ns(m) for m in wiring.predictions]
+    assert instants == [T0 + (k + HORIZON) * PERIOD_NS for k in range(NEEDED - 1, NEEDED + 7)]
+    np.testing.assert_allclose(xy(wiring.predictions)[:, 0], [1e-6] * 5 + [2e-6] * 3)
+    ros.spin_until(lambda: (wiring.status('model') or {}).get('swaps') == '1',
+                   what='swap in /diagnostics')
+    assert wiring.status('model')['sha256'] == load_model(new).sha256
+
+
+def test_bad_messages_never_stop_the_node_and_are_counted(ros: RosHarness, tmp_path: Path) -> None:
+    model = save_constant(tmp_path / 'c.pt', (-20e-6, 0.0), window=WINDOW, horizon=HORIZON)
+    wiring = Wiring(ros, model)
+    wiring.run(0, NEEDED)
+    wiring.run(NEEDED, 1, error=(float('nan'), 0.0))
+    wiring.run(NEEDED, 1)  # a good sample at the NaN one's stamp is used
+    wiring.run(NEEDED, 1)  # and its duplicate dropped
+    wiring.run(2, 1)  # out of order
+    wiring.run(NEEDED + 1, NEEDED)
+    ros.spin_until(lambda: len(wiring.compensations) == 3, what='offset, zero, offset')
+    assert xy(wiring.compensations)[:, 0].tolist() == [20e-6, 0.0, 20e-6]
+    ros.spin_until(lambda: (wiring.status('prediction') or {}).get('predictions_total') == '2',
+                   what='diagnostics')
+    inputs = wiring.status('inputs')
+    assert (inputs['rejected.non_finite'], inputs['rejected.duplicate'],
+            inputs['rejected.out_of_order']) == ('1', '1', '1')
+    prediction = wiring.status('prediction')
+    assert float(prediction['inference_p99_us']) > 0.0
+    assert float(prediction['input_to_output_p50_us']) > 0.0
+
+
+def run_process(arguments: list[str]) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, '-m', *arguments], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def stop(process: subprocess.Popen, timeout: float = 10.0) -> tuple[str, str]:
+    """SIGINT, then kill after `timeout` (a DDS participant can hang at exit)."""
+    if process.poll() is None:
+        process.send_signal(signal.SIGINT)
+    try:
+        return process.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        return process.communicate()
+
+
+def test_executable_with_params_file_refuses_a_mismatched_model_in_one_line(tmp_path: Path) -> None:
+    model = save_linear(tmp_path / 'm.pt', window=WINDOW, horizon=HORIZON)
+    process = run_process([
+        'lompr_predictor.nodes.predictor_node', '--ros-args', '--params-file',
+        str(PARAMS_FILE), '-p', f'model_path:={model}', '-p', 'horizon:=7'])
+    try:
+        code = process.wait(timeout=60)
+    finally:
+        _, stderr = stop(process)
+    assert code == 2
+    errors = [line for line in stderr.splitlines() if 'error' in line]
+    assert len(errors) == 1 and "metadata field 'horizon' is 3" in errors[0]
+
+
+def test_one_process_pipeline_answers_joint_states(
+        ros: RosHarness, description: RobotDescription, tmp_path: Path) -> None:
+    model = save_constant(tmp_path / 'c.pt', (-7e-6, 3e-6), window=WINDOW, horizon=HORIZON)
+    process = run_process(['lompr_predictor.nodes.pipeline', '--ros-args',
+                           '-p', f'predictor_node:model_path:={model}'])
+    try:
+        compensations = ros.collect('/lompr/compensation', Vector3Stamped, 100)
+        joints = ros.node.create_publisher(JointState, '/joint_states', 100)
+        reference = ros.node.create_publisher(PoseStamped, '/lompr/reference', 100)
+        ros.wait_for_subscribers(joints, timeout=60.0)
+        ros.wait_for_subscribers(reference, timeout=60.0)
+        ros.wait_for_publishers('/lompr/compensation', timeout=60.0)
+        recording = spiral_recording(description, NEEDED + 1)
+        for k in range(NEEDED + 1):
+            ref = PoseStamped()
+            set_stamp(ref, recording.reference.stamps[k])
+            ref.pose.position.x, ref.pose.position.y = map(float, recording.reference.positions[k, :2])
+            reference.publish(ref)
+            msg = JointState(name=list(MEASURED_JOINTS),
+                             position=recording.joints.positions[k].tolist())
+            set_stamp(msg, recording.joints.stamps[k])
+            joints.publish(msg)
+            ros.spin_for(0.01)
+        ros.spin_until(lambda: len(compensations) == 2, what='two offsets from the pipeline')
+        np.testing.assert_allclose(xy(compensations), [[7e-6, -3e-6]] * 2)
+        assert stamp_ns(compensations[-1]) == recording.joints.stamps[NEEDED] + HORIZON * PERIOD_NS
+    finally:
+        stop(process)
