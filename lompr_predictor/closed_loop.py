@@ -1,0 +1,390 @@
+"""The closed loop on the digital twin, through the real nodes, in one process.
+
+    twin_node (lockstep) --/joint_states--> kinematics_node --/lompr/end_pose--> predictor_node
+    twin_node --/lompr/reference--> predictor_node --/lompr/compensation--> twin_node
+
+The predictor's offset for an instant moves the twin's command at that instant (CONTRACT
+section 3). The three nodes and a collector run on one executor, on their own rclpy
+`Context` and on private topic names (nothing leaks to, or hears from, a robot on the same
+ROS domain). The twin runs in lockstep: the next sample runs as soon as its offset arrived,
+so a pass of 44 s of machining takes about 3 s (measured: ~380 samples/s on the events
+executor, ~290 on the single-threaded one). The collector keeps the twin's debug
+topics (`/lompr/twin/true_error`, `/lompr/twin/plant_error`) and its joint states and
+references, so a run can be scored on the true tool-tip error and recorded as a bag.
+
+`compensation_enabled` of the predictor node can be switched off at a given sample
+(`LoopSettings.switch_off_at`): the node goes on predicting (shadow mode) and publishes zero
+offsets. A loop without compensation is the same pipeline in shadow mode from the start.
+
+`persistence_model` writes the simplest compensator as a model file (offset = minus the
+last measured plant error), so that it runs through the same predictor node.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rclpy
+from geometry_msgs.msg import PoseStamped, Vector3Stamped
+from rclpy.context import Context
+from rclpy.executors import Executor
+from rclpy.experimental import EventsExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.task import Future
+from sensor_msgs.msg import JointState
+from tqdm import tqdm
+
+from lompr_predictor.bags import JointSamples, Recording, ReferenceSamples, write_recording
+from lompr_predictor.errors import LomprError
+from lompr_predictor.features import FEATURES, TARGETS
+from lompr_predictor.loop_score import LOOP_TRUTH_JSON, LOOP_TRUTH_NPZ, write_json
+from lompr_predictor.model_file import ModelMetadata, load_model, save_model
+from lompr_predictor.models import persistence_module
+from lompr_predictor.nodes import kinematics_node, predictor_node, twin_node
+from lompr_predictor.nodes.common import spin_until
+from lompr_predictor.nodes.kinematics_node import KinematicsNode
+from lompr_predictor.nodes.predictor_node import PredictorNode
+from lompr_predictor.nodes.twin_node import TwinNode
+from lompr_predictor.robot import MEASURED_JOINTS
+from lompr_predictor.twin.digital_twin import DigitalTwin
+from lompr_predictor.twin.recording import VERTICAL_TOOL
+
+#: Loggers of the nodes in the loop (their node names).
+NODE_LOGGERS = (kinematics_node.NODE_NAME, predictor_node.NODE_NAME, twin_node.NODE_NAME)
+#: Wall seconds the nodes may take to discover each other.
+DISCOVERY_TIMEOUT = 10.0
+
+
+class ClosedLoopError(LomprError):
+    """A closed-loop run could not be set up or did not finish."""
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """One closed-loop run (SI units; wall-clock times in seconds)."""
+
+    model_path: str
+    passes: int = 3  # scored passes, after the lead-in
+    #: Passes run first and not scored: the robot starting from rest and the predictor
+    #: filling its window happen once at start-up, not in the days of machining that follow.
+    lead_in_passes: int = 1
+    path: str = 'spiral'
+    seed: int = 0
+    compensation_enabled: bool = True  # False: the predictor in shadow mode throughout
+    switch_off_at: int | None = None  # sample from which compensation is switched off
+    twin_parameters_file: str = ''  # empty: the packaged config/twin.yaml
+    robot_description_file: str = ''  # empty: the packaged LOMPR description
+    #: Lockstep: wall seconds the twin waits for an offset before running the sample
+    #: without (only while the predictor fills its window, or if it falls behind).
+    lockstep_timeout: float = 0.1
+    max_compensation: float = 5e-4  # predictor clamp, XY norm [m]
+    max_compensation_step: float = 5e-5  # predictor step limit per sample [m]
+    #: The predictor's staleness rule counts wall time; in lockstep wall time is not sample
+    #: time, so only a real stall (this many periods, 10 s) should count as stale input.
+    stale_periods: float = 250.0
+    wall_timeout: float = 1800.0  # a run that takes longer is stopped with an error
+
+
+@dataclass(frozen=True)
+class LoopRun:
+    """Every sample of a closed-loop run, in sample order."""
+
+    settings: LoopSettings
+    horizon: int  # of the model that ran
+    sample_period: float  # [s]
+    stamps: np.ndarray  # (N,) int64 [ns]
+    reference: np.ndarray  # (N, 3) nominal commanded tool tip [m]
+    joints: np.ndarray  # (N, 5) measured joints, MEASURED_JOINTS order
+    true_error: np.ndarray  # (N, 2) true tool tip - reference [m]: what the loop fights
+    plant_error: np.ndarray  # (N, 2) true tool tip - reference - applied offset [m]
+    pass_index: np.ndarray  # (N,)
+    in_pass: np.ndarray  # (N,) bool, False on the returns
+    switched_off_at: int | None  # sample at which compensation_enabled was set false
+    wall_seconds: float
+    counts: dict[str, Any] = field(default_factory=dict)  # twin and predictor counters
+
+    @property
+    def scored(self) -> np.ndarray:
+        """(N,) bool: the samples after the lead-in passes, which the scores are over."""
+        return self.pass_index >= self.settings.lead_in_passes
+
+    @property
+    def compensation(self) -> np.ndarray:
+        """(N, 2) offset the twin applied [m]."""
+        return self.true_error - self.plant_error
+
+    def truth(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """(arrays, document) of the run's truth file (`loop_score.LOOP_TRUTH_NPZ`)."""
+        arrays = {'stamps': self.stamps, 'true_error': self.true_error,
+                  'plant_error': self.plant_error, 'compensation': self.compensation,
+                  'pass_index': self.pass_index, 'in_pass': self.in_pass}
+        document = {'format': 'lompr_closed_loop', 'format_version': 1,
+                    'settings': asdict(self.settings), 'horizon': self.horizon,
+                    'sample_period': self.sample_period, 'samples': len(self.stamps),
+                    'switched_off_at': self.switched_off_at,
+                    'wall_seconds': self.wall_seconds, 'counts': self.counts}
+        return arrays, document
+
+
+def persistence_model(path: str | Path, like: str | Path) -> Path:
+    """Write the persistence compensator as a model file: its prediction for t + horizon is
+    the plant error measured at t. Horizon, sample period and robot description are those
+    of the model file `like`, so both run under the same predictor configuration."""
+    reference = load_model(like).metadata
+    metadata = ModelMetadata(
+        features=FEATURES, window=1, horizon=reference.horizon,
+        sample_period=reference.sample_period, targets=TARGETS, normalisation={},
+        model_type='persistence', hyperparameters={},
+        robot_description_sha256=reference.robot_description_sha256, training_bags=(),
+        seed=0, library_versions=dict(reference.library_versions))
+    return save_model(path, persistence_module(), metadata)
+
+
+def run_closed_loop(settings: LoopSettings, *, progress: bool = True,
+                    label: str = 'closed loop') -> LoopRun:
+    """Run the loop until the twin's passes are done; returns what the collector saw."""
+    if settings.passes < 1 or settings.lead_in_passes < 0:
+        msg = (f'passes must be at least 1 and lead-in passes at least 0, got '
+               f'{settings.passes} and {settings.lead_in_passes}')
+        raise ClosedLoopError(msg)
+    horizon = load_model(settings.model_path).metadata.horizon
+    # The nodes' start-up lines would interleave with the progress bar: warnings only.
+    levels = {name: rclpy.logging.get_logger_effective_level(name) for name in NODE_LOGGERS}
+    for name in NODE_LOGGERS:
+        rclpy.logging.set_logger_level(name, rclpy.logging.LoggingSeverity.WARN)
+    context = Context()
+    rclpy.init(context=context, args=[])
+    executor = _events_executor(context)
+    try:
+        loop = _Loop(settings, context, executor, horizon)
+        done = Future()
+        loop.collector.on_done = lambda: done.set_result(True)
+        loop.start(progress, label)
+        started = time.monotonic()
+        while not done.done():
+            executor.spin_until_future_complete(done, timeout_sec=0.5)
+            if time.monotonic() - started > settings.wall_timeout:
+                msg = (f'{label}: not finished after {settings.wall_timeout:g} s '
+                       f'({loop.collector.count} of {loop.total} samples)')
+                raise ClosedLoopError(msg)
+        return loop.result(time.monotonic() - started)
+    finally:
+        for node in executor.get_nodes():
+            executor.remove_node(node)
+            node.destroy_node()
+        executor.shutdown()
+        context.try_shutdown()
+        for name, level in levels.items():
+            rclpy.logging.set_logger_level(name, level)
+
+
+def _events_executor(context: Context) -> Executor:
+    """An EventsExecutor (half the CPU of the default one). Its constructor enables
+    faulthandler on `sys.stderr`, which fails when stderr is not a real file (captured by
+    pytest or redirected to a buffer): the process's own stderr is used for that."""
+    captured, sys.stderr = sys.stderr, sys.__stderr__
+    try:
+        return EventsExecutor(context=context)
+    finally:
+        sys.stderr = captured
+
+
+class _Loop:
+    """The nodes of one run, wired on private topics; the twin starts once all are matched."""
+
+    def __init__(self, settings: LoopSettings, context: Context, executor: Executor,
+                 horizon: int) -> None:
+        self.settings = settings
+        self.executor = executor
+        self.horizon = horizon
+        prefix = f'/lompr_loop_{os.getpid()}_{id(self):x}'
+        self.topics = {name: f'{prefix}/{name}' for name in (
+            'joint_states', 'reference', 'end_pose', 'compensation', 'predicted_error',
+            'true_error', 'plant_error', 'diagnostics')}
+        topics = self.topics
+
+        def overrides(**values: Any) -> list[Parameter]:
+            return [Parameter(name, value=value) for name, value in values.items()]
+
+        description = {'robot_description_file': settings.robot_description_file}
+        self.kinematics = KinematicsNode(context=context, parameter_overrides=overrides(
+            **description, joint_state_topic=topics['joint_states'],
+            end_pose_topic=topics['end_pose'], diagnostics_topic=topics['diagnostics']))
+        self.predictor = PredictorNode(context=context, parameter_overrides=overrides(
+            **description, model_path=settings.model_path,
+            compensation_enabled=settings.compensation_enabled,
+            max_compensation=settings.max_compensation,
+            max_compensation_step=settings.max_compensation_step,
+            stale_periods=settings.stale_periods, end_pose_topic=topics['end_pose'],
+            reference_topic=topics['reference'], compensation_topic=topics['compensation'],
+            predicted_error_topic=topics['predicted_error'],
+            diagnostics_topic=topics['diagnostics']))
+        period = self.predictor.settings.sample_period
+        self.twin = TwinNode(context=context, parameter_overrides=overrides(
+            **description, twin_parameters_file=settings.twin_parameters_file,
+            path=settings.path, seed=settings.seed,
+            passes=settings.lead_in_passes + settings.passes,
+            mode='lockstep', lockstep_timeout=settings.lockstep_timeout,
+            # an offset is sent `horizon` samples ahead of its instant: let it wait that long
+            compensation_timeout=max(1.0, (horizon + 2) * period),
+            joint_state_topic=topics['joint_states'], reference_topic=topics['reference'],
+            compensation_topic=topics['compensation'], true_error_topic=topics['true_error'],
+            plant_error_topic=topics['plant_error'], diagnostics_topic=topics['diagnostics']))
+        self.total = int(self.twin.total_samples or 0)
+        self.collector = _Collector(context, topics, self.twin.twin, self.total,
+                                    self._on_sample)
+        self.switched_off_at: int | None = None
+        self._bar: tqdm | None = None
+
+    def start(self, progress: bool, label: str) -> None:
+        """Spin the other nodes until every endpoint is matched, then start the twin."""
+        for node in (self.kinematics, self.predictor, self.collector):
+            self.executor.add_node(node)
+        topics, graph = self.topics, self.collector
+        wanted = {(topics['joint_states'], 'sub'): 2, (topics['reference'], 'sub'): 2,
+                  (topics['true_error'], 'sub'): 1, (topics['plant_error'], 'sub'): 1,
+                  (topics['end_pose'], 'sub'): 1, (topics['end_pose'], 'pub'): 1,
+                  (topics['compensation'], 'sub'): 1, (topics['compensation'], 'pub'): 1}
+
+        def matched() -> bool:
+            return all((graph.count_subscribers(t) if kind == 'sub' else
+                        graph.count_publishers(t)) >= n for (t, kind), n in wanted.items())
+
+        if not spin_until(self.executor, matched, DISCOVERY_TIMEOUT):
+            msg = f'the closed-loop nodes did not discover each other in {DISCOVERY_TIMEOUT} s'
+            raise ClosedLoopError(msg)
+        self._bar = tqdm(total=self.total, desc=label, unit='sample', disable=not progress,
+                         leave=True)
+        self.executor.add_node(self.twin)
+
+    def _on_sample(self, index: int) -> None:
+        """Called by the collector for every sample the twin ran."""
+        switch = self.settings.switch_off_at
+        if switch is not None and self.switched_off_at is None and index + 1 >= switch:
+            self.predictor.set_parameters([Parameter('compensation_enabled', value=False)])
+            self.switched_off_at = index + 1
+        if self._bar is not None and ((index + 1) % 50 == 0 or index + 1 == self.total):
+            self._bar.n = index + 1
+            self._bar.refresh()
+
+    def result(self, wall_seconds: float) -> LoopRun:
+        if self._bar is not None:
+            self._bar.close()
+        twin, core = self.twin, self.predictor.core
+        counts = {
+            'offsets_applied': twin.schedule.applied,
+            'samples_without_offset': twin.schedule.missing,
+            'offsets_dropped': twin.schedule.rejected.counts(),
+            'predictions': core.predictions_made, 'predictor_faults': core.faults.counts(),
+            'predictor_dropped': core.dropped.counts(), 'clamped': core.clamped,
+            'step_limited': core.step_limited,
+            'kinematics_rejected': self.kinematics.rejected.counts(),
+        }
+        data = self.collector.arrays()
+        cycle = twin.twin.cycle
+        return LoopRun(
+            settings=self.settings, horizon=self.horizon,
+            sample_period=twin.twin.params.sample_period, stamps=data['stamps'],
+            reference=data['reference'], joints=data['joints'],
+            true_error=data['true_error'], plant_error=data['plant_error'],
+            pass_index=cycle.pass_index(0, self.total), in_pass=cycle.in_pass(0, self.total),
+            switched_off_at=self.switched_off_at, wall_seconds=wall_seconds, counts=counts)
+
+
+class _Collector(Node):
+    """Keeps every joint state, reference and debug error of the run, by sample index, and
+    calls `on_sample(index)` once the twin's true error of a sample has arrived."""
+
+    def __init__(self, context: Context, topics: dict[str, str], twin: DigitalTwin,
+                 total: int, on_sample: Callable[[int], None]) -> None:
+        super().__init__('lompr_closed_loop_collector', context=context)
+        self.twin = twin
+        self.total = total
+        self.on_sample = on_sample
+        self.on_done: Callable[[], None] | None = None
+        self.count = 0
+        self._data = {'joints': np.full((total, len(MEASURED_JOINTS)), np.nan),
+                      'reference': np.full((total, 3), np.nan),
+                      'true_error': np.full((total, 2), np.nan),
+                      'plant_error': np.full((total, 2), np.nan)}
+        self._seen = np.zeros((total, 4), dtype=bool)
+        # Deep enough never to drop: lockstep keeps the collector within a few samples.
+        qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        self.create_subscription(JointState, topics['joint_states'], self._joints, qos)
+        self.create_subscription(PoseStamped, topics['reference'], self._reference, qos)
+        self.create_subscription(Vector3Stamped, topics['true_error'],
+                                 lambda msg: self._vector(msg, 'true_error', 2), qos)
+        self.create_subscription(Vector3Stamped, topics['plant_error'],
+                                 lambda msg: self._vector(msg, 'plant_error', 3), qos)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Stamps and the collected arrays (NaN where a message never came)."""
+        return {'stamps': self.twin.stamps(0, self.total), **self._data}
+
+    def _index(self, msg: Any) -> int:
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        return self.twin.index_of(stamp)
+
+    def _store(self, index: int, column: int) -> None:
+        self._seen[index, column] = True
+        if column == 2:
+            self.on_sample(index)
+        if self._seen[index].all():
+            self.count += 1
+            if self.count == self.total and self.on_done is not None:
+                self.on_done()
+
+    def _joints(self, msg: JointState) -> None:
+        index = self._index(msg)
+        names = list(msg.name)
+        self._data['joints'][index] = [msg.position[names.index(n)] for n in MEASURED_JOINTS]
+        self._store(index, 0)
+
+    def _reference(self, msg: PoseStamped) -> None:
+        index = self._index(msg)
+        position = msg.pose.position
+        self._data['reference'][index] = position.x, position.y, position.z
+        self._store(index, 1)
+
+    def _vector(self, msg: Vector3Stamped, name: str, column: int) -> None:
+        index = self._index(msg)
+        self._data[name][index] = msg.vector.x, msg.vector.y
+        self._store(index, column)
+
+
+def record_loop(out: str | Path, run: LoopRun, *, storage: str = 'mcap',
+                irreducible_um: dict[str, float] | None = None) -> Path:
+    """Write a run as one rosbag2 directory (`/joint_states`, `/lompr/reference`, as the
+    twin's recordings) with its truth files inside, assembled beside `out` and renamed.
+    `irreducible_um`, if known, goes into the truth document."""
+    out = Path(out)
+    if out.exists():
+        msg = f'{out} already exists; choose a new directory'
+        raise ClosedLoopError(msg)
+    recording = Recording(
+        joints=JointSamples(stamps=run.stamps, positions=run.joints, names=MEASURED_JOINTS),
+        reference=ReferenceSamples(stamps=run.stamps, positions=run.reference,
+                                   orientations=np.tile(VERTICAL_TOOL, (len(run.stamps), 1))))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f'.{out.name}.', dir=out.parent))
+    try:
+        bag = write_recording(staging / out.name, recording, storage=storage)
+        arrays, document = run.truth()
+        document['irreducible_um'] = irreducible_um
+        np.savez_compressed(bag / LOOP_TRUTH_NPZ, **arrays)
+        write_json(bag / LOOP_TRUTH_JSON, document)
+        os.replace(bag, out)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return out

@@ -1,0 +1,217 @@
+"""The closed loop on the twin through the real nodes, its scoring, and `lompr evaluate
+--closed-loop` on its recordings.
+
+The model here is small and learned in the test: a ridge regression of the plant error one
+sample ahead on a window of feature rows of an uncompensated twin recording (seed 1), run by
+the predictor node like any model file. The loops run the twin with seed 2 (new noise, drift
+and tolerances), one lead-in pass and one scored pass, in lockstep.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lompr_predictor.features import HISTORY, feature_rows
+from lompr_predictor.loop_score import (
+    LOOP_PLOT,
+    compare_loops,
+    format_table,
+    loop_figures,
+    reduction_pct,
+    true_error_floor,
+)
+from lompr_predictor.model_file import load_model
+from lompr_predictor.twin.parameters import load_twin_parameters
+from lompr_predictor.twin.simulation import simulate
+
+pytest.importorskip('rclpy')
+
+from model_helpers import save_linear  # noqa: E402
+
+from lompr_predictor.cli import main as lompr_main  # noqa: E402
+from lompr_predictor.closed_loop import (  # noqa: E402
+    LoopRun,
+    LoopSettings,
+    persistence_model,
+    record_loop,
+    run_closed_loop,
+)
+
+WINDOW = 8
+RIDGE = 1e-6  # on standardised columns
+LOOP_SEED = 2
+NOISE_UM = 0.87  # RMS of the default twin's measurement noise at the tool tip
+
+
+def fit_ridge_model(path: Path, description) -> Path:  # type: ignore[no-untyped-def]
+    """A linear window model of e(t+1), least squares on 4 uncompensated passes."""
+    sim = simulate(description, load_twin_parameters(), passes=4, seed=1)
+    seconds = (sim.stamps - sim.stamps[0]) * 1e-9
+    rows = feature_rows(seconds, sim.error_measured[:, :2], sim.reference[:, :2])[HISTORY:]
+    target = sim.error_measured[HISTORY:, :2]
+    ends = np.arange(WINDOW - 1, len(rows) - 1)
+    x = rows[ends[:, None] + np.arange(1 - WINDOW, 1)].reshape(len(ends), -1)
+    y = target[ends + 1] - target[ends]  # the change: persistence is the prior
+    centre, scale = x.mean(axis=0), x.std(axis=0) + 1e-30
+    z = (x - centre) / scale
+    coef = np.linalg.solve(z.T @ z + RIDGE * len(z) * np.eye(z.shape[1]), z.T @ (y - y.mean(0)))
+    weight = coef / scale[:, None]
+    bias = y.mean(axis=0) - centre @ weight
+    last_error = (WINDOW - 1) * rows.shape[1] + np.arange(2)  # e(t) columns of the last row
+    weight[last_error, [0, 1]] += 1.0
+    return save_linear(path, weight, bias, window=WINDOW, horizon=1)
+
+
+@pytest.fixture(scope='module')
+def loops(tmp_path_factory, description) -> dict[str, LoopRun]:  # type: ignore[no-untyped-def]
+    """The three loops, and the model loop switched off in the middle of its scored pass."""
+    folder = tmp_path_factory.mktemp('closed_loop')
+    model = fit_ridge_model(folder / 'ridge.pt', description)
+    persistence = persistence_model(folder / 'persistence.pt', like=model)
+    settings = LoopSettings(model_path=str(model), passes=1, seed=LOOP_SEED,
+                            lockstep_timeout=0.05)
+    variants = {
+        'none': dataclasses.replace(settings, compensation_enabled=False),
+        'persistence': dataclasses.replace(settings, model_path=str(persistence)),
+        'model': settings,
+        'switched': dataclasses.replace(settings, switch_off_at=1100 + 550),
+    }
+    return {name: run_closed_loop(value, progress=False) for name, value in variants.items()}
+
+
+def rms(error: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.mean(error ** 2, axis=0))
+
+
+def test_persistence_model_file_predicts_the_last_plant_error(tmp_path: Path) -> None:
+    model = save_linear(tmp_path / 'any.pt', window=4, horizon=3)
+    loaded = load_model(persistence_model(tmp_path / 'p.pt', like=model))
+    assert (loaded.metadata.model_type, loaded.metadata.window, loaded.metadata.horizon) == (
+        'persistence', 1, 3)
+    import torch
+
+    windows = torch.randn((5, 1, 8), dtype=torch.float64) * 1e-5
+    np.testing.assert_allclose(loaded.predict(windows).numpy(), windows[:, -1, :2].numpy(),
+                               rtol=0, atol=1e-15)
+
+
+def test_loop_figures_and_reductions_against_hand_computed_values() -> None:
+    t = np.arange(1000) * 0.04
+    sine = np.stack([30e-6 * np.sin(t), -20e-6 * np.cos(t)], -1)  # whole periods: t to 40 s
+    passes = np.repeat([0, 1], 500)
+    figures = loop_figures(sine, passes)
+    assert figures['x']['peak_um'] == pytest.approx(30.0, rel=1e-4)
+    assert figures['y']['rms_um'] == pytest.approx(np.sqrt(np.mean((20 * np.cos(t)) ** 2)))
+    assert len(figures['passes']) == 2
+    comparison = compare_loops({'none': sine, 'half': sine / 2,
+                                'worse': sine * np.where(passes == 1, 1.5, 0.1)[:, None]},
+                               passes)
+    assert comparison['loops']['half']['reduction_pct'] == pytest.approx({'x': 50.0, 'y': 50.0})
+    assert comparison['loops']['half']['passes_made_worse'] == []
+    assert comparison['loops']['worse']['passes_made_worse'] == [1]
+    assert reduction_pct(figures, figures) == {'x': 0.0, 'y': 0.0}
+    table = format_table(comparison, {'none': 'no compensation'}, {'x': 0.1, 'y': 0.2})
+    assert 'no compensation' in table and '50.0 %' in table
+    assert 'passes made worse by compensation (error, RMS per pass, either axis): worse: [1]' in table
+
+
+def test_true_error_floor_is_the_drift_innovation_only(description) -> None:  # type: ignore[no-untyped-def]
+    params = load_twin_parameters()
+    sim = simulate(description, params, passes=1, seed=3)
+    floor = true_error_floor(sim, 1)
+    noiseless = dataclasses.replace(params, noise=dataclasses.replace(params.noise, enabled=False))
+    assert 0.0 < floor['x'] < 0.2 and 0.0 < floor['y'] < 0.2  # um: no measurement noise in it
+    assert true_error_floor(simulate(description, noiseless, passes=1, seed=3), 1) == pytest.approx(
+        floor, rel=1e-9)
+    assert true_error_floor(sim, 25)['x'] > floor['x']
+
+
+def test_model_beats_no_compensation_and_persistence(loops: dict[str, LoopRun]) -> None:
+    scored = loops['model'].scored
+    assert scored.sum() == 1100 and loops['model'].counts['predictor_faults']['gap'] == 0
+    none, persistence, model = (rms(loops[n].true_error[scored]) for n in
+                                ('none', 'persistence', 'model'))
+    assert np.all(none > 15e-6)  # the twin's error is tens of micrometres
+    assert np.all(model < 0.06 * none), (model, none)  # at least 94 % removed
+    assert np.all(model < 0.85 * persistence), (model, persistence)
+    assert np.all(persistence < 0.1 * none)
+    # the loops ran the same passes: same reference sample for sample
+    np.testing.assert_array_equal(loops['none'].reference, loops['model'].reference)
+    # nothing the twin dropped, every scored sample had its offset
+    assert sum(loops['model'].counts['offsets_dropped'].values()) == 0
+    assert np.all(loops['model'].compensation[scored] != 0.0)
+
+
+def test_switching_compensation_off_returns_to_the_uncompensated_error(
+        loops: dict[str, LoopRun]) -> None:
+    run, none = loops['switched'], loops['none']
+    switch = run.switched_off_at
+    assert switch is not None and 1650 <= switch <= 1652
+    before = slice(1100, switch - 1)
+    after = slice(switch + 25, None)  # the servo settles within a second of the offset's end
+    np.testing.assert_array_equal(run.compensation[switch + 2:], 0.0)
+    assert np.all(rms(run.true_error[before]) < 0.06 * rms(none.true_error[before]))
+    ratio = rms(run.true_error[after]) / rms(none.true_error[after])
+    np.testing.assert_allclose(ratio, 1.0, atol=0.02)
+    # before the switch it is the model loop, sample for sample (the run is deterministic)
+    np.testing.assert_allclose(run.true_error[:switch - 1], loops['model'].true_error[:switch - 1],
+                               rtol=0, atol=1e-12)
+
+
+def test_evaluate_closed_loop_gives_the_demo_figures_from_bags(
+        loops: dict[str, LoopRun], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    names = ('none', 'persistence', 'model')
+    bags = [record_loop(tmp_path / name, loops[name], irreducible_um={'x': 0.1, 'y': 0.1})
+            for name in names]
+    report = tmp_path / 'report'
+    assert lompr_main(['evaluate', '--closed-loop', *map(str, bags), '--report', str(report)]) == 0
+    document = json.loads((report / 'closed_loop.json').read_text())
+    scored = loops['model'].scored
+    expected = compare_loops({n: loops[n].true_error[scored] for n in names},
+                             loops['model'].pass_index[scored])
+    for name in names:
+        for axis in 'xy':
+            assert document['true']['loops'][name][axis] == pytest.approx(
+                expected['loops'][name][axis], rel=1e-12)
+            # what the bag alone shows: the true error plus ~0.9 um of measurement noise
+            measured = document['measured']['loops'][name][axis]['rms_um']
+            true = expected['loops'][name][axis]['rms_um']
+            assert measured == pytest.approx(np.hypot(true, NOISE_UM), abs=0.15)
+    assert (report / LOOP_PLOT).stat().st_size > 10_000
+    out = capsys.readouterr().out
+    assert 'True tool-tip error' in out and 'irreducible level' in out
+
+
+def test_demo_runs_every_stage_and_prints_the_table(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / 'demo'
+    argv = ['demo', '--quick', '--out', str(out), '--train-passes', '3', '--trials', '1',
+            '--max-epochs', '1', '--passes', '1', '--threads', '1']
+    assert lompr_main(argv) == 0
+    printed = capsys.readouterr().out
+    for stage in range(1, 6):
+        assert f'[{stage}/5]' in printed
+    rows = re.findall(r'^(no compensation|persistence|model \(BO-LSTM\)|irreducible level)\s+'
+                      r'([XY])\s+([\d.]+)', printed, flags=re.MULTILINE)
+    assert len(rows) == 8  # three loops and the floor, per axis
+    document = json.loads((out / 'closed_loop.json').read_text())
+    for name, axis, value in rows:
+        loop = {'no compensation': 'none', 'persistence': 'persistence',
+                'model (BO-LSTM)': 'model'}.get(name)
+        figure = (document['irreducible_um'][axis.lower()] if loop is None else
+                  document['comparison']['loops'][loop][axis.lower()]['rms_um'])
+        assert float(value) == pytest.approx(figure, abs=0.006)
+    none = document['comparison']['loops']['none']
+    assert none['x']['rms_um'] > 15.0 and none['y']['rms_um'] > 15.0
+    for path in ('model.pt', 'persistence.pt', 'closed_loop_error.png',
+                 'training_report/report.md', 'loops/model/lompr_closed_loop.npz',
+                 'training_bag/lompr_ground_truth.json'):
+        assert (out / path).is_file(), path
+    assert lompr_main(['demo', '--out', str(out)]) == 2  # an existing output is never overwritten
+    assert 'exists and is not empty' in capsys.readouterr().err
