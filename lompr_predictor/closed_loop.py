@@ -230,7 +230,7 @@ class _Loop:
             reference_topic=topics['reference'], compensation_topic=topics['compensation'],
             predicted_error_topic=topics['predicted_error'],
             diagnostics_topic=topics['diagnostics']))
-        period = self.predictor.settings.sample_period
+        period = self.predictor.sample_period
         self.twin = TwinNode(context=context, parameter_overrides=overrides(
             **description, twin_parameters_file=settings.twin_parameters_file,
             path=settings.path, seed=settings.seed,

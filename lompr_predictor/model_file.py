@@ -176,6 +176,18 @@ def load_model(
     return loaded
 
 
+#: Relative difference of two sample periods that still counts as the same rate: a real
+#: machine's clock jitters, and the trainer takes the median stamp step of its recordings.
+PERIOD_TOLERANCE = 0.02
+
+
+def check_sample_period(metadata: ModelMetadata, period: float, path: str | Path) -> None:
+    """Raise `MetadataMismatchError` unless the model was trained at `period` [s], within
+    `PERIOD_TOLERANCE`."""
+    if abs(period - metadata.sample_period) > PERIOD_TOLERANCE * metadata.sample_period:
+        raise MetadataMismatchError(str(path), 'sample_period', period, metadata.sample_period)
+
+
 def _normalised(value: Any) -> Any:
     """Compare lists and tuples alike, floats to 1e-12 relative."""
     if isinstance(value, (list, tuple)):

@@ -22,10 +22,6 @@ from lompr_predictor.features import FEATURES, TARGETS
 from lompr_predictor.report import irreducible_level, write_report
 from lompr_predictor.robot import load_robot_description
 
-#: Relative disagreement of the data's sample period with the model's that is refused.
-PERIOD_TOLERANCE = 0.1
-
-
 class EvaluationError(LomprError):
     """The recordings cannot be scored with this model."""
 
@@ -60,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     import torch
 
-    from lompr_predictor.model_file import load_model
+    from lompr_predictor.model_file import PERIOD_TOLERANCE, load_model
     from lompr_predictor.models import offline_predictions, persistence
 
     started = time.perf_counter()

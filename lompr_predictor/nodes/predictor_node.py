@@ -39,7 +39,12 @@ from rclpy.parameter import Parameter
 
 from lompr_predictor.dataset import GAP_FACTOR
 from lompr_predictor.features import FEATURES
-from lompr_predictor.model_file import LoadedModel, ModelFileError, load_model
+from lompr_predictor.model_file import (
+    LoadedModel,
+    ModelFileError,
+    check_sample_period,
+    load_model,
+)
 from lompr_predictor.monitoring import (
     LatencyRecorder,
     Level,
@@ -83,8 +88,9 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec('robot_description_file', '', 'URDF the model must have been trained for '
                   '(its sha256 is checked); empty: the packaged nominal LOMPR description',
                   read_only=True),
-    ParameterSpec('sample_period', 0.04, 'period [s] of the pose stamps; the model must have '
-                  'been trained at it', minimum=1e-4, maximum=10.0, read_only=True),
+    ParameterSpec('sample_period', 0.0, 'period [s] of the pose stamps, which the model must '
+                  'have been trained at (within 2 %); 0: the model file\'s', minimum=0.0,
+                  maximum=10.0, read_only=True),
     ParameterSpec('window', -1, 'window length the model must have; -1: the model file\'s '
                   '(a model swapped in at run time must keep the running one\'s)',
                   minimum=-1, maximum=100_000, read_only=True),
@@ -192,19 +198,21 @@ class PredictorNode(Node):
             msg = 'parameter model_path is empty: give the model file (lompr train --out)'
             raise ModelFileError(msg)
         expected: dict[str, Any] = {
-            'features': FEATURES, 'sample_period': self.settings.sample_period,
-            'robot_description_sha256': self.description.sha256}
+            'features': FEATURES, 'robot_description_sha256': self.description.sha256}
         for name in ('window', 'horizon'):
             if getattr(self.settings, name) >= 0:
                 expected[name] = getattr(self.settings, name)
         model = load_model(self.settings.model_path, expected=expected,
                            sha256=self.settings.model_sha256 or None)
+        #: The stamps' period: the parameter if set, else the model's; later models must fit it.
+        self.sample_period = self.settings.sample_period or model.metadata.sample_period
+        check_sample_period(model.metadata, self.sample_period, self.settings.model_path)
         # A model swapped in later must fit the running window and the controller's lead.
         self._expected = {**expected, 'window': model.metadata.window,
                           'horizon': model.metadata.horizon}
         self.core = OnlinePredictor(
             model,
-            StreamSettings(self.settings.sample_period, self.settings.gap_factor,
+            StreamSettings(self.sample_period, self.settings.gap_factor,
                            self.settings.min_interval_factor, self.settings.stale_periods,
                            self.settings.accuracy_samples),
             self.settings.limits, latency_samples=self.settings.latency_samples)
@@ -231,7 +239,7 @@ class PredictorNode(Node):
             PoseStamped, self.settings.end_pose_topic, self.on_end_pose, input_qos)
         self._reference_subscription = self.create_subscription(
             PoseStamped, self.settings.reference_topic, self.on_reference, input_qos)
-        stale_after = self.settings.stale_periods * self.settings.sample_period
+        stale_after = self.settings.stale_periods * self.sample_period
         self._stale_timer = self.create_timer(min(max(stale_after / 4, 0.005), 0.5),
                                               self.on_stale_timer)
         self._diagnostics = DiagnosticsPublisher(
@@ -325,6 +333,8 @@ class PredictorNode(Node):
         try:
             self._candidate = load_model(changes['model_path'], expected=self._expected,
                                          sha256=sha or None)
+            check_sample_period(self._candidate.metadata, self.sample_period,
+                                changes['model_path'])
         except Exception as err:  # noqa: BLE001 - any failure keeps the running model
             detail = str(err) if isinstance(err, ModelFileError) else (
                 f'model {changes["model_path"]}: {type(err).__name__}: {err}')
