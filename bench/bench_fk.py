@@ -20,13 +20,14 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from lompr_predictor.cli.demo import spiral  # noqa: E402
 from lompr_predictor.kinematics import (  # noqa: E402
     ForwardKinematics,
     batch_forward_kinematics,
     inverse_kinematics,
 )
+from lompr_predictor.paths import build_cycle  # noqa: E402
 from lompr_predictor.robot import load_robot_description  # noqa: E402
+from lompr_predictor.twin.parameters import load_twin_parameters  # noqa: E402
 
 SINGLE_P99_TARGET_US = 100.0
 BATCH_TARGET_PER_S = 1_000_000.0
@@ -59,6 +60,12 @@ def bench_batch(geometry, joints: np.ndarray) -> float:  # type: ignore[no-untyp
         best = min(best, time.perf_counter() - start)
     assert poses.valid.all(), 'every spiral sample must solve'
     return len(joints) / best
+
+
+def spiral(samples: int) -> np.ndarray:
+    """(N, 3) tool-tip positions along the paper's spiral passes and their returns."""
+    params = load_twin_parameters()
+    return build_cycle('spiral', params.path, params.sample_period).sample(0, samples)
 
 
 def verdict(ok: bool) -> str:

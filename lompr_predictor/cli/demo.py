@@ -246,8 +246,9 @@ def _print_result(args: argparse.Namespace, budget: dict[str, int], out: Path,
           f'<= {TARGET_MODEL_TO_PERSISTENCE_PCT:.0f} %); reduction X {reduction["x"]:.1f} %, '
           f'Y {reduction["y"]:.1f} % (target >= {TARGET_REDUCTION_PCT:.0f} %); passes made '
           f'worse: {worse or "none"} -> targets {"met" if targets["met"] else "MISSED"}')
-    print(f'\nplot: {out / LOOP_PLOT}\nscores: {out / "closed_loop.json"}\n'
-          f'training report: {out / "training_report" / "report.md"}')
+    print(f'\nplot: {out / LOOP_PLOT}\nscores: {out / "closed_loop.json"}')
+    if not args.model:
+        print(f'training report: {out / "training_report" / "report.md"}')
     if not args.no_record:
         loops = ' '.join(str(out / 'loops' / name) for name in LOOPS)
         print(f'closed-loop bags: lompr evaluate --closed-loop {loops} --report DIR '

@@ -1,0 +1,25 @@
+"""The benchmark scripts still import: they are not run by the suite (speed goals are
+measured by running them, not by timed tests), so an API change would otherwise go
+unnoticed until someone wants the figures."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / 'bench'
+LOAD = ('import importlib.util, sys; '
+        'spec = importlib.util.spec_from_file_location("bench_script", sys.argv[1]); '
+        'module = importlib.util.module_from_spec(spec); spec.loader.exec_module(module); '
+        'assert callable(module.main)')
+
+
+@pytest.mark.parametrize('script', sorted(BENCH.glob('bench_*.py')), ids=lambda p: p.stem)
+def test_bench_script_imports(script: Path) -> None:
+    # A subprocess: the scripts set thread and ROS environment variables when imported.
+    result = subprocess.run([sys.executable, '-c', LOAD, str(script)], capture_output=True,
+                            text=True, timeout=120, check=False)
+    assert result.returncode == 0, result.stderr[-2000:]
