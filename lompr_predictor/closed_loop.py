@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -37,7 +36,6 @@ import rclpy
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from rclpy.context import Context
 from rclpy.executors import Executor
-from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -52,7 +50,7 @@ from lompr_predictor.loop_score import LOOP_TRUTH_JSON, LOOP_TRUTH_NPZ, write_js
 from lompr_predictor.model_file import ModelMetadata, load_model, save_model
 from lompr_predictor.models import persistence_module
 from lompr_predictor.nodes import kinematics_node, predictor_node, twin_node
-from lompr_predictor.nodes.common import spin_until
+from lompr_predictor.nodes.common import events_executor, spin_until
 from lompr_predictor.nodes.kinematics_node import KinematicsNode
 from lompr_predictor.nodes.predictor_node import PredictorNode
 from lompr_predictor.nodes.twin_node import TwinNode
@@ -165,7 +163,7 @@ def run_closed_loop(settings: LoopSettings, *, progress: bool = True,
         rclpy.logging.set_logger_level(name, rclpy.logging.LoggingSeverity.WARN)
     context = Context()
     rclpy.init(context=context, args=[])
-    executor = _events_executor(context)
+    executor = events_executor(context)
     try:
         loop = _Loop(settings, context, executor, horizon)
         done = Future()
@@ -187,17 +185,6 @@ def run_closed_loop(settings: LoopSettings, *, progress: bool = True,
         context.try_shutdown()
         for name, level in levels.items():
             rclpy.logging.set_logger_level(name, level)
-
-
-def _events_executor(context: Context) -> Executor:
-    """An EventsExecutor (half the CPU of the default one). Its constructor enables
-    faulthandler on `sys.stderr`, which fails when stderr is not a real file (captured by
-    pytest or redirected to a buffer): the process's own stderr is used for that."""
-    captured, sys.stderr = sys.stderr, sys.__stderr__
-    try:
-        return EventsExecutor(context=context)
-    finally:
-        sys.stderr = captured
 
 
 class _Loop:

@@ -70,6 +70,14 @@ class StreamSettings:
     min_interval_factor: float  # one below min_interval_factor * sample_period is off-rate
     stale_periods: float  # no sample for this many periods (wall time): input is stale
     accuracy_samples: int  # residuals the live RMS is over
+    # ... and for at least this long [s]: a process on a general-purpose OS can stall for
+    # milliseconds (scheduler, garbage collector), which at kHz rates is many periods
+    stale_min_time: float = 0.0
+
+    @property
+    def stale_after(self) -> float:
+        """Wall seconds without a usable sample after which the input is stale."""
+        return max(self.stale_periods * self.sample_period, self.stale_min_time)
 
 
 @dataclass(frozen=True)
@@ -282,12 +290,12 @@ class OnlinePredictor:
 
     def check_stale(self) -> list[Output]:
         """Call periodically: a fault when two calls in a row find that no sample was used
-        for `stale_periods` periods (a pose waiting that long for its reference counts as
+        for `StreamSettings.stale_after` (a pose waiting that long for its reference counts as
         none). One such call alone proves nothing: an executor that was busy runs its timer
         before the samples that queued meanwhile."""
         waiting = [p.arrival for p in self._pending if isinstance(p, _Pose)]
         since = max([self._last_sample_arrival, *waiting[:1]])
-        idle = self._clock() - since >= self.stream.stale_periods * self.stream.sample_period
+        idle = self._clock() - since >= self.stream.stale_after
         confirmed, self._stale_suspected = self._stale_suspected and idle, idle
         if not confirmed or not (self._filled or self._pending or self._offset_in_force):
             return []

@@ -172,6 +172,25 @@ def test_stale_input_zeroes_once(tmp_path) -> None:  # type: ignore[no-untyped-d
     assert core.window_fill == 0
 
 
+def test_staleness_has_a_floor_in_seconds(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """At 1 kHz, 5 periods are 5 ms, a stall any non-real-time process has now and then:
+    the input is stale only after `stale_min_time` too."""
+    assert stream(sample_period=1e-3, stale_min_time=0.05).stale_after == 0.05
+    assert stream(stale_min_time=0.05).stale_after == pytest.approx(5 * PERIOD)  # 0.2 s
+    clock = FakeClock()
+    model = load_model(save_constant(tmp_path / 'constant.pt', (-10e-6, 0.0), window=WINDOW,
+                                     horizon=HORIZON))
+    core = OnlinePredictor(model, stream(stale_min_time=20 * PERIOD), limits(), clock)
+    stamps, reference, tips = spiral(NEEDED + 2)
+    feed(core, stamps, reference, tips, clock)
+    for _ in range(2):  # two calls confirm; 19 periods is not yet stale
+        clock.now += 9.5 * PERIOD
+        assert core.check_stale() == []
+    clock.now += 1.5 * PERIOD
+    assert core.check_stale() == []
+    assert [z.reason for z in core.check_stale()][:1] == ['stale']
+
+
 def test_poses_without_references_go_stale(tmp_path) -> None:  # type: ignore[no-untyped-def]
     clock = FakeClock()
     core = constant_core(tmp_path, (-10e-6, 0.0), clock=clock)

@@ -105,6 +105,10 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec('stale_periods', 5.0, 'no usable sample for this many sample periods: the '
                   'input is stale and the offset is cancelled', minimum=1.0,
                   maximum=1_000_000.0, read_only=True),
+    ParameterSpec('stale_min_time', 0.05, 'the input is stale only after at least this many '
+                  'seconds without a usable sample, whatever the rate: a process on a general-'
+                  'purpose OS stalls for milliseconds, many periods at kHz rates', minimum=0.0,
+                  maximum=3600.0, read_only=True),
     ParameterSpec('end_pose_topic', '/lompr/end_pose', 'PoseStamped measured tool tip input',
                   read_only=True),
     ParameterSpec('reference_topic', '/lompr/reference', 'PoseStamped reference input',
@@ -155,6 +159,7 @@ class PredictorNodeSettings:
     gap_factor: float
     min_interval_factor: float
     stale_periods: float
+    stale_min_time: float
     end_pose_topic: str
     reference_topic: str
     predicted_error_topic: str
@@ -214,7 +219,7 @@ class PredictorNode(Node):
             model,
             StreamSettings(self.sample_period, self.settings.gap_factor,
                            self.settings.min_interval_factor, self.settings.stale_periods,
-                           self.settings.accuracy_samples),
+                           self.settings.accuracy_samples, self.settings.stale_min_time),
             self.settings.limits, latency_samples=self.settings.latency_samples)
         self._candidate: LoadedModel | None = None
         self.model_swaps = 0
@@ -239,7 +244,7 @@ class PredictorNode(Node):
             PoseStamped, self.settings.end_pose_topic, self.on_end_pose, input_qos)
         self._reference_subscription = self.create_subscription(
             PoseStamped, self.settings.reference_topic, self.on_reference, input_qos)
-        stale_after = self.settings.stale_periods * self.sample_period
+        stale_after = self.core.stream.stale_after
         self._stale_timer = self.create_timer(min(max(stale_after / 4, 0.005), 0.5),
                                               self.on_stale_timer)
         self._diagnostics = DiagnosticsPublisher(
