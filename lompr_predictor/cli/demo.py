@@ -10,7 +10,7 @@
    reductions, the irreducible level, and writes the plot, the scores and the loop bags.
 
 Everything goes into one output directory (default runs/demo-<UTC time>/). The default
-budget takes about 10 minutes on 2 cores; --quick about 2.
+budget takes about 6 minutes on 2 cores; --quick about 1.
 """
 
 from __future__ import annotations
@@ -67,7 +67,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:  # noqa: SLF001
     parser.add_argument('--out', default=None,
                         help='output directory (default: runs/demo-<UTC time>)')
     parser.add_argument('--quick', action='store_true',
-                        help=f'small budget, about 2 minutes: {_budget_text(QUICK)} '
+                        help=f'small budget, about 1 minute: {_budget_text(QUICK)} '
                              f'(default: {_budget_text(FULL)})')
     parser.add_argument('--path', choices=PATH_KINDS, default='spiral',
                         help='path of training and closed loop (default spiral)')
