@@ -183,14 +183,17 @@ def read_recording(
     ref_rows: list[tuple[float, ...]] = []
     try:
         with Reader(path) as reader:
-            connections = {c.topic: c for c in reader.connections}
+            # A writer may record one topic over several connections (publishers with
+            # different QoS, a restart): every one of them counts.
+            wanted = [c for c in reader.connections if c.topic in (joint_topic, reference_topic)]
             for topic, msgtype in ((joint_topic, JOINT_STATE), (reference_topic, POSE_STAMPED)):
-                if topic not in connections:
-                    raise BagError(path, f'no topic {topic}; it has {", ".join(sorted(connections)) or "none"}')
-                if connections[topic].msgtype != msgtype:
-                    raise BagError(
-                        path, f'topic {topic} is {connections[topic].msgtype}, expected {msgtype}')
-            wanted = [connections[joint_topic], connections[reference_topic]]
+                types = {c.msgtype for c in wanted if c.topic == topic}
+                if not types:
+                    topics = sorted({c.topic for c in reader.connections})
+                    raise BagError(path, f'no topic {topic}; it has {", ".join(topics) or "none"}')
+                if types != {msgtype}:
+                    raise BagError(path, f'topic {topic} is {", ".join(sorted(types))}, '
+                                         f'expected {msgtype}')
             expected = sum(c.msgcount for c in wanted)
             read = 0
             for connection, _, raw in reader.messages(connections=wanted):

@@ -72,6 +72,56 @@ def test_joint_order_in_the_message_does_not_matter(tmp_path: Path, one_pass: Si
                                   one_pass.joints_measured)
 
 
+def test_a_topic_recorded_over_two_connections_is_read_whole(tmp_path: Path) -> None:
+    """Another writer may give one topic several connections (two publishers, a restart):
+    the messages of both are read, in stamp order after cleaning, none lost."""
+    from rosbags.interfaces import (
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
+    )
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    def qos(depth: int) -> Qos:
+        never = QosTime(sec=0, nsec=0)
+        return Qos(history=QosHistory.KEEP_LAST, depth=depth,
+                   reliability=QosReliability.RELIABLE, durability=QosDurability.VOLATILE,
+                   deadline=never, lifespan=never, liveliness=QosLiveliness.AUTOMATIC,
+                   liveliness_lease_duration=never, avoid_ros_namespace_conventions=False)
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    types = store.types
+    time, header = types['builtin_interfaces/msg/Time'], types['std_msgs/msg/Header']
+    pose, point = types['geometry_msgs/msg/Pose'], types['geometry_msgs/msg/Point']
+    quaternion = types['geometry_msgs/msg/Quaternion']
+
+    def stamp(k: int):  # type: ignore[no-untyped-def]
+        return header(stamp=time(sec=100 + k, nanosec=0), frame_id='world')
+
+    with Writer(tmp_path / 'two', version=9) as writer:
+        joints = [writer.add_connection('/joint_states', 'sensor_msgs/msg/JointState',
+                                        typestore=store, offered_qos_profiles=[qos(depth)])
+                  for depth in (10, 100)]
+        reference = writer.add_connection('/lompr/reference', 'geometry_msgs/msg/PoseStamped',
+                                          typestore=store)
+        for k in range(6):
+            state = types['sensor_msgs/msg/JointState'](
+                header=stamp(k), name=list(MEASURED_JOINTS), position=np.full(5, float(k)),
+                velocity=np.empty(0), effort=np.empty(0))
+            writer.write(joints[k % 2], k, store.serialize_cdr(state, 'sensor_msgs/msg/JointState'))
+            target = types['geometry_msgs/msg/PoseStamped'](
+                header=stamp(k), pose=pose(position=point(x=0.0, y=0.0, z=1.0),
+                                           orientation=quaternion(x=0.0, y=0.0, z=0.0, w=1.0)))
+            writer.write(reference, k, store.serialize_cdr(target, 'geometry_msgs/msg/PoseStamped'))
+    recording = read_recording(tmp_path / 'two')
+    assert sorted(recording.joints.stamps // 10**9) == list(range(100, 106))
+    assert sorted(recording.joints.positions[:, 0]) == [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
+
+
 def test_fk_of_the_bag_is_the_ground_truth_error(tmp_path: Path, description: RobotDescription,
                                                  one_pass: Simulation) -> None:
     bag = write_simulation(tmp_path / 'bag', one_pass, PARAMS, description.sha256, plot=False)
