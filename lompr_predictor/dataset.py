@@ -4,28 +4,27 @@ The paper's pre-processing, done so that every dropped sample is counted by reas
 
 1. `read_bags`: every bag read whole by `bags.read_recording`; a corrupt one stops the run
    (`BagError` naming it) or, with `skip_bad`, is left out and listed.
-2. `clean_recordings`: the bags are stitched in time order; per stream (joint states,
-   reference) non-finite rows are dropped, out-of-order messages sorted and duplicated stamps
-   removed; the reference is interpolated linearly to the joint stamps (never paired by
-   arrival, CONTRACT section 2), and joint samples it does not bracket closely are dropped;
+2. `clean_recordings`: the bags are stitched in time order (a bag overlapping the earlier
+   ones, e.g. two simulator runs from the same epoch, is moved after them, never
+   interleaved); per stream (joint states, reference) non-finite rows are dropped,
+   out-of-order messages sorted and duplicated stamps removed; the reference is interpolated
+   linearly to the joint stamps (never paired by arrival, CONTRACT section 2), and joint
+   samples it does not bracket within `gap_factor` of its own period are dropped;
    batch forward kinematics gives the tool tip, and the error is FK - reference (CONTRACT
    section 3); a gap longer than `gap_factor` sample periods splits the data into segments;
    a Hampel filter, per segment, rejects spikes of the error.
 3. `window_ends` / `chronological_split`: windows of `window` rows whose last row and
-   predicted row (`horizon` samples later) lie in one segment, so no window crosses a gap;
+   predicted row (`horizon` samples later) lie in one run without a missing sample
+   (`CleanData.regular_runs`), so no window crosses a gap or spans more time than it says;
    the chronologically last `test_fraction` of the samples is the test part, and the
    validation part is carved from the end of the training part.
 4. `minmax_range`: normalisation constants from the training part only.
-
-Compensation hook: the plant error of a compensated recording is e - c (CONTRACT section 3).
-`clean_recordings(compensation=...)` takes the applied compensation as a function of the
-joint stamps; today's recordings are uncompensated and pass None.
 """
 
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,7 +35,9 @@ from lompr_predictor.bags import (
     DEFAULT_JOINT_TOPIC,
     DEFAULT_REFERENCE_TOPIC,
     BagError,
+    JointSamples,
     Recording,
+    ReferenceSamples,
     read_recording,
 )
 from lompr_predictor.features import FEATURES, HISTORY, feature_rows
@@ -50,10 +51,8 @@ HAMPEL_HALF_WINDOW = 7  # samples each side of the Hampel median
 HAMPEL_THRESHOLD = 6.0  # spike when |e - median| > threshold * robust sigma
 MAD_TO_SIGMA = 1.4826  # MAD of a Gaussian times this is its standard deviation
 NEIGHBOUR_AGREEMENT = 0.5  # a spike's neighbours differ by less than this times its excursion
-
-#: A compensation source: (N,) int64 joint stamps [ns] -> (N, 2) applied X/Y offset [m].
-Compensation = Callable[[np.ndarray], np.ndarray]
-
+MISSING_SAMPLE_FACTOR = 1.5  # a step longer than this many periods means a sample is missing
+BAG_SEPARATION_PERIODS = 10  # a bag overlapping earlier ones starts this long after them
 
 @dataclass(frozen=True)
 class CleaningConfig:
@@ -77,6 +76,16 @@ class CleanData:
 
     def __len__(self) -> int:
         return len(self.stamps)
+
+    def regular_runs(self) -> np.ndarray:
+        """(R, 2) [start, end) row ranges sampled without a missing sample: the segments,
+        split again where one sample is missing (a step over `MISSING_SAMPLE_FACTOR`
+        periods, below the gap rule), so that every window and its target span exactly the
+        time they stand for."""
+        return np.concatenate([
+            start + segment_bounds(self.stamps[start:end] - self.stamps[start],
+                                   MISSING_SAMPLE_FACTOR * self.sample_period * 1e9)
+            for start, end in self.segments] or [np.zeros((0, 2), dtype=np.int64)])
 
     def features(self) -> np.ndarray:
         """(N, len(FEATURES)) feature rows, computed segment by segment (NaN where a row
@@ -169,8 +178,8 @@ def interpolate_reference(
     exact = inside & (reference_stamps[right_c] == stamps)
     bracket = reference_stamps[right_c] - reference_stamps[left_c]
     valid = exact | (inside & (bracket <= max_step_ns))
-    t = reference_stamps.astype(np.float64) - float(reference_stamps[0])
-    x = stamps.astype(np.float64) - float(reference_stamps[0])
+    t = (reference_stamps - reference_stamps[0]).astype(np.float64)  # int64 first: ns exact
+    x = (stamps - reference_stamps[0]).astype(np.float64)
     for axis in range(reference.shape[1]):
         out[:, axis] = np.interp(x, t, reference[:, axis])
     out[~valid] = np.nan
@@ -232,16 +241,42 @@ def _period_ns(stamps: np.ndarray) -> float:
     return float(np.median(steps))
 
 
+def separate_overlapping(recordings: Sequence[Recording]) -> tuple[list[Recording], int]:
+    """The recordings in time order, each one that overlaps the earlier ones (two runs of a
+    simulator that both start at its epoch, a bag recorded twice) moved in time, joints and
+    reference together, to start `BAG_SEPARATION_PERIODS` periods after them: a separate
+    segment, never interleaved with another bag's samples. Returns them and how many moved."""
+    ordered = sorted((r for r in recordings if len(r.joints.stamps)),
+                     key=lambda r: int(r.joints.stamps.min()))
+    out: list[Recording] = []
+    end, moved = None, 0
+    for recording in ordered:
+        joints, reference = recording.joints, recording.reference
+        first, last = int(joints.stamps.min()), int(joints.stamps.max())
+        if end is not None and first <= end:
+            shift = end - first + BAG_SEPARATION_PERIODS * int(_period_ns(np.unique(joints.stamps)))
+            recording = Recording(
+                joints=JointSamples(joints.stamps + shift, joints.positions, joints.names),
+                reference=ReferenceSamples(reference.stamps + shift, reference.positions,
+                                           reference.orientations),
+                source=recording.source)
+            first, last, moved = first + shift, last + shift, moved + 1
+        out.append(recording)
+        end = last if end is None else max(end, last)
+    return out, moved
+
+
 def clean_recordings(
     recordings: Sequence[Recording],
     geometry: LomprGeometry,
     config: CleaningConfig = CleaningConfig(),
-    *,
-    compensation: Compensation | None = None,
 ) -> CleanData:
     """Stitch, clean, align and convert recordings to the plant error (module docstring)."""
     counts: dict[str, int] = {'bags': len(recordings)}
-    ordered = sorted(recordings, key=lambda r: int(r.joints.stamps.min()) if len(r.joints.stamps) else 0)
+    ordered, counts['bags_moved_in_time'] = separate_overlapping(recordings)
+    if not ordered:
+        msg = 'the recordings hold no joint state'
+        raise ValueError(msg)
     joint_stamps = np.concatenate([r.joints.stamps for r in ordered]).astype(np.int64)
     joints = np.concatenate([r.joints.positions for r in ordered])
     ref_stamps = np.concatenate([r.reference.stamps for r in ordered]).astype(np.int64)
@@ -252,15 +287,17 @@ def clean_recordings(
     ref_stamps, reference = sanitise_stream(ref_stamps, reference, 'reference', counts)
     period = _period_ns(joint_stamps)
     max_step = config.gap_factor * period
-    aligned, bracketed = interpolate_reference(ref_stamps, reference, joint_stamps, max_step)
+    # The reference may come slower than the joint states (CONTRACT section 2): a bracket is
+    # judged by the reference's own period.
+    reference_period = _period_ns(ref_stamps) if len(np.unique(ref_stamps)) > 1 else period
+    aligned, bracketed = interpolate_reference(ref_stamps, reference, joint_stamps,
+                                               config.gap_factor * max(period, reference_period))
     counts['no_reference'] = int((~bracketed).sum())
     poses = batch_forward_kinematics(geometry, joints)
     counts['fk_invalid'] = int((bracketed & ~poses.valid).sum())
     keep = bracketed & poses.valid
     stamps = joint_stamps[keep]
     error = poses.position[keep, :2] - aligned[keep, :2]
-    if compensation is not None:
-        error = error - np.asarray(compensation(stamps), dtype=float)[:, :2]
     aligned = aligned[keep]
     segments = segment_bounds(stamps, max_step)
     spikes = hampel_outliers(error, segments, config.hampel_half_window, config.hampel_threshold)
@@ -354,7 +391,7 @@ class LearningProblem:
 def build_problem(data: CleanData, window: int, horizon: int, *,
                   test_fraction: float = 0.1, validation_fraction: float = 0.15) -> LearningProblem:
     """Windows, chronological split and training-range normalisation of `data`."""
-    ends = window_ends(data.segments, window, horizon)
+    ends = window_ends(data.regular_runs(), window, horizon)
     split = chronological_split(len(data), ends, horizon, test_fraction=test_fraction,
                                 validation_fraction=validation_fraction)
     error_low, error_high = minmax_range(data.error[:split.test_start])

@@ -187,7 +187,7 @@ def offline_predictions(module: nn.Module, data: CleanData, window: int,
     """Predict every window of `data` (no window crosses a gap) with a raw-SI module, e.g.
     `model_file.load_model(path).module`: what the predictor node would have published
     for these recordings, sample for sample."""
-    ends = window_ends(data.segments, window, horizon)
+    ends = window_ends(data.regular_runs(), window, horizon)
     return OfflinePredictions(ends=ends, stamps=data.stamps[ends + horizon],
                               predicted=predict_rows(module, data.features(), ends, window),
                               actual=data.error[ends + horizon])

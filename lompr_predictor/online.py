@@ -59,6 +59,8 @@ MAX_PENDING_POSES = 1000
 REFERENCE_MARGIN = 4
 #: References kept at most (while no pose comes to use them, the oldest go).
 MAX_REFERENCES = 10_000
+#: Reference steps whose median is the reference's own period.
+REFERENCE_STEPS = 15
 
 
 @dataclass(frozen=True)
@@ -138,12 +140,20 @@ class InstantSchedule:
 
 
 class ReferenceTrack:
-    """The reference stream, linearly interpolated to pose stamps across short brackets."""
+    """The reference stream, linearly interpolated to pose stamps across short brackets.
 
-    def __init__(self, max_bracket_ns: float) -> None:
-        self.max_bracket_ns = max_bracket_ns
+    A bracket is short when it spans at most `gap_factor` periods of the poses or of the
+    reference itself (its median step over the last `REFERENCE_STEPS`), whichever is
+    longer: the reference may come slower than the poses (CONTRACT section 2).
+    """
+
+    def __init__(self, gap_factor: float, period_ns: int) -> None:
+        self.gap_factor = gap_factor
+        self.max_bracket_ns = gap_factor * period_ns
+        self._pose_period_ns = period_ns
         self._stamps: deque[int] = deque(maxlen=MAX_REFERENCES)
         self._positions: deque[tuple[float, float]] = deque(maxlen=MAX_REFERENCES)
+        self._steps: deque[int] = deque(maxlen=REFERENCE_STEPS)
 
     @property
     def newest(self) -> int | None:
@@ -156,6 +166,10 @@ class ReferenceTrack:
         newest = self.newest
         if newest is not None and stamp_ns <= newest:
             return 'reference_duplicate' if stamp_ns == newest else 'reference_out_of_order'
+        if newest is not None:
+            self._steps.append(stamp_ns - newest)
+            typical = sorted(self._steps)[len(self._steps) // 2]
+            self.max_bracket_ns = self.gap_factor * max(self._pose_period_ns, typical)
         self._stamps.append(stamp_ns)
         self._positions.append((x, y))
         return ''
@@ -225,7 +239,7 @@ class OnlinePredictor:
         self._period_ns = round(stream.sample_period * 1e9)
         self._lead_ns = self.horizon * self._period_ns
         half_period = self._period_ns // 2
-        self._references = ReferenceTrack(stream.gap_factor * self._period_ns)
+        self._references = ReferenceTrack(stream.gap_factor, self._period_ns)
         self._compensations = InstantSchedule(half_period)
         self._predictions = InstantSchedule(half_period)
         # The last HISTORY + 1 samples give the newest feature row; the window's rows are
@@ -395,10 +409,11 @@ class OnlinePredictor:
         self._recent.append((pose.stamp_ns, error_x, error_y, reference[0], reference[1]))
         self._filled += 1
         if self._filled > HISTORY:
-            recent = np.array(self._recent)
-            stamps = (recent[:, 0] - recent[0, 0]) * 1e-9
+            recent = np.array([row[1:] for row in self._recent])
+            first = self._recent[0][0]  # stamps relative in int: float64 ns would round
+            stamps = np.array([row[0] - first for row in self._recent]) * 1e-9
             self._rows[:-1] = self._rows[1:]
-            self._rows[-1] = feature_rows(stamps, recent[:, 1:3], recent[:, 3:5])[-1]
+            self._rows[-1] = feature_rows(stamps, recent[:, 0:2], recent[:, 2:4])[-1]
         if self._filled >= self.window_needed:
             outputs += self._predict(pose.stamp_ns)
         return outputs

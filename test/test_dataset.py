@@ -180,3 +180,56 @@ def test_truncated_bag_is_one_clear_error(tmp_path: Path, description: RobotDesc
     assert len(recordings) == 1
     assert sources[0].sha256 and not sources[0].skipped_reason
     assert sources[1].path == str(bad) and sources[1].skipped_reason and not sources[1].sha256
+
+
+def test_overlapping_bags_become_separate_segments(description: RobotDescription) -> None:
+    """Two runs of a simulator that both start at its epoch: every sample of both is kept,
+    each bag its own segment, none interleaved with the other's."""
+    first, error_first = synthetic_recording(description.geometry, 300, seed=0)
+    second, error_second = synthetic_recording(description.geometry, 200, seed=1)
+    assert first.joints.stamps[0] == second.joints.stamps[0]
+    data = clean_recordings([first, second], description.geometry)
+    assert data.counts['bags_moved_in_time'] == 1 and data.counts['kept'] == 500
+    assert data.counts['segments'] == 2 and (np.diff(data.stamps) > 0).all()
+    # the earlier-sorted bag keeps its stamps, the other follows after a gap
+    np.testing.assert_allclose(data.error, np.r_[error_first, error_second], atol=1e-9)
+    assert data.stamps[300] - data.stamps[299] == 10 * PERIOD_NS
+    assert [len(x) for x in np.split(data.stamps, data.segments[1:, 0])] == [300, 200]
+
+
+def test_a_slower_reference_is_interpolated_not_dropped(description: RobotDescription) -> None:
+    """Joint states at 100 Hz, the reference at 25 Hz (CONTRACT section 2 allows it)."""
+    samples = 400
+    fast = PERIOD_NS // 4
+    recording, error = synthetic_recording(description.geometry, samples,
+                                           reference=line_reference(samples, period_s=0.01))
+    stamps = EPOCH_NS + fast * np.arange(samples, dtype=np.int64)
+    slow = np.arange(0, samples, 4)
+    recording = Recording(
+        joints=JointSamples(stamps, recording.joints.positions, recording.joints.names),
+        reference=ReferenceSamples(stamps[slow], recording.reference.positions[slow],
+                                   recording.reference.orientations[slow]))
+    data = clean_recordings([recording], description.geometry)
+    # only the last three, after the last reference, lack one
+    assert data.counts['no_reference'] == 3 and data.counts['segments'] == 1
+    assert data.sample_period == pytest.approx(0.01)
+    np.testing.assert_allclose(data.error, error[:-3], atol=1e-9)  # a line: exact
+
+
+def test_no_window_spans_a_missing_sample(description: RobotDescription) -> None:
+    """One lost message is below the gap rule but would stretch a window and move its
+    target by a period: windows around it are left out, segments stay whole."""
+    recording, _ = synthetic_recording(description.geometry, 300)
+    keep = np.r_[0:150, 151:300]
+    j, r = recording.joints, recording.reference
+    holed = Recording(joints=JointSamples(j.stamps[keep], j.positions[keep], j.names),
+                      reference=r)
+    data = clean_recordings([holed], description.geometry)
+    assert data.counts['segments'] == 1
+    np.testing.assert_array_equal(data.regular_runs(), [[0, 150], [150, 299]])
+    window, horizon = 10, 3
+    ends = window_ends(data.regular_runs(), window, horizon)
+    first = ends - window - HISTORY + 1
+    spans = data.stamps[ends + horizon] - data.stamps[first]
+    assert (spans == (window + HISTORY - 1 + horizon) * PERIOD_NS).all()
+    assert len(ends) == 2 * (150 - HISTORY - window + 1 - horizon) - 1

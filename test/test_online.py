@@ -114,6 +114,33 @@ def test_reference_is_interpolated_to_pose_stamps(linear_model) -> None:  # type
     np.testing.assert_allclose(rows[:, 0:2], (tips[:NEEDED] - expected)[HISTORY:], atol=1e-15)
 
 
+def test_a_slower_reference_still_brackets_every_pose(linear_model) -> None:  # type: ignore[no-untyped-def]
+    """The reference at a quarter of the pose rate (CONTRACT section 2 allows any rates):
+    its steps of 4 periods exceed gap_factor (2.5) pose periods, yet no pose is faulted."""
+    stamps, reference, tips = spiral(60)
+    core = OnlinePredictor(linear_model, stream(), limits(enabled=False), FakeClock())
+    outputs = []
+    for i in range(len(stamps)):
+        if i % 4 == 0:
+            outputs += core.add_reference(int(stamps[i]), *reference[i])
+        outputs += core.add_pose(int(stamps[i]), *tips[i])
+    assert core.faults.total == 0 and core.dropped.total == 0
+    # every pose up to the last reference is used, each full window predicts
+    assert len(outputs) == 57 - NEEDED + 1
+    assert core.window_rows()[-1, 2:4] == pytest.approx(reference[56], abs=1e-12)
+
+
+def test_feature_rows_keep_nanosecond_stamps(linear_model) -> None:  # type: ignore[no-untyped-def]
+    """Stamps near 1.7e18 ns are not exact in float64 (256 ns steps): the window's rows use
+    stamp differences taken in integers, as the trainer does."""
+    stamps, reference, tips = spiral(NEEDED)
+    stamps = stamps + np.arange(NEEDED) * 123  # jitter finer than float64 resolves
+    core = OnlinePredictor(linear_model, stream(), limits(enabled=False), FakeClock())
+    feed(core, stamps, reference, tips)
+    rows = feature_rows((stamps - stamps[0]) * 1e-9, tips - reference, reference)
+    np.testing.assert_allclose(core.window_rows(), rows[HISTORY:], rtol=1e-12, atol=0)
+
+
 def test_no_output_before_the_window_is_full(linear_model) -> None:  # type: ignore[no-untyped-def]
     stamps, reference, tips = spiral(NEEDED)
     core = OnlinePredictor(linear_model, stream(), limits(), FakeClock())
