@@ -46,14 +46,15 @@ from tqdm import tqdm
 from lompr_predictor.bags import JointSamples, Recording, ReferenceSamples, write_recording
 from lompr_predictor.errors import LomprError
 from lompr_predictor.features import FEATURES, TARGETS
-from lompr_predictor.loop_score import LOOP_TRUTH_JSON, LOOP_TRUTH_NPZ, write_json
-from lompr_predictor.model_file import ModelMetadata, load_model, save_model
+from lompr_predictor.loop_score import LOOP_TRUTH_JSON, LOOP_TRUTH_NPZ
+from lompr_predictor.model_file import ModelMetadata, library_versions, load_model, save_model
 from lompr_predictor.models import persistence_module
 from lompr_predictor.nodes import kinematics_node, predictor_node, twin_node
 from lompr_predictor.nodes.common import events_executor, spin_until
 from lompr_predictor.nodes.kinematics_node import KinematicsNode
 from lompr_predictor.nodes.predictor_node import PredictorNode
 from lompr_predictor.nodes.twin_node import TwinNode
+from lompr_predictor.report import write_json
 from lompr_predictor.robot import MEASURED_JOINTS
 from lompr_predictor.twin.digital_twin import DigitalTwin
 from lompr_predictor.twin.recording import VERTICAL_TOOL
@@ -145,7 +146,7 @@ def persistence_model(path: str | Path, like: str | Path) -> Path:
         sample_period=reference.sample_period, targets=TARGETS, normalisation={},
         model_type='persistence', hyperparameters={},
         robot_description_sha256=reference.robot_description_sha256, training_bags=(),
-        seed=0, library_versions=dict(reference.library_versions))
+        seed=0, library_versions=library_versions())
     return save_model(path, persistence_module(), metadata)
 
 

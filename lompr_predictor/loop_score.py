@@ -29,7 +29,7 @@ import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 
 from lompr_predictor.features import TARGETS  # noqa: E402
-from lompr_predictor.report import write_atomic  # noqa: E402
+from lompr_predictor.report import write_atomic, write_json  # noqa: E402
 from lompr_predictor.twin.simulation import (  # noqa: E402
     Simulation,
     error_summary,
@@ -168,16 +168,6 @@ def plot_loops(path: str | Path, seconds: np.ndarray, errors: Mapping[str, np.nd
     return path
 
 
-def write_json(path: str | Path, document: Mapping[str, Any]) -> Path:
-    """Write a JSON document atomically (numpy values converted)."""
-    path = Path(path)
-    text = json.dumps(document, indent=1, default=lambda v: v.tolist()
-                      if isinstance(v, np.ndarray) else v.item() if isinstance(v, np.generic)
-                      else str(v))
-    write_atomic(path, (text + '\n').encode())
-    return path
-
-
 def read_loop_truth(bag: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]] | None:
     """(arrays, document) of the closed-loop truth beside a bag, or None without it."""
     bag = Path(bag)
@@ -192,6 +182,26 @@ def read_loop_truth(bag: str | Path) -> tuple[dict[str, np.ndarray], dict[str, A
 def common_length(arrays: Sequence[np.ndarray]) -> int:
     """Samples every loop has (loops are compared over their common first samples)."""
     return min(len(a) for a in arrays)
+
+
+def common_instants(stamps: Mapping[str, np.ndarray], tolerance_ns: float) -> dict[str, np.ndarray]:
+    """Row indices, per recording, of the instants all recordings share: matched by time
+    since each one's first sample, nearest within `tolerance_ns`. Runs of the same passes
+    recorded at different times, with jittering stamps or a sample lost, still line up
+    sample for sample (the first recording's instants lead)."""
+    names = list(stamps)
+    base = stamps[names[0]] - stamps[names[0]][0]
+    keep = np.ones(len(base), dtype=bool)
+    chosen = {}
+    for name in names:
+        relative = stamps[name] - stamps[name][0]
+        right = np.clip(np.searchsorted(relative, base), 0, len(relative) - 1)
+        left = np.clip(right - 1, 0, len(relative) - 1)
+        nearest = np.where(np.abs(relative[left] - base) < np.abs(relative[right] - base),
+                           left, right)
+        keep &= np.abs(relative[nearest] - base) <= tolerance_ns
+        chosen[name] = nearest
+    return {name: rows[keep] for name, rows in chosen.items()}
 
 
 def evaluate_loop_bags(bags: Sequence[str | Path], *, geometry: Any, cleaning: Any,
@@ -215,6 +225,7 @@ def evaluate_loop_bags(bags: Sequence[str | Path], *, geometry: Any, cleaning: A
     measured: dict[str, np.ndarray] = {}
     stamps: dict[str, np.ndarray] = {}
     truths = {}
+    period_ns = np.inf
     for name, bag in zip(names, bags):
         recordings, _ = read_bags([bag], joint_topic=joint_topic,
                                   reference_topic=reference_topic)
@@ -228,12 +239,15 @@ def evaluate_loop_bags(bags: Sequence[str | Path], *, geometry: Any, cleaning: A
             keep = data.stamps >= arrays['stamps'][scored][0]
         measured[name], stamps[name] = data.error[keep], data.stamps[keep]
         truths[name] = truth
-    count = common_length(list(measured.values()))
+        period_ns = min(period_ns, data.sample_period * 1e9)
+    rows = common_instants(stamps, 0.5 * period_ns)
+    measured = {name: error[rows[name]] for name, error in measured.items()}
     document: dict[str, Any] = {
         'bags': [str(bag) for bag in bags], 'baseline': names[0],
-        'measured': compare_loops({n: e[:count] for n, e in measured.items()}),
-        'measured_note': 'FK(recorded joints) - reference over the first common samples: '
-                         'what a real machine shows, measurement noise included'}
+        'measured': compare_loops(measured),
+        'measured_note': 'FK(recorded joints) - reference at the instants all bags share '
+                         '(matched by time since each bag\'s first sample): what a real '
+                         'machine shows, measurement noise included'}
     text = ['Measured error (FK of the recorded joints - reference):',
             format_table(document['measured'], what='measured error')]
     if all(truth is not None for truth in truths.values()):
@@ -249,8 +263,7 @@ def evaluate_loop_bags(bags: Sequence[str | Path], *, geometry: Any, cleaning: A
         plotted, seconds = document['true'], arrays[names[0]]['stamps'][:count]
         errors = {name: a['true_error'][:count] for name, a in arrays.items()}
     else:
-        plotted, seconds = document['measured'], stamps[names[0]][:count]
-        errors = {n: e[:count] for n, e in measured.items()}
+        plotted, seconds, errors = document['measured'], stamps[names[0]][rows[names[0]]], measured
     folder = Path(report)
     folder.mkdir(parents=True, exist_ok=True)
     plot_loops(folder / LOOP_PLOT, (seconds - seconds[0]) * 1e-9, errors, plotted,

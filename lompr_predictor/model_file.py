@@ -12,8 +12,10 @@ happens inside the module; its constants are also in the metadata for people and
 from __future__ import annotations
 
 import hashlib
+import importlib.metadata
 import json
 import os
+import platform
 import tempfile
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
@@ -100,6 +102,18 @@ class LoadedModel:
         """(B, window, features) float64 SI windows -> (B, 2) predicted error [m]."""
         with torch.inference_mode():
             return self.module(windows)
+
+
+def library_versions() -> dict[str, str]:
+    """Versions of the libraries a model depends on (installed distributions), for its
+    metadata."""
+    versions = {'python': platform.python_version()}
+    for name in ('numpy', 'torch', 'optuna', 'rosbags', 'scipy'):
+        try:
+            versions[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            versions[name] = 'not installed'
+    return versions
 
 
 def file_sha256(path: str | Path) -> str:

@@ -13,6 +13,7 @@ given as a multiple of it.
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 from collections.abc import Mapping, Sequence
@@ -190,14 +191,27 @@ def write_report(folder: str | Path, report: Mapping[str, Any], *, seconds: np.n
     plot_predictions(folder / PREDICTION_PLOT, seconds, actual, predictions, report['horizon'])
     if report.get('tuning'):
         plot_tuning(folder / TUNING_PLOT, report['tuning']['trials'])
-    write_atomic(folder / 'report.json', (json.dumps(report, indent=2, default=_jsonable) + '\n').encode())
+    write_json(folder / 'report.json', report)
     write_atomic(folder / 'report.md', markdown(report).encode())
     return folder
 
 
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    return str(value)
+def write_json(path: str | Path, document: Mapping[str, Any]) -> Path:
+    """Write a JSON document atomically: numpy values as plain numbers and lists, a
+    non-finite float (a diverged trial's loss) as null, since JSON has no Infinity or NaN."""
+    path = Path(path)
+    text = json.dumps(_plain(document), indent=1, default=str, allow_nan=False)
+    write_atomic(path, (text + '\n').encode())
+    return path
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, Mapping):
+        return {key: _plain(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(item) for item in value]
+    if isinstance(value, (np.ndarray, np.generic)):
+        return _plain(value.tolist())
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value

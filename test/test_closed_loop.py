@@ -20,6 +20,7 @@ import pytest
 from lompr_predictor.features import HISTORY, feature_rows
 from lompr_predictor.loop_score import (
     LOOP_PLOT,
+    common_instants,
     compare_loops,
     format_table,
     loop_figures,
@@ -87,6 +88,18 @@ def loops(tmp_path_factory, description) -> dict[str, LoopRun]:  # type: ignore[
 
 def rms(error: np.ndarray) -> np.ndarray:
     return np.sqrt(np.mean(error ** 2, axis=0))
+
+
+def test_recordings_of_the_same_passes_line_up_by_time() -> None:
+    """A real machine's runs start at different times, jitter, and lose a sample: they are
+    compared at the instants they share, not row by row."""
+    period = 40_000_000
+    first = 5_000 + period * np.arange(10)
+    jitter = np.array([0, 3, -2, 1, 0, -4, 2, 0, 1])  # [us]
+    second = 9_000_000_000 + period * np.r_[0:4, 5:10] + jitter * 1000  # sample 4 lost
+    rows = common_instants({'none': first, 'model': second}, 0.5 * period)
+    np.testing.assert_array_equal(rows['none'], [0, 1, 2, 3, 5, 6, 7, 8, 9])
+    np.testing.assert_array_equal(rows['model'], np.arange(9))
 
 
 def test_persistence_model_file_predicts_the_last_plant_error(tmp_path: Path) -> None:

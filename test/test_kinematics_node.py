@@ -162,3 +162,21 @@ def test_renamed_joints_and_bad_joint_names_parameter(
     with pytest.raises(InvalidParameterValueException, match='5 distinct names'):
         KinematicsNode(node_name='bad_names', context=ros.context, parameter_overrides=[
             Parameter('joint_names', value=['a', 'a', 'b', 'c', 'd'])])
+
+
+def test_a_sensor_data_publisher_is_heard_by_default(
+        ros: RosHarness, description: RobotDescription) -> None:
+    """A robot driver may publish joint states best-effort (sensor-data QoS), which a
+    reliable subscription never hears: the default input QoS hears it."""
+    from rclpy.qos import qos_profile_sensor_data
+
+    node = ros.add(KinematicsNode(context=ros.context))
+    poses: list[PoseStamped] = ros.collect('/lompr/end_pose', PoseStamped, 100)
+    publisher = ros.node.create_publisher(JointState, '/joint_states', qos_profile_sensor_data)
+    ros.wait_for_subscribers(publisher)
+    ros.wait_for_publishers('/lompr/end_pose')
+    joints = inverse_kinematics(description.geometry, KNOWN_TIPS[:2]).joints
+    for i, row in enumerate(joints):
+        publisher.publish(joint_state(2000.0 + 0.04 * i, row))
+    ros.spin_until(lambda: len(poses) == 2, what='end poses of best-effort joint states')
+    assert node.rejected.total == 0

@@ -21,7 +21,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from tqdm import tqdm
 
 from lompr_predictor.errors import LomprError
@@ -32,9 +31,9 @@ from lompr_predictor.loop_score import (
     plot_loops,
     ratio_pct,
     true_error_floor,
-    write_json,
 )
 from lompr_predictor.paths import PATH_KINDS, build_cycle
+from lompr_predictor.report import write_json
 from lompr_predictor.robot import load_robot_description
 from lompr_predictor.twin.parameters import load_twin_parameters
 from lompr_predictor.twin.recording import write_simulation

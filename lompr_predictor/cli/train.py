@@ -12,7 +12,6 @@ The functions shared with `lompr evaluate` (reading, scoring, metadata) live her
 from __future__ import annotations
 
 import argparse
-import platform
 import sys
 import time
 from collections.abc import Mapping, Sequence
@@ -116,19 +115,6 @@ def score(predictions: Mapping[str, np.ndarray], actual: np.ndarray, stamps: np.
             for name, predicted in predictions.items()}
 
 
-def library_versions() -> dict[str, str]:
-    """Versions of the libraries a model depends on (installed distributions)."""
-    from importlib import metadata
-
-    versions = {'python': platform.python_version()}
-    for name in ('numpy', 'torch', 'optuna', 'rosbags', 'scipy'):
-        try:
-            versions[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            versions[name] = 'not installed'
-    return versions
-
-
 def base_report(command: str, problem: LearningProblem, data: CleanData,
                 sources: Sequence[BagSource], config: CleaningConfig) -> dict[str, Any]:
     split = problem.split
@@ -165,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
     import optuna
     import torch
 
-    from lompr_predictor.model_file import ModelMetadata, save_model
+    from lompr_predictor.model_file import ModelMetadata, library_versions, save_model
     from lompr_predictor.models import LSTM_STEPS, persistence, predict_rows
     from lompr_predictor.training import MAX_EPOCHS, PATIENCE, TrainSettings, train_network
     from lompr_predictor.tuning import (

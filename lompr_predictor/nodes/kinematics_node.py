@@ -79,7 +79,8 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec('diagnostics_topic', '/diagnostics', 'DiagnosticArray topic', read_only=True),
     ParameterSpec('frame_id', WORLD_FRAME, 'header.frame_id of the end poses (the frame the '
                   'robot description calls world)', read_only=True),
-    *qos_parameter_specs('input_qos', depth=100, what='the joint state subscription'),
+    *qos_parameter_specs('input_qos', depth=100, reliability='best_effort',
+                         what='the joint state subscription'),
     *qos_parameter_specs('output_qos', depth=100, what='the end pose publisher'),
     ParameterSpec(
         'warm_start_max_gap', 0.5,

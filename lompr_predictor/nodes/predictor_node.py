@@ -119,8 +119,8 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
                   'Vector3Stamped compensation offset output', read_only=True),
     ParameterSpec('diagnostics_topic', '/diagnostics', 'DiagnosticArray topic', read_only=True),
     ParameterSpec('frame_id', WORLD_FRAME, 'header.frame_id of the outputs', read_only=True),
-    *qos_parameter_specs('input_qos', depth=100, what='the end pose and reference '
-                         'subscriptions'),
+    *qos_parameter_specs('input_qos', depth=100, reliability='best_effort',
+                         what='the end pose and reference subscriptions'),
     *qos_parameter_specs('output_qos', depth=100, what='the prediction and compensation '
                          'publishers'),
     ParameterSpec('inference_threads', 1, 'torch threads; 1 keeps inference from contending '
@@ -349,18 +349,23 @@ class PredictorNode(Node):
         return SetParametersResult(successful=True)
 
     def _apply_parameters(self, parameters: Sequence[Parameter]) -> None:
-        changes = {p.name: p.value for p in parameters
-                   if p.name in PredictorNodeSettings.__dataclass_fields__}
-        self.settings = replace(self.settings, **changes)
-        self._publish(self.core.set_limits(self.settings.limits), time.perf_counter())
-        self._throttle.period = self.settings.warning_throttle_period
-        if self._candidate is not None:
-            self.core.replace_model(self._candidate)
-            self._candidate = None
-            self.model_swaps += 1
-            self.reload_error = ''
-            self.get_logger().info(f'model swapped: now {self.core.model.path} '
-                                   f'(sha256 {self.core.model.sha256[:16]})')
+        """Take accepted changes (validated in `_validate_parameters`); a failure here is
+        handled like any callback's."""
+        try:
+            changes = {p.name: p.value for p in parameters
+                       if p.name in PredictorNodeSettings.__dataclass_fields__}
+            self.settings = replace(self.settings, **changes)
+            self._publish(self.core.set_limits(self.settings.limits), time.perf_counter())
+            self._throttle.period = self.settings.warning_throttle_period
+            if self._candidate is not None:
+                self.core.replace_model(self._candidate)
+                self._candidate = None
+                self.model_swaps += 1
+                self.reload_error = ''
+                self.get_logger().info(f'model swapped: now {self.core.model.path} '
+                                       f'(sha256 {self.core.model.sha256[:16]})')
+        except Exception as err:  # noqa: BLE001
+            self._callback_failed('parameter change', err)
 
     # -- diagnostics ------------------------------------------------------------------------
 
