@@ -26,6 +26,8 @@ from tqdm import tqdm
 #: Trial states that count toward the budget.
 SPENT = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED)
 DEFAULT_TRIALS = 20
+#: Random trials that seed the Gaussian process (a third of the default budget).
+STARTUP_TRIALS = 6
 #: The median pruner judges a trial only after this many finished trials and, within a
 #: trial, only after this many epochs: early epochs rank learning rates by speed, not by
 #: where they end, and a pruned trial teaches the GP nothing.
@@ -70,11 +72,19 @@ def study_name_for(settings: Mapping[str, Any]) -> str:
     return 'lompr-' + hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+def startup_trials_for(budget: int) -> int:
+    """Random start-up trials before the GP proposes: `STARTUP_TRIALS`, but at most a third
+    of the budget, so that a small budget is still mostly Bayesian."""
+    return max(1, min(STARTUP_TRIALS, budget // 3))
+
+
 def open_study(storage: str, study_name: str, *, seed: int = 0,
-               startup_trials: int = 6) -> optuna.Study:
-    """Create or load (resume) a minimising study with the GP sampler and a median pruner."""
+               budget: int = DEFAULT_TRIALS) -> optuna.Study:
+    """Create or load (resume) a minimising study with the GP sampler (its start-up trials
+    sized for `budget`) and a median pruner."""
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    sampler = optuna.samplers.GPSampler(seed=seed, n_startup_trials=startup_trials)
+    sampler = optuna.samplers.GPSampler(seed=seed,
+                                        n_startup_trials=startup_trials_for(budget))
     pruner = optuna.pruners.MedianPruner(n_startup_trials=PRUNER_STARTUP_TRIALS,
                                          n_warmup_steps=PRUNER_WARMUP_EPOCHS)
     return optuna.create_study(storage=storage, study_name=study_name, sampler=sampler,

@@ -14,6 +14,7 @@ from lompr_predictor.tuning import (
     finished_twin,
     history,
     open_study,
+    startup_trials_for,
     parse_values,
     run_study,
     spent_trials,
@@ -34,6 +35,10 @@ def test_gp_sampler_finds_the_toy_optimum(tmp_path: Path) -> None:
     assert run_study(study, toy, 20, progress=False) == 20
     assert study.best_params == {'batch_size': 600, 'hidden': 35, 'learning_rate': 0.01}
     assert study.best_value == pytest.approx(0.0)
+
+
+def test_a_small_budget_is_mostly_bayesian() -> None:
+    assert [startup_trials_for(n) for n in (1, 6, 20, 100)] == [1, 2, 6, 6]
 
 
 def test_interrupted_study_resumes_with_its_finished_trials(tmp_path: Path) -> None:

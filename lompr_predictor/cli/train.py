@@ -186,7 +186,7 @@ def run(args: argparse.Namespace) -> int:
         'bags': [(s.path, s.sha256) for s in sources], 'window': args.window,
         'horizon': args.horizon, 'space': space.as_dict(), 'seed': args.seed,
         'settings': vars(settings), 'cleaning': vars(cleaning_config(args))})
-    study = open_study(storage, study_name, seed=args.seed)
+    study = open_study(storage, study_name, seed=args.seed, budget=args.trials)
 
     def objective(trial: optuna.Trial) -> float:
         params = space.suggest(trial)
