@@ -13,9 +13,6 @@ fewer messages than its metadata promises is truncated, never silently short.
 
 from __future__ import annotations
 
-import os
-import shutil
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +21,7 @@ import numpy as np
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
+from lompr_predictor.atomic import atomic_directory
 from lompr_predictor.errors import LomprError
 from lompr_predictor.robot import MEASURED_JOINTS
 
@@ -103,40 +101,34 @@ def write_recording(
     if path.exists():
         msg = f'{path} already exists; rosbag2 writes a new directory'
         raise FileExistsError(msg)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f'.{path.name}.', dir=path.parent))
-    bag_dir = staging / path.name
     types = _TYPESTORE.types
     joint_state, pose_stamped = types[JOINT_STATE], types[POSE_STAMPED]
     point, quaternion, pose = (types['geometry_msgs/msg/Point'],
                                types['geometry_msgs/msg/Quaternion'], types['geometry_msgs/msg/Pose'])
     joints, reference = recording.joints, recording.reference
     events = _interleave(joints.stamps, reference.stamps)
-    try:
-        with Writer(bag_dir, version=9, storage_plugin=STORAGES[storage]) as writer:
-            joint_conn = writer.add_connection(joint_topic, JOINT_STATE, typestore=_TYPESTORE)
-            ref_conn = writer.add_connection(reference_topic, POSE_STAMPED, typestore=_TYPESTORE)
-            for topic, index in events:
-                if topic == 0:
-                    stamp = int(joints.stamps[index])
-                    message = joint_state(
-                        header=_header(stamp, ''), name=list(joints.names),
-                        position=np.ascontiguousarray(joints.positions[index], dtype=np.float64),
-                        velocity=np.empty(0), effort=np.empty(0))
-                    writer.write(joint_conn, stamp,
-                                 _TYPESTORE.serialize_cdr(message, JOINT_STATE))
-                else:
-                    stamp = int(reference.stamps[index])
-                    x, y, z = (float(v) for v in reference.positions[index])
-                    qx, qy, qz, qw = (float(v) for v in reference.orientations[index])
-                    message = pose_stamped(
-                        header=_header(stamp, frame_id),
-                        pose=pose(position=point(x=x, y=y, z=z),
-                                  orientation=quaternion(x=qx, y=qy, z=qz, w=qw)))
-                    writer.write(ref_conn, stamp, _TYPESTORE.serialize_cdr(message, POSE_STAMPED))
-        os.replace(bag_dir, path)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+    with atomic_directory(path) as bag_dir, \
+            Writer(bag_dir, version=9, storage_plugin=STORAGES[storage]) as writer:
+        joint_conn = writer.add_connection(joint_topic, JOINT_STATE, typestore=_TYPESTORE)
+        ref_conn = writer.add_connection(reference_topic, POSE_STAMPED, typestore=_TYPESTORE)
+        for topic, index in events:
+            if topic == 0:
+                stamp = int(joints.stamps[index])
+                message = joint_state(
+                    header=_header(stamp, ''), name=list(joints.names),
+                    position=np.ascontiguousarray(joints.positions[index], dtype=np.float64),
+                    velocity=np.empty(0), effort=np.empty(0))
+                writer.write(joint_conn, stamp,
+                             _TYPESTORE.serialize_cdr(message, JOINT_STATE))
+            else:
+                stamp = int(reference.stamps[index])
+                x, y, z = (float(v) for v in reference.positions[index])
+                qx, qy, qz, qw = (float(v) for v in reference.orientations[index])
+                message = pose_stamped(
+                    header=_header(stamp, frame_id),
+                    pose=pose(position=point(x=x, y=y, z=z),
+                              orientation=quaternion(x=qx, y=qy, z=qz, w=qw)))
+                writer.write(ref_conn, stamp, _TYPESTORE.serialize_cdr(message, POSE_STAMPED))
     return path
 
 

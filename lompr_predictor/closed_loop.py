@@ -23,8 +23,6 @@ last measured plant error), so that it runs through the same predictor node.
 from __future__ import annotations
 
 import os
-import shutil
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -43,6 +41,7 @@ from rclpy.task import Future
 from sensor_msgs.msg import JointState
 from tqdm import tqdm
 
+from lompr_predictor.atomic import atomic_directory
 from lompr_predictor.bags import JointSamples, Recording, ReferenceSamples, write_recording
 from lompr_predictor.errors import LomprError
 from lompr_predictor.features import FEATURES, TARGETS
@@ -364,15 +363,10 @@ def record_loop(out: str | Path, run: LoopRun, *, storage: str = 'mcap',
         joints=JointSamples(stamps=run.stamps, positions=run.joints, names=MEASURED_JOINTS),
         reference=ReferenceSamples(stamps=run.stamps, positions=run.reference,
                                    orientations=np.tile(VERTICAL_TOOL, (len(run.stamps), 1))))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f'.{out.name}.', dir=out.parent))
-    try:
-        bag = write_recording(staging / out.name, recording, storage=storage)
+    with atomic_directory(out) as staged:
+        bag = write_recording(staged, recording, storage=storage)
         arrays, document = run.truth()
         document['irreducible_um'] = irreducible_um
         np.savez_compressed(bag / LOOP_TRUTH_NPZ, **arrays)
         write_json(bag / LOOP_TRUTH_JSON, document)
-        os.replace(bag, out)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
     return out

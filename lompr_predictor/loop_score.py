@@ -29,7 +29,8 @@ import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 
 from lompr_predictor.features import TARGETS  # noqa: E402
-from lompr_predictor.report import write_atomic, write_json  # noqa: E402
+from lompr_predictor.atomic import write_atomic  # noqa: E402
+from lompr_predictor.report import write_json  # noqa: E402
 from lompr_predictor.twin.simulation import (  # noqa: E402
     Simulation,
     error_summary,

@@ -14,9 +14,7 @@ from __future__ import annotations
 import hashlib
 import importlib.metadata
 import json
-import os
 import platform
-import tempfile
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -24,6 +22,7 @@ from typing import Any
 
 import torch
 
+from lompr_predictor.atomic import atomic_file
 from lompr_predictor.errors import LomprError
 
 FORMAT_VERSION = 1
@@ -128,16 +127,9 @@ def file_sha256(path: str | Path) -> str:
 def save_model(path: str | Path, module: torch.nn.Module, metadata: ModelMetadata) -> Path:
     """Script `module` and write it with its metadata to `path`, atomically."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     scripted = module if isinstance(module, torch.jit.ScriptModule) else torch.jit.script(module)
-    descriptor, staging = tempfile.mkstemp(prefix=f'.{path.name}.', dir=path.parent)
-    os.close(descriptor)
-    try:
-        torch.jit.save(scripted, staging, _extra_files={METADATA_NAME: metadata.to_json()})
-        os.replace(staging, path)
-    finally:
-        if os.path.exists(staging):
-            os.unlink(staging)
+    with atomic_file(path) as staging:
+        torch.jit.save(scripted, str(staging), _extra_files={METADATA_NAME: metadata.to_json()})
     return path
 
 

@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -26,6 +24,7 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from lompr_predictor.atomic import atomic_file, write_atomic  # noqa: E402
 from lompr_predictor.features import TARGETS  # noqa: E402
 from lompr_predictor.metrics import METRIC_NAMES  # noqa: E402
 
@@ -53,18 +52,6 @@ def irreducible_level(bags: Sequence[str | Path], horizon: int) -> dict[str, flo
         if str(horizon) in levels:
             return {axis: float(levels[str(horizon)][axis]) for axis in TARGETS}
     return None
-
-
-def write_atomic(path: Path, data: bytes) -> None:
-    """Write `data` to `path` through a temporary file in the same folder and a rename."""
-    descriptor, staging = tempfile.mkstemp(prefix=f'.{path.name}.', dir=path.parent)
-    try:
-        with os.fdopen(descriptor, 'wb') as stream:
-            stream.write(data)
-        os.replace(staging, path)
-    finally:
-        if os.path.exists(staging):
-            os.unlink(staging)
 
 
 def markdown(report: Mapping[str, Any]) -> str:
@@ -172,15 +159,11 @@ def plot_tuning(path: Path, trials: Sequence[Mapping[str, Any]]) -> None:
 
 
 def _save_figure(figure: Any, path: Path) -> None:
-    descriptor, staging = tempfile.mkstemp(prefix=f'.{path.stem}.', suffix='.png', dir=path.parent)
-    os.close(descriptor)
     try:
-        figure.savefig(staging, dpi=110)
-        os.replace(staging, path)
+        with atomic_file(path, suffix='.png') as staging:
+            figure.savefig(staging, dpi=110)
     finally:
         plt.close(figure)
-        if os.path.exists(staging):
-            os.unlink(staging)
 
 
 def write_report(folder: str | Path, report: Mapping[str, Any], *, seconds: np.ndarray,

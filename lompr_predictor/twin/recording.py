@@ -24,15 +24,13 @@ directory is assembled beside its destination and renamed into place.
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from lompr_predictor.atomic import atomic_directory
 from lompr_predictor.bags import JointSamples, Recording, ReferenceSamples, write_recording
 from lompr_predictor.errors import LomprError
 from lompr_predictor.robot import MEASURED_JOINTS
@@ -127,18 +125,13 @@ def write_simulation(out: str | Path, sim: Simulation, params: TwinParameters,
     faults = faults or FaultSpec()
     recording, logs = to_recording(sim, faults, sim.seed)
     arrays, document = ground_truth(sim, params, description_sha256, faults, logs)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f'.{out.name}.', dir=out.parent))
-    try:
-        bag = write_recording(staging / out.name, recording, storage=storage)
+    with atomic_directory(out) as staged:
+        bag = write_recording(staged, recording, storage=storage)
         np.savez_compressed(bag / GROUND_TRUTH_NPZ, **arrays)
         (bag / GROUND_TRUTH_JSON).write_text(json.dumps(document, indent=1) + '\n',
                                              encoding='utf-8')
         if plot:
             plot_simulation(sim, bag / ERROR_PLOT)
-        os.replace(bag, out)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
     return out
 
 

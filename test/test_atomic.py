@@ -1,0 +1,37 @@
+"""Atomic writes: the final path holds the old content or the whole new one, never a part,
+and a failed write leaves no staging file or directory behind."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from lompr_predictor.atomic import atomic_directory, atomic_file, write_atomic
+
+
+def test_a_failed_file_write_keeps_the_old_file_and_no_debris(tmp_path: Path) -> None:
+    target = tmp_path / 'report.json'
+    write_atomic(target, b'old')
+    with pytest.raises(RuntimeError, match='disk full'), atomic_file(target) as staging:
+        staging.write_bytes(b'half of the n')
+        raise RuntimeError('disk full')
+    assert target.read_bytes() == b'old'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['report.json']
+    write_atomic(target, b'new')
+    assert target.read_bytes() == b'new'
+
+
+def test_a_directory_appears_whole_or_not_at_all(tmp_path: Path) -> None:
+    target = tmp_path / 'sub' / 'bag'
+    with pytest.raises(RuntimeError), atomic_directory(target) as staged:
+        staged.mkdir()
+        (staged / 'metadata.yaml').write_text('partial')
+        assert not target.exists()
+        raise RuntimeError('interrupted')
+    assert not target.exists() and list((tmp_path / 'sub').iterdir()) == []
+    with atomic_directory(target) as staged:
+        staged.mkdir()
+        (staged / 'metadata.yaml').write_text('whole')
+    assert (target / 'metadata.yaml').read_text() == 'whole'
+    assert [p.name for p in (tmp_path / 'sub').iterdir()] == ['bag']
