@@ -104,3 +104,19 @@ def test_lompr_main_reports_a_truncated_bag_in_one_line(
     assert code == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f'lompr train: error: bag {bad}: ')
+
+
+def test_rmse_is_given_as_a_multiple_of_the_twins_irreducible_level(tmp_path: Path) -> None:
+    from lompr_predictor.cli.train import irreducible_fields
+    from lompr_predictor.dataset import BagSource
+
+    bag = tmp_path / 'bag'
+    bag.mkdir()
+    (bag / 'lompr_ground_truth.json').write_text(json.dumps(
+        {'irreducible_rmse_um': {'1': {'x': 0.5, 'y': 2.0}}}))
+    models = {'bo_lstm': {'metrics': {'x': {'rmse_um': 0.75}, 'y': {'rmse_um': 3.0}}}}
+    fields = irreducible_fields(models, [BagSource(path=str(bag))], 1)
+    assert fields == {'irreducible_rmse_um': {'x': 0.5, 'y': 2.0},
+                      'rmse_to_irreducible': {'bo_lstm': {'x': 1.5, 'y': 1.5}}}
+    assert irreducible_fields(models, [BagSource(path=str(bag))], 25) == {
+        'irreducible_rmse_um': None, 'rmse_to_irreducible': None}  # no level at that horizon

@@ -15,11 +15,18 @@ from typing import Any
 
 import numpy as np
 
-from lompr_predictor.cli.train import add_data_arguments, base_report, cleaning_config, load_data, score
+from lompr_predictor.cli.train import (
+    add_data_arguments,
+    base_report,
+    cleaning_config,
+    irreducible_fields,
+    load_data,
+    score,
+)
 from lompr_predictor.dataset import LearningProblem, Split
 from lompr_predictor.errors import LomprError
 from lompr_predictor.features import FEATURES, TARGETS
-from lompr_predictor.report import irreducible_level, write_report
+from lompr_predictor.report import write_report
 from lompr_predictor.robot import load_robot_description
 
 class EvaluationError(LomprError):
@@ -86,13 +93,9 @@ def run(args: argparse.Namespace) -> int:
     models = score(predictions, offline.actual, offline.stamps, problem.error_low,
                    problem.error_high, args.gap_factor * data.sample_period)
     report = base_report('evaluate', problem, data, sources, cleaning_config(args))
-    irreducible = irreducible_level([s.path for s in sources if not s.skipped_reason], meta.horizon)
     report.update(
         models=models, model_file=str(Path(args.model).resolve()), model_sha256=model.sha256,
-        model_test_metrics=meta.test_metrics, irreducible_rmse_um=irreducible,
-        rmse_to_irreducible=None if irreducible is None else {
-            name: {axis: m['metrics'][axis]['rmse_um'] / irreducible[axis] for axis in TARGETS}
-            for name, m in models.items()},
+        model_test_metrics=meta.test_metrics, **irreducible_fields(models, sources, meta.horizon),
         timings={'total_seconds': time.perf_counter() - started})
     write_report(args.report, report, seconds=(offline.stamps - offline.stamps[0]) * 1e-9,
                  actual=offline.actual, predictions=predictions)

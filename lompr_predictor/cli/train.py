@@ -131,6 +131,17 @@ def base_report(command: str, problem: LearningProblem, data: CleanData,
     }
 
 
+def irreducible_fields(models: Mapping[str, Any], sources: Sequence[BagSource],
+                       horizon: int) -> dict[str, Any]:
+    """The twin's irreducible RMSE at `horizon` (when a bag carries its ground truth) and
+    each model's RMSE as a multiple of it; None for both without ground truth."""
+    irreducible = irreducible_level([s.path for s in sources if not s.skipped_reason], horizon)
+    return {'irreducible_rmse_um': irreducible,
+            'rmse_to_irreducible': None if irreducible is None else {
+                name: {axis: m['metrics'][axis]['rmse_um'] / irreducible[axis] for axis in TARGETS}
+                for name, m in models.items()}}
+
+
 def normalisation_metadata(module: Any, problem: LearningProblem) -> dict[str, Any]:
     """The constants inside a `PredictorModule` (scripted or not), for people and tools."""
     def bounds(centre: Any, half: Any) -> tuple[list[float], list[float]]:
@@ -239,16 +250,12 @@ def run(args: argparse.Namespace) -> int:
                              target='residual (e(t+h) - e(t))')
     config = cleaning_config(args)
     report = base_report('train', problem, data, sources, config)
-    irreducible = irreducible_level([s.path for s in sources if not s.skipped_reason], args.horizon)
     report.update(
         models=models,
         ratios_to_bp=ratios(models['bo_lstm']['metrics'], models['bp']['metrics']),
         training_time_ratio_lstm_to_bp=lstm_seconds / bp.seconds if bp.seconds else None,
         tuning_time_ratio_to_bp=tuning_seconds / bp.seconds if bp.seconds else None,
-        irreducible_rmse_um=irreducible,
-        rmse_to_irreducible=None if irreducible is None else {
-            name: {axis: m['metrics'][axis]['rmse_um'] / irreducible[axis] for axis in TARGETS}
-            for name, m in models.items()},
+        **irreducible_fields(models, sources, args.horizon),
         tuning={'study_name': study_name, 'storage': storage, 'space': space.as_dict(),
                 'trials_spent': len(spent_trials(study)), 'trials_run_now': ran,
                 'best_trial': best.number, 'best_value': best.value, 'best_params': best_params,
