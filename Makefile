@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 STAMP := $(VENV)/.installed
 
-.PHONY: venv test demo bench clean
+.PHONY: venv test test-fast lint demo bench clean
 
 venv: $(STAMP)
 
@@ -16,6 +16,13 @@ $(STAMP): requirements.txt setup.py package.xml
 
 test: venv
 	$(VENV)/bin/python -m pytest -q test
+
+test-fast: venv  # everything but the slow tests (closed loops, colcon build)
+	$(VENV)/bin/python -m pytest -q -m "not slow" test
+
+lint: venv
+	$(VENV)/bin/ruff check lompr_predictor test bench
+	$(VENV)/bin/mypy
 
 demo: venv
 	$(VENV)/bin/lompr demo

@@ -42,10 +42,10 @@ setup(
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
-            'kinematics_node = lompr_predictor.nodes.kinematics_node:main',
-            'predictor_node = lompr_predictor.nodes.predictor_node:main',
-            'lompr_pipeline = lompr_predictor.nodes.pipeline:main',
-            'twin_node = lompr_predictor.nodes.twin_node:main',
+            'kinematics_node = lompr_predictor.ros.kinematics_node:main',
+            'predictor_node = lompr_predictor.ros.predictor_node:main',
+            'lompr_pipeline = lompr_predictor.ros.pipeline:main',
+            'twin_node = lompr_predictor.ros.twin_node:main',
             'lompr = lompr_predictor.cli:main',
         ],
     },

@@ -20,13 +20,13 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from lompr_predictor.kinematics import (  # noqa: E402
+from lompr_predictor.robot.description import load_robot_description  # noqa: E402
+from lompr_predictor.robot.kinematics import (  # noqa: E402
     ForwardKinematics,
     batch_forward_kinematics,
     inverse_kinematics,
 )
-from lompr_predictor.paths import build_cycle  # noqa: E402
-from lompr_predictor.robot import load_robot_description  # noqa: E402
+from lompr_predictor.robot.paths import build_cycle  # noqa: E402
 from lompr_predictor.twin.parameters import load_twin_parameters  # noqa: E402
 
 SINGLE_P99_TARGET_US = 100.0

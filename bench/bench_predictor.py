@@ -22,8 +22,6 @@ import os
 
 for _variable in ('OMP_NUM_THREADS', 'MKL_NUM_THREADS', 'OPENBLAS_NUM_THREADS'):
     os.environ[_variable] = '1'
-os.environ['ROS_DOMAIN_ID'] = str(100 + os.getpid() % 100)  # this bench talks only to itself
-os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 import argparse  # noqa: E402
 import signal  # noqa: E402
@@ -43,11 +41,12 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 
-from lompr_predictor.features import FEATURES, HISTORY, TARGETS  # noqa: E402
-from lompr_predictor.kinematics import inverse_kinematics  # noqa: E402
-from lompr_predictor.model_file import ModelMetadata, load_model, save_model  # noqa: E402
-from lompr_predictor.models import build_network  # noqa: E402
-from lompr_predictor.robot import MEASURED_JOINTS, load_robot_description  # noqa: E402
+from lompr_predictor.data.features import FEATURES, HISTORY, TARGETS  # noqa: E402
+from lompr_predictor.learning.model_file import ModelMetadata, load_model, save_model  # noqa: E402
+from lompr_predictor.learning.models import build_network  # noqa: E402
+from lompr_predictor.robot.description import MEASURED_JOINTS, load_robot_description  # noqa: E402
+from lompr_predictor.robot.kinematics import inverse_kinematics  # noqa: E402
+from lompr_predictor.ros.domain import isolate_ros_domain  # noqa: E402
 
 WINDOW, HORIZON, HIDDEN = 25, 1, 50
 RATES = (25, 250, 1000)
@@ -247,6 +246,7 @@ def main() -> int:
     parser.add_argument('--seconds', type=float, default=4.0,
                         help='input duration per rate and mode [s] (25 Hz runs at least 8 s)')
     args = parser.parse_args()
+    isolate_ros_domain()  # this bench talks only to itself
     failures = []
     with tempfile.TemporaryDirectory() as directory:
         models = {rate: default_model(Path(directory) / f'lstm_{rate}.pt', 1.0 / rate)

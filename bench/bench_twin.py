@@ -21,7 +21,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from lompr_predictor.robot import load_robot_description  # noqa: E402
+from lompr_predictor.robot.description import load_robot_description  # noqa: E402
 from lompr_predictor.twin import DigitalTwin, load_twin_parameters, simulate  # noqa: E402
 
 STEP_P99_TARGET_US = 1000.0

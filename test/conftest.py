@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import os
 
-# Each test session talks only to itself: its own DDS domain, discovery on localhost only.
-os.environ['ROS_DOMAIN_ID'] = str(1 + os.getpid() % 200)
-os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+from lompr_predictor.ros.domain import isolate_ros_domain
+
+# Each test session talks only to itself: a DDS domain no other process on this machine
+# holds, discovery on localhost only; set before anything imports rclpy.
+isolate_ros_domain()
 os.environ.setdefault('OMP_NUM_THREADS', '1')
 
 import pytest  # noqa: E402
 
-from lompr_predictor.robot import RobotDescription, load_robot_description  # noqa: E402
+from lompr_predictor.robot.description import RobotDescription, load_robot_description  # noqa: E402
 
 
 @pytest.fixture(scope='session')

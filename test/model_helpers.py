@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from lompr_predictor.features import FEATURES, TARGETS
-from lompr_predictor.model_file import ModelMetadata, save_model
-from lompr_predictor.robot import load_robot_description
+from lompr_predictor.data.features import FEATURES, TARGETS
+from lompr_predictor.learning.model_file import ModelMetadata, save_model
+from lompr_predictor.robot.description import load_robot_description
 
 
 class LinearWindowModel(torch.nn.Module):

@@ -27,7 +27,7 @@ from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.qos import QoSProfile
 
-from lompr_predictor.nodes.common import spin_until
+from lompr_predictor.ros.common import spin_until
 
 DEFAULT_TIMEOUT = 10.0
 

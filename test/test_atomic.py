@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from lompr_predictor.atomic import atomic_directory, atomic_file, write_atomic
+from lompr_predictor.files import atomic_directory, atomic_file, write_atomic
 
 
 def test_a_failed_file_write_keeps_the_old_file_and_no_debris(tmp_path: Path) -> None:

@@ -17,8 +17,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lompr_predictor.features import HISTORY, feature_rows
-from lompr_predictor.loop_score import (
+from lompr_predictor.data.features import HISTORY, feature_rows
+from lompr_predictor.learning.model_file import load_model
+from lompr_predictor.scoring.loops import (
     LOOP_PLOT,
     common_instants,
     compare_loops,
@@ -27,7 +28,6 @@ from lompr_predictor.loop_score import (
     reduction_pct,
     true_error_floor,
 )
-from lompr_predictor.model_file import load_model
 from lompr_predictor.twin.parameters import load_twin_parameters
 from lompr_predictor.twin.simulation import simulate
 
@@ -36,13 +36,15 @@ pytest.importorskip('rclpy')
 from model_helpers import save_linear  # noqa: E402
 
 from lompr_predictor.cli import main as lompr_main  # noqa: E402
-from lompr_predictor.closed_loop import (  # noqa: E402
+from lompr_predictor.ros.closed_loop import (  # noqa: E402
     LoopRun,
     LoopSettings,
     persistence_model,
     record_loop,
     run_closed_loop,
 )
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 WINDOW = 8
 RIDGE = 1e-6  # on standardised columns

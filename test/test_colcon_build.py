@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = 'lompr_predictor'
 EXECUTABLES = ('kinematics_node', 'predictor_node', 'twin_node', 'lompr')

@@ -15,22 +15,23 @@ from trainer_data import (
     write_synthetic_bag,
 )
 
-from lompr_predictor.bags import BagError, JointSamples, Recording, ReferenceSamples
-from lompr_predictor.dataset import (
+from lompr_predictor.data.bags import BagError, JointSamples, Recording, ReferenceSamples, read_bags
+from lompr_predictor.data.cleaning import (
     CleanData,
-    build_problem,
-    chronological_split,
     clean_recordings,
     hampel_outliers,
     interpolate_reference,
-    minmax_range,
-    read_bags,
     sanitise_stream,
     segment_bounds,
+)
+from lompr_predictor.data.features import HISTORY
+from lompr_predictor.data.problem import (
+    build_problem,
+    chronological_split,
+    minmax_range,
     window_ends,
 )
-from lompr_predictor.features import HISTORY
-from lompr_predictor.robot import RobotDescription
+from lompr_predictor.robot.description import RobotDescription
 
 
 def test_nonfinite_rows_dropped_and_counted() -> None:

@@ -17,14 +17,14 @@ from lompr_predictor.errors import (
     StrokeLimitError,
     WorkspaceError,
 )
-from lompr_predictor.kinematics import (
+from lompr_predictor.robot.description import RobotDescription, default_description_path
+from lompr_predictor.robot.kinematics import (
     ForwardKinematics,
     NonFiniteJointError,
     batch_forward_kinematics,
     branch_lengths,
     inverse_kinematics,
 )
-from lompr_predictor.robot import RobotDescription, default_description_path
 
 MIRROR_Z = 1.097
 MIRROR_RADIUS = 0.200

@@ -15,9 +15,11 @@ from rclpy.parameter import Parameter
 from ros_helpers import RosHarness
 from sensor_msgs.msg import JointState
 
-from lompr_predictor.kinematics import inverse_kinematics
-from lompr_predictor.nodes.kinematics_node import REJECTION_REASONS, KinematicsNode
-from lompr_predictor.robot import MEASURED_JOINTS, RobotDescription
+from lompr_predictor.robot.description import MEASURED_JOINTS, RobotDescription
+from lompr_predictor.robot.kinematics import inverse_kinematics
+from lompr_predictor.ros.kinematics_node import REJECTION_REASONS, KinematicsNode
+
+pytestmark = pytest.mark.ros
 
 MIRROR_Z = 1.097
 #: Known tool-tip poses: centre, the spiral's start, the mirror's rim, z at both ends of

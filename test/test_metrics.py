@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lompr_predictor.metrics import axis_metrics, ratios, table_metrics
+from lompr_predictor.learning.metrics import axis_metrics, ratios, table_metrics
 
 
 def test_pointwise_metrics_by_hand() -> None:

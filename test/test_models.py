@@ -10,10 +10,16 @@ import pytest
 import torch
 from trainer_data import lissajous_reference, synthetic_recording
 
-from lompr_predictor.dataset import LearningProblem, build_problem, clean_recordings
-from lompr_predictor.features import FEATURES, TARGETS
-from lompr_predictor.model_file import MetadataMismatchError, ModelMetadata, load_model, save_model
-from lompr_predictor.models import (
+from lompr_predictor.data.cleaning import clean_recordings
+from lompr_predictor.data.features import FEATURES, TARGETS
+from lompr_predictor.data.problem import LearningProblem, build_problem
+from lompr_predictor.learning.model_file import (
+    MetadataMismatchError,
+    ModelMetadata,
+    load_model,
+    save_model,
+)
+from lompr_predictor.learning.models import (
     MlpNet,
     PredictorModule,
     gather_windows,
@@ -21,8 +27,8 @@ from lompr_predictor.models import (
     persistence_module,
     predict_rows,
 )
-from lompr_predictor.robot import RobotDescription
-from lompr_predictor.training import TrainSettings, train_network
+from lompr_predictor.learning.training import TrainSettings, train_network
+from lompr_predictor.robot.description import RobotDescription
 
 SETTINGS = TrainSettings(max_epochs=8, patience=3, seed=3, threads=1)
 HYPER = {'batch_size': 200, 'hidden': 8, 'learning_rate': 0.01}

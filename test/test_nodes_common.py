@@ -11,7 +11,7 @@ from rclpy.qos import ReliabilityPolicy
 from ros_helpers import RosHarness
 
 from lompr_predictor.monitoring import Level, Status
-from lompr_predictor.nodes.common import (
+from lompr_predictor.ros.common import (
     DiagnosticsPublisher,
     ParameterSpec,
     declare_parameters,
@@ -19,6 +19,8 @@ from lompr_predictor.nodes.common import (
     qos_parameter_specs,
     run_node,
 )
+
+pytestmark = pytest.mark.ros
 
 SPECS = [
     ParameterSpec('period', 1.0, 'a period [s]', minimum=0.1, maximum=10.0),

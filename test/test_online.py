@@ -11,9 +11,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from model_helpers import FailingModel, metadata, save_constant, save_linear
 
-from lompr_predictor.features import HISTORY, feature_rows
-from lompr_predictor.model_file import load_model, save_model
-from lompr_predictor.online import CompensationLimits, OnlinePredictor, StreamSettings
+from lompr_predictor.data.features import HISTORY, feature_rows
+from lompr_predictor.learning.model_file import load_model, save_model
+from lompr_predictor.online.predictor import CompensationLimits, OnlinePredictor, StreamSettings
 
 PERIOD = 0.04
 PERIOD_NS = 40_000_000

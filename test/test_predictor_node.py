@@ -18,21 +18,23 @@ from rclpy.parameter import Parameter
 from ros_helpers import RosHarness
 from sensor_msgs.msg import JointState
 
-from lompr_predictor.bags import (
+from lompr_predictor.data.bags import (
     JointSamples,
     Recording,
     ReferenceSamples,
     read_recording,
     write_recording,
 )
-from lompr_predictor.dataset import clean_recordings
-from lompr_predictor.features import HISTORY
-from lompr_predictor.kinematics import inverse_kinematics
-from lompr_predictor.model_file import MetadataMismatchError, load_model
-from lompr_predictor.models import predict_rows
-from lompr_predictor.nodes.kinematics_node import KinematicsNode
-from lompr_predictor.nodes.predictor_node import PredictorNode
-from lompr_predictor.robot import MEASURED_JOINTS, RobotDescription
+from lompr_predictor.data.cleaning import clean_recordings
+from lompr_predictor.data.features import HISTORY
+from lompr_predictor.learning.model_file import MetadataMismatchError, load_model
+from lompr_predictor.learning.models import predict_rows
+from lompr_predictor.robot.description import MEASURED_JOINTS, RobotDescription
+from lompr_predictor.robot.kinematics import inverse_kinematics
+from lompr_predictor.ros.kinematics_node import KinematicsNode
+from lompr_predictor.ros.predictor_node import PredictorNode
+
+pytestmark = pytest.mark.ros
 
 PERIOD_NS = 40_000_000
 T0 = 1_000_000_000_000
@@ -325,7 +327,7 @@ def stop(process: subprocess.Popen, timeout: float = 10.0) -> tuple[str, str]:
 def test_executable_with_params_file_refuses_a_mismatched_model_in_one_line(tmp_path: Path) -> None:
     model = save_linear(tmp_path / 'm.pt', window=WINDOW, horizon=HORIZON)
     process = run_process([
-        'lompr_predictor.nodes.predictor_node', '--ros-args', '--params-file',
+        'lompr_predictor.ros.predictor_node', '--ros-args', '--params-file',
         str(PARAMS_FILE), '-p', f'model_path:={model}', '-p', 'horizon:=7'])
     try:
         code = process.wait(timeout=60)
@@ -339,7 +341,7 @@ def test_executable_with_params_file_refuses_a_mismatched_model_in_one_line(tmp_
 def test_one_process_pipeline_answers_joint_states(
         ros: RosHarness, description: RobotDescription, tmp_path: Path) -> None:
     model = save_constant(tmp_path / 'c.pt', (-7e-6, 3e-6), window=WINDOW, horizon=HORIZON)
-    process = run_process(['lompr_predictor.nodes.pipeline', '--ros-args',
+    process = run_process(['lompr_predictor.ros.pipeline', '--ros-args',
                            '-p', f'predictor_node:model_path:={model}'])
     try:
         compensations = ros.collect('/lompr/compensation', Vector3Stamped, 100)

@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lompr_predictor.bags import JointSamples, Recording, read_recording, write_recording
 from lompr_predictor.cli import simulate as simulate_cli
-from lompr_predictor.kinematics import ForwardKinematics
-from lompr_predictor.robot import MEASURED_JOINTS, RobotDescription
+from lompr_predictor.data.bags import JointSamples, Recording, read_recording, write_recording
+from lompr_predictor.robot.description import MEASURED_JOINTS, RobotDescription
+from lompr_predictor.robot.kinematics import ForwardKinematics
 from lompr_predictor.twin import Simulation, load_twin_parameters, simulate
 from lompr_predictor.twin.faults import FaultSpec, inject_faults
 from lompr_predictor.twin.recording import (

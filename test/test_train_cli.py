@@ -9,12 +9,12 @@ from pathlib import Path
 import pytest
 from trainer_data import lissajous_reference, synthetic_recording, truncate_bag
 
-from lompr_predictor.bags import write_recording
 from lompr_predictor.cli import evaluate, train
+from lompr_predictor.data.bags import write_recording
+from lompr_predictor.data.features import FEATURES
 from lompr_predictor.errors import LomprError
-from lompr_predictor.features import FEATURES
-from lompr_predictor.model_file import load_model
-from lompr_predictor.robot import RobotDescription
+from lompr_predictor.learning.model_file import load_model
+from lompr_predictor.robot.description import RobotDescription
 
 FAST = ['--trials', '2', '--max-epochs', '2', '--window', '8', '--horizon', '2', '--quiet',
         '--batch-sizes', '500', '--hidden-units', '4,8']
@@ -108,7 +108,7 @@ def test_lompr_main_reports_a_truncated_bag_in_one_line(
 
 def test_rmse_is_given_as_a_multiple_of_the_twins_irreducible_level(tmp_path: Path) -> None:
     from lompr_predictor.cli.train import irreducible_fields
-    from lompr_predictor.dataset import BagSource
+    from lompr_predictor.data.bags import BagSource
 
     bag = tmp_path / 'bag'
     bag.mkdir()

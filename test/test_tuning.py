@@ -8,16 +8,15 @@ from pathlib import Path
 import optuna
 import pytest
 
-from lompr_predictor.tuning import (
-    PAPER_SPACE,
+from lompr_predictor.learning.space import PAPER_SPACE, parse_values
+from lompr_predictor.learning.tuning import (
     default_storage,
     finished_twin,
     history,
     open_study,
-    startup_trials_for,
-    parse_values,
     run_study,
     spent_trials,
+    startup_trials_for,
     study_name_for,
 )
 

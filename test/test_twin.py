@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from lompr_predictor.robot import RobotDescription
+from lompr_predictor.robot.description import RobotDescription
 from lompr_predictor.twin import (
     SOURCES,
     DigitalTwin,

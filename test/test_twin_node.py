@@ -15,8 +15,10 @@ from geometry_msgs.msg import PoseStamped, Vector3Stamped  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 
-from lompr_predictor.nodes.twin_node import TwinNode  # noqa: E402
-from lompr_predictor.robot import MEASURED_JOINTS  # noqa: E402
+from lompr_predictor.robot.description import MEASURED_JOINTS  # noqa: E402
+from lompr_predictor.ros.twin_node import TwinNode  # noqa: E402
+
+pytestmark = pytest.mark.ros
 
 EPOCH = 1_700_000_000 * 10 ** 9
 PERIOD = 40_000_000

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lompr_predictor.kinematics import inverse_kinematics
-from lompr_predictor.paths import PATH_KINDS, build_cycle, speed_profile, spiral_pass
-from lompr_predictor.robot import RobotDescription
+from lompr_predictor.robot.description import RobotDescription
+from lompr_predictor.robot.kinematics import inverse_kinematics
+from lompr_predictor.robot.paths import PATH_KINDS, build_cycle, speed_profile, spiral_pass
 from lompr_predictor.twin import load_twin_parameters
 
 PARAMS = load_twin_parameters()

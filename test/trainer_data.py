@@ -6,9 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from lompr_predictor.bags import JointSamples, Recording, ReferenceSamples, write_recording
-from lompr_predictor.kinematics import inverse_kinematics
-from lompr_predictor.robot import MEASURED_JOINTS, LomprGeometry
+from lompr_predictor.data.bags import JointSamples, Recording, ReferenceSamples, write_recording
+from lompr_predictor.robot.description import MEASURED_JOINTS, LomprGeometry
+from lompr_predictor.robot.kinematics import inverse_kinematics
 
 PERIOD_NS = 40_000_000
 EPOCH_NS = 1_700_000_000 * 1_000_000_000

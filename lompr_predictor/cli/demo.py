@@ -24,7 +24,10 @@ from typing import Any
 from tqdm import tqdm
 
 from lompr_predictor.errors import LomprError
-from lompr_predictor.loop_score import (
+from lompr_predictor.files import write_json
+from lompr_predictor.robot.description import load_robot_description
+from lompr_predictor.robot.paths import PATH_KINDS, build_cycle
+from lompr_predictor.scoring.loops import (
     LOOP_PLOT,
     compare_loops,
     format_table,
@@ -32,9 +35,7 @@ from lompr_predictor.loop_score import (
     ratio_pct,
     true_error_floor,
 )
-from lompr_predictor.paths import PATH_KINDS, build_cycle
-from lompr_predictor.report import write_json
-from lompr_predictor.robot import load_robot_description
+from lompr_predictor.stamps import seconds_since
 from lompr_predictor.twin.parameters import load_twin_parameters
 from lompr_predictor.twin.recording import write_simulation
 from lompr_predictor.twin.simulation import simulate
@@ -138,13 +139,13 @@ def run(args: argparse.Namespace) -> int:
                   f'{out / "training_report"}')
         _train(args, budget, bag, model, out / 'training_report')
 
-    from lompr_predictor.model_file import load_model
+    from lompr_predictor.learning.model_file import load_model
 
     metadata = load_model(model).metadata
     args.horizon, period_ms = metadata.horizon, metadata.sample_period * 1e3
     _stage(3, 'Writing the persistence compensator as a model file (offset = minus the last '
               'measured plant error)')
-    from lompr_predictor.closed_loop import (
+    from lompr_predictor.ros.closed_loop import (
         LoopSettings,
         persistence_model,
         record_loop,
@@ -178,7 +179,7 @@ def run(args: argparse.Namespace) -> int:
                                first.pass_index[scored])
     document = _summary(args, budget, runs, comparison, floor, started)
     write_json(out / 'closed_loop.json', document)
-    plot_loops(out / LOOP_PLOT, (first.stamps[scored] - first.stamps[0]) * 1e-9,
+    plot_loops(out / LOOP_PLOT, seconds_since(first.stamps[scored], first.stamps[0]),
                {name: runs[name].true_error[scored] for name in LOOPS}, comparison, LABELS,
                title=f'True tool-tip error in closed loop, {args.path}, horizon {args.horizon}')
     _print_result(args, budget, out, comparison, floor, document, period_ms)

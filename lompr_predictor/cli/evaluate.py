@@ -23,11 +23,13 @@ from lompr_predictor.cli.train import (
     load_data,
     score,
 )
-from lompr_predictor.dataset import LearningProblem, Split
+from lompr_predictor.data.features import FEATURES, TARGETS
+from lompr_predictor.data.problem import LearningProblem, Split
 from lompr_predictor.errors import LomprError
-from lompr_predictor.features import FEATURES, TARGETS
-from lompr_predictor.report import write_report
-from lompr_predictor.robot import load_robot_description
+from lompr_predictor.learning.report import write_report
+from lompr_predictor.robot.description import load_robot_description
+from lompr_predictor.stamps import seconds_since
+
 
 class EvaluationError(LomprError):
     """The recordings cannot be scored with this model."""
@@ -52,7 +54,7 @@ def add_parser(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.closed_loop:
-        from lompr_predictor.loop_score import evaluate_loop_bags
+        from lompr_predictor.scoring.loops import evaluate_loop_bags
 
         document = evaluate_loop_bags(
             [args.model, *args.bags], geometry=load_robot_description(
@@ -63,8 +65,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     import torch
 
-    from lompr_predictor.model_file import PERIOD_TOLERANCE, load_model
-    from lompr_predictor.models import offline_predictions, persistence
+    from lompr_predictor.learning.model_file import PERIOD_TOLERANCE, load_model
+    from lompr_predictor.learning.models import offline_predictions, persistence
 
     started = time.perf_counter()
     torch.set_num_threads(args.threads)
@@ -97,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
         models=models, model_file=str(Path(args.model).resolve()), model_sha256=model.sha256,
         model_test_metrics=meta.test_metrics, **irreducible_fields(models, sources, meta.horizon),
         timings={'total_seconds': time.perf_counter() - started})
-    write_report(args.report, report, seconds=(offline.stamps - offline.stamps[0]) * 1e-9,
+    write_report(args.report, report, seconds=seconds_since(offline.stamps),
                  actual=offline.actual, predictions=predictions)
     print(f'report in {args.report}')
     return 0

@@ -9,9 +9,9 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from lompr_predictor.bags import STORAGES
-from lompr_predictor.paths import PATH_KINDS, build_cycle
-from lompr_predictor.robot import load_robot_description
+from lompr_predictor.data.bags import STORAGES
+from lompr_predictor.robot.description import load_robot_description
+from lompr_predictor.robot.paths import PATH_KINDS, build_cycle
 from lompr_predictor.twin.faults import FAULT_TOPICS, FaultSpec
 from lompr_predictor.twin.parameters import load_twin_parameters
 from lompr_predictor.twin.recording import (

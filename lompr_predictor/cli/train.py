@@ -20,24 +20,27 @@ from typing import Any
 
 import numpy as np
 
-from lompr_predictor.bags import DEFAULT_JOINT_TOPIC, DEFAULT_REFERENCE_TOPIC
-from lompr_predictor.dataset import (
+from lompr_predictor.data.bags import (
+    DEFAULT_JOINT_TOPIC,
+    DEFAULT_REFERENCE_TOPIC,
+    BagSource,
+    read_bags,
+)
+from lompr_predictor.data.cleaning import (
     GAP_FACTOR,
     HAMPEL_HALF_WINDOW,
     HAMPEL_THRESHOLD,
-    BagSource,
     CleanData,
     CleaningConfig,
-    LearningProblem,
-    build_problem,
     clean_recordings,
-    read_bags,
 )
-from lompr_predictor.features import FEATURES, TARGETS
-from lompr_predictor.metrics import ratios, table_metrics
-from lompr_predictor.report import irreducible_level, write_report
-from lompr_predictor.robot import load_robot_description
-from lompr_predictor.tuning import DEFAULT_TRIALS, PAPER_SPACE, SearchSpace, parse_values
+from lompr_predictor.data.features import FEATURES, TARGETS
+from lompr_predictor.data.problem import LearningProblem, build_problem
+from lompr_predictor.learning.metrics import ratios, table_metrics
+from lompr_predictor.learning.report import irreducible_level, write_report
+from lompr_predictor.learning.space import DEFAULT_TRIALS, PAPER_SPACE, SearchSpace, parse_values
+from lompr_predictor.robot.description import load_robot_description
+from lompr_predictor.stamps import seconds_since
 
 DEFAULT_WINDOW = 25
 DEFAULT_HORIZON = 1
@@ -162,10 +165,10 @@ def run(args: argparse.Namespace) -> int:
     import optuna
     import torch
 
-    from lompr_predictor.model_file import ModelMetadata, library_versions, save_model
-    from lompr_predictor.models import LSTM_STEPS, persistence, predict_rows
-    from lompr_predictor.training import MAX_EPOCHS, PATIENCE, TrainSettings, train_network
-    from lompr_predictor.tuning import (
+    from lompr_predictor.learning.model_file import ModelMetadata, library_versions, save_model
+    from lompr_predictor.learning.models import LSTM_STEPS, persistence, predict_rows
+    from lompr_predictor.learning.training import MAX_EPOCHS, PATIENCE, TrainSettings, train_network
+    from lompr_predictor.learning.tuning import (
         default_storage,
         finished_twin,
         history,
@@ -279,7 +282,7 @@ def run(args: argparse.Namespace) -> int:
     report['timings'] = {'read_clean_fk_seconds': read_seconds, 'tuning_seconds': tuning_seconds,
                          'total_seconds': total, 'read_fraction_of_total': read_seconds / total}
     report['model_file'] = str(Path(args.out).resolve())
-    seconds = (stamps - stamps[0]) * 1e-9
+    seconds = seconds_since(stamps)
     write_report(report_dir, report, seconds=seconds, actual=actual, predictions=predictions)
     print(f'model written to {args.out}; report in {report_dir}')
     return 0

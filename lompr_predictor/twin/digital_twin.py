@@ -16,14 +16,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lompr_predictor.kinematics import ForwardKinematics, batch_forward_kinematics
-from lompr_predictor.paths import PathCycle, build_cycle
-from lompr_predictor.robot import RobotDescription
+from lompr_predictor.robot.description import RobotDescription
+from lompr_predictor.robot.kinematics import ForwardKinematics, batch_forward_kinematics
+from lompr_predictor.robot.paths import PathCycle, build_cycle
+from lompr_predictor.stamps import NS_PER_SECOND, period_ns
 from lompr_predictor.twin.parameters import TwinParameters
 from lompr_predictor.twin.plant import PlantOutput, TwinPlant
 
 #: Stamp of sample 0 [ns]: 2023-11-14T22:13:20Z, a fixed instant so runs are reproducible.
-EPOCH_NS = 1_700_000_000 * 1_000_000_000
+EPOCH_NS = 1_700_000_000 * NS_PER_SECOND
 #: Blocks up to this many samples use the warm-started single-sample forward kinematics
 #: (~30 us a sample); longer ones the vectorised batch solver. Both solve the same
 #: equations to ~1e-11 m.
@@ -63,7 +64,7 @@ class DigitalTwin:
         self.cycle: PathCycle = build_cycle(path, params.path, params.sample_period)
         self.plant = TwinPlant(description.geometry, params, seed)
         self.epoch_ns = int(epoch_ns)
-        self.period_ns = int(round(params.sample_period * 1e9))
+        self.period_ns = period_ns(params.sample_period)
         self.next_index = 0
         self._fk = ForwardKinematics(description)
 

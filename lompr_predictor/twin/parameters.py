@@ -18,7 +18,7 @@ from typing import Any
 import yaml
 
 from lompr_predictor.errors import LomprError
-from lompr_predictor.paths import PathConfig
+from lompr_predictor.robot.paths import PathConfig
 
 #: The error sources, in the order the plant applies them; each is a YAML section with
 #: `enabled`. The last three act only on the reported (measured) values.

@@ -31,8 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
-from lompr_predictor.kinematics import inverse_kinematics
-from lompr_predictor.robot import LomprGeometry
+from lompr_predictor.robot.description import LomprGeometry
+from lompr_predictor.robot.kinematics import inverse_kinematics
 from lompr_predictor.twin.parameters import TwinParameters
 
 N_BRANCHES = 3

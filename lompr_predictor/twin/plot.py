@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lompr_predictor.plots import pyplot, save_figure
+from lompr_predictor.stamps import seconds_since
 from lompr_predictor.twin.simulation import Simulation
 
 #: Passes drawn over time (all of them in the radius plot).
@@ -15,15 +17,10 @@ PASSES_SHOWN = 2
 def plot_simulation(sim: Simulation, path: str | Path) -> Path:
     """Write the measured and true X/Y error [um] of the first passes over time, and the
     measured error against the reference's radius, to the PNG `path`."""
-    import matplotlib
-
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
     shown = sim.pass_index < PASSES_SHOWN
-    seconds = (sim.stamps[shown] - sim.stamps[0]) * 1e-9
+    seconds = seconds_since(sim.stamps[shown], sim.stamps[0])
     radius = np.linalg.norm(sim.reference[:, :2], axis=1) * 1e3
-    figure, axes = plt.subplots(3, 1, figsize=(11, 9), constrained_layout=True)
+    figure, axes = pyplot().subplots(3, 1, figsize=(11, 9), constrained_layout=True)
     for axis, (i, name) in zip(axes[:2], enumerate('XY')):
         axis.plot(seconds, sim.error_measured[shown, i] * 1e6, lw=0.6, label='measured')
         axis.plot(seconds, sim.error_true[shown, i] * 1e6, lw=0.6, label='true')
@@ -39,7 +36,4 @@ def plot_simulation(sim: Simulation, path: str | Path) -> Path:
     axes[2].legend(loc='upper left', markerscale=8)
     axes[2].grid(alpha=0.3)
     figure.suptitle(f'LOMPR twin: {sim.path}, {sim.passes} passes, seed {sim.seed}')
-    path = Path(path)
-    figure.savefig(path, dpi=80)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path, dpi=80)

@@ -30,10 +30,10 @@ from typing import Any
 
 import numpy as np
 
-from lompr_predictor.atomic import atomic_directory
-from lompr_predictor.bags import JointSamples, Recording, ReferenceSamples, write_recording
+from lompr_predictor.data.bags import JointSamples, Recording, ReferenceSamples, write_recording
 from lompr_predictor.errors import LomprError
-from lompr_predictor.robot import MEASURED_JOINTS
+from lompr_predictor.files import atomic_directory
+from lompr_predictor.robot.description import MEASURED_JOINTS
 from lompr_predictor.twin.faults import FaultLog, FaultSpec, inject_faults
 from lompr_predictor.twin.parameters import TwinParameters
 from lompr_predictor.twin.plot import plot_simulation

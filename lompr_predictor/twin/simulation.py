@@ -24,8 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lompr_predictor.kinematics import batch_forward_kinematics
-from lompr_predictor.robot import RobotDescription
+from lompr_predictor.robot.description import RobotDescription
+from lompr_predictor.robot.kinematics import batch_forward_kinematics
 from lompr_predictor.twin.digital_twin import DigitalTwin
 from lompr_predictor.twin.parameters import TwinParameters
 

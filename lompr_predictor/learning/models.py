@@ -27,8 +27,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from lompr_predictor.dataset import CleanData, window_ends
-from lompr_predictor.features import FEATURES, TARGETS
+from lompr_predictor.data.cleaning import CleanData
+from lompr_predictor.data.features import FEATURES, TARGETS
+from lompr_predictor.data.problem import window_ends
 
 MODEL_TYPES = ('lstm', 'mlp')
 

@@ -15,27 +15,18 @@ one when the twin's closed-loop truth lies beside the bag (`LOOP_TRUTH_NPZ`).
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import matplotlib
+import numpy as np
 
-matplotlib.use('Agg')
-import matplotlib.pyplot as plt  # noqa: E402
-import matplotlib.ticker  # noqa: E402
-import numpy as np  # noqa: E402
-
-from lompr_predictor.features import TARGETS  # noqa: E402
-from lompr_predictor.atomic import write_atomic  # noqa: E402
-from lompr_predictor.report import write_json  # noqa: E402
-from lompr_predictor.twin.simulation import (  # noqa: E402
-    Simulation,
-    error_summary,
-    irreducible_rmse,
-)
+from lompr_predictor.data.features import TARGETS
+from lompr_predictor.files import write_atomic, write_json
+from lompr_predictor.plots import pyplot, save_figure
+from lompr_predictor.stamps import seconds_since
+from lompr_predictor.twin.simulation import Simulation, error_summary, irreducible_rmse
 
 #: Beside a closed-loop bag: per sample `stamps` (N,) int64 ns, `true_error`,
 #: `plant_error`, `compensation` (N, 2) m, `pass_index` (N,), `in_pass` (N,) bool; the JSON
@@ -136,7 +127,7 @@ def plot_loops(path: str | Path, seconds: np.ndarray, errors: Mapping[str, np.nd
     """PNG: the error of each loop over time (one panel per axis) and its RMS per pass."""
     labels = labels or {}
     path = Path(path)
-    figure, axes = plt.subplots(len(TARGETS) + 1, 1, figsize=(12, 9),
+    figure, axes = pyplot().subplots(len(TARGETS) + 1, 1, figsize=(12, 9),
                                 gridspec_kw={'height_ratios': [3] * len(TARGETS) + [2]})
     for i, axis in enumerate(TARGETS):
         ax = axes[i]
@@ -155,18 +146,14 @@ def plot_loops(path: str | Path, seconds: np.ndarray, errors: Mapping[str, np.nd
             rms = [max(p[axis]['rms_um'] for axis in TARGETS) for p in passes]
             ax.semilogy(np.arange(1, len(rms) + 1), rms, 'o-', label=labels.get(name, name))
     ax.set_xlabel('pass (scored)')
-    ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
+    ax.xaxis.get_major_locator().set_params(integer=True)
     ax.set_ylabel('RMS per pass, worse axis (um)')
     ax.grid(alpha=0.3, which='both')
     ax.legend(loc='upper left', fontsize='small')
     if title:
         axes[0].set_title(title)
     figure.tight_layout()
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format='png', dpi=110)
-    plt.close(figure)
-    write_atomic(path, buffer.getvalue())
-    return path
+    return save_figure(figure, path)
 
 
 def read_loop_truth(bag: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]] | None:
@@ -213,7 +200,8 @@ def evaluate_loop_bags(bags: Sequence[str | Path], *, geometry: Any, cleaning: A
     cleaned as for training but without spike rejection, and, when the twin's closed-loop truth lies beside a bag, its
     true error too (the figures `lompr demo` prints). Writes `closed_loop.json`,
     `closed_loop.md` and the plot into `report`; returns the JSON document."""
-    from lompr_predictor.dataset import clean_recordings, read_bags
+    from lompr_predictor.data.bags import read_bags
+    from lompr_predictor.data.cleaning import clean_recordings
 
     # A transient of the error is an error to score, not an outlier: no spike rejection.
     cleaning = dataclasses.replace(cleaning, hampel_threshold=np.inf)
@@ -267,7 +255,7 @@ def evaluate_loop_bags(bags: Sequence[str | Path], *, geometry: Any, cleaning: A
         plotted, seconds, errors = document['measured'], stamps[names[0]][rows[names[0]]], measured
     folder = Path(report)
     folder.mkdir(parents=True, exist_ok=True)
-    plot_loops(folder / LOOP_PLOT, (seconds - seconds[0]) * 1e-9, errors, plotted,
+    plot_loops(folder / LOOP_PLOT, seconds_since(seconds), errors, plotted,
                title='Error in closed loop')
     write_json(folder / 'closed_loop.json', document)
     document['text'] = '\n'.join(text)

@@ -32,7 +32,7 @@ from lompr_predictor.errors import (
     StrokeLimitError,
     WorkspaceError,
 )
-from lompr_predictor.robot import (
+from lompr_predictor.robot.description import (
     BRANCH_JOINTS,
     HEAD_JOINTS,
     MEASURED_JOINTS,

@@ -20,8 +20,8 @@ from collections.abc import Sequence
 from rclpy.context import Context
 from rclpy.node import Node
 
-from lompr_predictor.nodes import kinematics_node, predictor_node
-from lompr_predictor.nodes.common import run_node
+from lompr_predictor.ros import kinematics_node, predictor_node
+from lompr_predictor.ros.common import run_node
 
 
 def build_pipeline(context: Context) -> list[Node]:

@@ -41,20 +41,25 @@ from rclpy.task import Future
 from sensor_msgs.msg import JointState
 from tqdm import tqdm
 
-from lompr_predictor.atomic import atomic_directory
-from lompr_predictor.bags import JointSamples, Recording, ReferenceSamples, write_recording
+from lompr_predictor.data.bags import JointSamples, Recording, ReferenceSamples, write_recording
+from lompr_predictor.data.features import FEATURES, TARGETS
 from lompr_predictor.errors import LomprError
-from lompr_predictor.features import FEATURES, TARGETS
-from lompr_predictor.loop_score import LOOP_TRUTH_JSON, LOOP_TRUTH_NPZ
-from lompr_predictor.model_file import ModelMetadata, library_versions, load_model, save_model
-from lompr_predictor.models import persistence_module
-from lompr_predictor.nodes import kinematics_node, predictor_node, twin_node
-from lompr_predictor.nodes.common import events_executor, spin_until
-from lompr_predictor.nodes.kinematics_node import KinematicsNode
-from lompr_predictor.nodes.predictor_node import PredictorNode
-from lompr_predictor.nodes.twin_node import TwinNode
-from lompr_predictor.report import write_json
-from lompr_predictor.robot import MEASURED_JOINTS
+from lompr_predictor.files import atomic_directory, write_json
+from lompr_predictor.learning.model_file import (
+    ModelMetadata,
+    library_versions,
+    load_model,
+    save_model,
+)
+from lompr_predictor.learning.models import persistence_module
+from lompr_predictor.robot.description import MEASURED_JOINTS
+from lompr_predictor.ros import kinematics_node, predictor_node, twin_node
+from lompr_predictor.ros.common import events_executor, spin_until
+from lompr_predictor.ros.kinematics_node import KinematicsNode
+from lompr_predictor.ros.predictor_node import PredictorNode
+from lompr_predictor.ros.twin_node import TwinNode
+from lompr_predictor.scoring.loops import LOOP_TRUTH_JSON, LOOP_TRUTH_NPZ
+from lompr_predictor.stamps import stamp_to_ns
 from lompr_predictor.twin.digital_twin import DigitalTwin
 from lompr_predictor.twin.recording import VERTICAL_TOOL
 
@@ -320,7 +325,7 @@ class _Collector(Node):
         return {'stamps': self.twin.stamps(0, self.total), **self._data}
 
     def _index(self, msg: Any) -> int:
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        stamp = stamp_to_ns(msg.header.stamp)
         return self.twin.index_of(stamp)
 
     def _store(self, index: int, column: int) -> None:

@@ -21,9 +21,9 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from lompr_predictor.dataset import LearningProblem, minmax_range
-from lompr_predictor.features import FEATURES, TARGETS
-from lompr_predictor.models import PredictorModule, build_network, gather_windows
+from lompr_predictor.data.features import FEATURES, TARGETS
+from lompr_predictor.data.problem import LearningProblem, minmax_range
+from lompr_predictor.learning.models import PredictorModule, build_network, gather_windows
 
 #: Defaults of the training loop, in one place.
 MAX_EPOCHS = 100

@@ -35,7 +35,9 @@ from lompr_predictor.monitoring import (
     latency_values,
     rejection_values,
 )
-from lompr_predictor.nodes.common import (
+from lompr_predictor.robot.description import MEASURED_JOINTS, WORLD_FRAME, load_robot_description
+from lompr_predictor.robot.paths import PATH_KINDS
+from lompr_predictor.ros.common import (
     DiagnosticsPublisher,
     ParameterSpec,
     declare_parameters,
@@ -43,8 +45,7 @@ from lompr_predictor.nodes.common import (
     qos_parameter_specs,
     run_node,
 )
-from lompr_predictor.paths import PATH_KINDS
-from lompr_predictor.robot import MEASURED_JOINTS, WORLD_FRAME, load_robot_description
+from lompr_predictor.stamps import ns_to_sec_nanosec, stamp_to_ns
 from lompr_predictor.twin.compensation import CompensationSchedule
 from lompr_predictor.twin.digital_twin import DigitalTwin, TwinSamples
 from lompr_predictor.twin.parameters import load_twin_parameters
@@ -189,7 +190,7 @@ class TwinNode(Node):
         if not self.settings.compensation_enabled:
             self.ignored_compensations += 1
             return
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        stamp = stamp_to_ns(msg.header.stamp)
         offset = (msg.vector.x, msg.vector.y, msg.vector.z)
         self.schedule.offer(stamp, offset, self.twin.next_index)
         if self.settings.mode == 'lockstep' and self.schedule.has(self.twin.next_index):
@@ -236,7 +237,8 @@ class TwinNode(Node):
 
     @staticmethod
     def _stamp(ns: int) -> Time:
-        return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+        sec, nanosec = ns_to_sec_nanosec(ns)
+        return Time(sec=sec, nanosec=nanosec)
 
     def simulation_status(self) -> Status:
         """Diagnostics of the simulation: samples, pass, rate, step time."""

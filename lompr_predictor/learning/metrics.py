@@ -19,7 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from lompr_predictor.features import TARGETS
+from lompr_predictor.data.features import TARGETS
+from lompr_predictor.stamps import seconds_since
 
 METRIC_NAMES = ('mse_pct', 'rmse_pct', 'mae_pct', 'mse_um2', 'rmse_um', 'mae_um',
                 'iae', 'ise', 'itae', 'itse')
@@ -58,7 +59,7 @@ def table_metrics(predicted: np.ndarray, actual: np.ndarray, stamps_ns: np.ndarr
                   low: np.ndarray, high: np.ndarray, max_step: float) -> dict[str, dict[str, float]]:
     """{axis: metrics} for (B, 2) predictions of the instants `stamps_ns` (int64 ns);
     t counts from the first of them."""
-    seconds = (np.asarray(stamps_ns, dtype=np.int64) - int(stamps_ns[0])) * 1e-9
+    seconds = seconds_since(stamps_ns)
     return {axis: axis_metrics(predicted[:, i], actual[:, i], seconds, float(low[i]),
                                float(high[i]), max_step)
             for i, axis in enumerate(TARGETS)}

@@ -30,7 +30,6 @@ from lompr_predictor.errors import (
     StrokeLimitError,
     WorkspaceError,
 )
-from lompr_predictor.kinematics import ForwardKinematics, NonFiniteJointError
 from lompr_predictor.monitoring import (
     LatencyRecorder,
     Level,
@@ -41,7 +40,9 @@ from lompr_predictor.monitoring import (
     latency_values,
     rejection_values,
 )
-from lompr_predictor.nodes.common import (
+from lompr_predictor.robot.description import MEASURED_JOINTS, WORLD_FRAME, load_robot_description
+from lompr_predictor.robot.kinematics import ForwardKinematics, NonFiniteJointError
+from lompr_predictor.ros.common import (
     DiagnosticsPublisher,
     ParameterSpec,
     declare_parameters,
@@ -49,7 +50,7 @@ from lompr_predictor.nodes.common import (
     qos_parameter_specs,
     run_node,
 )
-from lompr_predictor.robot import MEASURED_JOINTS, WORLD_FRAME, load_robot_description
+from lompr_predictor.stamps import stamp_to_ns
 
 NODE_NAME = 'kinematics_node'
 
@@ -211,7 +212,7 @@ class KinematicsNode(Node):
         if stamp.sec == 0 and stamp.nanosec == 0:
             raise JointStateError('unstamped', 'header.stamp is zero: the sample instant is '
                                   'unknown, so its pose could not be aligned with anything')
-        return stamp.sec * 1_000_000_000 + stamp.nanosec
+        return stamp_to_ns(stamp)
 
     def _measured_joints(self, msg: JointState) -> list[float]:
         """The five measured joints in `MEASURED_JOINTS` order, matched by name."""

@@ -13,20 +13,16 @@ given as a multiple of it.
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import matplotlib
+import numpy as np
 
-matplotlib.use('Agg')
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from lompr_predictor.atomic import atomic_file, write_atomic  # noqa: E402
-from lompr_predictor.features import TARGETS  # noqa: E402
-from lompr_predictor.metrics import METRIC_NAMES  # noqa: E402
+from lompr_predictor.data.features import TARGETS
+from lompr_predictor.files import write_atomic, write_json
+from lompr_predictor.learning.metrics import METRIC_NAMES
+from lompr_predictor.plots import pyplot, save_figure
 
 GROUND_TRUTH_JSON = 'lompr_ground_truth.json'
 PREDICTION_PLOT = 'prediction_test.png'
@@ -115,7 +111,7 @@ def plot_predictions(path: Path, seconds: np.ndarray, actual: np.ndarray,
                      predictions: Mapping[str, np.ndarray], horizon: int) -> None:
     """Prediction vs actual error on the test window per axis (the paper's Fig. 5), each
     with a panel below of the prediction errors, where the models differ visibly."""
-    figure, axes = plt.subplots(2 * len(TARGETS), 1, figsize=(11, 9), sharex=True,
+    figure, axes = pyplot().subplots(2 * len(TARGETS), 1, figsize=(11, 9), sharex=True,
                                 gridspec_kw={'height_ratios': [2, 1] * len(TARGETS)})
     for i, axis in enumerate(TARGETS):
         value, miss = axes[2 * i], axes[2 * i + 1]
@@ -132,13 +128,13 @@ def plot_predictions(path: Path, seconds: np.ndarray, actual: np.ndarray,
     axes[0].set_title(f'Test window: predicted vs actual error, horizon {horizon} samples')
     axes[-1].set_xlabel('time from the start of the test window (s)')
     figure.tight_layout()
-    _save_figure(figure, path)
+    save_figure(figure, path)
 
 
 def plot_tuning(path: Path, trials: Sequence[Mapping[str, Any]]) -> None:
     """Validation loss per trial (trials the pruner stopped early marked apart) and the
     best so far."""
-    figure, ax = plt.subplots(figsize=(8, 4))
+    figure, ax = pyplot().subplots(figsize=(8, 4))
     valued = [t for t in trials if t['value'] is not None]
     if valued:
         ax.semilogy([t['number'] for t in valued],
@@ -155,15 +151,7 @@ def plot_tuning(path: Path, trials: Sequence[Mapping[str, Any]]) -> None:
     ax.grid(alpha=0.3, which='both')
     ax.legend()
     figure.tight_layout()
-    _save_figure(figure, path)
-
-
-def _save_figure(figure: Any, path: Path) -> None:
-    try:
-        with atomic_file(path, suffix='.png') as staging:
-            figure.savefig(staging, dpi=110)
-    finally:
-        plt.close(figure)
+    save_figure(figure, path)
 
 
 def write_report(folder: str | Path, report: Mapping[str, Any], *, seconds: np.ndarray,
@@ -177,24 +165,3 @@ def write_report(folder: str | Path, report: Mapping[str, Any], *, seconds: np.n
     write_json(folder / 'report.json', report)
     write_atomic(folder / 'report.md', markdown(report).encode())
     return folder
-
-
-def write_json(path: str | Path, document: Mapping[str, Any]) -> Path:
-    """Write a JSON document atomically: numpy values as plain numbers and lists, a
-    non-finite float (a diverged trial's loss) as null, since JSON has no Infinity or NaN."""
-    path = Path(path)
-    text = json.dumps(_plain(document), indent=1, default=str, allow_nan=False)
-    write_atomic(path, (text + '\n').encode())
-    return path
-
-
-def _plain(value: Any) -> Any:
-    if isinstance(value, Mapping):
-        return {key: _plain(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(item) for item in value]
-    if isinstance(value, (np.ndarray, np.generic)):
-        return _plain(value.tolist())
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value

@@ -13,17 +13,20 @@ fewer messages than its metadata promises is truncated, never silently short.
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from lompr_predictor.atomic import atomic_directory
 from lompr_predictor.errors import LomprError
-from lompr_predictor.robot import MEASURED_JOINTS
+from lompr_predictor.files import atomic_directory, file_sha256
+from lompr_predictor.robot.description import MEASURED_JOINTS
+from lompr_predictor.stamps import ns_to_sec_nanosec, stamp_to_ns
 
 JOINT_STATE = 'sensor_msgs/msg/JointState'
 POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
@@ -70,12 +73,12 @@ class Recording:
     source: str = ''
 
 
-def _stamp(ns: int):  # type: ignore[no-untyped-def]
-    time = _TYPESTORE.types['builtin_interfaces/msg/Time']
-    return time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
+def _stamp(ns: int) -> Any:
+    sec, nanosec = ns_to_sec_nanosec(ns)
+    return _TYPESTORE.types['builtin_interfaces/msg/Time'](sec=sec, nanosec=nanosec)
 
 
-def _header(ns: int, frame_id: str):  # type: ignore[no-untyped-def]
+def _header(ns: int, frame_id: str) -> Any:
     return _TYPESTORE.types['std_msgs/msg/Header'](stamp=_stamp(ns), frame_id=frame_id)
 
 
@@ -190,7 +193,7 @@ def read_recording(
             read = 0
             for connection, _, raw in reader.messages(connections=wanted):
                 message = _TYPESTORE.deserialize_cdr(raw, connection.msgtype)
-                stamp = message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec
+                stamp = stamp_to_ns(message.header.stamp)
                 if connection.topic == joint_topic:
                     row = np.full(len(names), np.nan)
                     for name, value in zip(message.name, message.position):
@@ -220,3 +223,48 @@ def read_recording(
             stamps=np.array(ref_stamps, dtype=np.int64),
             positions=reference[:, :3].copy(), orientations=reference[:, 3:].copy()),
         source=str(path))
+
+
+@dataclass(frozen=True)
+class BagSource:
+    """A bag used (or skipped) by a run: path, content digest, or the reason it was skipped."""
+
+    path: str
+    sha256: str = ''
+    skipped_reason: str = ''
+
+
+def bag_sha256(path: str | Path) -> str:
+    """sha256 over a bag directory's files: each file's name and sha256, in name order."""
+    path = Path(path)
+    digest = hashlib.sha256()
+    for item in sorted(p for p in path.rglob('*') if p.is_file()):
+        digest.update(f'{item.relative_to(path).as_posix()}\0{file_sha256(item)}\n'.encode())
+    return digest.hexdigest()
+
+
+def read_bags(
+    paths: Sequence[str | Path],
+    *,
+    joint_topic: str = DEFAULT_JOINT_TOPIC,
+    reference_topic: str = DEFAULT_REFERENCE_TOPIC,
+    skip_bad: bool = False,
+) -> tuple[list[Recording], list[BagSource]]:
+    """Read every bag whole. A bad bag raises its `BagError`, or with `skip_bad` is listed
+    with its reason (and contributes nothing: never part of a bag)."""
+    recordings: list[Recording] = []
+    sources: list[BagSource] = []
+    for path in paths:
+        try:
+            recording = read_recording(path, joint_topic=joint_topic,
+                                       reference_topic=reference_topic)
+        except BagError as err:
+            if not skip_bad:
+                raise
+            sources.append(BagSource(path=str(path), skipped_reason=err.reason))
+            continue
+        recordings.append(recording)
+        sources.append(BagSource(path=str(path), sha256=bag_sha256(path)))
+    if not recordings:
+        raise BagError(', '.join(str(p) for p in paths), 'no readable bag among the inputs')
+    return recordings, sources

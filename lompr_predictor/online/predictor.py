@@ -41,9 +41,10 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from lompr_predictor.features import FEATURES, HISTORY, feature_rows
-from lompr_predictor.model_file import LoadedModel
+from lompr_predictor.data.features import FEATURES, HISTORY, feature_rows
+from lompr_predictor.learning.model_file import LoadedModel
 from lompr_predictor.monitoring import LatencyRecorder, RejectionCounter
+from lompr_predictor.stamps import period_ns, seconds_since
 
 #: Why an input sample was not used; each is counted (`OnlinePredictor.dropped`).
 DROP_REASONS: tuple[str, ...] = (
@@ -236,7 +237,7 @@ class OnlinePredictor:
         self._clock = clock
         self.window = model.metadata.window
         self.horizon = model.metadata.horizon
-        self._period_ns = round(stream.sample_period * 1e9)
+        self._period_ns = period_ns(stream.sample_period)
         self._lead_ns = self.horizon * self._period_ns
         half_period = self._period_ns // 2
         self._references = ReferenceTrack(stream.gap_factor, self._period_ns)
@@ -410,8 +411,7 @@ class OnlinePredictor:
         self._filled += 1
         if self._filled > HISTORY:
             recent = np.array([row[1:] for row in self._recent])
-            first = self._recent[0][0]  # stamps relative in int: float64 ns would round
-            stamps = np.array([row[0] - first for row in self._recent]) * 1e-9
+            stamps = seconds_since(np.array([row[0] for row in self._recent]))
             self._rows[:-1] = self._rows[1:]
             self._rows[-1] = feature_rows(stamps, recent[:, 0:2], recent[:, 2:4])[-1]
         if self._filled >= self.window_needed:

@@ -37,9 +37,9 @@ from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from lompr_predictor.dataset import GAP_FACTOR
-from lompr_predictor.features import FEATURES
-from lompr_predictor.model_file import (
+from lompr_predictor.data.cleaning import GAP_FACTOR
+from lompr_predictor.data.features import FEATURES
+from lompr_predictor.learning.model_file import (
     LoadedModel,
     ModelFileError,
     check_sample_period,
@@ -54,7 +54,15 @@ from lompr_predictor.monitoring import (
     latency_values,
     rejection_values,
 )
-from lompr_predictor.nodes.common import (
+from lompr_predictor.online.predictor import (
+    FAULT_REASONS,
+    CompensationLimits,
+    OnlinePredictor,
+    Output,
+    StreamSettings,
+)
+from lompr_predictor.robot.description import WORLD_FRAME, load_robot_description
+from lompr_predictor.ros.common import (
     DiagnosticsPublisher,
     ParameterSpec,
     declare_parameters,
@@ -62,14 +70,7 @@ from lompr_predictor.nodes.common import (
     qos_parameter_specs,
     run_node,
 )
-from lompr_predictor.online import (
-    FAULT_REASONS,
-    CompensationLimits,
-    OnlinePredictor,
-    Output,
-    StreamSettings,
-)
-from lompr_predictor.robot import WORLD_FRAME, load_robot_description
+from lompr_predictor.stamps import set_stamp, stamp_to_ns
 
 NODE_NAME = 'predictor_node'
 
@@ -185,10 +186,6 @@ class PredictorNodeSettings:
                                   self.compensation_enabled)
 
 
-def _stamp_ns(msg: PoseStamped) -> int:
-    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-
-
 class PredictorNode(Node):
     """The predictor node (module docstring). Extra keyword arguments go to
     `rclpy.node.Node` (`context`, `parameter_overrides`, ...)."""
@@ -268,7 +265,7 @@ class PredictorNode(Node):
         self.pose_rate.tick()
         try:
             position = msg.pose.position
-            self._publish(self.core.add_pose(_stamp_ns(msg), position.x, position.y), start)
+            self._publish(self.core.add_pose(stamp_to_ns(msg.header.stamp), position.x, position.y), start)
         except Exception as err:  # noqa: BLE001 - a callback must never end the spin
             self._callback_failed('end pose', err)
 
@@ -277,7 +274,7 @@ class PredictorNode(Node):
         self.reference_rate.tick()
         try:
             position = msg.pose.position
-            self._publish(self.core.add_reference(_stamp_ns(msg), position.x, position.y),
+            self._publish(self.core.add_reference(stamp_to_ns(msg.header.stamp), position.x, position.y),
                           start)
         except Exception as err:  # noqa: BLE001
             self._callback_failed('reference', err)
@@ -290,10 +287,9 @@ class PredictorNode(Node):
 
     def _publish(self, outputs: list[Output], start: float) -> None:
         for output in outputs:
-            header_stamp = divmod(output.instant_ns, 1_000_000_000)
             if output.prediction is not None:
-                self._prediction_publisher.publish(self._vector(header_stamp, output.prediction))
-            self._compensation_publisher.publish(self._vector(header_stamp, output.compensation))
+                self._prediction_publisher.publish(self._vector(output.instant_ns, output.prediction))
+            self._compensation_publisher.publish(self._vector(output.instant_ns, output.compensation))
             if output.reason in FAULT_REASONS:
                 self._warn(output.reason, f'offset set to zero ({output.reason}); output '
                            'resumes once the window has refilled with good samples')
@@ -301,9 +297,9 @@ class PredictorNode(Node):
                 self.input_to_output.record(time.perf_counter() - start)
                 self.output_rate.tick()
 
-    def _vector(self, stamp: tuple[int, int], xy: np.ndarray) -> Vector3Stamped:
+    def _vector(self, stamp_ns: int, xy: np.ndarray) -> Vector3Stamped:
         msg = Vector3Stamped()
-        msg.header.stamp.sec, msg.header.stamp.nanosec = stamp
+        set_stamp(msg.header.stamp, stamp_ns)
         msg.header.frame_id = self.settings.frame_id
         msg.vector.x, msg.vector.y = float(xy[0]), float(xy[1])
         return msg

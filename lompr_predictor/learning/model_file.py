@@ -11,7 +11,6 @@ happens inside the module; its constants are also in the metadata for people and
 
 from __future__ import annotations
 
-import hashlib
 import importlib.metadata
 import json
 import platform
@@ -22,8 +21,8 @@ from typing import Any
 
 import torch
 
-from lompr_predictor.atomic import atomic_file
 from lompr_predictor.errors import LomprError
+from lompr_predictor.files import atomic_file, file_sha256
 
 FORMAT_VERSION = 1
 METADATA_NAME = 'metadata.json'
@@ -113,15 +112,6 @@ def library_versions() -> dict[str, str]:
         except importlib.metadata.PackageNotFoundError:
             versions[name] = 'not installed'
     return versions
-
-
-def file_sha256(path: str | Path) -> str:
-    """sha256 of a file's bytes, read in blocks."""
-    digest = hashlib.sha256()
-    with open(path, 'rb') as stream:
-        for block in iter(lambda: stream.read(1 << 20), b''):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def save_model(path: str | Path, module: torch.nn.Module, metadata: ModelMetadata) -> Path:

@@ -1,4 +1,4 @@
-"""Atomic writes of files and directories (bags, model files, reports, plots).
+"""Files: atomic writes (bags, model files, reports, plots), JSON documents, sha256 digests.
 
 Everything is written beside its final path under a hidden name and renamed into place, so
 a reader never sees half a file or half a bag, and a write that fails or is interrupted
@@ -7,12 +7,18 @@ leaves nothing behind. The one place the stage-and-rename dance lives.
 
 from __future__ import annotations
 
+import hashlib
+import json
+import math
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 
 @contextmanager
@@ -50,3 +56,33 @@ def atomic_directory(path: str | Path) -> Iterator[Path]:
         os.replace(target, path)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+
+
+def write_json(path: str | Path, document: Mapping[str, Any]) -> Path:
+    """Write a JSON document atomically: numpy values as plain numbers and lists, a
+    non-finite float (a diverged trial's loss) as null, since JSON has no Infinity or NaN."""
+    path = Path(path)
+    text = json.dumps(_plain(document), indent=1, default=str, allow_nan=False)
+    write_atomic(path, (text + '\n').encode())
+    return path
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, Mapping):
+        return {key: _plain(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(item) for item in value]
+    if isinstance(value, (np.ndarray, np.generic)):
+        return _plain(value.tolist())
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def file_sha256(path: str | Path) -> str:
+    """sha256 of a file's bytes, read in blocks."""
+    digest = hashlib.sha256()
+    with open(path, 'rb') as stream:
+        for block in iter(lambda: stream.read(1 << 20), b''):
+            digest.update(block)
+    return digest.hexdigest()

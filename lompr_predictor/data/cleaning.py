@@ -1,10 +1,9 @@
-"""From rosbag2 recordings to clean, gap-free error samples and learning windows (ROS-free).
+"""From rosbag2 recordings to clean, gap-free error samples (ROS-free).
 
-The paper's pre-processing, done so that every dropped sample is counted by reason:
+The paper's pre-processing, done so that every dropped sample is counted by reason
+(`bags.read_bags` reads the recordings; `problem.py` cuts the clean samples into windows):
 
-1. `read_bags`: every bag read whole by `bags.read_recording`; a corrupt one stops the run
-   (`BagError` naming it) or, with `skip_bad`, is left out and listed.
-2. `clean_recordings`: the bags are stitched in time order (a bag overlapping the earlier
+`clean_recordings`: the bags are stitched in time order (a bag overlapping the earlier
    ones, e.g. two simulator runs from the same epoch, is moved after them, never
    interleaved); per stream (joint states, reference) non-finite rows are dropped,
    out-of-order messages sorted and duplicated stamps removed; the reference is interpolated
@@ -13,37 +12,21 @@ The paper's pre-processing, done so that every dropped sample is counted by reas
    batch forward kinematics gives the tool tip, and the error is FK - reference (CONTRACT
    section 3); a gap longer than `gap_factor` sample periods splits the data into segments;
    a Hampel filter, per segment, rejects spikes of the error.
-3. `window_ends` / `chronological_split`: windows of `window` rows whose last row and
-   predicted row (`horizon` samples later) lie in one run without a missing sample
-   (`CleanData.regular_runs`), so no window crosses a gap or spans more time than it says;
-   the chronologically last `test_fraction` of the samples is the test part, and the
-   validation part is carved from the end of the training part.
-4. `minmax_range`: normalisation constants from the training part only.
 """
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
 
-from lompr_predictor.bags import (
-    DEFAULT_JOINT_TOPIC,
-    DEFAULT_REFERENCE_TOPIC,
-    BagError,
-    JointSamples,
-    Recording,
-    ReferenceSamples,
-    read_recording,
-)
-from lompr_predictor.features import FEATURES, HISTORY, feature_rows
-from lompr_predictor.kinematics import batch_forward_kinematics
-from lompr_predictor.model_file import file_sha256
-from lompr_predictor.robot import LomprGeometry
+from lompr_predictor.data.bags import JointSamples, Recording, ReferenceSamples
+from lompr_predictor.data.features import FEATURES, feature_rows
+from lompr_predictor.robot.description import LomprGeometry
+from lompr_predictor.robot.kinematics import batch_forward_kinematics
+from lompr_predictor.stamps import seconds_since
 
 #: Defaults of the cleaning rules, in one place (the CLI and the report use these).
 GAP_FACTOR = 2.5  # a step longer than this many sample periods splits the data
@@ -92,55 +75,10 @@ class CleanData:
         lacks `HISTORY` samples of its own segment)."""
         rows = np.full((len(self), len(FEATURES)), np.nan)
         for start, end in self.segments:
-            seconds = (self.stamps[start:end] - self.stamps[start]) * 1e-9
+            seconds = seconds_since(self.stamps[start:end])
             rows[start:end] = feature_rows(
                 seconds, self.error[start:end], self.reference[start:end, :2])
         return rows
-
-
-@dataclass(frozen=True)
-class BagSource:
-    """A bag used (or skipped) by a run: path, content digest, or the reason it was skipped."""
-
-    path: str
-    sha256: str = ''
-    skipped_reason: str = ''
-
-
-def bag_sha256(path: str | Path) -> str:
-    """sha256 over a bag directory's files: each file's name and sha256, in name order."""
-    path = Path(path)
-    digest = hashlib.sha256()
-    for item in sorted(p for p in path.rglob('*') if p.is_file()):
-        digest.update(f'{item.relative_to(path).as_posix()}\0{file_sha256(item)}\n'.encode())
-    return digest.hexdigest()
-
-
-def read_bags(
-    paths: Sequence[str | Path],
-    *,
-    joint_topic: str = DEFAULT_JOINT_TOPIC,
-    reference_topic: str = DEFAULT_REFERENCE_TOPIC,
-    skip_bad: bool = False,
-) -> tuple[list[Recording], list[BagSource]]:
-    """Read every bag whole. A bad bag raises its `BagError`, or with `skip_bad` is listed
-    with its reason (and contributes nothing: never part of a bag)."""
-    recordings: list[Recording] = []
-    sources: list[BagSource] = []
-    for path in paths:
-        try:
-            recording = read_recording(path, joint_topic=joint_topic,
-                                       reference_topic=reference_topic)
-        except BagError as err:
-            if not skip_bad:
-                raise
-            sources.append(BagSource(path=str(path), skipped_reason=err.reason))
-            continue
-        recordings.append(recording)
-        sources.append(BagSource(path=str(path), sha256=bag_sha256(path)))
-    if not recordings:
-        raise BagError(', '.join(str(p) for p in paths), 'no readable bag among the inputs')
-    return recordings, sources
 
 
 def sanitise_stream(
@@ -308,93 +246,3 @@ def clean_recordings(
     counts['segments'] = len(segments)
     return CleanData(stamps=stamps, error=error, reference=aligned, segments=segments,
                      sample_period=period * 1e-9, counts=counts)
-
-
-def window_ends(segments: np.ndarray, window: int, horizon: int) -> np.ndarray:
-    """Indices of the last row of every window that, with its target `horizon` rows later
-    and the `HISTORY` rows its features need, lies inside one segment."""
-    if window < 1 or horizon < 0:
-        msg = f'window must be >= 1 and horizon >= 0, got {window}, {horizon}'
-        raise ValueError(msg)
-    parts = [np.arange(start + HISTORY + window - 1, end - horizon) for start, end in segments]
-    return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, dtype=np.int64)
-
-
-@dataclass(frozen=True)
-class Split:
-    """Window ends of each part, and the first row of the validation and test parts."""
-
-    train: np.ndarray
-    validation: np.ndarray
-    test: np.ndarray
-    validation_start: int  # rows before this train (and set the normalisation)
-    test_start: int  # rows from here on are the test part, never seen while tuning
-
-
-def chronological_split(n_rows: int, ends: np.ndarray, horizon: int, *,
-                        test_fraction: float = 0.1,
-                        validation_fraction: float = 0.15) -> Split:
-    """Split by time: the last `test_fraction` of the rows is the test part; the last
-    `validation_fraction` of the rest validates. A window belongs to the part of its
-    predicted row, and a training or validation window's target row always precedes the
-    test part (its inputs, being earlier still, too)."""
-    if not 0 < test_fraction < 1 or not 0 < validation_fraction < 1:
-        msg = 'test and validation fractions must lie in (0, 1)'
-        raise ValueError(msg)
-    test_start = int(round(n_rows * (1 - test_fraction)))
-    validation_start = int(round(test_start * (1 - validation_fraction)))
-    target = ends + horizon
-    split = Split(train=ends[target < validation_start],
-                  validation=ends[(target >= validation_start) & (target < test_start)],
-                  test=ends[target >= test_start],
-                  validation_start=validation_start, test_start=test_start)
-    for name in ('train', 'validation', 'test'):
-        if len(getattr(split, name)) == 0:
-            msg = (f'no {name} windows: {n_rows} clean samples are too few for window and '
-                   f'horizon {horizon} (or the gaps leave no segment long enough)')
-            raise ValueError(msg)
-    return split
-
-
-def minmax_range(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-column (min, max) ignoring NaN; a constant column gets max = min + 1 so that
-    normalising by the range never divides by zero."""
-    low = np.nanmin(values, axis=0)
-    high = np.nanmax(values, axis=0)
-    high = np.where(high > low, high, low + 1.0)
-    return low, high
-
-
-@dataclass(frozen=True)
-class LearningProblem:
-    """Feature rows, errors and the split windows of one clean data set, for one window
-    length and horizon; the error's range over the training part (the metrics' scale; the
-    models take their input ranges from training windows, `training.input_range`)."""
-
-    rows: np.ndarray  # (N, F) raw feature rows (features.FEATURES)
-    error: np.ndarray  # (N, 2) plant error [m]
-    stamps: np.ndarray  # (N,) int64 [ns]
-    window: int
-    horizon: int
-    sample_period: float  # [s]
-    split: Split
-    error_low: np.ndarray  # (2,) training-part min of the error (the metrics' scale)
-    error_high: np.ndarray  # (2,)
-
-    def targets(self, ends: np.ndarray, residual: bool) -> np.ndarray:
-        """(B, 2) what a model learns for windows ending at `ends`: the error `horizon`
-        rows later, minus the window's last error when `residual`."""
-        target = self.error[ends + self.horizon]
-        return target - self.error[ends] if residual else target
-
-
-def build_problem(data: CleanData, window: int, horizon: int, *,
-                  test_fraction: float = 0.1, validation_fraction: float = 0.15) -> LearningProblem:
-    """Windows, chronological split and training-range normalisation of `data`."""
-    ends = window_ends(data.regular_runs(), window, horizon)
-    split = chronological_split(len(data), ends, horizon, test_fraction=test_fraction,
-                                validation_fraction=validation_fraction)
-    error_low, error_high = minmax_range(data.error[:split.test_start])
-    return LearningProblem(rows=data.features(), error=data.error, stamps=data.stamps,
-                           window=window, horizon=horizon, sample_period=data.sample_period,
-                           split=split, error_low=error_low, error_high=error_high)

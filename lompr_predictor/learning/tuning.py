@@ -15,17 +15,17 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 import optuna
 from tqdm import tqdm
 
+from lompr_predictor.learning.space import DEFAULT_TRIALS
+
 #: Trial states that count toward the budget.
 SPENT = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED)
-DEFAULT_TRIALS = 20
 #: Random trials that seed the Gaussian process (a third of the default budget).
 STARTUP_TRIALS = 6
 #: The median pruner judges a trial only after this many finished trials and, within a
@@ -34,28 +34,6 @@ STARTUP_TRIALS = 6
 PRUNER_STARTUP_TRIALS = 5
 PRUNER_WARMUP_EPOCHS = 15
 STUDY_FILE = 'study.sqlite3'
-
-
-@dataclass(frozen=True)
-class SearchSpace:
-    """Candidate values of each tuned hyperparameter (categorical, as in the paper)."""
-
-    batch_sizes: tuple[int, ...] = (200, 600, 1000, 1500)
-    hidden_units: tuple[int, ...] = (5, 15, 35, 50)
-    learning_rates: tuple[float, ...] = (0.1, 0.01, 0.001)
-
-    def suggest(self, trial: optuna.Trial) -> dict[str, Any]:
-        """The trial's hyperparameters: batch_size, hidden, learning_rate."""
-        return {'batch_size': int(trial.suggest_categorical('batch_size', list(self.batch_sizes))),
-                'hidden': int(trial.suggest_categorical('hidden', list(self.hidden_units))),
-                'learning_rate': float(trial.suggest_categorical(
-                    'learning_rate', list(self.learning_rates)))}
-
-    def as_dict(self) -> dict[str, list[Any]]:
-        return {name: list(values) for name, values in asdict(self).items()}
-
-
-PAPER_SPACE = SearchSpace()
 
 
 def default_storage(folder: str | Path) -> str:
@@ -139,12 +117,3 @@ def finished_twin(study: optuna.Study, trial: optuna.Trial) -> optuna.trial.Froz
         if other.number != trial.number and other.params == trial.params:
             return other
     return None
-
-
-def parse_values(text: str, cast: Callable[[str], Any]) -> tuple[Any, ...]:
-    """'200,600,1000' -> (200, 600, 1000): a search-space option from the command line."""
-    values: Sequence[Any] = [cast(part) for part in text.split(',') if part.strip()]
-    if not values:
-        msg = f'empty list of values: {text!r}'
-        raise ValueError(msg)
-    return tuple(values)

@@ -1,0 +1,108 @@
+"""Learning windows of clean data: which windows exist, the chronological split, ranges.
+
+- `window_ends`: windows of `window` rows whose last row and predicted row (`horizon`
+  samples later) lie in one run without a missing sample (`CleanData.regular_runs`), so no
+  window crosses a gap or spans more time than it says;
+- `chronological_split`: the chronologically last `test_fraction` of the samples is the test
+  part, and the validation part is carved from the end of the training part;
+- `minmax_range`: ranges from the training part only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lompr_predictor.data.cleaning import CleanData
+from lompr_predictor.data.features import HISTORY
+
+
+def window_ends(segments: np.ndarray, window: int, horizon: int) -> np.ndarray:
+    """Indices of the last row of every window that, with its target `horizon` rows later
+    and the `HISTORY` rows its features need, lies inside one segment."""
+    if window < 1 or horizon < 0:
+        msg = f'window must be >= 1 and horizon >= 0, got {window}, {horizon}'
+        raise ValueError(msg)
+    parts = [np.arange(start + HISTORY + window - 1, end - horizon) for start, end in segments]
+    return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class Split:
+    """Window ends of each part, and the first row of the validation and test parts."""
+
+    train: np.ndarray
+    validation: np.ndarray
+    test: np.ndarray
+    validation_start: int  # rows before this train (and set the normalisation)
+    test_start: int  # rows from here on are the test part, never seen while tuning
+
+
+def chronological_split(n_rows: int, ends: np.ndarray, horizon: int, *,
+                        test_fraction: float = 0.1,
+                        validation_fraction: float = 0.15) -> Split:
+    """Split by time: the last `test_fraction` of the rows is the test part; the last
+    `validation_fraction` of the rest validates. A window belongs to the part of its
+    predicted row, and a training or validation window's target row always precedes the
+    test part (its inputs, being earlier still, too)."""
+    if not 0 < test_fraction < 1 or not 0 < validation_fraction < 1:
+        msg = 'test and validation fractions must lie in (0, 1)'
+        raise ValueError(msg)
+    test_start = int(round(n_rows * (1 - test_fraction)))
+    validation_start = int(round(test_start * (1 - validation_fraction)))
+    target = ends + horizon
+    split = Split(train=ends[target < validation_start],
+                  validation=ends[(target >= validation_start) & (target < test_start)],
+                  test=ends[target >= test_start],
+                  validation_start=validation_start, test_start=test_start)
+    for name in ('train', 'validation', 'test'):
+        if len(getattr(split, name)) == 0:
+            msg = (f'no {name} windows: {n_rows} clean samples are too few for window and '
+                   f'horizon {horizon} (or the gaps leave no segment long enough)')
+            raise ValueError(msg)
+    return split
+
+
+def minmax_range(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-column (min, max) ignoring NaN; a constant column gets max = min + 1 so that
+    normalising by the range never divides by zero."""
+    low = np.nanmin(values, axis=0)
+    high = np.nanmax(values, axis=0)
+    high = np.where(high > low, high, low + 1.0)
+    return low, high
+
+
+@dataclass(frozen=True)
+class LearningProblem:
+    """Feature rows, errors and the split windows of one clean data set, for one window
+    length and horizon; the error's range over the training part (the metrics' scale; the
+    models take their input ranges from training windows, `training.input_range`)."""
+
+    rows: np.ndarray  # (N, F) raw feature rows (features.FEATURES)
+    error: np.ndarray  # (N, 2) plant error [m]
+    stamps: np.ndarray  # (N,) int64 [ns]
+    window: int
+    horizon: int
+    sample_period: float  # [s]
+    split: Split
+    error_low: np.ndarray  # (2,) training-part min of the error (the metrics' scale)
+    error_high: np.ndarray  # (2,)
+
+    def targets(self, ends: np.ndarray, residual: bool) -> np.ndarray:
+        """(B, 2) what a model learns for windows ending at `ends`: the error `horizon`
+        rows later, minus the window's last error when `residual`."""
+        target = self.error[ends + self.horizon]
+        return target - self.error[ends] if residual else target
+
+
+def build_problem(data: CleanData, window: int, horizon: int, *,
+                  test_fraction: float = 0.1, validation_fraction: float = 0.15) -> LearningProblem:
+    """Windows, chronological split and training-range normalisation of `data`."""
+    ends = window_ends(data.regular_runs(), window, horizon)
+    split = chronological_split(len(data), ends, horizon, test_fraction=test_fraction,
+                                validation_fraction=validation_fraction)
+    error_low, error_high = minmax_range(data.error[:split.test_start])
+    return LearningProblem(rows=data.features(), error=data.error, stamps=data.stamps,
+                           window=window, horizon=horizon, sample_period=data.sample_period,
+                           split=split, error_low=error_low, error_high=error_high)

@@ -1,0 +1,4 @@
+"""The robot: its description (URDF), forward and inverse kinematics, the machining paths.
+
+ROS-free; imports only the base modules (`errors`, `files`, `stamps`, `monitoring`).
+"""

@@ -1,0 +1,97 @@
+"""The layering the README draws, enforced: who may import whom, and what stays light.
+
+Layers, lowest first: the base modules at the package top (errors, files, plots, stamps,
+monitoring, threads), then robot, data, twin, learning, online, scoring, ros, cli. A module
+imports only from its own layer or lower ones, and only the ros layer imports rclpy or
+ROS message packages.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / 'lompr_predictor'
+LAYERS = ('base', 'robot', 'data', 'twin', 'learning', 'online', 'scoring', 'ros', 'cli')
+#: Top-level modules of ROS client libraries and message packages.
+ROS_MODULES = {'rclpy', 'rcl_interfaces', 'builtin_interfaces', 'std_msgs', 'sensor_msgs',
+               'geometry_msgs', 'diagnostic_msgs', 'lifecycle_msgs', 'rosgraph_msgs',
+               'ament_index_python', 'rosidl_runtime_py'}
+
+
+def layer_of(module: str) -> str:
+    """'lompr_predictor.robot.kinematics' -> 'robot'; a top-level module is 'base'."""
+    parts = module.split('.')
+    if len(parts) > 2 or (len(parts) == 2 and (PACKAGE / parts[1]).is_dir()):
+        return parts[1]
+    return 'base'
+
+
+def module_name(path: Path) -> str:
+    relative = path.relative_to(PACKAGE.parent).with_suffix('')
+    parts = relative.parts[:-1] if relative.name == '__init__' else relative.parts
+    return '.'.join(parts)
+
+
+def imports_of(path: Path) -> list[str]:
+    """Every module `path` imports (absolute names), wherever the import statement is."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(encoding='utf-8'))):
+        if isinstance(node, ast.Import):
+            found += [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.append(node.module)
+            found += [f'{node.module}.{alias.name}' for alias in node.names
+                      if node.module == 'lompr_predictor']
+    return found
+
+
+SOURCES = sorted(PACKAGE.rglob('*.py'))
+
+
+def test_every_subpackage_is_a_known_layer() -> None:
+    subpackages = {p.name for p in PACKAGE.iterdir() if (p / '__init__.py').is_file()}
+    assert subpackages == set(LAYERS) - {'base'}
+
+
+@pytest.mark.parametrize('path', SOURCES, ids=lambda p: module_name(p))
+def test_imports_point_down_and_rclpy_stays_in_ros(path: Path) -> None:
+    own = layer_of(module_name(path))
+    for imported in imports_of(path):
+        top = imported.split('.')[0]
+        if top in ROS_MODULES:
+            assert own == 'ros', f'{module_name(path)} imports {imported} outside the ros layer'
+        if top == 'lompr_predictor' and imported != 'lompr_predictor':
+            other = layer_of(imported)
+            assert LAYERS.index(other) <= LAYERS.index(own), (
+                f'{module_name(path)} ({own}) imports {imported} ({other}), a higher layer')
+
+
+def test_the_checker_sees_a_violation(tmp_path: Path) -> None:
+    """The walk finds imports inside functions too (a lazy import is still a dependency)."""
+    source = tmp_path / 'probe.py'
+    source.write_text('def f():\n    import rclpy\n    from lompr_predictor.ros import common\n')
+    assert imports_of(source) == ['rclpy', 'lompr_predictor.ros']
+    assert layer_of('lompr_predictor.ros.common') == 'ros'
+    assert layer_of('lompr_predictor.files') == 'base'
+
+
+@pytest.mark.parametrize('command', [['--help'], ['train', '--help'], ['simulate', '--help'],
+                                     ['evaluate', '--help'], ['demo', '--help']])
+def test_lompr_help_loads_neither_torch_nor_optuna(command: list[str]) -> None:
+    probe = ('import sys\n'
+             'from lompr_predictor.cli import main\n'
+             'try:\n'
+             f'    main({command!r})\n'
+             'except SystemExit:\n'
+             '    pass\n'
+             'heavy = sorted(m for m in ("torch", "optuna", "rclpy", "sklearn", "lightgbm") '
+             'if m in sys.modules)\n'
+             'print("HEAVY", heavy)\n')
+    result = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True,
+                            timeout=60, check=True)
+    assert 'HEAVY []' in result.stdout, result.stdout[-500:]
