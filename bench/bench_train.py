@@ -33,7 +33,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--bag', default=None)
     parser.add_argument('--horizons', type=int, nargs='+', default=[1, 25])
-    parser.add_argument('--trials', type=int, default=None, help='default: lompr train\'s own')
+    parser.add_argument('--trials', type=int, default=None, help="default: lompr train's own")
     parser.add_argument('--out', default='bench_train_out')
     args = parser.parse_args()
     out = Path(args.out)

@@ -104,7 +104,7 @@ class RateMeter:
 class LatencySummary(NamedTuple):
     """Percentiles of recorded durations [s]; NaN when nothing was recorded."""
 
-    count: int  # samples the percentiles are over (at most the recorder's capacity)
+    samples: int  # durations the percentiles are over (at most the recorder's capacity)
     p50: float
     p99: float
     max: float
@@ -168,7 +168,7 @@ class LogThrottle:
             return None
         self._last[key] = now
         suppressed = self._suppressed.pop(key, 0)
-        if suppressed:
+        if suppressed and last is not None:
             return f'{text} ({suppressed} more like this in the last {now - last:.1f} s)'
         return text
 
@@ -197,7 +197,7 @@ def latency_values(prefix: str, summary: LatencySummary) -> dict[str, object]:
         f'{prefix}_p50_us': round(summary.p50 * 1e6, 2),
         f'{prefix}_p99_us': round(summary.p99 * 1e6, 2),
         f'{prefix}_max_us': round(summary.max * 1e6, 2),
-        f'{prefix}_samples': summary.count,
+        f'{prefix}_samples': summary.samples,
     }
 
 

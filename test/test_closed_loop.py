@@ -33,10 +33,10 @@ from lompr_predictor.twin.simulation import simulate
 
 pytest.importorskip('rclpy')
 
-from model_helpers import save_linear  # noqa: E402
+from model_helpers import save_linear
 
-from lompr_predictor.cli import main as lompr_main  # noqa: E402
-from lompr_predictor.ros.closed_loop import (  # noqa: E402
+from lompr_predictor.cli import main as lompr_main
+from lompr_predictor.ros.closed_loop import (
     LoopRun,
     LoopSettings,
     persistence_model,
@@ -133,7 +133,8 @@ def test_loop_figures_and_reductions_against_hand_computed_values() -> None:
     assert reduction_pct(figures, figures) == {'x': 0.0, 'y': 0.0}
     table = format_table(comparison, {'none': 'no compensation'}, {'x': 0.1, 'y': 0.2})
     assert 'no compensation' in table and '50.0 %' in table
-    assert 'passes made worse by compensation (error, RMS per pass, either axis): worse: [1]' in table
+    assert ('passes made worse by compensation (error, RMS per pass, either axis): '
+            'worse: [1]') in table
 
 
 def test_true_error_floor_is_the_drift_innovation_only(description) -> None:  # type: ignore[no-untyped-def]

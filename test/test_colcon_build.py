@@ -49,7 +49,7 @@ def test_ament_index_finds_installed_executables(install: Path) -> None:
         f'print(get_package_share_directory("{PACKAGE}"))\n'
         'import lompr_predictor; print(lompr_predictor.__file__)')
     # cwd outside the repository: `python -c` puts the cwd first on sys.path.
-    result = subprocess.run(sourced(install, f'{sys.executable} -c \'{script}\''), cwd=install,
+    result = subprocess.run(sourced(install, f"{sys.executable} -c '{script}'"), cwd=install,
                             capture_output=True, text=True, timeout=PROCESS_TIMEOUT)
     assert result.returncode == 0, result.stderr
     prefix, share, module = (Path(line) for line in result.stdout.split())

@@ -164,7 +164,7 @@ def test_clean_stitches_bags_and_counts_every_fault(description: RobotDescriptio
     assert counts['segments'] == 2
     assert counts['no_reference'] == 1  # the last joint sample lies after the last reference
     assert counts['kept'] == 800 - 20 - 1 - 1 - 1
-    expected = {int(s): e for s, e in zip(j.stamps, error)}
+    expected = {int(s): e for s, e in zip(j.stamps, error, strict=False)}
     assert np.isin(j.stamps[[100, 500, 799]], data.stamps, invert=True).all()
     np.testing.assert_allclose(data.error, [expected[int(s)] for s in data.stamps], atol=1e-9)
     assert data.stamps[0] == EPOCH_NS and (np.diff(data.stamps) > 0).all()

@@ -75,11 +75,12 @@ def test_home_configuration_tip_is_d_plus_h1_h2(description: RobotDescription) -
         np.testing.assert_allclose(pose.quaternion, [0, 0, 0, 1], atol=1e-12)
 
 
-@pytest.mark.parametrize('path', [spiral(), grid(), concentric()], ids=['spiral', 'grid', 'concentric'])
+@pytest.mark.parametrize('path', [spiral(), grid(), concentric()],
+                         ids=['spiral', 'grid', 'concentric'])
 def test_fk_of_ik_along_paths(description: RobotDescription, path: np.ndarray) -> None:
     joints = inverse_kinematics(description.geometry, path).joints
     fk = ForwardKinematics(description)
-    for row, tip in zip(joints, path):
+    for row, tip in zip(joints, path, strict=False):
         pose = fk.solve(row)
         np.testing.assert_allclose(pose.position, tip, rtol=0, atol=1e-9)
         # The tool axis is vertical: R e_z = e_z.

@@ -81,7 +81,7 @@ def test_known_poses_round_trip_with_same_stamp(
     sent = [joint_state(1000.0 + 0.04 * i, row) for i, row in enumerate(joints)]
     wiring.publish(sent)
     ros.spin_until(lambda: len(wiring.poses) == len(sent), what='an end pose per joint state')
-    for msg, pose, tip in zip(sent, wiring.poses, KNOWN_TIPS):
+    for msg, pose, tip in zip(sent, wiring.poses, KNOWN_TIPS, strict=False):
         assert stamp_of(pose) == stamp_of(msg)
         assert pose.header.frame_id == 'world'
         position = pose.pose.position
@@ -124,7 +124,7 @@ def test_bad_inputs_are_dropped_counted_and_next_good_answered(
     wiring.publish(sent)
     ros.spin_until(lambda: len(wiring.poses) == 3, what='the three good samples answered')
     assert [stamp_of(p) for p in wiring.poses] == [stamp_of(sent[i]) for i in (0, 3, 8)]
-    for pose, tip in zip(wiring.poses, KNOWN_TIPS[[1, 3, 4]]):
+    for pose, tip in zip(wiring.poses, KNOWN_TIPS[[1, 3, 4]], strict=False):
         position = pose.pose.position
         np.testing.assert_allclose([position.x, position.y, position.z], tip, rtol=0, atol=1e-9)
 

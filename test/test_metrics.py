@@ -26,7 +26,8 @@ def test_pointwise_metrics_by_hand() -> None:
     # t |n| = 0, .0008, .0016, .0012
     assert m['itae'] == pytest.approx(0.04 * (0.0004 + 0.0012 + 0.0014))
     # t n^2 = 0, .04*4e-4, .08*4e-4, .12*1e-4
-    assert m['itse'] == pytest.approx(0.04 * (0.5 * 1.6e-5 + 0.5 * (1.6e-5 + 3.2e-5) + 0.5 * (3.2e-5 + 1.2e-5)))
+    assert m['itse'] == pytest.approx(
+        0.04 * (0.5 * 1.6e-5 + 0.5 * (1.6e-5 + 3.2e-5) + 0.5 * (3.2e-5 + 1.2e-5)))
 
 
 def test_integrals_of_a_constant_error_match_closed_form() -> None:

@@ -77,12 +77,12 @@ def test_rate_meter_is_exact_from_start_and_over_the_window() -> None:
 def test_latency_recorder_percentiles_over_last_samples() -> None:
     recorder = LatencyRecorder(capacity=100)
     summary = recorder.summary()
-    assert summary.count == 0 and math.isnan(summary.p50) and math.isnan(summary.p99)
+    assert summary.samples == 0 and math.isnan(summary.p50) and math.isnan(summary.p99)
     # 1..100 microseconds: p50 = 50.5 us, p99 = 99.01 us (linear interpolation).
     for us in range(1, 101):
         recorder.record(us * 1e-6)
     summary = recorder.summary()
-    assert summary.count == 100
+    assert summary.samples == 100
     assert summary.p50 == pytest.approx(50.5e-6)
     assert summary.p99 == pytest.approx(99.01e-6)
     assert summary.max == pytest.approx(100e-6)
@@ -104,7 +104,7 @@ def test_latency_recorder_partial_buffer_matches_numpy() -> None:
     for value in values:
         recorder.record(float(value))
     summary = recorder.summary()
-    assert summary.count == 37
+    assert summary.samples == 37
     assert summary.p50 == pytest.approx(np.median(values))
     assert summary.p99 == pytest.approx(np.percentile(values, 99))
 
@@ -116,7 +116,7 @@ def test_latency_measure_records_even_when_block_raises() -> None:
     with pytest.raises(RuntimeError), recorder.measure():
         raise RuntimeError('boom')
     summary = recorder.summary()
-    assert summary.count == 2
+    assert summary.samples == 2
     assert 0.0 < summary.max < 1.0
 
 

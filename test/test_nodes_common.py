@@ -93,5 +93,5 @@ def test_run_node_help_lists_parameters(capsys: pytest.CaptureFixture[str]) -> N
     assert exit_info.value.code == 0
     out = capsys.readouterr().out
     assert 'A test node.' in out
-    assert "period (default 1.0 [0.1, 10.0]): a period [s]" in out
+    assert 'period (default 1.0 [0.1, 10.0]): a period [s]' in out
     assert "input_reliability (default 'reliable' {reliable|best_effort}, read-only)" in out

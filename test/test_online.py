@@ -66,7 +66,7 @@ def constant_core(tmp_path, value, clock=None, **limit_values):  # type: ignore[
 def feed(core: OnlinePredictor, stamps, reference, tips, clock=None):  # type: ignore[no-untyped-def]
     """Reference then pose of each sample; all outputs in order."""
     outputs = []
-    for stamp, ref, tip in zip(stamps, reference, tips):
+    for stamp, ref, tip in zip(stamps, reference, tips, strict=False):
         if clock is not None:
             clock.now += PERIOD
         outputs += core.add_reference(int(stamp), *ref)
@@ -103,9 +103,9 @@ def test_reference_is_interpolated_to_pose_stamps(linear_model) -> None:  # type
     ref_stamps = stamps[0] - PERIOD_NS // 2 + np.arange(25) * (PERIOD_NS * 4 // 5)
     ref_xy = np.stack([np.interp(ref_stamps, stamps, reference[:, a]) for a in (0, 1)], -1)
     ref_xy += np.stack([1e-4 * np.sin(ref_stamps * 1e-9), 0 * ref_stamps], -1)
-    for stamp, ref in zip(ref_stamps, ref_xy):
+    for stamp, ref in zip(ref_stamps, ref_xy, strict=False):
         core.add_reference(int(stamp), *ref)
-    for stamp, tip in zip(stamps[:NEEDED], tips[:NEEDED]):
+    for stamp, tip in zip(stamps[:NEEDED], tips[:NEEDED], strict=False):
         core.add_pose(int(stamp), *tip)
     expected = np.stack([np.interp(stamps[:NEEDED], ref_stamps, ref_xy[:, a])
                          for a in (0, 1)], -1)
@@ -223,7 +223,7 @@ def test_poses_without_references_go_stale(tmp_path) -> None:  # type: ignore[no
     core = constant_core(tmp_path, (-10e-6, 0.0), clock=clock)
     stamps, reference, tips = spiral(NEEDED + 8)
     feed(core, stamps[:NEEDED], reference[:NEEDED], tips[:NEEDED], clock)
-    for stamp, tip in zip(stamps[NEEDED:], tips[NEEDED:]):  # the reference stream stopped
+    for stamp, tip in zip(stamps[NEEDED:], tips[NEEDED:], strict=False):  # the reference stream stopped
         clock.now += PERIOD
         assert core.add_pose(int(stamp), *tip) == []
         zeros = core.check_stale()

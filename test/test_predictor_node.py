@@ -94,7 +94,7 @@ class Wiring:
             kinematics_node = ros.add(KinematicsNode(context=ros.context))
             self.joints = ros.node.create_publisher(JointState, '/joint_states', 100)
             ros.wait_for_subscribers(self.joints)
-            ros.wait_for_subscribers(kinematics_node._publisher)  # noqa: SLF001 - the inner link
+            ros.wait_for_subscribers(kinematics_node._publisher)
         else:
             self.poses = ros.node.create_publisher(PoseStamped, '/lompr/end_pose', 100)
             ros.wait_for_subscribers(self.poses)

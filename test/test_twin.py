@@ -106,7 +106,7 @@ def test_gravity_load_is_shared_by_the_branches(description: RobotDescription) -
     level = np.array([[0.0, 0.0, 0.75]])
     tension = gravity_axial_forces(geometry, level, weight, 0.25)[0]
     np.testing.assert_allclose(tension, tension.mean(), rtol=1e-9)  # symmetric posture
-    anchors = geometry.platform_anchors + [0.0, 0.0, 0.75]
+    anchors = geometry.platform_anchors + np.array([0.0, 0.0, 0.75])
     directions = anchors - geometry.base_anchors
     vertical = directions[:, 2] / np.linalg.norm(directions, axis=1)
     assert tension @ vertical == pytest.approx(weight, rel=1e-9)  # they carry all of it

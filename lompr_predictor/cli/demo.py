@@ -59,7 +59,7 @@ TARGET_MODEL_TO_PERSISTENCE_PCT = 70.0
 TARGET_REDUCTION_PCT = 95.0
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> None:  # noqa: SLF001
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register `lompr demo`."""
     parser = subparsers.add_parser(
         'demo', help='record, train, and cancel the error of the twin in closed loop',

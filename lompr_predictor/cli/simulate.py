@@ -33,7 +33,7 @@ def _at_least(minimum: int) -> Callable[[str], int]:
     return parse
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         'simulate', help='run the digital twin and record a rosbag2 directory',
         description='Run the LOMPR digital twin for N passes of a path and write one rosbag2 '

@@ -78,7 +78,7 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument('--out', required=True, help='model file to write (TorchScript)')
     parser.add_argument('--report', required=True, help='report folder')
     parser.add_argument('--horizon', type=int, default=DEFAULT_HORIZON,
-                        help='samples between the window\'s last row and the predicted instant')
+                        help="samples between the window's last row and the predicted instant")
     parser.add_argument('--window', type=int, default=DEFAULT_WINDOW, help='samples per window')
     parser.add_argument('--trials', type=int, default=DEFAULT_TRIALS, help='tuning budget')
     parser.add_argument('--seed', type=int, default=0)
@@ -153,7 +153,7 @@ def normalisation_metadata(module: Any, problem: LearningProblem) -> dict[str, A
     feature_low, feature_high = bounds(module.feature_centre, 1.0 / module.feature_inverse_half)
     target_low, target_high = bounds(module.target_centre, module.target_half)
     return {'input': 'window rows mapped to [-1, 1] by their training min-max; error columns '
-                     'taken relative to the window\'s last row first' if bool(
+                     "taken relative to the window's last row first" if bool(
                          module.relative_mask.any()) else 'window rows mapped to [-1, 1]',
             'feature_low': feature_low, 'feature_high': feature_high,
             'target': ('e(t+h) - e(t)' if module.residual else 'e(t+h)') + ', mapped to [-1, 1]',

@@ -107,7 +107,8 @@ def write_recording(
     types = _TYPESTORE.types
     joint_state, pose_stamped = types[JOINT_STATE], types[POSE_STAMPED]
     point, quaternion, pose = (types['geometry_msgs/msg/Point'],
-                               types['geometry_msgs/msg/Quaternion'], types['geometry_msgs/msg/Pose'])
+                               types['geometry_msgs/msg/Quaternion'],
+                               types['geometry_msgs/msg/Pose'])
     joints, reference = recording.joints, recording.reference
     events = _interleave(joints.stamps, reference.stamps)
     with atomic_directory(path) as bag_dir, \
@@ -192,11 +193,11 @@ def read_recording(
             expected = sum(c.msgcount for c in wanted)
             read = 0
             for connection, _, raw in reader.messages(connections=wanted):
-                message = _TYPESTORE.deserialize_cdr(raw, connection.msgtype)
+                message: Any = _TYPESTORE.deserialize_cdr(raw, connection.msgtype)
                 stamp = stamp_to_ns(message.header.stamp)
                 if connection.topic == joint_topic:
                     row = np.full(len(names), np.nan)
-                    for name, value in zip(message.name, message.position):
+                    for name, value in zip(message.name, message.position, strict=False):
                         index = column.get(name)
                         if index is not None:
                             row[index] = value
@@ -209,7 +210,7 @@ def read_recording(
                 read += 1
     except BagError:
         raise
-    except Exception as err:  # noqa: BLE001 - rosbags, sqlite3, the MCAP parser, CDR: all mean "corrupt"
+    except Exception as err:
         raise BagError(path, f'cannot read ({type(err).__name__}: {err})') from err
     if read != expected:
         raise BagError(path, f'truncated: {read} messages read, metadata.yaml promises {expected}')

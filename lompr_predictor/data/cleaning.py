@@ -147,8 +147,9 @@ def hampel_outliers(values: np.ndarray, segments: np.ndarray, half_window: int,
     agree with each other (they differ by less than `NEIGHBOUR_AGREEMENT` |x|): a spike
     returns to where it left, whereas a sample on a genuine sharp feature (friction
     reversing with a branch's velocity, a pass starting) has neighbours on different levels.
-    Sigma is 1.4826 times the moving median of |x - its moving median|, floored at the segment's global value, so a locally quiet or quantised stretch
-    does not flag ordinary noise. A segment's first and last samples are never flagged.
+    Sigma is 1.4826 times the moving median of |x - its moving median|, floored at the
+    segment's global value, so a locally quiet or quantised stretch does not flag ordinary
+    noise. A segment's first and last samples are never flagged.
     """
     spikes = np.zeros(len(values), dtype=bool)
     size = (2 * half_window + 1, 1)
@@ -207,9 +208,11 @@ def separate_overlapping(recordings: Sequence[Recording]) -> tuple[list[Recordin
 def clean_recordings(
     recordings: Sequence[Recording],
     geometry: LomprGeometry,
-    config: CleaningConfig = CleaningConfig(),
+    config: CleaningConfig | None = None,
 ) -> CleanData:
-    """Stitch, clean, align and convert recordings to the plant error (module docstring)."""
+    """Stitch, clean, align and convert recordings to the plant error (module docstring);
+    `config` defaults to `CleaningConfig()`."""
+    config = config or CleaningConfig()
     counts: dict[str, int] = {'bags': len(recordings)}
     ordered, counts['bags_moved_in_time'] = separate_overlapping(recordings)
     if not ordered:

@@ -49,8 +49,8 @@ def chronological_split(n_rows: int, ends: np.ndarray, horizon: int, *,
     if not 0 < test_fraction < 1 or not 0 < validation_fraction < 1:
         msg = 'test and validation fractions must lie in (0, 1)'
         raise ValueError(msg)
-    test_start = int(round(n_rows * (1 - test_fraction)))
-    validation_start = int(round(test_start * (1 - validation_fraction)))
+    test_start = round(n_rows * (1 - test_fraction))
+    validation_start = round(test_start * (1 - validation_fraction))
     target = ends + horizon
     split = Split(train=ends[target < validation_start],
                   validation=ends[(target >= validation_start) & (target < test_start)],

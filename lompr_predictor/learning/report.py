@@ -141,7 +141,7 @@ def plot_tuning(path: Path, trials: Sequence[Mapping[str, Any]]) -> None:
                     np.minimum.accumulate([t['value'] for t in valued]), '-', label='best so far')
     groups = {'trained to the end': lambda t: t['state'] == 'COMPLETE' and not t.get('pruned_epoch'),
               'stopped by the pruner': lambda t: t['state'] == 'PRUNED' or bool(t.get('pruned_epoch'))}
-    for (label, member), marker in zip(groups.items(), ('o', 'x')):
+    for (label, member), marker in zip(groups.items(), ('o', 'x'), strict=False):
         chosen = [t for t in valued if member(t)]
         if chosen:
             ax.semilogy([t['number'] for t in chosen], [t['value'] for t in chosen], marker,

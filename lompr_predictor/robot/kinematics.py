@@ -96,7 +96,7 @@ class BatchPoses:
 def check_joint_limits(geometry: LomprGeometry, joints: Sequence[float]) -> None:
     """Raise the specific error for a non-finite joint, a branch out of stroke or a head
     angle out of its range."""
-    for name, value in zip(MEASURED_JOINTS, joints):
+    for name, value in zip(MEASURED_JOINTS, joints, strict=False):
         if not math.isfinite(value):
             raise NonFiniteJointError(name, value)
     for i, name in enumerate(BRANCH_JOINTS):
@@ -210,7 +210,7 @@ class ForwardKinematics:
             columns = jacobian.T.tolist()  # per q_k: linear (3) then angular (3) velocity
             rows, residual = [], []
             for (cx, cy, cz), (ax, ay, az), length in zip(
-                    offsets, self._base_anchors_list, lengths):
+                    offsets, self._base_anchors_list, lengths, strict=False):
                 vx, vy, vz = origin[0] + cx - ax, origin[1] + cy - ay, origin[2] + cz - az
                 norm = math.sqrt(vx * vx + vy * vy + vz * vz)
                 ux, uy, uz = vx / norm, vy / norm, vz / norm
@@ -296,7 +296,8 @@ def batch_forward_kinematics(geometry: LomprGeometry, joints: np.ndarray) -> Bat
             & (lengths <= geometry.stroke_upper).all(axis=1)
             & (joints[:, 4] >= geometry.head_secondary_lower)
             & (joints[:, 4] <= geometry.head_secondary_upper))
-    target = np.where(valid[:, None], lengths, 0.5 * (geometry.stroke_lower + geometry.stroke_upper))
+    mid_stroke = 0.5 * (geometry.stroke_lower + geometry.stroke_upper)
+    target = np.where(valid[:, None], lengths, mid_stroke)
     up = np.empty((len(joints), 3))
     for start in range(0, len(joints), BATCH_CHUNK):
         rows = slice(start, start + BATCH_CHUNK)
@@ -324,7 +325,8 @@ def _newton_batch(geometry: LomprGeometry, target: np.ndarray) -> tuple[np.ndarr
     converged = np.zeros(target.shape[1], dtype=bool)
     for _ in range(MAX_ITERATIONS):
         rows, lengths = _lengths_and_jacobian(geometry, up)
-        numerators, det = _cofactor_solve(rows, [n - t for n, t in zip(lengths, target)])
+        numerators, det = _cofactor_solve(
+            rows, [n - t for n, t in zip(lengths, target, strict=True)])
         with np.errstate(invalid='ignore', divide='ignore'):
             steps = [numerator / det for numerator in numerators]
         converged = np.ones(len(up), dtype=bool)
@@ -342,7 +344,7 @@ def _lengths_and_jacobian(geometry: LomprGeometry, up: np.ndarray):  # type: ign
     ca, sa, cb, sb = trig
     rows, lengths = [], []
     for (px, py, pz), (ax, ay, az) in zip(
-            _branch_vectors(geometry, up[:, 2], trig), geometry.base_anchors):
+            _branch_vectors(geometry, up[:, 2], trig), geometry.base_anchors, strict=False):
         vx, vy, vz = px - ax, py - ay, pz - az
         norm = np.sqrt(vx * vx + vy * vy + vz * vz)
         ux, uy, uz = vx / norm, vy / norm, vz / norm
@@ -358,7 +360,8 @@ def branch_lengths(geometry: LomprGeometry, up: np.ndarray) -> np.ndarray:
     """(N, 3) UPS branch lengths for (N, 3) UP-branch joints (alpha, beta, d)."""
     points = _branch_vectors(geometry, up[:, 2], _trig(up))
     return np.stack([np.sqrt((px - ax) ** 2 + (py - ay) ** 2 + (pz - az) ** 2)
-                     for (px, py, pz), (ax, ay, az) in zip(points, geometry.base_anchors)], -1)
+                     for (px, py, pz), (ax, ay, az)
+                     in zip(points, geometry.base_anchors, strict=True)], -1)
 
 
 def inverse_kinematics(
@@ -399,4 +402,5 @@ def inverse_kinematics(
     flipped = np.round((theta1 - raw) / np.pi).astype(int) % 2 == 1
     theta2 = np.where(defined & flipped, -theta2, theta2)
     up = np.stack([alpha, beta, d], -1)
-    return JointPath(up=up, lengths=branch_lengths(geometry, up), head=np.stack([theta1, theta2], -1))
+    return JointPath(up=up, lengths=branch_lengths(geometry, up),
+                     head=np.stack([theta1, theta2], -1))

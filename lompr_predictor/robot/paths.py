@@ -71,7 +71,7 @@ class PathCycle:
 def spiral_pass(config: PathConfig, sample_period: float = SAMPLE_PERIOD) -> np.ndarray:
     """(N, 2) Eq. 29 from t_h = 0 to radius / pitch inclusive."""
     t_end = config.radius / config.spiral_pitch
-    count = int(round(config.spiral_duration / sample_period))
+    count = round(config.spiral_duration / sample_period)
     t_h = np.linspace(0.0, t_end, count + 1)
     phase = config.spiral_turn_rate * t_h + 0.5 * np.pi
     return config.spiral_pitch * t_h[:, None] * np.stack([np.cos(phase), np.sin(phase)], -1)
@@ -129,7 +129,7 @@ def constant_speed(waypoints: np.ndarray, config: PathConfig,
     arc = np.concatenate([[0.0], np.cumsum(steps[steps > 0.0])])
     s = speed_profile(arc[-1], config.feed_speed, config.ramp_time, sample_period)
     path = np.stack([np.interp(s, arc, waypoints[:, i]) for i in range(2)], -1)
-    half = int(round(0.5 * config.corner_time / sample_period))
+    half = round(0.5 * config.corner_time / sample_period)
     if half == 0:
         return path
     padded = np.vstack([np.repeat(path[:1], half, 0), path, np.repeat(path[-1:], half, 0)])
@@ -142,7 +142,7 @@ def hermite_transition(start: np.ndarray, start_velocity: np.ndarray, end: np.nd
                        sample_period: float = SAMPLE_PERIOD) -> np.ndarray:
     """Interior samples of the cubic from (start, start_velocity) to (end, end_velocity):
     position and velocity continuous at both joins."""
-    count = int(round(duration / sample_period))
+    count = round(duration / sample_period)
     s = (np.arange(1, count) / count)[:, None]
     h00, h10 = 2 * s ** 3 - 3 * s ** 2 + 1, s ** 3 - 2 * s ** 2 + s
     h01, h11 = -2 * s ** 3 + 3 * s ** 2, s ** 3 - s ** 2

@@ -26,7 +26,8 @@ def reserve_domain_id() -> int:
     first = os.getpid() % len(SAFE_DOMAIN_IDS)
     ids = list(SAFE_DOMAIN_IDS)
     for domain in ids[first:] + ids[:first]:
-        stream = open(Path(tempfile.gettempdir()) / f'lompr_ros_domain_{domain}.lock', 'wb')
+        lock = Path(tempfile.gettempdir()) / f'lompr_ros_domain_{domain}.lock'
+        stream = open(lock, 'wb')  # noqa: SIM115 - held open (locked) until the process ends
         try:
             fcntl.flock(stream, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:

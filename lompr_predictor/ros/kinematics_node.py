@@ -285,7 +285,7 @@ class KinematicsNode(Node):
             'robot_description': self.description.source,
             'robot_description_sha256': self.description.sha256,
         }
-        if summary.count == 0:
+        if summary.samples == 0:
             return Status(Level.OK, 'no joint state solved yet', values)
         timing = f'solve p50 {summary.p50 * 1e6:.1f} us, p99 {summary.p99 * 1e6:.1f} us'
         if summary.p99 > self.settings.solve_time_warn:

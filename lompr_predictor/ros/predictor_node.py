@@ -90,18 +90,18 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
                   '(its sha256 is checked); empty: the packaged nominal LOMPR description',
                   read_only=True),
     ParameterSpec('sample_period', 0.0, 'period [s] of the pose stamps, which the model must '
-                  'have been trained at (within 2 %); 0: the model file\'s', minimum=0.0,
+                  "have been trained at (within 2 %); 0: the model file's", minimum=0.0,
                   maximum=10.0, read_only=True),
-    ParameterSpec('window', -1, 'window length the model must have; -1: the model file\'s '
-                  '(a model swapped in at run time must keep the running one\'s)',
+    ParameterSpec('window', -1, "window length the model must have; -1: the model file's "
+                  "(a model swapped in at run time must keep the running one's)",
                   minimum=-1, maximum=100_000, read_only=True),
-    ParameterSpec('horizon', -1, 'horizon [samples] the model must have (the controller\'s '
-                  'lead); -1: the model file\'s', minimum=-1, maximum=100_000, read_only=True),
+    ParameterSpec('horizon', -1, "horizon [samples] the model must have (the controller's "
+                  "lead); -1: the model file's", minimum=-1, maximum=100_000, read_only=True),
     ParameterSpec('gap_factor', GAP_FACTOR, 'a stamp interval above this many sample periods '
                   'is a gap (the trainer splits its data at the same one)',
                   minimum=1.0, maximum=1000.0, read_only=True),
     ParameterSpec('min_interval_factor', 0.5, 'a stamp interval below this many sample '
-                  'periods means the input is not at the model\'s rate',
+                  "periods means the input is not at the model's rate",
                   minimum=0.0, maximum=1.0, read_only=True),
     ParameterSpec('stale_periods', 5.0, 'no usable sample for this many sample periods: the '
                   'input is stale and the offset is cancelled', minimum=1.0,
@@ -427,7 +427,7 @@ class PredictorNode(Node):
             'zeros_published': core.zeros_published,
         }
         mode = 'compensating' if self.settings.compensation_enabled else 'shadow mode'
-        if inference.count and inference.p99 > self.settings.inference_time_warn:
+        if inference.samples and inference.p99 > self.settings.inference_time_warn:
             return Status(Level.WARN, f'{mode}; inference p99 {inference.p99 * 1e6:.0f} us over '
                                       f'{self.settings.inference_time_warn * 1e6:.0f} us', values)
         warn = self.settings.accuracy_warn

@@ -25,7 +25,7 @@ import numpy as np
 from lompr_predictor.data.features import TARGETS
 from lompr_predictor.files import write_atomic, write_json
 from lompr_predictor.plots import pyplot, save_figure
-from lompr_predictor.stamps import seconds_since
+from lompr_predictor.stamps import NS_PER_SECOND, seconds_since
 from lompr_predictor.twin.simulation import Simulation, error_summary, irreducible_rmse
 
 #: Beside a closed-loop bag: per sample `stamps` (N,) int64 ns, `true_error`,
@@ -77,7 +77,7 @@ def compare_loops(errors: Mapping[str, np.ndarray], pass_index: np.ndarray | Non
         figures['reduction_pct'] = reduction_pct(figures, base)
         figures['peak_reduction_pct'] = reduction_pct(figures, base, 'peak_um')
         per_pass = [reduction_pct(mine, theirs)
-                    for mine, theirs in zip(figures['passes'], base['passes'])]
+                    for mine, theirs in zip(figures['passes'], base['passes'], strict=False)]
         figures['pass_reduction_pct'] = per_pass
         figures['passes_made_worse'] = [k for k, pct in enumerate(per_pass)
                                         if min(pct.values()) < 0.0]
@@ -197,9 +197,10 @@ def evaluate_loop_bags(bags: Sequence[str | Path], *, geometry: Any, cleaning: A
                        report: str | Path) -> dict[str, Any]:
     """Score closed-loop recordings of the same passes, the first the baseline (no
     compensation): the measured error FK(recorded joints) - reference of each bag, read and
-    cleaned as for training but without spike rejection, and, when the twin's closed-loop truth lies beside a bag, its
-    true error too (the figures `lompr demo` prints). Writes `closed_loop.json`,
-    `closed_loop.md` and the plot into `report`; returns the JSON document."""
+    cleaned as for training but without spike rejection, and, when the twin's closed-loop
+    truth lies beside a bag, its true error too (the figures `lompr demo` prints). Writes
+    `closed_loop.json`, `closed_loop.md` and the plot into `report`; returns the JSON
+    document."""
     from lompr_predictor.data.bags import read_bags
     from lompr_predictor.data.cleaning import clean_recordings
 
@@ -214,8 +215,8 @@ def evaluate_loop_bags(bags: Sequence[str | Path], *, geometry: Any, cleaning: A
     measured: dict[str, np.ndarray] = {}
     stamps: dict[str, np.ndarray] = {}
     truths = {}
-    period_ns = np.inf
-    for name, bag in zip(names, bags):
+    period = np.inf  # [s] the shortest sample period among the bags
+    for name, bag in zip(names, bags, strict=False):
         recordings, _ = read_bags([bag], joint_topic=joint_topic,
                                   reference_topic=reference_topic)
         data = clean_recordings(recordings, geometry, cleaning)
@@ -228,29 +229,30 @@ def evaluate_loop_bags(bags: Sequence[str | Path], *, geometry: Any, cleaning: A
             keep = data.stamps >= arrays['stamps'][scored][0]
         measured[name], stamps[name] = data.error[keep], data.stamps[keep]
         truths[name] = truth
-        period_ns = min(period_ns, data.sample_period * 1e9)
-    rows = common_instants(stamps, 0.5 * period_ns)
+        period = min(period, data.sample_period)
+    rows = common_instants(stamps, 0.5 * period * NS_PER_SECOND)
     measured = {name: error[rows[name]] for name, error in measured.items()}
     document: dict[str, Any] = {
         'bags': [str(bag) for bag in bags], 'baseline': names[0],
         'measured': compare_loops(measured),
         'measured_note': 'FK(recorded joints) - reference at the instants all bags share '
-                         '(matched by time since each bag\'s first sample): what a real '
+                         "(matched by time since each bag's first sample): what a real "
                          'machine shows, measurement noise included'}
     text = ['Measured error (FK of the recorded joints - reference):',
             format_table(document['measured'], what='measured error')]
-    if all(truth is not None for truth in truths.values()):
-        arrays = {name: truth[0] for name, truth in truths.items()}  # type: ignore[index]
-        count = common_length([a['true_error'] for a in arrays.values()])
+    known = {name: truth for name, truth in truths.items() if truth is not None}
+    if len(known) == len(truths):
+        loop_arrays = {name: truth[0] for name, truth in known.items()}
+        count = common_length([a['true_error'] for a in loop_arrays.values()])
         document['true'] = compare_loops(
-            {name: a['true_error'][:count] for name, a in arrays.items()},
-            arrays[names[0]]['pass_index'][:count])
-        floor = truths[names[-1]][1].get('irreducible_um')  # type: ignore[index]
+            {name: a['true_error'][:count] for name, a in loop_arrays.items()},
+            loop_arrays[names[0]]['pass_index'][:count])
+        floor = known[names[-1]][1].get('irreducible_um')
         document['irreducible_um'] = floor
-        text += ['', 'True tool-tip error (the twin\'s closed-loop truth beside the bags):',
+        text += ['', "True tool-tip error (the twin's closed-loop truth beside the bags):",
                  format_table(document['true'], irreducible_um=floor, what='true error')]
-        plotted, seconds = document['true'], arrays[names[0]]['stamps'][:count]
-        errors = {name: a['true_error'][:count] for name, a in arrays.items()}
+        plotted, seconds = document['true'], loop_arrays[names[0]]['stamps'][:count]
+        errors = {name: a['true_error'][:count] for name, a in loop_arrays.items()}
     else:
         plotted, seconds, errors = document['measured'], stamps[names[0]][rows[names[0]]], measured
     folder = Path(report)

@@ -74,7 +74,7 @@ class DigitalTwin:
 
     def index_of(self, stamp_ns: int) -> int:
         """Sample number whose stamp is nearest `stamp_ns`."""
-        return int(round((int(stamp_ns) - self.epoch_ns) / self.period_ns))
+        return round((int(stamp_ns) - self.epoch_ns) / self.period_ns)
 
     def step(self, count: int = 1, compensation: np.ndarray | None = None) -> TwinSamples:
         """Run the next `count` samples; `compensation` (count, 3) [m] is added to the command."""

@@ -117,7 +117,7 @@ class TwinPlant:
         self.branch_gains = params.servo.position_gain * (1.0 + spread[:, 0])
         self.branch_time_constants = params.servo.velocity_time_constant * (1.0 + spread[:, 1])
         self._filters = [servo_filter(params, gain, tau) for gain, tau in
-                         zip(self.branch_gains, self.branch_time_constants)]
+                         zip(self.branch_gains, self.branch_time_constants, strict=False)]
         drift = params.drift
         self.drift_decay = float(np.exp(-params.sample_period / drift.time_constant))
         self._drift_innovation = drift.standard_deviation * np.sqrt(1.0 - self.drift_decay ** 2)
@@ -149,9 +149,9 @@ class TwinPlant:
         velocity = (lengths - previous) / self.params.sample_period
         if self.params.servo.enabled:
             actual[:, :N_BRANCHES] = self._servo(lengths)
-        axial = None
-        if self.params.elastic.enabled or self.params.friction.enabled:
-            elastic = self.params.elastic
+        elastic = self.params.elastic
+        axial = np.zeros_like(lengths)
+        if elastic.enabled or self.params.friction.enabled:
             axial = gravity_axial_forces(self.geometry, path.up, elastic.moving_mass
                                          * elastic.gravity, elastic.centre_of_mass_offset)
         if self.params.friction.enabled:

@@ -21,7 +21,7 @@ def plot_simulation(sim: Simulation, path: str | Path) -> Path:
     seconds = seconds_since(sim.stamps[shown], sim.stamps[0])
     radius = np.linalg.norm(sim.reference[:, :2], axis=1) * 1e3
     figure, axes = pyplot().subplots(3, 1, figsize=(11, 9), constrained_layout=True)
-    for axis, (i, name) in zip(axes[:2], enumerate('XY')):
+    for axis, (i, name) in zip(axes[:2], enumerate('XY'), strict=False):
         axis.plot(seconds, sim.error_measured[shown, i] * 1e6, lw=0.6, label='measured')
         axis.plot(seconds, sim.error_true[shown, i] * 1e6, lw=0.6, label='true')
         axis.set_ylabel(f'{name} error [um]')

@@ -102,7 +102,7 @@ def ground_truth(sim: Simulation, params: TwinParameters, description_sha256: st
                      for name in ('true', 'measured', 'deterministic')},
         'irreducible_rmse_um': {
             str(h): {'x': float(x) * 1e6, 'y': float(y) * 1e6}
-            for h, (x, y) in zip(IRREDUCIBLE_HORIZONS, irreducible)},
+            for h, (x, y) in zip(IRREDUCIBLE_HORIZONS, irreducible, strict=False)},
         'irreducible_note': (
             'lower bound on the RMSE of a causal prediction of error_measured, h samples '
             'ahead: measurement noise + quantisation + drift innovations over h samples'),
@@ -127,7 +127,8 @@ def write_simulation(out: str | Path, sim: Simulation, params: TwinParameters,
     arrays, document = ground_truth(sim, params, description_sha256, faults, logs)
     with atomic_directory(out) as staged:
         bag = write_recording(staged, recording, storage=storage)
-        np.savez_compressed(bag / GROUND_TRUTH_NPZ, **arrays)
+        # numpy's stub lets **arrays fill allow_pickle: bool; they are all arrays
+        np.savez_compressed(bag / GROUND_TRUTH_NPZ, **arrays)  # type: ignore[arg-type]
         (bag / GROUND_TRUTH_JSON).write_text(json.dumps(document, indent=1) + '\n',
                                              encoding='utf-8')
         if plot:

@@ -13,9 +13,13 @@ from lompr_predictor.files import atomic_directory, atomic_file, write_atomic
 def test_a_failed_file_write_keeps_the_old_file_and_no_debris(tmp_path: Path) -> None:
     target = tmp_path / 'report.json'
     write_atomic(target, b'old')
-    with pytest.raises(RuntimeError, match='disk full'), atomic_file(target) as staging:
-        staging.write_bytes(b'half of the n')
-        raise RuntimeError('disk full')
+    def interrupted_write() -> None:
+        with atomic_file(target) as staging:
+            staging.write_bytes(b'half of the n')
+            raise RuntimeError('disk full')
+
+    with pytest.raises(RuntimeError, match='disk full'):
+        interrupted_write()
     assert target.read_bytes() == b'old'
     assert sorted(p.name for p in tmp_path.iterdir()) == ['report.json']
     write_atomic(target, b'new')
@@ -24,11 +28,18 @@ def test_a_failed_file_write_keeps_the_old_file_and_no_debris(tmp_path: Path) ->
 
 def test_a_directory_appears_whole_or_not_at_all(tmp_path: Path) -> None:
     target = tmp_path / 'sub' / 'bag'
-    with pytest.raises(RuntimeError), atomic_directory(target) as staged:
-        staged.mkdir()
-        (staged / 'metadata.yaml').write_text('partial')
-        assert not target.exists()
-        raise RuntimeError('interrupted')
+    seen_while_writing = []
+
+    def interrupted_write() -> None:
+        with atomic_directory(target) as staged:
+            staged.mkdir()
+            (staged / 'metadata.yaml').write_text('partial')
+            seen_while_writing.append(target.exists())
+            raise RuntimeError('interrupted')
+
+    with pytest.raises(RuntimeError, match='interrupted'):
+        interrupted_write()
+    assert seen_while_writing == [False]
     assert not target.exists() and list((tmp_path / 'sub').iterdir()) == []
     with atomic_directory(target) as staged:
         staged.mkdir()
