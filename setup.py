@@ -32,6 +32,7 @@ setup(
         'matplotlib',
         'pyyaml',
         'tqdm',
+        'psycopg[binary]',
     ],
     extras_require={'test': ['pytest', 'hypothesis']},
     zip_safe=True,
