@@ -21,13 +21,31 @@ from typing import Any
 import numpy as np
 
 
+def process_umask() -> int:
+    """The process's file-mode creation mask, read without changing it (`os.umask` can only
+    be read by setting it, which races with other threads creating files)."""
+    try:
+        for line in Path('/proc/self/status').read_text().splitlines():
+            if line.startswith('Umask:'):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 @contextmanager
 def atomic_file(path: str | Path, *, suffix: str = '') -> Iterator[Path]:
     """Yield a staging file beside `path` to write; on success it replaces `path`.
-    `suffix` keeps an extension for writers that choose their format by it."""
+    `suffix` keeps an extension for writers that choose their format by it. The file gets
+    the permissions of any newly created file (0666 less the umask, 0644 by default), not
+    the 0600 of a temporary file: a node running as another user must be able to read a
+    model file or a report."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     descriptor, name = tempfile.mkstemp(prefix=f'.{path.name}.', suffix=suffix, dir=path.parent)
+    os.fchmod(descriptor, 0o666 & ~process_umask())
     os.close(descriptor)
     staging = Path(name)
     try:

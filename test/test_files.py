@@ -3,6 +3,8 @@ and a failed write leaves no staging file or directory behind."""
 
 from __future__ import annotations
 
+import os
+import stat
 from pathlib import Path
 
 import pytest
@@ -46,3 +48,16 @@ def test_a_directory_appears_whole_or_not_at_all(tmp_path: Path) -> None:
         (staged / 'metadata.yaml').write_text('whole')
     assert (target / 'metadata.yaml').read_text() == 'whole'
     assert [p.name for p in (tmp_path / 'sub').iterdir()] == ['bag']
+
+
+def test_written_files_get_the_umask_permissions_not_a_temp_files(tmp_path: Path) -> None:
+    """A model file written by the trainer must be readable by a node of another user."""
+    previous = os.umask(0o022)
+    try:
+        write_atomic(tmp_path / 'model.pt', b'x')
+        os.umask(0o027)
+        write_atomic(tmp_path / 'report.md', b'y')
+    finally:
+        os.umask(previous)
+    assert stat.S_IMODE((tmp_path / 'model.pt').stat().st_mode) == 0o644
+    assert stat.S_IMODE((tmp_path / 'report.md').stat().st_mode) == 0o640
