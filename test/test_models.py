@@ -30,7 +30,7 @@ from lompr_predictor.learning.models import (
 from lompr_predictor.learning.training import TrainSettings, train_network
 from lompr_predictor.robot.description import RobotDescription
 
-SETTINGS = TrainSettings(max_epochs=8, patience=3, seed=3, threads=1)
+SETTINGS = TrainSettings(max_epochs=8, patience=3, seed=3)
 HYPER = {'batch_size': 200, 'hidden': 8, 'learning_rate': 0.01}
 
 

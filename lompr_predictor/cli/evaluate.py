@@ -29,6 +29,7 @@ from lompr_predictor.errors import LomprError
 from lompr_predictor.learning.report import write_report
 from lompr_predictor.robot.description import load_robot_description
 from lompr_predictor.stamps import seconds_since
+from lompr_predictor.threads import set_torch_threads
 
 
 class EvaluationError(LomprError):
@@ -63,13 +64,11 @@ def run(args: argparse.Namespace) -> int:
             report=args.report)
         print(f"{document['text']}\nreport in {args.report}")
         return 0
-    import torch
-
     from lompr_predictor.learning.model_file import PERIOD_TOLERANCE, load_model
     from lompr_predictor.learning.models import offline_predictions, persistence
 
     started = time.perf_counter()
-    torch.set_num_threads(args.threads)
+    set_torch_threads(args.threads)
     description = load_robot_description(args.robot_description)
     model = load_model(args.model, expected={'features': FEATURES, 'targets': TARGETS,
                                              'robot_description_sha256': description.sha256})

@@ -41,6 +41,7 @@ from lompr_predictor.learning.report import irreducible_level, write_report
 from lompr_predictor.learning.space import DEFAULT_TRIALS, PAPER_SPACE, SearchSpace, parse_values
 from lompr_predictor.robot.description import load_robot_description
 from lompr_predictor.stamps import seconds_since
+from lompr_predictor.threads import set_torch_threads
 
 DEFAULT_WINDOW = 25
 DEFAULT_HORIZON = 1
@@ -178,6 +179,7 @@ def run(args: argparse.Namespace) -> int:
         study_name_for,
     )
 
+    set_torch_threads(args.threads)
     started = time.perf_counter()
     progress = not args.quiet
     description = load_robot_description(args.robot_description)
@@ -191,7 +193,7 @@ def run(args: argparse.Namespace) -> int:
         learning_rates=(parse_values(args.learning_rates, float) if args.learning_rates
                         else PAPER_SPACE.learning_rates))
     settings = TrainSettings(max_epochs=args.max_epochs or MAX_EPOCHS,
-                             patience=args.patience or PATIENCE, seed=args.seed, threads=args.threads)
+                             patience=args.patience or PATIENCE, seed=args.seed)
     report_dir = Path(args.report)
     checkpoints = report_dir / 'trials'
     checkpoints.mkdir(parents=True, exist_ok=True)

@@ -4,7 +4,10 @@ One function, `train_network`, trains the LSTM (during tuning and at the end) an
 baseline alike, so their training times compare like for like. Each epoch reports the
 validation loss to an Optuna trial when given (which may prune it), the best epoch's
 weights are kept, and training stops after `patience` epochs without improvement.
-Everything is seeded: the same problem, hyperparameters and seed give the same model.
+Everything is seeded: the same problem, hyperparameters and seed give the same model. The
+torch thread count is the caller's (an entry point sets it, `threads.set_torch_threads`):
+one thread suits the small LSTM best on a loaded 2-core machine (measured at load 4: 7.5 ms
+per batch-600 step with one thread, 16.9 ms with two).
 """
 
 from __future__ import annotations
@@ -36,13 +39,11 @@ EVAL_BATCH = 8192
 
 @dataclass(frozen=True)
 class TrainSettings:
+    """What a training run decides beyond the hyperparameters (the same for every trial)."""
+
     max_epochs: int = MAX_EPOCHS
     patience: int = PATIENCE
     seed: int = 0
-    # One torch intra-op thread: the LSTM's matrices are small, and on a loaded 2-core
-    # machine two threads contend (measured at load 4: 7.5 ms per batch-600 step with one
-    # thread, 16.9 ms with two).
-    threads: int = 1
 
 
 @dataclass
@@ -137,7 +138,6 @@ def train_network(
     GP sampler learns nothing from a pruned trial and would propose the same point again,
     whereas a stopped trial's (poor) loss steers it away.
     """
-    torch.set_num_threads(settings.threads)
     torch.manual_seed(settings.seed)
     rng = np.random.default_rng(settings.seed)
     window, split = problem.window, problem.split
