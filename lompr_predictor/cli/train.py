@@ -164,9 +164,15 @@ def normalisation_metadata(module: Any, problem: LearningProblem) -> dict[str, A
 
 def run(args: argparse.Namespace) -> int:
     import optuna
-    import torch
 
-    from lompr_predictor.learning.model_file import ModelMetadata, library_versions, save_model
+    from lompr_predictor.learning.model_file import (
+        ModelMetadata,
+        library_versions,
+        load_checkpoint,
+        save_checkpoint,
+        save_model,
+        script_module,
+    )
     from lompr_predictor.learning.models import LSTM_STEPS, persistence, predict_rows
     from lompr_predictor.learning.training import MAX_EPOCHS, PATIENCE, TrainSettings, train_network
     from lompr_predictor.learning.tuning import (
@@ -212,8 +218,7 @@ def run(args: argparse.Namespace) -> int:
             return float(twin.value)
         trained = train_network(problem, 'lstm', params, settings, trial=trial,
                                 progress=progress, label=f'trial {trial.number}')
-        path = checkpoints / f'{study_name}-{trial.number}.pt'
-        torch.jit.save(torch.jit.script(trained.module), str(path))
+        path = save_checkpoint(checkpoints / f'{study_name}-{trial.number}.pt', trained.module)
         trial.set_user_attr('checkpoint', str(path.resolve()))
         trial.set_user_attr('training_seconds', trained.seconds)
         trial.set_user_attr('best_epoch', trained.best_epoch)
@@ -230,12 +235,12 @@ def run(args: argparse.Namespace) -> int:
     best_params = space.suggest(optuna.trial.FixedTrial(best.params))
     checkpoint = Path(best.user_attrs.get('checkpoint', ''))
     if checkpoint.is_file():
-        lstm_module = torch.jit.load(str(checkpoint))
+        lstm_module = load_checkpoint(checkpoint)
         lstm_seconds = float(best.user_attrs['training_seconds'])
     else:  # the best trial ran on another machine of a shared study: train it here
         retrained = train_network(problem, 'lstm', best_params, settings, progress=progress,
                                   label='best trial')
-        lstm_module, lstm_seconds = torch.jit.script(retrained.module), retrained.seconds
+        lstm_module, lstm_seconds = script_module(retrained.module), retrained.seconds
     lstm_module.eval()
     bp = train_network(problem, 'mlp', BP_HYPERPARAMETERS, settings, residual=False,
                        progress=progress, label='BP')
