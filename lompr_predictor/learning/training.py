@@ -26,7 +26,12 @@ from tqdm import tqdm
 
 from lompr_predictor.data.features import FEATURES, TARGETS
 from lompr_predictor.data.problem import LearningProblem, minmax_range
-from lompr_predictor.learning.models import PredictorModule, build_network, gather_windows
+from lompr_predictor.learning.models import (
+    PredictorModule,
+    ScaledRows,
+    build_network,
+    gather_windows,
+)
 
 #: Defaults of the training loop, in one place.
 MAX_EPOCHS = 100
@@ -90,23 +95,7 @@ def build_module(problem: LearningProblem, model_type: str, hidden: int, *, resi
                            relative_errors=relative_errors)
 
 
-class _FastInputs:
-    """The module's input normalisation, rewritten for training speed in float32 on rows
-    scaled once: normalise(w) = w * s - w[last] * mask * s - c * s (the same affine map as
-    `PredictorModule.normalise`, to float32 rounding)."""
-
-    def __init__(self, module: PredictorModule, rows: np.ndarray) -> None:
-        scale = module.feature_inverse_half.numpy()
-        self.scaled = torch.from_numpy((rows * scale).astype(np.float32))
-        self.last_mask = module.relative_mask.float()
-        self.offset = torch.from_numpy((module.feature_centre.numpy() * scale).astype(np.float32))
-
-    def windows(self, ends: np.ndarray, window: int) -> torch.Tensor:
-        x = gather_windows(self.scaled, ends, window)
-        return x - x[:, -1:, :] * self.last_mask - self.offset
-
-
-def validation_loss(net: nn.Module, inputs: _FastInputs, ends: np.ndarray,
+def validation_loss(net: nn.Module, inputs: ScaledRows, ends: np.ndarray,
                     targets: torch.Tensor, window: int) -> float:
     """Mean squared error of `net` on normalised targets, in batches without gradients."""
     total = 0.0
@@ -145,11 +134,9 @@ def train_network(
     module = build_module(problem, model_type, int(hyperparameters['hidden']), residual=residual,
                           relative_errors=relative_errors)
     net = module.net
-    inputs = _FastInputs(module, problem.rows)
-    train_y, validation_y = (
-        torch.from_numpy(((problem.targets(ends, residual) - module.target_centre.numpy())
-                          / module.target_half.numpy()).astype(np.float32))
-        for ends in (split.train, split.validation))
+    inputs = ScaledRows(module, problem.rows)
+    train_y, validation_y = (module.normalise_targets(problem.targets(ends, residual))
+                             for ends in (split.train, split.validation))
     optimiser = torch.optim.Adam(net.parameters(), lr=float(hyperparameters['learning_rate']))
     scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
         optimiser, factor=LR_DECAY, patience=LR_DECAY_PATIENCE)
