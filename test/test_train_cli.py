@@ -107,8 +107,8 @@ def test_lompr_main_reports_a_truncated_bag_in_one_line(
 
 
 def test_rmse_is_given_as_a_multiple_of_the_twins_irreducible_level(tmp_path: Path) -> None:
-    from lompr_predictor.cli.train import irreducible_fields
     from lompr_predictor.data.bags import BagSource
+    from lompr_predictor.learning.report import irreducible_fields
 
     bag = tmp_path / 'bag'
     bag.mkdir()

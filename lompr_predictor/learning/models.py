@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, overload
+from typing import TYPE_CHECKING, Any, overload
 
 import numpy as np
 import torch
@@ -70,6 +70,10 @@ class MlpNet(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.out(torch.sigmoid(self.hidden(x.flatten(1))))
+
+
+#: The paper's BP engineering defaults (issue 4): not tuned, the baseline as published.
+BP_HYPERPARAMETERS = {'batch_size': 1500, 'hidden': 35, 'learning_rate': 0.01}
 
 
 def build_network(model_type: str, n_features: int, window: int, hidden: int) -> nn.Module:
@@ -172,6 +176,26 @@ class ScaledRows:
         """(B, window, F) float32 network input of the windows ending at rows `ends`."""
         return normalise_windows(gather_windows(self.rows, ends, window), self.relative_mask,
                                  self.centre, None)
+
+
+def normalisation_metadata(module: Any, error_low: np.ndarray,
+                           error_high: np.ndarray) -> dict[str, Any]:
+    """The constants inside a `PredictorModule` (scripted or not) and the error's training
+    range (the metrics' scale), for the model file's metadata: for people and tools."""
+    def bounds(centre: torch.Tensor, half: torch.Tensor) -> tuple[list[float], list[float]]:
+        return (centre - half).tolist(), (centre + half).tolist()
+
+    feature_low, feature_high = bounds(module.feature_centre, 1.0 / module.feature_inverse_half)
+    target_low, target_high = bounds(module.target_centre, module.target_half)
+    relative = bool(module.relative_mask.any())
+    return {'input': ('window rows mapped to [-1, 1] by their training min-max; error columns '
+                      "taken relative to the window's last row first") if relative
+                     else 'window rows mapped to [-1, 1]',
+            'feature_low': feature_low, 'feature_high': feature_high,
+            'target': ('e(t+h) - e(t)' if module.residual else 'e(t+h)') + ', mapped to [-1, 1]',
+            'target_low': target_low, 'target_high': target_high,
+            'error_low': np.asarray(error_low).tolist(),
+            'error_high': np.asarray(error_high).tolist()}
 
 
 class NoChangeNet(nn.Module):

@@ -13,13 +13,18 @@ given as a multiple of it.
 from __future__ import annotations
 
 import json
+import sys
+import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from lompr_predictor.data.features import TARGETS
+from lompr_predictor.data.bags import BagSource
+from lompr_predictor.data.cleaning import CleanData, CleaningConfig
+from lompr_predictor.data.features import FEATURES, TARGETS
+from lompr_predictor.data.problem import LearningProblem
 from lompr_predictor.files import write_atomic, write_json
 from lompr_predictor.learning.metrics import METRIC_NAMES
 from lompr_predictor.plots import pyplot, save_figure
@@ -48,6 +53,36 @@ def irreducible_level(bags: Sequence[str | Path], horizon: int) -> dict[str, flo
         if str(horizon) in levels:
             return {axis: float(levels[str(horizon)][axis]) for axis in TARGETS}
     return None
+
+
+def base_report(command: str, problem: LearningProblem, data: CleanData,
+                sources: Sequence[BagSource], cleaning: CleaningConfig) -> dict[str, Any]:
+    """The fields every report has: the command, the bags, the data counts and cleaning, the
+    window, horizon and split, the error's training range."""
+    split = problem.split
+    return {
+        'command': command, 'argv': sys.argv,
+        'created_utc': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
+        'bags': [vars(s) for s in sources], 'counts': data.counts, 'cleaning': vars(cleaning),
+        'sample_period': problem.sample_period, 'window': problem.window,
+        'horizon': problem.horizon, 'features': list(FEATURES), 'targets': list(TARGETS),
+        'split': {'train': len(split.train), 'validation': len(split.validation),
+                  'test': len(split.test), 'validation_start_row': split.validation_start,
+                  'test_start_row': split.test_start},
+        'error_range_um': {axis: [problem.error_low[i] * 1e6, problem.error_high[i] * 1e6]
+                           for i, axis in enumerate(TARGETS)},
+    }
+
+
+def irreducible_fields(models: Mapping[str, Any], sources: Sequence[BagSource],
+                       horizon: int) -> dict[str, Any]:
+    """The twin's irreducible RMSE at `horizon` (when a bag carries its ground truth) and
+    each model's RMSE as a multiple of it; None for both without ground truth."""
+    irreducible = irreducible_level([s.path for s in sources if not s.skipped_reason], horizon)
+    return {'irreducible_rmse_um': irreducible,
+            'rmse_to_irreducible': None if irreducible is None else {
+                name: {axis: m['metrics'][axis]['rmse_um'] / irreducible[axis] for axis in TARGETS}
+                for name, m in models.items()}}
 
 
 def markdown(report: Mapping[str, Any]) -> str:
