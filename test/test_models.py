@@ -111,11 +111,12 @@ def test_residual_module_is_persistence_plus_change_and_shift_invariant(
                                   persistence(problem.error, ends))
     trained = train_network(problem, 'lstm', HYPER, dataclasses.replace(SETTINGS, max_epochs=1),
                             progress=False)
+    offset = np.array([3e-6, -5e-6])
     shifted = problem.rows.copy()
-    shifted[:, :2] += [3e-6, -5e-6]  # the same offset on every error: the output moves with it
+    shifted[:, :2] += offset  # the same offset on every error: the output moves with it
     np.testing.assert_allclose(
         predict_rows(trained.module, shifted, ends, 12),
-        predict_rows(trained.module, problem.rows, ends, 12) + [3e-6, -5e-6], atol=1e-12)
+        predict_rows(trained.module, problem.rows, ends, 12) + offset, atol=1e-12)
 
 
 @pytest.mark.parametrize('relative_errors', [True, False])

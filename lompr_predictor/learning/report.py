@@ -90,19 +90,22 @@ def markdown(report: Mapping[str, Any]) -> str:
     models = report['models']
     names = [n for n in ('persistence', 'bp', 'bo_lstm', 'model') if n in models]
     with_bp = 'bp' in models and 'bo_lstm' in models
+    horizon, period = report['horizon'], report['sample_period']
     lines = [f"# lompr {report['command']} report", '',
-             f"Horizon {report['horizon']} samples ({report['horizon'] * report['sample_period']:.3g} s), "
-             f"window {report['window']} samples, sample period {report['sample_period'] * 1e3:.3g} ms; "
+             f"Horizon {horizon} samples ({horizon * period:.3g} s), "
+             f"window {report['window']} samples, sample period {period * 1e3:.3g} ms; "
              + (f"test part: {report['split']['test']} windows (chronologically last 10 % of "
                 'the clean samples).' if report['command'] == 'train' else
                 f"scored on all {report['split']['test']} windows of the recordings."), '']
     irreducible = report.get('irreducible_rmse_um')
     for axis in TARGETS:
-        header = ['metric'] + [MODEL_LABELS[n] for n in names] + (['BO-LSTM / BP'] if with_bp else [])
+        header = ['metric', *[MODEL_LABELS[n] for n in names],
+                  *(['BO-LSTM / BP'] if with_bp else [])]
         lines += [f'## Axis {axis.upper()}', '', '| ' + ' | '.join(header) + ' |',
                   '|' + '---|' * len(header)]
         for metric in METRIC_NAMES:
-            row = [METRIC_LABELS[metric]] + [f"{models[n]['metrics'][axis][metric]:.4g}" for n in names]
+            row = [METRIC_LABELS[metric],
+                   *[f"{models[n]['metrics'][axis][metric]:.4g}" for n in names]]
             if with_bp:
                 ratio = report['ratios_to_bp'][axis][metric]
                 row.append('-' if ratio is None else f'{100 * ratio:.1f} %')
@@ -113,8 +116,8 @@ def markdown(report: Mapping[str, Any]) -> str:
             lines.append('| ' + ' | '.join(row + ([''] if with_bp else [])) + ' |')
         lines.append('')
     if irreducible:
-        lines += [f"Irreducible RMSE at this horizon (twin ground truth): X {irreducible['x']:.3g} um, "
-                  f"Y {irreducible['y']:.3g} um.", '']
+        lines += ['Irreducible RMSE at this horizon (twin ground truth): '
+                  f"X {irreducible['x']:.3g} um, Y {irreducible['y']:.3g} um.", '']
     lines += ['## Training and timing', '']
     for name in names:
         seconds = models[name].get('training_seconds')
@@ -174,8 +177,9 @@ def plot_tuning(path: Path, trials: Sequence[Mapping[str, Any]]) -> None:
     if valued:
         ax.semilogy([t['number'] for t in valued],
                     np.minimum.accumulate([t['value'] for t in valued]), '-', label='best so far')
-    groups = {'trained to the end': lambda t: t['state'] == 'COMPLETE' and not t.get('pruned_epoch'),
-              'stopped by the pruner': lambda t: t['state'] == 'PRUNED' or bool(t.get('pruned_epoch'))}
+    groups = {
+        'trained to the end': lambda t: t['state'] == 'COMPLETE' and not t.get('pruned_epoch'),
+        'stopped by the pruner': lambda t: t['state'] == 'PRUNED' or bool(t.get('pruned_epoch'))}
     for (label, member), marker in zip(groups.items(), ('o', 'x'), strict=False):
         chosen = [t for t in valued if member(t)]
         if chosen:
