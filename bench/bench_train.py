@@ -3,8 +3,9 @@
     python bench/bench_train.py [--bag DIR] [--horizons 1 25] [--trials 20] [--out DIR]
 
 Without --bag it records one with `lompr simulate --passes 20 --seed 7` into --out. For each
-horizon it runs the real `lompr train` command with its defaults (so the default tuning
-budget), times it, and prints the report's figures: RMSE per axis of persistence, BP and
+horizon it runs the training pipeline `lompr train` runs (`learning.pipeline`) with its
+defaults (so the default tuning budget and one torch thread), times it, and prints the
+report's figures: RMSE per axis of persistence, BP and
 BO-LSTM in um and as a multiple of the twin's irreducible level, the BO-LSTM / BP training
 time ratio, the whole run's wall time and the share spent reading, cleaning and batch FK,
 each against its target. The full reports (Table 1 layout, plots) stay in --out.
@@ -13,11 +14,15 @@ each against its target. The full reports (Table 1 layout, plots) stay in --out.
 from __future__ import annotations
 
 import argparse
-import json
+import dataclasses
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+from lompr_predictor.data.loading import BagInputs
+from lompr_predictor.learning.pipeline import TrainingConfig, train_predictor, write_outputs
+from lompr_predictor.threads import set_torch_threads
 
 TARGET_RUN_SECONDS = 600.0
 TARGET_READ_FRACTION = 0.05
@@ -36,6 +41,7 @@ def main() -> int:
     parser.add_argument('--trials', type=int, default=None, help="default: lompr train's own")
     parser.add_argument('--out', default='bench_train_out')
     args = parser.parse_args()
+    set_torch_threads(1)  # lompr train's default
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     bag = Path(args.bag) if args.bag else out / 'twin_20_passes'
@@ -45,19 +51,24 @@ def main() -> int:
     failures = 0
     for horizon in args.horizons:
         report_dir = out / f'report_h{horizon}'
-        command = [lompr(), 'train', str(bag), '--out', str(out / f'model_h{horizon}.pt'),
-                   '--report', str(report_dir), '--horizon', str(horizon), '--quiet',
-                   '--study-name', f'bench-h{horizon}-{time.time_ns()}']
+        config = TrainingConfig(
+            inputs=BagInputs(bags=(str(bag),)), model_path=out / f'model_h{horizon}.pt',
+            report_dir=report_dir, horizon=horizon, progress=False,
+            study_name=f'bench-h{horizon}-{time.time_ns()}')
         if args.trials:
-            command += ['--trials', str(args.trials)]
+            config = dataclasses.replace(config, trials=args.trials)
         started = time.perf_counter()
-        subprocess.run(command, check=True)
+        result = train_predictor(config)
+        write_outputs(config, result)
         wall = time.perf_counter() - started
-        report = json.loads((report_dir / 'report.json').read_text())
+        report = result.report
         models, irreducible = report['models'], report['irreducible_rmse_um']
         timings = report['timings']
+        command = (f'lompr train {bag} --out {config.model_path} --report {report_dir} '
+                   f'--horizon {horizon} --trials {config.trials} --study-name '
+                   f'{config.study_name} --quiet')
         print(f'\n=== horizon {horizon} ({horizon * report["sample_period"]:.2f} s); '
-              f'{report["tuning"]["trials_spent"]} trials; command: {" ".join(command)}')
+              f'{report["tuning"]["trials_spent"]} trials; as {command}')
         print(f'{"axis":<5}{"model":<13}{"RMSE um":>9}{"/ irreducible":>15}{"/ persistence":>15}')
         for axis in ('x', 'y'):
             persistence = models['persistence']['metrics'][axis]['rmse_um']

@@ -18,19 +18,21 @@ from lompr_predictor.learning.model_file import (
     ModelMetadata,
     load_model,
     save_model,
+    script_module,
 )
 from lompr_predictor.learning.models import (
     MlpNet,
     PredictorModule,
+    ScaledRows,
     gather_windows,
     persistence,
     persistence_module,
     predict_rows,
 )
-from lompr_predictor.learning.training import TrainSettings, train_network
+from lompr_predictor.learning.training import TrainSettings, build_module, train_network
 from lompr_predictor.robot.description import RobotDescription
 
-SETTINGS = TrainSettings(max_epochs=8, patience=3, seed=3, threads=1)
+SETTINGS = TrainSettings(max_epochs=8, patience=3, seed=3)
 HYPER = {'batch_size': 200, 'hidden': 8, 'learning_rate': 0.01}
 
 
@@ -57,7 +59,8 @@ def test_trained_lstm_beats_persistence(problem: LearningProblem) -> None:
     assert trained.history[-1] < trained.history[0]
     test = problem.split.test
     actual = problem.error[test + problem.horizon]
-    model_rmse = np.sqrt(np.mean((predict_rows(trained.module, problem.rows, test, 12) - actual) ** 2))
+    predicted = predict_rows(trained.module, problem.rows, test, 12)
+    model_rmse = np.sqrt(np.mean((predicted - actual) ** 2))
     persistence_rmse = np.sqrt(np.mean((persistence(problem.error, test) - actual) ** 2))
     assert model_rmse < 0.5 * persistence_rmse
 
@@ -108,8 +111,37 @@ def test_residual_module_is_persistence_plus_change_and_shift_invariant(
                                   persistence(problem.error, ends))
     trained = train_network(problem, 'lstm', HYPER, dataclasses.replace(SETTINGS, max_epochs=1),
                             progress=False)
+    offset = np.array([3e-6, -5e-6])
     shifted = problem.rows.copy()
-    shifted[:, :2] += [3e-6, -5e-6]  # the same offset on every error: the output moves with it
+    shifted[:, :2] += offset  # the same offset on every error: the output moves with it
     np.testing.assert_allclose(
         predict_rows(trained.module, shifted, ends, 12),
-        predict_rows(trained.module, problem.rows, ends, 12) + [3e-6, -5e-6], atol=1e-12)
+        predict_rows(trained.module, problem.rows, ends, 12) + offset, atol=1e-12)
+
+
+@pytest.mark.parametrize('relative_errors', [True, False])
+def test_training_inputs_are_the_exported_modules_normalisation(
+        problem: LearningProblem, relative_errors: bool) -> None:
+    """Training normalises windows gathered from rows scaled once in float32 (`ScaledRows`),
+    the exported module its raw float64 windows (`PredictorModule.normalise`): one map, the
+    same numbers to float32 rounding, on the data's windows and on random rows."""
+    module = build_module(problem, 'lstm', 4, residual=True, relative_errors=relative_errors)
+    exported = script_module(module)
+    rng = np.random.default_rng(5)
+    ends = np.sort(rng.choice(np.concatenate([problem.split.train, problem.split.test]), 400))
+    low, high = np.nanmin(problem.rows, axis=0), np.nanmax(problem.rows, axis=0)
+    random_rows = low + (high - low) * rng.uniform(-0.5, 1.5, (600, problem.rows.shape[1]))
+    random_ends = rng.integers(problem.window - 1, len(random_rows), 400)
+    scale = module.feature_inverse_half.numpy()
+    centre, mask = module.feature_centre.numpy(), module.relative_mask.numpy()
+    for rows, chosen in ((problem.rows, ends), (random_rows, random_ends)):
+        training = ScaledRows(module, rows).windows(chosen, problem.window)
+        raw = gather_windows(rows, chosen, problem.window)
+        reference = exported.normalise(torch.from_numpy(raw))
+        assert training.dtype == reference.dtype == torch.float32
+        # float32 rounding of each scaled operand (window, last row, centre) and of the result
+        operands = (np.abs(raw) + np.abs(raw[:, -1:, :]) * mask + np.abs(centre)) * scale
+        bound = 4 * np.finfo(np.float32).eps * (operands + np.abs(reference.numpy()))
+        difference = np.abs(training.numpy() - reference.numpy())
+        assert np.all(difference <= bound), float((difference / bound).max())
+        assert float(reference.abs().max()) > 0.5  # not the identity: the ranges are in use

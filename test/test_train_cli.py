@@ -97,18 +97,20 @@ def test_lompr_main_reports_a_truncated_bag_in_one_line(
         tmp_path: Path, description: RobotDescription, capsys: pytest.CaptureFixture[str]) -> None:
     from lompr_predictor.cli import main
 
-    recording, _ = synthetic_recording(description.geometry, 200, reference=lissajous_reference(200))
+    recording, _ = synthetic_recording(description.geometry, 200,
+                                       reference=lissajous_reference(200))
     bad = write_recording(tmp_path / 'cut', recording, storage='sqlite3')
     truncate_bag(bad)
-    code = main(['train', str(bad), '--out', str(tmp_path / 'm.pt'), '--report', str(tmp_path / 'r')])
+    code = main(['train', str(bad), '--out', str(tmp_path / 'm.pt'),
+                 '--report', str(tmp_path / 'r')])
     assert code == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f'lompr train: error: bag {bad}: ')
 
 
 def test_rmse_is_given_as_a_multiple_of_the_twins_irreducible_level(tmp_path: Path) -> None:
-    from lompr_predictor.cli.train import irreducible_fields
     from lompr_predictor.data.bags import BagSource
+    from lompr_predictor.learning.report import irreducible_fields
 
     bag = tmp_path / 'bag'
     bag.mkdir()

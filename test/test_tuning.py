@@ -85,8 +85,8 @@ def test_a_repeated_point_is_found_not_retrained(tmp_path: Path) -> None:
     def objective(trial: optuna.Trial) -> float:
         PAPER_SPACE.suggest(trial)
         twin = finished_twin(study, trial)
-        if twin is not None:
-            return float(twin.value) + 100.0 * twin.number  # visible: came from the twin
+        if twin is not None and twin.value is not None:
+            return twin.value + 100.0 * twin.number  # visible: came from the twin
         evaluated.append(trial.number)
         return toy(trial)
 

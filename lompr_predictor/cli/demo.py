@@ -23,8 +23,10 @@ from typing import Any
 
 from tqdm import tqdm
 
+from lompr_predictor.data.loading import BagInputs
 from lompr_predictor.errors import LomprError
 from lompr_predictor.files import write_json
+from lompr_predictor.learning.space import SearchSpace
 from lompr_predictor.robot.description import load_robot_description
 from lompr_predictor.robot.paths import PATH_KINDS, build_cycle
 from lompr_predictor.scoring.loops import (
@@ -36,6 +38,7 @@ from lompr_predictor.scoring.loops import (
     true_error_floor,
 )
 from lompr_predictor.stamps import seconds_since
+from lompr_predictor.threads import set_torch_threads
 from lompr_predictor.twin.parameters import load_twin_parameters
 from lompr_predictor.twin.recording import write_simulation
 from lompr_predictor.twin.simulation import simulate
@@ -53,7 +56,7 @@ QUICK = {'train_passes': 12, 'trials': 1, 'max_epochs': 40, 'passes': 2}
 #: 50}, lr {0.1, 0.01, 0.001}) the demo tunes in its budget: the small networks and the
 #: unstable rate never won on the twin, and batch 200 triples an epoch's time. `lompr train`
 #: tunes the whole space by default. --quick trains the first point only.
-SPACE = {'batch_sizes': '600,1000', 'hidden_units': '50,35', 'learning_rates': '0.01,0.001'}
+SPACE = SearchSpace(batch_sizes=(600, 1000), hidden_units=(50, 35), learning_rates=(0.01, 0.001))
 #: Targets of issue 6: model RMS at most this share of persistence's, reduction at least.
 TARGET_MODEL_TO_PERSISTENCE_PCT = 70.0
 TARGET_REDUCTION_PCT = 95.0
@@ -114,6 +117,7 @@ def run(args: argparse.Namespace) -> int:
         msg = f'{out} exists and is not empty; choose a new --out directory'
         raise LomprError(msg)
     out.mkdir(parents=True, exist_ok=True)
+    set_torch_threads(args.threads)
     started = time.monotonic()
     description = load_robot_description()
     params = load_twin_parameters(args.params or None)
@@ -188,20 +192,17 @@ def run(args: argparse.Namespace) -> int:
 
 def _train(args: argparse.Namespace, budget: dict[str, int], bag: Path, model: Path,
            report: Path) -> None:
-    """`lompr train` on the recording, with the demo's budget."""
-    from lompr_predictor.cli import build_parser
+    """What `lompr train` does, on the recording, with the demo's budget and space."""
+    from lompr_predictor.learning.pipeline import TrainingConfig, train_predictor, write_outputs
 
-    train_args = build_parser().parse_args([
-        'train', str(bag), '--out', str(model), '--report', str(report),
-        '--horizon', str(args.horizon), '--trials', str(budget['trials']),
-        '--max-epochs', str(budget['max_epochs']), '--seed', str(args.seed),
-        '--threads', str(args.threads),
-        *[value for name, values in SPACE.items() for value in (
-            f'--{name.replace("_", "-")}',
-            values.split(',')[0] if budget['trials'] == 1 else values)]])
-    if train_args.run(train_args) != 0:
-        msg = 'training failed'
-        raise LomprError(msg)
+    space = SPACE if budget['trials'] > 1 else SearchSpace(
+        batch_sizes=SPACE.batch_sizes[:1], hidden_units=SPACE.hidden_units[:1],
+        learning_rates=SPACE.learning_rates[:1])
+    config = TrainingConfig(inputs=BagInputs(bags=(str(bag),)), model_path=model,
+                            report_dir=report, horizon=args.horizon, trials=budget['trials'],
+                            max_epochs=budget['max_epochs'], seed=args.seed, space=space)
+    write_outputs(config, train_predictor(config))
+    print(f'model written to {model}; report in {report}')
 
 
 def _summary(args: argparse.Namespace, budget: dict[str, int], runs: dict[str, Any],

@@ -15,20 +15,16 @@ from typing import Any
 
 import numpy as np
 
-from lompr_predictor.cli.train import (
-    add_data_arguments,
-    base_report,
-    cleaning_config,
-    irreducible_fields,
-    load_data,
-    score,
-)
+from lompr_predictor.cli.common import add_data_arguments, bag_inputs, cleaning_config
 from lompr_predictor.data.features import FEATURES, TARGETS
+from lompr_predictor.data.loading import load_clean_data
 from lompr_predictor.data.problem import LearningProblem, Split
 from lompr_predictor.errors import LomprError
-from lompr_predictor.learning.report import write_report
+from lompr_predictor.learning.metrics import score_predictions
+from lompr_predictor.learning.report import base_report, irreducible_fields, write_report
 from lompr_predictor.robot.description import load_robot_description
 from lompr_predictor.stamps import seconds_since
+from lompr_predictor.threads import set_torch_threads
 
 
 class EvaluationError(LomprError):
@@ -63,18 +59,17 @@ def run(args: argparse.Namespace) -> int:
             report=args.report)
         print(f"{document['text']}\nreport in {args.report}")
         return 0
-    import torch
-
     from lompr_predictor.learning.model_file import PERIOD_TOLERANCE, load_model
     from lompr_predictor.learning.models import offline_predictions, persistence
 
     started = time.perf_counter()
-    torch.set_num_threads(args.threads)
+    set_torch_threads(args.threads)
     description = load_robot_description(args.robot_description)
     model = load_model(args.model, expected={'features': FEATURES, 'targets': TARGETS,
                                              'robot_description_sha256': description.sha256})
     meta = model.metadata
-    data, sources = load_data(args, description.geometry)
+    inputs = bag_inputs(args, args.bags)
+    data, sources = load_clean_data(inputs, description.geometry)
     if abs(data.sample_period - meta.sample_period) > PERIOD_TOLERANCE * meta.sample_period:
         msg = (f'the recordings are sampled every {data.sample_period * 1e3:.3g} ms, the model '
                f'{args.model} was trained at {meta.sample_period * 1e3:.3g} ms')
@@ -92,9 +87,9 @@ def run(args: argparse.Namespace) -> int:
                     test_start=0),
         error_low=np.array(norm['error_low']), error_high=np.array(norm['error_high']))
     predictions = {'persistence': persistence(data.error, ends), 'model': offline.predicted}
-    models = score(predictions, offline.actual, offline.stamps, problem.error_low,
-                   problem.error_high, args.gap_factor * data.sample_period)
-    report = base_report('evaluate', problem, data, sources, cleaning_config(args))
+    models = score_predictions(predictions, offline.actual, offline.stamps, problem.error_low,
+                               problem.error_high, inputs.cleaning.gap_factor * data.sample_period)
+    report = base_report('evaluate', problem, data, sources, inputs.cleaning)
     report.update(
         models=models, model_file=str(Path(args.model).resolve()), model_sha256=model.sha256,
         model_test_metrics=meta.test_metrics, **irreducible_fields(models, sources, meta.horizon),

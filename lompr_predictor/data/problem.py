@@ -17,6 +17,12 @@ import numpy as np
 from lompr_predictor.data.cleaning import CleanData
 from lompr_predictor.data.features import HISTORY
 
+#: Defaults of the learning problem, in one place (`lompr train` uses these).
+DEFAULT_WINDOW = 25  # samples per window
+DEFAULT_HORIZON = 1  # samples between a window's last row and the predicted one
+TEST_FRACTION = 0.1  # the chronologically last part of the samples: the test part
+VALIDATION_FRACTION = 0.15  # the last part of the rest: validation (tuning, early stopping)
+
 
 def window_ends(segments: np.ndarray, window: int, horizon: int) -> np.ndarray:
     """Indices of the last row of every window that, with its target `horizon` rows later
@@ -40,8 +46,8 @@ class Split:
 
 
 def chronological_split(n_rows: int, ends: np.ndarray, horizon: int, *,
-                        test_fraction: float = 0.1,
-                        validation_fraction: float = 0.15) -> Split:
+                        test_fraction: float = TEST_FRACTION,
+                        validation_fraction: float = VALIDATION_FRACTION) -> Split:
     """Split by time: the last `test_fraction` of the rows is the test part; the last
     `validation_fraction` of the rest validates. A window belongs to the part of its
     predicted row, and a training or validation window's target row always precedes the
@@ -96,8 +102,9 @@ class LearningProblem:
         return target - self.error[ends] if residual else target
 
 
-def build_problem(data: CleanData, window: int, horizon: int, *,
-                  test_fraction: float = 0.1, validation_fraction: float = 0.15) -> LearningProblem:
+def build_problem(data: CleanData, window: int = DEFAULT_WINDOW,
+                  horizon: int = DEFAULT_HORIZON, *, test_fraction: float = TEST_FRACTION,
+                  validation_fraction: float = VALIDATION_FRACTION) -> LearningProblem:
     """Windows, chronological split and training-range normalisation of `data`."""
     ends = window_ends(data.regular_runs(), window, horizon)
     split = chronological_split(len(data), ends, horizon, test_fraction=test_fraction,

@@ -15,6 +15,7 @@ For a prediction p and the actual error a on the test window, with the training 
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -56,13 +57,23 @@ def axis_metrics(predicted: np.ndarray, actual: np.ndarray, seconds: np.ndarray,
 
 
 def table_metrics(predicted: np.ndarray, actual: np.ndarray, stamps_ns: np.ndarray,
-                  low: np.ndarray, high: np.ndarray, max_step: float) -> dict[str, dict[str, float]]:
+                  low: np.ndarray, high: np.ndarray,
+                  max_step: float) -> dict[str, dict[str, float]]:
     """{axis: metrics} for (B, 2) predictions of the instants `stamps_ns` (int64 ns);
     t counts from the first of them."""
     seconds = seconds_since(stamps_ns)
     return {axis: axis_metrics(predicted[:, i], actual[:, i], seconds, float(low[i]),
                                float(high[i]), max_step)
             for i, axis in enumerate(TARGETS)}
+
+
+def score_predictions(predictions: Mapping[str, np.ndarray], actual: np.ndarray,
+                      stamps_ns: np.ndarray, low: np.ndarray, high: np.ndarray,
+                      max_step: float) -> dict[str, dict[str, Any]]:
+    """{model: {'metrics': Table 1 metrics per axis}} of each model's (B, 2) prediction of the
+    same instants: the `models` part of a report."""
+    return {name: {'metrics': table_metrics(predicted, actual, stamps_ns, low, high, max_step)}
+            for name, predicted in predictions.items()}
 
 
 def ratios(metrics: dict[str, dict[str, float]],

@@ -26,6 +26,9 @@ from lompr_predictor.files import atomic_file, file_sha256
 
 FORMAT_VERSION = 1
 METADATA_NAME = 'metadata.json'
+#: A module in the exported form (what `script_module` gives and model files hold); the
+#: type other modules name, so that the format stays this module's business.
+ExportedModule = torch.jit.ScriptModule
 
 
 class ModelFileError(LomprError):
@@ -91,7 +94,7 @@ class ModelMetadata:
 class LoadedModel:
     """A checked, warmed-up predictor ready for inference."""
 
-    module: torch.jit.ScriptModule
+    module: ExportedModule
     metadata: ModelMetadata
     path: str
     sha256: str
@@ -114,13 +117,37 @@ def library_versions() -> dict[str, str]:
     return versions
 
 
+def script_module(module: torch.nn.Module) -> ExportedModule:
+    """`module` in the exported form (TorchScript); a scripted module is returned as is."""
+    if isinstance(module, ExportedModule):
+        return module
+    scripted: ExportedModule = torch.jit.script(module)
+    return scripted
+
+
 def save_model(path: str | Path, module: torch.nn.Module, metadata: ModelMetadata) -> Path:
     """Script `module` and write it with its metadata to `path`, atomically."""
     path = Path(path)
-    scripted = module if isinstance(module, torch.jit.ScriptModule) else torch.jit.script(module)
     with atomic_file(path) as staging:
-        torch.jit.save(scripted, str(staging), _extra_files={METADATA_NAME: metadata.to_json()})
+        torch.jit.save(script_module(module), str(staging),
+                       _extra_files={METADATA_NAME: metadata.to_json()})
     return path
+
+
+def save_checkpoint(path: str | Path, module: torch.nn.Module) -> Path:
+    """Script `module` and write it to `path` without metadata, atomically: a tuning trial's
+    result, which `load_checkpoint` reads back exactly (architecture, weights, constants)."""
+    path = Path(path)
+    with atomic_file(path) as staging:
+        torch.jit.save(script_module(module), str(staging))
+    return path
+
+
+def load_checkpoint(path: str | Path) -> ExportedModule:
+    """A module written by `save_checkpoint`, on the CPU, in evaluation mode."""
+    module: ExportedModule = torch.jit.load(str(path), map_location='cpu')
+    module.eval()
+    return module
 
 
 def load_model(

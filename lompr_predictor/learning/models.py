@@ -4,7 +4,9 @@ wrapper that meets the model-file contract (`model_file.py`).
 Networks work on normalised tensors: feature columns mapped to [-1, 1] by their training
 min-max, the target likewise. `PredictorModule` wraps a network with those constants so
 that the exported module takes raw SI windows (float64, (B, window, features)) and returns
-the plant X/Y error [m] `horizon` samples after each window's last row.
+the plant X/Y error [m] `horizon` samples after each window's last row. The input map is
+defined once, `normalise_windows`; the module applies it in float64, and training applies
+it to rows scaled once in float32 (`ScaledRows`, the same map by distributivity).
 
 Learning problem (recorded in the model metadata):
 - LSTM: the target is the *change* of the error over the horizon, e(t+h) - e(t)
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, overload
 
 import numpy as np
 import torch
@@ -69,6 +72,10 @@ class MlpNet(nn.Module):
         return self.out(torch.sigmoid(self.hidden(x.flatten(1))))
 
 
+#: The paper's BP engineering defaults (issue 4): not tuned, the baseline as published.
+BP_HYPERPARAMETERS = {'batch_size': 1500, 'hidden': 35, 'learning_rate': 0.01}
+
+
 def build_network(model_type: str, n_features: int, window: int, hidden: int) -> nn.Module:
     """A network of `model_type` ('lstm' or 'mlp')."""
     if model_type == 'lstm':
@@ -85,6 +92,19 @@ def range_to_affine(low: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, np.n
     return 0.5 * (low + high), 0.5 * (high - low)
 
 
+def normalise_windows(windows: torch.Tensor, relative_mask: torch.Tensor, centre: torch.Tensor,
+                      inverse_half: torch.Tensor | None) -> torch.Tensor:
+    """The network's input map, the one definition (TorchScript-able): the masked columns
+    taken relative to the window's last row, then (x - centre) * inverse_half per column.
+
+    Without `inverse_half` the windows are taken as already scaled, with `centre` in the
+    same scaled units: (w * s) - (w * s)[last] * mask - centre * s equals
+    ((w - w[last] * mask) - centre) * s, which is how training uses it (`ScaledRows`).
+    """
+    shifted = windows - windows[:, -1:, :] * relative_mask - centre
+    return shifted if inverse_half is None else shifted * inverse_half
+
+
 class PredictorModule(nn.Module):
     """Raw SI windows (float64) -> predicted plant X/Y error [m]; TorchScript-able.
 
@@ -93,6 +113,15 @@ class PredictorModule(nn.Module):
     which neither the change over the horizon nor the noise filtering depends on, and which
     leaves the normalised inputs a finer resolution.
     """
+
+    if TYPE_CHECKING:  # the buffers, for the type checker only: TorchScript cannot resolve
+        # class-level annotations under `from __future__ import annotations`
+        feature_centre: torch.Tensor
+        feature_inverse_half: torch.Tensor
+        target_centre: torch.Tensor
+        target_half: torch.Tensor
+        relative_mask: torch.Tensor
+        error_columns: torch.Tensor
 
     def __init__(self, net: nn.Module, feature_low: np.ndarray, feature_high: np.ndarray,
                  target_low: np.ndarray, target_high: np.ndarray, *, residual: bool,
@@ -114,19 +143,59 @@ class PredictorModule(nn.Module):
         self.register_buffer('relative_mask', mask)
         self.register_buffer('error_columns', torch.tensor(error_columns, dtype=torch.long))
 
-    def inputs(self, windows: torch.Tensor) -> torch.Tensor:
-        """Raw windows with the error columns made relative to the last row (if set)."""
-        return windows - windows[:, -1:, :] * self.relative_mask
-
     def normalise(self, windows: torch.Tensor) -> torch.Tensor:
         """Raw float64 windows -> normalised float32 network input."""
-        return ((self.inputs(windows) - self.feature_centre) * self.feature_inverse_half).float()
+        return normalise_windows(windows, self.relative_mask, self.feature_centre,
+                                 self.feature_inverse_half).float()
+
+    def normalise_targets(self, targets: np.ndarray) -> torch.Tensor:
+        """(B, 2) training targets [m] -> the network's float32 targets: the inverse of the
+        output map in `forward` (not part of the scripted module)."""
+        scaled = (targets - self.target_centre.numpy()) / self.target_half.numpy()
+        return torch.from_numpy(scaled.astype(np.float32))
 
     def forward(self, windows: torch.Tensor) -> torch.Tensor:
         output = self.net(self.normalise(windows)).double() * self.target_half + self.target_centre
         if self.residual:
             output = output + windows[:, -1].index_select(1, self.error_columns)
         return output
+
+
+class ScaledRows:
+    """Feature rows scaled once by a module's inverse half ranges, in float32, from which
+    training gathers normalised windows with `normalise_windows` and no further product:
+    the module's own input map, to float32 rounding, at a fraction of the cost per batch."""
+
+    def __init__(self, module: PredictorModule, rows: np.ndarray) -> None:
+        scale = module.feature_inverse_half.numpy()
+        self.rows = torch.from_numpy((rows * scale).astype(np.float32))
+        self.relative_mask = module.relative_mask.float()
+        self.centre = torch.from_numpy((module.feature_centre.numpy() * scale).astype(np.float32))
+
+    def windows(self, ends: np.ndarray, window: int) -> torch.Tensor:
+        """(B, window, F) float32 network input of the windows ending at rows `ends`."""
+        return normalise_windows(gather_windows(self.rows, ends, window), self.relative_mask,
+                                 self.centre, None)
+
+
+def normalisation_metadata(module: Any, error_low: np.ndarray,
+                           error_high: np.ndarray) -> dict[str, Any]:
+    """The constants inside a `PredictorModule` (scripted or not) and the error's training
+    range (the metrics' scale), for the model file's metadata: for people and tools."""
+    def bounds(centre: torch.Tensor, half: torch.Tensor) -> tuple[list[float], list[float]]:
+        return (centre - half).tolist(), (centre + half).tolist()
+
+    feature_low, feature_high = bounds(module.feature_centre, 1.0 / module.feature_inverse_half)
+    target_low, target_high = bounds(module.target_centre, module.target_half)
+    relative = bool(module.relative_mask.any())
+    return {'input': ('window rows mapped to [-1, 1] by their training min-max; error columns '
+                      "taken relative to the window's last row first") if relative
+                     else 'window rows mapped to [-1, 1]',
+            'feature_low': feature_low, 'feature_high': feature_high,
+            'target': ('e(t+h) - e(t)' if module.residual else 'e(t+h)') + ', mapped to [-1, 1]',
+            'target_low': target_low, 'target_high': target_high,
+            'error_low': np.asarray(error_low).tolist(),
+            'error_high': np.asarray(error_high).tolist()}
 
 
 class NoChangeNet(nn.Module):
@@ -155,8 +224,14 @@ def persistence(error: np.ndarray, ends: np.ndarray) -> np.ndarray:
     return np.asarray(error)[ends]
 
 
-def gather_windows(rows: np.ndarray | torch.Tensor, ends: np.ndarray, window: int):  # type: ignore[no-untyped-def]
-    """(B, window, F) windows of `rows` ending at rows `ends` (inclusive)."""
+@overload
+def gather_windows(rows: torch.Tensor, ends: np.ndarray, window: int) -> torch.Tensor: ...
+@overload
+def gather_windows(rows: np.ndarray, ends: np.ndarray, window: int) -> np.ndarray: ...
+def gather_windows(rows: np.ndarray | torch.Tensor, ends: np.ndarray,
+                   window: int) -> np.ndarray | torch.Tensor:
+    """(B, window, F) windows of `rows` (an array or a tensor, the result alike) ending at
+    rows `ends` (inclusive)."""
     index = np.asarray(ends)[:, None] + np.arange(1 - window, 1)[None, :]
     return rows[index]
 

@@ -13,13 +13,18 @@ given as a multiple of it.
 from __future__ import annotations
 
 import json
+import sys
+import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from lompr_predictor.data.features import TARGETS
+from lompr_predictor.data.bags import BagSource
+from lompr_predictor.data.cleaning import CleanData, CleaningConfig
+from lompr_predictor.data.features import FEATURES, TARGETS
+from lompr_predictor.data.problem import LearningProblem
 from lompr_predictor.files import write_atomic, write_json
 from lompr_predictor.learning.metrics import METRIC_NAMES
 from lompr_predictor.plots import pyplot, save_figure
@@ -50,24 +55,57 @@ def irreducible_level(bags: Sequence[str | Path], horizon: int) -> dict[str, flo
     return None
 
 
+def base_report(command: str, problem: LearningProblem, data: CleanData,
+                sources: Sequence[BagSource], cleaning: CleaningConfig) -> dict[str, Any]:
+    """The fields every report has: the command, the bags, the data counts and cleaning, the
+    window, horizon and split, the error's training range."""
+    split = problem.split
+    return {
+        'command': command, 'argv': sys.argv,
+        'created_utc': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
+        'bags': [vars(s) for s in sources], 'counts': data.counts, 'cleaning': vars(cleaning),
+        'sample_period': problem.sample_period, 'window': problem.window,
+        'horizon': problem.horizon, 'features': list(FEATURES), 'targets': list(TARGETS),
+        'split': {'train': len(split.train), 'validation': len(split.validation),
+                  'test': len(split.test), 'validation_start_row': split.validation_start,
+                  'test_start_row': split.test_start},
+        'error_range_um': {axis: [problem.error_low[i] * 1e6, problem.error_high[i] * 1e6]
+                           for i, axis in enumerate(TARGETS)},
+    }
+
+
+def irreducible_fields(models: Mapping[str, Any], sources: Sequence[BagSource],
+                       horizon: int) -> dict[str, Any]:
+    """The twin's irreducible RMSE at `horizon` (when a bag carries its ground truth) and
+    each model's RMSE as a multiple of it; None for both without ground truth."""
+    irreducible = irreducible_level([s.path for s in sources if not s.skipped_reason], horizon)
+    return {'irreducible_rmse_um': irreducible,
+            'rmse_to_irreducible': None if irreducible is None else {
+                name: {axis: m['metrics'][axis]['rmse_um'] / irreducible[axis] for axis in TARGETS}
+                for name, m in models.items()}}
+
+
 def markdown(report: Mapping[str, Any]) -> str:
     """report.md: the Table 1 layout per axis, then data counts, times and tuning."""
     models = report['models']
     names = [n for n in ('persistence', 'bp', 'bo_lstm', 'model') if n in models]
     with_bp = 'bp' in models and 'bo_lstm' in models
+    horizon, period = report['horizon'], report['sample_period']
     lines = [f"# lompr {report['command']} report", '',
-             f"Horizon {report['horizon']} samples ({report['horizon'] * report['sample_period']:.3g} s), "
-             f"window {report['window']} samples, sample period {report['sample_period'] * 1e3:.3g} ms; "
+             f"Horizon {horizon} samples ({horizon * period:.3g} s), "
+             f"window {report['window']} samples, sample period {period * 1e3:.3g} ms; "
              + (f"test part: {report['split']['test']} windows (chronologically last 10 % of "
                 'the clean samples).' if report['command'] == 'train' else
                 f"scored on all {report['split']['test']} windows of the recordings."), '']
     irreducible = report.get('irreducible_rmse_um')
     for axis in TARGETS:
-        header = ['metric'] + [MODEL_LABELS[n] for n in names] + (['BO-LSTM / BP'] if with_bp else [])
+        header = ['metric', *[MODEL_LABELS[n] for n in names],
+                  *(['BO-LSTM / BP'] if with_bp else [])]
         lines += [f'## Axis {axis.upper()}', '', '| ' + ' | '.join(header) + ' |',
                   '|' + '---|' * len(header)]
         for metric in METRIC_NAMES:
-            row = [METRIC_LABELS[metric]] + [f"{models[n]['metrics'][axis][metric]:.4g}" for n in names]
+            row = [METRIC_LABELS[metric],
+                   *[f"{models[n]['metrics'][axis][metric]:.4g}" for n in names]]
             if with_bp:
                 ratio = report['ratios_to_bp'][axis][metric]
                 row.append('-' if ratio is None else f'{100 * ratio:.1f} %')
@@ -78,8 +116,8 @@ def markdown(report: Mapping[str, Any]) -> str:
             lines.append('| ' + ' | '.join(row + ([''] if with_bp else [])) + ' |')
         lines.append('')
     if irreducible:
-        lines += [f"Irreducible RMSE at this horizon (twin ground truth): X {irreducible['x']:.3g} um, "
-                  f"Y {irreducible['y']:.3g} um.", '']
+        lines += ['Irreducible RMSE at this horizon (twin ground truth): '
+                  f"X {irreducible['x']:.3g} um, Y {irreducible['y']:.3g} um.", '']
     lines += ['## Training and timing', '']
     for name in names:
         seconds = models[name].get('training_seconds')
@@ -139,8 +177,9 @@ def plot_tuning(path: Path, trials: Sequence[Mapping[str, Any]]) -> None:
     if valued:
         ax.semilogy([t['number'] for t in valued],
                     np.minimum.accumulate([t['value'] for t in valued]), '-', label='best so far')
-    groups = {'trained to the end': lambda t: t['state'] == 'COMPLETE' and not t.get('pruned_epoch'),
-              'stopped by the pruner': lambda t: t['state'] == 'PRUNED' or bool(t.get('pruned_epoch'))}
+    groups = {
+        'trained to the end': lambda t: t['state'] == 'COMPLETE' and not t.get('pruned_epoch'),
+        'stopped by the pruner': lambda t: t['state'] == 'PRUNED' or bool(t.get('pruned_epoch'))}
     for (label, member), marker in zip(groups.items(), ('o', 'x'), strict=False):
         chosen = [t for t in valued if member(t)]
         if chosen:

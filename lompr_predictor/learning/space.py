@@ -25,8 +25,9 @@ class SearchSpace:
     hidden_units: tuple[int, ...] = (5, 15, 35, 50)
     learning_rates: tuple[float, ...] = (0.1, 0.01, 0.001)
 
-    def suggest(self, trial: optuna.Trial) -> dict[str, Any]:
-        """The trial's hyperparameters: batch_size, hidden, learning_rate."""
+    def suggest(self, trial: optuna.trial.BaseTrial) -> dict[str, Any]:
+        """The trial's hyperparameters: batch_size, hidden, learning_rate (a `FixedTrial`
+        of a finished trial's params gives them back in the same form)."""
         return {'batch_size': int(trial.suggest_categorical('batch_size', list(self.batch_sizes))),
                 'hidden': int(trial.suggest_categorical('hidden', list(self.hidden_units))),
                 'learning_rate': float(trial.suggest_categorical(

@@ -4,7 +4,10 @@ One function, `train_network`, trains the LSTM (during tuning and at the end) an
 baseline alike, so their training times compare like for like. Each epoch reports the
 validation loss to an Optuna trial when given (which may prune it), the best epoch's
 weights are kept, and training stops after `patience` epochs without improvement.
-Everything is seeded: the same problem, hyperparameters and seed give the same model.
+Everything is seeded: the same problem, hyperparameters and seed give the same model. The
+torch thread count is the caller's (an entry point sets it, `threads.set_torch_threads`):
+one thread suits the small LSTM best on a loaded 2-core machine (measured at load 4: 7.5 ms
+per batch-600 step with one thread, 16.9 ms with two).
 """
 
 from __future__ import annotations
@@ -23,7 +26,12 @@ from tqdm import tqdm
 
 from lompr_predictor.data.features import FEATURES, TARGETS
 from lompr_predictor.data.problem import LearningProblem, minmax_range
-from lompr_predictor.learning.models import PredictorModule, build_network, gather_windows
+from lompr_predictor.learning.models import (
+    PredictorModule,
+    ScaledRows,
+    build_network,
+    gather_windows,
+)
 
 #: Defaults of the training loop, in one place.
 MAX_EPOCHS = 100
@@ -36,13 +44,11 @@ EVAL_BATCH = 8192
 
 @dataclass(frozen=True)
 class TrainSettings:
+    """What a training run decides beyond the hyperparameters (the same for every trial)."""
+
     max_epochs: int = MAX_EPOCHS
     patience: int = PATIENCE
     seed: int = 0
-    # One torch intra-op thread: the LSTM's matrices are small, and on a loaded 2-core
-    # machine two threads contend (measured at load 4: 7.5 ms per batch-600 step with one
-    # thread, 16.9 ms with two).
-    threads: int = 1
 
 
 @dataclass
@@ -89,23 +95,7 @@ def build_module(problem: LearningProblem, model_type: str, hidden: int, *, resi
                            relative_errors=relative_errors)
 
 
-class _FastInputs:
-    """The module's input normalisation, rewritten for training speed in float32 on rows
-    scaled once: normalise(w) = w * s - w[last] * mask * s - c * s (the same affine map as
-    `PredictorModule.normalise`, to float32 rounding)."""
-
-    def __init__(self, module: PredictorModule, rows: np.ndarray) -> None:
-        scale = module.feature_inverse_half.numpy()
-        self.scaled = torch.from_numpy((rows * scale).astype(np.float32))
-        self.last_mask = module.relative_mask.float()
-        self.offset = torch.from_numpy((module.feature_centre.numpy() * scale).astype(np.float32))
-
-    def windows(self, ends: np.ndarray, window: int) -> torch.Tensor:
-        x = gather_windows(self.scaled, ends, window)
-        return x - x[:, -1:, :] * self.last_mask - self.offset
-
-
-def validation_loss(net: nn.Module, inputs: _FastInputs, ends: np.ndarray,
+def validation_loss(net: nn.Module, inputs: ScaledRows, ends: np.ndarray,
                     targets: torch.Tensor, window: int) -> float:
     """Mean squared error of `net` on normalised targets, in batches without gradients."""
     total = 0.0
@@ -137,7 +127,6 @@ def train_network(
     GP sampler learns nothing from a pruned trial and would propose the same point again,
     whereas a stopped trial's (poor) loss steers it away.
     """
-    torch.set_num_threads(settings.threads)
     torch.manual_seed(settings.seed)
     rng = np.random.default_rng(settings.seed)
     window, split = problem.window, problem.split
@@ -145,11 +134,9 @@ def train_network(
     module = build_module(problem, model_type, int(hyperparameters['hidden']), residual=residual,
                           relative_errors=relative_errors)
     net = module.net
-    inputs = _FastInputs(module, problem.rows)
-    train_y, validation_y = (
-        torch.from_numpy(((problem.targets(ends, residual) - module.target_centre.numpy())
-                          / module.target_half.numpy()).astype(np.float32))
-        for ends in (split.train, split.validation))
+    inputs = ScaledRows(module, problem.rows)
+    train_y, validation_y = (module.normalise_targets(problem.targets(ends, residual))
+                             for ends in (split.train, split.validation))
     optimiser = torch.optim.Adam(net.parameters(), lr=float(hyperparameters['learning_rate']))
     scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
         optimiser, factor=LR_DECAY, patience=LR_DECAY_PATIENCE)

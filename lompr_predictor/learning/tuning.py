@@ -8,7 +8,8 @@ the command line widens or changes it. Trials are pruned on the validation loss
 A study lives in an Optuna storage: by default a SQLite file in the report folder, opened
 with `load_if_exists`, so a run interrupted by Ctrl-C resumes with the same command and
 loses no finished trial; an RDB URL (`postgresql://...`) lets several machines share one
-study. `run_study` runs only what the budget still lacks.
+study. `run_study` runs only what the budget still lacks. What a trial does is the
+objective's business (`objective.py` trains a network); this module knows studies only.
 """
 
 from __future__ import annotations
@@ -34,6 +35,8 @@ STARTUP_TRIALS = 6
 PRUNER_STARTUP_TRIALS = 5
 PRUNER_WARMUP_EPOCHS = 15
 STUDY_FILE = 'study.sqlite3'
+#: User attribute of a trial that repeated an earlier complete trial's point (its number).
+DUPLICATE_OF = 'duplicate_of'
 
 
 def default_storage(folder: str | Path) -> str:
@@ -89,7 +92,8 @@ def run_study(study: optuna.Study, objective: Callable[[optuna.Trial], float], n
 
     def advance(study: optuna.Study, trial: optuna.trial.FrozenTrial) -> None:
         bar.update(1)
-        if trial.state == optuna.trial.TrialState.COMPLETE and study.best_trial.number == trial.number:
+        complete = trial.state == optuna.trial.TrialState.COMPLETE
+        if complete and study.best_trial.number == trial.number:
             bar.set_postfix(best=f'{trial.value:.3g}')
 
     try:
@@ -112,8 +116,18 @@ def history(study: optuna.Study) -> list[dict[str, Any]]:
 def finished_twin(study: optuna.Study, trial: optuna.Trial) -> optuna.trial.FrozenTrial | None:
     """An earlier complete trial with exactly this trial's parameters, if any: with a
     categorical space the sampler may propose a point again, and a seeded training run
-    would only repeat its result."""
+    would only repeat its result. The objective returns the twin's value and marks the trial
+    `DUPLICATE_OF` the twin."""
     for other in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,)):
         if other.number != trial.number and other.params == trial.params:
             return other
     return None
+
+
+def best_trial(study: optuna.Study) -> optuna.trial.FrozenTrial:
+    """The study's best trial, or the trial it duplicated (`DUPLICATE_OF`): the one that
+    trained a model."""
+    best = study.best_trial
+    if DUPLICATE_OF in best.user_attrs:
+        return study.trials[int(best.user_attrs[DUPLICATE_OF])]
+    return best

@@ -1,0 +1,47 @@
+"""Options and steps the subcommands share: which bags and how to clean them, threads."""
+
+from __future__ import annotations
+
+import argparse
+
+from lompr_predictor.data.bags import DEFAULT_JOINT_TOPIC, DEFAULT_REFERENCE_TOPIC
+from lompr_predictor.data.cleaning import (
+    GAP_FACTOR,
+    HAMPEL_HALF_WINDOW,
+    HAMPEL_THRESHOLD,
+    CleaningConfig,
+)
+from lompr_predictor.data.loading import BagInputs
+
+
+def add_data_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options shared by train and evaluate: topics, bad bags, cleaning, description."""
+    parser.add_argument('--joint-topic', default=DEFAULT_JOINT_TOPIC)
+    parser.add_argument('--reference-topic', default=DEFAULT_REFERENCE_TOPIC)
+    parser.add_argument('--skip-bad', action='store_true',
+                        help='skip a corrupt or truncated bag (listed in the report) '
+                             'instead of stopping')
+    parser.add_argument('--robot-description', default=None,
+                        help='URDF file (default: the packaged LOMPR description)')
+    parser.add_argument('--gap-factor', type=float, default=GAP_FACTOR,
+                        help='a step longer than this many sample periods splits the data')
+    parser.add_argument('--hampel-window', type=int, default=HAMPEL_HALF_WINDOW,
+                        help='half window of the Hampel spike filter [samples]')
+    parser.add_argument('--hampel-threshold', type=float, default=HAMPEL_THRESHOLD,
+                        help='spike threshold in robust sigmas')
+    parser.add_argument('--threads', type=int, default=1,
+                        help='torch intra-op threads (default 1: faster on a loaded machine)')
+    parser.add_argument('--quiet', action='store_true', help='no progress bars')
+
+
+def cleaning_config(args: argparse.Namespace) -> CleaningConfig:
+    """The cleaning rules of `add_data_arguments`' options."""
+    return CleaningConfig(gap_factor=args.gap_factor, hampel_half_window=args.hampel_window,
+                          hampel_threshold=args.hampel_threshold)
+
+
+def bag_inputs(args: argparse.Namespace, bags: list[str]) -> BagInputs:
+    """`bags` with the topics, bad-bag policy and cleaning rules of the options."""
+    return BagInputs(bags=tuple(bags), joint_topic=args.joint_topic,
+                     reference_topic=args.reference_topic, skip_bad=args.skip_bad,
+                     cleaning=cleaning_config(args))

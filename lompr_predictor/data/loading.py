@@ -1,0 +1,38 @@
+"""Which recordings a run reads and how it cleans them, and the read-then-clean step itself:
+what `lompr train` and `lompr evaluate` share before their data diverge.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from lompr_predictor.data.bags import (
+    DEFAULT_JOINT_TOPIC,
+    DEFAULT_REFERENCE_TOPIC,
+    BagSource,
+    read_bags,
+)
+from lompr_predictor.data.cleaning import CleanData, CleaningConfig, clean_recordings
+from lompr_predictor.robot.description import LomprGeometry
+
+
+@dataclass(frozen=True)
+class BagInputs:
+    """rosbag2 directories, the topics to read, what to do with a bad bag, the cleaning
+    rules."""
+
+    bags: tuple[str, ...]
+    joint_topic: str = DEFAULT_JOINT_TOPIC
+    reference_topic: str = DEFAULT_REFERENCE_TOPIC
+    skip_bad: bool = False  # a bad bag is left out whole and listed, instead of stopping
+    cleaning: CleaningConfig = field(default_factory=CleaningConfig)
+
+
+def load_clean_data(inputs: BagInputs,
+                    geometry: LomprGeometry) -> tuple[CleanData, list[BagSource]]:
+    """Read the bags whole (`bags.read_bags`) and clean them (`cleaning.clean_recordings`);
+    the sources list every bag, used or skipped."""
+    recordings, sources = read_bags(inputs.bags, joint_topic=inputs.joint_topic,
+                                    reference_topic=inputs.reference_topic,
+                                    skip_bad=inputs.skip_bad)
+    return clean_recordings(recordings, geometry, inputs.cleaning), sources

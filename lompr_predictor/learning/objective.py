@@ -1,0 +1,101 @@
+"""The tuning study's objective: train one network at a trial's point, keep its checkpoint.
+
+`NetworkObjective` is a plain value (the study, the learning problem, the search space, the
+training settings, the checkpoint folder) whose call trains the network a trial proposes
+and returns its best validation loss, the value the study minimises:
+
+- a point the study has already finished is not trained again: the trial takes its twin's
+  value and is marked `tuning.DUPLICATE_OF` it (a seeded run would only repeat it);
+- each epoch's validation loss goes to the trial (`training.train_network`), whose pruner
+  may stop it; a stopped trial returns its best loss so far (see `train_network`);
+- the trained module is written as a checkpoint named by the study and the trial number
+  (unique within a study, whichever process or machine ran it), and the trial's user
+  attributes record its path, training time, best epoch and the epoch it was stopped at;
+- `model_of` gives a finished trial's module back: its checkpoint, or the same seeded
+  training again when the trial ran elsewhere (a study shared through an RDB storage).
+
+Nothing is held between calls but the study's own storage, so a resumed study or another
+process working on the same study builds the same objective and carries on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import optuna
+
+from lompr_predictor.data.problem import LearningProblem
+from lompr_predictor.learning.model_file import (
+    ExportedModule,
+    load_checkpoint,
+    save_checkpoint,
+    script_module,
+)
+from lompr_predictor.learning.space import SearchSpace
+from lompr_predictor.learning.training import TrainedModel, TrainSettings, train_network
+from lompr_predictor.learning.tuning import DUPLICATE_OF, finished_twin
+
+#: Folder of the trials' checkpoints inside a report folder.
+CHECKPOINT_FOLDER = 'trials'
+
+
+def checkpoint_path(folder: str | Path, study_name: str, trial_number: int) -> Path:
+    """Where trial `trial_number` of study `study_name` keeps its trained module."""
+    return Path(folder) / f'{study_name}-{trial_number}.pt'
+
+
+@dataclass(frozen=True, eq=False)
+class NetworkObjective:
+    """Optuna objective training a `model_type` network (module docstring)."""
+
+    study: optuna.Study
+    problem: LearningProblem
+    space: SearchSpace
+    settings: TrainSettings
+    checkpoints: Path  # folder of the trials' checkpoints
+    model_type: str = 'lstm'
+    progress: bool = False
+
+    def __call__(self, trial: optuna.Trial) -> float:
+        params = self.space.suggest(trial)
+        twin = finished_twin(self.study, trial)
+        if twin is not None and twin.value is not None:
+            trial.set_user_attr(DUPLICATE_OF, twin.number)
+            return twin.value
+        trained = self.train(params, trial=trial, label=f'trial {trial.number}')
+        path = save_checkpoint(self.checkpoint(trial.number), trained.module)
+        trial.set_user_attr('checkpoint', str(path.resolve()))
+        trial.set_user_attr('training_seconds', trained.seconds)
+        trial.set_user_attr('best_epoch', trained.best_epoch)
+        if trained.pruned_epoch:
+            trial.set_user_attr('pruned_epoch', trained.pruned_epoch)
+        return trained.validation_loss
+
+    def train(self, params: Mapping[str, Any], *, trial: optuna.Trial | None = None,
+              label: str = '') -> TrainedModel:
+        """Train the network at `params` (reporting to `trial` when given)."""
+        return train_network(self.problem, self.model_type, params, self.settings, trial=trial,
+                             progress=self.progress, label=label)
+
+    def checkpoint(self, trial_number: int) -> Path:
+        """This study's checkpoint path of trial `trial_number`."""
+        return checkpoint_path(self.checkpoints, self.study.study_name, trial_number)
+
+    def params_of(self, trial: optuna.trial.FrozenTrial) -> dict[str, Any]:
+        """A finished trial's hyperparameters, in the form `space.suggest` gives them."""
+        return self.space.suggest(optuna.trial.FixedTrial(trial.params))
+
+    def model_of(self, trial: optuna.trial.FrozenTrial) -> tuple[ExportedModule, float]:
+        """A finished trial's trained module (scripted, evaluation mode) and its training time
+        [s]: read from its checkpoint, or trained again here when the checkpoint is not on
+        this machine (the trial ran on another one sharing the study)."""
+        checkpoint = Path(trial.user_attrs.get('checkpoint', ''))
+        if checkpoint.is_file():
+            return load_checkpoint(checkpoint), float(trial.user_attrs['training_seconds'])
+        retrained = self.train(self.params_of(trial), label=f'trial {trial.number} again')
+        module = script_module(retrained.module)
+        module.eval()
+        return module, retrained.seconds
