@@ -20,33 +20,36 @@ from __future__ import annotations
 
 import os
 
-for _variable in ('OMP_NUM_THREADS', 'MKL_NUM_THREADS', 'OPENBLAS_NUM_THREADS'):
-    os.environ[_variable] = '1'
+# One BLAS/OpenMP thread, set before numpy and torch are imported (they read it then).
+os.environ['OMP_NUM_THREADS'] = '1'
+os.environ['MKL_NUM_THREADS'] = '1'
+os.environ['OPENBLAS_NUM_THREADS'] = '1'
 
-import argparse  # noqa: E402
-import signal  # noqa: E402
-import subprocess  # noqa: E402
-import sys  # noqa: E402
-import tempfile  # noqa: E402
-import threading  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
 
-import numpy as np  # noqa: E402
-import rclpy  # noqa: E402
-import torch  # noqa: E402
-from geometry_msgs.msg import PoseStamped, Vector3Stamped  # noqa: E402
-from rclpy.context import Context  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
+import numpy as np
+import rclpy
+import torch
+from geometry_msgs.msg import PoseStamped, Vector3Stamped
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
 
-from lompr_predictor.data.features import FEATURES, HISTORY, TARGETS  # noqa: E402
-from lompr_predictor.learning.model_file import ModelMetadata, load_model, save_model  # noqa: E402
-from lompr_predictor.learning.models import build_network  # noqa: E402
-from lompr_predictor.robot.description import MEASURED_JOINTS, load_robot_description  # noqa: E402
-from lompr_predictor.robot.kinematics import inverse_kinematics  # noqa: E402
-from lompr_predictor.ros.domain import isolate_ros_domain  # noqa: E402
+from lompr_predictor.data.features import FEATURES, HISTORY, TARGETS
+from lompr_predictor.learning.model_file import ModelMetadata, load_model, save_model
+from lompr_predictor.learning.models import build_network
+from lompr_predictor.robot.description import MEASURED_JOINTS, load_robot_description
+from lompr_predictor.robot.kinematics import inverse_kinematics
+from lompr_predictor.ros.domain import isolate_ros_domain
+from lompr_predictor.threads import set_torch_threads
 
 WINDOW, HORIZON, HIDDEN = 25, 1, 50
 RATES = (25, 250, 1000)
@@ -64,8 +67,9 @@ class TimingModule(torch.nn.Module):
     def __init__(self) -> None:
         super().__init__()
         self.net = build_network('lstm', len(FEATURES), WINDOW, HIDDEN)
-        self.register_buffer('scale', torch.full((len(FEATURES),), 10.0, dtype=torch.float64))
-        self.register_buffer('target_scale', torch.full((2,), 1e-4, dtype=torch.float64))
+        # plain tensor attributes (TorchScript keeps them), typed as tensors for mypy
+        self.scale = torch.full((len(FEATURES),), 10.0, dtype=torch.float64)
+        self.target_scale = torch.full((2,), 1e-4, dtype=torch.float64)
 
     def forward(self, windows: torch.Tensor) -> torch.Tensor:
         output = self.net((windows * self.scale).float()).double() * self.target_scale
@@ -85,8 +89,7 @@ def default_model(path: Path, sample_period: float) -> Path:
 
 
 def bench_inference(path: Path) -> np.ndarray:
-    """Per-call times [s] of one-window inference."""
-    torch.set_num_threads(1)
+    """Per-call times [s] of one-window inference (one torch thread: `main` sets it)."""
     model = load_model(path)
     window = torch.from_numpy(np.random.default_rng(0).normal(size=(1, WINDOW, len(FEATURES))))
     for _ in range(200):
@@ -172,8 +175,9 @@ def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path) -> dict[
         deadline = time.monotonic() + DISCOVERY_TIMEOUT
         while not client.discovered():
             if time.monotonic() > deadline or any(p.poll() is not None for p in processes):
-                errors = ' | '.join((p.stderr.read() if p.poll() is not None else '')[-300:]
-                                    for p in processes)
+                errors = ' | '.join(
+                    (p.stderr.read() if p.stderr is not None and p.poll() is not None
+                     else '')[-300:] for p in processes)
                 msg = f'{mode} at {rate} Hz: nodes not discovered ({errors})'
                 raise RuntimeError(msg)
             executor.spin_once(timeout_sec=0.05)
@@ -246,6 +250,7 @@ def main() -> int:
     parser.add_argument('--seconds', type=float, default=4.0,
                         help='input duration per rate and mode [s] (25 Hz runs at least 8 s)')
     args = parser.parse_args()
+    set_torch_threads(1)  # as the predictor node's executable does by default
     isolate_ros_domain()  # this bench talks only to itself
     failures = []
     with tempfile.TemporaryDirectory() as directory:

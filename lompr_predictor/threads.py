@@ -9,6 +9,9 @@ faster on one thread when another job shares the machine.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 
 def set_torch_threads(threads: int) -> None:
     """torch intra-op threads for this process (torch is imported here, on first use)."""
@@ -18,3 +21,17 @@ def set_torch_threads(threads: int) -> None:
         msg = f'threads must be >= 1, got {threads}'
         raise ValueError(msg)
     torch.set_num_threads(threads)
+
+
+@contextmanager
+def torch_threads(threads: int) -> Iterator[None]:
+    """`set_torch_threads(threads)` for the `with` block, the previous count restored after:
+    for an entry point that runs inside a longer process (a closed loop within the demo)."""
+    import torch
+
+    previous = torch.get_num_threads()
+    set_torch_threads(threads)
+    try:
+        yield
+    finally:
+        set_torch_threads(previous)

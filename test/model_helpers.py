@@ -6,7 +6,9 @@ are deterministic, so a test can compute the expected prediction by hand.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -21,8 +23,9 @@ class LinearWindowModel(torch.nn.Module):
 
     def __init__(self, weight: np.ndarray, bias: np.ndarray) -> None:
         super().__init__()
-        self.register_buffer('weight', torch.tensor(weight, dtype=torch.float64))
-        self.register_buffer('bias', torch.tensor(bias, dtype=torch.float64))
+        # plain tensor attributes (TorchScript keeps them), typed as tensors for mypy
+        self.weight = torch.tensor(weight, dtype=torch.float64)
+        self.bias = torch.tensor(bias, dtype=torch.float64)
 
     def forward(self, windows: torch.Tensor) -> torch.Tensor:
         return windows.flatten(1) @ self.weight + self.bias
@@ -41,17 +44,15 @@ class FailingModel(torch.nn.Module):
         return torch.zeros((windows.shape[0], 2), dtype=torch.float64)
 
 
-def metadata(window: int = 4, horizon: int = 3, sample_period: float = 0.04,
-             robot_sha256: str | None = None, model_type: str = 'linear',
-             **overrides: object) -> ModelMetadata:
-    """Metadata for a test model (robot description: the packaged URDF)."""
-    values: dict[str, object] = dict(
-        features=FEATURES, window=window, horizon=horizon, sample_period=sample_period,
-        targets=TARGETS, normalisation={}, model_type=model_type, hyperparameters={},
+def metadata(robot_sha256: str | None = None, **overrides: Any) -> ModelMetadata:
+    """Metadata for a test model: window 4, horizon 3, 0.04 s, the packaged URDF, unless
+    `overrides` (ModelMetadata fields) say otherwise."""
+    base = ModelMetadata(
+        features=FEATURES, window=4, horizon=3, sample_period=0.04, targets=TARGETS,
+        normalisation={}, model_type='linear', hyperparameters={},
         robot_description_sha256=robot_sha256 or load_robot_description().sha256,
         training_bags=(), seed=0, library_versions={'torch': torch.__version__})
-    values.update(overrides)
-    return ModelMetadata(**values)  # type: ignore[arg-type]
+    return dataclasses.replace(base, **overrides)
 
 
 def error_follower_weights(window: int, gain: float = 1.0) -> np.ndarray:
@@ -65,17 +66,17 @@ def error_follower_weights(window: int, gain: float = 1.0) -> np.ndarray:
     return weight.reshape(window * len(FEATURES), 2)
 
 
-def save_linear(path: Path, weight: np.ndarray | None = None, bias=(0.0, 0.0),  # type: ignore[no-untyped-def]
-                **meta: object) -> Path:
+def save_linear(path: Path, weight: np.ndarray | None = None,
+                bias: tuple[float, float] | np.ndarray = (0.0, 0.0), **meta: Any) -> Path:
     """Save a `LinearWindowModel` (default: `error_follower_weights`) with test metadata."""
-    info = metadata(**meta)  # type: ignore[arg-type]
+    info = metadata(**meta)
     if weight is None:
         weight = error_follower_weights(info.window)
     return save_model(path, LinearWindowModel(weight, np.asarray(bias, dtype=float)), info)
 
 
-def save_constant(path: Path, value=(0.0, 0.0), **meta: object) -> Path:  # type: ignore[no-untyped-def]
+def save_constant(path: Path, value: tuple[float, float] = (0.0, 0.0), **meta: Any) -> Path:
     """A model whose prediction is always `value` [m]."""
-    info = metadata(**meta)  # type: ignore[arg-type]
+    info = metadata(**meta)
     weight = np.zeros((info.window * len(FEATURES), 2))
     return save_model(path, LinearWindowModel(weight, np.asarray(value, dtype=float)), info)

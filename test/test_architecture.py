@@ -95,3 +95,14 @@ def test_lompr_help_loads_neither_torch_nor_optuna(command: list[str]) -> None:
     result = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True,
                             timeout=60, check=True)
     assert 'HEAVY []' in result.stdout, result.stdout[-500:]
+
+
+def test_package_xml_lists_exactly_the_ros_packages_the_code_imports() -> None:
+    """Each ROS package imported by lompr_predictor is an exec_depend, and each ROS
+    exec_depend is imported (rosdep installs what package.xml lists, nothing else)."""
+    import xml.etree.ElementTree as ElementTree
+
+    imported = {name.split('.')[0] for path in SOURCES for name in imports_of(path)}
+    root = ElementTree.parse(PACKAGE.parent / 'package.xml').getroot()
+    exec_depends = {element.text for element in root.iter('exec_depend')}
+    assert {name for name in exec_depends if name in ROS_MODULES} == imported & ROS_MODULES

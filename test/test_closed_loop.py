@@ -19,6 +19,7 @@ import pytest
 
 from lompr_predictor.data.features import HISTORY, feature_rows
 from lompr_predictor.learning.model_file import load_model
+from lompr_predictor.robot.description import RobotDescription
 from lompr_predictor.scoring.loops import (
     LOOP_PLOT,
     common_instants,
@@ -52,7 +53,7 @@ LOOP_SEED = 2
 NOISE_UM = 0.87  # RMS of the default twin's measurement noise at the tool tip
 
 
-def fit_ridge_model(path: Path, description) -> Path:  # type: ignore[no-untyped-def]
+def fit_ridge_model(path: Path, description: RobotDescription) -> Path:
     """A linear window model of e(t+1), least squares on 4 uncompensated passes."""
     sim = simulate(description, load_twin_parameters(), passes=4, seed=1)
     seconds = (sim.stamps - sim.stamps[0]) * 1e-9
@@ -72,7 +73,8 @@ def fit_ridge_model(path: Path, description) -> Path:  # type: ignore[no-untyped
 
 
 @pytest.fixture(scope='module')
-def loops(tmp_path_factory, description) -> dict[str, LoopRun]:  # type: ignore[no-untyped-def]
+def loops(tmp_path_factory: pytest.TempPathFactory,
+          description: RobotDescription) -> dict[str, LoopRun]:
     """The three loops, and the model loop switched off in the middle of its scored pass."""
     folder = tmp_path_factory.mktemp('closed_loop')
     model = fit_ridge_model(folder / 'ridge.pt', description)
@@ -137,7 +139,7 @@ def test_loop_figures_and_reductions_against_hand_computed_values() -> None:
             'worse: [1]') in table
 
 
-def test_true_error_floor_is_the_drift_innovation_only(description) -> None:  # type: ignore[no-untyped-def]
+def test_true_error_floor_is_the_drift_innovation_only(description: RobotDescription) -> None:
     params = load_twin_parameters()
     sim = simulate(description, params, passes=1, seed=3)
     floor = true_error_floor(sim, 1)

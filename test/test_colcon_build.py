@@ -69,7 +69,7 @@ def test_installed_kinematics_node_help(install: Path) -> None:
                             capture_output=True, text=True, timeout=PROCESS_TIMEOUT)
     assert result.returncode == 0, result.stderr
     assert 'robot_description_file' in result.stdout
-    assert 'input_qos_reliability' in result.stdout
+    assert 'qos_overrides./joint_states.subscription.{history,depth,reliability}' in result.stdout
 
 
 def test_installed_kinematics_node_starts_and_stops_on_sigint(install: Path) -> None:

@@ -76,7 +76,7 @@ class Wiring:
 
 def test_known_poses_round_trip_with_same_stamp(
         ros: RosHarness, description: RobotDescription) -> None:
-    wiring = Wiring(ros)
+    wiring = Wiring(ros, solve_time_warn=10.0)  # the level must not depend on the load
     joints = inverse_kinematics(description.geometry, KNOWN_TIPS).joints
     sent = [joint_state(1000.0 + 0.04 * i, row) for i, row in enumerate(joints)]
     wiring.publish(sent)
@@ -139,7 +139,20 @@ def test_bad_inputs_are_dropped_counted_and_next_good_answered(
         reason: expected.get(reason, 0) for reason in REJECTION_REASONS}
     assert wiring.node.rejected.counts() == {r: expected.get(r, 0) for r in REJECTION_REASONS}
     # The 1.84 s gap between 10.16 and 12.00 restarted the warm start once.
-    assert wiring.status('forward kinematics')['warm_start_resets'] == '1'
+    kinematics = wiring.status('forward kinematics')
+    assert kinematics is not None and kinematics['warm_start_resets'] == '1'
+
+
+def test_solve_times_over_the_threshold_warn(
+        ros: RosHarness, description: RobotDescription) -> None:
+    wiring = Wiring(ros, solve_time_warn=1e-6)  # no solve takes under a microsecond
+    joints = inverse_kinematics(description.geometry, KNOWN_TIPS[:2]).joints
+    wiring.publish([joint_state(3.0 + 0.04 * i, row) for i, row in enumerate(joints)])
+    ros.spin_until(lambda: (wiring.status('forward kinematics') or {}).get(
+        'published_total') == '2', what='diagnostics of both solves')
+    kinematics = wiring.status('forward kinematics')
+    assert kinematics is not None and kinematics['_level'] == DiagnosticStatus.WARN
+    assert str(kinematics['_message']).endswith('(over 1 us)')
 
 
 def test_renamed_joints_and_bad_joint_names_parameter(
@@ -182,3 +195,28 @@ def test_a_sensor_data_publisher_is_heard_by_default(
         publisher.publish(joint_state(2000.0 + 0.04 * i, row))
     ros.spin_until(lambda: len(poses) == 2, what='end poses of best-effort joint states')
     assert node.rejected.total == 0
+
+
+def test_input_qos_is_overridable_by_parameters(ros: RosHarness) -> None:
+    """QoS comes from rclpy's QoSOverridingOptions: `qos_overrides.<topic>.<kind>.<policy>`,
+    read-only parameters, reach the middleware (the graph reports the endpoint's QoS)."""
+    from rclpy.qos import ReliabilityPolicy
+
+    node = ros.add(KinematicsNode(context=ros.context, parameter_overrides=[
+        Parameter('qos_overrides./joint_states.subscription.reliability', value='reliable'),
+        Parameter('qos_overrides./joint_states.subscription.depth', value=5),
+        Parameter('qos_overrides./lompr/end_pose.publisher.reliability',
+                  value='best_effort')]))
+
+    def graph(kind: str, topic: str) -> list[ReliabilityPolicy]:
+        infos = (node.get_subscriptions_info_by_topic(topic) if kind == 'subscription'
+                 else node.get_publishers_info_by_topic(topic))
+        return [info.qos_profile.reliability for info in infos
+                if info.node_name == 'kinematics_node']
+
+    ros.spin_until(lambda: graph('subscription', '/joint_states') == [
+        ReliabilityPolicy.RELIABLE], what='a reliable joint state subscription in the graph')
+    assert graph('publisher', '/lompr/end_pose') == [ReliabilityPolicy.BEST_EFFORT]
+    assert node._subscription.qos_profile.depth == 5
+    assert not node.set_parameters([Parameter(
+        'qos_overrides./joint_states.subscription.depth', value=50)])[0].successful

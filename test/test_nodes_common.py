@@ -1,72 +1,249 @@
-"""Shared node helpers: parameter declaration, QoS from parameters, diagnostics, run_node."""
+"""The shared ROS layer: settings from one declaration, the node base (plain and lifecycle
+node), QoS overrides, the callback-exception policy, diagnostics, run_node."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any
+
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import Vector3Stamped
 from rclpy.exceptions import InvalidParameterValueException
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import ReliabilityPolicy
+from rclpy.qos import HistoryPolicy, ReliabilityPolicy
 from ros_helpers import RosHarness
 
 from lompr_predictor.monitoring import Level, Status
-from lompr_predictor.ros.common import (
-    DiagnosticsPublisher,
-    ParameterSpec,
-    declare_parameters,
-    qos_from_parameters,
-    qos_parameter_specs,
-    run_node,
+from lompr_predictor.ros.common import DiagnosticsPublisher, run_node
+from lompr_predictor.ros.node_base import (
+    DIAGNOSTICS_QOS,
+    OUTPUT_QOS,
+    SENSOR_INPUT_QOS,
+    Endpoint,
+    NodeBase,
+    QosOverrideError,
+    node_help,
 )
+from lompr_predictor.ros.parameters import declare_settings, parameter, parameter_specs
 
 pytestmark = pytest.mark.ros
 
-SPECS = [
-    ParameterSpec('period', 1.0, 'a period [s]', minimum=0.1, maximum=10.0),
-    ParameterSpec('count', 5, 'a count', minimum=1, maximum=100, read_only=True),
-    ParameterSpec('name', 'abc', 'a free string'),
-    *qos_parameter_specs('input', depth=50, what='the input topic'),
-]
+
+def _even(value: int) -> str:
+    return '' if value % 2 == 0 else 'must be even'
 
 
-def make_node(ros: RosHarness, name: str = 'common_test', **overrides: object) -> Node:
-    return ros.add(Node(name, context=ros.context, parameter_overrides=[
-        Parameter(name, value=value) for name, value in overrides.items()]))
+@dataclass(frozen=True)
+class ToySettings:
+    period: float = parameter(1.0, 'a period [s]', minimum=0.1, maximum=10.0)
+    count: int = parameter(4, 'a count', minimum=0, maximum=100, read_only=True, check=_even)
+    mode: str = parameter('fast', 'a mode', choices=('fast', 'slow'))
+    names: tuple[str, ...] = parameter(('a', 'b'), 'some names', read_only=True)
+    input_topic: str = parameter('/toy_in', 'input topic', read_only=True)
+    output_topic: str = parameter('/toy_out', 'output topic', read_only=True)
+    diagnostics_topic: str = parameter('/toy_diagnostics', 'diagnostics topic',
+                                       read_only=True)
 
 
-def test_declare_parameters_sets_descriptors_and_returns_values(ros: RosHarness) -> None:
-    node = make_node(ros, period=2.5)
-    values = declare_parameters(node, SPECS)
-    assert values == {'period': 2.5, 'count': 5, 'name': 'abc', 'input_depth': 50,
-                      'input_reliability': 'reliable'}
+TOY_INPUT = Endpoint('subscription', Vector3Stamped, 'input_topic', SENSOR_INPUT_QOS,
+                     'toy input')
+TOY_OUTPUT = Endpoint('publisher', Vector3Stamped, 'output_topic', OUTPUT_QOS, 'toy output')
+
+
+class ToyNode(NodeBase[ToySettings], Node):
+    """Echoes its input; raises on a message with x < 0 (a callback failure)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('toy', **kwargs)
+        self.declare_settings(ToySettings)
+        self.applied: list[frozenset[str]] = []
+        self.failures: list[str] = []
+        self.output = self.advertise(TOY_OUTPUT)
+        self.input = self.subscribe(TOY_INPUT, self.on_input)
+
+    def on_input(self, msg: Vector3Stamped) -> None:
+        if msg.vector.x < 0:
+            raise ValueError(f'negative x {msg.vector.x}')
+        self.output.publish(msg)
+
+    def validate_settings(self, changes: dict[str, Any]) -> str:
+        if changes.get('period') == 9.0:
+            raise RuntimeError('validation blew up')
+        return 'slow needs a period of 2 s or more' if (
+            changes.get('mode') == 'slow' and changes.get('period', self.settings.period) < 2
+        ) else ''
+
+    def apply_settings(self, previous: ToySettings, changed: frozenset[str]) -> None:
+        self.applied.append(changed)
+        if self.settings.period == 7.0:
+            raise RuntimeError('apply blew up')
+
+    def on_callback_failure(self, where: str) -> None:
+        self.failures.append(where)
+        if len(self.failures) == 2:
+            raise RuntimeError('the hook fails too')
+
+
+def overrides(**values: object) -> list[Parameter]:
+    return [Parameter(name, value=value) for name, value in values.items()]
+
+
+def test_settings_are_declared_with_descriptors_from_one_declaration(ros: RosHarness) -> None:
+    node = ros.add(Node('plain', context=ros.context,
+                        parameter_overrides=overrides(period=2.5, names=['x', 'y', 'z'])))
+    settings = declare_settings(node, ToySettings)
+    assert settings == ToySettings(period=2.5, names=('x', 'y', 'z'))
     period = node.describe_parameter('period')
     assert period.description == 'a period [s]'
     assert (period.floating_point_range[0].from_value,
             period.floating_point_range[0].to_value) == (0.1, 10.0)
     count = node.describe_parameter('count')
     assert count.read_only and count.integer_range[0].to_value == 100
-    assert 'best_effort' in node.describe_parameter('input_reliability').additional_constraints
-    # rclpy enforces range and read_only; our callback enforces choices.
-    assert not node.set_parameters([Parameter('period', value=20.0)])[0].successful
-    assert not node.set_parameters([Parameter('count', value=6)])[0].successful
+    assert node.describe_parameter('mode').additional_constraints == 'one of: fast, slow'
+    assert list(parameter_specs(ToySettings)) == [
+        'period', 'count', 'mode', 'names', 'input_topic', 'output_topic', 'diagnostics_topic']
+
+
+@pytest.mark.parametrize(('values', 'match'), [
+    ({'period': 50.0}, 'period'), ({'mode': 'sometimes'}, 'must be one of fast, slow'),
+    ({'count': 3}, 'must be even')])
+def test_a_bad_override_fails_at_start(ros: RosHarness, values: dict[str, object],
+                                       match: str) -> None:
+    with pytest.raises(InvalidParameterValueException, match=match):
+        ToyNode(context=ros.context, parameter_overrides=overrides(**values))
+
+
+def test_changes_are_validated_then_applied_as_a_new_snapshot(ros: RosHarness) -> None:
+    node: ToyNode = ros.add(ToyNode(context=ros.context))
+    first = node.settings
     assert node.set_parameters([Parameter('period', value=0.5)])[0].successful
+    assert node.settings == ToySettings(period=0.5) and first.period == 1.0
+    assert node.applied == [frozenset({'period'})]
+    refused = {
+        'period': (20.0, 'period'),  # rclpy: out of range
+        'count': (6, 'read-only'),  # rclpy: read-only
+        'mode': ('sometimes', 'mode must be one of fast, slow'),  # choices
+    }
+    for name, (value, reason) in refused.items():
+        (result,) = node.set_parameters([Parameter(name, value=value)])
+        assert not result.successful and reason in result.reason, result.reason
+    # the node's own hook; a raising hook refuses with the reason
+    (result,) = node.set_parameters([Parameter('mode', value='slow')])
+    assert not result.successful and result.reason == 'slow needs a period of 2 s or more'
+    (result,) = node.set_parameters([Parameter('period', value=9.0)])
+    assert not result.successful and result.reason == 'RuntimeError: validation blew up'
+    assert node.set_parameters_atomically([Parameter('mode', value='slow'),
+                                           Parameter('period', value=3.0)]).successful
+    assert node.settings == ToySettings(period=3.0, mode='slow')
+    assert node.applied[-1] == frozenset({'mode', 'period'}) and len(node.applied) == 2
+    assert node.callback_failures == 0
 
 
-def test_out_of_range_and_bad_choice_overrides_fail_at_start(ros: RosHarness) -> None:
-    with pytest.raises(InvalidParameterValueException, match='period'):
-        declare_parameters(make_node(ros, period=50.0), SPECS)
-    with pytest.raises(InvalidParameterValueException, match='reliable, best_effort'):
-        declare_parameters(make_node(ros, 'other', input_reliability='sometimes'), SPECS)
+def test_a_failing_callback_is_counted_logged_and_handed_to_the_hook(ros: RosHarness) -> None:
+    node: ToyNode = ros.add(ToyNode(context=ros.context))
+    echoes = ros.collect('/toy_out', Vector3Stamped, 10)
+    publisher = ros.node.create_publisher(Vector3Stamped, '/toy_in', 10)
+    ros.wait_for_subscribers(publisher)
+    ros.wait_for_publishers('/toy_out')
+    for x in (1.0, -1.0, 2.0, -2.0, 3.0):
+        msg = Vector3Stamped()
+        msg.vector.x = x
+        publisher.publish(msg)
+    ros.spin_until(lambda: len(echoes) == 3, what='the three good messages echoed')
+    assert [m.vector.x for m in echoes] == [1.0, 2.0, 3.0]  # the spin went on
+    # two failures of the callback, and the second call of the hook failed too
+    assert node.failures == ['toy input', 'toy input']
+    assert node.callback_failures == 3
+    assert node.last_callback_failure == 'toy input failure hook: RuntimeError: the hook fails too'
+    assert node.callback_values()['callback_failures'] == 3
+    # a parameter change whose application fails goes the same way
+    assert node.set_parameters([Parameter('period', value=7.0)])[0].successful
+    assert node.failures[-1] == 'parameter change' and node.callback_failures == 4
 
 
-def test_qos_from_parameters() -> None:
-    qos = qos_from_parameters({'out_depth': 7, 'out_reliability': 'best_effort'}, 'out')
-    assert qos.depth == 7 and qos.reliability == ReliabilityPolicy.BEST_EFFORT
+def test_qos_overrides_take_effect_on_the_endpoints(ros: RosHarness) -> None:
+    default: ToyNode = ros.add(ToyNode(context=ros.context))
+    assert default.input.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+    assert default.output.qos_profile.reliability == ReliabilityPolicy.RELIABLE
+    assert SENSOR_INPUT_QOS.reliability == ReliabilityPolicy.BEST_EFFORT  # not written into
+    node: ToyNode = ros.add(ToyNode(namespace='other', context=ros.context, parameter_overrides=[
+        Parameter('qos_overrides./toy_in.subscription.reliability', value='reliable'),
+        Parameter('qos_overrides./toy_in.subscription.depth', value=7),
+        Parameter('qos_overrides./toy_out.publisher.history', value='keep_all')]))
+    assert node.input.qos_profile.depth == 7
+    assert node.output.qos_profile.history == HistoryPolicy.KEEP_ALL
+    described = node.describe_parameter('qos_overrides./toy_in.subscription.reliability')
+    assert described.read_only
+
+    def reliability(toy: ToyNode) -> ReliabilityPolicy | None:
+        for info in toy.get_subscriptions_info_by_topic('/toy_in'):
+            if info.node_name == 'toy' and info.node_namespace == toy.get_namespace():
+                return info.qos_profile.reliability
+        return None
+
+    # what the middleware was given, as the ROS graph reports it
+    ros.spin_until(lambda: reliability(node) == ReliabilityPolicy.RELIABLE,
+                   what='a reliable subscription in the graph')
+    assert reliability(default) == ReliabilityPolicy.BEST_EFFORT
+
+
+@pytest.mark.filterwarnings('ignore:A zero depth with KEEP_LAST:UserWarning')
+@pytest.mark.parametrize(('name', 'value', 'match'), [
+    ('qos_overrides./toy_in.subscription.reliability', 'sometimes',
+     r'qos_overrides\./toy_in\.subscription\.\*: .*`reliability`: `sometimes`'),
+    ('qos_overrides./toy_out.publisher.depth', 0, 'depth must be at least 1')])
+def test_a_bad_qos_override_stops_the_node_with_one_message(
+        ros: RosHarness, name: str, value: object, match: str) -> None:
+    with pytest.raises(QosOverrideError, match=match):
+        ToyNode(context=ros.context, parameter_overrides=overrides(**{name: value}))
+
+
+class ManagedToy(NodeBase[ToySettings], LifecycleNode):
+    """The node base on a managed node: settings in the constructor, endpoints on
+    configure."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('managed_toy', **kwargs)
+        self.declare_settings(ToySettings)
+        self.received = 0
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.output = self.advertise(TOY_OUTPUT)
+        self.input = self.subscribe(TOY_INPUT, self.on_input)
+        return super().on_configure(state)
+
+    def on_input(self, msg: Vector3Stamped) -> None:
+        self.received += 1
+        self.output.publish(msg)
+
+
+def test_the_node_base_serves_a_lifecycle_node(ros: RosHarness) -> None:
+    node: ManagedToy = ros.add(ManagedToy(context=ros.context, parameter_overrides=overrides(
+        **{'period': 2.0, 'qos_overrides./toy_out.publisher.depth': 3})))
+    assert node.settings.period == 2.0
+    assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    assert node.output.qos_profile.depth == 3
+    assert type(node.output).__name__ == 'LifecyclePublisher'
+    echoes = ros.collect('/toy_out', Vector3Stamped, 10)
+    publisher = ros.node.create_publisher(Vector3Stamped, '/toy_in', 10)
+    ros.wait_for_subscribers(publisher)
+    ros.wait_for_publishers('/toy_out')
+    publisher.publish(Vector3Stamped())  # inactive: the lifecycle publisher drops the echo
+    ros.spin_until(lambda: node.received == 1, what='the message received')
+    ros.spin_for(0.2)
+    assert echoes == []
+    assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    publisher.publish(Vector3Stamped())
+    ros.spin_until(lambda: len(echoes) == 1, what='an echo once active')
+    assert node.set_parameters([Parameter('period', value=3.0)])[0].successful
+    assert node.settings.period == 3.0
 
 
 def test_diagnostics_publisher_publishes_every_provider(ros: RosHarness) -> None:
-    node = make_node(ros)
+    node = ros.add(Node('common_test', context=ros.context))
     diagnostics = DiagnosticsPublisher(node, topic='/test_diagnostics', period=0.1,
                                        hardware_id='lompr')
     diagnostics.add('input', lambda: Status(Level.WARN, '3 rejected', {'rejected_total': 3}))
@@ -86,12 +263,53 @@ def test_diagnostics_publisher_publishes_every_provider(ros: RosHarness) -> None
     assert 'ZeroDivisionError: no samples' in broken_status.message
 
 
-def test_run_node_help_lists_parameters(capsys: pytest.CaptureFixture[str]) -> None:
+def test_run_node_help_lists_parameters_and_qos_overrides(
+        capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as exit_info:
         run_node(lambda context: Node('never', context=context), description='A test node.',
-                 parameters=SPECS, argv=['prog', '--help'])
+                 parameters_help=node_help(ToySettings, (TOY_INPUT, TOY_OUTPUT)),
+                 argv=['prog', '--help'])
     assert exit_info.value.code == 0
     out = capsys.readouterr().out
     assert 'A test node.' in out
     assert 'period (default 1.0 [0.1, 10.0]): a period [s]' in out
-    assert "input_reliability (default 'reliable' {reliable|best_effort}, read-only)" in out
+    assert "mode (default 'fast' {fast|slow}): a mode" in out
+    assert "names (default ['a', 'b'], read-only): some names" in out
+    assert ('qos_overrides./toy_in.subscription.{history,depth,reliability} (default '
+            'keep_last, 100, best_effort, read-only): QoS of the toy input subscription (the '
+            'topic is input_topic)') in out
+    assert 'qos_overrides./toy_out.publisher.{history' in out
+    assert 'qos_overrides./toy_diagnostics.publisher.{history,depth,reliability} (default ' \
+           'keep_last, 10, reliable' in out
+
+
+def _flatten(prefix: str, tree: dict[str, Any]) -> dict[str, Any]:
+    flat: dict[str, Any] = {}
+    for key, value in tree.items():
+        name = f'{prefix}.{key}' if prefix else key
+        flat.update(_flatten(name, value) if isinstance(value, dict) else {name: value})
+    return flat
+
+
+@pytest.mark.parametrize('node', ['kinematics_node', 'predictor_node'])
+def test_parameter_files_hold_the_declared_defaults(node: str) -> None:
+    """config/<node>.yaml lists every parameter with the default of its one declaration, and
+    the QoS of every endpoint as the node declares it."""
+    import importlib
+    from pathlib import Path
+
+    import yaml
+
+    module = importlib.import_module(f'lompr_predictor.ros.{node}')
+    settings_type = {'kinematics_node': 'KinematicsNodeSettings',
+                     'predictor_node': 'PredictorNodeSettings'}[node]
+    specs = parameter_specs(getattr(module, settings_type))
+    path = Path(__file__).parents[1] / 'lompr_predictor' / 'config' / f'{node}.yaml'
+    values = _flatten('', yaml.safe_load(path.read_text())[node]['ros__parameters'])
+    expected = {name: spec.ros_default for name, spec in specs.items()}
+    for endpoint in (*module.ENDPOINTS, Endpoint('publisher', None, 'diagnostics_topic',
+                                                 DIAGNOSTICS_QOS, 'diagnostics')):
+        prefix = endpoint.parameter_prefix(specs[endpoint.topic_parameter].default)
+        expected[f'{prefix}.depth'] = endpoint.qos.depth
+        expected[f'{prefix}.reliability'] = endpoint.qos.reliability.name.lower()
+    assert values == expected

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,8 +13,13 @@ from hypothesis import strategies as st
 from model_helpers import FailingModel, metadata, save_constant, save_linear
 
 from lompr_predictor.data.features import HISTORY, feature_rows
-from lompr_predictor.learning.model_file import load_model, save_model
-from lompr_predictor.online.predictor import CompensationLimits, OnlinePredictor, StreamSettings
+from lompr_predictor.learning.model_file import LoadedModel, load_model, save_model
+from lompr_predictor.online.predictor import (
+    CompensationLimits,
+    OnlinePredictor,
+    Output,
+    StreamSettings,
+)
 
 PERIOD = 0.04
 PERIOD_NS = 40_000_000
@@ -30,11 +36,10 @@ class FakeClock:
         return self.now
 
 
-def stream(**overrides: float) -> StreamSettings:
-    values = dict(sample_period=PERIOD, gap_factor=2.5, min_interval_factor=0.5,
-                  stale_periods=5.0, accuracy_samples=1000)
-    values.update(overrides)
-    return StreamSettings(**values)  # type: ignore[arg-type]
+def stream(sample_period: float = PERIOD, stale_min_time: float = 0.0) -> StreamSettings:
+    return StreamSettings(sample_period=sample_period, gap_factor=2.5, min_interval_factor=0.5,
+                          stale_periods=5.0, accuracy_samples=1000,
+                          stale_min_time=stale_min_time)
 
 
 def limits(max_compensation: float = 1e-3, max_step: float = 1e-3,
@@ -53,19 +58,29 @@ def spiral(n: int, start: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 @pytest.fixture
-def linear_model(tmp_path):  # type: ignore[no-untyped-def]
+def linear_model(tmp_path: Path) -> LoadedModel:
     return load_model(save_linear(tmp_path / 'linear.pt', window=WINDOW, horizon=HORIZON))
 
 
-def constant_core(tmp_path, value, clock=None, **limit_values):  # type: ignore[no-untyped-def]
+def constant_core(tmp_path: Path, value: tuple[float, float], clock: FakeClock | None = None,
+                  *, max_compensation: float = 1e-3, max_step: float = 1e-3,
+                  enabled: bool = True) -> OnlinePredictor:
     model = load_model(save_constant(tmp_path / 'constant.pt', value, window=WINDOW,
                                      horizon=HORIZON))
-    return OnlinePredictor(model, stream(), limits(**limit_values), clock or FakeClock())
+    return OnlinePredictor(model, stream(), limits(max_compensation, max_step, enabled),
+                           clock or FakeClock())
 
 
-def feed(core: OnlinePredictor, stamps, reference, tips, clock=None):  # type: ignore[no-untyped-def]
+def predicted(output: Output) -> np.ndarray:
+    """The prediction of an output that must carry one."""
+    assert output.prediction is not None
+    return output.prediction
+
+
+def feed(core: OnlinePredictor, stamps: np.ndarray, reference: np.ndarray, tips: np.ndarray,
+         clock: FakeClock | None = None) -> list[Output]:
     """Reference then pose of each sample; all outputs in order."""
-    outputs = []
+    outputs: list[Output] = []
     for stamp, ref, tip in zip(stamps, reference, tips, strict=False):
         if clock is not None:
             clock.now += PERIOD
@@ -74,7 +89,7 @@ def feed(core: OnlinePredictor, stamps, reference, tips, clock=None):  # type: i
     return outputs
 
 
-def test_predictions_equal_offline_ones_sample_for_sample(linear_model) -> None:  # type: ignore[no-untyped-def]
+def test_predictions_equal_offline_ones_sample_for_sample(linear_model: LoadedModel) -> None:
     stamps, reference, tips = spiral(60)
     core = OnlinePredictor(linear_model, stream(), limits(enabled=False), FakeClock())
     # poses arrive before the reference for odd samples: alignment waits, never pairs.
@@ -96,7 +111,7 @@ def test_predictions_equal_offline_ones_sample_for_sample(linear_model) -> None:
     assert all(np.all(o.compensation == 0.0) for o in outputs)  # shadow mode
 
 
-def test_reference_is_interpolated_to_pose_stamps(linear_model) -> None:  # type: ignore[no-untyped-def]
+def test_reference_is_interpolated_to_pose_stamps(linear_model: LoadedModel) -> None:
     stamps, reference, tips = spiral(20)
     core = OnlinePredictor(linear_model, stream(), limits(enabled=False), FakeClock())
     # references half a period later than the poses, at a slightly different rate
@@ -114,7 +129,7 @@ def test_reference_is_interpolated_to_pose_stamps(linear_model) -> None:  # type
     np.testing.assert_allclose(rows[:, 0:2], (tips[:NEEDED] - expected)[HISTORY:], atol=1e-15)
 
 
-def test_a_slower_reference_still_brackets_every_pose(linear_model) -> None:  # type: ignore[no-untyped-def]
+def test_a_slower_reference_still_brackets_every_pose(linear_model: LoadedModel) -> None:
     """The reference at a quarter of the pose rate (CONTRACT section 2 allows any rates):
     its steps of 4 periods exceed gap_factor (2.5) pose periods, yet no pose is faulted."""
     stamps, reference, tips = spiral(60)
@@ -130,7 +145,7 @@ def test_a_slower_reference_still_brackets_every_pose(linear_model) -> None:  # 
     assert core.window_rows()[-1, 2:4] == pytest.approx(reference[56], abs=1e-12)
 
 
-def test_feature_rows_keep_nanosecond_stamps(linear_model) -> None:  # type: ignore[no-untyped-def]
+def test_feature_rows_keep_nanosecond_stamps(linear_model: LoadedModel) -> None:
     """Stamps near 1.7e18 ns are not exact in float64 (256 ns steps): the window's rows use
     stamp differences taken in integers, as the trainer does."""
     stamps, reference, tips = spiral(NEEDED)
@@ -141,7 +156,7 @@ def test_feature_rows_keep_nanosecond_stamps(linear_model) -> None:  # type: ign
     np.testing.assert_allclose(core.window_rows(), rows[HISTORY:], rtol=1e-12, atol=0)
 
 
-def test_no_output_before_the_window_is_full(linear_model) -> None:  # type: ignore[no-untyped-def]
+def test_no_output_before_the_window_is_full(linear_model: LoadedModel) -> None:
     stamps, reference, tips = spiral(NEEDED)
     core = OnlinePredictor(linear_model, stream(), limits(), FakeClock())
     assert feed(core, stamps[:-1], reference[:-1], tips[:-1]) == []
@@ -149,23 +164,23 @@ def test_no_output_before_the_window_is_full(linear_model) -> None:  # type: ign
     assert len(feed(core, stamps[-1:], reference[-1:], tips[-1:])) == 1
 
 
-def test_offset_is_clamped_to_max_compensation(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_offset_is_clamped_to_max_compensation(tmp_path: Path) -> None:
     core = constant_core(tmp_path, (3e-3, -4e-3), max_compensation=1e-3, max_step=1.0)
     outputs = feed(core, *spiral(NEEDED + 3))
-    np.testing.assert_allclose(outputs[0].prediction, [3e-3, -4e-3])
+    np.testing.assert_allclose(predicted(outputs[0]), [3e-3, -4e-3])
     for output in outputs:  # direction kept, norm at the limit
         np.testing.assert_allclose(output.compensation, [-0.6e-3, 0.8e-3], atol=1e-15)
     assert core.clamped == 4
 
 
-def test_offset_changes_at_most_max_step_per_sample(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_offset_changes_at_most_max_step_per_sample(tmp_path: Path) -> None:
     core = constant_core(tmp_path, (-50e-6, 0.0), max_compensation=1e-3, max_step=20e-6)
     outputs = feed(core, *spiral(NEEDED + 4))
     np.testing.assert_allclose([o.compensation[0] for o in outputs],
                                [20e-6, 40e-6, 50e-6, 50e-6, 50e-6], atol=1e-15)
 
 
-def test_a_gap_zeroes_once_and_output_resumes_after_refill(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_a_gap_zeroes_once_and_output_resumes_after_refill(tmp_path: Path) -> None:
     core = constant_core(tmp_path, (-10e-6, 0.0))
     stamps, reference, tips = spiral(40)
     assert len(feed(core, stamps[:10], reference[:10], tips[:10])) == 10 - NEEDED + 1
@@ -181,7 +196,7 @@ def test_a_gap_zeroes_once_and_output_resumes_after_refill(tmp_path) -> None:  #
     assert core.faults['gap'] == 1
 
 
-def test_stale_input_zeroes_once(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_stale_input_zeroes_once(tmp_path: Path) -> None:
     clock = FakeClock()
     core = constant_core(tmp_path, (-10e-6, 0.0), clock=clock)
     stamps, reference, tips = spiral(NEEDED + 2)
@@ -199,7 +214,7 @@ def test_stale_input_zeroes_once(tmp_path) -> None:  # type: ignore[no-untyped-d
     assert core.window_fill == 0
 
 
-def test_staleness_has_a_floor_in_seconds(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_staleness_has_a_floor_in_seconds(tmp_path: Path) -> None:
     """At 1 kHz, 5 periods are 5 ms, a stall any non-real-time process has now and then:
     the input is stale only after `stale_min_time` too."""
     assert stream(sample_period=1e-3, stale_min_time=0.05).stale_after == 0.05
@@ -218,12 +233,13 @@ def test_staleness_has_a_floor_in_seconds(tmp_path) -> None:  # type: ignore[no-
     assert [z.reason for z in core.check_stale()][:1] == ['stale']
 
 
-def test_poses_without_references_go_stale(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_poses_without_references_go_stale(tmp_path: Path) -> None:
     clock = FakeClock()
     core = constant_core(tmp_path, (-10e-6, 0.0), clock=clock)
     stamps, reference, tips = spiral(NEEDED + 8)
     feed(core, stamps[:NEEDED], reference[:NEEDED], tips[:NEEDED], clock)
-    for stamp, tip in zip(stamps[NEEDED:], tips[NEEDED:], strict=False):  # the reference stream stopped
+    # the reference stream stopped
+    for stamp, tip in zip(stamps[NEEDED:], tips[NEEDED:], strict=False):
         clock.now += PERIOD
         assert core.add_pose(int(stamp), *tip) == []
         zeros = core.check_stale()
@@ -236,7 +252,7 @@ def test_poses_without_references_go_stale(tmp_path) -> None:  # type: ignore[no
 
 
 @pytest.mark.parametrize('fault', ['non_finite', 'out_of_order'])
-def test_bad_pose_zeroes_once_then_refills(tmp_path, fault: str) -> None:  # type: ignore[no-untyped-def]
+def test_bad_pose_zeroes_once_then_refills(tmp_path: Path, fault: str) -> None:
     core = constant_core(tmp_path, (-10e-6, 0.0))
     stamps, reference, tips = spiral(30)
     feed(core, stamps[:10], reference[:10], tips[:10])
@@ -254,7 +270,7 @@ def test_bad_pose_zeroes_once_then_refills(tmp_path, fault: str) -> None:  # typ
     assert [o.reason for o in outputs] == ['']
 
 
-def test_duplicates_are_dropped_without_a_fault(linear_model) -> None:  # type: ignore[no-untyped-def]
+def test_duplicates_are_dropped_without_a_fault(linear_model: LoadedModel) -> None:
     core = OnlinePredictor(linear_model, stream(), limits(), FakeClock())
     stamps, reference, tips = spiral(NEEDED + 2)
     first = feed(core, stamps, reference, tips)
@@ -264,7 +280,7 @@ def test_duplicates_are_dropped_without_a_fault(linear_model) -> None:  # type: 
     assert core.faults.total == 0 and len(first) == 3
 
 
-def test_plant_error_subtracts_the_compensation_published_for_that_instant(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_plant_error_subtracts_the_compensation_published_for_that_instant(tmp_path: Path) -> None:
     core = constant_core(tmp_path, (-30e-6, 12e-6), max_step=1.0)
     stamps, reference, tips = spiral(NEEDED + HORIZON + 2)
     outputs = feed(core, stamps, reference, tips)
@@ -275,21 +291,22 @@ def test_plant_error_subtracts_the_compensation_published_for_that_instant(tmp_p
     np.testing.assert_allclose(rows[-1, 0:2], tips[last] - reference[last] - [30e-6, -12e-6],
                                atol=1e-15)
     assert int(stamps[last - HORIZON]) not in published  # before the first offset: c = 0
-    np.testing.assert_allclose(rows[-HORIZON - 1, 0:2], tips[last - HORIZON] - reference[last - HORIZON],
+    before = last - HORIZON
+    np.testing.assert_allclose(rows[-HORIZON - 1, 0:2], tips[before] - reference[before],
                                atol=1e-15)
 
 
-def test_live_accuracy_is_rms_of_truth_minus_prediction(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_live_accuracy_is_rms_of_truth_minus_prediction(tmp_path: Path) -> None:
     core = constant_core(tmp_path, (5e-6, -5e-6), enabled=False)
     stamps, reference, _ = spiral(NEEDED + HORIZON + 10)
-    tips = reference + [8e-6, 1e-6]  # a constant true error
+    tips = reference + np.array([8e-6, 1e-6])  # a constant true error
     feed(core, stamps, reference, tips)
     rms, count = core.accuracy()
     assert count == 11
     np.testing.assert_allclose(rms, [3e-6, 6e-6], atol=1e-15)
 
 
-def test_inference_failure_zeroes_once(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_inference_failure_zeroes_once(tmp_path: Path) -> None:
     path = save_model(tmp_path / 'failing.pt', FailingModel(threshold=0.01),
                       metadata(window=WINDOW, horizon=HORIZON))
     core = OnlinePredictor(load_model(path), stream(), limits(), FakeClock())
@@ -301,9 +318,9 @@ def test_inference_failure_zeroes_once(tmp_path) -> None:  # type: ignore[no-unt
     assert core.faults['inference'] > 1  # every later window fails again, silently
 
 
-def test_off_rate_input_never_fills_the_window(linear_model) -> None:  # type: ignore[no-untyped-def]
+def test_off_rate_input_never_fills_the_window(linear_model: LoadedModel) -> None:
     core = OnlinePredictor(linear_model, stream(), limits(), FakeClock())
-    stamps, reference, tips = spiral(30)
+    _, reference, tips = spiral(30)
     fast = T0 + np.arange(30) * (PERIOD_NS // 10)
     assert feed(core, fast, reference, tips) == []
     assert core.faults['off_rate'] == 29
@@ -320,9 +337,11 @@ EVENT = st.tuples(
 )
 
 
-@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=100, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(events=st.lists(EVENT, min_size=1, max_size=40))
-def test_random_sequences_never_give_a_bad_offset(tmp_path, events) -> None:  # type: ignore[no-untyped-def]
+def test_random_sequences_never_give_a_bad_offset(
+        tmp_path: Path, events: list[tuple[str, int, float, int]]) -> None:
     path = tmp_path / 'amplified.pt'
     if not path.exists():
         save_linear(path, window=WINDOW, horizon=HORIZON,
@@ -352,6 +371,6 @@ def test_random_sequences_never_give_a_bad_offset(tmp_path, events) -> None:  # 
         if output.reason:
             assert not output.compensation.any()
         else:
-            assert np.isfinite(output.prediction).all()
+            assert np.isfinite(predicted(output)).all()
             assert np.hypot(*(output.compensation - previous)) <= 2e-5 * (1 + 1e-12)
         previous = output.compensation

@@ -2,21 +2,20 @@
 
 from __future__ import annotations
 
-import time
+from typing import Any
 
 import numpy as np
 import pytest
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import PoseStamped, Vector3Stamped
+from rclpy.parameter import Parameter
+from ros_helpers import RosHarness
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
 
+from lompr_predictor.robot.description import MEASURED_JOINTS
+from lompr_predictor.ros.twin_node import TwinNode
 from lompr_predictor.twin.compensation import CompensationSchedule
-
-rclpy = pytest.importorskip('rclpy')
-
-from geometry_msgs.msg import PoseStamped, Vector3Stamped  # noqa: E402
-from rclpy.parameter import Parameter  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
-
-from lompr_predictor.robot.description import MEASURED_JOINTS  # noqa: E402
-from lompr_predictor.ros.twin_node import TwinNode  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -24,13 +23,14 @@ EPOCH = 1_700_000_000 * 10 ** 9
 PERIOD = 40_000_000
 
 
-def _stamp_ns(msg) -> int:  # type: ignore[no-untyped-def]
-    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+def _stamp_ns(msg: Any) -> int:
+    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
 
 
-def _twin(ros, **overrides):  # type: ignore[no-untyped-def]
+def _twin(ros: RosHarness, **overrides: object) -> TwinNode:
     parameters = [Parameter(name, value=value) for name, value in overrides.items()]
-    return ros.add(TwinNode(context=ros.context, parameter_overrides=parameters))
+    twin: TwinNode = ros.add(TwinNode(context=ros.context, parameter_overrides=parameters))
+    return twin
 
 
 def test_schedule_applies_and_drops_offsets_like_a_controller() -> None:
@@ -50,26 +50,48 @@ def test_schedule_applies_and_drops_offsets_like_a_controller() -> None:
                                           'non_finite': 1, 'too_large': 1, 'superseded': 0}
 
 
-def test_publishes_at_the_configured_rate(ros) -> None:  # type: ignore[no-untyped-def]
-    arrivals: list[tuple[float, JointState]] = []
-    ros.node.create_subscription(JointState, '/joint_states',
-                                 lambda msg: arrivals.append((time.monotonic(), msg)), 100)
+def test_publishes_one_sample_per_period_of_its_clock(ros: RosHarness) -> None:
+    """The realtime timer runs on the node's clock. Under simulated time (/clock) each
+    advance of one timer period (sample period / speed_factor) gives exactly one sample,
+    however slowly the loaded machine runs: counts against the clock, not a wall-time rate."""
+    clock = ros.node.create_publisher(Clock, '/clock', 10)
+    joints = ros.collect('/joint_states', JointState, 100)
     references = ros.collect('/lompr/reference', PoseStamped, 100)
-    twin = _twin(ros, speed_factor=4.0)  # 100 samples per second
-    ros.spin_until(lambda: len(arrivals) >= 80, timeout=15.0, what='80 joint states')
-    times = np.array([t for t, _ in arrivals[20:80]])
-    rate = (len(times) - 1) / (times[-1] - times[0])
-    assert 60.0 < rate < 130.0, f'{rate:.1f} Hz, expected 100 Hz'
-    stamps = np.array([_stamp_ns(m) for _, m in arrivals])
-    assert set(np.diff(stamps)) == {PERIOD}  # the simulated clock: every sample, in order
+    twin = _twin(ros, speed_factor=4.0, use_sim_time=True)  # a sample every 10 ms
+    ros.wait_for_subscribers(clock)
+    ros.wait_for_publishers('/joint_states')
+    step_ns = PERIOD // 4
+
+    def advance_to(now_ns: int) -> None:
+        sec, nanosec = divmod(now_ns, 1_000_000_000)
+        clock.publish(Clock(clock=Time(sec=sec, nanosec=nanosec)))
+        ros.spin_until(lambda: twin.get_clock().now().nanoseconds == now_ns,
+                       what=f'the twin clock at {now_ns} ns')
+
+    def wait_for_samples(count: int) -> None:
+        ros.spin_until(lambda: twin.twin.next_index == count, what=f'{count} samples')
+
+    start_ns = 1000 * 1_000_000_000  # on the timer's grid (a multiple of its period)
+    advance_to(start_ns)
+    wait_for_samples(1)  # the sample due at the clock jump
+    for k in range(1, 31):
+        advance_to(start_ns + k * step_ns)
+        wait_for_samples(k + 1)
+    advance_to(start_ns + 30 * step_ns + step_ns // 2)  # half a period: nothing is due
+    ros.spin_for(0.2)
+    assert twin.twin.next_index == 31
+    ros.spin_until(lambda: len(joints) == 31 and len(references) == 31,
+                   what='31 joint states and references')
+    stamps = np.array([_stamp_ns(m) for m in joints])
+    assert set(np.diff(stamps)) == {PERIOD}  # the simulated plant: every sample, in order
     assert ((stamps - EPOCH) % PERIOD == 0).all()
-    message = arrivals[-1][1]
+    message = joints[-1]
     assert tuple(message.name) == MEASURED_JOINTS and len(message.position) == 5
-    assert references and references[0].header.frame_id == 'world'
-    assert twin.twin.next_index >= 80
+    assert references[0].header.frame_id == 'world'
+    assert [_stamp_ns(m) for m in references] == stamps.tolist()
 
 
-def test_lockstep_applies_a_constant_offset(ros) -> None:  # type: ignore[no-untyped-def]
+def test_lockstep_applies_a_constant_offset(ros: RosHarness) -> None:
     offset = (30e-6, -20e-6, 0.0)
     responding = [True]
     publisher = ros.node.create_publisher(Vector3Stamped, '/lompr/compensation', 100)
@@ -86,7 +108,9 @@ def test_lockstep_applies_a_constant_offset(ros) -> None:  # type: ignore[no-unt
     ros.node.create_subscription(JointState, '/joint_states', compensate_next, 100)
     true_error = ros.collect('/lompr/twin/true_error', Vector3Stamped, 100)
     plant_error = ros.collect('/lompr/twin/plant_error', Vector3Stamped, 100)
-    twin = _twin(ros, mode='lockstep', lockstep_timeout=0.05)
+    # a timeout far above the responder's answer time, so no sample runs without its offset
+    # on a loaded machine: only sample 0 (nothing answers before it) waits it out
+    twin = _twin(ros, mode='lockstep', lockstep_timeout=1.0)
     ros.spin_until(lambda: twin.schedule.applied >= 40, timeout=15.0, what='40 offsets applied')
     ros.spin_until(lambda: len(plant_error) >= twin.twin.next_index - 5, timeout=5.0,
                    what='the error messages')

@@ -27,7 +27,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import rclpy
@@ -60,6 +60,7 @@ from lompr_predictor.ros.predictor_node import PredictorNode
 from lompr_predictor.ros.twin_node import TwinNode
 from lompr_predictor.scoring.loops import LOOP_TRUTH_JSON, LOOP_TRUTH_NPZ
 from lompr_predictor.stamps import stamp_to_ns
+from lompr_predictor.threads import torch_threads
 from lompr_predictor.twin.digital_twin import DigitalTwin
 from lompr_predictor.twin.recording import VERTICAL_TOOL
 
@@ -173,15 +174,17 @@ def run_closed_loop(settings: LoopSettings, *, progress: bool = True,
         loop = _Loop(settings, context, executor, horizon)
         done = Future()
         loop.collector.on_done = lambda: done.set_result(True)
-        loop.start(progress, label)
-        started = time.monotonic()
-        while not done.done():
-            executor.spin_until_future_complete(done, timeout_sec=0.5)
-            if time.monotonic() - started > settings.wall_timeout:
-                msg = (f'{label}: not finished after {settings.wall_timeout:g} s '
-                       f'({loop.collector.count} of {loop.total} samples)')
-                raise ClosedLoopError(msg)
-        return loop.result(time.monotonic() - started)
+        # The loop is an entry point: torch threads as the predictor executable sets them.
+        with torch_threads(loop.predictor.settings.inference_threads):
+            loop.start(progress, label)
+            started = time.monotonic()
+            while not done.done():
+                executor.spin_until_future_complete(done, timeout_sec=0.5)
+                if time.monotonic() - started > settings.wall_timeout:
+                    msg = (f'{label}: not finished after {settings.wall_timeout:g} s '
+                           f'({loop.collector.count} of {loop.total} samples)')
+                    raise ClosedLoopError(msg)
+            return loop.result(time.monotonic() - started)
     finally:
         for node in executor.get_nodes():
             executor.remove_node(node)
@@ -372,6 +375,7 @@ def record_loop(out: str | Path, run: LoopRun, *, storage: str = 'mcap',
         bag = write_recording(staged, recording, storage=storage)
         arrays, document = run.truth()
         document['irreducible_um'] = irreducible_um
-        np.savez_compressed(bag / LOOP_TRUTH_NPZ, **arrays)
+        # numpy's stub checks **kwds against its keyword allow_pickle (bool) as well
+        np.savez_compressed(bag / LOOP_TRUTH_NPZ, **cast(dict[str, Any], arrays))
         write_json(bag / LOOP_TRUTH_JSON, document)
     return out

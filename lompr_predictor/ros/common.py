@@ -1,12 +1,9 @@
-"""Thin ROS helpers the lompr_predictor nodes share.
+"""Thin ROS helpers the lompr nodes share (the node base itself is `node_base.NodeBase`).
 
-- `ParameterSpec` + `declare_parameters`: every parameter with a description, a range or a
-  set of choices, read_only where it cannot change after start, declared in one call.
-- `qos_parameter_specs` + `qos_from_parameters`: a QoS profile (depth, reliability) chosen
-  by parameters.
 - `DiagnosticsPublisher`: a DiagnosticArray on /diagnostics about once a second, one status
   per registered provider (the model of ros/diagnostics' diagnostic_updater).
 - `spin_until`: spin an executor until a condition holds or a deadline passes.
+- `events_executor`: rclpy's `EventsExecutor` on a context.
 - `run_node`: the `main()` of a node executable (ros2/demos style), with `--help` listing
   the node's parameters.
 """
@@ -16,134 +13,21 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
-from typing import Any
+from collections.abc import Callable, Sequence
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import (
-    FloatingPointRange,
-    IntegerRange,
-    ParameterDescriptor,
-    SetParametersResult,
-)
 from rclpy.context import Context
-from rclpy.exceptions import (
-    InvalidParameterValueException,
-    InvalidTopicNameException,
-    ParameterException,
-)
+from rclpy.exceptions import InvalidTopicNameException, ParameterException
 from rclpy.executors import Executor, ExternalShutdownException
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
-from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSProfile
+from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.utilities import remove_ros_args
 
 from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import Level, Status
-
-RELIABILITY_CHOICES: dict[str, ReliabilityPolicy] = {
-    'reliable': ReliabilityPolicy.RELIABLE,
-    'best_effort': ReliabilityPolicy.BEST_EFFORT,
-}
-
-
-@dataclass(frozen=True)
-class ParameterSpec:
-    """One ROS parameter: name, default (its type is the parameter's type), description,
-    and a numeric range [minimum, maximum] or string choices."""
-
-    name: str
-    default: Any
-    description: str
-    minimum: float | None = None
-    maximum: float | None = None
-    choices: tuple[str, ...] = ()
-    read_only: bool = False
-
-    def descriptor(self) -> ParameterDescriptor:
-        descriptor = ParameterDescriptor(
-            name=self.name, description=self.description, read_only=self.read_only)
-        if (self.minimum is None) != (self.maximum is None):
-            msg = f'parameter {self.name}: give both minimum and maximum, or neither'
-            raise ValueError(msg)
-        if self.minimum is not None:
-            if isinstance(self.default, bool) or not isinstance(self.default, (int, float)):
-                msg = f'parameter {self.name}: a range needs a numeric default'
-                raise ValueError(msg)
-            if isinstance(self.default, int):
-                descriptor.integer_range = [IntegerRange(
-                    from_value=int(self.minimum), to_value=int(self.maximum), step=0)]
-            else:
-                descriptor.floating_point_range = [FloatingPointRange(
-                    from_value=float(self.minimum), to_value=float(self.maximum), step=0.0)]
-        if self.choices:
-            descriptor.additional_constraints = f'one of: {", ".join(self.choices)}'
-        return descriptor
-
-    def help_line(self) -> str:
-        """One line for `--help`: name, default, range or choices, description."""
-        if self.minimum is not None:
-            bounds = f' [{self.minimum}, {self.maximum}]'
-        elif self.choices:
-            bounds = f' {{{"|".join(self.choices)}}}'
-        else:
-            bounds = ''
-        flag = ', read-only' if self.read_only else ''
-        return f'  {self.name} (default {self.default!r}{bounds}{flag}): {self.description}'
-
-
-def declare_parameters(node: Node, specs: Sequence[ParameterSpec]) -> dict[str, Any]:
-    """Declare every spec on `node` and return {name: value} after overrides.
-
-    rclpy itself enforces ranges, types and read_only; string choices are checked here,
-    for the start value (raises `InvalidParameterValueException`) and for later sets.
-    """
-    values: dict[str, Any] = {}
-    for spec in specs:
-        value = node.declare_parameter(spec.name, spec.default, spec.descriptor()).value
-        if spec.choices and value not in spec.choices:
-            raise InvalidParameterValueException(
-                spec.name, value, f'must be one of {", ".join(spec.choices)}')
-        values[spec.name] = value
-    choices = {spec.name: spec.choices for spec in specs if spec.choices}
-    if choices:
-        def check_choices(parameters: list[Parameter]) -> SetParametersResult:
-            for parameter in parameters:
-                allowed = choices.get(parameter.name)
-                if allowed and parameter.value not in allowed:
-                    return SetParametersResult(
-                        successful=False,
-                        reason=f'{parameter.name} must be one of {", ".join(allowed)}')
-            return SetParametersResult(successful=True)
-        node.add_on_set_parameters_callback(check_choices)
-    return values
-
-
-def qos_parameter_specs(
-    prefix: str, *, depth: int = 10, reliability: str = 'reliable', what: str = 'topics'
-) -> list[ParameterSpec]:
-    """`<prefix>_depth` and `<prefix>_reliability` (read-only: fixed when the endpoints are
-    created). `what` names the topics in the descriptions."""
-    return [
-        ParameterSpec(
-            f'{prefix}_depth', depth, f'QoS history depth (keep last N) of {what}',
-            minimum=1, maximum=100_000, read_only=True),
-        ParameterSpec(
-            f'{prefix}_reliability', reliability,
-            f'QoS reliability of {what}: reliable, or best_effort (sensor-data style; '
-            'a best_effort subscription also hears reliable publishers)',
-            choices=tuple(RELIABILITY_CHOICES), read_only=True),
-    ]
-
-
-def qos_from_parameters(values: Mapping[str, Any], prefix: str) -> QoSProfile:
-    """The QoS profile that `qos_parameter_specs(prefix)` parameters describe."""
-    return QoSProfile(
-        depth=int(values[f'{prefix}_depth']),
-        reliability=RELIABILITY_CHOICES[values[f'{prefix}_reliability']])
 
 
 def status_message(name: str, hardware_id: str, status: Status) -> DiagnosticStatus:
@@ -165,14 +49,19 @@ class DiagnosticsPublisher:
 
     def __init__(
         self, node: Node, topic: str = '/diagnostics', period: float = 1.0,
-        hardware_id: str = '',
+        hardware_id: str = '', *, qos: QoSProfile | int = 10,
+        qos_overriding_options: QoSOverridingOptions | None = None,
+        guard: Callable[[str, Callable[[], None]], Callable[[], None]] | None = None,
     ) -> None:
+        """`qos`: diagnostic_aggregator and rqt subscribe reliable with depth 10, the
+        default; `guard(where, callback)` wraps the timer callback (a node base's policy)."""
         self._node = node
         self._hardware_id = hardware_id
         self._providers: list[tuple[str, Callable[[], Status]]] = []
-        # diagnostic_aggregator and rqt subscribe reliable, depth 10 is their default.
-        self._publisher = node.create_publisher(DiagnosticArray, topic, 10)
-        self._timer = node.create_timer(period, self.publish)
+        self._publisher = node.create_publisher(
+            DiagnosticArray, topic, qos, qos_overriding_options=qos_overriding_options)
+        callback = self.publish if guard is None else guard('diagnostics', self.publish)
+        self._timer = node.create_timer(period, callback)
 
     def add(self, name: str, provider: Callable[[], Status]) -> None:
         """Register a status provider under `name`."""
@@ -185,7 +74,7 @@ class DiagnosticsPublisher:
         for name, provider in self._providers:
             try:
                 status = provider()
-            except Exception as err:  # noqa: BLE001 - reported, never raised
+            except Exception as err:  # noqa: BLE001 - a failing provider is an ERROR status
                 status = Status(Level.ERROR, f'status provider failed: {type(err).__name__}: {err}')
             array.status.append(status_message(name, self._hardware_id, status))
         return array
@@ -223,25 +112,21 @@ def events_executor(context: Context) -> Executor:
         sys.stderr = captured
 
 
-def _help_epilog(specs: Sequence[ParameterSpec]) -> str:
-    lines = ['ROS parameters (set with --ros-args -p NAME:=VALUE or --params-file FILE):']
-    lines += [spec.help_line() for spec in specs]
-    return '\n'.join(lines)
-
-
 def run_node(
     node_factory: Callable[[Context], Node | Sequence[Node]],
     *,
     description: str,
-    parameters: Sequence[ParameterSpec] = (),
+    parameters_help: Sequence[str] = (),
     argv: Sequence[str] | None = None,
 ) -> int:
     """Run one node until Ctrl-C or shutdown (the ros2/demos pattern); returns an exit code.
 
     `node_factory(context)` builds the node (or several, spun by one executor, as the
-    one-process pipeline does) on a fresh context. Non-ROS arguments are
-    parsed here: `--help` prints `description` and the parameters. A `LomprError`, a bad
-    parameter or topic name while the node starts is printed as one line and exits with code 2.
+    one-process pipeline does) on a fresh context; it is the entry point, where process-wide
+    settings such as thread counts belong. Non-ROS arguments are parsed here: `--help`
+    prints `description` and `parameters_help` (lines, see `node_base.node_help`). A
+    `LomprError` (a bad model, a bad QoS override), a bad parameter or topic name while the
+    node starts is printed as one line and exits with code 2.
     Uses the default context, whose SIGINT handler rclpy installs (a non-default context is
     not shut down by Ctrl-C), and an `events_executor` spun in `spin_once` steps of
     `SPIN_STEP` s: rclpy 7.1.6's `EventsExecutor.spin()` never returns to Python, so it
@@ -251,7 +136,9 @@ def run_node(
     argv = list(sys.argv if argv is None else argv)
     parser = argparse.ArgumentParser(
         prog=argv[0].rsplit('/', 1)[-1] if argv else None, description=description,
-        epilog=_help_epilog(parameters), formatter_class=argparse.RawDescriptionHelpFormatter)
+        epilog='\n'.join(['ROS parameters (set with --ros-args -p NAME:=VALUE or --params-file '
+                           'FILE):', *parameters_help]),
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.parse_args(remove_ros_args(argv)[1:])
     rclpy.init(args=argv)
     context = rclpy.get_default_context()

@@ -11,15 +11,13 @@ answered. A bad sample or a gap in the stamps restarts the FK warm start.
 from __future__ import annotations
 
 import sys
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 from geometry_msgs.msg import PoseStamped
 from rclpy.context import Context
-from rclpy.exceptions import InvalidParameterValueException
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 
 from lompr_predictor.errors import (
@@ -33,7 +31,6 @@ from lompr_predictor.errors import (
 from lompr_predictor.monitoring import (
     LatencyRecorder,
     Level,
-    LogThrottle,
     RateMeter,
     RejectionCounter,
     Status,
@@ -42,14 +39,15 @@ from lompr_predictor.monitoring import (
 )
 from lompr_predictor.robot.description import MEASURED_JOINTS, WORLD_FRAME, load_robot_description
 from lompr_predictor.robot.kinematics import ForwardKinematics, NonFiniteJointError
-from lompr_predictor.ros.common import (
-    DiagnosticsPublisher,
-    ParameterSpec,
-    declare_parameters,
-    qos_from_parameters,
-    qos_parameter_specs,
-    run_node,
+from lompr_predictor.ros.common import run_node
+from lompr_predictor.ros.node_base import (
+    OUTPUT_QOS,
+    SENSOR_INPUT_QOS,
+    Endpoint,
+    NodeBase,
+    node_help,
 )
+from lompr_predictor.ros.parameters import parameter
 from lompr_predictor.stamps import stamp_to_ns
 
 NODE_NAME = 'kinematics_node'
@@ -65,42 +63,54 @@ KINEMATICS_REASONS: dict[type[KinematicsError], str] = {
 MESSAGE_REASONS = ('malformed', 'unstamped', 'missing_joint')
 REJECTION_REASONS = (*MESSAGE_REASONS, *KINEMATICS_REASONS.values())
 
-PARAMETERS: tuple[ParameterSpec, ...] = (
-    ParameterSpec(
-        'robot_description_file', '',
-        'URDF of the robot (its calibrated geometry); empty: the packaged nominal LOMPR '
-        'description', read_only=True),
-    ParameterSpec(
-        'joint_names', list(MEASURED_JOINTS),
-        'names, as they appear in the JointState, of the joints ups1, ups2, ups3, '
-        'head_primary, head_secondary (in this order); other names are ignored',
-        read_only=True),
-    ParameterSpec('joint_state_topic', '/joint_states', 'JointState input topic', read_only=True),
-    ParameterSpec('end_pose_topic', '/lompr/end_pose', 'PoseStamped output topic', read_only=True),
-    ParameterSpec('diagnostics_topic', '/diagnostics', 'DiagnosticArray topic', read_only=True),
-    ParameterSpec('frame_id', WORLD_FRAME, 'header.frame_id of the end poses (the frame the '
-                  'robot description calls world)', read_only=True),
-    *qos_parameter_specs('input_qos', depth=100, reliability='best_effort',
-                         what='the joint state subscription'),
-    *qos_parameter_specs('output_qos', depth=100, what='the end pose publisher'),
-    ParameterSpec(
-        'warm_start_max_gap', 0.5,
-        'stamp gap [s] above which (or a stamp going backwards) forward kinematics restarts '
-        'from the nominal posture instead of extrapolating the last two solutions',
-        minimum=0.0, maximum=3600.0),
-    ParameterSpec('diagnostics_period', 1.0, 'seconds between /diagnostics messages',
-                  minimum=0.05, maximum=60.0, read_only=True),
-    ParameterSpec('rate_window', 5.0, 'seconds over which input/output rates are averaged',
-                  minimum=0.1, maximum=600.0, read_only=True),
-    ParameterSpec('latency_samples', 1000, 'last solve times kept for the p50/p99',
-                  minimum=10, maximum=1_000_000, read_only=True),
-    ParameterSpec('solve_time_warn', 0.001,
-                  'p99 solve time [s] above which the kinematics status is WARN',
-                  minimum=1e-6, maximum=10.0),
-    ParameterSpec('warning_throttle_period', 5.0,
-                  'seconds between two warnings of the same kind of rejected input',
-                  minimum=0.0, maximum=3600.0),
-)
+
+def _check_joint_names(names: Sequence[str]) -> str:
+    if len(names) != len(MEASURED_JOINTS) or len(set(names)) != len(names) or '' in names:
+        return (f'needs {len(MEASURED_JOINTS)} distinct names, for '
+                f'{", ".join(MEASURED_JOINTS)}')
+    return ''
+
+
+@dataclass(frozen=True)
+class KinematicsNodeSettings:
+    """The node's parameters: one field each, declared by `NodeBase.declare_settings`."""
+
+    robot_description_file: str = parameter(
+        '', 'URDF of the robot (its calibrated geometry); empty: the packaged nominal LOMPR '
+        'description', read_only=True)
+    joint_names: tuple[str, ...] = parameter(
+        MEASURED_JOINTS, 'names, as they appear in the JointState, of the joints ups1, ups2, '
+        'ups3, head_primary, head_secondary (in this order); other names are ignored',
+        read_only=True, check=_check_joint_names)
+    joint_state_topic: str = parameter('/joint_states', 'JointState input topic',
+                                       read_only=True)
+    end_pose_topic: str = parameter('/lompr/end_pose', 'PoseStamped output topic',
+                                    read_only=True)
+    diagnostics_topic: str = parameter('/diagnostics', 'DiagnosticArray topic', read_only=True)
+    frame_id: str = parameter(WORLD_FRAME, 'header.frame_id of the end poses (the frame the '
+                              'robot description calls world)', read_only=True)
+    warm_start_max_gap: float = parameter(
+        0.5, 'stamp gap [s] above which (or a stamp going backwards) forward kinematics '
+        'restarts from the nominal posture instead of extrapolating the last two solutions',
+        minimum=0.0, maximum=3600.0)
+    diagnostics_period: float = parameter(1.0, 'seconds between /diagnostics messages',
+                                          minimum=0.05, maximum=60.0, read_only=True)
+    rate_window: float = parameter(5.0, 'seconds over which input/output rates are averaged',
+                                   minimum=0.1, maximum=600.0, read_only=True)
+    latency_samples: int = parameter(1000, 'last solve times kept for the p50/p99',
+                                     minimum=10, maximum=1_000_000, read_only=True)
+    solve_time_warn: float = parameter(
+        0.001, 'p99 solve time [s] above which the kinematics status is WARN',
+        minimum=1e-6, maximum=10.0)
+    warning_throttle_period: float = parameter(
+        5.0, 'seconds between two warnings of the same kind of rejected input',
+        minimum=0.0, maximum=3600.0)
+
+
+JOINT_STATES = Endpoint('subscription', JointState, 'joint_state_topic', SENSOR_INPUT_QOS,
+                        'joint states')
+END_POSE = Endpoint('publisher', PoseStamped, 'end_pose_topic', OUTPUT_QOS, 'end poses')
+ENDPOINTS = (JOINT_STATES, END_POSE)
 
 
 class JointStateError(LomprError):
@@ -111,35 +121,7 @@ class JointStateError(LomprError):
         super().__init__(message)
 
 
-@dataclass(frozen=True)
-class KinematicsNodeSettings:
-    """Snapshot of the node's parameters (see `PARAMETERS` for meanings and ranges)."""
-
-    robot_description_file: str
-    joint_names: tuple[str, ...]
-    joint_state_topic: str
-    end_pose_topic: str
-    diagnostics_topic: str
-    frame_id: str
-    warm_start_max_gap: float
-    diagnostics_period: float
-    rate_window: float
-    latency_samples: int
-    solve_time_warn: float
-    warning_throttle_period: float
-
-    @classmethod
-    def from_values(cls, values: Mapping[str, Any]) -> KinematicsNodeSettings:
-        names = tuple(values['joint_names'])
-        if len(names) != len(MEASURED_JOINTS) or len(set(names)) != len(names) or '' in names:
-            raise InvalidParameterValueException(
-                'joint_names', list(names),
-                f'needs {len(MEASURED_JOINTS)} distinct names, for {", ".join(MEASURED_JOINTS)}')
-        fields = {name: values[name] for name in cls.__dataclass_fields__}
-        return cls(**{**fields, 'joint_names': names})
-
-
-class KinematicsNode(Node):
+class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
     """Forward kinematics of every measured JointState, with diagnostics.
 
     Extra keyword arguments go to `rclpy.node.Node` (`context`, `parameter_overrides`,
@@ -148,9 +130,8 @@ class KinematicsNode(Node):
 
     def __init__(self, node_name: str = NODE_NAME, **node_kwargs: Any) -> None:
         super().__init__(node_name, **node_kwargs)
-        values = declare_parameters(self, PARAMETERS)
-        self.settings = KinematicsNodeSettings.from_values(values)
-        self.description = load_robot_description(self.settings.robot_description_file or None)
+        settings = self.declare_settings(KinematicsNodeSettings)
+        self.description = load_robot_description(settings.robot_description_file or None)
         self._fk = ForwardKinematics(self.description)
         self._last_names: tuple[str, ...] | None = None
         self._indices: list[int] | None = None  # where the joints are in _last_names
@@ -159,26 +140,21 @@ class KinematicsNode(Node):
         self.warm_start_resets = 0
 
         self.rejected = RejectionCounter(REJECTION_REASONS)
-        self.solve_time = LatencyRecorder(self.settings.latency_samples)
-        self.input_rate = RateMeter(self.settings.rate_window)
-        self.output_rate = RateMeter(self.settings.rate_window)
-        self._throttle = LogThrottle(self.settings.warning_throttle_period)
+        self.solve_time = LatencyRecorder(settings.latency_samples)
+        self.input_rate = RateMeter(settings.rate_window)
+        self.output_rate = RateMeter(settings.rate_window)
         self._rejected_at_last_report = 0
 
-        self._publisher = self.create_publisher(
-            PoseStamped, self.settings.end_pose_topic, qos_from_parameters(values, 'output_qos'))
-        self._subscription = self.create_subscription(
-            JointState, self.settings.joint_state_topic, self.on_joint_state,
-            qos_from_parameters(values, 'input_qos'))
-        self._diagnostics = DiagnosticsPublisher(
-            self, self.settings.diagnostics_topic, self.settings.diagnostics_period,
+        self._publisher = self.advertise(END_POSE)
+        self._subscription = self.subscribe(JOINT_STATES, self.on_joint_state)
+        self._diagnostics = self.start_diagnostics(
+            settings.diagnostics_topic, settings.diagnostics_period,
             hardware_id=f'urdf sha256 {self.description.sha256[:16]}')
         self._diagnostics.add('joint states', self.input_status)
         self._diagnostics.add('forward kinematics', self.kinematics_status)
-        self.add_post_set_parameters_callback(self._apply_parameters)
         self.get_logger().info(
-            f'forward kinematics of {self.settings.joint_state_topic} -> '
-            f'{self.settings.end_pose_topic} with {self.description.source} '
+            f'forward kinematics of {settings.joint_state_topic} -> '
+            f'{settings.end_pose_topic} with {self.description.source} '
             f'(sha256 {self.description.sha256[:16]})')
 
     def on_joint_state(self, msg: JointState) -> None:
@@ -246,11 +222,8 @@ class KinematicsNode(Node):
     def _reject(self, reason: str, msg: JointState, err: Exception) -> None:
         self.rejected.add(reason)
         stamp = msg.header.stamp
-        text = self._throttle.filter(
-            reason, f'no end pose for the joint state at {stamp.sec}.{stamp.nanosec:09d} '
-                    f'({reason}): {err}')
-        if text is not None:
-            self.get_logger().warning(text)
+        self.warn_throttled(reason, f'no end pose for the joint state at '
+                                    f'{stamp.sec}.{stamp.nanosec:09d} ({reason}): {err}')
 
     def input_status(self) -> Status:
         """Diagnostics of /joint_states: rate, counts, rejections by reason."""
@@ -262,6 +235,7 @@ class KinematicsNode(Node):
             'input_rate_hz': round(self.input_rate.rate(), 3),
             'received_total': self.input_rate.total,
             **rejection_values(self.rejected),
+            **self.callback_values(),
         }
         topic = self.settings.joint_state_topic
         if silence is None:
@@ -293,22 +267,14 @@ class KinematicsNode(Node):
             return Status(Level.WARN, f'{timing} (over {limit:.0f} us)', values)
         return Status(Level.OK, timing, values)
 
-    def _apply_parameters(self, parameters: Sequence[Parameter]) -> None:
-        """Take the runtime-changeable parameters (the read-only ones never reach here)."""
-        changes = {p.name: p.value for p in parameters
-                   if p.name in KinematicsNodeSettings.__dataclass_fields__}
-        self.settings = replace(self.settings, **changes)
-        if 'warning_throttle_period' in changes:
-            self._throttle.period = self.settings.warning_throttle_period
-
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Console script `kinematics_node` (`ros2 run lompr_predictor kinematics_node`)."""
     def build(context: Context) -> KinematicsNode:
         return KinematicsNode(context=context)
 
-    return run_node(build, description=__doc__.split('\n', 1)[0], parameters=PARAMETERS,
-                    argv=argv)
+    return run_node(build, description=__doc__.split('\n', 1)[0],
+                    parameters_help=node_help(KinematicsNodeSettings, ENDPOINTS), argv=argv)
 
 
 if __name__ == '__main__':

@@ -22,14 +22,16 @@ from rclpy.node import Node
 
 from lompr_predictor.ros import kinematics_node, predictor_node
 from lompr_predictor.ros.common import run_node
+from lompr_predictor.ros.node_base import node_help
 
 
 def build_pipeline(context: Context) -> list[Node]:
     """A kinematics node and a predictor node on `context` (the kinematics node is destroyed
-    again if the predictor cannot start, e.g. on a mismatched model)."""
+    again if the predictor cannot start, e.g. on a mismatched model); the process's torch
+    threads are the predictor's `inference_threads`, as in its own executable."""
     kinematics = kinematics_node.KinematicsNode(context=context)
     try:
-        return [kinematics, predictor_node.PredictorNode(context=context)]
+        return [kinematics, predictor_node.build_entry_point(context)]
     except BaseException:
         kinematics.destroy_node()
         raise
@@ -37,9 +39,13 @@ def build_pipeline(context: Context) -> list[Node]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Console script `lompr_pipeline`."""
+    parameters_help = [
+        f'{kinematics_node.NODE_NAME}:',
+        *node_help(kinematics_node.KinematicsNodeSettings, kinematics_node.ENDPOINTS),
+        f'{predictor_node.NODE_NAME}:',
+        *node_help(predictor_node.PredictorNodeSettings, predictor_node.ENDPOINTS)]
     return run_node(build_pipeline, description=__doc__.split('\n', 1)[0],
-                    parameters=(*kinematics_node.PARAMETERS, *predictor_node.PARAMETERS),
-                    argv=argv)
+                    parameters_help=parameters_help, argv=argv)
 
 
 if __name__ == '__main__':

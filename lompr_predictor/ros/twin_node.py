@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -37,14 +37,15 @@ from lompr_predictor.monitoring import (
 )
 from lompr_predictor.robot.description import MEASURED_JOINTS, WORLD_FRAME, load_robot_description
 from lompr_predictor.robot.paths import PATH_KINDS
-from lompr_predictor.ros.common import (
-    DiagnosticsPublisher,
-    ParameterSpec,
-    declare_parameters,
-    qos_from_parameters,
-    qos_parameter_specs,
-    run_node,
+from lompr_predictor.ros.common import run_node
+from lompr_predictor.ros.node_base import (
+    COMMAND_INPUT_QOS,
+    OUTPUT_QOS,
+    Endpoint,
+    NodeBase,
+    node_help,
 )
+from lompr_predictor.ros.parameters import parameter
 from lompr_predictor.stamps import ns_to_sec_nanosec, stamp_to_ns
 from lompr_predictor.twin.compensation import CompensationSchedule
 from lompr_predictor.twin.digital_twin import DigitalTwin, TwinSamples
@@ -53,93 +54,78 @@ from lompr_predictor.twin.parameters import load_twin_parameters
 NODE_NAME = 'twin_node'
 MODES = ('realtime', 'lockstep')
 
-PARAMETERS: tuple[ParameterSpec, ...] = (
-    ParameterSpec('robot_description_file', '',
-                  'URDF of the robot; empty: the packaged nominal LOMPR description',
-                  read_only=True),
-    ParameterSpec('twin_parameters_file', '',
-                  'twin physics YAML overriding the packaged config/twin.yaml; empty: defaults',
-                  read_only=True),
-    ParameterSpec('path', 'spiral', 'path the robot runs, pass after pass',
-                  choices=PATH_KINDS, read_only=True),
-    ParameterSpec('seed', 0, 'random seed of the twin (tolerances, drift, noise)',
-                  minimum=0, maximum=2 ** 31 - 1, read_only=True),
-    ParameterSpec('passes', 0, 'passes to run before stopping; 0: run until shut down',
-                  minimum=0, maximum=1_000_000, read_only=True),
-    ParameterSpec('mode', 'realtime', 'realtime (a sample per period / speed_factor) or '
-                  'lockstep (a sample when its compensation arrived, or after '
-                  'lockstep_timeout)', choices=MODES, read_only=True),
-    ParameterSpec('speed_factor', 1.0, 'realtime mode: simulated seconds per wall second',
-                  minimum=0.01, maximum=1000.0, read_only=True),
-    ParameterSpec('lockstep_timeout', 0.1, 'lockstep mode: wall seconds to wait for the next '
-                  "sample's compensation before running it without", minimum=0.001,
-                  maximum=60.0, read_only=True),
-    ParameterSpec('compensation_enabled', True, 'apply /lompr/compensation offsets (false: '
-                  'count and ignore them)', read_only=True),
-    ParameterSpec('compensation_timeout', 1.0, 'simulated seconds an offset may wait between '
-                  'its arrival and its instant; older ones are dropped as stale',
-                  minimum=0.0, maximum=3600.0, read_only=True),
-    ParameterSpec('max_compensation', 1e-3, 'largest offset [m] accepted in any axis; larger '
-                  'ones are dropped', minimum=0.0, maximum=0.05, read_only=True),
-    ParameterSpec('joint_state_topic', '/joint_states', 'JointState output', read_only=True),
-    ParameterSpec('reference_topic', '/lompr/reference', 'PoseStamped output: nominal '
-                  'commanded tool tip', read_only=True),
-    ParameterSpec('compensation_topic', '/lompr/compensation', 'Vector3Stamped input: '
-                  'feedforward offset for the instant in its stamp', read_only=True),
-    ParameterSpec('true_error_topic', '/lompr/twin/true_error', 'Vector3Stamped debug output: '
-                  'true tool tip - reference [m]', read_only=True),
-    ParameterSpec('plant_error_topic', '/lompr/twin/plant_error', 'Vector3Stamped debug '
-                  'output: true tool tip - reference - applied offset [m]', read_only=True),
-    ParameterSpec('diagnostics_topic', '/diagnostics', 'DiagnosticArray topic', read_only=True),
-    ParameterSpec('frame_id', WORLD_FRAME, 'header.frame_id of the reference and the errors',
-                  read_only=True),
-    *qos_parameter_specs('output_qos', depth=100, what='the joint state, reference and error '
-                         'publishers'),
-    *qos_parameter_specs('input_qos', depth=100, what='the compensation subscription'),
-    ParameterSpec('diagnostics_period', 1.0, 'seconds between /diagnostics messages',
-                  minimum=0.05, maximum=60.0, read_only=True),
-    ParameterSpec('rate_window', 5.0, 'seconds over which the sample rate is averaged',
-                  minimum=0.1, maximum=600.0, read_only=True),
-)
-
 
 @dataclass(frozen=True)
 class TwinNodeSettings:
-    """Snapshot of the node's parameters (see `PARAMETERS`)."""
+    """The node's parameters: one field each, declared by `NodeBase.declare_settings`."""
 
-    robot_description_file: str
-    twin_parameters_file: str
-    path: str
-    seed: int
-    passes: int
-    mode: str
-    speed_factor: float
-    lockstep_timeout: float
-    compensation_enabled: bool
-    compensation_timeout: float
-    max_compensation: float
-    joint_state_topic: str
-    reference_topic: str
-    compensation_topic: str
-    true_error_topic: str
-    plant_error_topic: str
-    diagnostics_topic: str
-    frame_id: str
-    diagnostics_period: float
-    rate_window: float
+    robot_description_file: str = parameter(
+        '', 'URDF of the robot; empty: the packaged nominal LOMPR description', read_only=True)
+    twin_parameters_file: str = parameter(
+        '', 'twin physics YAML overriding the packaged config/twin.yaml; empty: defaults',
+        read_only=True)
+    path: str = parameter('spiral', 'path the robot runs, pass after pass',
+                          choices=PATH_KINDS, read_only=True)
+    seed: int = parameter(0, 'random seed of the twin (tolerances, drift, noise)',
+                          minimum=0, maximum=2 ** 31 - 1, read_only=True)
+    passes: int = parameter(0, 'passes to run before stopping; 0: run until shut down',
+                            minimum=0, maximum=1_000_000, read_only=True)
+    mode: str = parameter('realtime', 'realtime (a sample per period / speed_factor) or '
+                          'lockstep (a sample when its compensation arrived, or after '
+                          'lockstep_timeout)', choices=MODES, read_only=True)
+    speed_factor: float = parameter(1.0, 'realtime mode: simulated seconds per wall second',
+                                    minimum=0.01, maximum=1000.0, read_only=True)
+    lockstep_timeout: float = parameter(
+        0.1, "lockstep mode: wall seconds to wait for the next sample's compensation before "
+        'running it without', minimum=0.001, maximum=60.0, read_only=True)
+    compensation_enabled: bool = parameter(
+        True, 'apply /lompr/compensation offsets (false: count and ignore them)',
+        read_only=True)
+    compensation_timeout: float = parameter(
+        1.0, 'simulated seconds an offset may wait between its arrival and its instant; older '
+        'ones are dropped as stale', minimum=0.0, maximum=3600.0, read_only=True)
+    max_compensation: float = parameter(
+        1e-3, 'largest offset [m] accepted in any axis; larger ones are dropped', minimum=0.0,
+        maximum=0.05, read_only=True)
+    joint_state_topic: str = parameter('/joint_states', 'JointState output', read_only=True)
+    reference_topic: str = parameter('/lompr/reference', 'PoseStamped output: nominal '
+                                     'commanded tool tip', read_only=True)
+    compensation_topic: str = parameter('/lompr/compensation', 'Vector3Stamped input: '
+                                        'feedforward offset for the instant in its stamp',
+                                        read_only=True)
+    true_error_topic: str = parameter('/lompr/twin/true_error', 'Vector3Stamped debug '
+                                      'output: true tool tip - reference [m]', read_only=True)
+    plant_error_topic: str = parameter('/lompr/twin/plant_error', 'Vector3Stamped debug '
+                                       'output: true tool tip - reference - applied offset [m]',
+                                       read_only=True)
+    diagnostics_topic: str = parameter('/diagnostics', 'DiagnosticArray topic', read_only=True)
+    frame_id: str = parameter(WORLD_FRAME, 'header.frame_id of the reference and the errors',
+                              read_only=True)
+    diagnostics_period: float = parameter(1.0, 'seconds between /diagnostics messages',
+                                          minimum=0.05, maximum=60.0, read_only=True)
+    rate_window: float = parameter(5.0, 'seconds over which the sample rate is averaged',
+                                   minimum=0.1, maximum=600.0, read_only=True)
 
-    @classmethod
-    def from_values(cls, values: Mapping[str, Any]) -> TwinNodeSettings:
-        return cls(**{name: values[name] for name in cls.__dataclass_fields__})
+
+JOINT_STATES = Endpoint('publisher', JointState, 'joint_state_topic', OUTPUT_QOS,
+                        'measured joints')
+REFERENCE = Endpoint('publisher', PoseStamped, 'reference_topic', OUTPUT_QOS, 'reference')
+TRUE_ERROR = Endpoint('publisher', Vector3Stamped, 'true_error_topic', OUTPUT_QOS,
+                      'true error')
+PLANT_ERROR = Endpoint('publisher', Vector3Stamped, 'plant_error_topic', OUTPUT_QOS,
+                       'plant error')
+#: Reliable: in lockstep each offset lets the twin run one more sample.
+COMPENSATION = Endpoint('subscription', Vector3Stamped, 'compensation_topic',
+                        COMMAND_INPUT_QOS, 'compensation')
+ENDPOINTS = (JOINT_STATES, REFERENCE, TRUE_ERROR, PLANT_ERROR, COMPENSATION)
 
 
-class TwinNode(Node):
+class TwinNode(NodeBase[TwinNodeSettings], Node):
     """The digital twin as a ROS node. Extra keyword arguments go to `rclpy.node.Node`."""
 
     def __init__(self, node_name: str = NODE_NAME, **node_kwargs: Any) -> None:
         super().__init__(node_name, **node_kwargs)
-        values = declare_parameters(self, PARAMETERS)
-        self.settings = settings = TwinNodeSettings.from_values(values)
+        settings = self.declare_settings(TwinNodeSettings)
         description = load_robot_description(settings.robot_description_file or None)
         params = load_twin_parameters(settings.twin_parameters_file or None)
         self.twin = DigitalTwin(description, params, seed=settings.seed, path=settings.path)
@@ -155,24 +141,18 @@ class TwinNode(Node):
         self.sample_rate = RateMeter(settings.rate_window)
         self._last_step = time.monotonic()
 
-        output_qos = qos_from_parameters(values, 'output_qos')
-        self._joint_publisher = self.create_publisher(
-            JointState, settings.joint_state_topic, output_qos)
-        self._reference_publisher = self.create_publisher(
-            PoseStamped, settings.reference_topic, output_qos)
-        self._true_error_publisher = self.create_publisher(
-            Vector3Stamped, settings.true_error_topic, output_qos)
-        self._plant_error_publisher = self.create_publisher(
-            Vector3Stamped, settings.plant_error_topic, output_qos)
-        self.create_subscription(Vector3Stamped, settings.compensation_topic,
-                                 self.on_compensation, qos_from_parameters(values, 'input_qos'))
+        self._joint_publisher = self.advertise(JOINT_STATES)
+        self._reference_publisher = self.advertise(REFERENCE)
+        self._true_error_publisher = self.advertise(TRUE_ERROR)
+        self._plant_error_publisher = self.advertise(PLANT_ERROR)
+        self._compensation_subscription = self.subscribe(COMPENSATION, self.on_compensation)
         if settings.mode == 'realtime':
-            self._timer = self.create_timer(period / settings.speed_factor, self.step)
+            self._timer = self.start_timer(period / settings.speed_factor, 'step', self.step)
         else:
-            self._timer = self.create_timer(settings.lockstep_timeout / 4.0,
-                                            self._on_lockstep_timer)
-        self._diagnostics = DiagnosticsPublisher(
-            self, settings.diagnostics_topic, settings.diagnostics_period,
+            self._timer = self.start_timer(settings.lockstep_timeout / 4.0, 'lockstep timer',
+                                           self._on_lockstep_timer)
+        self._diagnostics = self.start_diagnostics(
+            settings.diagnostics_topic, settings.diagnostics_period,
             hardware_id=f'lompr twin seed {settings.seed}')
         self._diagnostics.add('simulation', self.simulation_status)
         self._diagnostics.add('compensation', self.compensation_status)
@@ -253,6 +233,7 @@ class TwinNode(Node):
             'sample_rate_hz': round(rate, 3),
             'mode': self.settings.mode,
             **latency_values('step_time', self.step_time.summary()),
+            **self.callback_values(),
         }
         if self.finished:
             return Status(Level.OK, f'finished {self.settings.passes} passes', values)
@@ -283,7 +264,8 @@ class TwinNode(Node):
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Console script `twin_node` (`ros2 run lompr_predictor twin_node`)."""
-    return run_node(lambda context: TwinNode(context=context), parameters=PARAMETERS,
+    return run_node(lambda context: TwinNode(context=context),
+                    parameters_help=node_help(TwinNodeSettings, ENDPOINTS),
                     description=__doc__.split('\n', 1)[0], argv=argv)
 
 

@@ -1,0 +1,215 @@
+"""Alignment by stamp: each pose gets the reference interpolated to its own stamp.
+
+CONTRACT section 2: the measured tool tip and the reference may come at different instants
+and rates, and in any arrival order; a consumer aligns them by time, never by arrival.
+`StampAlignment` keeps the poses that wait for a reference at or after their stamp, in
+arrival order, and the reference track (`ReferenceTrack`) they are interpolated on. Each
+input returns what became ready, in order: an `AlignedSample` or the reason (a string) of a
+fault the caller must handle there, between the samples. Every input not used is counted by
+reason in `dropped`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Callable
+from typing import NamedTuple
+
+from lompr_predictor.monitoring import RejectionCounter
+
+#: Why an input sample was not used; each is counted (`StampAlignment.dropped`).
+DROP_REASONS: tuple[str, ...] = (
+    'non_finite', 'duplicate', 'out_of_order', 'no_reference', 'reference_duplicate',
+    'reference_non_finite', 'reference_out_of_order', 'stale', 'internal')
+#: Poses kept waiting for a reference at or after their stamp; beyond, the oldest is dropped.
+MAX_PENDING_POSES = 1000
+#: References kept before the oldest pose that may still need one.
+REFERENCE_MARGIN = 4
+#: References kept at most (while no pose comes to use them, the oldest go).
+MAX_REFERENCES = 10_000
+#: Reference steps whose median is the reference's own period.
+REFERENCE_STEPS = 15
+
+
+class ReferenceTrack:
+    """The reference stream, linearly interpolated to pose stamps across short brackets.
+
+    A bracket is short when it spans at most `gap_factor` periods of the poses or of the
+    reference itself (its median step over the last `REFERENCE_STEPS`), whichever is
+    longer: the reference may come slower than the poses (CONTRACT section 2).
+    """
+
+    def __init__(self, gap_factor: float, period_ns: int) -> None:
+        self.gap_factor = gap_factor
+        self.max_bracket_ns = gap_factor * period_ns
+        self._pose_period_ns = period_ns
+        self._stamps: deque[int] = deque(maxlen=MAX_REFERENCES)
+        self._positions: deque[tuple[float, float]] = deque(maxlen=MAX_REFERENCES)
+        self._steps: deque[int] = deque(maxlen=REFERENCE_STEPS)
+
+    @property
+    def newest(self) -> int | None:
+        return self._stamps[-1] if self._stamps else None
+
+    def add(self, stamp_ns: int, x: float, y: float) -> str:
+        """Keep one reference; '' or the reason it was not kept."""
+        if not (math.isfinite(x) and math.isfinite(y)):
+            return 'reference_non_finite'
+        newest = self.newest
+        if newest is not None and stamp_ns <= newest:
+            return 'reference_duplicate' if stamp_ns == newest else 'reference_out_of_order'
+        if newest is not None:
+            self._steps.append(stamp_ns - newest)
+            typical = sorted(self._steps)[len(self._steps) // 2]
+            self.max_bracket_ns = self.gap_factor * max(self._pose_period_ns, typical)
+        self._stamps.append(stamp_ns)
+        self._positions.append((x, y))
+        return ''
+
+    def restart(self, stamp_ns: int, x: float, y: float) -> None:
+        """Forget the history and start again from one reference (the stream went back)."""
+        self.clear()
+        self._stamps.append(stamp_ns)
+        self._positions.append((x, y))
+
+    def clear(self) -> None:
+        self._stamps.clear()
+        self._positions.clear()
+
+    def at(self, stamp_ns: int) -> tuple[float, float] | str | None:
+        """The reference at `stamp_ns`; None while no reference at or after it has arrived;
+        'no_reference' when the history does not bracket it within `max_bracket_ns`."""
+        stamps, positions = self._stamps, self._positions
+        if not stamps or stamp_ns > stamps[-1]:
+            return None
+        while len(stamps) > REFERENCE_MARGIN and stamps[1] <= stamp_ns:
+            stamps.popleft()
+            positions.popleft()
+        if stamp_ns < stamps[0]:
+            return 'no_reference'
+        right = 0
+        while stamps[right] < stamp_ns:
+            right += 1
+        if stamps[right] == stamp_ns:
+            return positions[right]
+        left = right - 1
+        span = stamps[right] - stamps[left]
+        if span > self.max_bracket_ns:
+            return 'no_reference'
+        weight = (stamp_ns - stamps[left]) / span
+        (x0, y0), (x1, y1) = positions[left], positions[right]
+        return x0 + weight * (x1 - x0), y0 + weight * (y1 - y0)
+
+
+class AlignedSample(NamedTuple):
+    """A pose with the reference at its stamp (SI units)."""
+
+    stamp_ns: int
+    x: float  # measured tool tip X [m]
+    y: float  # measured tool tip Y [m]
+    reference_x: float  # reference at the stamp [m]
+    reference_y: float
+
+
+class _Pose(NamedTuple):
+    stamp_ns: int
+    x: float
+    y: float
+    arrival: float  # clock() when it arrived
+
+
+#: What an input made ready, in order: a sample to use, or the reason of a fault.
+Event = AlignedSample | str
+
+
+class StampAlignment:
+    """Poses waiting for their reference, and the reference track (module docstring).
+
+    `clock` (seconds) stamps each pose's arrival, so that a pose waiting too long for its
+    reference can be told from a stream that stopped (`oldest_waiting_arrival`).
+    A non-finite pose is a fault, raised in its place among the waiting poses (the poses
+    before it are still used first); a pose with a stamp going backwards is a fault at once
+    (the waiting poses are dropped); a repeated stamp is dropped without a fault.
+    """
+
+    def __init__(self, gap_factor: float, period_ns: int, clock: Callable[[], float]) -> None:
+        self.references = ReferenceTrack(gap_factor, period_ns)
+        self._clock = clock
+        self._pending: deque[_Pose | str] = deque()
+        #: Stamp of the newest pose taken (the last one, if a stamp went backwards) [ns].
+        self.newest_pose_ns: int | None = None
+        self.dropped = RejectionCounter(DROP_REASONS)
+
+    @property
+    def waiting(self) -> bool:
+        """Whether any pose (or a fault in its place) waits for a reference."""
+        return bool(self._pending)
+
+    def oldest_waiting_arrival(self) -> float | None:
+        """clock() at the arrival of the oldest pose still waiting, None if none waits."""
+        for item in self._pending:
+            if isinstance(item, _Pose):
+                return item.arrival
+        return None
+
+    def add_reference(self, stamp_ns: int, x: float, y: float) -> list[Event]:
+        """Take one reference sample; returns what became ready."""
+        reason = self.references.add(stamp_ns, x, y)
+        if reason == 'reference_out_of_order':
+            self.dropped.add(reason)
+            self.references.restart(stamp_ns, x, y)
+            return [reason]
+        if reason:
+            self.dropped.add(reason)
+            return [reason] if reason == 'reference_non_finite' else []
+        return self._drain([])
+
+    def add_pose(self, stamp_ns: int, x: float, y: float) -> list[Event]:
+        """Take one measured tool-tip sample; returns what became ready."""
+        if not (math.isfinite(x) and math.isfinite(y)):
+            self.dropped.add('non_finite')
+            self._pending.append('non_finite')
+            return self._drain([])
+        newest = self.newest_pose_ns
+        if newest is not None and stamp_ns == newest:
+            self.dropped.add('duplicate')
+            return []
+        if newest is not None and stamp_ns < newest:
+            self.dropped.add('out_of_order')
+            self.newest_pose_ns = stamp_ns
+            self.clear('out_of_order')
+            return ['out_of_order']
+        self.newest_pose_ns = stamp_ns
+        self._pending.append(_Pose(stamp_ns, x, y, self._clock()))
+        events: list[Event] = []
+        if len(self._pending) > MAX_PENDING_POSES:
+            self._pending.popleft()
+            self.dropped.add('no_reference')
+            events.append('no_reference')
+        return self._drain(events)
+
+    def clear(self, reason: str) -> None:
+        """Drop the poses waiting for a reference, counted under `reason`."""
+        self.dropped.add(reason, sum(isinstance(p, _Pose) for p in self._pending))
+        self._pending.clear()
+
+    def _drain(self, events: list[Event]) -> list[Event]:
+        """Append to `events` every waiting pose whose reference has arrived, in order."""
+        pending = self._pending
+        while pending:
+            head = pending[0]
+            if isinstance(head, str):
+                pending.popleft()
+                events.append(head)
+                continue
+            reference = self.references.at(head.stamp_ns)
+            if reference is None:
+                break
+            pending.popleft()
+            if isinstance(reference, str):
+                self.dropped.add(reference)
+                events.append(reference)
+                continue
+            events.append(AlignedSample(head.stamp_ns, head.x, head.y, *reference))
+        return events

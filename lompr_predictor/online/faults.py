@@ -1,0 +1,88 @@
+"""When the input stream is not what the model was trained on: the fault rules.
+
+A fault empties the window and cancels the offset in force (`offset.OffsetGate.cancel`);
+output resumes once the window has refilled with good samples. The rules here decide what
+is a fault, apart from the alignment's own (`alignment.StampAlignment`: non-finite values,
+stamps going backwards, poses the reference does not bracket) and a failing inference:
+
+- `StreamRules`: the interval between two used samples must be near the model's sample
+  period, as in the trainer: above `gap_factor` periods it is a gap (the trainer splits its
+  data there), below `min_interval_factor` periods the input is not at the model's rate.
+- `StaleWatch`: no usable sample for `StreamSettings.stale_after` seconds of `clock`, found
+  by two checks in a row.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+#: Why the window was emptied (and an offset in force cancelled by a zero).
+FAULT_REASONS: tuple[str, ...] = (
+    'non_finite', 'out_of_order', 'gap', 'off_rate', 'no_reference', 'reference_non_finite',
+    'reference_out_of_order', 'inference', 'stale', 'internal')
+
+
+@dataclass(frozen=True)
+class StreamSettings:
+    """How the input stream must look for the model (SI units)."""
+
+    sample_period: float  # [s] the model's; also the spacing the stamps must have
+    gap_factor: float  # an interval above gap_factor * sample_period is a gap
+    min_interval_factor: float  # one below min_interval_factor * sample_period is off-rate
+    stale_periods: float  # no sample for this many periods (wall time): input is stale
+    accuracy_samples: int  # residuals the live RMS is over
+    # ... and for at least this long [s]: a process on a general-purpose OS can stall for
+    # milliseconds (scheduler, garbage collector), which at kHz rates is many periods
+    stale_min_time: float = 0.0
+
+    @property
+    def stale_after(self) -> float:
+        """Wall seconds without a usable sample after which the input is stale."""
+        return max(self.stale_periods * self.sample_period, self.stale_min_time)
+
+
+class StreamRules:
+    """The interval rules between two used samples (module docstring)."""
+
+    def __init__(self, stream: StreamSettings, period_ns: int) -> None:
+        self.max_interval_ns = stream.gap_factor * period_ns
+        self.min_interval_ns = stream.min_interval_factor * period_ns
+
+    def interval_fault(self, previous_ns: int, stamp_ns: int) -> str:
+        """'gap', 'off_rate', or '' for an interval the model was trained on."""
+        interval = stamp_ns - previous_ns
+        if interval > self.max_interval_ns:
+            return 'gap'
+        if interval < self.min_interval_ns:
+            return 'off_rate'
+        return ''
+
+
+class StaleWatch:
+    """Input gone stale: no usable sample for `stale_after` seconds of `clock`.
+
+    `used()` marks a sample used now. `check(oldest_waiting)` is called periodically, with
+    the arrival time of the oldest pose still waiting for its reference (a pose waiting
+    that long counts as no sample); it is True when this call and the previous one both
+    found the input idle that long. One idle check alone proves nothing: an executor that
+    was busy runs its timer before the samples that queued meanwhile.
+    """
+
+    def __init__(self, stale_after: float, clock: Callable[[], float]) -> None:
+        self.stale_after = stale_after
+        self._clock = clock
+        self._last_used = clock()
+        self._suspected = False
+
+    def used(self) -> None:
+        """A sample was used now."""
+        self._last_used = self._clock()
+
+    def check(self, oldest_waiting: float | None = None) -> bool:
+        """True when this check and the previous one both found the input idle."""
+        since = self._last_used if oldest_waiting is None else max(self._last_used,
+                                                                   oldest_waiting)
+        idle = self._clock() - since >= self.stale_after
+        confirmed, self._suspected = self._suspected and idle, idle
+        return confirmed

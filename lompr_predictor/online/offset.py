@@ -1,0 +1,180 @@
+"""The offset gate: the one place the published offset is bounded, scheduled and cancelled.
+
+Safety rules (README, predictor node):
+
+- The offset for an instant is minus the prediction for it, clamped to `max_compensation`
+  (XY norm, direction kept) and to `max_step` change from the previous offset (XY norm of
+  the change), so it never jumps, also when it starts or resumes.
+- What was published is kept by the instant it is for (`InstantSchedule`), offsets and
+  predictions apart: the plant error of a sample subtracts the offset published for its
+  instant (CONTRACT section 3) and the live accuracy compares the prediction for it.
+- Cancelling (a fault, or compensation switched off): if an offset is in force, a zero
+  `Output` for every instant after the newest pose for which an offset was already
+  published, or for the next instant if there is none; nothing if no offset was published
+  since the last cancel. A controller applies each offset at its instant, the newest
+  message for an instant winning, and nothing where it has none, so no offset computed
+  before the cancel is applied after it; the plant error is computed with the same rule.
+- Shadow mode (`enabled` false): every offset is zero; predictions go on.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class CompensationLimits:
+    """Bounds of the published offset [m]."""
+
+    max_compensation: float  # XY norm of the offset
+    max_step: float  # XY norm of its change from one sample to the next
+    enabled: bool  # False: shadow mode, predictions go on, every offset is zero
+
+
+class Output(NamedTuple):
+    """What to publish for one instant."""
+
+    instant_ns: int  # the instant both values are for [ns]
+    prediction: np.ndarray | None  # (2,) predicted plant X/Y error [m]; None for a zero
+    compensation: np.ndarray  # (2,) X/Y offset [m]
+    reason: str  # '' for a prediction, else the fault (or 'compensation_disabled') that
+    # cancelled the offset
+    sample_stamp_ns: int  # stamp of the newest sample the output was made from [ns]
+
+
+class InstantSchedule:
+    """Values by the instant they are for, in increasing instants; found within a tolerance.
+
+    `take(stamp)` returns the value for the instant nearest `stamp` (within the tolerance)
+    and forgets every earlier one; stamps asked for must increase, as the poses do.
+    """
+
+    def __init__(self, tolerance_ns: int, capacity: int = 100_000) -> None:
+        self.tolerance_ns = tolerance_ns
+        self._items: deque[tuple[int, np.ndarray]] = deque(maxlen=capacity)
+
+    def add(self, instant_ns: int, value: np.ndarray) -> None:
+        self.cancel_from(instant_ns)
+        self._items.append((instant_ns, value))
+
+    def instants_after(self, stamp_ns: int) -> list[int]:
+        """Instants held that lie after `stamp_ns` (beyond the tolerance)."""
+        return [instant for instant, _ in self._items if instant > stamp_ns + self.tolerance_ns]
+
+    def cancel_from(self, instant_ns: int) -> None:
+        """Forget values for instants from `instant_ns` on (a later message supersedes)."""
+        items = self._items
+        while items and items[-1][0] >= instant_ns - self.tolerance_ns:
+            items.pop()
+
+    def take(self, stamp_ns: int) -> np.ndarray | None:
+        items = self._items
+        while items and items[0][0] < stamp_ns - self.tolerance_ns:
+            items.popleft()
+        if items and items[0][0] <= stamp_ns + self.tolerance_ns:
+            return items.popleft()[1]
+        return None
+
+    def clear(self) -> None:
+        self._items.clear()
+
+
+class OffsetGate:
+    """Bounds, schedules and cancels the offsets (module docstring), on a grid of instants
+    `period_ns` apart (an instant is found within half a period)."""
+
+    def __init__(self, limits: CompensationLimits, period_ns: int) -> None:
+        self.limits = limits
+        self._period_ns = period_ns
+        self._compensations = InstantSchedule(period_ns // 2)
+        self._predictions = InstantSchedule(period_ns // 2)
+        self._offset = np.zeros(2)
+        self._in_force = False
+        self.clamped = 0  # offsets clamped to max_compensation
+        self.step_limited = 0  # offsets limited to max_step from the previous one
+        self.zeros_published = 0  # zero outputs of cancels
+
+    @property
+    def in_force(self) -> bool:
+        """Whether an offset was published since the last cancel (in shadow mode a zero)."""
+        return self._in_force
+
+    @property
+    def offset_in_force(self) -> np.ndarray:
+        """The last offset published (zero after a cancel or in shadow mode)."""
+        return self._offset.copy()
+
+    def published_for(self, stamp_ns: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """(offset, prediction) published for the instant of `stamp_ns`, None where none
+        was; both are forgotten with every earlier instant. Stamps asked for must increase."""
+        return self._compensations.take(stamp_ns), self._predictions.take(stamp_ns)
+
+    def publish(self, instant_ns: int, prediction: np.ndarray, sample_stamp_ns: int) -> Output:
+        """The bounded offset for `prediction` (the plant error predicted for `instant_ns`),
+        scheduled with it."""
+        compensation = self._bounded(-prediction)
+        self._predictions.add(instant_ns, prediction)
+        self._compensations.add(instant_ns, compensation)
+        self._offset = compensation
+        self._in_force = True
+        return Output(instant_ns, prediction, compensation, '', sample_stamp_ns)
+
+    def cancel(self, reason: str, newest_pose_ns: int | None) -> list[Output]:
+        """Zero outputs for the instants after `newest_pose_ns` that already have an offset,
+        or for the next instant; none if no offset was published since the last cancel."""
+        if not self._in_force:
+            return []
+        newest = newest_pose_ns or 0
+        instants = (self._compensations.instants_after(newest)
+                    or [newest + self._period_ns])
+        for instant in instants:
+            self._compensations.add(instant, np.zeros(2))
+        self._offset = np.zeros(2)
+        self._in_force = False
+        self.zeros_published += len(instants)
+        return [Output(instant, None, np.zeros(2), reason, newest) for instant in instants]
+
+    def set_limits(self, limits: CompensationLimits, newest_pose_ns: int | None) -> list[Output]:
+        """New bounds from the next offset on. Disabling compensation also cancels the
+        offsets already published (reason 'compensation_disabled')."""
+        disabled = self.limits.enabled and not limits.enabled
+        self.limits = limits
+        return self.cancel('compensation_disabled', newest_pose_ns) if disabled else []
+
+    def _bounded(self, wanted: np.ndarray) -> np.ndarray:
+        limits = self.limits
+        if not limits.enabled:
+            return np.zeros(2)
+        norm = math.hypot(wanted[0], wanted[1])
+        if norm > limits.max_compensation:
+            wanted = wanted * (limits.max_compensation / norm)
+            self.clamped += 1
+        change = wanted - self._offset
+        step = math.hypot(change[0], change[1])
+        if step > limits.max_step:
+            wanted = self._offset + change * (limits.max_step / step)
+            self.step_limited += 1
+        return wanted
+
+
+class LiveAccuracy:
+    """RMS per axis of truth - prediction over the last `samples` instants whose truth
+    arrived: a live figure to hold against the model's test RMSE."""
+
+    def __init__(self, samples: int) -> None:
+        self._residuals: deque[np.ndarray] = deque(maxlen=samples)
+
+    def add(self, truth: np.ndarray, prediction: np.ndarray) -> None:
+        self._residuals.append(truth - prediction)
+
+    def rms(self) -> tuple[np.ndarray, int]:
+        """(2,) RMS [m] and how many residuals it is over; NaN before the first."""
+        if not self._residuals:
+            return np.full(2, np.nan), 0
+        residuals = np.asarray(self._residuals)
+        return np.sqrt(np.mean(residuals ** 2, axis=0)), len(residuals)

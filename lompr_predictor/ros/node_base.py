@@ -1,0 +1,283 @@
+"""What every lompr node shares: settings, endpoints, one callback-exception policy,
+diagnostics.
+
+`NodeBase` is a mixin placed before the rclpy class, so it serves a plain node and a
+managed one alike:
+
+    class KinematicsNode(NodeBase[KinematicsNodeSettings], Node): ...
+    class SomeManagedNode(NodeBase[Settings], LifecycleNode): ...   # rclpy.lifecycle
+
+- Settings: `declare_settings(SettingsType)` declares every field of the frozen settings
+  dataclass as a parameter (`parameters.parameter`), sets `self.settings`, and from then on
+  validates each change (ranges and read_only by rclpy; choices, checks and the node's
+  `validate_settings` hook here) and applies an accepted one as a new frozen snapshot
+  (`apply_settings` hook, after `self.settings` is replaced).
+- Endpoints: an `Endpoint` names a publisher or subscription: kind, message type, the
+  settings field holding its topic, and its default QoS, chosen on purpose
+  (`SENSOR_INPUT_QOS`, `COMMAND_INPUT_QOS`, `OUTPUT_QOS`). `advertise` and `subscribe`
+  create it with rclpy's `QoSOverridingOptions`, so history, depth and reliability are
+  read-only parameters `qos_overrides.<topic>.<publisher|subscription>.<policy>`; a bad
+  override stops the node with one line (`QosOverrideError`). A lifecycle node gets a
+  lifecycle publisher.
+- One callback-exception policy: every subscription, timer and parameter-change callback
+  runs through `guard`, which catches any exception, counts it (`callback_failures`,
+  `last_callback_failure`: `callback_values()` for a status), logs it throttled, and calls
+  the node's `on_callback_failure` hook (the predictor empties its window and cancels its
+  offset). A callback never ends the spin.
+- Diagnostics: `start_diagnostics(topic, period, hardware_id)` -> `DiagnosticsPublisher`.
+- `warn_throttled(key, text)`: one warning per key and `warning_throttle_period` (a settings
+  field of that name, if the node has one; else `DEFAULT_THROTTLE_PERIOD`).
+
+Thread counts are not set here (`threads.set_torch_threads` belongs to entry points).
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar
+
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.lifecycle import LifecycleNodeMixin
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.publisher import Publisher
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverridingOptions
+from rclpy.subscription import Subscription
+from rclpy.timer import Timer
+
+from lompr_predictor.errors import LomprError
+from lompr_predictor.monitoring import LogThrottle
+from lompr_predictor.ros.common import DiagnosticsPublisher
+from lompr_predictor.ros.parameters import (
+    ParameterSpec,
+    changes_problem,
+    parameter_specs,
+    settings_help,
+)
+from lompr_predictor.ros.parameters import declare_settings as declare_parameters
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
+S = TypeVar('S', bound='DataclassInstance')
+
+#: Inputs from a robot or another node: best effort hears reliable and best-effort
+#: (sensor-data) publishers alike, whereas a reliable subscription hears nothing from a
+#: best-effort publisher; depth 100 queues 0.1 s at 1 kHz while the executor is busy.
+SENSOR_INPUT_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+#: Commands that must not be lost on the way (the compensation a controller applies).
+COMMAND_INPUT_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+#: Outputs: reliable, so that a reliable subscriber (a controller, a recorder) hears them;
+#: best-effort subscribers hear them too.
+OUTPUT_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+#: /diagnostics: diagnostic_aggregator and rqt subscribe reliable with depth 10.
+DIAGNOSTICS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+#: Seconds between two warnings of the same kind, for a node without the parameter.
+DEFAULT_THROTTLE_PERIOD = 5.0
+
+if TYPE_CHECKING:
+    _NodeType = Node  # for the type checker the mixin is a Node: its methods use Node's API
+else:
+    class _NodeType:  # at run time a plain mixin, placed before Node or LifecycleNode
+        pass
+
+
+class QosOverrideError(LomprError):
+    """A `qos_overrides.*` parameter that cannot be applied (unknown value, depth < 1)."""
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    """A publisher or subscription of a node (module docstring)."""
+
+    kind: Literal['publisher', 'subscription']
+    msg_type: Any  # the message class
+    topic_parameter: str  # the settings field that holds the topic name
+    qos: QoSProfile  # default QoS (copied: rclpy's overriding writes into the profile)
+    what: str  # what flows there, for logs and --help
+
+    def parameter_prefix(self, topic: str) -> str:
+        """`qos_overrides.<topic>.<kind>` for the fully qualified `topic`."""
+        return f'qos_overrides.{topic}.{self.kind}'
+
+    def help_line(self, settings_type: type) -> str:
+        """One `--help` line: the override parameters at the default topic, their defaults."""
+        topic = parameter_specs(settings_type)[self.topic_parameter].default
+        qos = self.qos
+        defaults = ', '.join((qos.history.name.lower(), str(qos.depth),
+                              qos.reliability.name.lower()))
+        return (f'  {self.parameter_prefix(topic)}.{{history,depth,reliability}} (default '
+                f'{defaults}, read-only): QoS of the {self.what} {self.kind} (the topic is '
+                f'{self.topic_parameter})')
+
+
+def check_qos(qos: QoSProfile) -> SetParametersResult:
+    """The QoS overriding validation: keep_last needs a depth of at least 1."""
+    if qos.history == HistoryPolicy.KEEP_LAST and qos.depth < 1:
+        return SetParametersResult(successful=False,
+                                   reason=f'depth must be at least 1 with keep_last, got '
+                                          f'{qos.depth}')
+    return SetParametersResult(successful=True)
+
+
+#: Policies a user may override: history, depth, reliability.
+QOS_OVERRIDING = QoSOverridingOptions.with_default_policies(callback=check_qos)
+
+
+class NodeBase(_NodeType, Generic[S]):
+    """The shared lifecycle of the lompr nodes (module docstring). Mix in before the rclpy
+    class; call `declare_settings` first in the constructor."""
+
+    settings: S
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.callback_failures = 0
+        self.last_callback_failure = ''
+        self.log_throttle = LogThrottle(DEFAULT_THROTTLE_PERIOD)
+        self._specs: dict[str, ParameterSpec] = {}
+
+    # -- hooks a node overrides ---------------------------------------------------------
+
+    def validate_settings(self, changes: dict[str, Any]) -> str:
+        """Why changed settings values are refused ('' to accept); runs after the generic
+        checks, before anything is changed."""
+        del changes
+        return ''
+
+    def apply_settings(self, previous: S, changed: frozenset[str]) -> None:
+        """Act on accepted changes; `self.settings` is already the new snapshot."""
+        del previous, changed
+
+    def on_callback_failure(self, where: str) -> None:
+        """Called after a callback raised (counted and logged already)."""
+        del where
+
+    # -- settings ---------------------------------------------------------------------------
+
+    def declare_settings(self, settings_type: type[S]) -> S:
+        """Declare the parameters of `settings_type`, keep the snapshot in `self.settings`,
+        and validate and apply every later change (module docstring)."""
+        self._specs = parameter_specs(settings_type)
+        self.settings = declare_parameters(self, settings_type)
+        self._update_throttle()
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(
+            self.guard('parameter change', self._apply_parameters))
+        return self.settings
+
+    def _settings_changes(self, parameters: Sequence[Parameter]) -> dict[str, Any]:
+        return {p.name: self._specs[p.name].settings_value(p.value) for p in parameters
+                if p.name in self._specs}
+
+    def _validate_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
+        changes = self._settings_changes(parameters)
+        if not changes:
+            return SetParametersResult(successful=True)
+        reason = changes_problem(self._specs, changes)
+        if not reason:
+            try:
+                reason = self.validate_settings(changes)
+            except Exception as err:  # noqa: BLE001 - a validation that fails refuses the change
+                reason = f'{type(err).__name__}: {err}'
+        return SetParametersResult(successful=not reason, reason=reason)
+
+    def _apply_parameters(self, parameters: list[Parameter]) -> None:
+        changes = self._settings_changes(parameters)
+        if not changes:
+            return
+        previous = self.settings
+        self.settings = replace(previous, **changes)
+        self._update_throttle()
+        self.apply_settings(previous, frozenset(changes))
+
+    def _update_throttle(self) -> None:
+        self.log_throttle.period = float(getattr(
+            self.settings, 'warning_throttle_period', DEFAULT_THROTTLE_PERIOD))
+
+    # -- endpoints --------------------------------------------------------------------------
+
+    def advertise(self, endpoint: Endpoint) -> Publisher:
+        """The publisher of `endpoint` (a lifecycle publisher on a lifecycle node)."""
+        create = (self.create_lifecycle_publisher if isinstance(self, LifecycleNodeMixin)
+                  else self.create_publisher)
+        topic = getattr(self.settings, endpoint.topic_parameter)
+        try:
+            return create(endpoint.msg_type, topic, copy.copy(endpoint.qos),
+                          qos_overriding_options=QOS_OVERRIDING)
+        except (InvalidQosOverridesError, RuntimeError) as err:
+            raise self._qos_error(endpoint, topic, err) from err
+
+    def subscribe(self, endpoint: Endpoint, callback: Callable[[Any], None]) -> Subscription:
+        """The subscription of `endpoint`; `callback` runs through `guard`."""
+        topic = getattr(self.settings, endpoint.topic_parameter)
+        try:
+            return self.create_subscription(
+                endpoint.msg_type, topic, self.guard(endpoint.what, callback),
+                copy.copy(endpoint.qos), qos_overriding_options=QOS_OVERRIDING)
+        except (InvalidQosOverridesError, RuntimeError) as err:
+            raise self._qos_error(endpoint, topic, err) from err
+
+    def _qos_error(self, endpoint: Endpoint, topic: str, err: Exception) -> QosOverrideError:
+        prefix = endpoint.parameter_prefix(self.resolve_topic_name(topic))
+        return QosOverrideError(f'{prefix}.*: {err}')
+
+    def start_timer(self, period: float, where: str, callback: Callable[[], None]) -> Timer:
+        """A timer of the node's clock whose callback runs through `guard`."""
+        return self.create_timer(period, self.guard(where, callback))
+
+    # -- the callback-exception policy ------------------------------------------------------
+
+    def guard(self, where: str, callback: Callable[..., None]) -> Callable[..., None]:
+        """`callback` under the node's one callback-exception policy (module docstring)."""
+        def guarded(*args: Any) -> None:
+            self._run_guarded(where, callback, args)
+        return guarded
+
+    def _run_guarded(self, where: str, function: Callable[..., None], args: tuple[Any, ...],
+                     *, failure_hook: bool = True) -> None:
+        try:
+            function(*args)
+        except Exception as err:  # noqa: BLE001 - the nodes' one callback-exception policy
+            self.callback_failures += 1
+            self.last_callback_failure = f'{where}: {type(err).__name__}: {err}'
+            self.warn_throttled(f'failure {where}', f'{where} callback failed '
+                                                    f'({type(err).__name__}: {err})')
+            if failure_hook:  # a failing hook is counted and logged, and not called again
+                self._run_guarded(f'{where} failure hook', self.on_callback_failure, (where,),
+                                  failure_hook=False)
+
+    def callback_values(self) -> dict[str, object]:
+        """Key-values of the callback failures for a diagnostic status."""
+        return {'callback_failures': self.callback_failures,
+                'last_callback_failure': self.last_callback_failure}
+
+    # -- diagnostics and logging ------------------------------------------------------------
+
+    def start_diagnostics(self, topic: str, period: float,
+                          hardware_id: str = '') -> DiagnosticsPublisher:
+        """A `DiagnosticsPublisher` on `topic` (QoS overridable), every `period` seconds."""
+        return DiagnosticsPublisher(self, topic, period, hardware_id=hardware_id,
+                                    qos=copy.copy(DIAGNOSTICS_QOS),
+                                    qos_overriding_options=QOS_OVERRIDING, guard=self.guard)
+
+    def warn_throttled(self, key: str, text: str) -> None:
+        """Log a warning, at most one per `key` and throttle period."""
+        message = self.log_throttle.filter(key, text)
+        if message is not None:
+            self.get_logger().warning(message)
+
+
+def node_help(settings_type: type, endpoints: Sequence[Endpoint] = ()) -> list[str]:
+    """`--help` lines of a node (`common.run_node`): its parameters, from the settings
+    dataclass, and the QoS override parameters of its endpoints and /diagnostics."""
+    lines = settings_help(settings_type)
+    lines += [endpoint.help_line(settings_type) for endpoint in endpoints]
+    if 'diagnostics_topic' in parameter_specs(settings_type):
+        diagnostics = Endpoint('publisher', None, 'diagnostics_topic', DIAGNOSTICS_QOS,
+                               'diagnostics')
+        lines.append(diagnostics.help_line(settings_type))
+    return lines

@@ -1,0 +1,150 @@
+"""A node's parameters from one declaration: the fields of its frozen settings dataclass.
+
+    @dataclass(frozen=True)
+    class Settings:
+        period: float = parameter(1.0, 'a period [s]', minimum=0.1, maximum=10.0)
+        topic: str = parameter('/x', 'input topic', read_only=True)
+
+    settings = declare_settings(node, Settings)   # a Settings instance, after overrides
+
+Each field carries its `ParameterSpec` (default, description, numeric range or string
+choices, read_only, an optional check) in its metadata, so the dataclass is at once the
+parameter list (declared with a `ParameterDescriptor`: rclpy itself enforces the type, the
+range and read_only, and a bad override fails at start), the `--help` text
+(`settings_help`) and the snapshot the rest of the node reads instead of `get_parameter`.
+Choices and checks, which rclpy does not know, are enforced here (`problem`), at start and
+by the node base (`node_base.NodeBase`) for every later change.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, TypeVar
+
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import InvalidParameterValueException
+from rclpy.node import Node
+
+#: Key of the `ParameterSpec` in a settings field's metadata.
+SPEC_KEY = 'lompr_parameter'
+
+S = TypeVar('S')
+
+
+@dataclass(frozen=True)
+class ParameterSpec:
+    """One ROS parameter: default (its type is the parameter's type; a tuple is an array),
+    description, a numeric range [minimum, maximum] or string choices, read_only, and
+    `check(value)`, returning why a value is refused ('' if it is fine)."""
+
+    default: Any
+    description: str
+    minimum: float | None = None
+    maximum: float | None = None
+    choices: tuple[str, ...] = ()
+    read_only: bool = False
+    check: Callable[[Any], str] | None = None
+
+    def __post_init__(self) -> None:
+        if (self.minimum is None) != (self.maximum is None):
+            msg = f'{self.description!r}: give both minimum and maximum, or neither'
+            raise ValueError(msg)
+        numeric = isinstance(self.default, (int, float)) and not isinstance(self.default, bool)
+        if self.minimum is not None and not numeric:
+            msg = f'{self.description!r}: a range needs a numeric default'
+            raise ValueError(msg)
+
+    @property
+    def ros_default(self) -> Any:
+        """The default as rclpy declares it (a tuple becomes a list: an array parameter)."""
+        return list(self.default) if isinstance(self.default, tuple) else self.default
+
+    def descriptor(self, name: str) -> ParameterDescriptor:
+        descriptor = ParameterDescriptor(
+            name=name, description=self.description, read_only=self.read_only)
+        if self.minimum is not None and self.maximum is not None:
+            if isinstance(self.default, int):
+                descriptor.integer_range = [IntegerRange(
+                    from_value=int(self.minimum), to_value=int(self.maximum), step=0)]
+            else:
+                descriptor.floating_point_range = [FloatingPointRange(
+                    from_value=float(self.minimum), to_value=float(self.maximum), step=0.0)]
+        if self.choices:
+            descriptor.additional_constraints = f'one of: {", ".join(self.choices)}'
+        return descriptor
+
+    def problem(self, value: Any) -> str:
+        """Why `value` is refused beyond what rclpy checks (choices, `check`); '' if fine."""
+        if self.choices and value not in self.choices:
+            return f'must be one of {", ".join(self.choices)}'
+        return self.check(value) if self.check is not None else ''
+
+    def settings_value(self, value: Any) -> Any:
+        """A parameter value as the settings field holds it (an array as a tuple)."""
+        return tuple(value) if isinstance(self.default, tuple) else value
+
+    def help_line(self, name: str) -> str:
+        """One line for `--help`: name, default, range or choices, description."""
+        if self.minimum is not None:
+            bounds = f' [{self.minimum}, {self.maximum}]'
+        elif self.choices:
+            bounds = f' {{{"|".join(self.choices)}}}'
+        else:
+            bounds = ''
+        flag = ', read-only' if self.read_only else ''
+        return f'  {name} (default {self.ros_default!r}{bounds}{flag}): {self.description}'
+
+
+def parameter(
+    default: Any, description: str, *, minimum: float | None = None,
+    maximum: float | None = None, choices: Iterable[str] = (), read_only: bool = False,
+    check: Callable[[Any], str] | None = None,
+) -> Any:
+    """A settings dataclass field that is also a ROS parameter (module docstring)."""
+    spec = ParameterSpec(default, description, minimum, maximum, tuple(choices), read_only,
+                         check)
+    return field(default=default, metadata={SPEC_KEY: spec})
+
+
+def parameter_specs(settings_type: type) -> dict[str, ParameterSpec]:
+    """{field name: spec} of a settings dataclass, in field order; every field must be a
+    `parameter`."""
+    specs: dict[str, ParameterSpec] = {}
+    for item in dataclasses.fields(settings_type):
+        spec = item.metadata.get(SPEC_KEY)
+        if not isinstance(spec, ParameterSpec):
+            msg = f'{settings_type.__name__}.{item.name} is not declared with parameter()'
+            raise TypeError(msg)
+        specs[item.name] = spec
+    return specs
+
+
+def declare_settings(node: Node, settings_type: type[S]) -> S:
+    """Declare every field of `settings_type` as a parameter of `node` and return the
+    settings after overrides. A value out of range or of the wrong type (rclpy), or off
+    its choices or check (here), raises `InvalidParameterValueException` /
+    `InvalidParameterTypeException` naming the parameter."""
+    values: dict[str, Any] = {}
+    for name, spec in parameter_specs(settings_type).items():
+        value = node.declare_parameter(name, spec.ros_default, spec.descriptor(name)).value
+        problem = spec.problem(value)
+        if problem:
+            raise InvalidParameterValueException(name, value, problem)
+        values[name] = spec.settings_value(value)
+    return settings_type(**values)
+
+
+def changes_problem(specs: Mapping[str, ParameterSpec], changes: Mapping[str, Any]) -> str:
+    """Why a set of changed values is refused ('' if it is fine), beyond rclpy's checks."""
+    for name, value in changes.items():
+        problem = specs[name].problem(value)
+        if problem:
+            return f'{name} {problem}'
+    return ''
+
+
+def settings_help(settings_type: type) -> list[str]:
+    """`--help` lines of the parameters of a settings dataclass."""
+    return [spec.help_line(name) for name, spec in parameter_specs(settings_type).items()]

@@ -1,0 +1,80 @@
+"""online.faults alone: interval rules and staleness, on a fake clock."""
+
+from __future__ import annotations
+
+import pytest
+
+from lompr_predictor.online.faults import StaleWatch, StreamRules, StreamSettings
+
+PERIOD = 0.04
+PERIOD_NS = 40_000_000
+
+
+def stream(**overrides: float) -> StreamSettings:
+    values: dict[str, float] = {'sample_period': PERIOD, 'gap_factor': 2.5,
+                                'min_interval_factor': 0.5, 'stale_periods': 5.0,
+                                'accuracy_samples': 100, 'stale_min_time': 0.0}
+    values.update(overrides)
+    return StreamSettings(
+        sample_period=values['sample_period'], gap_factor=values['gap_factor'],
+        min_interval_factor=values['min_interval_factor'],
+        stale_periods=values['stale_periods'], accuracy_samples=int(values['accuracy_samples']),
+        stale_min_time=values['stale_min_time'])
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 50.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@pytest.mark.parametrize(('interval_ns', 'fault'), [
+    (40_000_000, ''), (100_000_000, ''), (100_000_001, 'gap'), (20_000_000, ''),
+    (19_999_999, 'off_rate'), (0, 'off_rate')])
+def test_interval_rules(interval_ns: int, fault: str) -> None:
+    rules = StreamRules(stream(), PERIOD_NS)
+    assert rules.interval_fault(1_000, 1_000 + interval_ns) == fault
+
+
+def test_stale_after_has_a_floor_in_seconds() -> None:
+    assert stream().stale_after == pytest.approx(0.2)
+    assert stream(sample_period=1e-3, stale_min_time=0.05).stale_after == 0.05
+
+
+def test_staleness_is_confirmed_by_a_second_idle_check() -> None:
+    clock = FakeClock()
+    watch = StaleWatch(0.2, clock)
+    clock.now += 0.19
+    assert not watch.check()
+    clock.now += 0.02
+    assert not watch.check()  # idle once: maybe a busy executor
+    assert watch.check()  # idle twice in a row: stale
+    watch.used()
+    clock.now += 0.1
+    assert not watch.check()
+
+
+def test_a_check_that_finds_a_recent_sample_clears_the_suspicion() -> None:
+    clock = FakeClock()
+    watch = StaleWatch(0.2, clock)
+    clock.now += 0.3
+    assert not watch.check()  # suspected
+    watch.used()
+    assert not watch.check()  # not idle: the suspicion is gone
+    clock.now += 0.25
+    assert not watch.check()  # idle, suspected afresh
+    assert watch.check()
+
+
+def test_a_pose_waiting_for_its_reference_counts_as_no_sample() -> None:
+    clock = FakeClock()
+    watch = StaleWatch(0.2, clock)
+    waiting_since = clock.now + 0.1  # a pose arrived then, and still waits
+    clock.now += 0.25
+    assert not watch.check(waiting_since)  # idle 0.25 s since the last use, 0.15 s waiting...
+    assert not watch.check(waiting_since)  # ...the newer of the two counts: not yet stale
+    clock.now += 0.1
+    assert not watch.check(waiting_since)
+    assert watch.check(waiting_since)

@@ -1,0 +1,69 @@
+"""online.window alone: the rolling feature rows equal the offline ones."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lompr_predictor.data.features import HISTORY, feature_rows
+from lompr_predictor.online.window import FeatureWindow
+
+T0 = 1_700_000_000_000_000_000
+PERIOD_NS = 40_000_000
+
+
+def samples(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Stamps [ns] (with jitter), plant error (n, 2) and reference (n, 2) [m]."""
+    k = np.arange(n)
+    stamps = T0 + k * PERIOD_NS + (k % 3) * 1_000_123
+    error = np.stack([10e-6 * np.sin(0.4 * k), -5e-6 * np.cos(0.3 * k)], -1)
+    reference = np.stack([0.01 * k ** 1.5 * 1e-1, 0.02 - 1e-3 * k ** 2], -1)
+    return stamps, error, reference
+
+
+def push_all(window: FeatureWindow, stamps: np.ndarray, error: np.ndarray,
+             reference: np.ndarray) -> list[bool]:
+    return [window.push(int(s), *e, *r) for s, e, r in zip(stamps, error, reference,
+                                                           strict=True)]
+
+
+def test_rows_equal_feature_rows_of_the_same_samples() -> None:
+    stamps, error, reference = samples(9)
+    window = FeatureWindow(3)
+    assert window.needed == 3 + HISTORY
+    full = push_all(window, stamps, error, reference)
+    assert full == [False] * 4 + [True] * 5
+    offline = feature_rows((stamps - stamps[0]) * 1e-9, error, reference)
+    np.testing.assert_allclose(window.rows(), offline[-3:], rtol=1e-12, atol=0)
+    # second difference of the reference x: 0.01 * 0.1 * k^1.5 over the last three stamps
+    dt = np.diff(stamps[-3:]) * 1e-9
+    velocity = np.diff(reference[-3:, 0]) / dt
+    assert window.rows()[-1, 6] == pytest.approx((velocity[1] - velocity[0]) / dt[1], rel=1e-9)
+
+
+def test_fill_and_a_window_that_is_not_full() -> None:
+    stamps, error, reference = samples(4)
+    window = FeatureWindow(3)
+    assert window.empty
+    assert window.last_stamp_ns is None
+    push_all(window, stamps, error, reference)
+    assert (window.fill, window.full) == (4, False)
+    assert window.last_stamp_ns == int(stamps[-1])
+    with pytest.raises(ValueError, match='holds 4 of 5 samples'):
+        window.rows()
+
+
+def test_a_cleared_window_refills_from_new_samples_only() -> None:
+    stamps, error, reference = samples(12)
+    window = FeatureWindow(2)
+    push_all(window, stamps[:6], error[:6], reference[:6])
+    window.clear()
+    assert window.empty and window.fill == 0
+    assert push_all(window, stamps[6:10], error[6:10], reference[6:10]) == [False] * 3 + [True]
+    offline = feature_rows((stamps[6:10] - stamps[6]) * 1e-9, error[6:10], reference[6:10])
+    np.testing.assert_allclose(window.rows(), offline[-2:], rtol=1e-12, atol=0)
+
+
+def test_a_window_needs_a_row() -> None:
+    with pytest.raises(ValueError, match='at least one row'):
+        FeatureWindow(0)
