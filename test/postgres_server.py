@@ -56,13 +56,13 @@ def postgres_server(database: str = 'lompr') -> Iterator[str]:
         owner = pwd.getpwnam('postgres')
         os.chown(folder, owner.pw_uid, owner.pw_gid)
     port = _free_port()
-    run = dict(check=True, capture_output=True, text=True, timeout=START_TIMEOUT)
-    subprocess.run(_as_server_user(['initdb', '-D', str(data), '-U', 'postgres', '-A', 'trust',
-                                    '--no-sync']), **run)
-    subprocess.run(_as_server_user([
-        'pg_ctl', '-D', str(data), '-l', str(folder / 'server.log'), '-w',
-        '-t', str(int(START_TIMEOUT)), '-o',
-        f'-p {port} -k {folder} -c listen_addresses=127.0.0.1 -c fsync=off', 'start']), **run)
+    for command in (
+            ['initdb', '-D', str(data), '-U', 'postgres', '-A', 'trust', '--no-sync'],
+            ['pg_ctl', '-D', str(data), '-l', str(folder / 'server.log'), '-w',
+             '-t', str(int(START_TIMEOUT)), '-o',
+             f'-p {port} -k {folder} -c listen_addresses=127.0.0.1 -c fsync=off', 'start']):
+        subprocess.run(_as_server_user(command), check=True, capture_output=True, text=True,
+                       timeout=START_TIMEOUT)
     try:
         url = f'postgresql+psycopg://postgres@127.0.0.1:{port}/{database}'
         _create_database(port, database)

@@ -61,8 +61,8 @@ def test_reference_interpolated_to_joint_stamps_and_gaps_refused() -> None:
     stamps = np.array([-5, 0, 5, 15, 50, 105, 120])
     aligned, valid = interpolate_reference(ref_stamps, reference, stamps, max_step_ns=25)
     np.testing.assert_array_equal(valid, [False, True, True, True, False, True, False])
-    np.testing.assert_allclose(aligned[valid], [[0, 0, 0], [0.5, 1, 1.5], [1.5, 3, 4.5],
-                                                [10.5, 21, 31.5]])
+    np.testing.assert_allclose(aligned[valid], np.array(
+        [[0, 0, 0], [0.5, 1, 1.5], [1.5, 3, 4.5], [10.5, 21, 31.5]]))
     assert np.isnan(aligned[~valid]).all()
 
 
