@@ -21,6 +21,29 @@ class StampLike(Protocol):
     nanosec: int
 
 
+#: Why a message stamp is not a sample instant (`stamp_problem`).
+STAMP_PROBLEMS = ('bad_stamp', 'future_stamp')
+
+
+def stamp_problem(stamp: StampLike, now_ns: int, max_future_ns: int) -> tuple[str, str]:
+    """(reason, explanation) if `stamp` cannot be a sample instant, ('', '') if it can.
+
+    'bad_stamp': a negative `sec` or a `nanosec` of 1e9 or more (not a normalised time);
+    'future_stamp': more than `max_future_ns` after `now_ns`, the receiving node's clock.
+    The future check is skipped while that clock reads 0 (sim time before the first
+    `/clock` message), and when `max_future_ns` is negative."""
+    sec, nanosec = stamp.sec, stamp.nanosec
+    if sec < 0 or not 0 <= nanosec < NS_PER_SECOND:
+        return 'bad_stamp', (f'stamp {sec} s {nanosec} ns is not a time (sec must be >= 0, '
+                             f'nanosec in [0, 1e9))')
+    if now_ns > 0 and max_future_ns >= 0:
+        ahead = sec * NS_PER_SECOND + nanosec - now_ns
+        if ahead > max_future_ns:
+            return 'future_stamp', (f'stamp {sec}.{nanosec:09d} is {ahead * 1e-9:.3f} s ahead of '
+                                    f'this node\'s clock (more than {max_future_ns * 1e-9:g} s)')
+    return '', ''
+
+
 def stamp_to_ns(stamp: StampLike) -> int:
     """Nanoseconds of a message stamp."""
     return stamp.sec * NS_PER_SECOND + stamp.nanosec

@@ -7,6 +7,7 @@ are deterministic, so a test can compute the expected prediction by hand.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 from pathlib import Path
 from typing import Any
 
@@ -14,7 +15,7 @@ import numpy as np
 import torch
 
 from lompr_predictor.data.features import FEATURES, TARGETS
-from lompr_predictor.learning.model_file import ModelMetadata, save_model
+from lompr_predictor.learning.model_file import ModelMetadata, save_model, sidecar_path
 from lompr_predictor.robot.description import load_robot_description
 
 
@@ -80,3 +81,11 @@ def save_constant(path: Path, value: tuple[float, float] = (0.0, 0.0), **meta: A
     info = metadata(**meta)
     weight = np.zeros((info.window * len(FEATURES), 2))
     return save_model(path, LinearWindowModel(weight, np.asarray(value, dtype=float)), info)
+
+
+def write_sidecar(path: Path) -> Path:
+    """Write `path`'s sha256 beside it as `save_model` does (for files made by hand)."""
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    sidecar = sidecar_path(path)
+    sidecar.write_text(f'{digest}  {path.name}\n')
+    return sidecar

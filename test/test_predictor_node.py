@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
-from model_helpers import save_constant, save_linear
+from model_helpers import save_constant, save_linear, write_sidecar
 from rclpy.parameter import Parameter
 from ros_helpers import RosHarness
 from sensor_msgs.msg import JointState
@@ -28,7 +28,11 @@ from lompr_predictor.data.bags import (
 )
 from lompr_predictor.data.cleaning import clean_recordings
 from lompr_predictor.data.features import HISTORY
-from lompr_predictor.learning.model_file import MetadataMismatchError, load_model
+from lompr_predictor.learning.model_file import (
+    MetadataMismatchError,
+    ModelTrustError,
+    load_model,
+)
 from lompr_predictor.learning.models import predict_rows
 from lompr_predictor.robot.description import MEASURED_JOINTS, RobotDescription
 from lompr_predictor.robot.kinematics import inverse_kinematics
@@ -270,7 +274,7 @@ def test_mismatched_model_is_refused_naming_the_field(ros: RosHarness, tmp_path:
                        match=r"'horizon' is 3, this configuration needs 5"):
         PredictorNode(context=ros.context, parameter_overrides=[
             Parameter('model_path', value=str(good)), Parameter('horizon', value=5)])
-    with pytest.raises(MetadataMismatchError, match="'sha256'"):
+    with pytest.raises(ModelTrustError, match='the pinned sha256 is abab'):
         PredictorNode(context=ros.context, parameter_overrides=[
             Parameter('model_path', value=str(good)), Parameter('model_sha256', value='ab' * 32)])
 
@@ -283,10 +287,14 @@ def test_bad_reload_keeps_the_old_model_and_good_reload_swaps_without_a_gap(
                            horizon=HORIZON)
     corrupt = tmp_path / 'corrupt.pt'
     corrupt.write_bytes(old.read_bytes()[:200])
+    write_sidecar(corrupt)  # its hash checks out: the format is what is wrong
+    unhashed = tmp_path / 'unhashed.pt'
+    unhashed.write_bytes(new.read_bytes())  # no unhashed.pt.sha256
     wiring = Wiring(ros, old)
     wiring.run(0, NEEDED + 2)
     for bad, why in ((corrupt, 'not a TorchScript file'), (longer, "'window' is 5"),
-                     (tmp_path / 'missing.pt', 'no such file')):
+                     (tmp_path / 'missing.pt', 'no such file'),
+                     (unhashed, 'no hash to check it against')):
         (result,) = wiring.node.set_parameters([Parameter('model_path', value=str(bad))])
         assert not result.successful and why in result.reason
         assert f'still running {old}' in result.reason

@@ -4,6 +4,11 @@ Each subcommand lives in its own module of this package and exposes
 `add_parser(subparsers)`, which registers its arguments and sets `run=function(args) -> int`.
 Subcommand modules are imported only when the command line is built, so `lompr --help`
 stays quick and a module's heavy imports (torch, optuna) load only when used.
+
+Errors are one line on stderr, never a traceback (`lompr --debug COMMAND ...` shows it):
+a bad argument (checked before any work, `validation.py`) or a `LomprError` (a bad bag,
+model, URDF, ...) exits with code 2; any other exception is an internal error, exit code 1;
+Ctrl-C exits with 130.
 """
 
 from __future__ import annotations
@@ -12,17 +17,31 @@ import argparse
 import importlib
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 from lompr_predictor.errors import LomprError
 
 SUBCOMMANDS = ('simulate', 'train', 'evaluate', 'demo')
+#: Exit codes: a usage or input error; an internal error (a bug, or a failure nobody
+#: foresaw); interrupted.
+EXIT_USAGE, EXIT_INTERNAL, EXIT_INTERRUPTED = 2, 1, 130
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse with errors on one line: `PROG: error: MESSAGE (PROG --help)`."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USAGE, f'{self.prog}: error: {message} (see {self.prog} --help)\n')
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog='lompr',
         description='LOMPR end-trajectory error prediction: simulate, train, evaluate, demo.')
-    subparsers = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
+    parser.add_argument('--debug', action='store_true',
+                        help='show the traceback of an error instead of one line')
+    subparsers = parser.add_subparsers(dest='command', required=True, metavar='COMMAND',
+                                       parser_class=ArgumentParser)
     for name in SUBCOMMANDS:
         importlib.import_module(f'lompr_predictor.cli.{name}').add_parser(subparsers)
     return parser
@@ -33,12 +52,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.run(args) or 0)
-    except LomprError as err:
-        print(f'lompr {args.command}: error: {err}', file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         print(f'lompr {args.command}: interrupted', file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
+    except Exception as err:  # noqa: BLE001 - the command line's one error policy (docstring)
+        if args.debug:
+            raise
+        if isinstance(err, LomprError):
+            print(f'lompr {args.command}: error: {err}', file=sys.stderr)
+            return EXIT_USAGE
+        text = str(err).splitlines()[0] if str(err) else ''
+        print(f'lompr {args.command}: internal error: {type(err).__name__}: {text} (run '
+              f'lompr --debug {args.command} ... for the traceback)', file=sys.stderr)
+        return EXIT_INTERNAL
 
 
 if __name__ == '__main__':

@@ -4,6 +4,12 @@ from __future__ import annotations
 
 import argparse
 
+from lompr_predictor.cli.validation import (
+    float_above,
+    positive_float,
+    positive_int,
+    readable_file,
+)
 from lompr_predictor.data.bags import DEFAULT_JOINT_TOPIC, DEFAULT_REFERENCE_TOPIC
 from lompr_predictor.data.cleaning import (
     GAP_FACTOR,
@@ -21,15 +27,15 @@ def add_data_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--skip-bad', action='store_true',
                         help='skip a corrupt or truncated bag (listed in the report) '
                              'instead of stopping')
-    parser.add_argument('--robot-description', default=None,
+    parser.add_argument('--robot-description', type=readable_file, default=None,
                         help='URDF file (default: the packaged LOMPR description)')
-    parser.add_argument('--gap-factor', type=float, default=GAP_FACTOR,
+    parser.add_argument('--gap-factor', type=float_above(1.0), default=GAP_FACTOR,
                         help='a step longer than this many sample periods splits the data')
-    parser.add_argument('--hampel-window', type=int, default=HAMPEL_HALF_WINDOW,
+    parser.add_argument('--hampel-window', type=positive_int, default=HAMPEL_HALF_WINDOW,
                         help='half window of the Hampel spike filter [samples]')
-    parser.add_argument('--hampel-threshold', type=float, default=HAMPEL_THRESHOLD,
+    parser.add_argument('--hampel-threshold', type=positive_float, default=HAMPEL_THRESHOLD,
                         help='spike threshold in robust sigmas')
-    parser.add_argument('--threads', type=int, default=1,
+    parser.add_argument('--threads', type=positive_int, default=1,
                         help='torch intra-op threads (default 1: faster on a loaded machine)')
     parser.add_argument('--quiet', action='store_true', help='no progress bars')
 

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from lompr_predictor.cli.common import add_data_arguments, bag_inputs, cleaning_config
+from lompr_predictor.cli.validation import existing_path, output_directory
 from lompr_predictor.data.features import FEATURES, TARGETS
 from lompr_predictor.data.loading import load_clean_data
 from lompr_predictor.data.problem import LearningProblem, Split
@@ -35,9 +36,11 @@ def add_parser(subparsers: Any) -> None:
     parser = subparsers.add_parser(
         'evaluate', help='score a trained model on rosbag2 recordings',
         description=__doc__.split('\n\n')[0])
-    parser.add_argument('model', metavar='MODEL', help='model file written by lompr train')
+    parser.add_argument('model', metavar='MODEL', type=existing_path,
+                        help='model file written by lompr train (checked against its '
+                             'MODEL.sha256); with --closed-loop the baseline bag')
     parser.add_argument('bags', nargs='+', metavar='BAG_DIR', help='rosbag2 directories')
-    parser.add_argument('--report', required=True, help='report folder')
+    parser.add_argument('--report', required=True, type=output_directory, help='report folder')
     parser.add_argument('--closed-loop', action='store_true',
                         help='score closed-loop recordings of the same passes instead of a '
                              'model: MODEL and BAG_DIR... are all bags, the first without '

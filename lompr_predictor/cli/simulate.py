@@ -4,11 +4,16 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 from tqdm import tqdm
 
+from lompr_predictor.cli.validation import (
+    finite_float,
+    int_at_least,
+    new_output_directory,
+    readable_file,
+)
 from lompr_predictor.data.bags import STORAGES
 from lompr_predictor.robot.description import load_robot_description
 from lompr_predictor.robot.paths import PATH_KINDS, build_cycle
@@ -22,17 +27,6 @@ from lompr_predictor.twin.recording import (
 from lompr_predictor.twin.simulation import error_summary, irreducible_rmse, simulate
 
 
-def _at_least(minimum: int) -> Callable[[str], int]:
-    """An argparse type: an integer >= `minimum`."""
-    def parse(text: str) -> int:
-        value = int(text)
-        if value < minimum:
-            msg = f'must be >= {minimum}, got {value}'
-            raise argparse.ArgumentTypeError(msg)
-        return value
-    return parse
-
-
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         'simulate', help='run the digital twin and record a rosbag2 directory',
@@ -40,30 +34,34 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                     'directory with /joint_states and /lompr/reference, plus '
                     'lompr_ground_truth.npz/.json (true, noise-free and measured error, '
                     'irreducible level, injected faults) inside it.')
-    parser.add_argument('--out', required=True, help='bag directory to create (must not exist)')
-    parser.add_argument('--passes', type=_at_least(1), default=20,
+    parser.add_argument('--out', required=True, type=new_output_directory,
+                        help='bag directory to create (must not exist)')
+    parser.add_argument('--passes', type=int_at_least(1), default=20,
                         help='passes of the path (default 20)')
-    parser.add_argument('--seed', type=int, default=0, help='random seed (default 0)')
+    parser.add_argument('--seed', type=int_at_least(0), default=0,
+                        help='random seed (default 0)')
     parser.add_argument('--path', choices=PATH_KINDS, default='spiral',
                         help='path (default spiral)')
-    parser.add_argument('--params', help='twin parameter YAML overriding the packaged '
-                                         'config/twin.yaml (any subset of its keys)')
-    parser.add_argument('--robot-description', help='URDF (default: the packaged LOMPR)')
+    parser.add_argument('--params', type=readable_file,
+                        help='twin parameter YAML overriding the packaged config/twin.yaml '
+                             '(any subset of its keys)')
+    parser.add_argument('--robot-description', type=readable_file,
+                        help='URDF (default: the packaged LOMPR)')
     parser.add_argument('--storage', choices=tuple(STORAGES), default='mcap',
                         help='rosbag2 storage (default mcap)')
     parser.add_argument('--no-plot', dest='plot', action='store_false',
                         help='skip lompr_error.png (the error over time and radius)')
     faults = parser.add_argument_group('faults (to test the consumers; logged in the ground truth)')
-    faults.add_argument('--gaps', type=_at_least(0), default=0, help='runs of dropped messages')
-    faults.add_argument('--gap-length', type=_at_least(1), default=10,
+    faults.add_argument('--gaps', type=int_at_least(0), default=0, help='runs of dropped messages')
+    faults.add_argument('--gap-length', type=int_at_least(1), default=10,
                         help='messages per gap (default 10)')
-    faults.add_argument('--duplicates', type=_at_least(0), default=0, help='messages written twice')
-    faults.add_argument('--out-of-order', type=_at_least(0), default=0,
+    faults.add_argument('--duplicates', type=int_at_least(0), default=0, help='messages written twice')
+    faults.add_argument('--out-of-order', type=int_at_least(0), default=0,
                         help='pairs of neighbouring messages swapped')
-    faults.add_argument('--nans', type=_at_least(0), default=0, help='messages with one value NaN')
-    faults.add_argument('--spikes', type=_at_least(0), default=0,
+    faults.add_argument('--nans', type=int_at_least(0), default=0, help='messages with one value NaN')
+    faults.add_argument('--spikes', type=int_at_least(0), default=0,
                         help='messages with one value offset')
-    faults.add_argument('--spike-size', type=float, default=1e-3,
+    faults.add_argument('--spike-size', type=finite_float, default=1e-3,
                         help='spike offset [m or rad] (default 1e-3)')
     faults.add_argument('--fault-topic', choices=FAULT_TOPICS, default='joint_states',
                         help='stream(s) the faults hit (default joint_states)')

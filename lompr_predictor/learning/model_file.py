@@ -7,13 +7,32 @@ The scripted module's contract: `forward(window)` takes a float64 tensor (B, win
 len(features)) of raw feature rows in SI units (see `features.py`) and returns (B, 2): the
 predicted plant X/Y error [m] `horizon` samples after the window's last row. Normalisation
 happens inside the module; its constants are also in the metadata for people and tools.
+
+Trust chain. A TorchScript file is code, and metadata can be copied or edited, so a model
+is used only if its bytes are the ones that were written:
+
+- `save_model` (the one writer of model files: the trainer, the demo's persistence model,
+  test helpers) writes the file and, beside it, `MODEL.sha256` in `sha256sum` format
+  (`<hex>  <file name>`), both atomically, with the user's umask (0644 by default).
+- `load_model` reads the file once, hashes those bytes and, unless told not to
+  (`verify=False`, for development), checks them against a pinned hash (`sha256`, which
+  takes precedence) or else the sidecar; a mismatch or no hash to check against raises
+  `ModelTrustError` naming the fix. The same bytes are then deserialised (never a second
+  open, so a file replaced in between cannot slip in) and the hash checked is the one
+  reported (`LoadedModel.sha256`, `LoadedModel.verified_by`).
+
+The sidecar is integrity, not authenticity: whoever can replace the model can replace its
+sidecar too. Pin the hash (the training report's `model_sha256`) where that matters.
 """
 
 from __future__ import annotations
 
+import hashlib
 import importlib.metadata
+import io
 import json
 import platform
+import re
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -22,7 +41,7 @@ from typing import Any
 import torch
 
 from lompr_predictor.errors import LomprError
-from lompr_predictor.files import atomic_file, file_sha256
+from lompr_predictor.files import atomic_file, write_atomic
 
 FORMAT_VERSION = 1
 METADATA_NAME = 'metadata.json'
@@ -31,8 +50,19 @@ METADATA_NAME = 'metadata.json'
 ExportedModule = torch.jit.ScriptModule
 
 
+#: Suffix of the sidecar holding a model file's sha256 (`sha256sum` format).
+SIDECAR_SUFFIX = '.sha256'
+_HEX64 = re.compile(r'[0-9a-f]{64}')
+#: How a loaded model's bytes were checked (`LoadedModel.verified_by`).
+VERIFIED_BY = ('pinned sha256', 'sidecar', 'not verified')
+
+
 class ModelFileError(LomprError):
     """A model file cannot be opened, is not ours, or fails its checks."""
+
+
+class ModelTrustError(ModelFileError):
+    """A model file's bytes are not the ones that were written (or cannot be checked)."""
 
 
 class MetadataMismatchError(ModelFileError):
@@ -97,7 +127,8 @@ class LoadedModel:
     module: ExportedModule
     metadata: ModelMetadata
     path: str
-    sha256: str
+    sha256: str  # of the bytes that were loaded (and checked, see verified_by)
+    verified_by: str = 'not verified'  # one of VERIFIED_BY
 
     def predict(self, windows: torch.Tensor) -> torch.Tensor:
         """(B, window, features) float64 SI windows -> (B, 2) predicted error [m]."""
@@ -125,13 +156,56 @@ def script_module(module: torch.nn.Module) -> ExportedModule:
     return scripted
 
 
-def save_model(path: str | Path, module: torch.nn.Module, metadata: ModelMetadata) -> Path:
-    """Script `module` and write it with its metadata to `path`, atomically."""
+def sidecar_path(path: str | Path) -> Path:
+    """`MODEL.sha256` beside `MODEL`: where `save_model` writes the model's sha256."""
     path = Path(path)
-    with atomic_file(path) as staging:
-        torch.jit.save(script_module(module), str(staging),
-                       _extra_files={METADATA_NAME: metadata.to_json()})
-    return path
+    return path.with_name(path.name + SIDECAR_SUFFIX)
+
+
+def save_model(path: str | Path, module: torch.nn.Module, metadata: ModelMetadata) -> Path:
+    """Script `module` and write it with its metadata to `path`, and its sha256 to
+    `sidecar_path(path)`, each atomically (module docstring); returns `path`."""
+    write_model(path, module, metadata)
+    return Path(path)
+
+
+def write_model(path: str | Path, module: torch.nn.Module, metadata: ModelMetadata) -> str:
+    """`save_model`, returning the sha256 of the bytes written."""
+    path = Path(path)
+    buffer = io.BytesIO()
+    torch.jit.save(script_module(module), buffer,
+                   _extra_files={METADATA_NAME: metadata.to_json()})
+    data = buffer.getvalue()
+    digest = hashlib.sha256(data).hexdigest()
+    write_atomic(path, data)
+    write_atomic(sidecar_path(path), f'{digest}  {path.name}\n'.encode())
+    return digest
+
+
+def read_sidecar(path: str | Path) -> str | None:
+    """The sha256 in `sidecar_path(path)` (lower case), None if there is no sidecar; a
+    sidecar that is not one `sha256sum` line raises `ModelTrustError`."""
+    sidecar = sidecar_path(path)
+    try:
+        text = sidecar.read_text(encoding='ascii')
+    except FileNotFoundError:
+        return None
+    except (OSError, UnicodeDecodeError) as err:
+        msg = f'model {path}: cannot read its hash file {sidecar} ({err})'
+        raise ModelTrustError(msg) from err
+    digest = text.split(maxsplit=1)[0].lower() if text.strip() else ''
+    if not _HEX64.fullmatch(digest):
+        msg = (f'model {path}: {sidecar} is not a sha256sum line (<64 hex digits>  '
+               f'<file name>)')
+        raise ModelTrustError(msg)
+    return digest
+
+
+def check_sha256_text(value: str) -> str:
+    """Why `value` is not a sha256 in hex ('' if it is, or if it is empty)."""
+    if value and not _HEX64.fullmatch(value.lower()):
+        return f'must be 64 hexadecimal digits (a sha256), got {value!r}'
+    return ''
 
 
 def save_checkpoint(path: str | Path, module: torch.nn.Module) -> Path:
@@ -155,24 +229,34 @@ def load_model(
     *,
     expected: Mapping[str, Any] | None = None,
     sha256: str | None = None,
+    verify: bool = True,
+    hint: str = '',
 ) -> LoadedModel:
     """Open, check and warm up a model file.
 
-    `sha256`, when given, is checked before the file is deserialised (a TorchScript file is
-    code). `expected` maps metadata field names to the values the caller's configuration
-    needs; the first disagreement raises `MetadataMismatchError` naming the field. A warm-up
-    inference on a zero window checks the output shape before anyone relies on it.
+    The file is read once; its bytes are checked before they are deserialised (a TorchScript
+    file is code): against `sha256` if given (a pin), else, with `verify`, against its
+    sidecar (`sidecar_path`); a mismatch, or `verify` with neither, raises `ModelTrustError`
+    (`hint`, the caller's own way to fix it, is added to the message). `verify=False`
+    without a pin loads unchecked bytes (development). `expected` maps metadata field names
+    to the values the caller's configuration needs; the first disagreement raises
+    `MetadataMismatchError` naming the field. A warm-up inference on a zero window checks
+    the output shape before anyone relies on it.
     """
     path = Path(path)
     if not path.is_file():
         msg = f'model {path}: no such file'
         raise ModelFileError(msg)
-    digest = file_sha256(path)
-    if sha256 and digest != sha256.lower():
-        raise MetadataMismatchError(str(path), 'sha256', sha256.lower(), digest)
+    try:
+        data = path.read_bytes()
+    except OSError as err:
+        msg = f'model {path}: cannot read it ({err.strerror or err})'
+        raise ModelFileError(msg) from err
+    digest = hashlib.sha256(data).hexdigest()
+    verified_by = _verify(path, digest, sha256, verify, hint)
     extra = {METADATA_NAME: ''}
     try:
-        module = torch.jit.load(str(path), map_location='cpu', _extra_files=extra)
+        module = torch.jit.load(io.BytesIO(data), map_location='cpu', _extra_files=extra)
     except (RuntimeError, ValueError, OSError) as err:
         msg = f'model {path}: not a TorchScript file ({str(err).splitlines()[0]})'
         raise ModelFileError(msg) from err
@@ -185,7 +269,8 @@ def load_model(
         if _normalised(found) != _normalised(value):
             raise MetadataMismatchError(str(path), name, value, found)
     module.eval()
-    loaded = LoadedModel(module=module, metadata=metadata, path=str(path), sha256=digest)
+    loaded = LoadedModel(module=module, metadata=metadata, path=str(path), sha256=digest,
+                         verified_by=verified_by)
     warm = torch.zeros((1, metadata.window, len(metadata.features)), dtype=torch.float64)
     try:
         output = loaded.predict(warm)
@@ -197,6 +282,34 @@ def load_model(
                f'expected (1, {len(metadata.targets)})')
         raise ModelFileError(msg)
     return loaded
+
+
+def _verify(path: Path, digest: str, pinned: str | None, verify: bool, hint: str) -> str:
+    """How `digest` (of the bytes read from `path`) was checked (`VERIFIED_BY`), or
+    `ModelTrustError`."""
+    suffix = f'; {hint}' if hint else ''
+    if pinned:
+        pinned = pinned.lower()
+        if digest != pinned:
+            msg = (f'model {path}: its sha256 is {digest}, the pinned sha256 is {pinned}: not '
+                   f'the model that was trained, refused{suffix}')
+            raise ModelTrustError(msg)
+        return VERIFIED_BY[0]
+    if not verify:
+        return VERIFIED_BY[2]
+    expected = read_sidecar(path)
+    if expected is None:
+        msg = (f'model {path}: no hash to check it against (a TorchScript file is code): '
+               f'copy {sidecar_path(path).name}, which lompr train writes beside the model, '
+               f'along with it, or pin its sha256 (model_sha256 in the training report)'
+               f'{suffix}')
+        raise ModelTrustError(msg)
+    if digest != expected:
+        msg = (f'model {path}: its sha256 is {digest}, {sidecar_path(path).name} says '
+               f'{expected}: the file was changed or replaced after it was written, refused'
+               f'{suffix}')
+        raise ModelTrustError(msg)
+    return VERIFIED_BY[1]
 
 
 #: Relative difference of two sample periods that still counts as the same rate: a real

@@ -41,7 +41,8 @@ from lompr_predictor.learning.model_file import (
     ExportedModule,
     ModelMetadata,
     library_versions,
-    save_model,
+    sidecar_path,
+    write_model,
 )
 from lompr_predictor.learning.models import (
     BP_HYPERPARAMETERS,
@@ -179,13 +180,17 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
                                                       actual=actual, predictions=predictions))
 
 
-def write_outputs(config: TrainingConfig, result: TrainingResult) -> None:
-    """Write the model file (module + metadata) and the report folder (report.json,
-    report.md, the plots) of `config`; each file atomically."""
-    save_model(config.model_path, result.module, result.metadata)
+def write_outputs(config: TrainingConfig, result: TrainingResult) -> str:
+    """Write the model file (module + metadata) with its sha256 beside it
+    (`MODEL.sha256`), and the report folder (report.json with `model_sha256`, report.md,
+    the plots) of `config`; each file atomically. Returns the model's sha256."""
+    digest = write_model(config.model_path, result.module, result.metadata)
+    report = {**result.report, 'model_sha256': digest,
+              'model_sha256_file': str(sidecar_path(config.model_path).resolve())}
     scored = result.test_part
-    write_report(config.report_dir, result.report, seconds=scored.seconds, actual=scored.actual,
+    write_report(config.report_dir, report, seconds=scored.seconds, actual=scored.actual,
                  predictions=scored.predictions)
+    return digest
 
 
 def study_key(config: TrainingConfig, sources: list[BagSource]) -> dict[str, Any]:

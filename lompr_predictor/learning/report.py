@@ -137,6 +137,10 @@ def markdown(report: Mapping[str, Any]) -> str:
                   f"{tuning['trials_run_now']} in this run); best trial {tuning['best_trial']} "
                   f"with validation MSE {tuning['best_value']:.4g}: {tuning['best_params']}.", '',
                   f'![tuning history]({TUNING_PLOT})']
+    if report.get('model_sha256'):
+        lines += ['', f"Model file `{report.get('model_file')}`, sha256 "
+                      f"`{report['model_sha256']}` (also in `{report.get('model_sha256_file')}`; "
+                      'pin it on the predictor node with `model_sha256`).']
     lines += ['', '## Data', '']
     lines += [f'- {key}: {value}' for key, value in report['counts'].items()]
     skipped = [b for b in report['bags'] if b.get('skipped_reason')]

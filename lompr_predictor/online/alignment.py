@@ -21,7 +21,8 @@ from lompr_predictor.monitoring import RejectionCounter
 #: Why an input sample was not used; each is counted (`StampAlignment.dropped`).
 DROP_REASONS: tuple[str, ...] = (
     'non_finite', 'duplicate', 'out_of_order', 'no_reference', 'reference_duplicate',
-    'reference_non_finite', 'reference_out_of_order', 'stale', 'internal')
+    'reference_non_finite', 'reference_out_of_order', 'stale', 'internal', 'bad_stamp',
+    'future_stamp', 'reference_bad_stamp', 'reference_future_stamp')
 #: Poses kept waiting for a reference at or after their stamp; beyond, the oldest is dropped.
 MAX_PENDING_POSES = 1000
 #: References kept before the oldest pose that may still need one.

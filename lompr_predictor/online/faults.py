@@ -35,6 +35,12 @@ class StreamSettings:
     # ... and for at least this long [s]: a process on a general-purpose OS can stall for
     # milliseconds (scheduler, garbage collector), which at kHz rates is many periods
     stale_min_time: float = 0.0
+    #: A stamp more than this many seconds ahead of the node's clock is dropped (negative:
+    #: no check; only with the node's clock given to `OnlinePredictor`).
+    max_future_stamp: float = -1.0
+    #: [s] An output may come this much after its instant before it counts as late
+    #: (`timing.OverrunGuard`).
+    late_tolerance: float = 0.005
 
     @property
     def stale_after(self) -> float:

@@ -4,7 +4,16 @@ Safety rules (README, predictor node):
 
 - The offset for an instant is minus the prediction for it, clamped to `max_compensation`
   (XY norm, direction kept) and to `max_step` change from the previous offset (XY norm of
-  the change), so it never jumps, also when it starts or resumes.
+  the change), so it never jumps, also when it starts or resumes. The clamp is the last
+  operation: every offset published satisfies the clamp in force when it is published.
+- Limits changed at run time hold from the very next output: a lowered `max_compensation`
+  re-issues, clamped, every offset already published for an instant still to come (reason
+  'clamp_lowered') and clamps the offset the step limit starts from. That is the one case
+  where consecutive offsets may differ by more than `max_step`: a lowered clamp is only
+  respected at once by a larger step (a cancel to zero is the other).
+- An instant left without an offset (`missed`: the overrun policy skipped its inference or
+  dropped its late output) gets zero from the controller, so the step limit starts again
+  from zero: the offset ramps back in.
 - What was published is kept by the instant it is for (`InstantSchedule`), offsets and
   predictions apart: the plant error of a sample subtracts the offset published for its
   instant (CONTRACT section 3) and the live accuracy compares the prediction for it.
@@ -62,6 +71,21 @@ class InstantSchedule:
         self.cancel_from(instant_ns)
         self._items.append((instant_ns, value))
 
+    def clamp_after(self, stamp_ns: int, limit: float) -> list[tuple[int, np.ndarray]]:
+        """Clamp to `limit` (XY norm, direction kept) the values held for instants after
+        `stamp_ns`; returns the (instant, new value) pairs that changed."""
+        changed: list[tuple[int, np.ndarray]] = []
+        items = self._items
+        for i, (instant, value) in enumerate(items):
+            if instant <= stamp_ns + self.tolerance_ns:
+                continue
+            norm = math.hypot(value[0], value[1])
+            if norm > limit:
+                clamped = value * (limit / norm)
+                items[i] = (instant, clamped)
+                changed.append((instant, clamped))
+        return changed
+
     def instants_after(self, stamp_ns: int) -> list[int]:
         """Instants held that lie after `stamp_ns` (beyond the tolerance)."""
         return [instant for instant, _ in self._items if instant > stamp_ns + self.tolerance_ns]
@@ -98,6 +122,7 @@ class OffsetGate:
         self.clamped = 0  # offsets clamped to max_compensation
         self.step_limited = 0  # offsets limited to max_step from the previous one
         self.zeros_published = 0  # zero outputs of cancels
+        self.reclamped = 0  # offsets re-issued clamped after max_compensation was lowered
 
     @property
     def in_force(self) -> bool:
@@ -140,11 +165,26 @@ class OffsetGate:
         return [Output(instant, None, np.zeros(2), reason, newest) for instant in instants]
 
     def set_limits(self, limits: CompensationLimits, newest_pose_ns: int | None) -> list[Output]:
-        """New bounds from the next offset on. Disabling compensation also cancels the
-        offsets already published (reason 'compensation_disabled')."""
+        """New bounds from the next output on. Disabling compensation cancels the offsets
+        already published (reason 'compensation_disabled'); a lowered `max_compensation`
+        re-issues, clamped, those above it (reason 'clamp_lowered') and clamps the offset
+        the step limit starts from."""
         disabled = self.limits.enabled and not limits.enabled
         self.limits = limits
-        return self.cancel('compensation_disabled', newest_pose_ns) if disabled else []
+        if disabled:
+            return self.cancel('compensation_disabled', newest_pose_ns)
+        limit = limits.max_compensation
+        self._offset = _clamped(self._offset, limit)
+        newest = newest_pose_ns or 0
+        outputs = [Output(instant, None, value.copy(), 'clamp_lowered', newest)
+                   for instant, value in self._compensations.clamp_after(newest, limit)]
+        self.reclamped += len(outputs)
+        return outputs
+
+    def missed(self) -> None:
+        """An instant got no offset (the controller applies zero there): the next offset
+        ramps in from zero."""
+        self._offset = np.zeros(2)
 
     def _bounded(self, wanted: np.ndarray) -> np.ndarray:
         limits = self.limits
@@ -159,7 +199,14 @@ class OffsetGate:
         if step > limits.max_step:
             wanted = self._offset + change * (limits.max_step / step)
             self.step_limited += 1
-        return wanted
+        # The clamp is the last operation, whatever the offset the step started from.
+        return _clamped(wanted, limits.max_compensation)
+
+
+def _clamped(value: np.ndarray, limit: float) -> np.ndarray:
+    """`value` scaled to XY norm `limit` (direction kept) if it is longer."""
+    norm = math.hypot(value[0], value[1])
+    return value * (limit / norm) if norm > limit else value
 
 
 class LiveAccuracy:

@@ -17,8 +17,15 @@ It composes the parts, each in its own module and testable alone:
   alignment's, a failing or non-finite inference, `abort`) empties the window and cancels
   the offset in force; output resumes once the window has refilled with good samples.
 
-Time: `clock` (seconds, monotonic by default) is the only time source; it stamps arrivals
-and times staleness. Every call returns the outputs to publish, in order.
+- `timing.OverrunGuard`: with `now_ns` (the node's clock, integer ns) given, the overrun
+  policy: a sample whose output could only come after its instant gets no inference, an
+  inference that finishes after its instant publishes nothing (both counted); and input
+  stamps are checked (`stamps.stamp_problem`: negative, nanosec >= 1e9, more than
+  `StreamSettings.max_future_stamp` ahead of `now_ns`), a bad one dropped and counted.
+
+Time: `clock` (seconds, monotonic by default) stamps arrivals and times staleness; `now_ns`
+(None: no overrun policy, no future check) is read once at each input and after each
+inference. Every call returns the outputs to publish, in order.
 """
 
 from __future__ import annotations
@@ -35,8 +42,9 @@ from lompr_predictor.monitoring import LatencyRecorder, RejectionCounter
 from lompr_predictor.online.alignment import DROP_REASONS, AlignedSample, Event, StampAlignment
 from lompr_predictor.online.faults import FAULT_REASONS, StaleWatch, StreamRules, StreamSettings
 from lompr_predictor.online.offset import CompensationLimits, LiveAccuracy, OffsetGate, Output
+from lompr_predictor.online.timing import OverrunGuard
 from lompr_predictor.online.window import FeatureWindow
-from lompr_predictor.stamps import period_ns
+from lompr_predictor.stamps import StampLike, period_ns, stamp_problem, stamp_to_ns
 
 # The names a caller of the core needs, importable from here as before the split.
 __all__ = ['DROP_REASONS', 'FAULT_REASONS', 'CompensationLimits', 'OnlinePredictor', 'Output',
@@ -49,6 +57,7 @@ class OnlinePredictor:
     def __init__(
         self, model: LoadedModel, stream: StreamSettings, limits: CompensationLimits,
         clock: Callable[[], float] = time.monotonic, latency_samples: int = 1000,
+        now_ns: Callable[[], int] | None = None,
     ) -> None:
         if tuple(model.metadata.features) != FEATURES:
             msg = f'model features {model.metadata.features} are not {FEATURES}'
@@ -69,15 +78,33 @@ class OnlinePredictor:
         self.last_fault = ''
         self.inference_time = LatencyRecorder(latency_samples)
         self.predictions_made = 0
+        self._now_ns = now_ns
+        self._now = 0  # the node's clock at its latest reading [ns]
+        self.overrun = OverrunGuard(self._lead_ns, period_ns(stream.late_tolerance))
+        self._max_future_ns = (period_ns(stream.max_future_stamp)
+                               if stream.max_future_stamp >= 0.0 else -1)
+        self.last_bad_stamp = ''  # why the last stamp dropped was not a sample instant
 
     # -- inputs ---------------------------------------------------------------------------
 
-    def add_reference(self, stamp_ns: int, x: float, y: float) -> list[Output]:
-        """Take one reference sample; returns outputs of poses that waited for it."""
+    def add_reference(self, stamp: int | StampLike, x: float, y: float) -> list[Output]:
+        """Take one reference sample (stamp: ns, or a message stamp, which is checked);
+        returns outputs of poses that waited for it."""
+        now = self._read_clock()
+        stamp_ns = self._stamp_ns(stamp, now, 'reference_')
+        if stamp_ns is None:
+            return []
         return self._handle(self._alignment.add_reference(stamp_ns, x, y))
 
-    def add_pose(self, stamp_ns: int, x: float, y: float) -> list[Output]:
-        """Take one measured tool-tip sample (the kinematics node's end pose)."""
+    def add_pose(self, stamp: int | StampLike, x: float, y: float) -> list[Output]:
+        """Take one measured tool-tip sample (the kinematics node's end pose; stamp: ns,
+        or a message stamp, which is checked)."""
+        now = self._read_clock()
+        stamp_ns = self._stamp_ns(stamp, now, '')
+        if stamp_ns is None:
+            return []
+        if self._now_ns is not None:
+            self.overrun.arrival(stamp_ns, now)
         return self._handle(self._alignment.add_pose(stamp_ns, x, y))
 
     def check_stale(self) -> list[Output]:
@@ -136,6 +163,11 @@ class OnlinePredictor:
         return self._gate.zeros_published
 
     @property
+    def reclamped(self) -> int:
+        """Offsets re-issued clamped after max_compensation was lowered."""
+        return self._gate.reclamped
+
+    @property
     def window_fill(self) -> int:
         """Samples in the window (a prediction needs `window_needed`)."""
         return self._window.fill
@@ -160,6 +192,23 @@ class OnlinePredictor:
         return self._window.rows()
 
     # -- internals ------------------------------------------------------------------------
+
+    def _read_clock(self) -> int:
+        if self._now_ns is not None:
+            self._now = self._now_ns()
+        return self._now
+
+    def _stamp_ns(self, stamp: int | StampLike, now: int, prefix: str) -> int | None:
+        """A stamp in ns; None for a message stamp that is no sample instant (counted)."""
+        if isinstance(stamp, (int, np.integer)):
+            return int(stamp)
+        reason, why = stamp_problem(stamp, now if self._now_ns is not None else 0,
+                                    self._max_future_ns)
+        if reason:
+            self._alignment.dropped.add(prefix + reason)
+            self.last_bad_stamp = f'{prefix or "pose_"}{reason}: {why}'
+            return None
+        return stamp_to_ns(stamp)
 
     def _handle(self, events: list[Event]) -> list[Output]:
         outputs: list[Output] = []
@@ -191,6 +240,11 @@ class OnlinePredictor:
         return outputs
 
     def _predict(self, stamp_ns: int) -> list[Output]:
+        guard = self.overrun if self._now_ns is not None else None
+        if guard is not None and guard.skip(stamp_ns, self._now):
+            guard.inference_skipped_late += 1
+            self._gate.missed()
+            return []
         try:
             window = torch.from_numpy(self._window.rows()[None])
             with self.inference_time.measure():
@@ -200,6 +254,14 @@ class OnlinePredictor:
         if prediction.shape != (2,) or not np.isfinite(prediction).all():
             return self._fault('inference')
         self.predictions_made += 1
+        if guard is not None:
+            started = self._now
+            ended = self._read_clock()
+            guard.inference_took(started, ended)
+            if guard.late(stamp_ns, ended):
+                guard.late_outputs_dropped += 1
+                self._gate.missed()
+                return []
         return [self._gate.publish(stamp_ns + self._lead_ns, prediction, stamp_ns)]
 
     def _fault(self, reason: str) -> list[Output]:

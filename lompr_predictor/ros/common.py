@@ -18,6 +18,7 @@ from collections.abc import Callable, Sequence
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.context import Context
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.exceptions import InvalidTopicNameException, ParameterException
 from rclpy.executors import Executor, ExternalShutdownException
 from rclpy.experimental import EventsExecutor
@@ -52,14 +53,17 @@ class DiagnosticsPublisher:
         hardware_id: str = '', *, qos: QoSProfile | int = 10,
         qos_overriding_options: QoSOverridingOptions | None = None,
         guard: Callable[[str, Callable[[], None]], Callable[[], None]] | None = None,
+        event_callbacks: PublisherEventCallbacks | None = None,
     ) -> None:
         """`qos`: diagnostic_aggregator and rqt subscribe reliable with depth 10, the
-        default; `guard(where, callback)` wraps the timer callback (a node base's policy)."""
+        default; `guard(where, callback)` wraps the timer callback (a node base's policy);
+        `event_callbacks` of the publisher (a node base's QoS event counting)."""
         self._node = node
         self._hardware_id = hardware_id
         self._providers: list[tuple[str, Callable[[], Status]]] = []
-        self._publisher = node.create_publisher(
-            DiagnosticArray, topic, qos, qos_overriding_options=qos_overriding_options)
+        self.publisher = self._publisher = node.create_publisher(
+            DiagnosticArray, topic, qos, qos_overriding_options=qos_overriding_options,
+            event_callbacks=event_callbacks)
         callback = self.publish if guard is None else guard('diagnostics', self.publish)
         self._timer = node.create_timer(period, callback)
 

@@ -48,7 +48,7 @@ from lompr_predictor.ros.node_base import (
     node_help,
 )
 from lompr_predictor.ros.parameters import parameter
-from lompr_predictor.stamps import stamp_to_ns
+from lompr_predictor.stamps import period_ns, stamp_problem, stamp_to_ns
 
 NODE_NAME = 'kinematics_node'
 
@@ -60,7 +60,8 @@ KINEMATICS_REASONS: dict[type[KinematicsError], str] = {
     WorkspaceError: 'workspace',
     ConvergenceError: 'no_convergence',
 }
-MESSAGE_REASONS = ('malformed', 'unstamped', 'missing_joint')
+MESSAGE_REASONS = ('malformed', 'unstamped', 'bad_stamp', 'future_stamp', 'missing_joint',
+                   'duplicate_joint')
 REJECTION_REASONS = (*MESSAGE_REASONS, *KINEMATICS_REASONS.values())
 
 
@@ -105,6 +106,10 @@ class KinematicsNodeSettings:
     warning_throttle_period: float = parameter(
         5.0, 'seconds between two warnings of the same kind of rejected input',
         minimum=0.0, maximum=3600.0)
+    max_future_stamp: float = parameter(
+        1.0, "a joint state stamped more than this many seconds ahead of the node's clock is "
+        'rejected (not checked while the clock reads 0: sim time before the first /clock)',
+        minimum=0.0, maximum=1e9)
 
 
 JOINT_STATES = Endpoint('subscription', JointState, 'joint_state_topic', SENSOR_INPUT_QOS,
@@ -135,7 +140,7 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
         self._fk = ForwardKinematics(self.description)
         self._last_names: tuple[str, ...] | None = None
         self._indices: list[int] | None = None  # where the joints are in _last_names
-        self._missing = ''  # why _indices is None
+        self._missing = ('', '')  # (reason, why) _indices is None
         self._last_stamp_ns: int | None = None
         self.warm_start_resets = 0
 
@@ -188,6 +193,10 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
         if stamp.sec == 0 and stamp.nanosec == 0:
             raise JointStateError('unstamped', 'header.stamp is zero: the sample instant is '
                                   'unknown, so its pose could not be aligned with anything')
+        reason, why = stamp_problem(stamp, self.clock_ns(),
+                                    period_ns(self.settings.max_future_stamp))
+        if reason:
+            raise JointStateError(reason, why)
         return stamp_to_ns(stamp)
 
     def _measured_joints(self, msg: JointState) -> list[float]:
@@ -197,16 +206,27 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
                 'malformed', f'{len(msg.name)} names but {len(msg.position)} positions')
         names = tuple(msg.name)
         if names != self._last_names:  # a robot sends the same names every time: match once
-            index = {name: i for i, name in enumerate(names)}
-            missing = [name for name in self.settings.joint_names if name not in index]
-            self._last_names = names
-            self._indices = None if missing else [index[n] for n in self.settings.joint_names]
-            self._missing = (f'missing joint(s) {", ".join(missing)} '
-                             f'(got {", ".join(names) or "none"})')
+            self._match(names)
         if self._indices is None:
-            raise JointStateError('missing_joint', self._missing)
+            raise JointStateError(*self._missing)
         positions = msg.position
         return [positions[i] for i in self._indices]
+
+    def _match(self, names: tuple[str, ...]) -> None:
+        """Where the measured joints are in `names`; a joint missing, or named twice (which
+        value would be meant?), leaves no match and says why."""
+        wanted = self.settings.joint_names
+        index = {name: i for i, name in enumerate(names)}
+        missing = [name for name in wanted if name not in index]
+        twice = [name for name in wanted if names.count(name) > 1]
+        self._last_names = names
+        self._indices = None if missing or twice else [index[n] for n in wanted]
+        if twice:
+            self._missing = ('duplicate_joint', f'joint(s) {", ".join(twice)} named more than '
+                                                f'once (got {", ".join(names)})')
+        else:
+            self._missing = ('missing_joint', f'missing joint(s) {", ".join(missing)} '
+                                              f'(got {", ".join(names) or "none"})')
 
     def _check_gap(self, stamp_ns: int) -> None:
         """Drop the warm start after a gap or a stamp that does not move forward, measured

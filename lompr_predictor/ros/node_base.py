@@ -24,7 +24,15 @@ managed one alike:
   `last_callback_failure`: `callback_values()` for a status), logs it throttled, and calls
   the node's `on_callback_failure` hook (the predictor empties its window and cancels its
   offset). A callback never ends the spin.
-- Diagnostics: `start_diagnostics(topic, period, hardware_id)` -> `DiagnosticsPublisher`.
+- Diagnostics: `start_diagnostics(topic, period, hardware_id)` -> `DiagnosticsPublisher`,
+  with a `qos` status of its own (below).
+- QoS events: every publisher and subscription made here (and the /diagnostics publisher)
+  counts incompatible-QoS events (a peer on its topic whose QoS cannot match: e.g. a
+  reliable subscriber of a best-effort publisher) instead of rclpy's default log line,
+  warns (throttled), and the node's `qos` status is WARN while such a peer is in the graph
+  or an event came since the last report (`incompatible_qos_total`, per endpoint, the last
+  policy).
+- `clock_ns()`: the node's clock (ROS time: sim time under /clock) in integer ns.
 - `warn_throttled(key, text)`: one warning per key and `warning_throttle_period` (a settings
   field of that name, if the node has one; else `DEFAULT_THROTTLE_PERIOD`).
 
@@ -39,17 +47,30 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar
 
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.event_handler import (
+    PublisherEventCallbacks,
+    QoSOfferedIncompatibleQoSInfo,
+    QoSRequestedIncompatibleQoSInfo,
+    SubscriptionEventCallbacks,
+)
 from rclpy.lifecycle import LifecycleNodeMixin
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import (
+    HistoryPolicy,
+    QoSCompatibility,
+    QoSPolicyKind,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_check_compatible,
+)
 from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverridingOptions
 from rclpy.subscription import Subscription
 from rclpy.timer import Timer
 
 from lompr_predictor.errors import LomprError
-from lompr_predictor.monitoring import LogThrottle
+from lompr_predictor.monitoring import Level, LogThrottle, RejectionCounter, Status
 from lompr_predictor.ros.common import DiagnosticsPublisher
 from lompr_predictor.ros.parameters import (
     ParameterSpec,
@@ -139,6 +160,11 @@ class NodeBase(_NodeType, Generic[S]):
         self.last_callback_failure = ''
         self.log_throttle = LogThrottle(DEFAULT_THROTTLE_PERIOD)
         self._specs: dict[str, ParameterSpec] = {}
+        #: Incompatible-QoS events by endpoint ('<topic> <publisher|subscription>').
+        self.incompatible_qos = RejectionCounter()
+        self.last_incompatible_qos = ''
+        self._incompatible_at_last_report = 0
+        self._endpoints: list[Publisher | Subscription] = []
 
     # -- hooks a node overrides ---------------------------------------------------------
 
@@ -206,20 +232,89 @@ class NodeBase(_NodeType, Generic[S]):
                   else self.create_publisher)
         topic = getattr(self.settings, endpoint.topic_parameter)
         try:
-            return create(endpoint.msg_type, topic, copy.copy(endpoint.qos),
-                          qos_overriding_options=QOS_OVERRIDING)
+            publisher = create(endpoint.msg_type, topic, copy.copy(endpoint.qos),
+                               qos_overriding_options=QOS_OVERRIDING,
+                               event_callbacks=self.publisher_events(topic))
         except (InvalidQosOverridesError, RuntimeError) as err:
             raise self._qos_error(endpoint, topic, err) from err
+        self._endpoints.append(publisher)
+        return publisher
 
     def subscribe(self, endpoint: Endpoint, callback: Callable[[Any], None]) -> Subscription:
         """The subscription of `endpoint`; `callback` runs through `guard`."""
         topic = getattr(self.settings, endpoint.topic_parameter)
         try:
-            return self.create_subscription(
+            subscription = self.create_subscription(
                 endpoint.msg_type, topic, self.guard(endpoint.what, callback),
-                copy.copy(endpoint.qos), qos_overriding_options=QOS_OVERRIDING)
+                copy.copy(endpoint.qos), qos_overriding_options=QOS_OVERRIDING,
+                event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self.guard(
+                    f'incompatible QoS on {topic}', self._incompatible_qos_handler(
+                        topic, 'subscription'))))
         except (InvalidQosOverridesError, RuntimeError) as err:
             raise self._qos_error(endpoint, topic, err) from err
+        self._endpoints.append(subscription)
+        return subscription
+
+    def publisher_events(self, topic: str) -> PublisherEventCallbacks:
+        """Event callbacks of a publisher on `topic` that count incompatible QoS."""
+        return PublisherEventCallbacks(incompatible_qos=self.guard(
+            f'incompatible QoS on {topic}', self._incompatible_qos_handler(topic, 'publisher')))
+
+    def _incompatible_qos_handler(
+        self, topic: str, kind: str,
+    ) -> Callable[[QoSOfferedIncompatibleQoSInfo | QoSRequestedIncompatibleQoSInfo], None]:
+        peer = 'subscription requesting' if kind == 'publisher' else 'publisher offering'
+
+        def handle(event: QoSOfferedIncompatibleQoSInfo | QoSRequestedIncompatibleQoSInfo,
+                   ) -> None:
+            policy = QoSPolicyKind(event.last_policy_kind).name.lower()
+            self.incompatible_qos.add(f'{topic} {kind}', max(int(event.total_count_change), 1))
+            self.last_incompatible_qos = f'{topic} {kind}: {policy}'
+            self.warn_throttled(f'incompatible QoS {topic} {kind}', (
+                f'a {peer} incompatible QoS on {topic} cannot be matched with this node\'s '
+                f'{kind} (policy: {policy}); see qos_overrides.{topic}.{kind}.*'))
+        return handle
+
+    def incompatible_qos_peers(self) -> list[str]:
+        """Endpoints of this node with a peer in the graph whose QoS cannot match."""
+        found = []
+        for entity in self._endpoints:
+            topic = entity.topic_name
+            if isinstance(entity, Subscription):
+                peers = self.get_publishers_info_by_topic(topic)
+                pairs = [(peer.qos_profile, entity.qos_profile) for peer in peers]
+                kind = 'subscription'
+            else:
+                peers = self.get_subscriptions_info_by_topic(topic)
+                pairs = [(entity.qos_profile, peer.qos_profile) for peer in peers]
+                kind = 'publisher'
+            bad = sum(qos_check_compatible(offered, requested)[0] == QoSCompatibility.ERROR
+                      for offered, requested in pairs)
+            if bad:
+                found.append(f'{topic} {kind} ({bad} peer(s))')
+        return found
+
+    def qos_status(self) -> Status:
+        """The node's `qos` diagnostic status: WARN while a peer with incompatible QoS is
+        in the graph or an incompatible-QoS event came since the last report."""
+        total = self.incompatible_qos.total
+        new_events, self._incompatible_at_last_report = (
+            total - self._incompatible_at_last_report, total)
+        peers = self.incompatible_qos_peers()
+        values: dict[str, object] = {
+            'incompatible_qos_total': total,
+            **{f'incompatible_qos.{key}': n for key, n in self.incompatible_qos.counts().items()},
+            'last_incompatible_qos': self.last_incompatible_qos,
+            'incompatible_peers_now': '; '.join(peers),
+        }
+        if peers or new_events:
+            where = '; '.join(peers) or self.last_incompatible_qos
+            return Status(Level.WARN, f'incompatible QoS: {where}', values)
+        return Status(Level.OK, 'every matched peer has compatible QoS', values)
+
+    def clock_ns(self) -> int:
+        """The node's clock (ROS time; sim time under /clock) in integer ns."""
+        return self.get_clock().now().nanoseconds
 
     def _qos_error(self, endpoint: Endpoint, topic: str, err: Exception) -> QosOverrideError:
         prefix = endpoint.parameter_prefix(self.resolve_topic_name(topic))
@@ -260,9 +355,13 @@ class NodeBase(_NodeType, Generic[S]):
     def start_diagnostics(self, topic: str, period: float,
                           hardware_id: str = '') -> DiagnosticsPublisher:
         """A `DiagnosticsPublisher` on `topic` (QoS overridable), every `period` seconds."""
-        return DiagnosticsPublisher(self, topic, period, hardware_id=hardware_id,
-                                    qos=copy.copy(DIAGNOSTICS_QOS),
-                                    qos_overriding_options=QOS_OVERRIDING, guard=self.guard)
+        diagnostics = DiagnosticsPublisher(
+            self, topic, period, hardware_id=hardware_id, qos=copy.copy(DIAGNOSTICS_QOS),
+            qos_overriding_options=QOS_OVERRIDING, guard=self.guard,
+            event_callbacks=self.publisher_events(topic))
+        self._endpoints.append(diagnostics.publisher)
+        diagnostics.add('qos', self.qos_status)
+        return diagnostics
 
     def warn_throttled(self, key: str, text: str) -> None:
         """Log a warning, at most one per `key` and throttle period."""

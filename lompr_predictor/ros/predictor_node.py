@@ -38,9 +38,11 @@ from rclpy.node import Node
 from lompr_predictor.data.cleaning import GAP_FACTOR
 from lompr_predictor.data.features import FEATURES
 from lompr_predictor.learning.model_file import (
+    VERIFIED_BY,
     LoadedModel,
     ModelFileError,
     check_sample_period,
+    check_sha256_text,
     load_model,
 )
 from lompr_predictor.monitoring import (
@@ -64,7 +66,7 @@ from lompr_predictor.ros.node_base import (
     node_help,
 )
 from lompr_predictor.ros.parameters import parameter
-from lompr_predictor.stamps import set_stamp, stamp_to_ns
+from lompr_predictor.stamps import set_stamp
 from lompr_predictor.threads import set_torch_threads
 
 NODE_NAME = 'predictor_node'
@@ -79,8 +81,14 @@ class PredictorNodeSettings:
         'warms the new file and swaps it in, or keeps the running model and rejects the '
         'change with the reason')
     model_sha256: str = parameter(
-        '', 'if not empty, the sha256 the model file must have, checked before the file is '
-        'deserialised (a TorchScript file is code)')
+        '', 'if not empty, the sha256 the model file must have (the training report\'s '
+        'model_sha256), checked on the bytes read before they are deserialised (a '
+        'TorchScript file is code); takes precedence over the MODEL.sha256 file beside it',
+        check=check_sha256_text)
+    verify_model_hash: bool = parameter(
+        True, 'refuse a model file whose bytes do not match model_sha256 or, if that is '
+        'empty, the MODEL.sha256 file lompr train writes beside it; false (development '
+        'only): load an unverified file', read_only=True)
     compensation_enabled: bool = parameter(
         True, 'publish the offset; false: shadow mode, predictions go on and every offset is '
         'zero')
@@ -146,6 +154,15 @@ class PredictorNodeSettings:
         maximum=1.0)
     warning_throttle_period: float = parameter(
         5.0, 'seconds between two warnings of the same kind', minimum=0.0, maximum=3600.0)
+    max_future_stamp: float = parameter(
+        1.0, "an input stamped more than this many seconds ahead of the node's clock is "
+        'dropped (not checked while the clock reads 0: sim time before the first /clock)',
+        minimum=0.0, maximum=1e9, read_only=True)
+    late_tolerance: float = parameter(
+        0.005, 'seconds an output may come after the instant it is for (judged on the '
+        "node's clock against the best-case input delay) before it is dropped as late; a "
+        'sample whose inference could only finish late gets none', minimum=0.0,
+        maximum=3600.0, read_only=True)
 
     @property
     def limits(self) -> CompensationLimits:
@@ -180,8 +197,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], Node):
         for name in ('window', 'horizon'):
             if getattr(settings, name) >= 0:
                 expected[name] = getattr(settings, name)
-        model = load_model(settings.model_path, expected=expected,
-                           sha256=settings.model_sha256 or None)
+        model = self._load(settings.model_path, expected, settings.model_sha256)
         #: The stamps' period: the parameter if set, else the model's; later models must fit it.
         self.sample_period = settings.sample_period or model.metadata.sample_period
         check_sample_period(model.metadata, self.sample_period, settings.model_path)
@@ -192,8 +208,9 @@ class PredictorNode(NodeBase[PredictorNodeSettings], Node):
             model,
             StreamSettings(self.sample_period, settings.gap_factor,
                            settings.min_interval_factor, settings.stale_periods,
-                           settings.accuracy_samples, settings.stale_min_time),
-            settings.limits, latency_samples=settings.latency_samples)
+                           settings.accuracy_samples, settings.stale_min_time,
+                           settings.max_future_stamp, settings.late_tolerance),
+            settings.limits, latency_samples=settings.latency_samples, now_ns=self.clock_ns)
         self._candidate: LoadedModel | None = None
         self.model_swaps = 0
         self.reload_error = ''
@@ -203,6 +220,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], Node):
         self.output_rate = RateMeter(settings.rate_window)
         self.input_to_output = LatencyRecorder(settings.latency_samples)
         self._faults_at_last_report = 0
+        self._overruns_at_last_report = 0
 
         self._prediction_publisher = self.advertise(PREDICTED_ERROR)
         self._compensation_publisher = self.advertise(COMPENSATION)
@@ -229,15 +247,14 @@ class PredictorNode(NodeBase[PredictorNodeSettings], Node):
         start = time.perf_counter()
         self.pose_rate.tick()
         position = msg.pose.position
-        self._publish(self.core.add_pose(stamp_to_ns(msg.header.stamp), position.x,
-                                         position.y), start)
+        self._publish(self.core.add_pose(msg.header.stamp, position.x, position.y), start)
 
     def on_reference(self, msg: PoseStamped) -> None:
         start = time.perf_counter()
         self.reference_rate.tick()
         position = msg.pose.position
-        self._publish(self.core.add_reference(stamp_to_ns(msg.header.stamp), position.x,
-                                              position.y), start)
+        self._publish(self.core.add_reference(msg.header.stamp, position.x, position.y),
+                      start)
 
     def on_stale_timer(self) -> None:
         self._publish(self.core.check_stale(), time.perf_counter())
@@ -269,6 +286,14 @@ class PredictorNode(NodeBase[PredictorNodeSettings], Node):
         msg.vector.x, msg.vector.y = float(xy[0]), float(xy[1])
         return msg
 
+    def _load(self, path: str, expected: dict[str, Any], pin: str) -> LoadedModel:
+        """`load_model` with this node's hash policy (pin, else the sidecar, unless
+        verify_model_hash is false)."""
+        return load_model(path, expected=expected, sha256=pin or None,
+                          verify=self.settings.verify_model_hash,
+                          hint='predictor_node: -p model_sha256:=<sha256>, or for development '
+                               'only -p verify_model_hash:=false')
+
     # -- parameters (NodeBase hooks) -------------------------------------------------------
 
     def validate_settings(self, changes: dict[str, Any]) -> str:
@@ -284,7 +309,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], Node):
         path = changes['model_path']
         sha = changes.get('model_sha256', self.settings.model_sha256)
         try:
-            candidate = load_model(path, expected=self._expected, sha256=sha or None)
+            candidate = self._load(path, self._expected, sha)
             check_sample_period(candidate.metadata, self.sample_period, path)
         except Exception as err:  # noqa: BLE001 - a model file is code: any failure refuses it
             detail = str(err) if isinstance(err, ModelFileError) else (
@@ -314,13 +339,17 @@ class PredictorNode(NodeBase[PredictorNodeSettings], Node):
         model = self.core.model
         metadata = model.metadata
         values: dict[str, object] = {
-            'path': model.path, 'sha256': model.sha256, 'type': metadata.model_type,
+            'path': model.path, 'sha256': model.sha256, 'sha256_verified_by': model.verified_by,
+            'type': metadata.model_type,
             'window': metadata.window, 'horizon': metadata.horizon,
             'sample_period_s': metadata.sample_period, 'swaps': self.model_swaps,
             'robot_description_sha256': metadata.robot_description_sha256,
         }
         if self.reload_error:
             return Status(Level.WARN, f'last reload refused: {self.reload_error}', values)
+        if model.verified_by == VERIFIED_BY[2]:
+            return Status(Level.WARN, f'{metadata.model_type} {model.sha256[:12]} NOT verified '
+                                      '(verify_model_hash is false)', values)
         return Status(Level.OK, f'{metadata.model_type} {model.sha256[:12]}, horizon '
                                 f'{metadata.horizon}', values)
 
@@ -339,6 +368,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], Node):
             'faults_total': faults,
             **{f'faults.{reason}': n for reason, n in core.faults.counts().items()},
             'last_fault': core.last_fault,
+            'last_bad_stamp': core.last_bad_stamp,
             **self.callback_values(),
         }
         if self.pose_rate.seconds_since_last() is None:
@@ -370,8 +400,18 @@ class PredictorNode(NodeBase[PredictorNodeSettings], Node):
             'clamped_total': core.clamped,
             'step_limited_total': core.step_limited,
             'zeros_published': core.zeros_published,
+            'reclamped_total': core.reclamped,
+            'inference_skipped_late': core.overrun.inference_skipped_late,
+            'late_outputs_dropped': core.overrun.late_outputs_dropped,
         }
         mode = 'compensating' if self.settings.compensation_enabled else 'shadow mode'
+        overruns = core.overrun.inference_skipped_late + core.overrun.late_outputs_dropped
+        new_overruns, self._overruns_at_last_report = (
+            overruns - self._overruns_at_last_report, overruns)
+        if new_overruns:
+            return Status(Level.WARN, f'{mode}; {new_overruns} outputs late or skipped since the '
+                                      'last report (overrun: inference slower than the input)',
+                          values)
         if inference.samples and inference.p99 > self.settings.inference_time_warn:
             return Status(Level.WARN, f'{mode}; inference p99 {inference.p99 * 1e6:.0f} us over '
                                       f'{self.settings.inference_time_warn * 1e6:.0f} us', values)

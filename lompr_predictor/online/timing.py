@@ -1,0 +1,98 @@
+"""Time rules of the predictor's input and output, on the node's clock (ROS-free).
+
+`now` is always the node's clock in integer nanoseconds (ROS time: sim time under `/clock`),
+passed in by the caller; stamps are the samples' own. The two need not share an epoch (a bag
+replayed without `/clock`, a machine with its own clock), so nothing here compares a stamp
+with `now` directly except the sanity check of `stamps.stamp_problem`.
+
+`OverrunGuard` is the overrun policy: an output is for the instant stamp + lead (lead =
+horizon x sample period). It is late when, on the node's clock, that instant has passed:
+
+    lateness = (now - stamp) - offset > lead + tolerance
+
+where `offset` estimates node time - stamp time for a sample that waited for nothing: the
+best-case delay. It is the minimum of (arrival - stamp) over the samples, except that it may
+rise by as much time as has passed since the node's last inference ended (before the first
+one: freely). So delay that builds up behind inferences (a backlog behind a slow model, a
+stall during one) counts as lateness, whereas delay that builds up while the node waits for
+input (a source slower than the node's clock: a lockstep simulator on wall time waiting for
+its offset, a slowed replay) does not: the node cannot tell it from a slow clock, and it is
+no overrun of the node. Under sim time a lockstep simulator's clock stands still while it
+waits, and nothing is late either way. The estimate restarts when a stamp or the node's
+clock goes backwards (a replay looping, a simulation restarted).
+
+Policy (applied by `predictor.OnlinePredictor`): a sample whose output would be late even if
+its inference started now (already late, or late once an inference as long as the last one
+has run) enters the window (features need every sample) but gets no inference
+(`inference_skipped_late`), so samples that queued behind a slow inference are skipped to
+the newest; an inference that finishes after its instant publishes nothing for it
+(`late_outputs_dropped`).
+"""
+
+from __future__ import annotations
+
+
+class OverrunGuard:
+    """Lateness of outputs on the node's clock (module docstring). All times in ns."""
+
+    def __init__(self, lead_ns: int, tolerance_ns: int) -> None:
+        self.lead_ns = lead_ns
+        self.tolerance_ns = tolerance_ns
+        self._offset: int | None = None  # best-case node time - stamp
+        self._idle_since: int | None = None  # node time at which the last inference ended
+        self._last_stamp: int | None = None
+        self._inference_ns = 0  # the last inference's duration on the node's clock
+        self.inference_skipped_late = 0
+        self.late_outputs_dropped = 0
+        self.restarts = 0
+
+    @property
+    def offset_ns(self) -> int | None:
+        """The estimated best-case node time - stamp time, None before the first sample."""
+        return self._offset
+
+    def arrival(self, stamp_ns: int, now_ns: int) -> None:
+        """A sample stamped `stamp_ns` arrived (its callback started) at `now_ns`."""
+        idle_since = self._idle_since
+        going_back = ((self._last_stamp is not None and stamp_ns < self._last_stamp)
+                      or (idle_since is not None and now_ns < idle_since))
+        if going_back:
+            self.restart()
+            idle_since = None
+        self._last_stamp = stamp_ns
+        delay = now_ns - stamp_ns
+        offset = self._offset
+        if offset is None or idle_since is None:
+            self._offset = delay
+        else:
+            self._offset = min(delay, offset + max(now_ns - idle_since, 0))
+
+    def lateness_ns(self, stamp_ns: int, now_ns: int) -> int:
+        """How far past its instant the output of the sample stamped `stamp_ns` would be if
+        published at `now_ns` (negative: in time); 0 before any estimate."""
+        if self._offset is None:
+            return 0
+        return now_ns - stamp_ns - self._offset - self.lead_ns
+
+    def late(self, stamp_ns: int, now_ns: int) -> bool:
+        """Whether the output of that sample, published at `now_ns`, would come after its
+        instant by more than the tolerance."""
+        return self.lateness_ns(stamp_ns, now_ns) > self.tolerance_ns
+
+    def skip(self, stamp_ns: int, now_ns: int) -> bool:
+        """Whether an inference for that sample, started at `now_ns` and as long as the
+        last one, would finish late: then it is not worth running."""
+        return self.lateness_ns(stamp_ns, now_ns) + self._inference_ns > self.tolerance_ns
+
+    def inference_took(self, start_ns: int, end_ns: int) -> None:
+        """An inference ran from `start_ns` to `end_ns` (node clock): its duration, and
+        the time from which the node is idle again."""
+        self._inference_ns = max(end_ns - start_ns, 0)
+        self._idle_since = end_ns
+
+    def restart(self) -> None:
+        """Forget the estimate (stamps or the clock went back)."""
+        self._offset = None
+        self._idle_since = None
+        self._last_stamp = None
+        self.restarts += 1
