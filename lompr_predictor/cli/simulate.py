@@ -13,7 +13,7 @@ from lompr_predictor.data.bags import STORAGES
 from lompr_predictor.robot.description import load_robot_description
 from lompr_predictor.robot.paths import PATH_KINDS, build_cycle
 from lompr_predictor.twin.faults import FAULT_TOPICS, FaultSpec
-from lompr_predictor.twin.parameters import load_twin_parameters
+from lompr_predictor.twin.parameters import load_twin_parameters, preset_names
 from lompr_predictor.twin.recording import (
     GROUND_TRUTH_JSON,
     RecordingExistsError,
@@ -43,11 +43,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument('--out', required=True, help='bag directory to create (must not exist)')
     parser.add_argument('--passes', type=_at_least(1), default=20,
                         help='passes of the path (default 20)')
-    parser.add_argument('--seed', type=int, default=0, help='random seed (default 0)')
+    parser.add_argument('--seed', type=int, default=0,
+                        help='random seed of the run: drift and noise (default 0)')
+    parser.add_argument('--machine-seed', type=int,
+                        help='seed of the machine: its per-branch tolerances (servo gains, '
+                             'play); default: --seed. Two runs of one machine share it')
+    parser.add_argument('--preset', help='twin preset applied over the defaults: one of '
+                                         f'{", ".join(preset_names())}')
     parser.add_argument('--path', choices=PATH_KINDS, default='spiral',
                         help='path (default spiral)')
     parser.add_argument('--params', help='twin parameter YAML overriding the packaged '
-                                         'config/twin.yaml (any subset of its keys)')
+                                         'config/twin.yaml and the preset (any subset of '
+                                         'its keys)')
     parser.add_argument('--robot-description', help='URDF (default: the packaged LOMPR)')
     parser.add_argument('--storage', choices=tuple(STORAGES), default='mcap',
                         help='rosbag2 storage (default mcap)')
@@ -72,20 +79,20 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
+    params = load_twin_parameters(args.params, preset=args.preset)
     if Path(args.out).exists():  # before the run, not after it
         msg = f'{args.out} already exists; choose a new directory'
         raise RecordingExistsError(msg)
     description = load_robot_description(args.robot_description)
-    params = load_twin_parameters(args.params)
     faults = FaultSpec(gaps=args.gaps, gap_length=args.gap_length, duplicates=args.duplicates,
                        out_of_order=args.out_of_order, nans=args.nans, spikes=args.spikes,
                        spike_size=args.spike_size, topic=args.fault_topic)
     cycle = len(build_cycle(args.path, params.path, params.sample_period))
     with tqdm(total=args.passes * cycle, unit='sample', desc='simulate') as bar:
         sim = simulate(description, params, passes=args.passes, seed=args.seed,
-                       path=args.path, progress=bar.update)
+                       machine_seed=args.machine_seed, path=args.path, progress=bar.update)
     out = write_simulation(args.out, sim, params, description.sha256, storage=args.storage,
-                           faults=faults, plot=args.plot)
+                           faults=faults, plot=args.plot, preset=args.preset)
     summary = error_summary(sim.error_measured)
     irreducible = irreducible_rmse(sim, 1) * 1e6
     print(f'wrote {out} ({len(sim.stamps)} samples, {sim.stamps.size * sim.sample_period:.0f} s '
