@@ -40,6 +40,7 @@ from lompr_predictor.learning.tuning import (
     run_trials,
     trial_counts,
 )
+from lompr_predictor.learning.workers import StudySpec, tune
 from lompr_predictor.robot.description import RobotDescription
 
 State = optuna.trial.TrialState
@@ -117,6 +118,25 @@ def test_a_silent_trial_is_failed_and_its_point_run_again(tmp_path: Path) -> Non
     retry = next(t for t in study.trials if t.system_attrs.get(RETRY_OF_ATTR) == orphan.number)
     assert retry.state == State.COMPLETE and retry.params == point
     assert study.trials[orphan.number].state == State.FAIL
+
+
+def _explode(trial: optuna.Trial) -> float:
+    msg = 'boom'
+    raise RuntimeError(msg)
+
+
+def _exploding_objective(study: optuna.Study, *, progress: bool) -> Callable[..., float]:
+    return _explode
+
+
+def test_a_worker_process_that_raises_stops_the_others(tmp_path: Path) -> None:
+    storage = open_storage(default_storage(tmp_path))
+    study = open_study(storage, 'bug', budget=4)
+    spec = StudySpec(storage=storage.spec, name='bug', seed=0, budget=4)
+    with pytest.raises(StudyError, match=r'tuning worker .+:\d+ failed: RuntimeError: boom'):
+        tune(spec, study, storage, _exploding_objective, workers=2, progress=False)
+    counts = trial_counts(study)
+    assert counts.running == 0 and counts.spent == 0 and counts.failed >= 1
 
 
 def test_joining_a_study_with_other_settings_is_refused(tmp_path: Path) -> None:

@@ -205,8 +205,10 @@ def _worker_main(spec: StudySpec, make_objective: ObjectiveFactory, threads: int
         ran = run_trials(study, storage, objective)
     except KeyboardInterrupt:
         sys.exit(130)
-    except BaseException as err:
-        messages.put(('error', name, str(err) if isinstance(err, LomprError)
-                      else f'{type(err).__name__}: {err}'))
+    except LomprError as err:  # a message for the user: the parent prints it, one line
+        messages.put(('error', name, str(err)))
+        sys.exit(2)
+    except BaseException as err:  # a bug: the traceback too (printed by multiprocessing)
+        messages.put(('error', name, f'{type(err).__name__}: {err}'))
         raise
     messages.put(('done', name, ran))
