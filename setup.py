@@ -34,6 +34,7 @@ setup(
         'pyyaml',
         'tqdm',
         'psycopg[binary]',
+        'sqlalchemy',
     ],
     extras_require={'test': ['pytest', 'hypothesis']},
     zip_safe=True,

@@ -5,8 +5,14 @@ Bayesian optimisation on a validation split carved from the training 90 %, train
 paper's BP baseline, scores persistence, BP and BO-LSTM on the chronologically last 10 %,
 writes the best model as one TorchScript file with its metadata and the report folder.
 
-The pipeline is `learning.pipeline.train_predictor`; this module turns the command line
-into its `TrainingConfig`, sets the thread count and prints where the results went.
+The tuning runs on `--workers` local processes (default: the cores available). Several
+commands, on several machines, share one study through `--storage` and `--study-name`:
+extra workers run `--workers-only` (trials only), and the normal command finishes the study
+(runs what its budget still lacks, then writes the model and report from the best trial).
+
+The pipeline is `learning.pipeline` (`train_predictor`, `run_workers`); this module turns
+the command line into its `TrainingConfig`, sets the thread count and prints where the
+results went.
 """
 
 from __future__ import annotations
@@ -17,8 +23,14 @@ from typing import Any
 
 from lompr_predictor.cli.common import add_data_arguments, bag_inputs
 from lompr_predictor.data.problem import DEFAULT_HORIZON, DEFAULT_WINDOW
-from lompr_predictor.learning.space import DEFAULT_TRIALS, PAPER_SPACE, SearchSpace, parse_values
-from lompr_predictor.threads import set_torch_threads
+from lompr_predictor.learning.space import (
+    DEFAULT_TRIALS,
+    HEARTBEAT_SECONDS,
+    PAPER_SPACE,
+    SearchSpace,
+    parse_values,
+)
+from lompr_predictor.threads import MAX_DEFAULT_WORKERS, default_workers, set_torch_threads
 
 
 def _listed(values: tuple[Any, ...]) -> str:
@@ -30,8 +42,9 @@ def add_parser(subparsers: Any) -> None:
         'train', help='train a BO-LSTM error predictor from rosbag2 recordings',
         description=__doc__.split('\n\n')[0])
     parser.add_argument('bags', nargs='+', metavar='BAG_DIR', help='rosbag2 directories')
-    parser.add_argument('--out', required=True, help='model file to write (TorchScript)')
-    parser.add_argument('--report', required=True, help='report folder')
+    parser.add_argument('--out', help='model file to write (TorchScript); required unless '
+                                      '--workers-only')
+    parser.add_argument('--report', help='report folder; required unless --workers-only')
     parser.add_argument('--horizon', type=int, default=DEFAULT_HORIZON,
                         help="samples between the window's last row and the predicted instant")
     parser.add_argument('--window', type=int, default=DEFAULT_WINDOW, help='samples per window')
@@ -46,10 +59,28 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument('--learning-rates', default=None,
                         help=f'comma list (default {_listed(PAPER_SPACE.learning_rates)})')
     parser.add_argument('--storage', default=None,
-                        help='Optuna storage URL (default: a SQLite file in the report folder); '
-                             'rerunning the same command resumes the study')
+                        help='where the tuning study lives: postgresql://USER@HOST/DB (shared by '
+                             'several machines), sqlite:///FILE, or a journal file path '
+                             '(default: study.journal in the report folder); rerunning the '
+                             'same command resumes the study')
     parser.add_argument('--study-name', default=None,
-                        help='default: derived from the bags and settings')
+                        help='default: derived from the bags (by content) and settings')
+    parser.add_argument('--workers', type=int, default=default_workers(),
+                        help='tuning processes on this machine, each with --threads torch '
+                             'threads (default: the cores available, at most '
+                             f'{MAX_DEFAULT_WORKERS}: here {default_workers()})')
+    parser.add_argument('--workers-only', action='store_true',
+                        help='join the study given by --storage and --study-name and run its '
+                             'trials until the budget is spent; no model, no report (an extra '
+                             'worker; the command without this flag finishes the study)')
+    parser.add_argument('--checkpoints', default=None, metavar='DIR',
+                        help="trials' models (default: trials/ in the report folder); on "
+                             'several machines a folder they all share, else the finishing '
+                             'command trains the best trial again')
+    parser.add_argument('--heartbeat', type=int, default=HEARTBEAT_SECONDS, metavar='SECONDS',
+                        help="seconds between a running trial's heartbeats; a trial silent "
+                             'for 3 of them (its worker died) is failed and its point queued '
+                             f'again (default {HEARTBEAT_SECONDS})')
     add_data_arguments(parser)
     parser.set_defaults(run=run)
 
@@ -65,18 +96,51 @@ def search_space(args: argparse.Namespace) -> SearchSpace:
                         else PAPER_SPACE.learning_rates))
 
 
+def _path(text: str | None) -> Path | None:
+    return None if text is None else Path(text)
+
+
 def run(args: argparse.Namespace) -> int:
-    from lompr_predictor.learning.pipeline import TrainingConfig, train_predictor, write_outputs
+    from lompr_predictor.learning.pipeline import (
+        TrainingConfig,
+        run_workers,
+        train_predictor,
+        write_outputs,
+    )
     from lompr_predictor.learning.training import MAX_EPOCHS, PATIENCE
 
     set_torch_threads(args.threads)
     config = TrainingConfig(
-        inputs=bag_inputs(args, args.bags), model_path=Path(args.out),
-        report_dir=Path(args.report), robot_description=args.robot_description,
+        inputs=bag_inputs(args, args.bags), model_path=_path(args.out),
+        report_dir=_path(args.report), robot_description=args.robot_description,
         window=args.window, horizon=args.horizon, trials=args.trials, seed=args.seed,
         max_epochs=args.max_epochs or MAX_EPOCHS, patience=args.patience or PATIENCE,
         space=search_space(args), storage=args.storage, study_name=args.study_name,
+        workers=args.workers, checkpoints=_path(args.checkpoints), heartbeat=args.heartbeat,
         progress=not args.quiet)
-    write_outputs(config, train_predictor(config))
+    if args.workers_only:
+        summary = run_workers(config)
+        run = summary.run
+        print(f'study {summary.study_name} in {summary.storage}: budget {summary.budget} spent '
+              f'({summary.complete} complete, {summary.pruned} pruned, {summary.failed} failed); '
+              f'{run.trials_run} trials run here by {len(run.workers)} workers in '
+              f'{run.seconds:.1f} s; finish it with the same command without --workers-only')
+        return 0
+    result = train_predictor(config)
+    write_outputs(config, result)
+    print(summary_line(result.report))
     print(f'model written to {args.out}; report in {args.report}')
     return 0
+
+
+def summary_line(report: dict[str, Any]) -> str:
+    """Trials and the run's time split, from a training report (issue 10)."""
+    tuning, timings = report['tuning'], report['timings']
+    split = ', '.join(f'{label} {timings[key]:.1f} s' for label, key in (
+        ('read+clean', 'read_clean_fk_seconds'), ('tuning', 'tuning_seconds'),
+        ('best model', 'best_model_seconds'), ('BP', 'bp_seconds'),
+        ('scoring', 'scoring_seconds'), ('writing', 'writing_seconds')) if key in timings)
+    return (f"tuning: {tuning['trials_spent']} of {tuning['budget']} trials spent "
+            f"({tuning['trials_complete']} complete, {tuning['trials_pruned']} pruned, "
+            f"{tuning['trials_failed']} failed), {tuning['trials_run_now']} run now by "
+            f"{len(tuning['local_workers'])} workers here; {split}")
