@@ -243,6 +243,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], LifecycleNode):
         self.dropped_inactive = 0  # samples received while not active
         self.clock_jumps_back = 0
         self._clock_started = False
+        self._autostarting = False
 
         self.pose_rate = self.rate_meter(settings.rate_window)
         self.reference_rate = self.rate_meter(settings.rate_window)
@@ -309,7 +310,12 @@ class PredictorNode(NodeBase[PredictorNodeSettings], LifecycleNode):
             self.get_logger().info('autostart false: unconfigured, waiting for a lifecycle '
                                    'manager (change_state configure, activate)')
             return
-        if self.trigger_configure() != TransitionCallbackReturn.SUCCESS:
+        self._autostarting = True  # the caller reports a failure: one line, not two
+        try:
+            configured = self.trigger_configure() == TransitionCallbackReturn.SUCCESS
+        finally:
+            self._autostarting = False
+        if not configured:
             error = self._configure_exception or ConfigureError(self.configure_error)
             self.destroy_node()
             raise error
@@ -332,7 +338,8 @@ class PredictorNode(NodeBase[PredictorNodeSettings], LifecycleNode):
                 err = ConfigureError(f'model {path}: {type(err).__name__}: {err}')
             self._configure_exception = err
             self.configure_error = str(err)
-            self.get_logger().error(f'configure failed, staying unconfigured: {err}')
+            if not self._autostarting:
+                self.get_logger().error(f'configure failed, staying unconfigured: {err}')
             return TransitionCallbackReturn.FAILURE
         self.configure_error = ''
         self._configure_exception = None
