@@ -18,7 +18,10 @@ It composes the parts, each in its own module and testable alone:
   the offset in force; output resumes once the window has refilled with good samples.
 
 Time: `clock` (seconds, monotonic by default) is the only time source; it stamps arrivals
-and times staleness. Every call returns the outputs to publish, in order.
+and times staleness. The predictor node gives its ROS clock (simulated time under
+use_sim_time) and reports the clock's jumps: `clock_jumped_back` (a simulator reset: a fault,
+and the streams are taken as starting again) and `restart_staleness` (the clock started or
+skipped ahead). Every call returns the outputs to publish, in order.
 """
 
 from __future__ import annotations
@@ -96,6 +99,31 @@ class OnlinePredictor:
         exception in the caller's own handling)."""
         self._alignment.clear(reason)
         return self._fault(reason)
+
+    def clock_jumped_back(self, now_ns: int | None) -> list[Output]:
+        """The clock went back to `now_ns` (None: it changed source), as a simulator reset
+        does: a 'clock_jump' fault (window emptied, the offset in force cancelled), and the
+        inputs are taken as starting again from there (`StampAlignment.rewind`), so the
+        restarted streams refill the window without further faults."""
+        outputs = self._fault('clock_jump')
+        self._alignment.rewind(now_ns, 'clock_jump')
+        self._stale.restart()
+        return outputs
+
+    def restart_staleness(self) -> None:
+        """The clock jumped forward (its first reading under simulated time, a simulator
+        skipping ahead): idle time counts from now (a gap in the stamps is still a fault)."""
+        self._stale.restart()
+
+    def reset(self, reason: str = 'inactive') -> list[Output]:
+        """Stop and start afresh, no fault (the node deactivated): the offset in force is
+        cancelled (zeros, `reason`), the window emptied, and the inputs forgotten, so that
+        the next samples start a new window whatever their stamps."""
+        outputs = self._gate.cancel(reason, self._alignment.newest_pose_ns)
+        self._window.clear()
+        self._alignment.rewind(None, reason)
+        self._stale.restart()
+        return outputs
 
     def set_limits(self, limits: CompensationLimits) -> list[Output]:
         """New bounds from the next sample on. Disabling compensation also cancels the

@@ -27,6 +27,10 @@ managed one alike:
 - Diagnostics: `start_diagnostics(topic, period, hardware_id)` -> `DiagnosticsPublisher`.
 - `warn_throttled(key, text)`: one warning per key and `warning_throttle_period` (a settings
   field of that name, if the node has one; else `DEFAULT_THROTTLE_PERIOD`).
+- Time: every time a node reasons about is its own clock (`clock_seconds`: ROS time, which
+  follows /clock under `use_sim_time`): timers (`start_timer`), rates (`rate_meter`),
+  throttles, diagnostics; wall time only for latencies. Before the first /clock message the
+  clock reads 0.
 
 Thread counts are not set here (`threads.set_torch_threads` belongs to entry points).
 """
@@ -39,6 +43,7 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar
 
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock
 from rclpy.lifecycle import LifecycleNodeMixin
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -49,7 +54,7 @@ from rclpy.subscription import Subscription
 from rclpy.timer import Timer
 
 from lompr_predictor.errors import LomprError
-from lompr_predictor.monitoring import LogThrottle
+from lompr_predictor.monitoring import LogThrottle, RateMeter
 from lompr_predictor.ros.common import DiagnosticsPublisher
 from lompr_predictor.ros.parameters import (
     ParameterSpec,
@@ -137,7 +142,7 @@ class NodeBase(_NodeType, Generic[S]):
         super().__init__(*args, **kwargs)
         self.callback_failures = 0
         self.last_callback_failure = ''
-        self.log_throttle = LogThrottle(DEFAULT_THROTTLE_PERIOD)
+        self.log_throttle = LogThrottle(DEFAULT_THROTTLE_PERIOD, clock=self.clock_seconds)
         self._specs: dict[str, ParameterSpec] = {}
 
     # -- hooks a node overrides ---------------------------------------------------------
@@ -225,9 +230,21 @@ class NodeBase(_NodeType, Generic[S]):
         prefix = endpoint.parameter_prefix(self.resolve_topic_name(topic))
         return QosOverrideError(f'{prefix}.*: {err}')
 
-    def start_timer(self, period: float, where: str, callback: Callable[[], None]) -> Timer:
-        """A timer of the node's clock whose callback runs through `guard`."""
-        return self.create_timer(period, self.guard(where, callback))
+    def start_timer(self, period: float, where: str, callback: Callable[[], None], *,
+                    clock: Clock | None = None) -> Timer:
+        """A timer of the node's clock (or `clock`) whose callback runs through `guard`."""
+        return self.create_timer(period, self.guard(where, callback), clock=clock)
+
+    # -- time -------------------------------------------------------------------------------
+
+    def clock_seconds(self) -> float:
+        """The node's clock now [s]: ROS time, /clock under use_sim_time (0 before the first
+        /clock message), else the system time."""
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def rate_meter(self, window: float) -> RateMeter:
+        """A `RateMeter` over `window` seconds of the node's clock."""
+        return RateMeter(window, clock=self.clock_seconds)
 
     # -- the callback-exception policy ------------------------------------------------------
 
