@@ -61,7 +61,7 @@ class FeatureWindow:
         self._buffer = np.zeros((2 * window, len(FEATURES)))
         # a row is written with one C call: struct packing into the buffer's memory
         self._write_row = struct.Struct(f'={len(FEATURES)}d').pack_into
-        self._memory = memoryview(self._buffer).cast('B')
+        self._memory = self._buffer.data.cast('B')
         self._row_bytes = self._buffer.strides[0]
         self._copy_bytes = window * self._row_bytes  # from a row to its second copy
         buffer = torch.from_numpy(self._buffer)  # the same memory
