@@ -26,11 +26,11 @@ skipped ahead). Every call returns the outputs to publish, in order.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 
 import numpy as np
-import torch
 
 from lompr_predictor.data.features import FEATURES
 from lompr_predictor.learning.model_file import LoadedModel
@@ -219,16 +219,23 @@ class OnlinePredictor:
         return outputs
 
     def _predict(self, stamp_ns: int) -> list[Output]:
-        try:
-            window = torch.from_numpy(self._window.rows()[None])
-            with self.inference_time.measure():
-                prediction = self.model.predict(window).numpy().reshape(-1)
-        except Exception:  # noqa: BLE001 - a model file is code: any failure is a fault
-            return self._fault('inference')
-        if prediction.shape != (2,) or not np.isfinite(prediction).all():
+        prediction = self._infer()
+        if prediction is None:
             return self._fault('inference')
         self.predictions_made += 1
-        return [self._gate.publish(stamp_ns + self._lead_ns, prediction, stamp_ns)]
+        return [self._gate.publish(stamp_ns + self._lead_ns, np.array(prediction), stamp_ns)]
+
+    def _infer(self) -> tuple[float, float] | None:
+        """The model on the window (its buffer, no copy): the predicted X/Y plant error, or
+        None if the model raised or gave anything but one row of two finite numbers."""
+        start = time.perf_counter()
+        try:
+            (x, y), = self.model.predict(self._window.tensor()).tolist()
+            x, y = float(x), float(y)
+        except Exception:  # noqa: BLE001 - a model file is code: any failure is a fault
+            x = y = math.nan
+        self.inference_time.record(time.perf_counter() - start)
+        return (x, y) if math.isfinite(x) and math.isfinite(y) else None
 
     def _fault(self, reason: str) -> list[Output]:
         """Empty the window; cancel the offsets in force (`offset.OffsetGate.cancel`)."""
