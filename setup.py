@@ -10,12 +10,13 @@ setup(
     name=PACKAGE,
     version='0.1.0',
     packages=find_packages(exclude=['test', 'test.*', 'bench']),
-    package_data={PACKAGE: ['description/*.urdf', 'config/*.yaml']},
+    package_data={PACKAGE: ['description/*.urdf', 'config/*.yaml', 'config/presets/*.yaml']},
     data_files=[
         ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
         (f'share/{PACKAGE}', ['package.xml']),
         (f'share/{PACKAGE}/description', glob(f'{PACKAGE}/description/*.urdf')),
         (f'share/{PACKAGE}/config', glob(f'{PACKAGE}/config/*.yaml')),
+        (f'share/{PACKAGE}/config/presets', glob(f'{PACKAGE}/config/presets/*.yaml')),
     ],
     python_requires='>=3.11',
     # Runtime libraries: requirements.txt pins the exact versions for a pip install; a ROS
@@ -33,6 +34,7 @@ setup(
         'pyyaml',
         'tqdm',
         'psycopg[binary]',
+        'sqlalchemy',
     ],
     extras_require={'test': ['pytest', 'hypothesis']},
     zip_safe=True,

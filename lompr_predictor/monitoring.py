@@ -8,7 +8,10 @@
   the value a status provider returns; `nodes/common.py` turns it into a ROS message.
 
 Time comes from an injectable clock (seconds, monotonic by default), so tests can drive
-every piece with exact numbers and a node measures arrival rates on a steady clock.
+every piece with exact numbers; a node gives its own clock (ROS time, which follows /clock
+under use_sim_time), so rates and throttles count the time the node runs on. Such a clock
+can go backwards (a simulator reset): `RateMeter` then starts afresh and `LogThrottle` lets
+the next message through. Durations (`LatencyRecorder.measure`) are wall time.
 """
 
 from __future__ import annotations
@@ -77,23 +80,32 @@ class RateMeter:
 
     def tick(self) -> None:
         """Record one event now."""
-        now = self._clock()
+        now = self._now()
         self._events.append(now)
         self.total += 1
         self._forget_before(now - self.window)
 
     def rate(self) -> float:
         """Events per second over the window ending now."""
-        now = self._clock()
+        now = self._now()
         self._forget_before(now - self.window)
         span = min(self.window, now - self._started)
         return len(self._events) / span if span > 0.0 else 0.0
 
     def seconds_since_last(self) -> float | None:
         """Time since the last event still in the window, None if there is none."""
-        now = self._clock()
+        now = self._now()
         self._forget_before(now - self.window)
         return now - self._events[-1] if self._events else None
+
+    def _now(self) -> float:
+        """The clock's time; a clock gone back before the start or the newest event (a
+        simulator reset) starts the meter afresh (the total is kept)."""
+        now = self._clock()
+        if now < self._started or (self._events and now < self._events[-1]):
+            self._events.clear()
+            self._started = now
+        return now
 
     def _forget_before(self, cutoff: float) -> None:
         events = self._events
@@ -163,7 +175,7 @@ class LogThrottle:
     def filter(self, key: str, text: str) -> str | None:
         now = self._clock()
         last = self._last.get(key)
-        if last is not None and now - last < self.period:
+        if last is not None and 0.0 <= now - last < self.period:  # a clock gone back: pass
             self._suppressed[key] = self._suppressed.get(key, 0) + 1
             return None
         self._last[key] = now

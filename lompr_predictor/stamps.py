@@ -40,7 +40,7 @@ def stamp_problem(stamp: StampLike, now_ns: int, max_future_ns: int) -> tuple[st
         ahead = sec * NS_PER_SECOND + nanosec - now_ns
         if ahead > max_future_ns:
             return 'future_stamp', (f'stamp {sec}.{nanosec:09d} is {ahead * 1e-9:.3f} s ahead of '
-                                    f'this node\'s clock (more than {max_future_ns * 1e-9:g} s)')
+                                    f"this node's clock (more than {max_future_ns * 1e-9:g} s)")
     return '', ''
 
 

@@ -13,7 +13,8 @@ import pytest
 BENCH = Path(__file__).resolve().parents[1] / 'bench'
 LOAD = ('import importlib.util, sys; '
         'spec = importlib.util.spec_from_file_location("bench_script", sys.argv[1]); '
-        'module = importlib.util.module_from_spec(spec); spec.loader.exec_module(module); '
+        'module = importlib.util.module_from_spec(spec); sys.modules[spec.name] = module; '
+        'spec.loader.exec_module(module); '
         'assert callable(module.main)')
 
 

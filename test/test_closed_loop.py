@@ -182,6 +182,31 @@ def test_switching_compensation_off_returns_to_the_uncompensated_error(
                                rtol=0, atol=1e-12)
 
 
+def test_the_loop_across_processes_on_simulated_time(
+        tmp_path: Path, description: RobotDescription) -> None:
+    """twin_node (publishing /clock), kinematics_node and predictor_node (use_sim_time) as
+    three processes, 400 samples in lockstep: the model removes the error as in one process,
+    and once the predictor's window has filled no sample runs without its offset."""
+    model = fit_ridge_model(tmp_path / 'ridge.pt', description)
+    settings = LoopSettings(model_path=str(model), passes=1, lead_in_passes=0, samples=400,
+                            seed=LOOP_SEED, lockstep_timeout=0.05, processes=True)
+    runs = {name: run_closed_loop(dataclasses.replace(settings, compensation_enabled=enabled),
+                                  progress=False)
+            for name, enabled in (('none', False), ('model', True))}
+    for run in runs.values():
+        assert len(run.stamps) == 400 and run.counts['processes'] == {
+            'kinematics_node': 0, 'predictor_node': 0, 'twin_node': 0}
+        # the window (8 + 2 samples) fills once discovery has let the first samples through
+        assert run.counts['first_answered'] < 60, run.counts
+        assert run.counts['unanswered_after_first'] == 0, run.counts
+        assert sum(run.counts['offsets_dropped'].values()) == 0, run.counts
+    after = slice(150, None)
+    none, model_rms = (rms(runs[name].true_error[after]) for name in ('none', 'model'))
+    assert np.all(none > 5e-6), none
+    assert np.all(model_rms < 0.1 * none), (model_rms, none)
+    np.testing.assert_array_equal(runs['none'].reference, runs['model'].reference)
+
+
 def test_evaluate_closed_loop_gives_the_demo_figures_from_bags(
         loops: dict[str, LoopRun], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     names = ('none', 'persistence', 'model')

@@ -74,6 +74,24 @@ def test_rate_meter_is_exact_from_start_and_over_the_window() -> None:
         RateMeter(window=0.0)
 
 
+def test_rate_meter_starts_afresh_when_the_clock_goes_back() -> None:
+    """A simulator reset sets the node's clock back: the events of the abandoned timeline
+    would otherwise sit in the window as events from the future."""
+    clock = FakeClock()
+    meter = RateMeter(window=2.0, clock=clock)
+    for _ in range(50):
+        clock.now += 0.04
+        meter.tick()
+    assert meter.rate() == pytest.approx(25.0)
+    clock.now -= 10.0  # reset
+    assert meter.rate() == 0.0 and meter.seconds_since_last() is None
+    for _ in range(10):
+        clock.now += 0.1
+        meter.tick()
+    assert meter.rate() == pytest.approx(10.0)  # exact from the reset on
+    assert meter.total == 60
+
+
 def test_latency_recorder_percentiles_over_last_samples() -> None:
     recorder = LatencyRecorder(capacity=100)
     summary = recorder.summary()
@@ -134,6 +152,10 @@ def test_log_throttle_passes_one_per_period_and_counts_the_rest() -> None:
         'NaN in ups3 (2 more like this in the last 5.0 s)')
     clock.now += 5.0
     assert throttle.filter('nan', 'NaN in ups1') == 'NaN in ups1'
+    clock.now -= 100.0  # the clock went back (a simulator reset): the next one passes
+    assert throttle.filter('nan', 'NaN in ups2') == 'NaN in ups2'
+    clock.now += 1.0
+    assert throttle.filter('nan', 'NaN in ups2') is None
 
 
 def test_status_defaults_and_levels_match_diagnostic_msgs() -> None:

@@ -14,13 +14,15 @@ from lompr_predictor.data.problem import LearningProblem, build_problem
 from lompr_predictor.learning.models import predict_rows
 from lompr_predictor.learning.objective import NetworkObjective, checkpoint_path
 from lompr_predictor.learning.space import SearchSpace
+from lompr_predictor.learning.storage import default_storage, open_storage
 from lompr_predictor.learning.training import TrainSettings
 from lompr_predictor.learning.tuning import (
     DUPLICATE_OF,
+    WORKER,
     best_trial,
-    default_storage,
     open_study,
     run_study,
+    worker_name,
 )
 from lompr_predictor.robot.description import RobotDescription
 
@@ -36,16 +38,18 @@ def problem(description: RobotDescription) -> LearningProblem:
 
 def test_objective_trains_checkpoints_and_skips_a_repeated_point(
         tmp_path: Path, problem: LearningProblem) -> None:
-    study = open_study(default_storage(tmp_path), 'objective', seed=0, budget=3)
+    storage = open_storage(default_storage(tmp_path))
+    study = open_study(storage, 'objective', seed=0, budget=3)
     point = {'batch_size': 300, 'hidden': 4, 'learning_rate': 0.01}
     study.enqueue_trial(point)
     study.enqueue_trial(point)
     study.enqueue_trial({**point, 'hidden': 6})
     objective = NetworkObjective(study, problem, SPACE, TrainSettings(max_epochs=2, seed=1),
                                  tmp_path / 'trials')
-    assert run_study(study, objective, 3, progress=False) == 3
+    assert run_study(study, storage, objective, progress=False) == 3
     first, repeated, other = study.trials
-    assert repeated.user_attrs == {DUPLICATE_OF: 0} and repeated.value == first.value
+    assert repeated.user_attrs == {DUPLICATE_OF: 0, WORKER: worker_name()}
+    assert repeated.value == first.value
     for trial in (first, other):
         path = checkpoint_path(tmp_path / 'trials', 'objective', trial.number)
         assert trial.user_attrs['checkpoint'] == str(path.resolve()) and path.is_file()

@@ -196,6 +196,43 @@ def test_a_gap_zeroes_once_and_output_resumes_after_refill(tmp_path: Path) -> No
     assert core.faults['gap'] == 1
 
 
+def test_a_clock_jumping_back_zeroes_once_and_the_restarted_run_refills(
+        tmp_path: Path) -> None:
+    """A simulator reset: the clock goes back to the start and the samples start again. The
+    offsets in force are cancelled once, the fault is counted, and the restarted streams
+    refill the window with no other fault."""
+    clock = FakeClock()
+    core = constant_core(tmp_path, (-10e-6, 0.0), clock=clock)
+    stamps, reference, tips = spiral(20)
+    assert len(feed(core, stamps, reference, tips, clock)) == 20 - NEEDED + 1
+    clock.now -= 20 * PERIOD
+    zeros = core.clock_jumped_back(int(stamps[0]))
+    # a zero for every instant after the newest pose an offset was published for
+    assert [(z.reason, z.instant_ns) for z in zeros] == [
+        ('clock_jump', int(stamps[19]) + k * PERIOD_NS) for k in range(1, HORIZON + 1)]
+    assert all(not z.compensation.any() for z in zeros)
+    assert core.window_fill == 0 and core.faults['clock_jump'] == 1
+    assert core.check_stale() == []
+    outputs = feed(core, stamps[:NEEDED], reference[:NEEDED], tips[:NEEDED], clock)
+    assert [o.reason for o in outputs] == ['']  # resumed after the refill, no other fault
+    assert outputs[0].instant_ns == stamps[NEEDED - 1] + HORIZON * PERIOD_NS
+    assert core.faults.total == 1
+
+
+def test_reset_cancels_without_a_fault_and_starts_afresh(tmp_path: Path) -> None:
+    core = constant_core(tmp_path, (-10e-6, 0.0))
+    stamps, reference, tips = spiral(40)
+    feed(core, stamps[:NEEDED], reference[:NEEDED], tips[:NEEDED])
+    zeros = core.reset('inactive')
+    assert [z.reason for z in zeros] == ['inactive']  # the one offset published
+    assert core.faults.total == 0 and core.window_fill == 0
+    assert core.reset('inactive') == []  # nothing in force any more
+    # later samples, after a long pause, start a new window without a fault
+    outputs = feed(core, stamps[30:30 + NEEDED], reference[30:30 + NEEDED],
+                   tips[30:30 + NEEDED])
+    assert [o.reason for o in outputs] == [''] and core.faults.total == 0
+
+
 def test_stale_input_zeroes_once(tmp_path: Path) -> None:
     clock = FakeClock()
     core = constant_core(tmp_path, (-10e-6, 0.0), clock=clock)

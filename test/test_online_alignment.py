@@ -118,8 +118,8 @@ def test_bad_references() -> None:
     assert alignment.dropped.counts() | {} == {
         'non_finite': 0, 'duplicate': 0, 'out_of_order': 0, 'no_reference': 0,
         'reference_duplicate': 1, 'reference_non_finite': 1, 'reference_out_of_order': 1,
-        'stale': 0, 'internal': 0, 'bad_stamp': 0, 'future_stamp': 0,
-        'reference_bad_stamp': 0, 'reference_future_stamp': 0}
+        'stale': 0, 'clock_jump': 0, 'inactive': 0, 'internal': 0, 'bad_stamp': 0,
+        'future_stamp': 0, 'reference_bad_stamp': 0, 'reference_future_stamp': 0}
 
 
 def test_too_many_waiting_poses_drop_the_oldest_as_a_fault() -> None:
@@ -149,3 +149,27 @@ def test_reference_track_forgets_what_no_pose_can_need() -> None:
     # poses come in order: the references far before that one are gone
     assert track.at(at(2)) == 'no_reference'
     assert track.at(at(10)) is None  # not arrived yet
+
+
+@pytest.mark.parametrize('reference_first', [False, True])
+def test_a_rewind_takes_the_restarted_streams_without_a_fault(reference_first: bool) -> None:
+    """A simulator reset: its clock goes back to the start and the streams start again. The
+    reference of the new run may come before the clock's jump (another topic): it is kept."""
+    alignment = aligned()
+    for k in range(10):
+        alignment.add_reference(at(k), k * 1e-3, 0.0)
+        samples_of(alignment.add_pose(at(k), k * 1e-3, 0.0))
+    alignment.add_pose(at(10), 0.0, 0.0)  # waits for its reference
+    if reference_first:
+        assert alignment.add_reference(at(0), 0.5, 0.0) == ['reference_out_of_order']
+    alignment.rewind(at(0), 'clock_jump')
+    assert alignment.dropped['clock_jump'] == 1 and not alignment.waiting
+    assert alignment.newest_pose_ns is None
+    if not reference_first:
+        assert alignment.references.newest is None  # every reference was after the reset
+        assert alignment.add_reference(at(0), 0.5, 0.0) == []
+    (sample,) = samples_of(alignment.add_pose(at(0), 0.5, 0.0))
+    assert (sample.stamp_ns, sample.reference_x) == (at(0), 0.5)
+    assert alignment.dropped['out_of_order'] == 0
+    alignment.rewind(None, 'inactive')
+    assert alignment.references.newest is None

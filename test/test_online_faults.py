@@ -78,3 +78,17 @@ def test_a_pose_waiting_for_its_reference_counts_as_no_sample() -> None:
     clock.now += 0.1
     assert not watch.check(waiting_since)
     assert watch.check(waiting_since)
+
+
+def test_a_restart_counts_idle_time_from_the_jump() -> None:
+    """A clock that jumps (its first /clock message, a simulator skipping ahead) is no idle
+    input: the watch counts from the jump."""
+    clock = FakeClock()
+    watch = StaleWatch(0.2, clock)
+    clock.now += 1000.0
+    assert not watch.check()  # suspected
+    watch.restart()
+    assert not watch.check()  # the suspicion is gone with the jump
+    clock.now += 0.21
+    assert not watch.check()
+    assert watch.check()

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
-from lompr_predictor.data.features import HISTORY, feature_rows
+from lompr_predictor.data.features import FEATURES, HISTORY, feature_rows
 from lompr_predictor.online.window import FeatureWindow
+from lompr_predictor.stamps import seconds_since
 
 T0 = 1_700_000_000_000_000_000
 PERIOD_NS = 40_000_000
@@ -67,3 +69,47 @@ def test_a_cleared_window_refills_from_new_samples_only() -> None:
 def test_a_window_needs_a_row() -> None:
     with pytest.raises(ValueError, match='at least one row'):
         FeatureWindow(0)
+
+
+def test_each_row_is_feature_rows_of_its_last_samples_bit_for_bit() -> None:
+    # the incremental row is feature_rows on the last HISTORY + 1 samples (stamps as seconds
+    # since the first of them), the same operations: equal to the last bit, across the
+    # buffer's wrap-around and a clear
+    rng = np.random.default_rng(3)
+    n = 60
+    stamps = T0 + np.cumsum(rng.integers(900_000, 1_100_000, n))
+    error = rng.normal(scale=1e-5, size=(n, 2))
+    reference = np.cumsum(rng.normal(scale=1e-4, size=(n, 2)), axis=0)
+    window = FeatureWindow(5)
+    start = 0
+    for k in range(n):
+        if k == 31:
+            window.clear()
+            start = k
+        window.push(int(stamps[k]), *error[k], *reference[k])
+        if k - start < window.needed - 1:
+            continue
+        expected = np.stack([
+            feature_rows(seconds_since(stamps[j - HISTORY:j + 1]), error[j - HISTORY:j + 1],
+                         reference[j - HISTORY:j + 1])[-1] for j in range(k - 4, k + 1)])
+        assert np.array_equal(window.rows(), expected)
+        tensor = window.tensor()
+        assert tensor.shape == (1, 5, len(FEATURES)) and tensor.dtype == torch.float64
+        assert np.array_equal(tensor[0].numpy(), expected)
+
+
+def test_the_model_input_is_a_view_made_once() -> None:
+    stamps, error, reference = samples(12)
+    window = FeatureWindow(3)
+    push_all(window, stamps[:5], error[:5], reference[:5])
+    first = window.tensor()
+    assert window.tensor() is first  # no allocation per call
+    assert first.is_contiguous()
+    rows = window.rows()
+    rows[:] = 0.0  # a copy: the window is untouched
+    assert first.abs().sum() > 0
+    for k in range(5, 8):  # three pushes later the same slot starts the window again
+        window.push(int(stamps[k]), *error[k], *reference[k])
+    assert window.tensor() is first
+    offline = feature_rows((stamps[:8] - stamps[0]) * 1e-9, error[:8], reference[:8])
+    np.testing.assert_allclose(first[0].numpy(), offline[-3:], rtol=1e-12, atol=0)

@@ -411,8 +411,8 @@ def test_executable_with_params_file_refuses_a_mismatched_model_in_one_line(tmp_
     finally:
         _, stderr = stop(process)
     assert code == 2
-    errors = [line for line in stderr.splitlines() if 'error' in line]
-    assert len(errors) == 1 and "metadata field 'horizon' is 3" in errors[0]
+    errors = [line for line in stderr.splitlines() if 'error' in line.lower()]
+    assert len(errors) == 1 and "metadata field 'horizon' is 3" in errors[0], stderr
 
 
 def test_one_process_pipeline_answers_joint_states(

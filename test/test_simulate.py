@@ -166,8 +166,9 @@ def test_cli_writes_faults_and_logs_them(tmp_path: Path) -> None:
         assert counts == {'gaps': 3, 'dropped_messages': 15, 'duplicates': 4,
                           'out_of_order': 2, 'nans': 3, 'spikes': 2}
         assert len(stamps) == clean - 15 + 4
-    with pytest.raises(FileExistsError):
+    with pytest.raises(SystemExit) as refused:  # checked before the twin runs (issue 12)
         _run_cli('--out', str(out), '--passes', '1')
+    assert refused.value.code == 2
     assert json.loads((out / GROUND_TRUTH_JSON).read_text())['passes'] == 1
     assert (out / ERROR_PLOT).read_bytes().startswith(b'\x89PNG')
 

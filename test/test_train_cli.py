@@ -17,7 +17,7 @@ from lompr_predictor.learning.model_file import load_model
 from lompr_predictor.robot.description import RobotDescription
 
 FAST = ['--trials', '2', '--max-epochs', '2', '--window', '8', '--horizon', '2', '--quiet',
-        '--batch-sizes', '500', '--hidden-units', '4,8']
+        '--batch-sizes', '500', '--hidden-units', '4,8', '--workers', '1']
 
 
 def run(argv: list[str]) -> int:

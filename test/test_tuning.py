@@ -9,8 +9,8 @@ import optuna
 import pytest
 
 from lompr_predictor.learning.space import PAPER_SPACE, parse_values
+from lompr_predictor.learning.storage import StudyStorage, default_storage, open_storage
 from lompr_predictor.learning.tuning import (
-    default_storage,
     finished_twin,
     history,
     open_study,
@@ -28,10 +28,16 @@ def toy(trial: optuna.Trial) -> float:
             + ((p['batch_size'] - 600) / 400) ** 2)
 
 
-def test_gp_sampler_finds_the_toy_optimum(tmp_path: Path) -> None:
-    study = open_study(default_storage(tmp_path), 'toy', seed=1)
+@pytest.fixture
+def storage(tmp_path: Path) -> StudyStorage:
+    """The embedded default: a journal file in a report folder."""
+    return open_storage(default_storage(tmp_path))
+
+
+def test_gp_sampler_finds_the_toy_optimum(storage: StudyStorage) -> None:
+    study = open_study(storage, 'toy', seed=1, budget=20)
     assert isinstance(study.sampler, optuna.samplers.GPSampler)
-    assert run_study(study, toy, 20, progress=False) == 20
+    assert run_study(study, storage, toy, progress=False) == 20
     assert study.best_params == {'batch_size': 600, 'hidden': 35, 'learning_rate': 0.01}
     assert study.best_value == pytest.approx(0.0)
 
@@ -40,8 +46,7 @@ def test_a_small_budget_is_mostly_bayesian() -> None:
     assert [startup_trials_for(n) for n in (1, 6, 20, 100)] == [1, 2, 6, 6]
 
 
-def test_interrupted_study_resumes_with_its_finished_trials(tmp_path: Path) -> None:
-    storage = default_storage(tmp_path)
+def test_interrupted_study_resumes_with_its_finished_trials(storage: StudyStorage) -> None:
     calls = []
 
     def interrupted(trial: optuna.Trial) -> float:
@@ -51,32 +56,34 @@ def test_interrupted_study_resumes_with_its_finished_trials(tmp_path: Path) -> N
         return toy(trial)
 
     with pytest.raises(KeyboardInterrupt):
-        run_study(open_study(storage, 'resume', seed=2), interrupted, 6, progress=False)
-    before = {t.number: (t.params, t.value) for t in spent_trials(open_study(storage, 'resume'))}
+        run_study(open_study(storage, 'resume', seed=2, budget=6), storage, interrupted,
+                  progress=False)
+    before = {t.number: (t.params, t.value)
+              for t in spent_trials(open_study(storage, 'resume', budget=6))}
     assert len(before) == 2
-    study = open_study(storage, 'resume', seed=2)  # the same command, run again
-    assert run_study(study, toy, 6, progress=False) == 4
+    study = open_study(storage, 'resume', seed=2, budget=6)  # the same command, run again
+    assert run_study(study, storage, toy, progress=False) == 4
     after = {t.number: (t.params, t.value) for t in spent_trials(study)}
     assert len(after) == 6
     assert all(after[number] == kept for number, kept in before.items())
-    assert run_study(study, toy, 6, progress=False) == 0  # budget spent: nothing more to do
+    assert run_study(study, storage, toy, progress=False) == 0  # budget spent: nothing to do
     assert [t['state'] for t in history(study)] == ['COMPLETE'] * 6
 
 
-def test_pruned_trials_count_toward_the_budget(tmp_path: Path) -> None:
+def test_pruned_trials_count_toward_the_budget(storage: StudyStorage) -> None:
     def pruned_every_other(trial: optuna.Trial) -> float:
         trial.report(1.0, 1)
         if trial.number % 2:
             raise optuna.TrialPruned
         return toy(trial)
 
-    study = open_study(default_storage(tmp_path), 'pruned')
-    run_study(study, pruned_every_other, 4, progress=False)
+    study = open_study(storage, 'pruned', budget=4)
+    run_study(study, storage, pruned_every_other, progress=False)
     assert [t['state'] for t in history(study)] == ['COMPLETE', 'PRUNED'] * 2
 
 
-def test_a_repeated_point_is_found_not_retrained(tmp_path: Path) -> None:
-    study = open_study(default_storage(tmp_path), 'twins')
+def test_a_repeated_point_is_found_not_retrained(storage: StudyStorage) -> None:
+    study = open_study(storage, 'twins', budget=2)
     point = {'batch_size': 200, 'hidden': 5, 'learning_rate': 0.1}
     study.enqueue_trial(point)
     study.enqueue_trial(point)
@@ -90,7 +97,7 @@ def test_a_repeated_point_is_found_not_retrained(tmp_path: Path) -> None:
         evaluated.append(trial.number)
         return toy(trial)
 
-    run_study(study, objective, 2, progress=False)
+    run_study(study, storage, objective, progress=False)
     assert evaluated == [0]
     assert study.trials[1].value == study.trials[0].value
 

@@ -137,7 +137,7 @@ def test_parameter_file_overrides_a_subset(tmp_path) -> None:  # type: ignore[no
 
 @pytest.mark.parametrize(('overrides', 'match'), [
     ({'servo': {'gain': 1.0}}, r"unknown key\(s\) \['gain'\] in servo"),
-    ({'thermal': {}}, r"unknown section\(s\) \['thermal'\]"),
+    ({'lubrication': {}}, r"unknown section\(s\) \['lubrication'\]"),
     ({'noise': {'length_std': -1.0}}, 'noise.length_std must be positive'),
     ({'friction': {'coulomb_force': -5.0}}, r'friction.coulomb_force must be >= 0'),
     ({'drift': {'enabled': 'yes'}}, 'drift.enabled must be true or false'),

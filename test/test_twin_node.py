@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -16,6 +17,7 @@ from sensor_msgs.msg import JointState
 from lompr_predictor.robot.description import MEASURED_JOINTS
 from lompr_predictor.ros.twin_node import TwinNode
 from lompr_predictor.twin.compensation import CompensationSchedule
+from lompr_predictor.twin.run_log import read_run_log
 
 pytestmark = pytest.mark.ros
 
@@ -135,3 +137,45 @@ def test_lockstep_applies_a_constant_offset(ros: RosHarness) -> None:
     publisher.publish(late)
     ros.spin_until(lambda: twin.schedule.rejected['late'] == late_before + 1, timeout=5.0,
                    what='the late offset counted')
+
+
+def test_as_the_clock_it_waits_for_its_nodes_stamps_clock_and_writes_its_run(
+        ros: RosHarness, tmp_path: Path) -> None:
+    """publish_clock: the twin is the simulation's clock (each sample's instant on /clock);
+    wait_for_subscribers: no sample runs before the nodes are there; run_log: every sample,
+    answered or not, in one file once the run is done."""
+    run_log = tmp_path / 'run.npz'
+    twin = _twin(ros, mode='lockstep', lockstep_timeout=0.5, publish_clock=True,
+                 wait_for_subscribers=1, samples=30, run_log=str(run_log))
+    ros.spin_for(0.5)
+    assert twin.twin.next_index == 0  # nobody listens yet
+    offset = (12e-6, -7e-6)
+    publisher = ros.node.create_publisher(Vector3Stamped, '/lompr/compensation', 100)
+
+    def compensate_next(msg: JointState) -> None:
+        out = Vector3Stamped()
+        out.header.stamp.sec, out.header.stamp.nanosec = divmod(_stamp_ns(msg) + PERIOD,
+                                                                1_000_000_000)
+        out.vector.x, out.vector.y = offset
+        publisher.publish(out)
+
+    clocks = ros.collect('/clock', Clock, 100)
+    references = ros.collect('/lompr/reference', PoseStamped, 100)
+    ros.node.create_subscription(JointState, '/joint_states', compensate_next, 100)
+    ros.spin_until(run_log.exists, timeout=20.0, what='the run log')
+    arrays, document = read_run_log(run_log)
+    stamps = EPOCH + PERIOD * np.arange(30)
+    np.testing.assert_array_equal(arrays['stamps'], stamps)
+    assert arrays['answered'].tolist() == [False] + [True] * 29  # nothing answers sample 0
+    np.testing.assert_allclose(arrays['offset'][1:], [offset] * 29, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(arrays['true_error'] - arrays['plant_error'], arrays['offset'],
+                               rtol=0, atol=1e-12)
+    assert arrays['joints'].shape == (30, 5) and arrays['reference'].shape == (30, 3)
+    assert (document['samples'], document['first_answered'],
+            document['unanswered_after_first'], document['offsets_applied']) == (30, 1, 0, 29)
+    ros.spin_until(lambda: len(clocks) == 30 and len(references) == 30,
+                   what='a /clock per sample')
+    assert [int(c.clock.sec) * 10 ** 9 + int(c.clock.nanosec) for c in clocks] == \
+        stamps.tolist()
+    ros.spin_for(0.3)
+    assert twin.twin.next_index == 30  # done: the twin stops

@@ -55,7 +55,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f'lompr {args.command}: interrupted', file=sys.stderr)
         return EXIT_INTERRUPTED
-    except Exception as err:  # noqa: BLE001 - the command line's one error policy (docstring)
+    except Exception as err:
         if args.debug:
             raise
         if isinstance(err, LomprError):

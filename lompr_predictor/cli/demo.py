@@ -9,6 +9,10 @@
 4. prints per axis the RMS and peak of the twin's true tool-tip error for each loop, the
    reductions, the irreducible level, and writes the plot, the scores and the loop bags.
 
+The closed loops run in one process on one executor by default (about 3 s a pass,
+deterministic); --processes runs twin_node, kinematics_node and predictor_node as three
+processes on simulated time, the twin publishing /clock, as a simulator drives real nodes.
+
 Everything goes into one output directory (default runs/demo-<UTC time>/). The default
 budget takes about 6 minutes on 2 cores; --quick about 1.
 """
@@ -57,9 +61,12 @@ QUICK = {'train_passes': 12, 'trials': 1, 'max_epochs': 40, 'passes': 2}
 #: unstable rate never won on the twin, and batch 200 triples an epoch's time. `lompr train`
 #: tunes the whole space by default. --quick trains the first point only.
 SPACE = SearchSpace(batch_sizes=(600, 1000), hidden_units=(50, 35), learning_rates=(0.01, 0.001))
-#: Targets of issue 6: model RMS at most this share of persistence's, reduction at least.
-TARGET_MODEL_TO_PERSISTENCE_PCT = 70.0
-TARGET_REDUCTION_PCT = 95.0
+#: Targets: model RMS at most this share of persistence's at the same horizon (issue 11 at
+#: horizons 1 and 5, issue 6's 70 % at any other), reduction at least (issue 11), no pass
+#: made worse, and every sample after the predictor's window filled answered.
+TARGET_MODEL_TO_PERSISTENCE_PCT = {1: 50.0, 5: 30.0}
+TARGET_MODEL_TO_PERSISTENCE_OTHER_PCT = 70.0
+TARGET_REDUCTION_PCT = 97.0
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -91,6 +98,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument('--no-record', action='store_true',
                         help='do not write the closed-loop runs as rosbag2 directories')
     parser.add_argument('--threads', type=int, default=2, help='torch threads for training')
+    parser.add_argument('--processes', action='store_true',
+                        help='run the closed loops as three processes (twin_node, '
+                             'kinematics_node, predictor_node) on simulated time, the twin '
+                             'publishing /clock (default: one process, one executor)')
     parser.set_defaults(run=run)
 
 
@@ -159,11 +170,14 @@ def run(args: argparse.Namespace) -> int:
     persistence = persistence_model(out / 'persistence.pt', like=model)
 
     loop_seed = args.seed + 1
+    how = ("three processes on the twin's simulated time (/clock)" if args.processes
+           else 'one process')
     _stage(4, f'Closed loop, a lead-in pass + {budget["passes"]} scored passes each, twin '
               f'seed {loop_seed}: twin_node (lockstep) -> kinematics_node -> predictor_node '
-              '-> /lompr/compensation -> twin')
+              f'-> /lompr/compensation -> twin, {how}')
     settings = LoopSettings(model_path=str(model), passes=budget['passes'], path=args.path,
-                            seed=loop_seed, twin_parameters_file=args.params)
+                            seed=loop_seed, twin_parameters_file=args.params,
+                            processes=args.processes)
     variants = {'none': dataclasses.replace(settings, compensation_enabled=False),
                 'persistence': dataclasses.replace(settings, model_path=str(persistence)),
                 'model': settings}
@@ -190,6 +204,11 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def target_ratio_pct(horizon: int) -> float:
+    """The largest model / persistence RMS ratio [%] the targets allow at `horizon`."""
+    return TARGET_MODEL_TO_PERSISTENCE_PCT.get(horizon, TARGET_MODEL_TO_PERSISTENCE_OTHER_PCT)
+
+
 def _train(args: argparse.Namespace, budget: dict[str, int], bag: Path, model: Path,
            report: Path) -> None:
     """What `lompr train` does, on the recording, with the demo's budget and space."""
@@ -210,18 +229,23 @@ def _summary(args: argparse.Namespace, budget: dict[str, int], runs: dict[str, A
              started: float) -> dict[str, Any]:
     model_to_persistence = ratio_pct(comparison, 'model', 'persistence')
     reduction = comparison['loops']['model']['reduction_pct']
+    ratio_max = target_ratio_pct(args.horizon)
     targets = {
         'model_rms_to_persistence_pct': model_to_persistence,
-        'model_rms_to_persistence_max_pct': TARGET_MODEL_TO_PERSISTENCE_PCT,
+        'model_rms_to_persistence_max_pct': ratio_max,
         'model_reduction_pct': reduction, 'model_reduction_min_pct': TARGET_REDUCTION_PCT,
         'passes_made_worse': {name: comparison['loops'][name]['passes_made_worse']
                               for name in ('persistence', 'model')},
+        'unanswered_after_fill': {name: run.counts.get('unanswered_after_first')
+                                  for name, run in runs.items()},
     }
     targets['met'] = bool(
-        max(model_to_persistence.values()) <= TARGET_MODEL_TO_PERSISTENCE_PCT
+        max(model_to_persistence.values()) <= ratio_max
         and min(reduction.values()) >= TARGET_REDUCTION_PCT
-        and not targets['passes_made_worse']['model'])
+        and not targets['passes_made_worse']['model']
+        and not any(targets['unanswered_after_fill'].values()))
     return {'path': args.path, 'horizon': args.horizon, 'budget': budget,
+            'loops_in': 'processes' if args.processes else 'one process',
             'training_seed': args.seed, 'loop_seed': args.seed + 1,
             'scored_on': 'twin true tool-tip error (tool tip - reference), every sample of '
                          'the passes after the lead-in pass (returns included)',
@@ -237,16 +261,20 @@ def _print_result(args: argparse.Namespace, budget: dict[str, int], out: Path,
     targets = document['targets']
     ratio, reduction = targets['model_rms_to_persistence_pct'], targets['model_reduction_pct']
     worse = targets['passes_made_worse']['model']
+    unanswered = targets['unanswered_after_fill']
     print(f'\nTrue tool-tip error, {args.path}, horizon {args.horizon} '
           f'({args.horizon * period_ms:g} ms ahead), twin seed {args.seed + 1}; over the '
           f'{budget["passes"]} passes (with their returns) after the lead-in pass:')
     print(format_table(comparison, LABELS, floor, what='true error'))
     print('irreducible level: RMS of the drift innovations over the horizon (twin ground '
           'truth); no causal compensator removes it')
+    print("samples not answered after the predictor's window filled: "
+          + ', '.join(f'{LABELS[name]} {count}' for name, count in unanswered.items()))
     print(f'model RMS / persistence RMS: X {ratio["x"]:.1f} %, Y {ratio["y"]:.1f} % (target '
-          f'<= {TARGET_MODEL_TO_PERSISTENCE_PCT:.0f} %); reduction X {reduction["x"]:.1f} %, '
-          f'Y {reduction["y"]:.1f} % (target >= {TARGET_REDUCTION_PCT:.0f} %); passes made '
-          f'worse: {worse or "none"} -> targets {"met" if targets["met"] else "MISSED"}')
+          f'<= {targets["model_rms_to_persistence_max_pct"]:.0f} %); reduction X '
+          f'{reduction["x"]:.1f} %, Y {reduction["y"]:.1f} % (target >= '
+          f'{TARGET_REDUCTION_PCT:.0f} %); passes made worse: {worse or "none"} -> targets '
+          f'{"met" if targets["met"] else "MISSED"}')
     print(f'\nplot: {out / LOOP_PLOT}\nscores: {out / "closed_loop.json"}')
     if not args.model:
         print(f'training report: {out / "training_report" / "report.md"}')

@@ -5,8 +5,14 @@ Bayesian optimisation on a validation split carved from the training 90 %, train
 paper's BP baseline, scores persistence, BP and BO-LSTM on the chronologically last 10 %,
 writes the best model as one TorchScript file with its metadata and the report folder.
 
-The pipeline is `learning.pipeline.train_predictor`; this module turns the command line
-into its `TrainingConfig`, sets the thread count and prints where the results went.
+The tuning runs on `--workers` local processes (default: the cores available). Several
+commands, on several machines, share one study through `--storage` and `--study-name`:
+extra workers run `--workers-only` (trials only), and the normal command finishes the study
+(runs what its budget still lacks, then writes the model and report from the best trial).
+
+The pipeline is `learning.pipeline` (`train_predictor`, `run_workers`); this module turns
+the command line into its `TrainingConfig`, sets the thread count and prints where the
+results went.
 """
 
 from __future__ import annotations
@@ -16,7 +22,6 @@ from pathlib import Path
 from typing import Any
 
 from lompr_predictor.cli.common import add_data_arguments, bag_inputs
-from lompr_predictor.data.problem import DEFAULT_HORIZON, DEFAULT_WINDOW
 from lompr_predictor.cli.validation import (
     comma_list,
     non_empty,
@@ -27,8 +32,14 @@ from lompr_predictor.cli.validation import (
     positive_int,
     storage_url,
 )
-from lompr_predictor.learning.space import DEFAULT_TRIALS, PAPER_SPACE, SearchSpace
-from lompr_predictor.threads import set_torch_threads
+from lompr_predictor.data.problem import DEFAULT_HORIZON, DEFAULT_WINDOW
+from lompr_predictor.learning.space import (
+    DEFAULT_TRIALS,
+    HEARTBEAT_SECONDS,
+    PAPER_SPACE,
+    SearchSpace,
+)
+from lompr_predictor.threads import MAX_DEFAULT_WORKERS, default_workers, set_torch_threads
 
 
 def _listed(values: tuple[Any, ...]) -> str:
@@ -40,10 +51,11 @@ def add_parser(subparsers: Any) -> None:
         'train', help='train a BO-LSTM error predictor from rosbag2 recordings',
         description=__doc__.split('\n\n')[0])
     parser.add_argument('bags', nargs='+', metavar='BAG_DIR', help='rosbag2 directories')
-    parser.add_argument('--out', required=True, type=output_file,
-                        help='model file to write (TorchScript); its sha256 goes beside it '
-                             'into OUT.sha256 and into the report')
-    parser.add_argument('--report', required=True, type=output_directory, help='report folder')
+    parser.add_argument('--out', type=output_file,
+                        help='model file to write (TorchScript), its sha256 beside it in '
+                             'OUT.sha256 and in the report; required unless --workers-only')
+    parser.add_argument('--report', type=output_directory,
+                        help='report folder; required unless --workers-only')
     parser.add_argument('--horizon', type=positive_int, default=DEFAULT_HORIZON,
                         help="samples between the window's last row and the predicted instant")
     parser.add_argument('--window', type=positive_int, default=DEFAULT_WINDOW,
@@ -60,10 +72,29 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument('--learning-rates', type=comma_list(positive_float), default=None,
                         help=f'comma list (default {_listed(PAPER_SPACE.learning_rates)})')
     parser.add_argument('--storage', type=storage_url, default=None,
-                        help='Optuna storage URL (default: a SQLite file in the report folder); '
-                             'rerunning the same command resumes the study')
+                        help='where the tuning study lives: postgresql://USER@HOST/DB (shared by '
+                             'several machines), sqlite:///FILE, or a journal file path '
+                             '(default: study.journal in the report folder); rerunning the '
+                             'same command resumes the study')
     parser.add_argument('--study-name', type=non_empty, default=None,
-                        help='default: derived from the bags and settings')
+                        help='default: derived from the bags (by content) and settings')
+    parser.add_argument('--workers', type=positive_int, default=default_workers(),
+                        help='tuning processes on this machine, each with --threads torch '
+                             'threads (default: the cores available, at most '
+                             f'{MAX_DEFAULT_WORKERS}: here {default_workers()})')
+    parser.add_argument('--workers-only', action='store_true',
+                        help='join the study given by --storage and --study-name and run its '
+                             'trials until the budget is spent; no model, no report (an extra '
+                             'worker; the command without this flag finishes the study)')
+    parser.add_argument('--checkpoints', type=output_directory, default=None, metavar='DIR',
+                        help="trials' models (default: trials/ in the report folder); on "
+                             'several machines a folder they all share, else the finishing '
+                             'command trains the best trial again')
+    parser.add_argument('--heartbeat', type=positive_int, default=HEARTBEAT_SECONDS,
+                        metavar='SECONDS',
+                        help="seconds between a running trial's heartbeats; a trial silent "
+                             'for 3 of them (its worker died) is failed and its point queued '
+                             f'again (default {HEARTBEAT_SECONDS})')
     add_data_arguments(parser)
     parser.set_defaults(run=run)
 
@@ -77,18 +108,51 @@ def search_space(args: argparse.Namespace) -> SearchSpace:
         learning_rates=args.learning_rates or PAPER_SPACE.learning_rates)
 
 
+def _path(text: str | None) -> Path | None:
+    return None if text is None else Path(text)
+
+
 def run(args: argparse.Namespace) -> int:
-    from lompr_predictor.learning.pipeline import TrainingConfig, train_predictor, write_outputs
+    from lompr_predictor.learning.pipeline import (
+        TrainingConfig,
+        run_workers,
+        train_predictor,
+        write_outputs,
+    )
     from lompr_predictor.learning.training import MAX_EPOCHS, PATIENCE
 
     set_torch_threads(args.threads)
     config = TrainingConfig(
-        inputs=bag_inputs(args, args.bags), model_path=Path(args.out),
-        report_dir=Path(args.report), robot_description=args.robot_description,
+        inputs=bag_inputs(args, args.bags), model_path=_path(args.out),
+        report_dir=_path(args.report), robot_description=args.robot_description,
         window=args.window, horizon=args.horizon, trials=args.trials, seed=args.seed,
         max_epochs=args.max_epochs or MAX_EPOCHS, patience=args.patience or PATIENCE,
         space=search_space(args), storage=args.storage, study_name=args.study_name,
+        workers=args.workers, checkpoints=_path(args.checkpoints), heartbeat=args.heartbeat,
         progress=not args.quiet)
-    write_outputs(config, train_predictor(config))
+    if args.workers_only:
+        summary = run_workers(config)
+        run = summary.run
+        print(f'study {summary.study_name} in {summary.storage}: budget {summary.budget} spent '
+              f'({summary.complete} complete, {summary.pruned} pruned, {summary.failed} failed); '
+              f'{run.trials_run} trials run here by {len(run.workers)} workers in '
+              f'{run.seconds:.1f} s; finish it with the same command without --workers-only')
+        return 0
+    result = train_predictor(config)
+    write_outputs(config, result)
+    print(summary_line(result.report))
     print(f'model written to {args.out}; report in {args.report}')
     return 0
+
+
+def summary_line(report: dict[str, Any]) -> str:
+    """Trials and the run's time split, from a training report (issue 10)."""
+    tuning, timings = report['tuning'], report['timings']
+    split = ', '.join(f'{label} {timings[key]:.1f} s' for label, key in (
+        ('read+clean', 'read_clean_fk_seconds'), ('tuning', 'tuning_seconds'),
+        ('best model', 'best_model_seconds'), ('BP', 'bp_seconds'),
+        ('scoring', 'scoring_seconds'), ('writing', 'writing_seconds')) if key in timings)
+    return (f"tuning: {tuning['trials_spent']} of {tuning['budget']} trials spent "
+            f"({tuning['trials_complete']} complete, {tuning['trials_pruned']} pruned, "
+            f"{tuning['trials_failed']} failed), {tuning['trials_run_now']} run now by "
+            f"{len(tuning['local_workers'])} workers here; {split}")

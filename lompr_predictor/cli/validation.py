@@ -195,30 +195,28 @@ def existing_path(text: str) -> str:
 
 
 def storage_url(text: str) -> str:
-    """An Optuna storage: an SQLAlchemy database URL of a dialect installed here
-    (sqlite, postgresql, mysql, ...); for sqlite, a database file that can be written."""
-    from sqlalchemy.engine import make_url
-    from sqlalchemy.exc import ArgumentError, NoSuchModuleError
+    """A study storage as `learning.storage.parse_storage` reads it (a journal file path,
+    postgresql://..., sqlite:///FILE); a file it names (journal, SQLite database) must be
+    writable. Nothing is opened here: `open_storage` connects before any bag is read."""
+    from lompr_predictor.learning.storage import StudyError, parse_storage
 
-    example = 'e.g. sqlite:///study.sqlite3 or postgresql://user@host/db'
     try:
-        url = make_url(text)
-    except ArgumentError:
-        raise _fail(f'must be a database URL ({example})', text) from None
-    try:
-        url.get_dialect()
-    except NoSuchModuleError:
-        raise _fail(f'names a database that is not supported ({url.drivername!r}; '
-                    f'{example})', text) from None
-    if url.get_backend_name() == 'sqlite':
-        database = url.database or ''
+        spec = parse_storage(text)
+    except StudyError as err:
+        raise _fail(str(err), text) from None
+    database = spec.url if spec.kind == 'journal' else ''
+    if spec.kind == 'sqlite':
+        from sqlalchemy.engine import make_url
+
+        database = make_url(spec.url).database or ''
         if not database or database == ':memory:':
             raise _fail('must name a database file (an in-memory study cannot be resumed)',
                         text)
+    if database:
         try:
             output_file(database)
         except argparse.ArgumentTypeError as err:
-            raise _fail(f'must name a writable database file ({err})', text) from None
+            raise _fail(f'must name a writable file ({err})', text) from None
     return text
 
 

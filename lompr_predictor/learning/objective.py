@@ -11,8 +11,9 @@ and returns its best validation loss, the value the study minimises:
 - the trained module is written as a checkpoint named by the study and the trial number
   (unique within a study, whichever process or machine ran it), and the trial's user
   attributes record its path, training time, best epoch and the epoch it was stopped at;
-- `model_of` gives a finished trial's module back: its checkpoint, or the same seeded
-  training again when the trial ran elsewhere (a study shared through an RDB storage).
+- `model_of` gives a finished trial's module back: its checkpoint (the checkpoint folder is
+  shared by the workers of a study on several machines), or the same seeded training again
+  when the trial ran elsewhere and its checkpoint is not readable here.
 
 Nothing is held between calls but the study's own storage, so a resumed study or another
 process working on the same study builds the same objective and carries on.
@@ -90,11 +91,13 @@ class NetworkObjective:
 
     def model_of(self, trial: optuna.trial.FrozenTrial) -> tuple[ExportedModule, float]:
         """A finished trial's trained module (scripted, evaluation mode) and its training time
-        [s]: read from its checkpoint, or trained again here when the checkpoint is not on
-        this machine (the trial ran on another one sharing the study)."""
-        checkpoint = Path(trial.user_attrs.get('checkpoint', ''))
-        if checkpoint.is_file():
-            return load_checkpoint(checkpoint), float(trial.user_attrs['training_seconds'])
+        [s]: read from its checkpoint (in this objective's checkpoint folder, which several
+        machines may share under different mount points, or where its worker wrote it), or
+        trained again here when neither is readable (the trial ran on another machine)."""
+        for checkpoint in (self.checkpoint(trial.number),
+                           Path(trial.user_attrs.get('checkpoint', ''))):
+            if checkpoint.is_file() and 'training_seconds' in trial.user_attrs:
+                return load_checkpoint(checkpoint), float(trial.user_attrs['training_seconds'])
         retrained = self.train(self.params_of(trial), label=f'trial {trial.number} again')
         module = script_module(retrained.module)
         module.eval()

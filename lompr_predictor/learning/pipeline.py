@@ -9,19 +9,30 @@ BO-LSTM module, its metadata, the report document and the test predictions.
 `write_outputs(config, result)` writes the model file (`model_file.py`) and the report
 folder (`report.py`), each file atomically.
 
-The run's side effects are the study's: its storage (by default a SQLite file in the report
-folder) and the trials' checkpoints (`trials/` in the report folder), which let the same
-config resume. The torch thread count is left to the caller (an entry point sets it).
+The tuning study runs on `config.workers` local processes (`workers.py`; by default the
+cores available) and may be shared with other commands, on other machines, through one
+storage: `run_workers(config)` is such an extra worker (it reads the bags and runs trials
+until the budget is spent, nothing else), and `train_predictor` is the finishing command (it
+runs what the budget still lacks, waits for other workers' running trials, then builds the
+model from the best trial). Both refuse a config that cannot run (`check_config`) and
+connect to the storage before reading any bag.
+
+The run's side effects are the study's: its storage (by default a journal file in the report
+folder) and the trials' checkpoints (`trials/` in the report folder, or `config.checkpoints`),
+which let the same config resume. The torch thread count is left to the caller (an entry
+point sets it; worker processes take the caller's).
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import optuna
 import torch
 
 from lompr_predictor.data.bags import BagSource
@@ -36,6 +47,7 @@ from lompr_predictor.data.problem import (
     LearningProblem,
     build_problem,
 )
+from lompr_predictor.errors import LomprError
 from lompr_predictor.learning.metrics import ratios, score_predictions
 from lompr_predictor.learning.model_file import (
     ExportedModule,
@@ -57,19 +69,34 @@ from lompr_predictor.learning.report import (
     irreducible_fields,
     write_report,
 )
-from lompr_predictor.learning.space import DEFAULT_TRIALS, PAPER_SPACE, SearchSpace
+from lompr_predictor.learning.space import (
+    DEFAULT_TRIALS,
+    HEARTBEAT_SECONDS,
+    PAPER_SPACE,
+    SearchSpace,
+)
+from lompr_predictor.learning.storage import (
+    StorageSpec,
+    StudyError,
+    StudyStorage,
+    default_storage,
+    open_storage,
+    parse_storage,
+)
 from lompr_predictor.learning.training import MAX_EPOCHS, PATIENCE, TrainSettings, train_network
 from lompr_predictor.learning.tuning import (
     best_trial,
-    default_storage,
     history,
     open_study,
-    run_study,
-    spent_trials,
+    study_budget,
     study_name_for,
+    trial_counts,
+    worker_counts,
 )
-from lompr_predictor.robot.description import load_robot_description
+from lompr_predictor.learning.workers import StudySpec, TuningRun, tune
+from lompr_predictor.robot.description import RobotDescription, load_robot_description
 from lompr_predictor.stamps import seconds_since
+from lompr_predictor.threads import default_workers
 
 
 @dataclass(frozen=True)
@@ -77,8 +104,9 @@ class TrainingConfig:
     """Everything a training run decides; the defaults are `lompr train`'s."""
 
     inputs: BagInputs  # bags, topics, bad-bag policy, cleaning rules
-    model_path: Path  # model file to write
-    report_dir: Path  # report folder (also holds the default study storage and checkpoints)
+    model_path: Path | None = None  # model file to write (not needed by `run_workers`)
+    report_dir: Path | None = None  # report folder (also holds the default study storage
+    # and checkpoints; not needed by `run_workers`)
     robot_description: str | None = None  # URDF file; None: the packaged LOMPR description
     window: int = DEFAULT_WINDOW
     horizon: int = DEFAULT_HORIZON
@@ -87,14 +115,28 @@ class TrainingConfig:
     max_epochs: int = MAX_EPOCHS
     patience: int = PATIENCE
     space: SearchSpace = PAPER_SPACE
-    storage: str | None = None  # Optuna storage URL; None: a SQLite file in report_dir
+    storage: str | None = None  # study storage (`storage.py`); None: a journal file in
+    # report_dir
     study_name: str | None = None  # None: derived from the bags and the settings
+    workers: int | None = None  # local tuning processes; None: the cores available (capped)
+    checkpoints: Path | None = None  # trials' checkpoints (shared by the machines of a
+    # study); None: report_dir / CHECKPOINT_FOLDER
+    heartbeat: int = HEARTBEAT_SECONDS  # seconds between a running trial's heartbeats
     progress: bool = True  # progress bars
 
     @property
     def settings(self) -> TrainSettings:
         """The training loop's settings (every trial's, and BP's)."""
         return TrainSettings(max_epochs=self.max_epochs, patience=self.patience, seed=self.seed)
+
+    @property
+    def checkpoint_dir(self) -> Path:
+        if self.checkpoints is not None:
+            return Path(self.checkpoints)
+        if self.report_dir is None:
+            msg = "no folder for the trials' checkpoints: give --checkpoints DIR or --report DIR"
+            raise StudyError(msg)
+        return Path(self.report_dir) / CHECKPOINT_FOLDER
 
 
 @dataclass(frozen=True)
@@ -124,22 +166,85 @@ class _Tuned:
     params: dict[str, Any]
     training_seconds: float  # the best trial's training time
     tuning_seconds: float  # the whole study's wall time in this run
+    best_model_seconds: float  # loading (or retraining) the best trial's module
     report: dict[str, Any]
 
 
-def train_predictor(config: TrainingConfig) -> TrainingResult:
-    """Read, clean, tune, train, score (module docstring); nothing is written but the study
-    and its checkpoints."""
+@dataclass(frozen=True)
+class WorkerSummary:
+    """What `run_workers` did and where the study stands."""
+
+    study_name: str
+    storage: str  # the storage, password hidden
+    run: TuningRun
+    budget: int
+    complete: int
+    pruned: int
+    failed: int
+    read_seconds: float
+
+
+def check_config(config: TrainingConfig, *, finishing: bool = True) -> StorageSpec:
+    """Refuse, with one message, a config that cannot run, before any bag is read: workers,
+    budget, output paths, and the storage's spelling (`storage.parse_storage`); the storage
+    it names. `finishing`: `train_predictor`'s needs, else `run_workers`'."""
+    if config.workers is not None and config.workers < 1:
+        msg = f'--workers must be >= 1, got {config.workers}'
+        raise StudyError(msg)
+    if config.trials < 1:
+        msg = f'--trials must be >= 1, got {config.trials}'
+        raise StudyError(msg)
+    if finishing and (config.model_path is None or config.report_dir is None):
+        msg = '--out MODEL.pt and --report DIR are needed (unless --workers-only)'
+        raise StudyError(msg)
+    if not finishing:
+        if not config.storage or not config.study_name:
+            msg = ('--workers-only joins a study: give its --storage URL and its --study-name '
+                   '(the same as every other command of the study)')
+            raise StudyError(msg)
+        if config.checkpoints is None and config.report_dir is None:
+            msg = ('--workers-only needs --checkpoints DIR: where the finishing command reads '
+                   "the trials' models (a folder every machine shares)")
+            raise StudyError(msg)
+    text = config.storage or default_storage(_report_dir(config))
+    return parse_storage(text, heartbeat=config.heartbeat)
+
+
+def run_workers(config: TrainingConfig) -> WorkerSummary:
+    """An extra worker of a shared study (`lompr train --workers-only`): read and clean the
+    bags, run the study's trials with `config.workers` local processes until its budget is
+    spent; no baseline, no model, no report."""
+    storage = open_storage(check_config(config, finishing=False))
     started = time.perf_counter()
     description = load_robot_description(config.robot_description)
     data, sources = load_clean_data(config.inputs, description.geometry)
     read_seconds = time.perf_counter() - started
     problem = build_problem(data, config.window, config.horizon, test_fraction=TEST_FRACTION,
                             validation_fraction=VALIDATION_FRACTION)
-    tuned = _tune(config, problem, sources)
+    study, run = _run_study(config, problem, sources, description, storage)
+    counts = trial_counts(study)
+    return WorkerSummary(study_name=study.study_name, storage=storage.spec.describe(), run=run,
+                         budget=study_budget(study), complete=counts.complete,
+                         pruned=counts.pruned, failed=counts.failed, read_seconds=read_seconds)
+
+
+def train_predictor(config: TrainingConfig) -> TrainingResult:
+    """Read, clean, tune, train, score (module docstring); nothing is written but the study
+    and its checkpoints."""
+    storage = open_storage(check_config(config))  # connects: fails before reading any bag
+    started = time.perf_counter()
+    description = load_robot_description(config.robot_description)
+    data, sources = load_clean_data(config.inputs, description.geometry)
+    read_seconds = time.perf_counter() - started
+    problem = build_problem(data, config.window, config.horizon, test_fraction=TEST_FRACTION,
+                            validation_fraction=VALIDATION_FRACTION)
+    tuned = _tune(config, problem, sources, description, storage)
+    bp_started = time.perf_counter()
     bp = train_network(problem, 'mlp', BP_HYPERPARAMETERS, config.settings, residual=False,
                        progress=config.progress, label='BP')
+    bp_seconds = time.perf_counter() - bp_started
 
+    scoring_started = time.perf_counter()
     test = problem.split.test
     targets = test + problem.horizon
     actual, stamps = problem.error[targets], problem.stamps[targets]
@@ -155,6 +260,7 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     models['bo_lstm'].update(training_seconds=tuned.training_seconds,
                              hyperparameters=tuned.params, target='residual (e(t+h) - e(t))')
     report = _report(config, problem, data, sources, models, tuned, bp.seconds)
+    scoring_seconds = time.perf_counter() - scoring_started
     metadata = ModelMetadata(
         features=FEATURES, window=problem.window, horizon=problem.horizon,
         sample_period=problem.sample_period, targets=TARGETS,
@@ -171,10 +277,13 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
         seed=config.seed, library_versions=library_versions(),
         test_metrics=models['bo_lstm']['metrics'])
     total = time.perf_counter() - started
+    # the time split (issue 10); write_outputs adds writing_seconds
     report['timings'] = {'read_clean_fk_seconds': read_seconds,
-                         'tuning_seconds': tuned.tuning_seconds, 'total_seconds': total,
-                         'read_fraction_of_total': read_seconds / total}
-    report['model_file'] = str(Path(config.model_path).resolve())
+                         'tuning_seconds': tuned.tuning_seconds,
+                         'best_model_seconds': tuned.best_model_seconds,
+                         'bp_seconds': bp_seconds, 'scoring_seconds': scoring_seconds,
+                         'total_seconds': total, 'read_fraction_of_total': read_seconds / total}
+    report['model_file'] = str(Path(_model_path(config)).resolve())
     return TrainingResult(module=tuned.module, metadata=metadata, report=report,
                           test_part=ScoredPredictions(seconds=seconds_since(stamps),
                                                       actual=actual, predictions=predictions))
@@ -182,48 +291,96 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
 
 def write_outputs(config: TrainingConfig, result: TrainingResult) -> str:
     """Write the model file (module + metadata) with its sha256 beside it
-    (`MODEL.sha256`), and the report folder (report.json with `model_sha256`, report.md,
-    the plots) of `config`; each file atomically. Returns the model's sha256."""
-    digest = write_model(config.model_path, result.module, result.metadata)
-    report = {**result.report, 'model_sha256': digest,
-              'model_sha256_file': str(sidecar_path(config.model_path).resolve())}
+    (`MODEL.pt.sha256`), and the report folder (report.json with `model_sha256`, report.md,
+    the plots) of `config`; each file atomically. The report's timings get
+    `writing_seconds` (model file and plots). Returns the model's sha256."""
+    started = time.perf_counter()
+    model_path = _model_path(config)
+    digest = write_model(model_path, result.module, result.metadata)
+    result.report['model_sha256'] = digest
+    result.report['model_sha256_file'] = str(sidecar_path(model_path).resolve())
     scored = result.test_part
-    write_report(config.report_dir, report, seconds=scored.seconds, actual=scored.actual,
-                 predictions=scored.predictions)
+
+    def writing_time() -> None:
+        result.report.setdefault('timings', {})['writing_seconds'] = (
+            time.perf_counter() - started)
+
+    write_report(_report_dir(config), result.report, seconds=scored.seconds,
+                 actual=scored.actual, predictions=scored.predictions,
+                 before_documents=writing_time)
     return digest
 
 
-def study_key(config: TrainingConfig, sources: list[BagSource]) -> dict[str, Any]:
-    """What defines the tuning problem, which names the study unless the config does: the
-    same config on the same bags finds its study again."""
-    return {'bags': [(s.path, s.sha256) for s in sources], 'window': config.window,
+def _model_path(config: TrainingConfig) -> Path:
+    if config.model_path is None:
+        msg = 'no model file to write: give --out MODEL.pt'
+        raise LomprError(msg)
+    return Path(config.model_path)
+
+
+def _report_dir(config: TrainingConfig) -> Path:
+    if config.report_dir is None:
+        msg = 'no report folder: give --report DIR'
+        raise LomprError(msg)
+    return Path(config.report_dir)
+
+
+def study_definition(config: TrainingConfig, sources: list[BagSource],
+                     description: RobotDescription) -> dict[str, Any]:
+    """What defines the tuning problem, recorded in the study (a command with other settings
+    is refused) and naming it unless the config does: the bags by content (their paths
+    differ between machines), the robot description, topics, cleaning, window, horizon,
+    space, seed and training settings."""
+    return {'bags': sorted(s.sha256 for s in sources if not s.skipped_reason),
+            'robot_description': description.sha256,
+            'topics': [config.inputs.joint_topic, config.inputs.reference_topic],
+            'cleaning': vars(config.inputs.cleaning), 'window': config.window,
             'horizon': config.horizon, 'space': config.space.as_dict(), 'seed': config.seed,
-            'settings': vars(config.settings), 'cleaning': vars(config.inputs.cleaning)}
+            'settings': vars(config.settings), 'model_type': 'lstm'}
 
 
-def _tune(config: TrainingConfig, problem: LearningProblem,
-          sources: list[BagSource]) -> _Tuned:
-    """Run (or resume) the study to its budget; the best trial's module."""
-    report_dir = Path(config.report_dir)
-    storage = config.storage or default_storage(report_dir)
-    study_name = config.study_name or study_name_for(study_key(config, sources))
-    study = open_study(storage, study_name, seed=config.seed, budget=config.trials)
+def _run_study(config: TrainingConfig, problem: LearningProblem, sources: list[BagSource],
+               description: RobotDescription,
+               storage: StudyStorage) -> tuple[optuna.Study, TuningRun]:
+    """Open (create, resume or join) the study and run it to its budget here."""
+    definition = study_definition(config, sources, description)
+    name = config.study_name or study_name_for(definition)
+    study = open_study(storage, name, seed=config.seed, budget=config.trials,
+                       definition=definition)
+    make_objective = partial(NetworkObjective, problem=problem, space=config.space,
+                             settings=config.settings, checkpoints=config.checkpoint_dir)
+    spec = StudySpec(storage=storage.spec, name=name, seed=config.seed, budget=config.trials)
+    workers = config.workers if config.workers is not None else default_workers()
+    run = tune(spec, study, storage, make_objective, workers=workers, progress=config.progress)
+    return study, run
+
+
+def _tune(config: TrainingConfig, problem: LearningProblem, sources: list[BagSource],
+          description: RobotDescription, storage: StudyStorage) -> _Tuned:
+    """Run (or resume, or finish) the study to its budget; the best trial's module."""
+    study, run = _run_study(config, problem, sources, description, storage)
     objective = NetworkObjective(study, problem, config.space, config.settings,
-                                 report_dir / CHECKPOINT_FOLDER, progress=config.progress)
+                                 config.checkpoint_dir, progress=config.progress)
     started = time.perf_counter()
-    ran = run_study(study, objective, config.trials, progress=config.progress)
-    tuning_seconds = time.perf_counter() - started
     best = best_trial(study)
     params = objective.params_of(best)
     module, seconds = objective.model_of(best)
-    report = {'study_name': study_name, 'storage': storage, 'space': config.space.as_dict(),
-              'trials_spent': len(spent_trials(study)), 'trials_run_now': ran,
+    best_model_seconds = time.perf_counter() - started
+    counts = trial_counts(study)
+    report = {'study_name': study.study_name, 'storage': storage.spec.describe(),
+              'checkpoints': str(config.checkpoint_dir.resolve()),
+              'space': config.space.as_dict(), 'budget': study_budget(study),
+              'trials_spent': counts.spent, 'trials_complete': counts.complete,
+              'trials_pruned': counts.pruned, 'trials_failed': counts.failed,
+              'trials_run_now': run.trials_run, 'local_workers': list(run.workers),
+              'workers': worker_counts(study),
               'best_trial': best.number, 'best_value': best.value, 'best_params': params,
               'trials': history(study),
               # the thread count in effect (set by the entry point): the times depend on it
               'settings': {**vars(config.settings), 'threads': torch.get_num_threads()}}
     return _Tuned(module=module, params=params, training_seconds=seconds,
-                  tuning_seconds=tuning_seconds, report=report)
+                  tuning_seconds=run.seconds, best_model_seconds=best_model_seconds,
+                  report=report)
 
 
 def _report(config: TrainingConfig, problem: LearningProblem, data: CleanData,

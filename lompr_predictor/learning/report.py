@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 import sys
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -135,8 +135,16 @@ def markdown(report: Mapping[str, Any]) -> str:
         lines += ['', '## Bayesian tuning', '',
                   f"Study `{tuning['study_name']}` ({tuning['trials_spent']} trials spent, "
                   f"{tuning['trials_run_now']} in this run); best trial {tuning['best_trial']} "
-                  f"with validation MSE {tuning['best_value']:.4g}: {tuning['best_params']}.", '',
-                  f'![tuning history]({TUNING_PLOT})']
+                  f"with validation MSE {tuning['best_value']:.4g}: {tuning['best_params']}.", '']
+        if 'trials_complete' in tuning:
+            lines += [f"Budget {tuning['budget']}: {tuning['trials_complete']} complete, "
+                      f"{tuning['trials_pruned']} pruned, {tuning['trials_failed']} failed "
+                      "(a failed trial does not count; a dead worker's point is queued again).",
+                      '', '| worker | complete | pruned | failed |', '|---|---|---|---|']
+            lines += [f"| {name} | {row['complete']} | {row['pruned']} | {row['failed']} |"
+                      for name, row in tuning['workers'].items()]
+            lines.append('')
+        lines.append(f'![tuning history]({TUNING_PLOT})')
     if report.get('model_sha256'):
         lines += ['', f"Model file `{report.get('model_file')}`, sha256 "
                       f"`{report['model_sha256']}` (also in `{report.get('model_sha256_file')}`; "
@@ -198,13 +206,17 @@ def plot_tuning(path: Path, trials: Sequence[Mapping[str, Any]]) -> None:
 
 
 def write_report(folder: str | Path, report: Mapping[str, Any], *, seconds: np.ndarray,
-                 actual: np.ndarray, predictions: Mapping[str, np.ndarray]) -> Path:
-    """Write report.json, report.md and the plots into `folder`; returns the folder."""
+                 actual: np.ndarray, predictions: Mapping[str, np.ndarray],
+                 before_documents: Callable[[], None] | None = None) -> Path:
+    """Write the plots, then report.json and report.md into `folder`; returns the folder.
+    `before_documents` is called between the two (the caller may add what writing took)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     plot_predictions(folder / PREDICTION_PLOT, seconds, actual, predictions, report['horizon'])
     if report.get('tuning'):
         plot_tuning(folder / TUNING_PLOT, report['tuning']['trials'])
+    if before_documents is not None:
+        before_documents()
     write_json(folder / 'report.json', report)
     write_atomic(folder / 'report.md', markdown(report).encode())
     return folder

@@ -1,7 +1,7 @@
-"""The hyperparameter search space of the tuning study, and the default budget.
+"""The hyperparameter search space of the tuning study, the default budget and heartbeat.
 
 Kept apart from `tuning.py` (which needs Optuna) so that the command line can show and
-check the space without importing Optuna.
+check the space and the defaults without importing Optuna.
 """
 
 from __future__ import annotations
@@ -15,6 +15,8 @@ if TYPE_CHECKING:
 
 #: Trials of a study unless told otherwise.
 DEFAULT_TRIALS = 20
+#: Seconds between a running trial's heartbeats unless told otherwise (`storage.py`).
+HEARTBEAT_SECONDS = 10
 
 
 @dataclass(frozen=True)

@@ -1,32 +1,59 @@
 """Bayesian tuning of batch size, hidden units and learning rate with Optuna (the paper's BO).
 
 The sampler is Optuna's `GPSampler`: a Gaussian process surrogate with a (log) expected
-improvement acquisition, as in the seed paper. The default search space is the paper's;
-the command line widens or changes it. Trials are pruned on the validation loss
-(`MedianPruner`) and count toward the budget like finished ones.
+improvement acquisition, as in the seed paper; it takes the points of running trials as
+pending, so parallel workers are not sent to the same point. Its random start-up points are
+drawn per trial number (`TrialSeededSampler`), so workers sharing a seed do not repeat each
+other. Trials are pruned on the validation loss (`MedianPruner`) and count toward the budget
+like finished ones. `make_sampler` and `make_pruner` are the places to change either.
 
-A study lives in an Optuna storage: by default a SQLite file in the report folder, opened
-with `load_if_exists`, so a run interrupted by Ctrl-C resumes with the same command and
-loses no finished trial; an RDB URL (`postgresql://...`) lets several machines share one
-study. `run_study` runs only what the budget still lacks. What a trial does is the
-objective's business (`objective.py` trains a network); this module knows studies only.
+A study lives in a storage (`storage.py`: a journal file in the report folder by default,
+PostgreSQL for several machines) and is opened with `open_study`, which records the settings
+that define it (`DEFINITION_ATTR`: refused with one message if a command with other settings
+joins it by name) and its budget (`BUDGET_ATTR`: the largest `--trials` any of its commands
+gave). Any number of processes, on any machines, run `run_trials` on one study:
+
+- each takes its next trial under the storage's lock, after counting: complete + pruned +
+  running trials never exceed the budget (a running trial holds its slot while it runs, a
+  failed one gives it back); a worker with no free slot waits until the budget is spent
+  or a slot frees;
+- before counting it fails running trials whose heartbeats stopped (their worker died) and
+  queues their points again (`storage.StudyStorage.fail_stale`);
+- each trial records its worker (`WORKER`, host:pid) and sends heartbeats while it runs.
+
+An interrupted run (Ctrl-C) resumes with the same command and loses no finished trial.
+What a trial does is the objective's business (`objective.py` trains a network); this
+module knows studies only.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
+import logging
+import os
+import socket
+import threading
+import time
+import warnings
+from collections import Counter
 from collections.abc import Callable, Mapping
-from pathlib import Path
+from dataclasses import dataclass
+from types import TracebackType
 from typing import Any
 
 import optuna
+from optuna.distributions import BaseDistribution
+from optuna.exceptions import UpdateFinishedTrialError
+from optuna.trial import FrozenTrial, TrialState
 from tqdm import tqdm
 
 from lompr_predictor.learning.space import DEFAULT_TRIALS
+from lompr_predictor.learning.storage import StudyError, StudyStorage
 
 #: Trial states that count toward the budget.
-SPENT = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED)
+SPENT = (TrialState.COMPLETE, TrialState.PRUNED)
 #: Random trials that seed the Gaussian process (a third of the default budget).
 STARTUP_TRIALS = 6
 #: The median pruner judges a trial only after this many finished trials and, within a
@@ -34,16 +61,21 @@ STARTUP_TRIALS = 6
 #: where they end, and a pruned trial teaches the GP nothing.
 PRUNER_STARTUP_TRIALS = 5
 PRUNER_WARMUP_EPOCHS = 15
-STUDY_FILE = 'study.sqlite3'
 #: User attribute of a trial that repeated an earlier complete trial's point (its number).
 DUPLICATE_OF = 'duplicate_of'
+#: User attribute of a trial: the worker (host:pid) that ran it.
+WORKER = 'worker'
+#: Study user attributes: the settings that define the study, and its budget.
+DEFINITION_ATTR = 'definition'
+BUDGET_ATTR = 'budget'
+#: Trial system attribute Optuna's retry callback gives a retried point: the failed trial.
+RETRY_OF_ATTR = 'failed_trial'
+#: Seconds a worker without a free budget slot waits before looking again.
+POLL_SECONDS = 2.0
+#: A worker stops after this many trials in a row that end FAIL (a non-finite loss).
+MAX_FAILED_IN_A_ROW = 3
 
-
-def default_storage(folder: str | Path) -> str:
-    """SQLite storage URL of a study file in `folder` (created if missing)."""
-    folder = Path(folder).resolve()
-    folder.mkdir(parents=True, exist_ok=True)
-    return f'sqlite:///{folder / STUDY_FILE}'
+_log = logging.getLogger(__name__)
 
 
 def study_name_for(settings: Mapping[str, Any]) -> str:
@@ -59,58 +91,325 @@ def startup_trials_for(budget: int) -> int:
     return max(1, min(STARTUP_TRIALS, budget // 3))
 
 
-def open_study(storage: str, study_name: str, *, seed: int = 0,
-               budget: int = DEFAULT_TRIALS) -> optuna.Study:
-    """Create or load (resume) a minimising study with the GP sampler (its start-up trials
-    sized for `budget`) and a median pruner."""
+class TrialSeededSampler(optuna.samplers.BaseSampler):
+    """Random draws fixed by (seed, trial number, parameter name): the GP's start-up points.
+
+    One seeded random stream per process would give every worker of a study the same
+    sequence (they share the seed), so concurrent trials would repeat each other's points;
+    here a trial's point depends on its number only, whichever worker runs it, and one
+    worker still repeats the same run for the same seed."""
+
+    def __init__(self, seed: int = 0) -> None:
+        self._seed = seed
+
+    def infer_relative_search_space(self, study: optuna.Study,
+                                    trial: FrozenTrial) -> dict[str, BaseDistribution]:
+        return {}
+
+    def sample_relative(self, study: optuna.Study, trial: FrozenTrial,
+                        search_space: dict[str, BaseDistribution]) -> dict[str, Any]:
+        return {}
+
+    def sample_independent(self, study: optuna.Study, trial: FrozenTrial, param_name: str,
+                           param_distribution: BaseDistribution) -> Any:
+        key = f'{self._seed}:{trial.number}:{param_name}'.encode()
+        seed = int.from_bytes(hashlib.sha256(key).digest()[:4], 'big')
+        return optuna.samplers.RandomSampler(seed=seed).sample_independent(
+            study, trial, param_name, param_distribution)
+
+
+def make_sampler(seed: int, budget: int) -> optuna.samplers.BaseSampler:
+    """The study's sampler: the GP, its start-up trials sized for `budget`."""
+    return optuna.samplers.GPSampler(seed=seed, n_startup_trials=startup_trials_for(budget),
+                                     independent_sampler=TrialSeededSampler(seed))
+
+
+def make_pruner() -> optuna.pruners.BasePruner:
+    """The study's pruner: the median rule on the validation loss."""
+    return optuna.pruners.MedianPruner(n_startup_trials=PRUNER_STARTUP_TRIALS,
+                                       n_warmup_steps=PRUNER_WARMUP_EPOCHS)
+
+
+def open_study(storage: StudyStorage, study_name: str, *, seed: int = 0,
+               budget: int = DEFAULT_TRIALS,
+               definition: Mapping[str, Any] | None = None) -> optuna.Study:
+    """Create or load (resume, join) a minimising study.
+
+    `definition` (JSON-able settings) is recorded by the command that creates the study and
+    compared by every later one that gives it: a mismatch raises `StudyError`. The budget
+    becomes `budget` if that is larger than the study's (so a rerun with a larger --trials
+    extends a study, and a worker that left --trials at its default does not shrink it).
+    """
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    sampler = optuna.samplers.GPSampler(seed=seed,
-                                        n_startup_trials=startup_trials_for(budget))
-    pruner = optuna.pruners.MedianPruner(n_startup_trials=PRUNER_STARTUP_TRIALS,
-                                         n_warmup_steps=PRUNER_WARMUP_EPOCHS)
-    return optuna.create_study(storage=storage, study_name=study_name, sampler=sampler,
-                               pruner=pruner, direction='minimize', load_if_exists=True)
+    if budget < 1:
+        msg = f'the tuning budget must be >= 1 trial, got {budget}'
+        raise StudyError(msg)
+    with storage.lock(study_name):
+        study = optuna.create_study(storage=storage.optuna, study_name=study_name,
+                                    sampler=make_sampler(seed, budget), pruner=make_pruner(),
+                                    direction='minimize', load_if_exists=True)
+        attrs = study.user_attrs
+        if definition is not None:
+            _check_definition(study, storage, attrs.get(DEFINITION_ATTR), definition)
+        stored = attrs.get(BUDGET_ATTR)
+        if stored is None or budget > int(stored):
+            study.set_user_attr(BUDGET_ATTR, budget)
+            stored = budget
+    if int(stored) != budget:
+        study.sampler = make_sampler(seed, int(stored))
+    return study
 
 
-def spent_trials(study: optuna.Study) -> list[optuna.trial.FrozenTrial]:
+def _check_definition(study: optuna.Study, storage: StudyStorage, stored: Any,
+                      definition: Mapping[str, Any]) -> None:
+    plain = json.loads(json.dumps(definition, sort_keys=True, default=str))
+    where = f'study {study.study_name!r} in {storage.spec.describe()}'
+    if stored is None:
+        if study.get_trials(deepcopy=False):
+            msg = (f'{where} has trials but no recorded settings (made by another program or '
+                   f'an older lompr): give another --study-name')
+            raise StudyError(msg)
+        study.set_user_attr(DEFINITION_ATTR, plain)
+        return
+    if stored == plain:
+        return
+    differences = []
+    for key in sorted(set(stored) | set(plain)):
+        theirs, ours = stored.get(key), plain.get(key)
+        if theirs != ours:
+            shown = f'{json.dumps(theirs)} there, {json.dumps(ours)} here'
+            differences.append(f'{key} ({shown})' if len(shown) <= 80 else key)
+    msg = (f'{where} was made with other settings: {"; ".join(differences)}; '
+           f'run with its settings or give another --study-name')
+    raise StudyError(msg)
+
+
+def study_budget(study: optuna.Study) -> int:
+    """The study's budget (finished + pruned trials it runs)."""
+    return int(study.user_attrs.get(BUDGET_ATTR, DEFAULT_TRIALS))
+
+
+@dataclass(frozen=True)
+class TrialCounts:
+    """The study's trials by state."""
+
+    complete: int = 0
+    pruned: int = 0
+    failed: int = 0
+    running: int = 0
+    waiting: int = 0  # queued points (retries of failed trials)
+
+    @property
+    def spent(self) -> int:
+        """Trials that count toward the budget once finished."""
+        return self.complete + self.pruned
+
+
+def trial_counts(study: optuna.Study) -> TrialCounts:
+    counts = Counter(t.state for t in study.get_trials(deepcopy=False))
+    return TrialCounts(complete=counts[TrialState.COMPLETE], pruned=counts[TrialState.PRUNED],
+                       failed=counts[TrialState.FAIL], running=counts[TrialState.RUNNING],
+                       waiting=counts[TrialState.WAITING])
+
+
+def worker_name(pid: int | None = None) -> str:
+    """host:pid of this process (or of a child `pid` on this host)."""
+    return f'{socket.gethostname()}:{os.getpid() if pid is None else pid}'
+
+
+def spent_trials(study: optuna.Study) -> list[FrozenTrial]:
     """Finished (complete or pruned) trials, which count toward the budget."""
     return study.get_trials(deepcopy=False, states=SPENT)
 
 
-def run_study(study: optuna.Study, objective: Callable[[optuna.Trial], float], n_trials: int,
-              *, progress: bool = True) -> int:
-    """Run trials until `n_trials` are spent (finished or pruned); returns how many ran now.
+# -- the worker loop -------------------------------------------------------------------
 
-    A trial that fails (an exception other than pruning) stops the run with that
-    exception; Optuna has recorded it as failed and a rerun does not count it.
-    """
-    remaining = max(0, n_trials - len(spent_trials(study)))
-    if remaining == 0:
-        return 0
-    bar = tqdm(total=n_trials, initial=n_trials - remaining, desc='tuning', unit='trial',
-               disable=not progress)
 
-    def advance(study: optuna.Study, trial: optuna.trial.FrozenTrial) -> None:
-        bar.update(1)
-        complete = trial.state == optuna.trial.TrialState.COMPLETE
-        if complete and study.best_trial.number == trial.number:
-            bar.set_postfix(best=f'{trial.value:.3g}')
+def run_trials(study: optuna.Study, storage: StudyStorage,
+               objective: Callable[[optuna.Trial], float], *,
+               poll: float = POLL_SECONDS) -> int:
+    """Take and run the study's trials until its budget is spent (module docstring); returns
+    how many this process ran. A trial whose objective raises is recorded FAIL and the
+    exception stops this worker (Ctrl-C included); a pruned one counts."""
+    worker = worker_name()
+    ran = failed_in_a_row = 0
+    while True:
+        trial = _next_trial(study, storage, worker)
+        if trial is None:
+            return ran
+        if trial is _WAIT:
+            time.sleep(poll)
+            continue
+        state = _run_trial(study, storage, trial, objective)
+        ran += 1
+        failed_in_a_row = failed_in_a_row + 1 if state == TrialState.FAIL else 0
+        if failed_in_a_row >= MAX_FAILED_IN_A_ROW:
+            msg = (f'{failed_in_a_row} trials in a row failed (non-finite validation loss), '
+                   f'the last one trial {trial.number}: stopping this worker')
+            raise StudyError(msg)
 
-    try:
-        study.optimize(objective, n_trials=remaining, callbacks=[advance], catch=())
-    finally:
-        bar.close()
-    return remaining
+
+_WAIT: Any = object()  # _next_trial: no free budget slot yet
+
+
+def _next_trial(study: optuna.Study, storage: StudyStorage, worker: str) -> Any:
+    """Under the study's lock: fail dead workers' trials, then a new trial if the budget has
+    a free slot, `_WAIT` if running trials hold every slot, None once it is spent."""
+    with storage.lock(study.study_name):
+        for dead in storage.fail_stale(study):
+            _log.warning('trial %d (worker %s) stopped sending heartbeats: marked failed, its '
+                         'point queued again', dead.number, dead.user_attrs.get(WORKER, '?'))
+        counts, budget = trial_counts(study), study_budget(study)
+        if counts.spent >= budget:
+            return None
+        if counts.spent + counts.running >= budget:
+            return _WAIT
+        with warnings.catch_warnings():  # ask/tell is our optimize loop, heartbeats included
+            warnings.filterwarnings('ignore', message='Heartbeat of storage is supposed')
+            trial = study.ask()
+        # Optuna samples the GP's point lazily, at the objective's first suggest; sample it
+        # here, under the lock, so the next worker's GP sees it as pending and goes elsewhere
+        trial.relative_params  # noqa: B018 - the property samples and records the point
+        trial.set_user_attr(WORKER, worker)
+        storage.beat(study, trial._trial_id)  # Optuna's storage API addresses trials by id
+        return trial
+
+
+def _run_trial(study: optuna.Study, storage: StudyStorage, trial: optuna.Trial,
+               objective: Callable[[optuna.Trial], float]) -> TrialState | None:
+    """Run one trial with heartbeats and tell the study; the trial's final state, or None
+    when another worker took it as dead meanwhile (failed and queued again)."""
+    with _Heartbeats(storage, study, trial._trial_id):
+        try:
+            value: float | None = objective(trial)
+            state = None  # COMPLETE, or FAIL for a non-finite value (Optuna warns)
+        except optuna.TrialPruned:
+            value, state = None, TrialState.PRUNED
+        except UpdateFinishedTrialError:
+            _taken_as_dead(trial)
+            return None
+        except BaseException:
+            study.tell(trial, state=TrialState.FAIL, skip_if_finished=True)
+            raise
+    if study._storage.get_trial(trial._trial_id).state.is_finished():
+        _taken_as_dead(trial)
+        return None
+    return study.tell(trial, value, state=state, skip_if_finished=True).state
+
+
+def _taken_as_dead(trial: optuna.Trial) -> None:
+    _log.warning('trial %d was taken as dead (its heartbeats came late) and queued again; '
+                 'its result here is dropped', trial.number)
+
+
+class _Heartbeats:
+    """Record a running trial's heartbeat every `heartbeat` seconds from a thread."""
+
+    def __init__(self, storage: StudyStorage, study: optuna.Study, trial_id: int) -> None:
+        self._storage, self._study, self._trial_id = storage, study, trial_id
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True, name='heartbeat')
+
+    def __enter__(self) -> None:
+        self._thread.start()
+
+    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None,
+                 traceback: TracebackType | None) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._storage.spec.heartbeat):
+            try:
+                self._storage.beat(self._study, self._trial_id)
+            except Exception as err:  # noqa: BLE001 - a missed beat is retried; never fatal
+                _log.warning('heartbeat of trial id %d not recorded: %s', self._trial_id, err)
+
+
+class StudyProgress:
+    """A tqdm bar of the study's spent trials, every worker's (polled from a thread), with
+    the running and failed counts and the best value so far."""
+
+    def __init__(self, study: optuna.Study, *, enabled: bool = True,
+                 interval: float = 1.0) -> None:
+        self._study, self._enabled, self._interval = study, enabled, interval
+        self._stop = threading.Event()
+        self._bar: tqdm[Any] | None = None
+        self._thread = threading.Thread(target=self._run, daemon=True, name='progress')
+
+    def __enter__(self) -> StudyProgress:
+        if self._enabled:
+            self._bar = tqdm(total=study_budget(self._study), desc='tuning', unit='trial')
+            self.update()
+            self._thread.start()
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None,
+                 traceback: TracebackType | None) -> None:
+        if self._bar is None:
+            return
+        self._stop.set()
+        self._thread.join()
+        if kind is None:
+            self.update()
+        self._bar.close()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._interval):
+            # a progress display only: a failed poll (storage hiccup) is retried next time
+            with contextlib.suppress(Exception):
+                self.update()
+
+    def update(self) -> None:
+        if self._bar is None:
+            return
+        counts = trial_counts(self._study)
+        self._bar.total = study_budget(self._study)
+        self._bar.n = min(counts.spent, self._bar.total)
+        postfix: dict[str, Any] = {'running': counts.running}
+        if counts.failed:
+            postfix['failed'] = counts.failed
+        if counts.complete:
+            postfix['best'] = f'{self._study.best_value:.3g}'
+        self._bar.set_postfix(postfix, refresh=False)
+        self._bar.refresh()
+
+
+def run_study(study: optuna.Study, storage: StudyStorage,
+              objective: Callable[[optuna.Trial], float], *, progress: bool = True) -> int:
+    """`run_trials` in this process with a progress bar; returns how many trials it ran."""
+    with StudyProgress(study, enabled=progress):
+        return run_trials(study, storage, objective)
+
+
+# -- what a study holds ----------------------------------------------------------------
 
 
 def history(study: optuna.Study) -> list[dict[str, Any]]:
-    """Every spent trial: number, state, value, params, duration [s], epochs reported, and
-    its user attributes (e.g. `pruned_epoch`, `duplicate_of`)."""
-    return [{'number': t.number, 'state': t.state.name, 'value': t.value,
-             'params': dict(t.params),
-             'seconds': t.duration.total_seconds() if t.duration else None,
-             'epochs': len(t.intermediate_values), **t.user_attrs}
-            for t in spent_trials(study)]
+    """Every spent trial: number, state, value, params, duration [s], epochs reported, the
+    trial it retried (if its first run's worker died), and its user attributes (`worker`,
+    `pruned_epoch`, `duplicate_of`, ...)."""
+    rows = []
+    for t in spent_trials(study):
+        row = {'number': t.number, 'state': t.state.name, 'value': t.value,
+               'params': dict(t.params),
+               'seconds': t.duration.total_seconds() if t.duration else None,
+               'epochs': len(t.intermediate_values), **t.user_attrs}
+        if RETRY_OF_ATTR in t.system_attrs:
+            row['retry_of'] = t.system_attrs[RETRY_OF_ATTR]
+        rows.append(row)
+    return rows
+
+
+def worker_counts(study: optuna.Study) -> dict[str, dict[str, int]]:
+    """Per worker (host:pid) its complete, pruned and failed trials."""
+    counts: dict[str, dict[str, int]] = {}
+    for t in study.get_trials(deepcopy=False, states=(*SPENT, TrialState.FAIL)):
+        row = counts.setdefault(str(t.user_attrs.get(WORKER, '?')),
+                                {'complete': 0, 'pruned': 0, 'failed': 0})
+        row[{TrialState.COMPLETE: 'complete', TrialState.PRUNED: 'pruned'}.get(
+            t.state, 'failed')] += 1
+    return dict(sorted(counts.items()))
 
 
 def finished_twin(study: optuna.Study, trial: optuna.Trial) -> optuna.trial.FrozenTrial | None:
@@ -118,7 +417,7 @@ def finished_twin(study: optuna.Study, trial: optuna.Trial) -> optuna.trial.Froz
     categorical space the sampler may propose a point again, and a seeded training run
     would only repeat its result. The objective returns the twin's value and marks the trial
     `DUPLICATE_OF` the twin."""
-    for other in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,)):
+    for other in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
         if other.number != trial.number and other.params == trial.params:
             return other
     return None

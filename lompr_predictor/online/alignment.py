@@ -21,8 +21,8 @@ from lompr_predictor.monitoring import RejectionCounter
 #: Why an input sample was not used; each is counted (`StampAlignment.dropped`).
 DROP_REASONS: tuple[str, ...] = (
     'non_finite', 'duplicate', 'out_of_order', 'no_reference', 'reference_duplicate',
-    'reference_non_finite', 'reference_out_of_order', 'stale', 'internal', 'bad_stamp',
-    'future_stamp', 'reference_bad_stamp', 'reference_future_stamp')
+    'reference_non_finite', 'reference_out_of_order', 'stale', 'clock_jump', 'inactive',
+    'internal', 'bad_stamp', 'future_stamp', 'reference_bad_stamp', 'reference_future_stamp')
 #: Poses kept waiting for a reference at or after their stamp; beyond, the oldest is dropped.
 MAX_PENDING_POSES = 1000
 #: References kept before the oldest pose that may still need one.
@@ -77,6 +77,15 @@ class ReferenceTrack:
     def clear(self) -> None:
         self._stamps.clear()
         self._positions.clear()
+
+    def drop_after(self, stamp_ns: int | None) -> None:
+        """Forget the references stamped after `stamp_ns` (all of them if None)."""
+        if stamp_ns is None:
+            self.clear()
+            return
+        while self._stamps and self._stamps[-1] > stamp_ns:
+            self._stamps.pop()
+            self._positions.pop()
 
     def at(self, stamp_ns: int) -> tuple[float, float] | str | None:
         """The reference at `stamp_ns`; None while no reference at or after it has arrived;
@@ -194,6 +203,16 @@ class StampAlignment:
         """Drop the poses waiting for a reference, counted under `reason`."""
         self.dropped.add(reason, sum(isinstance(p, _Pose) for p in self._pending))
         self._pending.clear()
+
+    def rewind(self, stamp_ns: int | None, reason: str) -> None:
+        """Take the streams as starting afresh at `stamp_ns` (a clock gone back to it, a
+        simulator reset) or anew (None: a node reactivated): drop the waiting poses
+        (counted under `reason`) and the references stamped after `stamp_ns` (all if None),
+        and forget the newest pose stamp, so that the restarted streams are no out-of-order
+        fault. A reference of the new run that came before the clock's jump is kept."""
+        self.clear(reason)
+        self.references.drop_after(stamp_ns)
+        self.newest_pose_ns = None
 
     def _drain(self, events: list[Event]) -> list[Event]:
         """Append to `events` every waiting pose whose reference has arrived, in order."""

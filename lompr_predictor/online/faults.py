@@ -9,7 +9,11 @@ stamps going backwards, poses the reference does not bracket) and a failing infe
   period, as in the trainer: above `gap_factor` periods it is a gap (the trainer splits its
   data there), below `min_interval_factor` periods the input is not at the model's rate.
 - `StaleWatch`: no usable sample for `StreamSettings.stale_after` seconds of `clock`, found
-  by two checks in a row.
+  by two checks in a row. The clock is the caller's: the predictor node gives its ROS clock,
+  so under simulated time a simulator slower than real time is not stale, and one that
+  stands still (waiting for an answer in lockstep) never is.
+- `clock_jump`: the clock went backwards (a simulator reset); the caller reports it
+  (`OnlinePredictor.clock_jumped_back`).
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ from dataclasses import dataclass
 #: Why the window was emptied (and an offset in force cancelled by a zero).
 FAULT_REASONS: tuple[str, ...] = (
     'non_finite', 'out_of_order', 'gap', 'off_rate', 'no_reference', 'reference_non_finite',
-    'reference_out_of_order', 'inference', 'stale', 'internal')
+    'reference_out_of_order', 'inference', 'stale', 'clock_jump', 'internal')
 
 
 @dataclass(frozen=True)
@@ -30,7 +34,7 @@ class StreamSettings:
     sample_period: float  # [s] the model's; also the spacing the stamps must have
     gap_factor: float  # an interval above gap_factor * sample_period is a gap
     min_interval_factor: float  # one below min_interval_factor * sample_period is off-rate
-    stale_periods: float  # no sample for this many periods (wall time): input is stale
+    stale_periods: float  # no sample for this many periods (of the clock): input is stale
     accuracy_samples: int  # residuals the live RMS is over
     # ... and for at least this long [s]: a process on a general-purpose OS can stall for
     # milliseconds (scheduler, garbage collector), which at kHz rates is many periods
@@ -44,7 +48,7 @@ class StreamSettings:
 
     @property
     def stale_after(self) -> float:
-        """Wall seconds without a usable sample after which the input is stale."""
+        """Seconds of the clock without a usable sample after which the input is stale."""
         return max(self.stale_periods * self.sample_period, self.stale_min_time)
 
 
@@ -84,6 +88,13 @@ class StaleWatch:
     def used(self) -> None:
         """A sample was used now."""
         self._last_used = self._clock()
+
+    def restart(self) -> None:
+        """Count idle time from now on, and forget a suspicion: the clock jumped (it
+        started, a simulator skipped ahead or was reset), so time read before says nothing
+        about the input."""
+        self._last_used = self._clock()
+        self._suspected = False
 
     def check(self, oldest_waiting: float | None = None) -> bool:
         """True when this check and the previous one both found the input idle."""

@@ -23,18 +23,21 @@ It composes the parts, each in its own module and testable alone:
   stamps are checked (`stamps.stamp_problem`: negative, nanosec >= 1e9, more than
   `StreamSettings.max_future_stamp` ahead of `now_ns`), a bad one dropped and counted.
 
-Time: `clock` (seconds, monotonic by default) stamps arrivals and times staleness; `now_ns`
-(None: no overrun policy, no future check) is read once at each input and after each
-inference. Every call returns the outputs to publish, in order.
+Time: `clock` (seconds, monotonic by default) stamps arrivals and times staleness. The
+predictor node gives its ROS clock (simulated time under use_sim_time) and reports the
+clock's jumps: `clock_jumped_back` (a simulator reset: a fault, and the streams are taken as
+starting again) and `restart_staleness` (the clock started or skipped ahead). `now_ns` (the
+same clock in integer ns; None: no overrun policy, no future check) is read once at each
+input and after each inference. Every call returns the outputs to publish, in order.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 
 import numpy as np
-import torch
 
 from lompr_predictor.data.features import FEATURES
 from lompr_predictor.learning.model_file import LoadedModel
@@ -123,6 +126,33 @@ class OnlinePredictor:
         exception in the caller's own handling)."""
         self._alignment.clear(reason)
         return self._fault(reason)
+
+    def clock_jumped_back(self, now_ns: int | None) -> list[Output]:
+        """The clock went back to `now_ns` (None: it changed source), as a simulator reset
+        does: a 'clock_jump' fault (window emptied, the offset in force cancelled), and the
+        inputs are taken as starting again from there (`StampAlignment.rewind`), so the
+        restarted streams refill the window without further faults."""
+        outputs = self._fault('clock_jump')
+        self._alignment.rewind(now_ns, 'clock_jump')
+        self._stale.restart()
+        self.overrun.restart()
+        return outputs
+
+    def restart_staleness(self) -> None:
+        """The clock jumped forward (its first reading under simulated time, a simulator
+        skipping ahead): idle time counts from now (a gap in the stamps is still a fault)."""
+        self._stale.restart()
+
+    def reset(self, reason: str = 'inactive') -> list[Output]:
+        """Stop and start afresh, no fault (the node deactivated): the offset in force is
+        cancelled (zeros, `reason`), the window emptied, and the inputs forgotten, so that
+        the next samples start a new window whatever their stamps."""
+        outputs = self._gate.cancel(reason, self._alignment.newest_pose_ns)
+        self._window.clear()
+        self._alignment.rewind(None, reason)
+        self._stale.restart()
+        self.overrun.restart()
+        return outputs
 
     def set_limits(self, limits: CompensationLimits) -> list[Output]:
         """New bounds from the next sample on. Disabling compensation also cancels the
@@ -245,13 +275,8 @@ class OnlinePredictor:
             guard.inference_skipped_late += 1
             self._gate.missed()
             return []
-        try:
-            window = torch.from_numpy(self._window.rows()[None])
-            with self.inference_time.measure():
-                prediction = self.model.predict(window).numpy().reshape(-1)
-        except Exception:  # noqa: BLE001 - a model file is code: any failure is a fault
-            return self._fault('inference')
-        if prediction.shape != (2,) or not np.isfinite(prediction).all():
+        prediction = self._infer()
+        if prediction is None:
             return self._fault('inference')
         self.predictions_made += 1
         if guard is not None:
@@ -262,7 +287,19 @@ class OnlinePredictor:
                 guard.late_outputs_dropped += 1
                 self._gate.missed()
                 return []
-        return [self._gate.publish(stamp_ns + self._lead_ns, prediction, stamp_ns)]
+        return [self._gate.publish(stamp_ns + self._lead_ns, np.array(prediction), stamp_ns)]
+
+    def _infer(self) -> tuple[float, float] | None:
+        """The model on the window (its buffer, no copy): the predicted X/Y plant error, or
+        None if the model raised or gave anything but one row of two finite numbers."""
+        start = time.perf_counter()
+        try:
+            (x, y), = self.model.predict(self._window.tensor()).tolist()
+            x, y = float(x), float(y)
+        except Exception:  # noqa: BLE001 - a model file is code: any failure is a fault
+            x = y = math.nan
+        self.inference_time.record(time.perf_counter() - start)
+        return (x, y) if math.isfinite(x) and math.isfinite(y) else None
 
     def _fault(self, reason: str) -> list[Output]:
         """Empty the window; cancel the offsets in force (`offset.OffsetGate.cancel`)."""

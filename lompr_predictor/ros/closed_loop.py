@@ -1,4 +1,5 @@
-"""The closed loop on the digital twin, through the real nodes, in one process.
+"""The closed loop on the digital twin, through the real nodes: in one process, or as three
+processes on simulated time.
 
     twin_node (lockstep) --/joint_states--> kinematics_node --/lompr/end_pose--> predictor_node
     twin_node --/lompr/reference--> predictor_node --/lompr/compensation--> twin_node
@@ -16,21 +17,37 @@ references, so a run can be scored on the true tool-tip error and recorded as a 
 (`LoopSettings.switch_off_at`): the node goes on predicting (shadow mode) and publishes zero
 offsets. A loop without compensation is the same pipeline in shadow mode from the start.
 
+Across processes (`LoopSettings.processes`), as a simulator (Gazebo, Isaac Sim, a
+hardware-in-the-loop rig) drives real nodes: `twin_node`, `kinematics_node` and
+`predictor_node` run as three executables on a private ROS domain; the twin publishes
+/clock (each sample's instant, `publish_clock`) and the two nodes run with
+`use_sim_time:=true` and their default staleness rules; the twin waits for its nodes
+(`wait_for_subscribers`) and writes every sample it ran to a run log (`twin.run_log`), which
+becomes the `LoopRun`. The predictor's counters come from its last /diagnostics. The twin
+still runs in lockstep, so both ways run the same samples and score alike.
+
 `persistence_model` writes the simplest compensator as a model file (offset = minus the
 last measured plant error), so that it runs through the same predictor node.
 """
 
 from __future__ import annotations
 
+import functools
 import os
+import signal
+import subprocess
+import sys
+import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from rclpy.context import Context
 from rclpy.executors import Executor
@@ -38,6 +55,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
+from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from tqdm import tqdm
 
@@ -53,21 +71,28 @@ from lompr_predictor.learning.model_file import (
 )
 from lompr_predictor.learning.models import persistence_module
 from lompr_predictor.robot.description import MEASURED_JOINTS
+from lompr_predictor.robot.paths import build_cycle
 from lompr_predictor.ros import kinematics_node, predictor_node, twin_node
 from lompr_predictor.ros.common import events_executor, spin_until
+from lompr_predictor.ros.domain import reserve_domain_id
 from lompr_predictor.ros.kinematics_node import KinematicsNode
 from lompr_predictor.ros.predictor_node import PredictorNode
 from lompr_predictor.ros.twin_node import TwinNode
 from lompr_predictor.scoring.loops import LOOP_TRUTH_JSON, LOOP_TRUTH_NPZ
 from lompr_predictor.stamps import stamp_to_ns
 from lompr_predictor.threads import torch_threads
-from lompr_predictor.twin.digital_twin import DigitalTwin
+from lompr_predictor.twin.digital_twin import EPOCH_NS, DigitalTwin
+from lompr_predictor.twin.parameters import load_twin_parameters
 from lompr_predictor.twin.recording import VERTICAL_TOOL
+from lompr_predictor.twin.run_log import read_run_log
 
 #: Loggers of the nodes in the loop (their node names).
 NODE_LOGGERS = (kinematics_node.NODE_NAME, predictor_node.NODE_NAME, twin_node.NODE_NAME)
 #: Wall seconds the nodes may take to discover each other.
 DISCOVERY_TIMEOUT = 10.0
+#: Wall seconds a node process may take to stop after SIGINT before it is killed (a Fast DDS
+#: participant can hang at exit).
+KILL_TIMEOUT = 10.0
 
 
 class ClosedLoopError(LomprError):
@@ -90,14 +115,24 @@ class LoopSettings:
     twin_parameters_file: str = ''  # empty: the packaged config/twin.yaml
     robot_description_file: str = ''  # empty: the packaged LOMPR description
     #: Lockstep: wall seconds the twin waits for an offset before running the sample
-    #: without (only while the predictor fills its window, or if it falls behind).
+    #: without, while the predictor fills its window...
     lockstep_timeout: float = 0.1
+    #: ... and once it answers (the previous sample had its offset): a late answer is a
+    #: loaded machine, which must not let a sample through uncompensated.
+    answer_timeout: float = 2.0
     max_compensation: float = 5e-4  # predictor clamp, XY norm [m]
     max_compensation_step: float = 5e-5  # predictor step limit per sample [m]
-    #: The predictor's staleness rule counts wall time; in lockstep wall time is not sample
-    #: time, so only a real stall (this many periods, 10 s) should count as stale input.
+    #: In one process the twin publishes no /clock, so the predictor's staleness counts
+    #: wall time, which in lockstep is not sample time: only a real stall (this many periods,
+    #: 10 s) should count as stale input. Across processes the nodes run on the twin's
+    #: simulated time with the predictor's default staleness, and this is not used.
     stale_periods: float = 250.0
     wall_timeout: float = 1800.0  # a run that takes longer is stopped with an error
+    #: True: twin_node, kinematics_node and predictor_node as three processes on simulated
+    #: time (module docstring); False: one process, one executor.
+    processes: bool = False
+    #: If not 0, stop after this many samples (a run shorter than lead-in + passes).
+    samples: int = 0
 
 
 @dataclass(frozen=True)
@@ -163,6 +198,8 @@ def run_closed_loop(settings: LoopSettings, *, progress: bool = True,
                f'{settings.passes} and {settings.lead_in_passes}')
         raise ClosedLoopError(msg)
     horizon = load_model(settings.model_path).metadata.horizon
+    if settings.processes:
+        return _run_processes(settings, horizon, progress, label)
     # The nodes' start-up lines would interleave with the progress bar: warnings only.
     levels = {name: rclpy.logging.get_logger_effective_level(name) for name in NODE_LOGGERS}
     for name in NODE_LOGGERS:
@@ -229,8 +266,9 @@ class _Loop:
         self.twin = TwinNode(context=context, parameter_overrides=overrides(
             **description, twin_parameters_file=settings.twin_parameters_file,
             path=settings.path, seed=settings.seed,
-            passes=settings.lead_in_passes + settings.passes,
+            passes=settings.lead_in_passes + settings.passes, samples=settings.samples,
             mode='lockstep', lockstep_timeout=settings.lockstep_timeout,
+            answer_timeout=settings.answer_timeout,
             # an offset is sent `horizon` samples ahead of its instant: let it wait that long
             compensation_timeout=max(1.0, (horizon + 2) * period),
             joint_state_topic=topics['joint_states'], reference_topic=topics['reference'],
@@ -285,6 +323,8 @@ class _Loop:
             'predictor_dropped': core.dropped.counts(), 'clamped': core.clamped,
             'step_limited': core.step_limited,
             'kinematics_rejected': self.kinematics.rejected.counts(),
+            'first_answered': twin.log.first_answered,
+            'unanswered_after_first': twin.log.unanswered_after_first,
         }
         data = self.collector.arrays()
         cycle = twin.twin.cycle
@@ -356,6 +396,200 @@ class _Collector(Node):
         index = self._index(msg)
         self._data[name][index] = msg.vector.x, msg.vector.y
         self._store(index, column)
+
+
+@functools.cache
+def loop_domain_id() -> int:
+    """The private ROS domain of this process's cross-process loops (reserved once)."""
+    return reserve_domain_id()
+
+
+@contextmanager
+def _environment(values: dict[str, str]) -> Iterator[None]:
+    """`os.environ` with `values` set inside the block (rcl reads discovery settings from
+    the environment when a context is initialised)."""
+    saved = {name: os.environ.get(name) for name in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+def _ros_args(**parameters: Any) -> list[str]:
+    """`-p name:=value` for each parameter given a value ('' and None are left out)."""
+    arguments: list[str] = []
+    for name, value in parameters.items():
+        if value is None or value == '':
+            continue
+        text = str(value).lower() if isinstance(value, bool) else str(value)
+        arguments += ['-p', f'{name}:={text}']
+    return arguments
+
+
+def loop_commands(settings: LoopSettings, horizon: int, period: float,
+                  run_log: Path) -> dict[str, list[str]]:
+    """The three executables of a cross-process loop, as `python -m` commands (the same
+    `main()` as the console scripts)."""
+    description = {'robot_description_file': settings.robot_description_file}
+
+    def command(module: str, **parameters: Any) -> list[str]:
+        return [sys.executable, '-m', f'lompr_predictor.ros.{module}', '--ros-args',
+                *_ros_args(**description, **parameters)]
+
+    return {
+        'kinematics_node': command('kinematics_node', use_sim_time=True),
+        'predictor_node': command(
+            'predictor_node', use_sim_time=True, model_path=settings.model_path,
+            compensation_enabled=settings.compensation_enabled,
+            max_compensation=settings.max_compensation,
+            max_compensation_step=settings.max_compensation_step),
+        'twin_node': command(
+            'twin_node', twin_parameters_file=settings.twin_parameters_file,
+            path=settings.path, seed=settings.seed,
+            passes=settings.lead_in_passes + settings.passes, samples=settings.samples,
+            mode='lockstep', lockstep_timeout=settings.lockstep_timeout,
+            answer_timeout=settings.answer_timeout,
+            compensation_timeout=max(1.0, (horizon + 2) * period), publish_clock=True,
+            wait_for_subscribers=1, run_log=str(run_log)),
+    }
+
+
+class _Monitor(Node):
+    """The parent's view of a cross-process loop: the twin's /clock (progress) and the
+    predictor's last /diagnostics statuses."""
+
+    def __init__(self, context: Context, period_ns: int) -> None:
+        super().__init__('lompr_loop_monitor', context=context)
+        self.period_ns = period_ns
+        self.samples = 0
+        self.statuses: dict[str, dict[str, str]] = {}
+        self.create_subscription(Clock, '/clock', self._on_clock,
+                                 QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
+        self.create_subscription(DiagnosticArray, '/diagnostics', self._diagnostics,
+                                 QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+
+    def _on_clock(self, msg: Clock) -> None:
+        self.samples = (stamp_to_ns(msg.clock) - EPOCH_NS) // self.period_ns + 1
+
+    def _diagnostics(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name.startswith(f'{predictor_node.NODE_NAME}: '):
+                self.statuses[status.name.split(': ', 1)[1]] = {
+                    kv.key: kv.value for kv in status.values}
+
+    def predictor_counts(self) -> dict[str, Any]:
+        """The predictor's counters as of its last /diagnostics (simulated seconds apart)."""
+        inputs = self.statuses.get('inputs', {})
+        prediction = self.statuses.get('prediction', {})
+        return {
+            'predictions': int(prediction.get('predictions_total', -1)),
+            'predictor_faults': {key.split('.', 1)[1]: int(value) for key, value in
+                                 inputs.items() if key.startswith('faults.')},
+            'predictor_dropped': {key.split('.', 1)[1]: int(value) for key, value in
+                                  inputs.items() if key.startswith('rejected.')},
+            'clamped': int(prediction.get('clamped_total', -1)),
+            'step_limited': int(prediction.get('step_limited_total', -1)),
+        }
+
+
+def _stop_processes(processes: dict[str, subprocess.Popen[bytes]]) -> None:
+    """SIGINT every process, then kill the ones still running after `KILL_TIMEOUT`."""
+    for process in processes.values():
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + KILL_TIMEOUT
+    for process in processes.values():
+        try:
+            process.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+
+
+def _log_tail(path: Path, lines: int = 15) -> str:
+    try:
+        return '\n'.join(path.read_text(errors='replace').splitlines()[-lines:])
+    except OSError:
+        return ''
+
+
+def _run_processes(settings: LoopSettings, horizon: int, progress: bool,
+                   label: str) -> LoopRun:
+    """The loop as three processes on the twin's simulated time (module docstring)."""
+    if settings.switch_off_at is not None:
+        msg = 'switch_off_at needs the in-process loop (processes=False)'
+        raise ClosedLoopError(msg)
+    params = load_twin_parameters(settings.twin_parameters_file or None)
+    cycle = build_cycle(settings.path, params.path, params.sample_period)
+    total = settings.samples or (settings.lead_in_passes + settings.passes) * len(cycle)
+    domain = loop_domain_id()
+    environment = {'ROS_DOMAIN_ID': str(domain), 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
+    with tempfile.TemporaryDirectory(prefix='lompr_loop_') as folder:
+        run_log = Path(folder) / 'run.npz'
+        commands = loop_commands(settings, horizon, params.sample_period, run_log)
+        processes: dict[str, subprocess.Popen[bytes]] = {}
+        logs = {name: Path(folder) / f'{name}.log' for name in commands}
+        context = Context()
+        with _environment(environment):
+            rclpy.init(context=context, args=[], domain_id=domain)
+        executor = events_executor(context)
+        monitor = _Monitor(context, round(params.sample_period * 1e9))
+        executor.add_node(monitor)
+        bar = tqdm(total=total, desc=label, unit='sample', disable=not progress, leave=True)
+        started = time.monotonic()
+        try:
+            for name, command in commands.items():
+                with open(logs[name], 'wb') as output:
+                    processes[name] = subprocess.Popen(
+                        command, env={**os.environ, **environment}, stdout=output,
+                        stderr=subprocess.STDOUT)
+            while not run_log.exists():
+                executor.spin_once(timeout_sec=0.1)
+                bar.n = min(monitor.samples, total)
+                bar.refresh()
+                for name, process in processes.items():
+                    if process.poll() is not None:
+                        msg = (f'{label}: {name} exited with code {process.returncode} '
+                               f'after {monitor.samples} samples:\n{_log_tail(logs[name])}')
+                        raise ClosedLoopError(msg)
+                if time.monotonic() - started > settings.wall_timeout:
+                    msg = (f'{label}: not finished after {settings.wall_timeout:g} s '
+                           f'({monitor.samples} of {total} samples)')
+                    raise ClosedLoopError(msg)
+            wall_seconds = time.monotonic() - started
+            for _ in range(3):  # the last /diagnostics on their way
+                executor.spin_once(timeout_sec=0.05)
+            bar.n = total
+            bar.close()
+        finally:
+            _stop_processes(processes)
+            executor.remove_node(monitor)
+            monitor.destroy_node()
+            executor.shutdown()
+            context.try_shutdown()
+        arrays, document = read_run_log(run_log)
+    count = len(arrays['stamps'])
+    counts = {
+        'offsets_applied': document['offsets_applied'],
+        'samples_without_offset': document['samples_without_offset'],
+        'offsets_dropped': document['offsets_dropped'],
+        **monitor.predictor_counts(),
+        'first_answered': document['first_answered'],
+        'unanswered_after_first': document['unanswered_after_first'],
+        'processes': {name: process.returncode for name, process in processes.items()},
+        'ros_domain_id': domain,
+    }
+    return LoopRun(
+        settings=settings, horizon=horizon, sample_period=params.sample_period,
+        stamps=arrays['stamps'], reference=arrays['reference'], joints=arrays['joints'],
+        true_error=arrays['true_error'], plant_error=arrays['plant_error'],
+        pass_index=cycle.pass_index(0, count), in_pass=cycle.in_pass(0, count),
+        switched_off_at=None, wall_seconds=wall_seconds, counts=counts)
 
 
 def record_loop(out: str | Path, run: LoopRun, *, storage: str = 'mcap',

@@ -6,6 +6,10 @@ answer (malformed message, missing joint, NaN/inf, branch out of stroke, head an
 range, pose out of workspace, no convergence) gets no output: the reason is counted for
 /diagnostics, a throttled warning says what was wrong, and the next good sample is
 answered. A bad sample or a gap in the stamps restarts the FK warm start.
+
+Time: each JointState is answered when it arrives, whatever the clock says; its rates,
+throttled warnings and /diagnostics run on the node's clock (simulated time, from /clock,
+under use_sim_time), the solve times on the wall clock.
 """
 
 from __future__ import annotations
@@ -31,7 +35,6 @@ from lompr_predictor.errors import (
 from lompr_predictor.monitoring import (
     LatencyRecorder,
     Level,
-    RateMeter,
     RejectionCounter,
     Status,
     latency_values,
@@ -146,8 +149,8 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
 
         self.rejected = RejectionCounter(REJECTION_REASONS)
         self.solve_time = LatencyRecorder(settings.latency_samples)
-        self.input_rate = RateMeter(settings.rate_window)
-        self.output_rate = RateMeter(settings.rate_window)
+        self.input_rate = self.rate_meter(settings.rate_window)  # on the node's clock
+        self.output_rate = self.rate_meter(settings.rate_window)
         self._rejected_at_last_report = 0
 
         self._publisher = self.advertise(END_POSE)

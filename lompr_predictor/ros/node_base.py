@@ -32,9 +32,12 @@ managed one alike:
   warns (throttled), and the node's `qos` status is WARN while such a peer is in the graph
   or an event came since the last report (`incompatible_qos_total`, per endpoint, the last
   policy).
-- `clock_ns()`: the node's clock (ROS time: sim time under /clock) in integer ns.
 - `warn_throttled(key, text)`: one warning per key and `warning_throttle_period` (a settings
   field of that name, if the node has one; else `DEFAULT_THROTTLE_PERIOD`).
+- Time: every time a node reasons about is its own clock (`clock_seconds`, `clock_ns`: ROS
+  time, which follows /clock under `use_sim_time`): timers (`start_timer`), rates
+  (`rate_meter`), throttles, diagnostics; wall time only for latencies. Before the first
+  /clock message the clock reads 0.
 
 Thread counts are not set here (`threads.set_torch_threads` belongs to entry points).
 """
@@ -47,6 +50,7 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar
 
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock
 from rclpy.event_handler import (
     PublisherEventCallbacks,
     QoSOfferedIncompatibleQoSInfo,
@@ -70,7 +74,7 @@ from rclpy.subscription import Subscription
 from rclpy.timer import Timer
 
 from lompr_predictor.errors import LomprError
-from lompr_predictor.monitoring import Level, LogThrottle, RejectionCounter, Status
+from lompr_predictor.monitoring import Level, LogThrottle, RateMeter, RejectionCounter, Status
 from lompr_predictor.ros.common import DiagnosticsPublisher
 from lompr_predictor.ros.parameters import (
     ParameterSpec,
@@ -158,7 +162,7 @@ class NodeBase(_NodeType, Generic[S]):
         super().__init__(*args, **kwargs)
         self.callback_failures = 0
         self.last_callback_failure = ''
-        self.log_throttle = LogThrottle(DEFAULT_THROTTLE_PERIOD)
+        self.log_throttle = LogThrottle(DEFAULT_THROTTLE_PERIOD, clock=self.clock_seconds)
         self._specs: dict[str, ParameterSpec] = {}
         #: Incompatible-QoS events by endpoint ('<topic> <publisher|subscription>').
         self.incompatible_qos = RejectionCounter()
@@ -271,12 +275,14 @@ class NodeBase(_NodeType, Generic[S]):
             self.incompatible_qos.add(f'{topic} {kind}', max(int(event.total_count_change), 1))
             self.last_incompatible_qos = f'{topic} {kind}: {policy}'
             self.warn_throttled(f'incompatible QoS {topic} {kind}', (
-                f'a {peer} incompatible QoS on {topic} cannot be matched with this node\'s '
+                f"a {peer} incompatible QoS on {topic} cannot be matched with this node's "
                 f'{kind} (policy: {policy}); see qos_overrides.{topic}.{kind}.*'))
         return handle
 
     def incompatible_qos_peers(self) -> list[str]:
         """Endpoints of this node with a peer in the graph whose QoS cannot match."""
+        live = {id(entity) for entity in (*self.publishers, *self.subscriptions)}
+        self._endpoints = [entity for entity in self._endpoints if id(entity) in live]
         found = []
         for entity in self._endpoints:
             topic = entity.topic_name
@@ -312,17 +318,29 @@ class NodeBase(_NodeType, Generic[S]):
             return Status(Level.WARN, f'incompatible QoS: {where}', values)
         return Status(Level.OK, 'every matched peer has compatible QoS', values)
 
-    def clock_ns(self) -> int:
-        """The node's clock (ROS time; sim time under /clock) in integer ns."""
-        return self.get_clock().now().nanoseconds
-
     def _qos_error(self, endpoint: Endpoint, topic: str, err: Exception) -> QosOverrideError:
         prefix = endpoint.parameter_prefix(self.resolve_topic_name(topic))
         return QosOverrideError(f'{prefix}.*: {err}')
 
-    def start_timer(self, period: float, where: str, callback: Callable[[], None]) -> Timer:
-        """A timer of the node's clock whose callback runs through `guard`."""
-        return self.create_timer(period, self.guard(where, callback))
+    def start_timer(self, period: float, where: str, callback: Callable[[], None], *,
+                    clock: Clock | None = None) -> Timer:
+        """A timer of the node's clock (or `clock`) whose callback runs through `guard`."""
+        return self.create_timer(period, self.guard(where, callback), clock=clock)
+
+    # -- time -------------------------------------------------------------------------------
+
+    def clock_seconds(self) -> float:
+        """The node's clock now [s]: ROS time, /clock under use_sim_time (0 before the first
+        /clock message), else the system time."""
+        return self.clock_ns() * 1e-9
+
+    def clock_ns(self) -> int:
+        """The node's clock now in integer ns (the same clock as `clock_seconds`)."""
+        return self.get_clock().now().nanoseconds
+
+    def rate_meter(self, window: float) -> RateMeter:
+        """A `RateMeter` over `window` seconds of the node's clock."""
+        return RateMeter(window, clock=self.clock_seconds)
 
     # -- the callback-exception policy ------------------------------------------------------
 

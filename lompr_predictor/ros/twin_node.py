@@ -8,10 +8,19 @@ after that instant, waited longer than `compensation_timeout`, is off the sample
 non-finite or larger than `max_compensation`. For scoring it publishes, per sample, its true
 error (tool tip - reference) and its plant error (tool tip - reference - offset applied).
 
-Modes: `realtime` runs a sample every sample period divided by `speed_factor`; `lockstep`
-runs the next sample as soon as its offset has arrived, or `lockstep_timeout` seconds after
-the previous sample without one, so a closed loop runs as fast as the nodes answer. The
-physics is `twin.DigitalTwin`, one sample per step.
+Modes: `realtime` runs a sample every sample period divided by `speed_factor` (faster or
+slower than real time); `lockstep` runs the next sample as soon as its offset has arrived,
+or `lockstep_timeout` wall seconds after the previous sample without one (`answer_timeout`
+once the previous sample had its offset: an answer is expected), so a closed loop runs as
+fast as the nodes answer. The physics is `twin.DigitalTwin`, one sample per step.
+
+Time: with `publish_clock` the twin is the simulation's clock, as Gazebo or Isaac Sim are:
+it publishes each sample's instant on /clock before the sample, so nodes run with
+`use_sim_time:=true` (in their own processes) live on its time, and it paces itself on the
+steady (wall) clock. Without it, a realtime twin runs on its node's clock (an external
+/clock under use_sim_time), and lockstep waits on the steady clock. `wait_for_subscribers`
+holds the first sample until the nodes are there; `run_log` writes every sample the twin
+ran (`twin.run_log`) when its passes are done.
 """
 
 from __future__ import annotations
@@ -24,13 +33,15 @@ from typing import Any
 
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock as ClockMessage
 from sensor_msgs.msg import JointState
 
 from lompr_predictor.monitoring import (
     LatencyRecorder,
     Level,
-    RateMeter,
     Status,
     latency_values,
     rejection_values,
@@ -50,6 +61,7 @@ from lompr_predictor.stamps import ns_to_sec_nanosec, stamp_to_ns
 from lompr_predictor.twin.compensation import CompensationSchedule
 from lompr_predictor.twin.digital_twin import DigitalTwin, TwinSamples
 from lompr_predictor.twin.parameters import load_twin_parameters
+from lompr_predictor.twin.run_log import RunLog, write_run_log
 
 NODE_NAME = 'twin_node'
 MODES = ('realtime', 'lockstep')
@@ -70,14 +82,38 @@ class TwinNodeSettings:
                           minimum=0, maximum=2 ** 31 - 1, read_only=True)
     passes: int = parameter(0, 'passes to run before stopping; 0: run until shut down',
                             minimum=0, maximum=1_000_000, read_only=True)
+    samples: int = parameter(0, 'samples to run before stopping, if not 0 (a run shorter '
+                             'than a pass); 0: passes decide', minimum=0,
+                             maximum=1_000_000_000, read_only=True)
     mode: str = parameter('realtime', 'realtime (a sample per period / speed_factor) or '
                           'lockstep (a sample when its compensation arrived, or after '
                           'lockstep_timeout)', choices=MODES, read_only=True)
-    speed_factor: float = parameter(1.0, 'realtime mode: simulated seconds per wall second',
-                                    minimum=0.01, maximum=1000.0, read_only=True)
+    speed_factor: float = parameter(1.0, 'realtime mode: simulated seconds per second of '
+                                    'the clock it runs on (wall with publish_clock, else the '
+                                    "node's)", minimum=0.01, maximum=1000.0, read_only=True)
+    publish_clock: bool = parameter(
+        False, "publish each sample's instant on clock_topic before the sample: the twin is "
+        'the simulation clock (run the other nodes with use_sim_time:=true) and paces itself '
+        'on the steady clock', read_only=True)
+    clock_topic: str = parameter('/clock', 'rosgraph_msgs/Clock output (publish_clock)',
+                                 read_only=True)
+    wait_for_subscribers: int = parameter(
+        0, 'run no sample until the joint state and reference outputs each have this many '
+        'subscriptions matched (and, in lockstep, the compensation input a publisher): a '
+        'simulator started before its nodes loses no sample; 0: start at once', minimum=0,
+        maximum=1000, read_only=True)
+    run_log: str = parameter(
+        '', 'if set, the .npz file every sample run is written to once the passes (samples) '
+        'are done (twin.run_log: true and plant error, offsets applied, answered or not)',
+        read_only=True)
     lockstep_timeout: float = parameter(
         0.1, "lockstep mode: wall seconds to wait for the next sample's compensation before "
         'running it without', minimum=0.001, maximum=60.0, read_only=True)
+    answer_timeout: float = parameter(
+        0.0, 'lockstep mode: wall seconds to wait instead when the previous sample had its '
+        'compensation (the predictor answers: a late answer is a loaded machine, not a '
+        'predictor filling its window); 0: lockstep_timeout', minimum=0.0, maximum=60.0,
+        read_only=True)
     compensation_enabled: bool = parameter(
         True, 'apply /lompr/compensation offsets (false: count and ignore them)',
         read_only=True)
@@ -117,7 +153,10 @@ PLANT_ERROR = Endpoint('publisher', Vector3Stamped, 'plant_error_topic', OUTPUT_
 #: Reliable: in lockstep each offset lets the twin run one more sample.
 COMPENSATION = Endpoint('subscription', Vector3Stamped, 'compensation_topic',
                         COMMAND_INPUT_QOS, 'compensation')
-ENDPOINTS = (JOINT_STATES, REFERENCE, TRUE_ERROR, PLANT_ERROR, COMPENSATION)
+#: Reliable; a node's time source subscribes best effort, depth 1 (rclpy, rclcpp).
+CLOCK = Endpoint('publisher', ClockMessage, 'clock_topic',
+                 QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE), 'clock')
+ENDPOINTS = (JOINT_STATES, REFERENCE, TRUE_ERROR, PLANT_ERROR, COMPENSATION, CLOCK)
 
 
 class TwinNode(NodeBase[TwinNodeSettings], Node):
@@ -130,7 +169,7 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
         params = load_twin_parameters(settings.twin_parameters_file or None)
         self.twin = DigitalTwin(description, params, seed=settings.seed, path=settings.path)
         period = params.sample_period
-        self.total_samples = settings.passes * len(self.twin.cycle) or None
+        self.total_samples = settings.samples or settings.passes * len(self.twin.cycle) or None
         self.schedule = CompensationSchedule(
             self.twin.epoch_ns, self.twin.period_ns,
             timeout_samples=int(settings.compensation_timeout / period),
@@ -138,28 +177,37 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
         self.ignored_compensations = 0
         self._rejected_at_last_report = 0
         self.step_time = LatencyRecorder()
-        self.sample_rate = RateMeter(settings.rate_window)
+        self.sample_rate = self.rate_meter(settings.rate_window)
         self._last_step = time.monotonic()
+        self._last_answered = False
+        self.log = RunLog()  # kept only for a bounded run that writes it (run_log)
+        self._logging = bool(settings.run_log) and self.total_samples is not None
+        self._audience = settings.wait_for_subscribers == 0
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
 
         self._joint_publisher = self.advertise(JOINT_STATES)
         self._reference_publisher = self.advertise(REFERENCE)
         self._true_error_publisher = self.advertise(TRUE_ERROR)
         self._plant_error_publisher = self.advertise(PLANT_ERROR)
         self._compensation_subscription = self.subscribe(COMPENSATION, self.on_compensation)
-        if settings.mode == 'realtime':
-            self._timer = self.start_timer(period / settings.speed_factor, 'step', self.step)
+        self._clock_publisher = self.advertise(CLOCK) if settings.publish_clock else None
+        if settings.mode == 'realtime':  # the twin as the clock paces itself on wall time
+            self._timer = self.start_timer(period / settings.speed_factor, 'step', self.step,
+                                           clock=steady if settings.publish_clock else None)
         else:
             self._timer = self.start_timer(settings.lockstep_timeout / 4.0, 'lockstep timer',
-                                           self._on_lockstep_timer)
+                                           self._on_lockstep_timer, clock=steady)
         self._diagnostics = self.start_diagnostics(
             settings.diagnostics_topic, settings.diagnostics_period,
             hardware_id=f'lompr twin seed {settings.seed}')
         self._diagnostics.add('simulation', self.simulation_status)
         self._diagnostics.add('compensation', self.compensation_status)
         self.get_logger().info(
-            f'twin: {settings.path}, {settings.passes or "endless"} passes, seed {settings.seed}, '
-            f'{settings.mode}' + (f' x{settings.speed_factor:g}' if settings.mode == 'realtime'
-                                  else f' (timeout {settings.lockstep_timeout:g} s)'))
+            f'twin: {settings.path}, {self.total_samples or "endless"} samples, seed '
+            f'{settings.seed}, {settings.mode}'
+            + (f' x{settings.speed_factor:g}' if settings.mode == 'realtime'
+               else f' (timeout {settings.lockstep_timeout:g} s)')
+            + (f', publishing {settings.clock_topic}' if settings.publish_clock else ''))
 
     @property
     def finished(self) -> bool:
@@ -177,24 +225,70 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
             self.step()
 
     def _on_lockstep_timer(self) -> None:
-        if time.monotonic() - self._last_step >= self.settings.lockstep_timeout:
+        settings = self.settings
+        timeout = (settings.answer_timeout if self._last_answered and settings.answer_timeout
+                   else settings.lockstep_timeout)
+        if time.monotonic() - self._last_step >= timeout:
             self.step()
+
+    def audience_ready(self) -> bool:
+        """Whether the nodes `wait_for_subscribers` asks for are there (once true, true)."""
+        if not self._audience:
+            need = self.settings.wait_for_subscribers
+            self._audience = (
+                self._joint_publisher.get_subscription_count() >= need
+                and self._reference_publisher.get_subscription_count() >= need
+                and (self.settings.mode != 'lockstep'
+                     or self._compensation_subscription.get_publisher_count() >= 1))
+            if self._audience:
+                self.get_logger().info('twin: the nodes are there, starting')
+        return self._audience
 
     def step(self) -> None:
         """Run and publish the next sample."""
-        if self.finished:
+        if self.finished or not self.audience_ready():
             return
+        schedule = self.schedule
+        missing, stale = schedule.missing, schedule.rejected['stale']
         with self.step_time.measure():
-            offset = self.schedule.take(self.twin.next_index)
+            offset = schedule.take(self.twin.next_index)
             samples = self.twin.step(1, offset[None])
+        answered = schedule.missing == missing and schedule.rejected['stale'] == stale
+        self._last_answered = answered
+        if self._logging:
+            self.log.add(samples, answered)
+        else:
+            self._count(answered)
         self._publish(samples)
         self._last_step = time.monotonic()
         self.sample_rate.tick()
         if self.finished:
-            self.get_logger().info(f'twin: {self.settings.passes} passes done')
+            self.get_logger().info(f'twin: {self.total_samples} samples done')
+            if self._logging:
+                write_run_log(self.settings.run_log, self.log, self._document())
+                self.get_logger().info(f'twin: run written to {self.settings.run_log}')
+
+    def _count(self, answered: bool) -> None:
+        """The run log's answered counters, without keeping the samples."""
+        log = self.log
+        if answered and log.first_answered is None:
+            log.first_answered = self.twin.next_index - 1
+        elif not answered and log.first_answered is not None:
+            log.unanswered_after_first += 1
+
+    def _document(self) -> dict[str, object]:
+        settings, twin, schedule = self.settings, self.twin, self.schedule
+        return {'path': settings.path, 'seed': settings.seed, 'mode': settings.mode,
+                'sample_period': twin.params.sample_period, 'epoch_ns': twin.epoch_ns,
+                'cycle': len(twin.cycle), 'offsets_applied': schedule.applied,
+                'samples_without_offset': schedule.missing,
+                'offsets_dropped': schedule.rejected.counts(),
+                'ignored_compensations': self.ignored_compensations}
 
     def _publish(self, samples: TwinSamples) -> None:
         stamp = self._stamp(int(samples.stamps[0]))
+        if self._clock_publisher is not None:  # the sample's instant, before the sample
+            self._clock_publisher.publish(ClockMessage(clock=stamp))
         joints = JointState()
         joints.header.stamp = stamp
         joints.name = list(MEASURED_JOINTS)
@@ -250,6 +344,8 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
         values: dict[str, object] = {
             'enabled': self.settings.compensation_enabled,
             'applied_total': schedule.applied, 'missing_total': schedule.missing,
+            'first_answered_sample': self.log.first_answered,
+            'unanswered_after_first': self.log.unanswered_after_first,
             'pending': schedule.pending, 'ignored_total': self.ignored_compensations,
             **rejection_values(schedule.rejected),
         }

@@ -50,8 +50,7 @@ def true_error_floor(sim: Simulation, horizon: int) -> dict[str, float]:
     """Per axis [um], the RMS of the twin's true error that no causal compensator removes at
     this horizon: the drift's innovations over it (measurement noise does not move the
     tool). It is the twin's irreducible RMSE with the noise taken out."""
-    noiseless = dataclasses.replace(sim, error_measured=sim.error_true)
-    floor = irreducible_rmse(noiseless, horizon) * 1e6
+    floor = irreducible_rmse(sim, horizon, measured=False) * 1e6
     return {axis: float(floor[i]) for i, axis in enumerate(TARGETS)}
 
 

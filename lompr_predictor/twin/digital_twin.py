@@ -57,12 +57,15 @@ class DigitalTwin:
     """The LOMPR running a path pass after pass under the twin's error physics."""
 
     def __init__(self, description: RobotDescription, params: TwinParameters, *, seed: int,
-                 path: str = 'spiral', epoch_ns: int = EPOCH_NS) -> None:
+                 machine_seed: int | None = None, path: str = 'spiral',
+                 epoch_ns: int = EPOCH_NS) -> None:
+        """`machine_seed` draws the per-branch tolerances (default: `seed`), `seed` the
+        drift and the noise."""
         self.description = description
         self.params = params
         self.seed = int(seed)
         self.cycle: PathCycle = build_cycle(path, params.path, params.sample_period)
-        self.plant = TwinPlant(description.geometry, params, seed)
+        self.plant = TwinPlant(description.geometry, params, seed, machine_seed)
         self.epoch_ns = int(epoch_ns)
         self.period_ns = period_ns(params.sample_period)
         self.next_index = 0

@@ -1,8 +1,11 @@
 """Parameters of the digital twin, read from YAML (`config/twin.yaml` holds the defaults).
 
-A user file overrides any subset of the packaged defaults, section by section; an unknown
-section or key, a wrong type or a non-positive value where a positive one is needed is a
-`TwinParameterError` naming the key. The meaning and unit of every value is documented in
+Parameters are layered: the packaged defaults, then optionally a preset (a packaged override
+file `config/presets/<name>.yaml`: one machine of the family a real LOMPR belongs to, see
+`preset_names`), then optionally a user file; each layer overrides any subset of the one
+below, section by section. An unknown section or key, a wrong type or a value out of range
+is a `TwinParameterError` naming the key; an unknown preset is an `UnknownPresetError`
+listing the valid ones. The meaning and unit of every value is documented in
 `config/twin.yaml`; the dataclasses below mirror it field for field.
 """
 
@@ -23,7 +26,8 @@ from lompr_predictor.robot.paths import PathConfig
 #: The error sources, in the order the plant applies them; each is a YAML section with
 #: `enabled`. The last three act only on the reported (measured) values.
 SOURCES: tuple[str, ...] = (
-    'servo', 'friction', 'elastic', 'head', 'drift', 'noise', 'quantisation')
+    'servo', 'backlash', 'friction', 'elastic', 'head', 'thermal', 'drift', 'noise',
+    'quantisation')
 
 
 class TwinParameterError(LomprError):
@@ -33,6 +37,15 @@ class TwinParameterError(LomprError):
         self.source = source
         self.reason = reason
         super().__init__(f'twin parameters {source}: {reason}')
+
+
+class UnknownPresetError(LomprError):
+    """A twin preset name that is not packaged."""
+
+    def __init__(self, name: str, valid: tuple[str, ...]) -> None:
+        self.name = name
+        self.valid = valid
+        super().__init__(f'unknown preset {name!r}; valid: {", ".join(valid)}')
 
 
 @dataclass(frozen=True)
@@ -45,12 +58,21 @@ class ServoParameters:
 
 
 @dataclass(frozen=True)
+class BacklashParameters:
+    enabled: bool
+    play: float  # nominal lost motion of a branch's transmission [m]
+    play_tolerance: float  # relative spread of the play between branches [-]
+
+
+@dataclass(frozen=True)
 class FrictionParameters:
     enabled: bool
     coulomb_force: float  # F0 [N]
     load_coefficient: float  # mu [-]
-    viscous_coefficient: float  # b [N s/m]
+    static_ratio: float  # Fs / Fc, breakaway over Coulomb friction [-]
     stribeck_velocity: float  # v_s [m/s]
+    viscous_coefficient: float  # b [N s/m]
+    smoothing_velocity: float  # v_e [m/s]
     servo_stiffness: float  # k [N/m]
 
 
@@ -71,6 +93,15 @@ class HeadParameters:
     primary_cyclic_phase: float  # [rad]
     secondary_offset: float  # [rad]
     secondary_scale: float  # [-]
+
+
+@dataclass(frozen=True)
+class ThermalParameters:
+    enabled: bool
+    amplitude: float  # steady elongation at the reference speed [m]
+    amplitude_tolerance: float  # relative spread of the amplitude between branches [-]
+    reference_speed: float  # [m/s]
+    time_constant: float  # [s]
 
 
 @dataclass(frozen=True)
@@ -101,9 +132,11 @@ class TwinParameters:
     sample_period: float
     path: PathConfig
     servo: ServoParameters
+    backlash: BacklashParameters
     friction: FrictionParameters
     elastic: ElasticParameters
     head: HeadParameters
+    thermal: ThermalParameters
     drift: DriftParameters
     noise: NoiseParameters
     quantisation: QuantisationParameters
@@ -131,8 +164,13 @@ _CASTS = {'float': float, 'int': int, 'bool': bool}
 #: Values of any sign (offsets, phases, scale errors); `_NON_NEGATIVE` ones may be zero;
 #: every other number must be positive.
 _SIGNED = {'primary_offset', 'primary_cyclic_phase', 'secondary_offset', 'secondary_scale'}
-_NON_NEGATIVE = {'primary_cyclic_amplitude', 'branch_tolerance', 'coulomb_force',
-                 'load_coefficient', 'viscous_coefficient', 'velocity_feedforward'}
+_NON_NEGATIVE = {'primary_cyclic_amplitude', 'coulomb_force', 'load_coefficient',
+                 'viscous_coefficient', 'velocity_feedforward', 'amplitude'}
+#: Relative spreads between branches, drawn in [-1, 1] times the value: below 1, so that a
+#: drawn gain, time constant, play or thermal amplitude keeps its sign.
+_FRACTIONS = {'branch_tolerance', 'play_tolerance', 'amplitude_tolerance'}
+#: Values that are ratios of a larger to a smaller force: at least 1.
+_AT_LEAST_ONE = {'static_ratio'}
 
 
 def _yaml_number(value: Any) -> Any:
@@ -165,22 +203,45 @@ def _build(cls: type, values: Mapping[str, Any], where: str, source: str) -> Any
             raise TwinParameterError(source, f'{where}.{name} must be a number, got {value!r}')
         if cast is not bool and name in _NON_NEGATIVE and not value >= 0:
             raise TwinParameterError(source, f'{where}.{name} must be >= 0, got {value!r}')
-        if cast is not bool and name not in _SIGNED | _NON_NEGATIVE and not value > 0:
+        if cast is not bool and name in _FRACTIONS and not 0 <= value < 1:
+            raise TwinParameterError(source, f'{where}.{name} must be in [0, 1), got {value!r}')
+        if cast is not bool and name in _AT_LEAST_ONE and not value >= 1:
+            raise TwinParameterError(source, f'{where}.{name} must be >= 1, got {value!r}')
+        if cast is not bool and name not in (_SIGNED | _NON_NEGATIVE | _FRACTIONS
+                                             | _AT_LEAST_ONE) and not value > 0:
             raise TwinParameterError(source, f'{where}.{name} must be positive, got {value!r}')
         built[name] = cast(value)
     return cls(**built)
 
 
 _SECTIONS: dict[str, type] = {
-    'path': PathConfig, 'servo': ServoParameters, 'friction': FrictionParameters,
-    'elastic': ElasticParameters, 'head': HeadParameters, 'drift': DriftParameters,
-    'noise': NoiseParameters, 'quantisation': QuantisationParameters,
+    'path': PathConfig, 'servo': ServoParameters, 'backlash': BacklashParameters,
+    'friction': FrictionParameters, 'elastic': ElasticParameters, 'head': HeadParameters,
+    'thermal': ThermalParameters, 'drift': DriftParameters, 'noise': NoiseParameters,
+    'quantisation': QuantisationParameters,
 }
 
 
 def default_parameters_path() -> Path:
     """The packaged `config/twin.yaml`."""
     return Path(str(resources.files('lompr_predictor') / 'config' / 'twin.yaml'))
+
+
+def _presets_folder() -> Path:
+    return Path(str(resources.files('lompr_predictor') / 'config' / 'presets'))
+
+
+def preset_names() -> tuple[str, ...]:
+    """Names of the packaged presets (`config/presets/<name>.yaml`), sorted."""
+    return tuple(sorted(path.stem for path in _presets_folder().glob('*.yaml')))
+
+
+def preset_path(name: str) -> Path:
+    """The override file of preset `name`; `UnknownPresetError` if there is none."""
+    names = preset_names()
+    if name not in names:
+        raise UnknownPresetError(name, names)
+    return _presets_folder() / f'{name}.yaml'
 
 
 def _read_yaml(path: Path) -> dict[str, Any]:
@@ -195,10 +256,8 @@ def _read_yaml(path: Path) -> dict[str, Any]:
     return data
 
 
-def parse_twin_parameters(overrides: Mapping[str, Any],
-                          source: str = '<mapping>') -> TwinParameters:
-    """The packaged defaults with `overrides` (nested like the YAML) applied on top."""
-    merged = _read_yaml(default_parameters_path())
+def _override(merged: dict[str, Any], overrides: Mapping[str, Any], source: str) -> None:
+    """Apply one layer of `overrides` to `merged` in place, section by section."""
     unknown = sorted(set(overrides) - set(merged))
     if unknown:
         raise TwinParameterError(source, f'unknown section(s) {unknown}; valid: '
@@ -210,6 +269,20 @@ def parse_twin_parameters(overrides: Mapping[str, Any],
             merged[key] = {**merged[key], **value}
         else:
             merged[key] = value
+
+
+def parse_twin_parameters(overrides: Mapping[str, Any], source: str = '<mapping>', *,
+                          preset: str | None = None) -> TwinParameters:
+    """The packaged defaults, then preset `preset` if given, then `overrides` (nested like
+    the YAML) on top."""
+    merged = _read_yaml(default_parameters_path())
+    layers = [source]
+    if preset is not None:
+        path = preset_path(preset)
+        _override(merged, _read_yaml(path), str(path))
+        layers.insert(0, f'preset {preset}')
+    _override(merged, overrides, source)
+    source = ' + '.join(layers)
     period = merged['sample_period']
     if isinstance(period, bool) or not isinstance(period, (int, float)) or not period > 0:
         raise TwinParameterError(source, f'sample_period must be a positive number, got {period!r}')
@@ -217,8 +290,10 @@ def parse_twin_parameters(overrides: Mapping[str, Any],
     return TwinParameters(sample_period=float(period), **sections)
 
 
-def load_twin_parameters(path: str | Path | None = None) -> TwinParameters:
-    """Twin parameters: the packaged defaults, overridden by the YAML file at `path` if given."""
+def load_twin_parameters(path: str | Path | None = None, *,
+                         preset: str | None = None) -> TwinParameters:
+    """Twin parameters: the packaged defaults, overridden by preset `preset` if given, then
+    by the YAML file at `path` if given."""
     if path is None:
-        return parse_twin_parameters({}, str(default_parameters_path()))
-    return parse_twin_parameters(_read_yaml(Path(path)), str(path))
+        return parse_twin_parameters({}, str(default_parameters_path()), preset=preset)
+    return parse_twin_parameters(_read_yaml(Path(path)), str(path), preset=preset)

@@ -7,15 +7,26 @@ forward kinematics of the actual joints puts it. Sources, each switchable (`SOUR
 - servo: per branch, the closed loop of a position loop with velocity feedforward,
   L/Lc = (kff s + Kp) / (tau s^2 + s + Kp), discretised with a first-order hold; its error
   follows the commanded velocity and acceleration, with lag;
-- friction: Coulomb (smoothed by tanh, growing with the branch's axial load, so with the
-  posture) plus viscous, against the commanded branch velocity, divided by the servo's
-  static stiffness;
+- backlash: per branch, a play operator between the servo's output and the branch: where
+  the motion reverses, the branch stands until the play is taken up (`play_operator`);
+- friction: Stribeck (a breakaway peak decaying to the Coulomb level, which grows with the
+  branch's axial load, so with the posture; its sign change smoothed by tanh) plus viscous,
+  against the commanded branch velocity, divided by the servo's static stiffness
+  (`friction_force`);
 - elastic: each branch stretches by f L / EA under its share of the gravity load, f from the
   static equilibrium of the platform in the commanded posture;
 - head: offsets, a once-per-revolution cyclic error of the primary axis, a scale error of
   the secondary axis;
+- thermal: each branch grows, first order, towards an elongation proportional to its speed
+  (branches differ in how much: equal growth would only lift the tool along Z);
 - drift: a first-order Gauss-Markov growth of each branch length (process noise);
 - noise and quantisation: on the reported (measured) joint values only.
+
+Everything but the drift and the measurement is a deterministic function of the commanded
+path's history (`PlantOutput.drift` is the only random part of the actual joints), which is
+what the twin's irreducible level rests on (`simulation.py`). The machine seed draws the
+per-branch tolerances (servo gains and time constants, play, thermal amplitude), the run
+seed the drift and the noise, so two runs of one machine differ in drift and noise only.
 
 `TwinPlant.advance` takes any number of samples at once and carries every state (filter
 states, last command, drift, the primary head angle's winding) to the next call, so the
@@ -56,6 +67,42 @@ def servo_filter(params: TwinParameters, position_gain: float,
     denominator = [velocity_time_constant, 1.0, position_gain]
     b, a, _ = signal.cont2discrete((numerator, denominator), params.sample_period, method='foh')
     return np.ravel(b), np.ravel(a)
+
+
+def play_operator(motor: np.ndarray, play: np.ndarray, state: np.ndarray) -> np.ndarray:
+    """(N, B) branch positions behind a play of width `play` (B,) [m] from (N, B) motor-side
+    positions: each stays where it is while within play / 2 of the motor side and is dragged
+    along beyond. `state` (B,) holds the positions before the block and is updated."""
+    out = np.empty_like(motor)
+    half = 0.5 * np.asarray(play, dtype=float)
+    for branch in range(motor.shape[1]):
+        position, width = float(state[branch]), float(half[branch])
+        column = out[:, branch]
+        for k, target in enumerate(motor[:, branch].tolist()):
+            position = min(max(position, target - width), target + width)
+            column[k] = position
+        state[branch] = position
+    return out
+
+
+def friction_force(velocity: np.ndarray, coulomb: np.ndarray | float, static_ratio: float,
+                   stribeck_velocity: float, viscous: float,
+                   smoothing_velocity: float) -> np.ndarray:
+    """Stribeck friction force [N] at branch velocity `velocity` [m/s] with Coulomb level
+    `coulomb` [N]: (Fc + (Fs - Fc) exp(-(v / v_s)^2)) tanh(v / v_e) + b v, Fs = ratio Fc."""
+    level = coulomb * (1.0 + (static_ratio - 1.0) * np.exp(-(velocity / stribeck_velocity) ** 2))
+    return level * np.tanh(velocity / smoothing_velocity) + viscous * velocity
+
+
+def thermal_growth(speed: np.ndarray, amplitude: np.ndarray, reference_speed: float,
+                   decay: float, state: np.ndarray) -> np.ndarray:
+    """(N, B) elongations [m] of branches moving at (N, B) speeds [m/s]: first order with
+    per-sample decay `decay`, towards `amplitude` (B,) [m] times speed / `reference_speed`.
+    `state` (B,) holds the elongations before the block and is updated."""
+    heat = (1.0 - decay) * np.asarray(amplitude) / reference_speed * speed
+    growth, _ = signal.lfilter([1.0], [1.0, -decay], heat, axis=0, zi=decay * state[None])
+    state[:] = growth[-1]
+    return growth
 
 
 def rotation_matrices(up: np.ndarray) -> np.ndarray:
@@ -107,20 +154,32 @@ def gravity_axial_forces(geometry: LomprGeometry, up: np.ndarray, weight: float,
 class TwinPlant:
     """The LOMPR's joints under the twin's error physics, advanced block by block."""
 
-    def __init__(self, geometry: LomprGeometry, params: TwinParameters, seed: int) -> None:
+    def __init__(self, geometry: LomprGeometry, params: TwinParameters, seed: int,
+                 machine_seed: int | None = None) -> None:
+        """`machine_seed` draws the per-branch tolerances (default: `seed`), `seed` the drift
+        and the noise."""
         self.geometry = geometry
         self.params = params
         self.seed = int(seed)
-        tolerance_rng, self._drift_rng, self._noise_rng = (
-            np.random.default_rng(s) for s in np.random.SeedSequence(self.seed).spawn(3))
+        self.machine_seed = self.seed if machine_seed is None else int(machine_seed)
+        tolerance_rng = np.random.default_rng(
+            np.random.SeedSequence(self.machine_seed).spawn(3)[0])
+        self._drift_rng, self._noise_rng = (
+            np.random.default_rng(s) for s in np.random.SeedSequence(self.seed).spawn(3)[1:])
         spread = params.servo.branch_tolerance * tolerance_rng.uniform(-1.0, 1.0, (N_BRANCHES, 2))
         self.branch_gains = params.servo.position_gain * (1.0 + spread[:, 0])
         self.branch_time_constants = params.servo.velocity_time_constant * (1.0 + spread[:, 1])
+        self.branch_play = params.backlash.play * (
+            1.0 + params.backlash.play_tolerance * tolerance_rng.uniform(-1.0, 1.0, N_BRANCHES))
+        thermal = params.thermal
+        self.branch_thermal_amplitudes = thermal.amplitude * (
+            1.0 + thermal.amplitude_tolerance * tolerance_rng.uniform(-1.0, 1.0, N_BRANCHES))
         self._filters = [servo_filter(params, gain, tau) for gain, tau in
                          zip(self.branch_gains, self.branch_time_constants, strict=False)]
         drift = params.drift
         self.drift_decay = float(np.exp(-params.sample_period / drift.time_constant))
         self._drift_innovation = drift.standard_deviation * np.sqrt(1.0 - self.drift_decay ** 2)
+        self.thermal_decay = float(np.exp(-params.sample_period / params.thermal.time_constant))
         self._noise_std = np.array([params.noise.length_std] * N_BRANCHES
                                    + [params.noise.angle_std] * 2)
         self._steps = np.array([params.quantisation.length_step] * N_BRANCHES
@@ -131,6 +190,8 @@ class TwinPlant:
         """Back to rest before the first sample (the random streams continue)."""
         self._filter_states: list[np.ndarray] | None = None
         self._last_lengths: np.ndarray | None = None
+        self._play_state: np.ndarray | None = None
+        self._thermal_state = np.zeros(N_BRANCHES)
         self._drift_state: np.ndarray | None = None
         self.theta1 = 0.0
 
@@ -149,6 +210,11 @@ class TwinPlant:
         velocity = (lengths - previous) / self.params.sample_period
         if self.params.servo.enabled:
             actual[:, :N_BRANCHES] = self._servo(lengths)
+        if self.params.backlash.enabled:
+            if self._play_state is None:
+                self._play_state = actual[0, :N_BRANCHES].copy()
+            actual[:, :N_BRANCHES] = play_operator(actual[:, :N_BRANCHES], self.branch_play,
+                                                   self._play_state)
         elastic = self.params.elastic
         axial = np.zeros_like(lengths)
         if elastic.enabled or self.params.friction.enabled:
@@ -161,6 +227,10 @@ class TwinPlant:
             actual[:, :N_BRANCHES] += axial * lengths / self.params.elastic.axial_stiffness
         if self.params.head.enabled:
             actual[:, 3:] += self._head_error(commanded[:, 3:])
+        if self.params.thermal.enabled:
+            actual[:, :N_BRANCHES] += thermal_growth(
+                np.abs(velocity), self.branch_thermal_amplitudes,
+                self.params.thermal.reference_speed, self.thermal_decay, self._thermal_state)
         drift = np.zeros_like(commanded)
         if self.params.drift.enabled:
             drift[:, :N_BRANCHES] = self._drift(len(tips))
@@ -181,8 +251,9 @@ class TwinPlant:
     def _friction_force(self, velocity: np.ndarray, axial: np.ndarray) -> np.ndarray:
         friction = self.params.friction
         coulomb = friction.coulomb_force + friction.load_coefficient * np.abs(axial)
-        return coulomb * np.tanh(velocity / friction.stribeck_velocity) + (
-            friction.viscous_coefficient * velocity)
+        return friction_force(velocity, coulomb, friction.static_ratio,
+                              friction.stribeck_velocity, friction.viscous_coefficient,
+                              friction.smoothing_velocity)
 
     def _head_error(self, head: np.ndarray) -> np.ndarray:
         p = self.params.head

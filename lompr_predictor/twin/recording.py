@@ -7,15 +7,16 @@ section 2). Beside the bag's own files:
 
 - `lompr_ground_truth.npz`: per sample of the clean run (before faults), `stamps` (N,) int64
   ns; `reference`, `compensation`, `error_true`, `error_deterministic`, `error_measured`
-  (N, 3) m, columns x, y, z; `joints_commanded`, `joints_actual`, `joints_measured` (N, 5),
-  columns `joint_names`; `in_pass` (N,) bool (False on the returns), `pass_index` (N,);
+  (N, 3) m, columns x, y, z; `joints_commanded`, `joints_actual`, `joints_measured`,
+  `joints_drift` (N, 5), columns `joint_names`; `in_pass` (N,) bool (False on the
+  returns), `pass_index` (N,);
   `irreducible_horizons` (H,) samples and `irreducible_rmse` (H, 2) m, X/Y.
 - `lompr_error.png`: the measured and true X/Y error of the first passes over time, and
   against the path radius.
-- `lompr_ground_truth.json`: the run (path, passes, seed, sample period, epoch, sample
-  count, robot description sha256, every twin parameter, the enabled sources), the error
-  amplitude (peak and RMS per axis, um), the irreducible RMSE per axis by horizon, and the
-  faults injected (counts and the stamps hit).
+- `lompr_ground_truth.json`: the run (path, passes, seed, machine seed, preset, sample
+  period, epoch, sample count, robot description sha256, every twin parameter, the enabled
+  sources), the error amplitude (peak and RMS per axis, um), the irreducible RMSE per axis
+  by horizon, and the faults injected (counts and the stamps hit).
 
 rosbag2 readers (and `bags.read_recording`) ignore files the metadata does not list. The
 directory is assembled beside its destination and renamed into place.
@@ -79,8 +80,8 @@ def to_recording(sim: Simulation, faults: FaultSpec | None = None,
 
 
 def ground_truth(sim: Simulation, params: TwinParameters, description_sha256: str,
-                 faults: FaultSpec, logs: dict[str, FaultLog]) -> tuple[dict[str, np.ndarray],
-                                                                       dict[str, Any]]:
+                 faults: FaultSpec, logs: dict[str, FaultLog],
+                 preset: str | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """(arrays for the .npz, document for the .json) of a simulation."""
     irreducible = np.array([irreducible_rmse(sim, h) for h in IRREDUCIBLE_HORIZONS])
     arrays = {
@@ -88,13 +89,14 @@ def ground_truth(sim: Simulation, params: TwinParameters, description_sha256: st
         'error_true': sim.error_true, 'error_deterministic': sim.error_deterministic,
         'error_measured': sim.error_measured, 'joints_commanded': sim.joints_commanded,
         'joints_actual': sim.joints_actual, 'joints_measured': sim.joints_measured,
-        'joint_names': np.array(MEASURED_JOINTS), 'in_pass': sim.in_pass,
-        'pass_index': sim.pass_index,
+        'joints_drift': sim.joints_drift, 'joint_names': np.array(MEASURED_JOINTS),
+        'in_pass': sim.in_pass, 'pass_index': sim.pass_index,
         'irreducible_horizons': np.array(IRREDUCIBLE_HORIZONS), 'irreducible_rmse': irreducible,
     }
     document = {
         'format': 'lompr_ground_truth', 'format_version': GROUND_TRUTH_FORMAT,
         'path': sim.path, 'passes': sim.passes, 'seed': sim.seed,
+        'machine_seed': sim.machine_seed, 'preset': preset,
         'sample_period': sim.sample_period, 'samples': len(sim.stamps),
         'first_stamp_ns': int(sim.stamps[0]), 'robot_description_sha256': description_sha256,
         'enabled_sources': list(params.enabled_sources), 'parameters': params.as_dict(),
@@ -105,7 +107,9 @@ def ground_truth(sim: Simulation, params: TwinParameters, description_sha256: st
             for h, (x, y) in zip(IRREDUCIBLE_HORIZONS, irreducible, strict=False)},
         'irreducible_note': (
             'lower bound on the RMSE of a causal prediction of error_measured, h samples '
-            'ahead: measurement noise + quantisation + drift innovations over h samples'),
+            'ahead: an oracle knowing the deterministic (path-driven) error and the drift '
+            'state misses the measurement noise, the unpredictable part of the quantisation '
+            'and the drift innovations over h samples'),
         'faults': {'spec': asdict(faults),
                    'injected': {topic: {'counts': log.counts(), **asdict(log)}
                                 for topic, log in logs.items()}},
@@ -115,16 +119,17 @@ def ground_truth(sim: Simulation, params: TwinParameters, description_sha256: st
 
 def write_simulation(out: str | Path, sim: Simulation, params: TwinParameters,
                      description_sha256: str, *, storage: str = 'mcap',
-                     faults: FaultSpec | None = None, plot: bool = True) -> Path:
+                     faults: FaultSpec | None = None, plot: bool = True,
+                     preset: str | None = None) -> Path:
     """Write the bag directory `out` with its ground-truth files (and the error plot
-    `lompr_error.png` if `plot`), atomically."""
+    `lompr_error.png` if `plot`), atomically; `preset` names the twin preset in them."""
     out = Path(out)
     if out.exists():
         msg = f'{out} already exists; choose a new directory'
         raise RecordingExistsError(msg)
     faults = faults or FaultSpec()
     recording, logs = to_recording(sim, faults, sim.seed)
-    arrays, document = ground_truth(sim, params, description_sha256, faults, logs)
+    arrays, document = ground_truth(sim, params, description_sha256, faults, logs, preset)
     with atomic_directory(out) as staged:
         bag = write_recording(staged, recording, storage=storage)
         # numpy's stub lets **arrays fill allow_pickle: bool; they are all arrays
