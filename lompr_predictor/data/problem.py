@@ -16,12 +16,19 @@ import numpy as np
 
 from lompr_predictor.data.cleaning import CleanData
 from lompr_predictor.data.features import HISTORY
+from lompr_predictor.errors import LomprError
 
 #: Defaults of the learning problem, in one place (`lompr train` uses these).
 DEFAULT_WINDOW = 25  # samples per window
 DEFAULT_HORIZON = 1  # samples between a window's last row and the predicted one
 TEST_FRACTION = 0.1  # the chronologically last part of the samples: the test part
 VALIDATION_FRACTION = 0.15  # the last part of the rest: validation (tuning, early stopping)
+
+
+class ProblemError(LomprError, ValueError):
+    """The data cannot make the learning problem asked for (too few samples for the window
+    and horizon): a user error (`lompr train` exits 2 with one line), raised before any
+    trial runs."""
 
 
 def window_ends(segments: np.ndarray, window: int, horizon: int) -> np.ndarray:
@@ -64,9 +71,10 @@ def chronological_split(n_rows: int, ends: np.ndarray, horizon: int, *,
                   validation_start=validation_start, test_start=test_start)
     for name in ('train', 'validation', 'test'):
         if len(getattr(split, name)) == 0:
-            msg = (f'no {name} windows: {n_rows} clean samples are too few for window and '
-                   f'horizon {horizon} (or the gaps leave no segment long enough)')
-            raise ValueError(msg)
+            msg = (f'no {name} windows: {n_rows} clean samples are too few for this window '
+                   f'(--window) and horizon {horizon} (--horizon), or the gaps leave no '
+                   f'segment long enough')
+            raise ProblemError(msg)
     return split
 
 

@@ -22,11 +22,13 @@ waits, and nothing is late either way. The estimate restarts when a stamp or the
 clock goes backwards (a replay looping, a simulation restarted).
 
 Policy (applied by `predictor.OnlinePredictor`): a sample whose output would be late even if
-its inference started now (already late, or late once an inference as long as the last one
-has run) enters the window (features need every sample) but gets no inference
-(`inference_skipped_late`), so samples that queued behind a slow inference are skipped to
-the newest; an inference that finishes after its instant publishes nothing for it
-(`late_outputs_dropped`).
+its inference started now (already late; or it queued, waiting more than the tolerance, and
+would be late once an inference as long as the last one has run) enters the window (features
+need every sample) but gets no inference (`inference_skipped_late`), so samples that queued
+behind a slow inference are skipped to the newest; an inference that finishes after its
+instant publishes nothing for it (`late_outputs_dropped`). A sample that did not queue is
+always inferred, so one slow inference (a stall) cannot stop the node: the duration is
+measured again on the next fresh sample.
 """
 
 from __future__ import annotations
@@ -80,9 +82,14 @@ class OverrunGuard:
         return self.lateness_ns(stamp_ns, now_ns) > self.tolerance_ns
 
     def skip(self, stamp_ns: int, now_ns: int) -> bool:
-        """Whether an inference for that sample, started at `now_ns` and as long as the
-        last one, would finish late: then it is not worth running."""
-        return self.lateness_ns(stamp_ns, now_ns) + self._inference_ns > self.tolerance_ns
+        """Whether the sample is not worth an inference: its output is late already, or it
+        queued (waited more than the tolerance) and an inference as long as the last one
+        would finish late."""
+        lateness = self.lateness_ns(stamp_ns, now_ns)
+        if lateness > self.tolerance_ns:
+            return True
+        waited = lateness + self.lead_ns
+        return waited > self.tolerance_ns and lateness + self._inference_ns > self.tolerance_ns
 
     def inference_took(self, start_ns: int, end_ns: int) -> None:
         """An inference ran from `start_ns` to `end_ns` (node clock): its duration, and

@@ -99,6 +99,10 @@ class RobotDescription:
         except OSError as err:
             msg = f'cannot read robot description {path}: {err.strerror or err}'
             raise RobotDescriptionError(msg) from err
+        except UnicodeDecodeError as err:
+            msg = (f'robot description {path} is not a URDF (XML text in UTF-8): byte '
+                   f'{err.start} is not UTF-8')
+            raise RobotDescriptionError(msg) from err
         return cls(xml, str(path))
 
     def joint_id(self, name: str) -> int:
