@@ -170,6 +170,7 @@ def test_clean_stitches_bags_and_counts_every_fault(description: RobotDescriptio
     assert data.stamps[0] == EPOCH_NS and (np.diff(data.stamps) > 0).all()
 
 
+@pytest.mark.faults
 def test_truncated_bag_is_one_clear_error(tmp_path: Path, description: RobotDescription) -> None:
     good = write_synthetic_bag(tmp_path / 'good', description.geometry, 300)
     bad = write_synthetic_bag(tmp_path / 'bad', description.geometry, 300, seed=1)

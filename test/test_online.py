@@ -180,6 +180,7 @@ def test_offset_changes_at_most_max_step_per_sample(tmp_path: Path) -> None:
                                [20e-6, 40e-6, 50e-6, 50e-6, 50e-6], atol=1e-15)
 
 
+@pytest.mark.faults
 def test_a_gap_zeroes_once_and_output_resumes_after_refill(tmp_path: Path) -> None:
     core = constant_core(tmp_path, (-10e-6, 0.0))
     stamps, reference, tips = spiral(40)
@@ -196,6 +197,7 @@ def test_a_gap_zeroes_once_and_output_resumes_after_refill(tmp_path: Path) -> No
     assert core.faults['gap'] == 1
 
 
+@pytest.mark.faults
 def test_a_clock_jumping_back_zeroes_once_and_the_restarted_run_refills(
         tmp_path: Path) -> None:
     """A simulator reset: the clock goes back to the start and the samples start again. The
@@ -233,6 +235,7 @@ def test_reset_cancels_without_a_fault_and_starts_afresh(tmp_path: Path) -> None
     assert [o.reason for o in outputs] == [''] and core.faults.total == 0
 
 
+@pytest.mark.faults
 def test_stale_input_zeroes_once(tmp_path: Path) -> None:
     clock = FakeClock()
     core = constant_core(tmp_path, (-10e-6, 0.0), clock=clock)
@@ -270,6 +273,7 @@ def test_staleness_has_a_floor_in_seconds(tmp_path: Path) -> None:
     assert [z.reason for z in core.check_stale()][:1] == ['stale']
 
 
+@pytest.mark.faults
 def test_poses_without_references_go_stale(tmp_path: Path) -> None:
     clock = FakeClock()
     core = constant_core(tmp_path, (-10e-6, 0.0), clock=clock)
@@ -289,6 +293,7 @@ def test_poses_without_references_go_stale(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize('fault', ['non_finite', 'out_of_order'])
+@pytest.mark.faults
 def test_bad_pose_zeroes_once_then_refills(tmp_path: Path, fault: str) -> None:
     core = constant_core(tmp_path, (-10e-6, 0.0))
     stamps, reference, tips = spiral(30)
@@ -307,6 +312,7 @@ def test_bad_pose_zeroes_once_then_refills(tmp_path: Path, fault: str) -> None:
     assert [o.reason for o in outputs] == ['']
 
 
+@pytest.mark.faults
 def test_duplicates_are_dropped_without_a_fault(linear_model: LoadedModel) -> None:
     core = OnlinePredictor(linear_model, stream(), limits(), FakeClock())
     stamps, reference, tips = spiral(NEEDED + 2)
@@ -343,6 +349,7 @@ def test_live_accuracy_is_rms_of_truth_minus_prediction(tmp_path: Path) -> None:
     np.testing.assert_allclose(rms, [3e-6, 6e-6], atol=1e-15)
 
 
+@pytest.mark.faults
 def test_inference_failure_zeroes_once(tmp_path: Path) -> None:
     path = save_model(tmp_path / 'failing.pt', FailingModel(threshold=0.01),
                       metadata(window=WINDOW, horizon=HORIZON))
@@ -355,6 +362,7 @@ def test_inference_failure_zeroes_once(tmp_path: Path) -> None:
     assert core.faults['inference'] > 1  # every later window fails again, silently
 
 
+@pytest.mark.faults
 def test_off_rate_input_never_fills_the_window(linear_model: LoadedModel) -> None:
     core = OnlinePredictor(linear_model, stream(), limits(), FakeClock())
     _, reference, tips = spiral(30)
@@ -377,6 +385,7 @@ EVENT = st.tuples(
 @settings(max_examples=100, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(events=st.lists(EVENT, min_size=1, max_size=40))
+@pytest.mark.faults
 def test_random_sequences_never_give_a_bad_offset(
         tmp_path: Path, events: list[tuple[str, int, float, int]]) -> None:
     path = tmp_path / 'amplified.pt'

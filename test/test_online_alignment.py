@@ -107,6 +107,7 @@ def test_duplicates_are_dropped_and_a_stamp_going_back_drops_the_waiting_poses()
     assert alignment.dropped['out_of_order'] == 3  # the pose itself and the two waiting
 
 
+@pytest.mark.faults
 def test_bad_references() -> None:
     alignment = aligned()
     alignment.add_reference(at(5), 0.0, 0.0)

@@ -253,6 +253,7 @@ def test_gap_and_staleness_zero_once(ros: RosHarness, tmp_path: Path) -> None:
     assert status['faults.gap'] == '1' and status['last_fault'] == 'stale'
 
 
+@pytest.mark.faults
 def test_mismatched_model_is_refused_naming_the_field(ros: RosHarness, tmp_path: Path) -> None:
     model = save_linear(tmp_path / 'm.pt', window=WINDOW, horizon=HORIZON, sample_period=0.004)
     with pytest.raises(MetadataMismatchError, match=r"'sample_period' is 0\.004"):
@@ -279,6 +280,7 @@ def test_mismatched_model_is_refused_naming_the_field(ros: RosHarness, tmp_path:
             Parameter('model_path', value=str(good)), Parameter('model_sha256', value='ab' * 32)])
 
 
+@pytest.mark.faults
 def test_bad_reload_keeps_the_old_model_and_good_reload_swaps_without_a_gap(
         ros: RosHarness, tmp_path: Path) -> None:
     old = save_constant(tmp_path / 'old.pt', (1e-6, 0.0), window=WINDOW, horizon=HORIZON)

@@ -46,6 +46,7 @@ def test_a_small_budget_is_mostly_bayesian() -> None:
     assert [startup_trials_for(n) for n in (1, 6, 20, 100)] == [1, 2, 6, 6]
 
 
+@pytest.mark.faults
 def test_interrupted_study_resumes_with_its_finished_trials(storage: StudyStorage) -> None:
     calls = []
 

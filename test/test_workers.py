@@ -231,6 +231,7 @@ def _check_killed_trial_retried(study: optuna.Study, killed: int, budget: int) -
 
 
 @pytest.mark.slow
+@pytest.mark.faults
 def test_a_killed_local_worker_loses_only_its_trial(tmp_path: Path, bag: Path) -> None:
     """SIGKILL one of `lompr train --workers 2`'s processes mid-trial: its trial is failed at
     once by the command watching it, its point run again, and the run ends normally."""

@@ -130,7 +130,8 @@ def run_node(
     settings such as thread counts belong. Non-ROS arguments are parsed here: `--help`
     prints `description` and `parameters_help` (lines, see `node_base.node_help`). A
     `LomprError` (a bad model, a bad QoS override), a bad parameter or topic name while the
-    node starts is printed as one line and exits with code 2.
+    node starts, or ROS arguments rcl cannot parse (`-p model_path:=`), is printed as one
+    line and exits with code 2.
     Uses the default context, whose SIGINT handler rclpy installs (a non-default context is
     not shut down by Ctrl-C), and an `events_executor` spun in `spin_once` steps of
     `SPIN_STEP` s: rclpy 7.1.6's `EventsExecutor.spin()` never returns to Python, so it
@@ -143,7 +144,14 @@ def run_node(
         epilog='\n'.join(['ROS parameters (set with --ros-args -p NAME:=VALUE or --params-file '
                            'FILE):', *parameters_help]),
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.parse_args(remove_ros_args(argv)[1:])
+    try:
+        plain_args = remove_ros_args(argv)[1:]
+    except RuntimeError as err:  # rclpy's RCLInvalidROSArgsError: '-p model_path:=' and such
+        reason = str(err).split('. Error:', 1)[0]
+        print(f'{parser.prog}: error: {reason} (an empty string is written '
+              "-p NAME:=\"''\")", file=sys.stderr)
+        return 2
+    parser.parse_args(plain_args)
     rclpy.init(args=argv)
     context = rclpy.get_default_context()
     nodes: Sequence[Node] = ()
