@@ -18,7 +18,8 @@ LOAD = ('import importlib.util, sys; '
         'assert callable(module.main)')
 
 
-@pytest.mark.parametrize('script', sorted(BENCH.glob('bench_*.py')), ids=lambda p: p.stem)
+@pytest.mark.parametrize('script', sorted([*BENCH.glob('bench_*.py'), *BENCH.glob('soak_*.py')]),
+                         ids=lambda p: p.stem)
 def test_bench_script_imports(script: Path) -> None:
     # A subprocess: the scripts set thread and ROS environment variables when imported.
     result = subprocess.run([sys.executable, '-c', LOAD, str(script)], capture_output=True,

@@ -178,8 +178,9 @@ def test_two_local_workers_share_the_default_study(tmp_path: Path, bag: Path) ->
 
 
 @pytest.mark.parametrize(('options', 'message'), [
-    (['--workers', '0'], '--workers must be >= 1, got 0'),
-    (['--storage', 'redis://localhost/0'], 'storage redis://... is not supported'),
+    (['--workers', '0'], 'argument --workers: must be an integer >= 1'),
+    (['--storage', 'redis://localhost/0'],
+     'argument --storage: storage redis://... is not supported'),
     (['--storage', 'postgresql://nobody@127.0.0.1:1/lompr'],
      'cannot reach the study storage postgresql+psycopg://nobody@127.0.0.1:1/lompr: '),
     (['--workers-only'], '--workers-only joins a study: give its --storage URL'),

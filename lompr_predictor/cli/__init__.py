@@ -49,7 +49,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `lompr` console script."""
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as stop:  # --help, or a bad argument (one line printed, code 2)
+        return stop.code if isinstance(stop.code, int) else EXIT_USAGE
     try:
         return int(args.run(args) or 0)
     except KeyboardInterrupt:
