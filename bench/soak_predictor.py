@@ -92,8 +92,24 @@ class SoakClient(bench.Client):
         for status in msg.status:
             for kv in status.values:
                 label = COUNTERS.get((status.name, kv.key))
+                if label is None and status.name == 'predictor_node: inputs' and (
+                        kv.key.startswith(('faults.', 'rejected.'))):
+                    label = f'  by reason: {kv.key}'
                 if label is not None:
                     self.counters[label] = int(kv.value)
+
+
+def _order(label: str) -> tuple[int, str]:
+    """Counters in COUNTERS' order, the predictor's faults and dropped inputs each followed
+    by their reasons."""
+    kind = 'faults_total' if ': faults.' in label else 'rejected_total'
+    for i, ((status, key), name) in enumerate(COUNTERS.items()):
+        if label == name:
+            return (2 * i, '')
+        if (label.startswith('  by reason') and key == kind
+                and status == 'predictor_node: inputs'):
+            return (2 * i + 1, label)
+    return (99, label)
 
 
 def soak(minutes: float, model: Path) -> dict[str, Any]:
@@ -168,7 +184,7 @@ def soak(minutes: float, model: Path) -> dict[str, Any]:
     latency = (client.arrival - sent)[first:] * 1e3
     answered = latency[np.isfinite(latency)]
     counts = {label: client.counters.get(label, 0) - counters_before.get(label, 0)
-              for label in COUNTERS.values()}
+              for label in sorted(client.counters, key=_order)}
     return {'samples': samples, 'seconds': seconds, 'answerable': samples - first,
             'answered': len(answered), 'latency_ms': answered, 'rss': rss, 'counts': counts}
 
@@ -201,7 +217,8 @@ def report(result: dict[str, Any]) -> bool:
         print(f'  latency joint state -> compensation: p50 {p50:.3f} ms, p99 {p99:.3f} ms, '
               f'max {latency.max():.3f} ms (lead {HORIZON * 1e3 / RATE:g} ms)')
     for label, count in result['counts'].items():
-        print(f'  {label}: {count} ({count / minutes:.2f} per minute)')
+        if count or not label.startswith('  by reason'):
+            print(f'  {label}: {count} ({count / minutes:.2f} per minute)')
     return ok
 
 
