@@ -556,3 +556,30 @@ def test_incompatible_qos_is_counted_and_warns_on_diagnostics(ros: Any, tmp_path
     assert status.level == Level.WARN and '/lompr/compensation publisher' in status.message
     assert status.values['incompatible_qos./lompr/compensation publisher'] >= 1
     assert 'durability' in node.last_incompatible_qos
+
+
+@pytest.mark.ros
+def test_overruns_are_counted_on_diagnostics(ros: Any, tmp_path: Path) -> None:
+    import time
+
+    from test_predictor_node import Wiring
+
+    from lompr_predictor.monitoring import Level
+
+    wiring = Wiring(ros, save_constant(tmp_path / 'model.pt', (1e-5, 0.0), window=WINDOW,
+                                       horizon=HORIZON))
+    core = wiring.node.core
+    module = core.model.module
+
+    def slow_module(windows: torch.Tensor) -> torch.Tensor:
+        time.sleep(0.2)  # longer than the lead, 3 x 40 ms
+        return cast(torch.Tensor, module(windows))
+
+    core.model = dataclasses.replace(core.model, module=cast(ExportedModule, slow_module))
+    wiring.run(0, NEEDED + 3)
+    overrun = core.overrun
+    assert overrun.late_outputs_dropped + overrun.inference_skipped_late >= 3
+    assert not [m for m in wiring.compensations if m.vector.x or m.vector.y]  # none late
+    status = wiring.node.prediction_status()
+    assert status.level == Level.WARN and 'late or skipped' in status.message
+    assert status.values['late_outputs_dropped'] == overrun.late_outputs_dropped

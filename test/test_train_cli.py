@@ -13,6 +13,7 @@ from lompr_predictor.cli import evaluate, train
 from lompr_predictor.data.bags import write_recording
 from lompr_predictor.data.features import FEATURES
 from lompr_predictor.errors import LomprError
+from lompr_predictor.files import file_sha256
 from lompr_predictor.learning.model_file import load_model
 from lompr_predictor.robot.description import RobotDescription
 
@@ -59,6 +60,10 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
     assert content['split']['test_start_row'] == 2160
     assert '| RMSE (um) |' in (report / 'report.md').read_text()
     loaded = load_model(model, expected={'features': FEATURES, 'window': 8, 'horizon': 2})
+    # the trust chain (issue 12): the model's sha256 in the report and beside the model
+    assert content['model_sha256'] == loaded.sha256 == file_sha256(model)
+    assert loaded.verified_by == 'sidecar' and content['model_sha256'] in (
+        report / 'report.md').read_text()
     assert len(loaded.metadata.training_bags) == 2
     assert all(len(b['sha256']) == 64 for b in loaded.metadata.training_bags)
     assert loaded.metadata.test_metrics['x']['rmse_um'] == pytest.approx(
