@@ -567,7 +567,7 @@ def test_overruns_are_counted_on_diagnostics(ros: Any, tmp_path: Path) -> None:
     from lompr_predictor.monitoring import Level
 
     wiring = Wiring(ros, save_constant(tmp_path / 'model.pt', (1e-5, 0.0), window=WINDOW,
-                                       horizon=HORIZON))
+                                       horizon=HORIZON), late_tolerance=0.005)
     core = wiring.node.core
     module = core.model.module
 

@@ -85,9 +85,10 @@ class Wiring:
     def __init__(self, ros: RosHarness, model: Path, *, kinematics: bool = False,
                  **overrides: object) -> None:
         # staleness counts wall time: 40 s, unless a test is about it, so that a stall of
-        # the loaded machine between two samples is no fault
+        # the loaded machine between two samples is no fault; for the same reason an output
+        # is late (overrun, dropped) only after a minute, unless a test is about that
         parameters = {'model_path': str(model), 'diagnostics_period': 0.1,
-                      'stale_periods': 1000.0, **overrides}
+                      'stale_periods': 1000.0, 'late_tolerance': 60.0, **overrides}
         self.ros = ros
         self.node: PredictorNode = ros.add(PredictorNode(
             context=ros.context,

@@ -64,8 +64,9 @@ def test_an_unknown_preset_is_one_line_and_exit_2(tmp_path: Path,
     out = tmp_path / 'bag'
     assert main(['simulate', '--out', str(out), '--preset', 'shiny']) == 2
     captured = capsys.readouterr()
-    assert captured.err == ("lompr simulate: error: unknown preset 'shiny'; valid: backlash, "
-                            'highrate, nominal, sharp_friction, thermal, worn\n')
+    assert captured.err == ("lompr simulate: error: argument --preset: invalid choice: 'shiny' "
+                            "(choose from 'backlash', 'highrate', 'nominal', 'sharp_friction', "
+                            "'thermal', 'worn') (see lompr simulate --help)\n")
     assert captured.out == ''
     assert not out.exists()
 
