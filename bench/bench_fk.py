@@ -15,19 +15,19 @@ import os
 for _variable in ('OMP_NUM_THREADS', 'MKL_NUM_THREADS', 'OPENBLAS_NUM_THREADS'):
     os.environ[_variable] = '1'
 
-import sys  # noqa: E402
-import time  # noqa: E402
+import sys
+import time
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from lompr_predictor.robot.description import load_robot_description  # noqa: E402
-from lompr_predictor.robot.kinematics import (  # noqa: E402
+from lompr_predictor.robot.description import LomprGeometry, load_robot_description
+from lompr_predictor.robot.kinematics import (
     ForwardKinematics,
     batch_forward_kinematics,
     inverse_kinematics,
 )
-from lompr_predictor.robot.paths import build_cycle  # noqa: E402
-from lompr_predictor.twin.parameters import load_twin_parameters  # noqa: E402
+from lompr_predictor.robot.paths import build_cycle
+from lompr_predictor.twin.parameters import load_twin_parameters
 
 SINGLE_P99_TARGET_US = 100.0
 BATCH_TARGET_PER_S = 1_000_000.0
@@ -51,7 +51,7 @@ def bench_single(fk: ForwardKinematics, joints: np.ndarray) -> np.ndarray:
     return times
 
 
-def bench_batch(geometry, joints: np.ndarray) -> float:  # type: ignore[no-untyped-def]
+def bench_batch(geometry: LomprGeometry, joints: np.ndarray) -> float:
     """Best samples/s of three `batch_forward_kinematics` runs."""
     best = float('inf')
     for _ in range(3):

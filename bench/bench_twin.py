@@ -16,13 +16,13 @@ import os
 for _variable in ('OMP_NUM_THREADS', 'MKL_NUM_THREADS', 'OPENBLAS_NUM_THREADS'):
     os.environ[_variable] = '1'
 
-import sys  # noqa: E402
-import time  # noqa: E402
+import sys
+import time
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from lompr_predictor.robot.description import load_robot_description  # noqa: E402
-from lompr_predictor.twin import DigitalTwin, load_twin_parameters, simulate  # noqa: E402
+from lompr_predictor.robot.description import load_robot_description
+from lompr_predictor.twin import DigitalTwin, load_twin_parameters, simulate
 
 STEP_P99_TARGET_US = 1000.0
 STEPS = 3000

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
 from lompr_predictor.ros.domain import isolate_ros_domain
 
@@ -11,9 +13,12 @@ from lompr_predictor.ros.domain import isolate_ros_domain
 isolate_ros_domain()
 os.environ.setdefault('OMP_NUM_THREADS', '1')
 
-import pytest  # noqa: E402
+import pytest
 
-from lompr_predictor.robot.description import RobotDescription, load_robot_description  # noqa: E402
+from lompr_predictor.robot.description import RobotDescription, load_robot_description
+
+if TYPE_CHECKING:
+    from ros_helpers import RosHarness
 
 
 @pytest.fixture(scope='session')
@@ -23,7 +28,7 @@ def description() -> RobotDescription:
 
 
 @pytest.fixture
-def ros():  # type: ignore[no-untyped-def]
+def ros() -> Iterator[RosHarness]:
     """A `ros_helpers.RosHarness`: own rclpy Context, executor and helper node, shut down
     after the test. rclpy is imported only by tests that use it."""
     from ros_helpers import RosHarness

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -99,7 +100,7 @@ def test_a_topic_recorded_over_two_connections_is_read_whole(tmp_path: Path) -> 
     pose, point = types['geometry_msgs/msg/Pose'], types['geometry_msgs/msg/Point']
     quaternion = types['geometry_msgs/msg/Quaternion']
 
-    def stamp(k: int):  # type: ignore[no-untyped-def]
+    def stamp(k: int) -> Any:
         return header(stamp=time(sec=100 + k, nanosec=0), frame_id='world')
 
     with Writer(tmp_path / 'two', version=9) as writer:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -126,7 +127,7 @@ def test_irreducible_is_the_noise_and_the_drift_innovation(description: RobotDes
     assert 0.0 < levels[0] < levels[1] < levels[2]
 
 
-def test_parameter_file_overrides_a_subset(tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_parameter_file_overrides_a_subset(tmp_path: Path) -> None:
     path = tmp_path / 'twin.yaml'
     path.write_text('servo:\n  velocity_feedforward: 0.9\nfriction:\n  servo_stiffness: 3.0e7\n')
     params = load_twin_parameters(path)

@@ -10,7 +10,13 @@ import pytest
 
 from lompr_predictor.robot.description import RobotDescription
 from lompr_predictor.robot.kinematics import batch_forward_kinematics
-from lompr_predictor.twin import DigitalTwin, irreducible_rmse, load_twin_parameters, simulate
+from lompr_predictor.twin import (
+    DigitalTwin,
+    Simulation,
+    irreducible_rmse,
+    load_twin_parameters,
+    simulate,
+)
 from lompr_predictor.twin.plant import (
     friction_force,
     gravity_axial_forces,
@@ -145,7 +151,7 @@ def test_expected_reading_is_the_mean_of_the_quantised_reading(ratio: float) -> 
     np.testing.assert_array_equal(expected_reading(mean, ratio * step, None), mean)
 
 
-def _fk_noise_rms(sim, std: np.ndarray) -> np.ndarray:  # type: ignore[no-untyped-def]
+def _fk_noise_rms(sim: Simulation, std: np.ndarray) -> np.ndarray:
     """X/Y RMS of joint noise of `std` (5,) through the FK's Jacobian along the run."""
     joints = sim.joints_commanded
     base = batch_forward_kinematics(sim.geometry, joints).position[:, :2]

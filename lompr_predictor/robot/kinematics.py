@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import pinocchio as pin
@@ -110,7 +110,7 @@ def check_joint_limits(geometry: LomprGeometry, joints: Sequence[float]) -> None
             geometry.head_secondary_lower, geometry.head_secondary_upper)
 
 
-def _cofactor_solve(jac, rhs):  # type: ignore[no-untyped-def]
+def _cofactor_solve(jac: Any, rhs: Any) -> tuple[tuple[Any, Any, Any], Any]:
     """Cramer's rule for 3x3 systems, on floats or on (N,) arrays alike (no NumPy calls:
     their per-call overhead dominates a single 3x3 solve). Returns the three numerators and
     the determinant; the caller divides, deciding what a singular system means to it."""
@@ -262,7 +262,7 @@ def _trig(up: np.ndarray) -> tuple[np.ndarray, ...]:
     return np.cos(up[:, 0]), np.sin(up[:, 0]), np.cos(up[:, 1]), np.sin(up[:, 1])
 
 
-def _rotate(trig: tuple[np.ndarray, ...], x, y, z):  # type: ignore[no-untyped-def]
+def _rotate(trig: tuple[np.ndarray, ...], x: Any, y: Any, z: Any) -> tuple[Any, Any, Any]:
     """R (x, y, z) with R = Rx(alpha) Ry(beta), per sample, as three component arrays."""
     ca, sa, cb, sb = trig
     rx, rz = cb * x + sb * z, cb * z - sb * x  # Ry(beta) first, then Rx(alpha)
@@ -338,11 +338,13 @@ def _newton_batch(geometry: LomprGeometry, target: np.ndarray) -> tuple[np.ndarr
     return up, converged
 
 
-def _lengths_and_jacobian(geometry: LomprGeometry, up: np.ndarray):  # type: ignore[no-untyped-def]
+def _lengths_and_jacobian(geometry: LomprGeometry,
+                          up: np.ndarray) -> tuple[list[tuple[Any, Any, Any]], list[Any]]:
     """Branch lengths |B_i - A_i| and their Jacobian rows in (alpha, beta, d), per sample."""
     trig = _trig(up)
     ca, sa, cb, sb = trig
-    rows, lengths = [], []
+    rows: list[tuple[Any, Any, Any]] = []
+    lengths: list[Any] = []
     for (px, py, pz), (ax, ay, az) in zip(
             _branch_vectors(geometry, up[:, 2], trig), geometry.base_anchors, strict=False):
         vx, vy, vz = px - ax, py - ay, pz - az
