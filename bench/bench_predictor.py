@@ -264,7 +264,9 @@ def profile_path(model_path: Path, rate: int,
         kinematics = KinematicsNode(context=context)
         predictor = PredictorNode(context=context, parameter_overrides=[
             Parameter('model_path', value=str(model_path)),
-            Parameter('stale_min_time', value=1000.0)])
+            Parameter('stale_min_time', value=1000.0),
+            # samples are driven back to back, not at 1 kHz: none is late (overrun policy off)
+            Parameter('late_tolerance', value=3600.0)])
         sink = Node('bench_profile_sink', context=sink_context)
         for topic, msg_type in (('/lompr/end_pose', PoseStamped),
                                 ('/lompr/compensation', Vector3Stamped),
