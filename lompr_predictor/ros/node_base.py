@@ -216,13 +216,15 @@ class NodeBase(_NodeType, Generic[S]):
         except (InvalidQosOverridesError, RuntimeError) as err:
             raise self._qos_error(endpoint, topic, err) from err
 
-    def subscribe(self, endpoint: Endpoint, callback: Callable[[Any], None]) -> Subscription:
-        """The subscription of `endpoint`; `callback` runs through `guard`."""
+    def subscribe(self, endpoint: Endpoint, callback: Callable[[Any], None], *,
+                  raw: bool = False) -> Subscription:
+        """The subscription of `endpoint`; `callback` runs through `guard`. `raw`: the
+        callback gets the serialized bytes (see `wire`), not a message object."""
         topic = getattr(self.settings, endpoint.topic_parameter)
         try:
             return self.create_subscription(
                 endpoint.msg_type, topic, self.guard(endpoint.what, callback),
-                copy.copy(endpoint.qos), qos_overriding_options=QOS_OVERRIDING)
+                copy.copy(endpoint.qos), qos_overriding_options=QOS_OVERRIDING, raw=raw)
         except (InvalidQosOverridesError, RuntimeError) as err:
             raise self._qos_error(endpoint, topic, err) from err
 
@@ -240,7 +242,9 @@ class NodeBase(_NodeType, Generic[S]):
     def clock_seconds(self) -> float:
         """The node's clock now [s]: ROS time, /clock under use_sim_time (0 before the first
         /clock message), else the system time."""
-        return self.get_clock().now().nanoseconds * 1e-9
+        clock = self.get_clock().handle  # Clock.now() without its Time object: a third
+        with clock:  # of the cost, and read on every sample by the rate meters
+            return clock.get_now().nanoseconds * 1e-9
 
     def rate_meter(self, window: float) -> RateMeter:
         """A `RateMeter` over `window` seconds of the node's clock."""
