@@ -304,23 +304,37 @@ def _drive(kinematics: Any, predictor: Any,
         published.append(msg)
 
     object.__setattr__(end_pose_publisher, 'publish', capture)
+    # deserialisation inside the callbacks (raw subscriptions, `ros/wire.py`), looked up
+    # in the node modules' namespaces at each call
+    kinematics_module = sys.modules[type(kinematics).__module__]
+    predictor_module = sys.modules[type(predictor).__module__]
+    stages.wrap(kinematics_module, 'read_joint_state', 'receive joint state')
+    stages.wrap(predictor_module, 'read_pose_stamped', 'receive poses')
     stages.wrap(kinematics._fk, 'solve', 'forward kinematics')
+    pose_writer = getattr(kinematics, '_pose_writer', None)
+    if pose_writer is not None:  # the end pose serialized before it is published
+        stages.wrap(pose_writer, 'pack', 'publish end pose')
     core = predictor.core
     stages.wrap(core._alignment, 'add_pose', 'alignment')
     stages.wrap(core._alignment, 'add_reference', 'alignment')
     stages.wrap(core._window, 'push', 'feature rows')
+    stages.wrap(core._window, 'tensor', 'tensor (window view)')
     stages.wrap(core.model, 'predict', 'inference (model)')
     stages.wrap(core._gate, 'published_for', 'offset gate')
     stages.wrap(core._gate, 'publish', 'offset gate')
     for topic in ('/lompr/compensation', '/lompr/predicted_error'):
         stages.wrap(endpoint(predictor.publishers, topic), 'publish', 'publish outputs')
+    stages.wrap(predictor, '_vector', 'publish outputs')  # the output message or bytes
 
     def receive(subscription: Any, data: bytes, stage: str) -> Any:
-        if subscription.raw:  # the callback decodes the bytes itself
+        """What the executor gives the callback: the bytes of a raw subscription (the
+        callback decodes them itself), else the message rclpy builds (timed here)."""
+        if subscription.raw:
             return data
         start = clock()
         msg = deserialize_message(data, subscription.msg_type)
         stages.add(stage, clock() - start)
+        stages.add(f'{stage}, outside', clock() - start)
         return msg
 
     for index, (joint_bytes, reference_bytes) in enumerate(wire):
@@ -380,20 +394,22 @@ def _stage_table(samples: list[dict[str, int]]) -> list[tuple[str, float, float]
     def column(name: str) -> np.ndarray:
         return np.array([s.get(name, 0) for s in samples], dtype=float) * 1e-3
 
-    kinematics_parts = ('forward kinematics', 'publish end pose')
-    predictor_parts = ('alignment', 'feature rows', 'inference (model)', 'offset gate',
-                       'publish outputs')
-    rows: list[tuple[str, np.ndarray]] = [('receive joint state', column('receive joint state'))]
-    rows += [(name, column(name)) for name in kinematics_parts]
-    rows.append(('kinematics callback, rest', column('kinematics callback')
-                 - sum(column(name) for name in kinematics_parts)))
-    rows.append(('receive reference + end pose', column('receive poses')))
-    rows += [(name, column(name)) for name in predictor_parts]
-    rows.append(('predictor callbacks, rest', column('predictor callbacks')
-                 - sum(column(name) for name in predictor_parts)))
-    total = column('receive joint state') + column('kinematics callback') + column(
-        'receive poses') + column('predictor callbacks')
-    rows.append(('total', total))
+    kinematics_parts = ('receive joint state', 'forward kinematics', 'publish end pose')
+    predictor_parts = ('receive poses', 'alignment', 'feature rows', 'tensor (window view)',
+                       'inference (model)', 'offset gate', 'publish outputs')
+    names = {'receive poses': 'receive reference + end pose'}
+    # a stage measured inside a callback is part of its time; deserialisation by rclpy
+    # before the callback ('..., outside') is added to it
+    kinematics = column('kinematics callback') + column('receive joint state, outside')
+    predictor = column('predictor callbacks') + column('receive poses, outside')
+    rows: list[tuple[str, np.ndarray]] = [(name, column(name)) for name in kinematics_parts]
+    rows.append(('kinematics node, rest', kinematics - sum(r[1] for r in rows)))
+    rows.append(('kinematics node, total', kinematics))
+    parts = [(names.get(name, name), column(name)) for name in predictor_parts]
+    rows += parts
+    rows.append(('predictor node, rest', predictor - sum(p[1] for p in parts)))
+    rows.append(('predictor node, total', predictor))
+    rows.append(('total', kinematics + predictor))
     return [(name, float(np.median(v)), float(np.mean(v))) for name, v in rows]
 
 
