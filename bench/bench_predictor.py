@@ -77,6 +77,7 @@ from lompr_predictor.learning.model_file import (
 from lompr_predictor.learning.models import PredictorModule, build_network
 from lompr_predictor.robot.description import MEASURED_JOINTS, load_robot_description
 from lompr_predictor.robot.kinematics import inverse_kinematics
+from lompr_predictor.ros.common import EXECUTORS
 from lompr_predictor.ros.domain import isolate_ros_domain
 from lompr_predictor.threads import set_torch_threads
 
@@ -460,23 +461,27 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
-def node_commands(mode: str, model: Path, period: float) -> list[list[str]]:
+def node_commands(mode: str, model: Path, period: float,
+                  executor: str = EXECUTORS[0]) -> list[list[str]]:
     bin_dir = Path(sys.executable).parent
     predictor = [f'model_path:={model}', f'sample_period:={period}']
+    spin = ['--executor', executor]
     if mode == 'one process':
         args = [item for p in predictor for item in ('-p', f'predictor_node:{p}')]
-        return [[str(bin_dir / 'lompr_pipeline'), '--ros-args', *args]]
-    return [[str(bin_dir / 'kinematics_node')],
-            [str(bin_dir / 'predictor_node'), '--ros-args',
+        return [[str(bin_dir / 'lompr_pipeline'), *spin, '--ros-args', *args]]
+    return [[str(bin_dir / 'kinematics_node'), *spin],
+            [str(bin_dir / 'predictor_node'), *spin, '--ros-args',
              *[item for p in predictor for item in ('-p', p)]]]
 
 
-def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path) -> dict[str, Any]:
+def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path,
+                     executor: str = EXECUTORS[0]) -> dict[str, Any]:
     period = 1.0 / rate
     horizon = HORIZONS[rate]
     samples = max(int(seconds * rate), WINDOW + HISTORY + 50)
     tips, joints = spiral_joints(samples, rate)
-    processes = [start(command) for command in node_commands(mode, model, period)]
+    processes = [start(command)
+                 for command in node_commands(mode, model, period, executor)]
     context = Context()
     rclpy.init(context=context)
     client = Client(context)
@@ -608,8 +613,17 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n', 1)[0])
     parser.add_argument('--seconds', type=float, default=4.0,
                         help='input duration per rate and mode [s] (25 Hz runs at least 8 s)')
-    parser.add_argument('--with-training', action='store_true',
-                        help='run the end-to-end figures once more beside a training job')
+    parser.add_argument('--training', action=argparse.BooleanOptionalAction, default=True,
+                        help='run the end-to-end figures once more beside a training job '
+                             "(default: yes; the issue's targets hold with and without)")
+    parser.add_argument('--with-training', action='store_true', help=argparse.SUPPRESS)
+    parser.add_argument('--executors', default=EXECUTORS[0],
+                        help=f"comma list of the node executables' executors to run the end-"
+                             f'to-end figures with, of {", ".join(EXECUTORS)} (default: '
+                             f"%(default)s, the nodes' default)")
+    parser.add_argument('--rates', default=','.join(str(r) for r in RATES),
+                        help='comma list of the end-to-end input rates [Hz] (default: '
+                             '%(default)s)')
     parser.add_argument('--callgrind', action='store_true',
                         help=f'also count the instructions per sample of the profile under '
                              f'callgrind ({CALLGRIND_SAMPLES} samples, several minutes)')
@@ -640,10 +654,12 @@ def main() -> int:
         if 'end-to-end' in parts:
             loads: list[tuple[str, contextlib.AbstractContextManager[Any]]] = [
                 ('', contextlib.nullcontext())]
-            if args.with_training:
+            if args.training or args.with_training:
                 loads.append((' + training', training_job(directory)))
+            rates = [int(r) for r in args.rates.split(',')]
+            executors = args.executors.split(',')
             for load, job in loads:
-                rows += report_end_to_end(load, job, models, args.seconds)
+                rows += report_end_to_end(load, job, models, args.seconds, rates, executors)
     print('\nsummary (wall-clock figures are pessimistic on a shared machine):')
     print_table(rows)
     missed = [r.figure for r in rows if r.ok is False]
@@ -678,23 +694,27 @@ def report_profile(model: Path, samples: int) -> Row:
 
 
 def report_end_to_end(load: str, job: contextlib.AbstractContextManager[Any],
-                      models: dict[int, Path], seconds: float) -> list[Row]:
+                      models: dict[int, Path], seconds: float, rates: list[int],
+                      executors: list[str]) -> list[Row]:
     rows: list[Row] = []
     print(f'\nend to end{load or ", no training job"} (CPU us per sample: kinematics / '
           'predictor process, or the one process):')
-    print(f'{"mode":14s} {"rate":>6s} {"answered":>15s} {"share":>7s} '
+    print(f'{"mode":14s} {"executor":15s} {"rate":>6s} {"answered":>15s} {"share":>7s} '
           f'{"p50 ms":>7s} {"p99 ms":>7s} {"max ms":>7s} {"late":>5s}  CPU us')
     with job:
-        for mode in ('two processes', 'one process'):
-            for rate in RATES:
-                result = bench_end_to_end(mode, rate, max(seconds, 8.0) if rate == 25
-                                          else seconds, models[rate])
-                share = result['answered'] / result['answerable']
-                cpu = ' / '.join(f'{c:.0f}' for c in result['cpu_us'])
-                print(f'{mode:14s} {rate:5d}Hz {result["answered"]:7d}/{result["answerable"]:<7d} '
-                      f'{share:7.4f} {result["p50"]:7.2f} {result["p99"]:7.2f} '
-                      f'{result["max"]:7.2f} {result["late"]:5d}  {cpu}')
-                rows += end_to_end_rows(mode, rate, load, result, share)
+        for executor in executors:
+            for mode in ('two processes', 'one process'):
+                for rate in rates:
+                    result = bench_end_to_end(mode, rate, max(seconds, 8.0) if rate == 25
+                                              else seconds, models[rate], executor)
+                    share = result['answered'] / result['answerable']
+                    cpu = ' / '.join(f'{c:.0f}' for c in result['cpu_us'])
+                    print(f'{mode:14s} {executor:15s} {rate:5d}Hz '
+                          f'{result["answered"]:7d}/{result["answerable"]:<7d} '
+                          f'{share:7.4f} {result["p50"]:7.2f} {result["p99"]:7.2f} '
+                          f'{result["max"]:7.2f} {result["late"]:5d}  {cpu}')
+                    suffix = load if executor == EXECUTORS[0] else f'{load}, {executor}'
+                    rows += end_to_end_rows(mode, rate, suffix, result, share)
     return rows
 
 
