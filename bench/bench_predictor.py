@@ -485,8 +485,8 @@ def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path,
     context = Context()
     rclpy.init(context=context)
     client = Client(context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(client)
+    spinner = SingleThreadedExecutor(context=context)
+    spinner.add_node(client)
     try:
         deadline = time.monotonic() + DISCOVERY_TIMEOUT
         while not client.discovered():
@@ -496,7 +496,7 @@ def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path,
                      else '')[-300:] for p in processes)
                 msg = f'{mode} at {rate} Hz: nodes not discovered ({errors})'
                 raise RuntimeError(msg)
-            executor.spin_once(timeout_sec=0.05)
+            spinner.spin_once(timeout_sec=0.05)
         period_ns = round(period * 1e9)
         sent = np.full(samples, np.nan)
 
@@ -516,7 +516,7 @@ def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path,
             publisher = threading.Thread(target=publish, args=(base_ns, count, record))
             publisher.start()
             while publisher.is_alive():
-                executor.spin_once(timeout_sec=0.01)
+                spinner.spin_once(timeout_sec=0.01)
             publisher.join()
 
         # Warm-up until the whole chain answers (the graph shows every link before the last
@@ -534,10 +534,10 @@ def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path,
         run(base_ns, samples, record=True)
         end = time.monotonic() + 1.0
         while time.monotonic() < end:
-            executor.spin_once(timeout_sec=0.01)
+            spinner.spin_once(timeout_sec=0.01)
         cpu_used = [cpu_seconds(p.pid) - c for p, c in zip(processes, cpu_before, strict=True)]
     finally:
-        executor.shutdown()
+        spinner.shutdown()
         client.destroy_node()
         context.try_shutdown()
         for process in processes:

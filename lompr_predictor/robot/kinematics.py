@@ -157,6 +157,10 @@ class ForwardKinematics:
         self._up_limits = tuple(
             (name, float(lower), float(upper)) for name, lower, upper
             in zip(UP_JOINTS, geometry.up_lower, geometry.up_upper, strict=True))
+        self._joint_limits = tuple(
+            (float(lower), float(upper)) for lower, upper
+            in [*zip(geometry.stroke_lower, geometry.stroke_upper, strict=True),
+                (geometry.head_secondary_lower, geometry.head_secondary_upper)])
         self._q_tool = pin.neutral(self._tool_model)
         # the last solutions (alpha, beta, d), newest last; at most three
         self._history: list[tuple[float, float, float]] = []
@@ -173,8 +177,11 @@ class ForwardKinematics:
         `WorkspaceError` or `ConvergenceError`; the stream's warm start survives none.
         """
         joints = [float(v) for v in joints]
+        (l1, u1), (l2, u2), (l3, u3), (l5, u5) = self._joint_limits
         try:
-            check_joint_limits(self.geometry, joints)
+            if not (l1 <= joints[0] <= u1 and l2 <= joints[1] <= u2 and l3 <= joints[2] <= u3
+                    and l5 <= joints[4] <= u5 and math.isfinite(joints[3])):
+                check_joint_limits(self.geometry, joints)  # which limit, or NaN: its error
             up = self._solve_up(joints[0], joints[1], joints[2])
         except KinematicsError:
             self._history.clear()
