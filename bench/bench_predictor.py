@@ -14,7 +14,11 @@ dropped by the predictor's overrun policy).
 - profile: the per-sample path driven in this process through the real node objects
   (`KinematicsNode`, `PredictorNode`, their subscription callbacks and publishers, with
   subscribers in another context), CPU time per stage [us per sample] (thread CPU time, so
-  other processes on the machine inflate it far less than wall time).
+  other processes on the machine inflate it far less than wall time): deserialisation of
+  the joint state, forward kinematics, publishing the end pose (serialisation + rmw),
+  deserialisation of the reference and end pose, alignment, feature rows, the window
+  tensor, inference, offset gate, publishing the outputs, and what each node's callbacks
+  spend besides (rate meters, the callback guard, the core's bookkeeping).
 - end to end: a JointState leaving this process's publisher (the reference for the same
   instant published just before it) to the compensation for its instant (stamp + horizon x
   period) arriving at this process's subscriber, through the kinematics and predictor nodes
@@ -22,16 +26,17 @@ dropped by the predictor's overrun policy).
   that can be answered (all but the first window + HISTORY - 1) that were answered, after a
   warm-up stream has come back once, and the CPU time each node process spent per sample.
   Twice: the two node executables as two processes, and the one-process pipeline
-  (`lompr_pipeline`), each with its default parameters and executor. With `--with-training`
-  once more beside a training job (`lompr train --threads 1` on a small simulated bag).
+  (`lompr_pipeline`), each with its default parameters and executor (`--executors
+  events,single-threaded` compares rclpy's two), then once more beside a training job
+  (`lompr train --threads 1` on a small simulated bag; `--no-training` skips it).
 
 Targets (issue 14): at 1 kHz, with a training job beside and without, every sample
 answered, p99 <= 2 ms across processes and <= 1 ms in one process; inference p99 <= 1.2x the
 bare TorchScript call of the same run; issue 5's still hold (250 Hz: every sample answered,
 p99 < 5 ms). The machine may be shared: wall-clock figures are then pessimistic and noisy;
 the CPU figures (profile, CPU per sample) are the load-robust ones.
-Run: .venv/bin/python bench/bench_predictor.py [--seconds S] [--with-training]
-(exit code 1 on a miss)
+Run: .venv/bin/python bench/bench_predictor.py (about 4-5 minutes; `--help` for shorter
+runs: --parts, --rates, --seconds, --no-training); exit code 1 on a miss.
 """
 
 from __future__ import annotations
