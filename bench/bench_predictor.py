@@ -14,7 +14,11 @@ dropped by the predictor's overrun policy).
 - profile: the per-sample path driven in this process through the real node objects
   (`KinematicsNode`, `PredictorNode`, their subscription callbacks and publishers, with
   subscribers in another context), CPU time per stage [us per sample] (thread CPU time, so
-  other processes on the machine inflate it far less than wall time).
+  other processes on the machine inflate it far less than wall time): deserialisation of
+  the joint state, forward kinematics, publishing the end pose (serialisation + rmw),
+  deserialisation of the reference and end pose, alignment, feature rows, the window
+  tensor, inference, offset gate, publishing the outputs, and what each node's callbacks
+  spend besides (rate meters, the callback guard, the core's bookkeeping).
 - end to end: a JointState leaving this process's publisher (the reference for the same
   instant published just before it) to the compensation for its instant (stamp + horizon x
   period) arriving at this process's subscriber, through the kinematics and predictor nodes
@@ -22,16 +26,17 @@ dropped by the predictor's overrun policy).
   that can be answered (all but the first window + HISTORY - 1) that were answered, after a
   warm-up stream has come back once, and the CPU time each node process spent per sample.
   Twice: the two node executables as two processes, and the one-process pipeline
-  (`lompr_pipeline`), each with its default parameters and executor. With `--with-training`
-  once more beside a training job (`lompr train --threads 1` on a small simulated bag).
+  (`lompr_pipeline`), each with its default parameters and executor (`--executors
+  events,single-threaded` compares rclpy's two), then once more beside a training job
+  (`lompr train --threads 1` on a small simulated bag; `--no-training` skips it).
 
 Targets (issue 14): at 1 kHz, with a training job beside and without, every sample
 answered, p99 <= 2 ms across processes and <= 1 ms in one process; inference p99 <= 1.2x the
 bare TorchScript call of the same run; issue 5's still hold (250 Hz: every sample answered,
 p99 < 5 ms). The machine may be shared: wall-clock figures are then pessimistic and noisy;
 the CPU figures (profile, CPU per sample) are the load-robust ones.
-Run: .venv/bin/python bench/bench_predictor.py [--seconds S] [--with-training]
-(exit code 1 on a miss)
+Run: .venv/bin/python bench/bench_predictor.py (about 4-5 minutes; `--help` for shorter
+runs: --parts, --rates, --seconds, --no-training); exit code 1 on a miss.
 """
 
 from __future__ import annotations
@@ -77,6 +82,7 @@ from lompr_predictor.learning.model_file import (
 from lompr_predictor.learning.models import PredictorModule, build_network
 from lompr_predictor.robot.description import MEASURED_JOINTS, load_robot_description
 from lompr_predictor.robot.kinematics import inverse_kinematics
+from lompr_predictor.ros.common import EXECUTORS
 from lompr_predictor.ros.domain import isolate_ros_domain
 from lompr_predictor.threads import set_torch_threads
 
@@ -306,23 +312,37 @@ def _drive(kinematics: Any, predictor: Any,
         published.append(msg)
 
     object.__setattr__(end_pose_publisher, 'publish', capture)
+    # deserialisation inside the callbacks (raw subscriptions, `ros/wire.py`), looked up
+    # in the node modules' namespaces at each call
+    kinematics_module = sys.modules[type(kinematics).__module__]
+    predictor_module = sys.modules[type(predictor).__module__]
+    stages.wrap(kinematics_module, 'read_joint_state', 'receive joint state')
+    stages.wrap(predictor_module, 'read_pose_stamped', 'receive poses')
     stages.wrap(kinematics._fk, 'solve', 'forward kinematics')
+    pose_writer = getattr(kinematics, '_pose_writer', None)
+    if pose_writer is not None:  # the end pose serialized before it is published
+        stages.wrap(pose_writer, 'pack', 'publish end pose')
     core = predictor.core
     stages.wrap(core._alignment, 'add_pose', 'alignment')
     stages.wrap(core._alignment, 'add_reference', 'alignment')
     stages.wrap(core._window, 'push', 'feature rows')
+    stages.wrap(core._window, 'tensor', 'tensor (window view)')
     stages.wrap(core.model, 'predict', 'inference (model)')
     stages.wrap(core._gate, 'published_for', 'offset gate')
     stages.wrap(core._gate, 'publish', 'offset gate')
     for topic in ('/lompr/compensation', '/lompr/predicted_error'):
         stages.wrap(endpoint(predictor.publishers, topic), 'publish', 'publish outputs')
+    stages.wrap(predictor, '_vector', 'publish outputs')  # the output message or bytes
 
     def receive(subscription: Any, data: bytes, stage: str) -> Any:
-        if subscription.raw:  # the callback decodes the bytes itself
+        """What the executor gives the callback: the bytes of a raw subscription (the
+        callback decodes them itself), else the message rclpy builds (timed here)."""
+        if subscription.raw:
             return data
         start = clock()
         msg = deserialize_message(data, subscription.msg_type)
         stages.add(stage, clock() - start)
+        stages.add(f'{stage}, outside', clock() - start)
         return msg
 
     for index, (joint_bytes, reference_bytes) in enumerate(wire):
@@ -382,20 +402,22 @@ def _stage_table(samples: list[dict[str, int]]) -> list[tuple[str, float, float]
     def column(name: str) -> np.ndarray:
         return np.array([s.get(name, 0) for s in samples], dtype=float) * 1e-3
 
-    kinematics_parts = ('forward kinematics', 'publish end pose')
-    predictor_parts = ('alignment', 'feature rows', 'inference (model)', 'offset gate',
-                       'publish outputs')
-    rows: list[tuple[str, np.ndarray]] = [('receive joint state', column('receive joint state'))]
-    rows += [(name, column(name)) for name in kinematics_parts]
-    rows.append(('kinematics callback, rest', column('kinematics callback')
-                 - sum(column(name) for name in kinematics_parts)))
-    rows.append(('receive reference + end pose', column('receive poses')))
-    rows += [(name, column(name)) for name in predictor_parts]
-    rows.append(('predictor callbacks, rest', column('predictor callbacks')
-                 - sum(column(name) for name in predictor_parts)))
-    total = column('receive joint state') + column('kinematics callback') + column(
-        'receive poses') + column('predictor callbacks')
-    rows.append(('total', total))
+    kinematics_parts = ('receive joint state', 'forward kinematics', 'publish end pose')
+    predictor_parts = ('receive poses', 'alignment', 'feature rows', 'tensor (window view)',
+                       'inference (model)', 'offset gate', 'publish outputs')
+    names = {'receive poses': 'receive reference + end pose'}
+    # a stage measured inside a callback is part of its time; deserialisation by rclpy
+    # before the callback ('..., outside') is added to it
+    kinematics = column('kinematics callback') + column('receive joint state, outside')
+    predictor = column('predictor callbacks') + column('receive poses, outside')
+    rows: list[tuple[str, np.ndarray]] = [(name, column(name)) for name in kinematics_parts]
+    rows.append(('kinematics node, rest', kinematics - sum(r[1] for r in rows)))
+    rows.append(('kinematics node, total', kinematics))
+    parts = [(names.get(name, name), column(name)) for name in predictor_parts]
+    rows += parts
+    rows.append(('predictor node, rest', predictor - sum(p[1] for p in parts)))
+    rows.append(('predictor node, total', predictor))
+    rows.append(('total', kinematics + predictor))
     return [(name, float(np.median(v)), float(np.mean(v))) for name, v in rows]
 
 
@@ -446,28 +468,32 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
-def node_commands(mode: str, model: Path, period: float) -> list[list[str]]:
+def node_commands(mode: str, model: Path, period: float,
+                  executor: str = EXECUTORS[0]) -> list[list[str]]:
     bin_dir = Path(sys.executable).parent
     predictor = [f'model_path:={model}', f'sample_period:={period}']
+    spin = ['--executor', executor]
     if mode == 'one process':
         args = [item for p in predictor for item in ('-p', f'predictor_node:{p}')]
-        return [[str(bin_dir / 'lompr_pipeline'), '--ros-args', *args]]
-    return [[str(bin_dir / 'kinematics_node')],
-            [str(bin_dir / 'predictor_node'), '--ros-args',
+        return [[str(bin_dir / 'lompr_pipeline'), *spin, '--ros-args', *args]]
+    return [[str(bin_dir / 'kinematics_node'), *spin],
+            [str(bin_dir / 'predictor_node'), *spin, '--ros-args',
              *[item for p in predictor for item in ('-p', p)]]]
 
 
-def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path) -> dict[str, Any]:
+def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path,
+                     executor: str = EXECUTORS[0]) -> dict[str, Any]:
     period = 1.0 / rate
     horizon = HORIZONS[rate]
     samples = max(int(seconds * rate), WINDOW + HISTORY + 50)
     tips, joints = spiral_joints(samples, rate)
-    processes = [start(command) for command in node_commands(mode, model, period)]
+    processes = [start(command)
+                 for command in node_commands(mode, model, period, executor)]
     context = Context()
     rclpy.init(context=context)
     client = Client(context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(client)
+    spinner = SingleThreadedExecutor(context=context)
+    spinner.add_node(client)
     try:
         deadline = time.monotonic() + DISCOVERY_TIMEOUT
         while not client.discovered():
@@ -477,7 +503,7 @@ def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path) -> dict[
                      else '')[-300:] for p in processes)
                 msg = f'{mode} at {rate} Hz: nodes not discovered ({errors})'
                 raise RuntimeError(msg)
-            executor.spin_once(timeout_sec=0.05)
+            spinner.spin_once(timeout_sec=0.05)
         period_ns = round(period * 1e9)
         sent = np.full(samples, np.nan)
 
@@ -497,7 +523,7 @@ def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path) -> dict[
             publisher = threading.Thread(target=publish, args=(base_ns, count, record))
             publisher.start()
             while publisher.is_alive():
-                executor.spin_once(timeout_sec=0.01)
+                spinner.spin_once(timeout_sec=0.01)
             publisher.join()
 
         # Warm-up until the whole chain answers (the graph shows every link before the last
@@ -515,10 +541,10 @@ def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path) -> dict[
         run(base_ns, samples, record=True)
         end = time.monotonic() + 1.0
         while time.monotonic() < end:
-            executor.spin_once(timeout_sec=0.01)
+            spinner.spin_once(timeout_sec=0.01)
         cpu_used = [cpu_seconds(p.pid) - c for p, c in zip(processes, cpu_before, strict=True)]
     finally:
-        executor.shutdown()
+        spinner.shutdown()
         client.destroy_node()
         context.try_shutdown()
         for process in processes:
@@ -594,8 +620,17 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n', 1)[0])
     parser.add_argument('--seconds', type=float, default=4.0,
                         help='input duration per rate and mode [s] (25 Hz runs at least 8 s)')
-    parser.add_argument('--with-training', action='store_true',
-                        help='run the end-to-end figures once more beside a training job')
+    parser.add_argument('--training', action=argparse.BooleanOptionalAction, default=True,
+                        help='run the end-to-end figures once more beside a training job '
+                             "(default: yes; the issue's targets hold with and without)")
+    parser.add_argument('--with-training', action='store_true', help=argparse.SUPPRESS)
+    parser.add_argument('--executors', default=EXECUTORS[0],
+                        help=f"comma list of the node executables' executors to run the end-"
+                             f'to-end figures with, of {", ".join(EXECUTORS)} (default: '
+                             f"%(default)s, the nodes' default)")
+    parser.add_argument('--rates', default=','.join(str(r) for r in RATES),
+                        help='comma list of the end-to-end input rates [Hz] (default: '
+                             '%(default)s)')
     parser.add_argument('--callgrind', action='store_true',
                         help=f'also count the instructions per sample of the profile under '
                              f'callgrind ({CALLGRIND_SAMPLES} samples, several minutes)')
@@ -626,10 +661,12 @@ def main() -> int:
         if 'end-to-end' in parts:
             loads: list[tuple[str, contextlib.AbstractContextManager[Any]]] = [
                 ('', contextlib.nullcontext())]
-            if args.with_training:
+            if args.training or args.with_training:
                 loads.append((' + training', training_job(directory)))
+            rates = [int(r) for r in args.rates.split(',')]
+            executors = args.executors.split(',')
             for load, job in loads:
-                rows += report_end_to_end(load, job, models, args.seconds)
+                rows += report_end_to_end(load, job, models, args.seconds, rates, executors)
     print('\nsummary (wall-clock figures are pessimistic on a shared machine):')
     print_table(rows)
     missed = [r.figure for r in rows if r.ok is False]
@@ -664,23 +701,27 @@ def report_profile(model: Path, samples: int) -> Row:
 
 
 def report_end_to_end(load: str, job: contextlib.AbstractContextManager[Any],
-                      models: dict[int, Path], seconds: float) -> list[Row]:
+                      models: dict[int, Path], seconds: float, rates: list[int],
+                      executors: list[str]) -> list[Row]:
     rows: list[Row] = []
     print(f'\nend to end{load or ", no training job"} (CPU us per sample: kinematics / '
           'predictor process, or the one process):')
-    print(f'{"mode":14s} {"rate":>6s} {"answered":>15s} {"share":>7s} '
+    print(f'{"mode":14s} {"executor":15s} {"rate":>6s} {"answered":>15s} {"share":>7s} '
           f'{"p50 ms":>7s} {"p99 ms":>7s} {"max ms":>7s} {"late":>5s}  CPU us')
     with job:
-        for mode in ('two processes', 'one process'):
-            for rate in RATES:
-                result = bench_end_to_end(mode, rate, max(seconds, 8.0) if rate == 25
-                                          else seconds, models[rate])
-                share = result['answered'] / result['answerable']
-                cpu = ' / '.join(f'{c:.0f}' for c in result['cpu_us'])
-                print(f'{mode:14s} {rate:5d}Hz {result["answered"]:7d}/{result["answerable"]:<7d} '
-                      f'{share:7.4f} {result["p50"]:7.2f} {result["p99"]:7.2f} '
-                      f'{result["max"]:7.2f} {result["late"]:5d}  {cpu}')
-                rows += end_to_end_rows(mode, rate, load, result, share)
+        for executor in executors:
+            for mode in ('two processes', 'one process'):
+                for rate in rates:
+                    result = bench_end_to_end(mode, rate, max(seconds, 8.0) if rate == 25
+                                              else seconds, models[rate], executor)
+                    share = result['answered'] / result['answerable']
+                    cpu = ' / '.join(f'{c:.0f}' for c in result['cpu_us'])
+                    print(f'{mode:14s} {executor:15s} {rate:5d}Hz '
+                          f'{result["answered"]:7d}/{result["answerable"]:<7d} '
+                          f'{share:7.4f} {result["p50"]:7.2f} {result["p99"]:7.2f} '
+                          f'{result["max"]:7.2f} {result["late"]:5d}  {cpu}')
+                    suffix = load if executor == EXECUTORS[0] else f'{load}, {executor}'
+                    rows += end_to_end_rows(mode, rate, suffix, result, share)
     return rows
 
 

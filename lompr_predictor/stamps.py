@@ -7,7 +7,7 @@ Differences are taken in integers first and only then turned into seconds.
 
 from __future__ import annotations
 
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
@@ -16,6 +16,14 @@ NS_PER_SECOND = 1_000_000_000
 
 class StampLike(Protocol):
     """A ROS `builtin_interfaces/Time` (rclpy or rosbags message): seconds and nanoseconds."""
+
+    sec: int
+    nanosec: int
+
+
+
+class Stamp(NamedTuple):
+    """A stamp read off the wire (`ros.wire`), as (sec, nanosec): a `StampLike`."""
 
     sec: int
     nanosec: int

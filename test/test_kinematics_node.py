@@ -143,6 +143,19 @@ def test_bad_inputs_are_dropped_counted_and_next_good_answered(
     assert kinematics is not None and kinematics['warm_start_resets'] == '1'
 
 
+def test_unreadable_bytes_are_malformed_and_next_good_answered(
+        ros: RosHarness, description: RobotDescription) -> None:
+    """The node takes joint states raw (`ros.wire`): bytes that are no JointState are
+    rejected as malformed, the stream goes on."""
+    wiring = Wiring(ros)
+    good = inverse_kinematics(description.geometry, KNOWN_TIPS[:1]).joints[0]
+    wiring.publisher.publish(b'\x00\x01\x00\x00' + b'\xff' * 40)  # a name 4 GB long
+    wiring.publish([joint_state(5.0, good)])
+    ros.spin_until(lambda: len(wiring.poses) == 1, what='the good sample answered')
+    assert stamp_of(wiring.poses[0]) == (5, 0)
+    assert wiring.node.rejected.counts()['malformed'] == 1
+
+
 def test_solve_times_over_the_threshold_warn(
         ros: RosHarness, description: RobotDescription) -> None:
     wiring = Wiring(ros, solve_time_warn=1e-6)  # no solve takes under a microsecond

@@ -7,8 +7,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import pytest
+import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import Vector3Stamped
+from rclpy.context import Context
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.node import Node
@@ -17,7 +19,7 @@ from rclpy.qos import HistoryPolicy, ReliabilityPolicy
 from ros_helpers import RosHarness
 
 from lompr_predictor.monitoring import Level, Status
-from lompr_predictor.ros.common import DiagnosticsPublisher, run_node
+from lompr_predictor.ros.common import EXECUTORS, DiagnosticsPublisher, make_executor, run_node
 from lompr_predictor.ros.node_base import (
     DIAGNOSTICS_QOS,
     OUTPUT_QOS,
@@ -313,3 +315,15 @@ def test_parameter_files_hold_the_declared_defaults(node: str) -> None:
         expected[f'{prefix}.depth'] = endpoint.qos.depth
         expected[f'{prefix}.reliability'] = endpoint.qos.reliability.name.lower()
     assert values == expected
+
+
+def test_executors_by_name() -> None:
+    context = Context()
+    rclpy.init(context=context)
+    try:
+        kinds = [type(make_executor(name, context)).__name__ for name in EXECUTORS]
+        assert kinds == ['EventsExecutor', 'SingleThreadedExecutor']
+        with pytest.raises(ValueError, match='unknown executor'):
+            make_executor('multi', context)
+    finally:
+        context.try_shutdown()

@@ -131,9 +131,16 @@ class LoadedModel:
     verified_by: str = 'not verified'  # one of VERIFIED_BY
 
     def predict(self, windows: torch.Tensor) -> torch.Tensor:
-        """(B, window, features) float64 SI windows -> (B, 2) predicted error [m]."""
-        with torch.inference_mode():
+        """(B, window, features) float64 SI windows -> (B, 2) predicted error [m], in
+        inference mode."""
+        with torch.inference_mode() if _INFERENCE_MODE is None else _INFERENCE_MODE(True):
             return self.module(windows)
+
+
+#: What `torch.inference_mode()` enters: its C++ guard, without the Python wrapper (a
+#: decorator-capable context manager), which costs about 10 % of a default-size LSTM call
+#: on the 1 kHz path (bench_predictor); None (the public wrapper used) if torch lacks it.
+_INFERENCE_MODE = getattr(torch._C, '_InferenceMode', None)
 
 
 def library_versions() -> dict[str, str]:

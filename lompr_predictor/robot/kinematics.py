@@ -3,8 +3,9 @@
 Three entry points, one per use:
 
 - `ForwardKinematics.solve`: one sample, as the kinematics node calls it. Newton on the three
-  branch-length equations |B_i(alpha, beta, d) - A_i| = l_i with Pinocchio's joint placement
-  and Jacobian of the platform, warm-started from an extrapolation of the last solutions.
+  branch-length equations |B_i(alpha, beta, d) - A_i| = l_i in closed form on Python floats
+  (the equations of the batch solver below), warm-started from an extrapolation of the last
+  solutions; the tool frame then placed by Pinocchio on the URDF's model.
 - `batch_forward_kinematics`: the same equations solved for a whole recording at once,
   vectorised with NumPy over samples (the offline trainer pushes millions through it).
 - `inverse_kinematics`: closed form for a vertical tool, tip position -> all joints, with the
@@ -129,6 +130,11 @@ class ForwardKinematics:
 
     Keep one instance per stream: the warm start assumes consecutive calls are consecutive
     samples. After any failure the next call starts from the nominal posture again.
+
+    Per sample: Newton on the branch lengths in closed form on Python floats (the same
+    lengths and Jacobian as `batch_forward_kinematics`, the three branches written out: no
+    NumPy call, no Python loop but Newton's own iterations, one or two), then Pinocchio's
+    placement of the tool frame of the URDF for the solved joints.
     """
 
     def __init__(self, description: RobotDescription) -> None:
@@ -138,18 +144,26 @@ class ForwardKinematics:
             model.getJointId(n) for n in model.names
             if n not in UP_JOINTS + HEAD_JOINTS and n != 'universe']
         neutral = pin.neutral(model)
-        # Tool model: UP chain + head (the open UPS chains locked). Newton model: UP chain only.
+        # Tool model: UP chain + head (the open UPS chains locked).
         self._tool_model = pin.buildReducedModel(model, branch_chain, neutral)
         self._tool_data = self._tool_model.createData()
-        head_ids = [model.getJointId(n) for n in HEAD_JOINTS]
-        self._up_model = pin.buildReducedModel(model, branch_chain + head_ids, neutral)
-        self._up_data = self._up_model.createData()
-        self._platform_joint = self._up_model.getJointId(UP_JOINTS[2])
         self._tool_frame = self._tool_model.getFrameId(TOOL_FRAME)
-        self._platform_anchors = self.geometry.platform_anchors.copy()
-        self._base_anchors_list = self.geometry.base_anchors.tolist()
+        geometry = self.geometry
+        self._branches = tuple(
+            (tuple(float(v) for v in b), tuple(float(v) for v in a))
+            for b, a in zip(geometry.platform_anchors, geometry.base_anchors, strict=True))
+        alpha, beta, d = (float(v) for v in geometry.nominal_up)
+        self._nominal = alpha, beta, d
+        self._up_limits = tuple(
+            (name, float(lower), float(upper)) for name, lower, upper
+            in zip(UP_JOINTS, geometry.up_lower, geometry.up_upper, strict=True))
+        self._joint_limits = tuple(
+            (float(lower), float(upper)) for lower, upper
+            in [*zip(geometry.stroke_lower, geometry.stroke_upper, strict=True),
+                (geometry.head_secondary_lower, geometry.head_secondary_upper)])
         self._q_tool = pin.neutral(self._tool_model)
-        self._history: list[np.ndarray] = []
+        # the last solutions (alpha, beta, d), newest last; at most three
+        self._history: list[tuple[float, float, float]] = []
         self.last_iterations = 0
 
     def reset(self) -> None:
@@ -163,88 +177,101 @@ class ForwardKinematics:
         `WorkspaceError` or `ConvergenceError`; the stream's warm start survives none.
         """
         joints = [float(v) for v in joints]
+        (l1, u1), (l2, u2), (l3, u3), (l5, u5) = self._joint_limits
         try:
-            check_joint_limits(self.geometry, joints)
-            up = self._solve_up(joints[:3])
+            if not (l1 <= joints[0] <= u1 and l2 <= joints[1] <= u2 and l3 <= joints[2] <= u3
+                    and l5 <= joints[4] <= u5 and math.isfinite(joints[3])):
+                check_joint_limits(self.geometry, joints)  # which limit, or NaN: its error
+            up = self._solve_up(joints[0], joints[1], joints[2])
         except KinematicsError:
             self._history.clear()
             raise
-        self._history = [*self._history[-2:], up]
+        history = self._history
+        if len(history) == 3:
+            del history[0]
+        history.append(up)
         q = self._q_tool
-        q[:3] = up
+        q[0], q[1], q[2] = up
         q[3], q[4], q[5] = math.cos(joints[3]), math.sin(joints[3]), joints[4]
         pin.forwardKinematics(self._tool_model, self._tool_data, q)
         tool = pin.updateFramePlacement(self._tool_model, self._tool_data, self._tool_frame)
         return ToolPose(tool.translation.copy(), pin.Quaternion(tool.rotation).coeffs().copy())
 
-    def _initial_guess(self) -> np.ndarray:
+    def _initial_guess(self) -> tuple[float, float, float]:
         # Quadratic extrapolation of the last three solutions: at 25 Hz along the spiral it
         # starts within ~1e-6 (linear: ~5e-5), so one Newton step usually converges.
         history = self._history
         if len(history) == 3:
-            return 3.0 * (history[2] - history[1]) + history[0]
+            (a0, b0, d0), (a1, b1, d1), (a2, b2, d2) = history
+            return 3.0 * (a2 - a1) + a0, 3.0 * (b2 - b1) + b0, 3.0 * (d2 - d1) + d0
         if len(history) == 2:
-            return 2.0 * history[1] - history[0]
-        return history[0].copy()
+            (a0, b0, d0), (a1, b1, d1) = history
+            return 2.0 * a1 - a0, 2.0 * b1 - b0, 2.0 * d1 - d0
+        return history[0]
 
-    def _solve_up(self, lengths: list[float]) -> np.ndarray:
+    def _solve_up(self, l1: float, l2: float, l3: float) -> tuple[float, float, float]:
         """Newton from the warm start; if that fails (a jump in the stream can extrapolate
         far away), once more from the nominal posture before reporting the failure."""
         if self._history:
             try:
-                return self._newton(lengths, self._initial_guess())
+                return self._newton(l1, l2, l3, self._initial_guess())
             except KinematicsError:
                 pass
-        return self._newton(lengths, self.geometry.nominal_up)
+        return self._newton(l1, l2, l3, self._nominal)
 
-    def _newton(self, lengths: list[float], q: np.ndarray) -> np.ndarray:
-        """Newton on |B_i(q) - A_i| - l_i = 0 for q = (alpha, beta, d), from q (modified)."""
-        model, data, joint = self._up_model, self._up_data, self._platform_joint
+    def _newton(self, l1: float, l2: float, l3: float,
+                start: tuple[float, float, float]) -> tuple[float, float, float]:
+        """Newton on |B_i(q) - A_i| - l_i = 0 for q = (alpha, beta, d), from `start`."""
+        alpha, beta, d = start
+        (b1, a1), (b2, a2), (b3, a3) = self._branches
+        residual: tuple[float, ...] = (math.nan,)
         for iteration in range(1, MAX_ITERATIONS + 1):
-            pin.computeJointJacobians(model, data, q)
-            placement = data.oMi[joint]
-            jacobian = pin.getJointJacobian(model, data, joint, pin.LOCAL_WORLD_ALIGNED)
-            # Anchor positions relative to the platform origin, in world axes.
-            offsets = (self._platform_anchors @ placement.rotation.T).tolist()
-            origin = placement.translation.tolist()
-            columns = jacobian.T.tolist()  # per q_k: linear (3) then angular (3) velocity
-            rows, residual = [], []
-            for (cx, cy, cz), (ax, ay, az), length in zip(
-                    offsets, self._base_anchors_list, lengths, strict=False):
-                vx, vy, vz = origin[0] + cx - ax, origin[1] + cy - ay, origin[2] + cz - az
-                norm = math.sqrt(vx * vx + vy * vy + vz * vz)
-                ux, uy, uz = vx / norm, vy / norm, vz / norm
-                # d|v|/dq_k = u . (v_k + w_k x c): anchor velocity from the platform twist.
-                wx, wy, wz = cy * uz - cz * uy, cz * ux - cx * uz, cx * uy - cy * ux
-                rows.append([ux * vx_k + uy * vy_k + uz * vz_k + wx * ox_k + wy * oy_k + wz * oz_k
-                             for vx_k, vy_k, vz_k, ox_k, oy_k, oz_k in columns])
-                residual.append(norm - length)
-            (n0, n1, n2), det = _cofactor_solve(rows, residual)
+            trig = math.cos(alpha), math.sin(alpha), math.cos(beta), math.sin(beta)
+            row1, n1 = _branch_row(trig, d, b1, a1)
+            row2, n2 = _branch_row(trig, d, b2, a2)
+            row3, n3 = _branch_row(trig, d, b3, a3)
+            residual = (n1 - l1, n2 - l2, n3 - l3)
+            (s0, s1, s2), det = _cofactor_solve((row1, row2, row3), residual)
             if abs(det) < SINGULAR_DETERMINANT:
                 msg = (f'singular branch-length Jacobian (determinant {det:.3e}): '
                        'posture out of workspace')
                 raise WorkspaceError(msg)
-            q[0] -= n0 / det
-            q[1] -= n1 / det
-            q[2] -= n2 / det
-            if not math.isfinite(q[2]):
+            alpha -= s0 / det
+            beta -= s1 / det
+            d -= s2 / det
+            if not math.isfinite(d):
                 break
-            if max(abs(n0), abs(n1), abs(n2)) < STEP_TOLERANCE * abs(det):
+            if max(abs(s0), abs(s1), abs(s2)) < STEP_TOLERANCE * abs(det):
                 self.last_iterations = iteration
-                self._check_up_limits(q)
-                return q
+                self._check_up_limits((alpha, beta, d))
+                return alpha, beta, d
         raise ConvergenceError(MAX_ITERATIONS, max(abs(r) for r in residual))
 
-    def _check_up_limits(self, q: np.ndarray) -> None:
-        geometry = self.geometry
-        for i, name in enumerate(UP_JOINTS):
-            lower, upper = float(geometry.up_lower[i]), float(geometry.up_upper[i])
-            if not lower <= q[i] <= upper:
+    def _check_up_limits(self, q: tuple[float, float, float]) -> None:
+        for value, (name, lower, upper) in zip(q, self._up_limits, strict=True):
+            if not lower <= value <= upper:
                 msg = (
-                    f'branch lengths give {name} = {q[i]:.6f}, outside [{lower:.6f}, '
+                    f'branch lengths give {name} = {value:.6f}, outside [{lower:.6f}, '
                     f'{upper:.6f}]: the pose is outside the workspace'
                 )
                 raise WorkspaceError(msg)
+
+
+def _branch_row(trig: tuple[float, float, float, float], d: float,
+                platform: tuple[float, ...], base: tuple[float, ...],
+                ) -> tuple[tuple[float, float, float], float]:
+    """Jacobian row in (alpha, beta, d) and length |B - A| of one branch, on floats: the
+    per-sample form of `_lengths_and_jacobian` (B = Rx(alpha) Ry(beta) (b + d e_z))."""
+    ca, sa, cb, sb = trig
+    bx, by, bz = platform
+    z = bz + d
+    rx, rz = cb * bx + sb * z, cb * z - sb * bx
+    px, py, pz = rx, ca * by - sa * rz, sa * by + ca * rz
+    vx, vy, vz = px - base[0], py - base[1], pz - base[2]
+    norm = math.sqrt(vx * vx + vy * vy + vz * vz)
+    ux, uy, uz = vx / norm, vy / norm, vz / norm
+    return ((uz * py - uy * pz, ux * (ca * pz - sa * py) + (uy * sa - uz * ca) * px,
+             ux * sb - uy * sa * cb + uz * ca * cb), norm)
 
 
 def _tool_tip(geometry: LomprGeometry, up: np.ndarray, head: np.ndarray) -> np.ndarray:

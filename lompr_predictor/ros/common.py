@@ -3,9 +3,10 @@
 - `DiagnosticsPublisher`: a DiagnosticArray on /diagnostics about once a second, one status
   per registered provider (the model of ros/diagnostics' diagnostic_updater).
 - `spin_until`: spin an executor until a condition holds or a deadline passes.
-- `events_executor`: rclpy's `EventsExecutor` on a context.
+- `events_executor`: rclpy's `EventsExecutor` on a context; `make_executor` picks it or the
+  `SingleThreadedExecutor` by name (`EXECUTORS`).
 - `run_node`: the `main()` of a node executable (ros2/demos style), with `--help` listing
-  the node's parameters.
+  the node's parameters and `--executor`.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.context import Context
 from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.exceptions import InvalidTopicNameException, ParameterException
-from rclpy.executors import Executor, ExternalShutdownException
+from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
@@ -116,6 +117,20 @@ def events_executor(context: Context) -> Executor:
         sys.stderr = captured
 
 
+#: The executors a node executable can spin (`--executor`); the first is the default.
+EXECUTORS = ('events', 'single-threaded')
+
+
+def make_executor(name: str, context: Context) -> Executor:
+    """The executor called `name` (`EXECUTORS`) on `context`."""
+    if name == 'events':
+        return events_executor(context)
+    if name == 'single-threaded':
+        return SingleThreadedExecutor(context=context)
+    msg = f'unknown executor {name!r}: one of {", ".join(EXECUTORS)}'
+    raise ValueError(msg)
+
+
 def run_node(
     node_factory: Callable[[Context], Node | Sequence[Node]],
     *,
@@ -133,10 +148,12 @@ def run_node(
     node starts, or ROS arguments rcl cannot parse (`-p model_path:=`), is printed as one
     line and exits with code 2.
     Uses the default context, whose SIGINT handler rclpy installs (a non-default context is
-    not shut down by Ctrl-C), and an `events_executor` spun in `spin_once` steps of
-    `SPIN_STEP` s: rclpy 7.1.6's `EventsExecutor.spin()` never returns to Python, so it
+    not shut down by Ctrl-C), and by default an `events_executor` spun in `spin_once` steps
+    of `SPIN_STEP` s: rclpy 7.1.6's `EventsExecutor.spin()` never returns to Python, so it
     ignores SIGINT and burns a full core while idle, whereas these steps idle at ~0.3 % CPU
-    and notice a shutdown within a step.
+    and notice a shutdown within a step. `--executor single-threaded` spins rclpy's
+    `SingleThreadedExecutor` instead (the stable one: the events executor is experimental
+    in Jazzy), in the same steps.
     """
     argv = list(sys.argv if argv is None else argv)
     parser = argparse.ArgumentParser(
@@ -144,6 +161,8 @@ def run_node(
         epilog='\n'.join(['ROS parameters (set with --ros-args -p NAME:=VALUE or --params-file '
                            'FILE):', *parameters_help]),
         formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument('--executor', choices=EXECUTORS, default=EXECUTORS[0],
+                        help='the executor that spins the node(s) (default: %(default)s)')
     try:
         plain_args = remove_ros_args(argv)[1:]
     except RuntimeError as err:  # rclpy's RCLInvalidROSArgsError: '-p model_path:=' and such
@@ -151,14 +170,14 @@ def run_node(
         print(f'{parser.prog}: error: {reason} (an empty string is written '
               "-p NAME:=\"''\")", file=sys.stderr)
         return 2
-    parser.parse_args(plain_args)
+    args = parser.parse_args(plain_args)
     rclpy.init(args=argv)
     context = rclpy.get_default_context()
     nodes: Sequence[Node] = ()
     try:
         built = node_factory(context)
         nodes = [built] if isinstance(built, Node) else list(built)
-        executor = events_executor(context)
+        executor = make_executor(args.executor, context)
         for node in nodes:
             executor.add_node(node)
         while context.ok():

@@ -15,6 +15,7 @@ under use_sim_time), the solve times on the wall clock.
 from __future__ import annotations
 
 import sys
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -51,7 +52,8 @@ from lompr_predictor.ros.node_base import (
     node_help,
 )
 from lompr_predictor.ros.parameters import parameter
-from lompr_predictor.stamps import period_ns, stamp_problem, stamp_to_ns
+from lompr_predictor.ros.wire import PoseStampedWriter, WireError, read_joint_state
+from lompr_predictor.stamps import Stamp, period_ns, stamp_problem, stamp_to_ns
 
 NODE_NAME = 'kinematics_node'
 
@@ -154,7 +156,8 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
         self._rejected_at_last_report = 0
 
         self._publisher = self.advertise(END_POSE)
-        self._subscription = self.subscribe(JOINT_STATES, self.on_joint_state)
+        self._pose_writer = PoseStampedWriter(settings.frame_id)
+        self._subscription = self.subscribe(JOINT_STATES, self.on_joint_state, raw=True)
         self._diagnostics = self.start_diagnostics(
             settings.diagnostics_topic, settings.diagnostics_period,
             hardware_id=f'urdf sha256 {self.description.sha256[:16]}')
@@ -165,54 +168,61 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
             f'{settings.end_pose_topic} with {self.description.source} '
             f'(sha256 {self.description.sha256[:16]})')
 
-    def on_joint_state(self, msg: JointState) -> None:
-        """Publish the end pose of one JointState, or count why it has none."""
+    def on_joint_state(self, data: bytes | JointState) -> None:
+        """Publish the end pose of one JointState (serialized, as the subscription takes it
+        raw, or a message object), or count why it has none."""
         self.input_rate.tick()
+        sec = nanosec = 0
+        clock = time.perf_counter
         try:
-            stamp_ns = self._stamp_ns(msg)
-            joints = self._measured_joints(msg)
+            if isinstance(data, bytes):
+                try:
+                    sec, nanosec, names, positions = read_joint_state(data)
+                except WireError as err:
+                    raise JointStateError('malformed', str(err)) from err
+            else:
+                stamp = data.header.stamp
+                sec, nanosec, names, positions = (stamp.sec, stamp.nanosec, tuple(data.name),
+                                                  tuple(data.position))
+            stamp_ns = self._stamp_ns(sec, nanosec)
+            joints = self._measured_joints(names, positions)
             self._check_gap(stamp_ns)
-            with self.solve_time.measure():
+            start = clock()
+            try:
                 pose = self._fk.solve(joints)
+            finally:
+                self.solve_time.record(clock() - start)
         except JointStateError as err:
             self._fk.reset()
-            self._reject(err.reason, msg, err)
+            self._reject(err.reason, sec, nanosec, err)
             return
         except KinematicsError as err:  # the FK has already dropped its warm start
-            self._reject(KINEMATICS_REASONS.get(type(err), 'kinematics'), msg, err)
+            self._reject(KINEMATICS_REASONS.get(type(err), 'kinematics'), sec, nanosec, err)
             return
-        out = PoseStamped()
-        out.header.stamp = msg.header.stamp
-        out.header.frame_id = self.settings.frame_id
-        position, orientation = out.pose.position, out.pose.orientation
-        position.x, position.y, position.z = (float(v) for v in pose.position)
-        (orientation.x, orientation.y, orientation.z,
-         orientation.w) = (float(v) for v in pose.quaternion)
-        self._publisher.publish(out)
+        self._publisher.publish(self._pose_writer.pack(
+            sec, nanosec, pose.position.tolist(), pose.quaternion.tolist()))
         self.output_rate.tick()
 
-    def _stamp_ns(self, msg: JointState) -> int:
-        stamp = msg.header.stamp
-        if stamp.sec == 0 and stamp.nanosec == 0:
+    def _stamp_ns(self, sec: int, nanosec: int) -> int:
+        if sec == 0 and nanosec == 0:
             raise JointStateError('unstamped', 'header.stamp is zero: the sample instant is '
                                   'unknown, so its pose could not be aligned with anything')
-        reason, why = stamp_problem(stamp, self.clock_ns(),
+        reason, why = stamp_problem(stamp := Stamp(sec, nanosec), self.clock_ns(),
                                     period_ns(self.settings.max_future_stamp))
         if reason:
             raise JointStateError(reason, why)
         return stamp_to_ns(stamp)
 
-    def _measured_joints(self, msg: JointState) -> list[float]:
+    def _measured_joints(self, names: tuple[str, ...],
+                         positions: Sequence[float]) -> list[float]:
         """The five measured joints in `MEASURED_JOINTS` order, matched by name."""
-        if len(msg.position) != len(msg.name):
+        if len(positions) != len(names):
             raise JointStateError(
-                'malformed', f'{len(msg.name)} names but {len(msg.position)} positions')
-        names = tuple(msg.name)
+                'malformed', f'{len(names)} names but {len(positions)} positions')
         if names != self._last_names:  # a robot sends the same names every time: match once
             self._match(names)
         if self._indices is None:
             raise JointStateError(*self._missing)
-        positions = msg.position
         return [positions[i] for i in self._indices]
 
     def _match(self, names: tuple[str, ...]) -> None:
@@ -242,11 +252,10 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
             self._fk.reset()
             self.warm_start_resets += 1
 
-    def _reject(self, reason: str, msg: JointState, err: Exception) -> None:
+    def _reject(self, reason: str, sec: int, nanosec: int, err: Exception) -> None:
         self.rejected.add(reason)
-        stamp = msg.header.stamp
         self.warn_throttled(reason, f'no end pose for the joint state at '
-                                    f'{stamp.sec}.{stamp.nanosec:09d} ({reason}): {err}')
+                                    f'{sec}.{nanosec:09d} ({reason}): {err}')
 
     def input_status(self) -> Status:
         """Diagnostics of /joint_states: rate, counts, rejections by reason."""

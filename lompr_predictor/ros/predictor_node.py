@@ -101,7 +101,8 @@ from lompr_predictor.ros.node_base import (
     node_help,
 )
 from lompr_predictor.ros.parameters import parameter
-from lompr_predictor.stamps import set_stamp
+from lompr_predictor.ros.wire import Vector3StampedWriter, read_pose_stamped
+from lompr_predictor.stamps import NS_PER_SECOND, Stamp
 from lompr_predictor.threads import set_torch_threads
 
 NODE_NAME = 'predictor_node'
@@ -269,6 +270,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], LifecycleNode):
         self._faults_at_last_report = 0
         self._overruns_at_last_report = 0
 
+        self._vector_writer = Vector3StampedWriter(settings.frame_id)  # outputs as bytes
         self._prediction_publisher: Publisher | None = None
         self._compensation_publisher: Publisher | None = None
         self._subscriptions_made: list[Subscription] = []
@@ -427,8 +429,8 @@ class PredictorNode(NodeBase[PredictorNodeSettings], LifecycleNode):
             latency_samples=settings.latency_samples, now_ns=self.clock_ns)
         self._prediction_publisher = self.advertise(PREDICTED_ERROR)
         self._compensation_publisher = self.advertise(COMPENSATION)
-        self._subscriptions_made = [self.subscribe(END_POSE, self.on_end_pose),
-                                    self.subscribe(REFERENCE, self.on_reference)]
+        self._subscriptions_made = [self.subscribe(END_POSE, self.on_end_pose, raw=True),
+                                    self.subscribe(REFERENCE, self.on_reference, raw=True)]
         stale_after = self._core.stream.stale_after
         self._stale_timer = self.start_timer(min(max(stale_after / 4, 0.005), 0.5),
                                              'staleness check', self.on_stale_timer)
@@ -471,24 +473,24 @@ class PredictorNode(NodeBase[PredictorNodeSettings], LifecycleNode):
 
     # -- callbacks (run through NodeBase.guard: a failure aborts the core) -----------------
 
-    def on_end_pose(self, msg: PoseStamped) -> None:
+    def on_end_pose(self, msg: bytes) -> None:
+        """One serialized PoseStamped (the subscriptions are raw: `wire`)."""
         start = time.perf_counter()
         self.pose_rate.tick()
         if self._core is None or not self.active:
             self.dropped_inactive += 1
             return
-        position = msg.pose.position
-        self._publish(self._core.add_pose(msg.header.stamp, position.x, position.y), start)
+        sec, nanosec, x, y, _ = read_pose_stamped(msg)
+        self._publish(self._core.add_pose(Stamp(sec, nanosec), x, y), start)
 
-    def on_reference(self, msg: PoseStamped) -> None:
+    def on_reference(self, msg: bytes) -> None:
         start = time.perf_counter()
         self.reference_rate.tick()
         if self._core is None or not self.active:
             self.dropped_inactive += 1
             return
-        position = msg.pose.position
-        self._publish(self._core.add_reference(msg.header.stamp, position.x, position.y),
-                      start)
+        sec, nanosec, x, y, _ = read_pose_stamped(msg)
+        self._publish(self._core.add_reference(Stamp(sec, nanosec), x, y), start)
 
     def on_stale_timer(self) -> None:
         """Runs on the node's clock: under simulated time only while that time advances."""
@@ -540,12 +542,10 @@ class PredictorNode(NodeBase[PredictorNodeSettings], LifecycleNode):
                 self.input_to_output.record(time.perf_counter() - start)
                 self.output_rate.tick()
 
-    def _vector(self, stamp_ns: int, xy: np.ndarray) -> Vector3Stamped:
-        msg = Vector3Stamped()
-        set_stamp(msg.header.stamp, stamp_ns)
-        msg.header.frame_id = self.settings.frame_id
-        msg.vector.x, msg.vector.y = float(xy[0]), float(xy[1])
-        return msg
+    def _vector(self, stamp_ns: int, xy: np.ndarray) -> bytes:
+        """A serialized Vector3Stamped (`wire`): no message object per output."""
+        sec, nanosec = divmod(stamp_ns, NS_PER_SECOND)
+        return self._vector_writer.pack(sec, nanosec, float(xy[0]), float(xy[1]))
 
     def _load(self, path: str, expected: dict[str, Any], pin: str) -> LoadedModel:
         """`load_model` with this node's hash policy (pin, else the sidecar, unless

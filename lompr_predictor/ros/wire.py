@@ -1,0 +1,132 @@
+"""The few messages of the 1 kHz path read from and written to their wire form directly.
+
+rclpy turns every message it takes into Python objects (a PoseStamped is five of them,
+each field set through a checking property) and back when it publishes: on the per-sample
+path that costs more CPU than the forward kinematics. The nodes subscribe raw
+(`create_subscription(..., raw=True)`: the serialized bytes) and publish bytes
+(`Publisher.publish(bytes)`), and this module reads and writes the fields they use with one
+`struct` call each.
+
+The wire form is the ROS 2 serialization (XCDR1, what `rclpy.serialization` gives with
+the middlewares of ROS 2 Jazzy): a 4-byte encapsulation header (00 01 00 00 for
+little-endian CDR), then the fields, each aligned to its size from the end of the header,
+strings as uint32 length (with the NUL) + bytes + NUL, sequences as uint32 count +
+elements. Bytes in any other encapsulation (big-endian CDR) are read through
+`rclpy.serialization.deserialize_message`, so the nodes answer whatever they receive.
+A message that cannot be read raises `WireError`.
+"""
+
+from __future__ import annotations
+
+import struct
+from typing import Any
+
+from geometry_msgs.msg import PoseStamped
+from rclpy.serialization import deserialize_message
+from sensor_msgs.msg import JointState
+
+from lompr_predictor.errors import LomprError
+
+#: Encapsulation header of little-endian plain CDR.
+CDR_LE = b'\x00\x01\x00\x00'
+_HEADER = struct.Struct('<iiI')  # stamp sec, nanosec, frame_id length (with its NUL)
+_UINT32 = struct.Struct('<I')
+
+
+class WireError(LomprError):
+    """Serialized bytes that are not a readable message of the expected type."""
+
+
+def _align(offset: int, size: int) -> int:
+    """`offset` (from the encapsulation header's end) rounded up to a multiple of `size`."""
+    return offset + (-offset % size)
+
+
+def _read_header(data: bytes) -> tuple[int, int, int]:
+    """(sec, nanosec, offset after frame_id, relative to the data) of a header at the
+    start of the data."""
+    sec, nanosec, length = _HEADER.unpack_from(data, 4)
+    return sec, nanosec, 12 + length
+
+
+def read_pose_stamped(data: bytes) -> tuple[int, int, float, float, float]:
+    """(stamp sec, nanosec, position x, y, z) of a serialized geometry_msgs/PoseStamped."""
+    try:
+        if data[:4] != CDR_LE:
+            msg = deserialize_message(data, PoseStamped)
+            p = msg.pose.position
+            return msg.header.stamp.sec, msg.header.stamp.nanosec, p.x, p.y, p.z
+        sec, nanosec, end = _read_header(data)
+        x, y, z = struct.unpack_from('<3d', data, 4 + _align(end, 8))
+    except Exception as err:
+        msg = f'not a PoseStamped: {type(err).__name__}: {err}'
+        raise WireError(msg) from err
+    return sec, nanosec, x, y, z
+
+
+def read_joint_state(data: bytes) -> tuple[int, int, tuple[str, ...], tuple[float, ...]]:
+    """(stamp sec, nanosec, names, positions) of a serialized sensor_msgs/JointState."""
+    try:
+        if data[:4] != CDR_LE:
+            msg: Any = deserialize_message(data, JointState)
+            return (msg.header.stamp.sec, msg.header.stamp.nanosec, tuple(msg.name),
+                    tuple(msg.position))
+        sec, nanosec, offset = _read_header(data)
+        offset = _align(offset, 4)
+        count, = _UINT32.unpack_from(data, 4 + offset)
+        offset += 4
+        names = []
+        for _ in range(count):
+            offset = _align(offset, 4)
+            length, = _UINT32.unpack_from(data, 4 + offset)
+            start = 4 + offset + 4
+            if length < 1 or start + length > len(data):
+                msg = f'string of length {length} at {offset}'
+                raise ValueError(msg)
+            names.append(data[start:start + length - 1].decode())
+            offset += 4 + length
+        offset = _align(offset, 4)
+        count, = _UINT32.unpack_from(data, 4 + offset)
+        offset = _align(offset + 4, 8)
+        positions = struct.unpack_from(f'<{count}d', data, 4 + offset)
+    except Exception as err:
+        msg = f'not a JointState: {type(err).__name__}: {err}'
+        raise WireError(msg) from err
+    return sec, nanosec, tuple(names), positions
+
+
+class _StampedWriter:
+    """Serialized messages of one type whose header has a fixed frame_id: a header
+    followed by `doubles` float64 fields, packed by one precompiled `struct`."""
+
+    def __init__(self, frame_id: str, doubles: int) -> None:
+        frame = frame_id.encode() + b'\x00'
+        padding = _align(12 + len(frame), 8) - 12 - len(frame)
+        self._struct = struct.Struct(
+            f'<4siiI{len(frame)}s{padding}x{doubles}d')
+        self._frame = frame
+
+    def _pack(self, sec: int, nanosec: int, *values: float) -> bytes:
+        return self._struct.pack(CDR_LE, sec, nanosec, len(self._frame), self._frame, *values)
+
+
+class PoseStampedWriter(_StampedWriter):
+    """Serialized geometry_msgs/PoseStamped in frame `frame_id`."""
+
+    def __init__(self, frame_id: str) -> None:
+        super().__init__(frame_id, 7)
+
+    def pack(self, sec: int, nanosec: int, position: tuple[float, float, float],
+             quaternion: tuple[float, float, float, float]) -> bytes:
+        """A pose: position [m], orientation quaternion x, y, z, w."""
+        return self._pack(sec, nanosec, *position, *quaternion)
+
+
+class Vector3StampedWriter(_StampedWriter):
+    """Serialized geometry_msgs/Vector3Stamped in frame `frame_id`."""
+
+    def __init__(self, frame_id: str) -> None:
+        super().__init__(frame_id, 3)
+
+    def pack(self, sec: int, nanosec: int, x: float, y: float, z: float = 0.0) -> bytes:
+        return self._pack(sec, nanosec, x, y, z)
