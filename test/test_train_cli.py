@@ -54,7 +54,13 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
         assert (report / name).is_file()
     content = json.loads((report / 'report.json').read_text())
     assert content['counts']['bags'] == 2 and content['counts']['kept'] == 2400
-    assert set(content['models']) == {'persistence', 'bp', 'bo_lstm'}
+    assert set(content['models']) == {'persistence', 'bp', 'ridge', 'hgb', 'bo_lstm'}
+    for baseline in ('persistence', 'bp', 'ridge', 'hgb'):  # per axis and metric
+        beaten = content['bo_lstm_beats'][baseline]
+        assert set(beaten) == {'x', 'y'}
+        assert all(isinstance(v, bool) and len(beaten[a]) == 10
+                   for a in beaten for v in beaten[a].values())
+    assert 'BO-LSTM beats Ridge' in (report / 'report.md').read_text()
     assert content['tuning']['trials_spent'] == 2
     assert content['split']['test_start_row'] == 2160
     assert '| RMSE (um) |' in (report / 'report.md').read_text()
@@ -122,3 +128,16 @@ def test_rmse_is_given_as_a_multiple_of_the_twins_irreducible_level(tmp_path: Pa
                       'rmse_to_irreducible': {'bo_lstm': {'x': 1.5, 'y': 1.5}}}
     assert irreducible_fields(models, [BagSource(path=str(bag))], 25) == {
         'irreducible_rmse_um': None, 'rmse_to_irreducible': None}  # no level at that horizon
+
+
+def test_a_bo_lstm_that_does_not_beat_ridge_is_warned_about() -> None:
+    def metrics(rmse: float) -> dict[str, dict[str, float]]:
+        return {'x': {'rmse_um': rmse}, 'y': {'rmse_um': 1.0}}
+
+    report = {'models': {'bo_lstm': {'metrics': metrics(2.0)},
+                         'ridge': {'metrics': metrics(1.5)}},
+              'bo_lstm_beats': {'ridge': {'x': {'rmse_um': False}, 'y': {'rmse_um': True}}}}
+    warning = train.ridge_warning(report)
+    assert warning is not None and 'does not beat the ridge' in warning and 'X 2 vs 1.5' in warning
+    report['bo_lstm_beats']['ridge']['x']['rmse_um'] = True
+    assert train.ridge_warning(report) is None

@@ -18,6 +18,7 @@ results went.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -129,6 +130,9 @@ def run(args: argparse.Namespace) -> int:
     result = train_predictor(config)
     write_outputs(config, result)
     print(summary_line(result.report))
+    warning = ridge_warning(result.report)
+    if warning:
+        print(warning, file=sys.stderr)
     print(f'model written to {args.out}; report in {args.report}')
     return 0
 
@@ -144,3 +148,20 @@ def summary_line(report: dict[str, Any]) -> str:
             f"({tuning['trials_complete']} complete, {tuning['trials_pruned']} pruned, "
             f"{tuning['trials_failed']} failed), {tuning['trials_run_now']} run now by "
             f"{len(tuning['local_workers'])} workers here; {split}")
+
+
+def ridge_warning(report: dict[str, Any]) -> str | None:
+    """A warning line when the BO-LSTM's test RMSE is not below the ridge baseline's on some
+    axis: the network then learned no more than a linear filter (issue 10)."""
+    beaten = report.get('bo_lstm_beats', {}).get('ridge')
+    if not beaten:
+        return None
+    lost = [axis for axis, metrics in beaten.items() if not metrics['rmse_um']]
+    if not lost:
+        return None
+    models = report['models']
+    figures = ', '.join(f"{axis.upper()} {models['bo_lstm']['metrics'][axis]['rmse_um']:.3g} "
+                        f"vs {models['ridge']['metrics'][axis]['rmse_um']:.3g} um"
+                        for axis in lost)
+    return (f'warning: the BO-LSTM does not beat the ridge baseline on the test part '
+            f'(RMSE {figures}); see report.md')

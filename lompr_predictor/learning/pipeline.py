@@ -48,6 +48,7 @@ from lompr_predictor.data.problem import (
     build_problem,
 )
 from lompr_predictor.errors import LomprError
+from lompr_predictor.learning.baselines import BASELINES, beats, hgb_baseline, ridge_baseline
 from lompr_predictor.learning.metrics import ratios, score_predictions
 from lompr_predictor.learning.model_file import (
     ExportedModule,
@@ -242,6 +243,9 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     bp = train_network(problem, 'mlp', BP_HYPERPARAMETERS, config.settings, residual=False,
                        progress=config.progress, label='BP')
     bp_seconds = time.perf_counter() - bp_started
+    baselines_started = time.perf_counter()
+    baselines = {'ridge': ridge_baseline(problem), 'hgb': hgb_baseline(problem, config.seed)}
+    baselines_seconds = time.perf_counter() - baselines_started
 
     scoring_started = time.perf_counter()
     test = problem.split.test
@@ -250,6 +254,7 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     predictions = {
         'persistence': persistence(problem.error, test),
         'bp': predict_rows(bp.module, problem.rows, test, problem.window),
+        **{name: baseline.predicted for name, baseline in baselines.items()},
         'bo_lstm': predict_rows(tuned.module, problem.rows, test, problem.window)}
     max_step = config.inputs.cleaning.gap_factor * problem.sample_period
     models = score_predictions(predictions, actual, stamps, problem.error_low,
@@ -258,6 +263,9 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
                         target='error', epochs=bp.epochs)
     models['bo_lstm'].update(training_seconds=tuned.training_seconds,
                              hyperparameters=tuned.params, target='residual (e(t+h) - e(t))')
+    for name, baseline in baselines.items():
+        models[name].update(training_seconds=baseline.seconds,
+                            hyperparameters=baseline.settings, target='residual (e(t+h) - e(t))')
     report = _report(config, problem, data, sources, models, tuned, bp.seconds)
     scoring_seconds = time.perf_counter() - scoring_started
     metadata = ModelMetadata(
@@ -280,7 +288,8 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     report['timings'] = {'read_clean_fk_seconds': read_seconds,
                          'tuning_seconds': tuned.tuning_seconds,
                          'best_model_seconds': tuned.best_model_seconds,
-                         'bp_seconds': bp_seconds, 'scoring_seconds': scoring_seconds,
+                         'bp_seconds': bp_seconds, 'baselines_seconds': baselines_seconds,
+                         'scoring_seconds': scoring_seconds,
                          'total_seconds': total, 'read_fraction_of_total': read_seconds / total}
     report['model_file'] = str(Path(_model_path(config)).resolve())
     return TrainingResult(module=tuned.module, metadata=metadata, report=report,
@@ -384,6 +393,8 @@ def _report(config: TrainingConfig, problem: LearningProblem, data: CleanData,
     report.update(
         models=models,
         ratios_to_bp=ratios(models['bo_lstm']['metrics'], models['bp']['metrics']),
+        bo_lstm_beats={name: beats(models['bo_lstm']['metrics'], models[name]['metrics'])
+                       for name in ('persistence', 'bp', *BASELINES)},
         training_time_ratio_lstm_to_bp=(tuned.training_seconds / bp_seconds
                                         if bp_seconds else None),
         tuning_time_ratio_to_bp=tuned.tuning_seconds / bp_seconds if bp_seconds else None,
