@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 import pytest
 from trainer_data import lissajous_reference, synthetic_recording, truncate_bag
@@ -134,7 +135,7 @@ def test_a_bo_lstm_that_does_not_beat_ridge_is_warned_about() -> None:
     def metrics(rmse: float) -> dict[str, dict[str, float]]:
         return {'x': {'rmse_um': rmse}, 'y': {'rmse_um': 1.0}}
 
-    report = {'models': {'bo_lstm': {'metrics': metrics(2.0)},
+    report: dict[str, Any] = {'models': {'bo_lstm': {'metrics': metrics(2.0)},
                          'ridge': {'metrics': metrics(1.5)}},
               'bo_lstm_beats': {'ridge': {'x': {'rmse_um': False}, 'y': {'rmse_um': True}}}}
     warning = train.ridge_warning(report)
