@@ -18,6 +18,7 @@ results went.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 from typing import Any
@@ -25,10 +26,12 @@ from typing import Any
 from lompr_predictor.cli.common import add_data_arguments, bag_inputs
 from lompr_predictor.data.problem import DEFAULT_HORIZON, DEFAULT_WINDOW
 from lompr_predictor.learning.space import (
+    DEFAULT_SPACE,
     DEFAULT_TRIALS,
     HEARTBEAT_SECONDS,
     PAPER_SPACE,
     SearchSpace,
+    named_space,
     parse_values,
 )
 from lompr_predictor.threads import MAX_DEFAULT_WORKERS, default_workers, set_torch_threads
@@ -46,6 +49,9 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument('--out', help='model file to write (TorchScript); required unless '
                                       '--workers-only')
     parser.add_argument('--report', help='report folder; required unless --workers-only')
+    parser.add_argument('--test-bags', nargs='+', default=None, metavar='BAG_DIR',
+                        help='score on these recordings (e.g. another seed of the same machine) '
+                             'instead of the last 10 %% of the training bags')
     parser.add_argument('--horizon', type=int, default=DEFAULT_HORIZON,
                         help="samples between the window's last row and the predicted instant")
     parser.add_argument('--window', type=int, default=DEFAULT_WINDOW, help='samples per window')
@@ -53,12 +59,22 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--max-epochs', type=int, default=None)
     parser.add_argument('--patience', type=int, default=None)
-    parser.add_argument('--batch-sizes', default=None,
-                        help=f'comma list (default {_listed(PAPER_SPACE.batch_sizes)})')
-    parser.add_argument('--hidden-units', default=None,
-                        help=f'comma list (default {_listed(PAPER_SPACE.hidden_units)})')
-    parser.add_argument('--learning-rates', default=None,
-                        help=f'comma list (default {_listed(PAPER_SPACE.learning_rates)})')
+    parser.add_argument('--space', default='default', metavar='NAME',
+                        help='search space: default (batch ' + _listed(DEFAULT_SPACE.batch_sizes)
+                        + ', hidden ' + _listed(DEFAULT_SPACE.hidden_units) + ', lr '
+                        + _listed(DEFAULT_SPACE.learning_rates) + ', weight decay '
+                        + _listed(DEFAULT_SPACE.weight_decays) + ', LSTM rows '
+                        + _listed(DEFAULT_SPACE.lstm_steps) + ") or paper (the paper's grid: "
+                        'batch ' + _listed(PAPER_SPACE.batch_sizes) + ', hidden '
+                        + _listed(PAPER_SPACE.hidden_units) + ', lr '
+                        + _listed(PAPER_SPACE.learning_rates) + '); the lists below replace '
+                        "the named space's")
+    parser.add_argument('--batch-sizes', default=None, help='comma list')
+    parser.add_argument('--hidden-units', default=None, help='comma list')
+    parser.add_argument('--learning-rates', default=None, help='comma list')
+    parser.add_argument('--weight-decays', default=None, help='comma list (AdamW)')
+    parser.add_argument('--lstm-steps', default=None,
+                        help="comma list: rows at the window's end the LSTM reads")
     parser.add_argument('--storage', default=None,
                         help='where the tuning study lives: postgresql://USER@HOST/DB (shared by '
                              'several machines), sqlite:///FILE, or a journal file path '
@@ -87,14 +103,16 @@ def add_parser(subparsers: Any) -> None:
 
 
 def search_space(args: argparse.Namespace) -> SearchSpace:
-    """The paper's space with the lists given on the command line instead."""
-    return SearchSpace(
-        batch_sizes=(parse_values(args.batch_sizes, int) if args.batch_sizes
-                     else PAPER_SPACE.batch_sizes),
-        hidden_units=(parse_values(args.hidden_units, int) if args.hidden_units
-                      else PAPER_SPACE.hidden_units),
-        learning_rates=(parse_values(args.learning_rates, float) if args.learning_rates
-                        else PAPER_SPACE.learning_rates))
+    """The named space (`--space`) with the lists given on the command line instead, checked
+    against the window (`SpaceError`, exit 2, before any bag is read)."""
+    base = named_space(args.space)
+    lists = {'batch_sizes': (args.batch_sizes, int), 'hidden_units': (args.hidden_units, int),
+             'learning_rates': (args.learning_rates, float),
+             'weight_decays': (args.weight_decays, float), 'lstm_steps': (args.lstm_steps, int)}
+    space = dataclasses.replace(base, **{name: parse_values(text, cast)
+                                         for name, (text, cast) in lists.items() if text})
+    space.check(args.window)
+    return space
 
 
 def _path(text: str | None) -> Path | None:
@@ -118,7 +136,8 @@ def run(args: argparse.Namespace) -> int:
         max_epochs=args.max_epochs or MAX_EPOCHS, patience=args.patience or PATIENCE,
         space=search_space(args), storage=args.storage, study_name=args.study_name,
         workers=args.workers, checkpoints=_path(args.checkpoints), heartbeat=args.heartbeat,
-        progress=not args.quiet)
+        progress=not args.quiet,
+        test_inputs=bag_inputs(args, args.test_bags) if args.test_bags else None)
     if args.workers_only:
         summary = run_workers(config)
         run = summary.run
@@ -143,9 +162,12 @@ def summary_line(report: dict[str, Any]) -> str:
     split = ', '.join(f'{label} {timings[key]:.1f} s' for label, key in (
         ('read+clean', 'read_clean_fk_seconds'), ('tuning', 'tuning_seconds'),
         ('best model', 'best_model_seconds'), ('BP', 'bp_seconds'),
-        ('scoring', 'scoring_seconds'), ('writing', 'writing_seconds')) if key in timings)
+        ('ridge+HGB', 'baselines_seconds'), ('scoring', 'scoring_seconds'),
+        ('writing', 'writing_seconds')) if key in timings)
     return (f"tuning: {tuning['trials_spent']} of {tuning['budget']} trials spent "
             f"({tuning['trials_complete']} complete, {tuning['trials_pruned']} pruned, "
+            f"{tuning.get('trials_stopped_by_pruner', 0)} of them stopped early by the pruner, "
+            f"{tuning.get('epochs_run', 0)} epochs in all, "
             f"{tuning['trials_failed']} failed), {tuning['trials_run_now']} run now by "
             f"{len(tuning['local_workers'])} workers here; {split}")
 

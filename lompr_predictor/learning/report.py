@@ -145,7 +145,10 @@ def markdown(report: Mapping[str, Any]) -> str:
                   f"with validation MSE {tuning['best_value']:.4g}: {tuning['best_params']}.", '']
         if 'trials_complete' in tuning:
             lines += [f"Budget {tuning['budget']}: {tuning['trials_complete']} complete, "
-                      f"{tuning['trials_pruned']} pruned, {tuning['trials_failed']} failed "
+                      f"{tuning['trials_pruned']} pruned, "
+                      f"{tuning.get('trials_stopped_by_pruner', 0)} stopped early by the "
+                      f"pruner (successive halving), {tuning.get('epochs_run', 0)} epochs "
+                      f"in all, {tuning['trials_failed']} failed "
                       "(a failed trial does not count; a dead worker's point is queued again).",
                       '', '| worker | complete | pruned | failed |', '|---|---|---|---|']
             lines += [f"| {name} | {row['complete']} | {row['pruned']} | {row['failed']} |"
