@@ -142,3 +142,25 @@ def test_a_bo_lstm_that_does_not_beat_ridge_is_warned_about() -> None:
     assert warning is not None and 'does not beat the ridge' in warning and 'X 2 vs 1.5' in warning
     report['bo_lstm_beats']['ridge']['x']['rmse_um'] = True
     assert train.ridge_warning(report) is None
+
+
+@pytest.mark.parametrize(('extra', 'message'), [
+    (['--space', 'wide'], "unknown search space 'wide'; choose one of default, paper"),
+    (['--learning-rates', '0.01,-1'], 'search space learning-rates: -1.0 is out of range'),
+    (['--lstm-steps', '0'], 'search space lstm-steps: 0 is out of range'),
+    (['--batch-sizes', 'a,b'], "not a list of numbers: 'a,b'"),
+    (['--window', '0'], 'the window must be >= 1 rows, got 0'),
+    (['--horizon', '0'], '--window and --horizon must be >= 1'),
+    (['--window', '3000'], 'no train windows'),
+])
+def test_bad_training_input_is_one_line_and_exit_2(
+        tmp_path: Path, bags: list[Path], capsys: pytest.CaptureFixture[str], extra: list[str],
+        message: str) -> None:
+    from lompr_predictor.cli import main
+
+    code = main(['train', str(bags[0]), '--out', str(tmp_path / 'm.pt'),
+                 '--report', str(tmp_path / 'r'), '--quiet', *extra])
+    assert code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith('lompr train: error: ') and message in lines[0]
+    assert not (tmp_path / 'r' / 'trials').exists()  # refused before any training

@@ -108,3 +108,25 @@ def test_study_name_and_space_parsing() -> None:
     assert parse_values('200, 600,1000', int) == (200, 600, 1000)
     with pytest.raises(ValueError, match='empty'):
         parse_values(' , ', float)
+
+
+def test_paper_space_is_the_papers_grid_and_the_default_space_is_wider() -> None:
+    from lompr_predictor.learning.space import DEFAULT_SPACE, SpaceError, named_space
+
+    paper = named_space('paper')
+    assert (paper.batch_sizes, paper.hidden_units, paper.learning_rates) == (
+        (200, 600, 1000, 1500), (5, 15, 35, 50), (0.1, 0.01, 0.001))
+    assert paper.points() == 48
+    trial = optuna.trial.FixedTrial({'batch_size': 600, 'hidden': 35, 'learning_rate': 0.01})
+    assert set(paper.suggest(trial)) == {'batch_size', 'hidden', 'learning_rate',
+                                         'weight_decay', 'lstm_steps'}
+    assert named_space('default') is DEFAULT_SPACE and DEFAULT_SPACE.points() > paper.points()
+    for name in ('weight_decays', 'lstm_steps'):
+        assert len(getattr(DEFAULT_SPACE, name)) > 1
+    with pytest.raises(SpaceError, match="unknown search space 'x'"):
+        named_space('x')
+
+
+def test_the_pruner_halves_on_the_validation_loss(storage: StudyStorage) -> None:
+    study = open_study(storage, 'pruner', seed=0, budget=2)
+    assert isinstance(study.pruner, optuna.pruners.SuccessiveHalvingPruner)

@@ -45,14 +45,17 @@ class SearchSpace:
     def suggest(self, trial: optuna.trial.BaseTrial) -> dict[str, Any]:
         """The trial's hyperparameters: batch_size, hidden, learning_rate, weight_decay,
         lstm_steps (a `FixedTrial` of a finished trial's params gives them back in the same
-        form)."""
-        return {'batch_size': int(trial.suggest_categorical('batch_size', list(self.batch_sizes))),
-                'hidden': int(trial.suggest_categorical('hidden', list(self.hidden_units))),
-                'learning_rate': float(trial.suggest_categorical(
-                    'learning_rate', list(self.learning_rates))),
-                'weight_decay': float(trial.suggest_categorical(
-                    'weight_decay', list(self.weight_decays))),
-                'lstm_steps': int(trial.suggest_categorical('lstm_steps', list(self.lstm_steps)))}
+        form). A parameter with one value is not asked of the trial (not tuned, not in its
+        params): the paper's space gives the paper's three-parameter study."""
+        def pick(name: str, values: tuple[Any, ...]) -> Any:
+            return values[0] if len(values) == 1 else trial.suggest_categorical(name,
+                                                                                list(values))
+
+        return {'batch_size': int(pick('batch_size', self.batch_sizes)),
+                'hidden': int(pick('hidden', self.hidden_units)),
+                'learning_rate': float(pick('learning_rate', self.learning_rates)),
+                'weight_decay': float(pick('weight_decay', self.weight_decays)),
+                'lstm_steps': int(pick('lstm_steps', self.lstm_steps))}
 
     def as_dict(self) -> dict[str, list[Any]]:
         return {name: list(values) for name, values in asdict(self).items()}
