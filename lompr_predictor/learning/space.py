@@ -96,7 +96,7 @@ PAPER_SPACE = SearchSpace()
 #: the LSTM reads, measured to matter on the twin's presets.
 DEFAULT_SPACE = SearchSpace(batch_sizes=(128, 256, 512), hidden_units=(16, 32, 64),
                             learning_rates=(0.003, 0.01, 0.02),
-                            weight_decays=(0.0, 1e-3, 1e-2), lstm_steps=(5, 10, 25))
+                            weight_decays=(0.0, 1e-3, 1e-2), lstm_steps=(5, 10, 15))
 #: Named spaces of `lompr train --space`.
 SPACES = {'default': DEFAULT_SPACE, 'paper': PAPER_SPACE}
 
