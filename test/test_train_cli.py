@@ -164,3 +164,15 @@ def test_bad_training_input_is_one_line_and_exit_2(
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith('lompr train: error: ') and message in lines[0]
     assert not (tmp_path / 'r' / 'trials').exists()  # refused before any training
+
+
+def test_test_bags_are_the_test_part(tmp_path: Path, bags: list[Path]) -> None:
+    model, report = tmp_path / 'model.pt', tmp_path / 'report'
+    assert run(['train', str(bags[0]), '--test-bags', str(bags[1]), '--out', str(model),
+                '--report', str(report), *FAST]) == 0
+    content = json.loads((report / 'report.json').read_text())
+    assert content['split']['test'] == 1200 - 2 - 8 + 1 - 2  # every window of the second bag
+    assert content['split']['test_start_row'] == 1200
+    assert str(bags[1]) in content['test_part']
+    loaded = load_model(model)
+    assert [b['path'] for b in loaded.metadata.training_bags] == [str(bags[0].resolve())]

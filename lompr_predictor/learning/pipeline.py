@@ -321,6 +321,9 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
                          'scoring_seconds': scoring_seconds,
                          'total_seconds': total, 'read_fraction_of_total': read_seconds / total}
     report['model_file'] = str(Path(_model_path(config)).resolve())
+    if config.test_inputs is not None:
+        report['test_part'] = 'every window of the test bags: ' + ', '.join(
+            config.test_inputs.bags)
     return TrainingResult(module=tuned.module, metadata=metadata, report=report,
                           test_part=ScoredPredictions(seconds=seconds_since(stamps),
                                                       actual=actual, predictions=predictions))

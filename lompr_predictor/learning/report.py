@@ -98,8 +98,9 @@ def markdown(report: Mapping[str, Any]) -> str:
     lines = [f"# lompr {report['command']} report", '',
              f"Horizon {horizon} samples ({horizon * period:.3g} s), "
              f"window {report['window']} samples, sample period {period * 1e3:.3g} ms; "
-             + (f"test part: {report['split']['test']} windows (chronologically last 10 % of "
-                'the clean samples).' if report['command'] == 'train' else
+             + (f"test part: {report['split']['test']} windows ("
+                + report.get('test_part', 'chronologically last 10 % of the clean samples')
+                + ').' if report['command'] == 'train' else
                 f"scored on all {report['split']['test']} windows of the recordings."), '']
     irreducible = report.get('irreducible_rmse_um')
     for axis in TARGETS:
