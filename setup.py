@@ -29,6 +29,7 @@ setup(
         'pin',
         'rosbags',
         'optuna',
+        'scikit-learn',
         'torch==2.13.0',
         'matplotlib',
         'pyyaml',

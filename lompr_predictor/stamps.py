@@ -15,10 +15,14 @@ NS_PER_SECOND = 1_000_000_000
 
 
 class StampLike(Protocol):
-    """A ROS `builtin_interfaces/Time` (rclpy or rosbags message): seconds and nanoseconds."""
+    """A ROS `builtin_interfaces/Time` (rclpy or rosbags message) or a `Stamp`: seconds and
+    nanoseconds, read only here."""
 
-    sec: int
-    nanosec: int
+    @property
+    def sec(self) -> int: ...
+
+    @property
+    def nanosec(self) -> int: ...
 
 
 

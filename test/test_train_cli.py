@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 import pytest
 from trainer_data import lissajous_reference, synthetic_recording, truncate_bag
@@ -55,7 +56,13 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
         assert (report / name).is_file()
     content = json.loads((report / 'report.json').read_text())
     assert content['counts']['bags'] == 2 and content['counts']['kept'] == 2400
-    assert set(content['models']) == {'persistence', 'bp', 'bo_lstm'}
+    assert set(content['models']) == {'persistence', 'bp', 'ridge', 'hgb', 'bo_lstm'}
+    for baseline in ('persistence', 'bp', 'ridge', 'hgb'):  # per axis and metric
+        beaten = content['bo_lstm_beats'][baseline]
+        assert set(beaten) == {'x', 'y'}
+        assert all(isinstance(v, bool) and len(beaten[a]) == 10
+                   for a in beaten for v in beaten[a].values())
+    assert 'BO-LSTM beats Ridge' in (report / 'report.md').read_text()
     assert content['tuning']['trials_spent'] == 2
     assert content['split']['test_start_row'] == 2160
     assert '| RMSE (um) |' in (report / 'report.md').read_text()
@@ -129,3 +136,51 @@ def test_rmse_is_given_as_a_multiple_of_the_twins_irreducible_level(tmp_path: Pa
                       'rmse_to_irreducible': {'bo_lstm': {'x': 1.5, 'y': 1.5}}}
     assert irreducible_fields(models, [BagSource(path=str(bag))], 25) == {
         'irreducible_rmse_um': None, 'rmse_to_irreducible': None}  # no level at that horizon
+
+
+def test_a_bo_lstm_that_does_not_beat_ridge_is_warned_about() -> None:
+    def metrics(rmse: float) -> dict[str, dict[str, float]]:
+        return {'x': {'rmse_um': rmse}, 'y': {'rmse_um': 1.0}}
+
+    report: dict[str, Any] = {'models': {'bo_lstm': {'metrics': metrics(2.0)},
+                         'ridge': {'metrics': metrics(1.5)}},
+              'bo_lstm_beats': {'ridge': {'x': {'rmse_um': False}, 'y': {'rmse_um': True}}}}
+    warning = train.ridge_warning(report)
+    assert warning is not None and 'does not beat the ridge' in warning and 'X 2 vs 1.5' in warning
+    report['bo_lstm_beats']['ridge']['x']['rmse_um'] = True
+    assert train.ridge_warning(report) is None
+
+
+@pytest.mark.parametrize(('extra', 'message'), [
+    (['--space', 'wide'], "argument --space: invalid choice: 'wide'"),
+    (['--learning-rates', '0.01,-1'], "--learning-rates: '-1' in the list: must be a finite number > 0"),
+    (['--learning-rates', '0.01,2'], 'search space learning-rates: 2.0 is out of range'),
+    (['--lstm-steps', '0'], "--lstm-steps: '0' in the list: must be an integer >= 1"),
+    (['--batch-sizes', 'a,b'], "--batch-sizes: 'a' in the list: must be an integer >= 1"),
+    (['--window', '0'], "argument --window: must be an integer >= 1, got '0'"),
+    (['--horizon', '0'], "argument --horizon: must be an integer >= 1, got '0'"),
+    (['--window', '3000'], 'no train windows'),
+])
+def test_bad_training_input_is_one_line_and_exit_2(
+        tmp_path: Path, bags: list[Path], capsys: pytest.CaptureFixture[str], extra: list[str],
+        message: str) -> None:
+    from lompr_predictor.cli import main
+
+    code = main(['train', str(bags[0]), '--out', str(tmp_path / 'm.pt'),
+                 '--report', str(tmp_path / 'r'), '--quiet', *extra])
+    assert code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith('lompr train: error: ') and message in lines[0]
+    assert not (tmp_path / 'r' / 'trials').exists()  # refused before any training
+
+
+def test_test_bags_are_the_test_part(tmp_path: Path, bags: list[Path]) -> None:
+    model, report = tmp_path / 'model.pt', tmp_path / 'report'
+    assert run(['train', str(bags[0]), '--test-bags', str(bags[1]), '--out', str(model),
+                '--report', str(report), *FAST]) == 0
+    content = json.loads((report / 'report.json').read_text())
+    assert content['split']['test'] == 1200 - 2 - 8 + 1 - 2  # every window of the second bag
+    assert content['split']['test_start_row'] == 1200
+    assert str(bags[1]) in content['test_part']
+    loaded = load_model(model)
+    assert [b['path'] for b in loaded.metadata.training_bags] == [str(bags[0].resolve())]

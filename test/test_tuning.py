@@ -8,7 +8,7 @@ from pathlib import Path
 import optuna
 import pytest
 
-from lompr_predictor.learning.space import PAPER_SPACE, parse_values
+from lompr_predictor.learning.space import PAPER_SPACE
 from lompr_predictor.learning.storage import StudyStorage, default_storage, open_storage
 from lompr_predictor.learning.tuning import (
     finished_twin,
@@ -103,9 +103,26 @@ def test_a_repeated_point_is_found_not_retrained(storage: StudyStorage) -> None:
     assert study.trials[1].value == study.trials[0].value
 
 
-def test_study_name_and_space_parsing() -> None:
+def test_study_name() -> None:
     assert study_name_for({'a': 1, 'b': [2]}) == study_name_for({'b': [2], 'a': 1})
     assert study_name_for({'a': 1}) != study_name_for({'a': 2})
-    assert parse_values('200, 600,1000', int) == (200, 600, 1000)
-    with pytest.raises(ValueError, match='empty'):
-        parse_values(' , ', float)
+
+
+def test_paper_space_is_the_papers_grid_and_the_default_space_is_wider() -> None:
+    from lompr_predictor.learning.space import DEFAULT_SPACE, SPACES
+
+    paper = SPACES['paper']
+    assert (paper.batch_sizes, paper.hidden_units, paper.learning_rates) == (
+        (200, 600, 1000, 1500), (5, 15, 35, 50), (0.1, 0.01, 0.001))
+    assert paper.points() == 48
+    trial = optuna.trial.FixedTrial({'batch_size': 600, 'hidden': 35, 'learning_rate': 0.01})
+    assert set(paper.suggest(trial)) == {'batch_size', 'hidden', 'learning_rate',
+                                         'weight_decay', 'lstm_steps'}
+    assert SPACES['default'] is DEFAULT_SPACE and DEFAULT_SPACE.points() > paper.points()
+    for name in ('weight_decays', 'lstm_steps'):
+        assert len(getattr(DEFAULT_SPACE, name)) > 1
+
+
+def test_the_pruner_halves_on_the_validation_loss(storage: StudyStorage) -> None:
+    study = open_study(storage, 'pruner', seed=0, budget=2)
+    assert isinstance(study.pruner, optuna.pruners.SuccessiveHalvingPruner)

@@ -18,12 +18,16 @@ results went.
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import sys
 from pathlib import Path
 from typing import Any
 
 from lompr_predictor.cli.common import add_data_arguments, bag_inputs
 from lompr_predictor.cli.validation import (
     comma_list,
+    existing_path,
+    finite_float,
     non_empty,
     non_negative_int,
     output_directory,
@@ -34,9 +38,11 @@ from lompr_predictor.cli.validation import (
 )
 from lompr_predictor.data.problem import DEFAULT_HORIZON, DEFAULT_WINDOW
 from lompr_predictor.learning.space import (
+    DEFAULT_SPACE,
     DEFAULT_TRIALS,
     HEARTBEAT_SECONDS,
     PAPER_SPACE,
+    SPACES,
     SearchSpace,
 )
 from lompr_predictor.threads import MAX_DEFAULT_WORKERS, default_workers, set_torch_threads
@@ -56,6 +62,10 @@ def add_parser(subparsers: Any) -> None:
                              'OUT.sha256 and in the report; required unless --workers-only')
     parser.add_argument('--report', type=output_directory,
                         help='report folder; required unless --workers-only')
+    parser.add_argument('--test-bags', nargs='+', type=existing_path, default=None,
+                        metavar='BAG_DIR',
+                        help='score on these recordings (e.g. another seed of the same machine) '
+                             'instead of the last 10 %% of the training bags')
     parser.add_argument('--horizon', type=positive_int, default=DEFAULT_HORIZON,
                         help="samples between the window's last row and the predicted instant")
     parser.add_argument('--window', type=positive_int, default=DEFAULT_WINDOW,
@@ -65,12 +75,26 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument('--seed', type=non_negative_int, default=0)
     parser.add_argument('--max-epochs', type=positive_int, default=None)
     parser.add_argument('--patience', type=positive_int, default=None)
+    parser.add_argument('--space', default='default', choices=tuple(SPACES),
+                        help='search space: default (batch ' + _listed(DEFAULT_SPACE.batch_sizes)
+                        + ', hidden ' + _listed(DEFAULT_SPACE.hidden_units) + ', lr '
+                        + _listed(DEFAULT_SPACE.learning_rates) + ', weight decay '
+                        + _listed(DEFAULT_SPACE.weight_decays) + ', LSTM rows '
+                        + _listed(DEFAULT_SPACE.lstm_steps) + ") or paper (the paper's grid: "
+                        'batch ' + _listed(PAPER_SPACE.batch_sizes) + ', hidden '
+                        + _listed(PAPER_SPACE.hidden_units) + ', lr '
+                        + _listed(PAPER_SPACE.learning_rates) + '); the lists below replace '
+                        "the named space's")
     parser.add_argument('--batch-sizes', type=comma_list(positive_int), default=None,
-                        help=f'comma list (default {_listed(PAPER_SPACE.batch_sizes)})')
+                        help='comma list')
     parser.add_argument('--hidden-units', type=comma_list(positive_int), default=None,
-                        help=f'comma list (default {_listed(PAPER_SPACE.hidden_units)})')
+                        help='comma list')
     parser.add_argument('--learning-rates', type=comma_list(positive_float), default=None,
-                        help=f'comma list (default {_listed(PAPER_SPACE.learning_rates)})')
+                        help='comma list')
+    parser.add_argument('--weight-decays', type=comma_list(finite_float), default=None,
+                        help='comma list (AdamW)')
+    parser.add_argument('--lstm-steps', type=comma_list(positive_int), default=None,
+                        help="comma list: rows at the window's end the LSTM reads")
     parser.add_argument('--storage', type=storage_url, default=None,
                         help='where the tuning study lives: postgresql://USER@HOST/DB (shared by '
                              'several machines), sqlite:///FILE, or a journal file path '
@@ -100,12 +124,15 @@ def add_parser(subparsers: Any) -> None:
 
 
 def search_space(args: argparse.Namespace) -> SearchSpace:
-    """The paper's space with the lists given on the command line (checked by argparse)
-    instead."""
-    return SearchSpace(
-        batch_sizes=args.batch_sizes or PAPER_SPACE.batch_sizes,
-        hidden_units=args.hidden_units or PAPER_SPACE.hidden_units,
-        learning_rates=args.learning_rates or PAPER_SPACE.learning_rates)
+    """The named space (`--space`) with the lists given on the command line (each value
+    checked by argparse) instead, checked against the window (`SpaceError`, exit 2, before
+    any bag is read)."""
+    given = {name: getattr(args, name) for name in
+             ('batch_sizes', 'hidden_units', 'learning_rates', 'weight_decays', 'lstm_steps')}
+    space = dataclasses.replace(SPACES[args.space],
+                                **{name: values for name, values in given.items() if values})
+    space.check(args.window)
+    return space
 
 
 def _path(text: str | None) -> Path | None:
@@ -129,7 +156,8 @@ def run(args: argparse.Namespace) -> int:
         max_epochs=args.max_epochs or MAX_EPOCHS, patience=args.patience or PATIENCE,
         space=search_space(args), storage=args.storage, study_name=args.study_name,
         workers=args.workers, checkpoints=_path(args.checkpoints), heartbeat=args.heartbeat,
-        progress=not args.quiet)
+        progress=not args.quiet,
+        test_inputs=bag_inputs(args, args.test_bags) if args.test_bags else None)
     if args.workers_only:
         summary = run_workers(config)
         run = summary.run
@@ -141,6 +169,9 @@ def run(args: argparse.Namespace) -> int:
     result = train_predictor(config)
     write_outputs(config, result)
     print(summary_line(result.report))
+    warning = ridge_warning(result.report)
+    if warning:
+        print(warning, file=sys.stderr)
     print(f'model written to {args.out}; report in {args.report}')
     return 0
 
@@ -151,8 +182,28 @@ def summary_line(report: dict[str, Any]) -> str:
     split = ', '.join(f'{label} {timings[key]:.1f} s' for label, key in (
         ('read+clean', 'read_clean_fk_seconds'), ('tuning', 'tuning_seconds'),
         ('best model', 'best_model_seconds'), ('BP', 'bp_seconds'),
-        ('scoring', 'scoring_seconds'), ('writing', 'writing_seconds')) if key in timings)
+        ('ridge+HGB', 'baselines_seconds'), ('scoring', 'scoring_seconds'),
+        ('writing', 'writing_seconds')) if key in timings)
     return (f"tuning: {tuning['trials_spent']} of {tuning['budget']} trials spent "
             f"({tuning['trials_complete']} complete, {tuning['trials_pruned']} pruned, "
+            f"{tuning.get('trials_stopped_by_pruner', 0)} of them stopped early by the pruner, "
+            f"{tuning.get('epochs_run', 0)} epochs in all, "
             f"{tuning['trials_failed']} failed), {tuning['trials_run_now']} run now by "
             f"{len(tuning['local_workers'])} workers here; {split}")
+
+
+def ridge_warning(report: dict[str, Any]) -> str | None:
+    """A warning line when the BO-LSTM's test RMSE is not below the ridge baseline's on some
+    axis: the network then learned no more than a linear filter (issue 10)."""
+    beaten = report.get('bo_lstm_beats', {}).get('ridge')
+    if not beaten:
+        return None
+    lost = [axis for axis, metrics in beaten.items() if not metrics['rmse_um']]
+    if not lost:
+        return None
+    models = report['models']
+    figures = ', '.join(f"{axis.upper()} {models['bo_lstm']['metrics'][axis]['rmse_um']:.3g} "
+                        f"vs {models['ridge']['metrics'][axis]['rmse_um']:.3g} um"
+                        for axis in lost)
+    return (f'warning: the BO-LSTM does not beat the ridge baseline on the test part '
+            f'(RMSE {figures}); see report.md')

@@ -121,3 +121,31 @@ def build_problem(data: CleanData, window: int = DEFAULT_WINDOW,
     return LearningProblem(rows=data.features(), error=data.error, stamps=data.stamps,
                            window=window, horizon=horizon, sample_period=data.sample_period,
                            split=split, error_low=error_low, error_high=error_high)
+
+
+def train_test_problem(train: CleanData, test: CleanData, window: int = DEFAULT_WINDOW,
+                       horizon: int = DEFAULT_HORIZON, *,
+                       validation_fraction: float = VALIDATION_FRACTION) -> LearningProblem:
+    """Train on one recording, test on another (e.g. another seed of the same machine):
+    `train`'s windows split chronologically into training and validation (its last
+    `validation_fraction`), every window of `test` the test part. The rows of `test` follow
+    those of `train` (`split.test_start` is the first of them); no window spans both."""
+    n_train = len(train)
+    train_ends = window_ends(train.regular_runs(), window, horizon)
+    test_ends = window_ends(test.regular_runs(), window, horizon) + n_train
+    validation_start = round(n_train * (1 - validation_fraction))
+    target = train_ends + horizon
+    split = Split(train=train_ends[target < validation_start],
+                  validation=train_ends[target >= validation_start], test=test_ends,
+                  validation_start=validation_start, test_start=n_train)
+    for name in ('train', 'validation', 'test'):
+        if len(getattr(split, name)) == 0:
+            msg = (f'no {name} windows: the recordings are too short for window {window} and '
+                   f'horizon {horizon} (or the gaps leave no segment long enough)')
+            raise ValueError(msg)
+    error_low, error_high = minmax_range(train.error)
+    return LearningProblem(rows=np.vstack([train.features(), test.features()]),
+                           error=np.vstack([train.error, test.error]),
+                           stamps=np.concatenate([train.stamps, test.stamps]),
+                           window=window, horizon=horizon, sample_period=train.sample_period,
+                           split=split, error_low=error_low, error_high=error_high)

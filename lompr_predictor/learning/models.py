@@ -1,10 +1,12 @@
 """The predictors: BO-LSTM, the paper's BP (MLP) baseline, persistence, and the scripted
 wrapper that meets the model-file contract (`model_file.py`).
 
-Networks work on normalised tensors: feature columns mapped to [-1, 1] by their training
-min-max, the target likewise. `PredictorModule` wraps a network with those constants so
-that the exported module takes raw SI windows (float64, (B, window, features)) and returns
-the plant X/Y error [m] `horizon` samples after each window's last row. The input map is
+Networks work on normalised tensors: each feature column taken through an affine map chosen
+on the training windows (the LSTM: standardisation, mean and standard deviation; the paper's
+BP: min-max to [-1, 1]), the target likewise. `PredictorModule` wraps a network with those
+constants so that the exported module takes raw SI windows (float64, (B, window,
+features)) and returns the plant X/Y error [m] `horizon` samples after each window's last
+row. The input map is
 defined once, `normalise_windows`; the module applies it in float64, and training applies
 it to rows scaled once in float32 (`ScaledRows`, the same map by distributivity).
 
@@ -12,9 +14,10 @@ Learning problem (recorded in the model metadata):
 - LSTM: the target is the *change* of the error over the horizon, e(t+h) - e(t)
   (`residual=True`): persistence is the prior and the network learns what moves the error
   away from it, from the reference's position, velocity and acceleration and the recent
-  errors. The network adds a linear "autoregressive highway" on the flattened window to the
-  LSTM's output (as LSTNet does): the linear part carries noise averaging and the linear
-  extrapolation of the path, the LSTM the non-linear rest (friction, posture).
+  errors. The LSTM's last state goes through an MLP head, and the network adds a linear
+  "autoregressive highway" on the flattened window (as LSTNet does): the linear part carries
+  noise averaging and the linear extrapolation of the path, the LSTM and its head the
+  non-linear rest (friction and backlash switching at reversals, posture).
 - BP: the paper's baseline, an MLP with one sigmoid hidden layer on the flattened window,
   predicting the error itself (`residual=False`).
 - Persistence: e(t+h) = e(t), the floor every model has to beat.
@@ -37,22 +40,27 @@ from lompr_predictor.data.problem import window_ends
 MODEL_TYPES = ('lstm', 'mlp')
 
 
-#: Rows at the end of the window the LSTM runs over; the linear highway sees the whole
-#: window. The non-linear part of the error follows the recent motion, the long memory
-#: (noise averaging, slow drift) is linear: this keeps the recurrent cost, which grows with
-#: the steps, independent of the window length.
+#: Rows at the end of the window the LSTM runs over unless the hyperparameters say otherwise
+#: (`lstm_steps`, tuned in the default space); the linear highway sees the whole window.
+#: Measured on the twin's presets (issue 10): 10 rows beat 25 at the same budget, and the
+#: recurrent cost grows with the steps.
 LSTM_STEPS = 10
 
 
 class LstmNet(nn.Module):
-    """LSTM over the window's last `LSTM_STEPS` rows, last hidden state -> outputs, plus a
-    linear highway on the flattened window."""
+    """LSTM over the window's last `steps` rows, its last hidden state through an MLP head
+    (two GELU layers: it can express the switching of friction and backlash at a reversal,
+    which a linear read-out of the state could not), plus a linear highway on the flattened
+    window (the linear part: noise averaging, the path's extrapolation)."""
 
-    def __init__(self, n_features: int, window: int, hidden: int, n_outputs: int = 2) -> None:
+    def __init__(self, n_features: int, window: int, hidden: int, n_outputs: int = 2,
+                 steps: int = LSTM_STEPS) -> None:
         super().__init__()
-        self.steps = min(window, LSTM_STEPS)
+        self.steps = max(1, min(window, steps))
         self.lstm = nn.LSTM(n_features, hidden, batch_first=True)
-        self.head = nn.Linear(hidden, n_outputs)
+        self.head = nn.Sequential(nn.Linear(hidden, hidden), nn.GELU(),
+                                  nn.Linear(hidden, hidden), nn.GELU(),
+                                  nn.Linear(hidden, n_outputs))
         self.highway = nn.Linear(window * n_features, n_outputs)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -76,10 +84,11 @@ class MlpNet(nn.Module):
 BP_HYPERPARAMETERS = {'batch_size': 1500, 'hidden': 35, 'learning_rate': 0.01}
 
 
-def build_network(model_type: str, n_features: int, window: int, hidden: int) -> nn.Module:
-    """A network of `model_type` ('lstm' or 'mlp')."""
+def build_network(model_type: str, n_features: int, window: int, hidden: int,
+                  steps: int = LSTM_STEPS) -> nn.Module:
+    """A network of `model_type` ('lstm', over its window's last `steps` rows, or 'mlp')."""
     if model_type == 'lstm':
-        return LstmNet(n_features, window, hidden, len(TARGETS))
+        return LstmNet(n_features, window, hidden, len(TARGETS), steps)
     if model_type == 'mlp':
         return MlpNet(n_features, window, hidden, len(TARGETS))
     msg = f'unknown model type {model_type!r}; choose one of {", ".join(MODEL_TYPES)}'
@@ -143,6 +152,20 @@ class PredictorModule(nn.Module):
         self.register_buffer('relative_mask', mask)
         self.register_buffer('error_columns', torch.tensor(error_columns, dtype=torch.long))
 
+    @classmethod
+    def from_affine(cls, net: nn.Module, feature_centre: np.ndarray, feature_scale: np.ndarray,
+                    target_centre: np.ndarray, target_scale: np.ndarray, *, residual: bool,
+                    relative_errors: bool,
+                    features: Sequence[str] = FEATURES) -> PredictorModule:
+        """The module of an input map x_n = (x - centre) / scale and the output map
+        y = y_n * scale + centre, e.g. standardisation (mean, standard deviation)."""
+        feature_centre, feature_scale, target_centre, target_scale = (
+            np.asarray(v, dtype=float) for v in (feature_centre, feature_scale, target_centre,
+                                                 target_scale))
+        return cls(net, feature_centre - feature_scale, feature_centre + feature_scale,
+                   target_centre - target_scale, target_centre + target_scale,
+                   residual=residual, relative_errors=relative_errors, features=features)
+
     def normalise(self, windows: torch.Tensor) -> torch.Tensor:
         """Raw float64 windows -> normalised float32 network input."""
         return normalise_windows(windows, self.relative_mask, self.feature_centre,
@@ -178,22 +201,24 @@ class ScaledRows:
                                  self.centre, None)
 
 
-def normalisation_metadata(module: Any, error_low: np.ndarray,
-                           error_high: np.ndarray) -> dict[str, Any]:
+def normalisation_metadata(module: Any, error_low: np.ndarray, error_high: np.ndarray,
+                           scheme: str = 'standard') -> dict[str, Any]:
     """The constants inside a `PredictorModule` (scripted or not) and the error's training
-    range (the metrics' scale), for the model file's metadata: for people and tools."""
-    def bounds(centre: torch.Tensor, half: torch.Tensor) -> tuple[list[float], list[float]]:
-        return (centre - half).tolist(), (centre + half).tolist()
-
-    feature_low, feature_high = bounds(module.feature_centre, 1.0 / module.feature_inverse_half)
-    target_low, target_high = bounds(module.target_centre, module.target_half)
+    range (the metrics' scale), for the model file's metadata: for people and tools.
+    `scheme`: how training chose the affine maps ('standard': mean and standard deviation of
+    the training windows, 'minmax': their range mapped to [-1, 1])."""
     relative = bool(module.relative_mask.any())
-    return {'input': ('window rows mapped to [-1, 1] by their training min-max; error columns '
-                      "taken relative to the window's last row first") if relative
-                     else 'window rows mapped to [-1, 1]',
-            'feature_low': feature_low, 'feature_high': feature_high,
-            'target': ('e(t+h) - e(t)' if module.residual else 'e(t+h)') + ', mapped to [-1, 1]',
-            'target_low': target_low, 'target_high': target_high,
+    how = ('standardised by their training mean and standard deviation' if scheme == 'standard'
+           else 'mapped to [-1, 1] by their training min-max')
+    target = 'e(t+h) - e(t)' if module.residual else 'e(t+h)'
+    return {'scheme': scheme,
+            'input': f'window rows {how}' + ("; error columns taken relative to the window's "
+                                             'last row first' if relative else ''),
+            'feature_centre': module.feature_centre.tolist(),
+            'feature_scale': (1.0 / module.feature_inverse_half).tolist(),
+            'target': f'{target}, {how}',
+            'target_centre': module.target_centre.tolist(),
+            'target_scale': module.target_half.tolist(),
             'error_low': np.asarray(error_low).tolist(),
             'error_high': np.asarray(error_high).tolist()}
 

@@ -46,8 +46,10 @@ from lompr_predictor.data.problem import (
     VALIDATION_FRACTION,
     LearningProblem,
     build_problem,
+    train_test_problem,
 )
 from lompr_predictor.errors import LomprError
+from lompr_predictor.learning.baselines import BASELINES, beats, hgb_baseline, ridge_baseline
 from lompr_predictor.learning.metrics import ratios, score_predictions
 from lompr_predictor.learning.model_file import (
     ExportedModule,
@@ -70,9 +72,9 @@ from lompr_predictor.learning.report import (
     write_report,
 )
 from lompr_predictor.learning.space import (
+    DEFAULT_SPACE,
     DEFAULT_TRIALS,
     HEARTBEAT_SECONDS,
-    PAPER_SPACE,
     SearchSpace,
 )
 from lompr_predictor.learning.storage import (
@@ -83,7 +85,15 @@ from lompr_predictor.learning.storage import (
     open_storage,
     parse_storage,
 )
-from lompr_predictor.learning.training import MAX_EPOCHS, PATIENCE, TrainSettings, train_network
+from lompr_predictor.learning.training import (
+    BP_MAX_EPOCHS,
+    BP_PATIENCE,
+    MAX_EPOCHS,
+    NORMALISATION,
+    PATIENCE,
+    TrainSettings,
+    train_network,
+)
 from lompr_predictor.learning.tuning import (
     best_trial,
     history,
@@ -114,7 +124,7 @@ class TrainingConfig:
     seed: int = 0
     max_epochs: int = MAX_EPOCHS
     patience: int = PATIENCE
-    space: SearchSpace = PAPER_SPACE
+    space: SearchSpace = DEFAULT_SPACE
     storage: str | None = None  # study storage (`storage.py`); None: a journal file in
     # report_dir
     study_name: str | None = None  # None: derived from the bags and the settings
@@ -123,6 +133,8 @@ class TrainingConfig:
     # study); None: report_dir / CHECKPOINT_FOLDER
     heartbeat: int = HEARTBEAT_SECONDS  # seconds between a running trial's heartbeats
     progress: bool = True  # progress bars
+    test_inputs: BagInputs | None = None  # other recordings as the test part (e.g. another
+    # seed of the same machine); None: the chronologically last 10 % of `inputs`
 
     @property
     def settings(self) -> TrainSettings:
@@ -194,6 +206,14 @@ def check_config(config: TrainingConfig, *, finishing: bool = True) -> StorageSp
     if config.trials < 1:
         msg = f'--trials must be >= 1, got {config.trials}'
         raise StudyError(msg)
+    if config.window < 1 or config.horizon < 1:
+        msg = f'--window and --horizon must be >= 1, got {config.window} and {config.horizon}'
+        raise StudyError(msg)
+    if config.max_epochs < 1 or config.patience < 1:
+        msg = (f'--max-epochs and --patience must be >= 1, got {config.max_epochs} and '
+               f'{config.patience}')
+        raise StudyError(msg)
+    config.space.check(config.window)
     if finishing and (config.model_path is None or config.report_dir is None):
         msg = '--out MODEL.pt and --report DIR are needed (unless --workers-only)'
         raise StudyError(msg)
@@ -219,8 +239,7 @@ def run_workers(config: TrainingConfig) -> WorkerSummary:
     description = load_robot_description(config.robot_description)
     data, sources = load_clean_data(config.inputs, description.geometry)
     read_seconds = time.perf_counter() - started
-    problem = build_problem(data, config.window, config.horizon, test_fraction=TEST_FRACTION,
-                            validation_fraction=VALIDATION_FRACTION)
+    problem = _problem(data, None, config)
     study, run = _run_study(config, problem, sources, description, storage)
     counts = trial_counts(study)
     return WorkerSummary(study_name=study.study_name, storage=storage.spec.describe(), run=run,
@@ -235,14 +254,26 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     started = time.perf_counter()
     description = load_robot_description(config.robot_description)
     data, sources = load_clean_data(config.inputs, description.geometry)
+    trained_on = list(sources)
+    if config.test_inputs is None:
+        problem = _problem(data, None, config)
+    else:
+        test_data, test_sources = load_clean_data(config.test_inputs, description.geometry)
+        problem = _problem(data, test_data, config)
+        sources = sources + test_sources  # the irreducible level: the test bags' (last)
     read_seconds = time.perf_counter() - started
-    problem = build_problem(data, config.window, config.horizon, test_fraction=TEST_FRACTION,
-                            validation_fraction=VALIDATION_FRACTION)
     tuned = _tune(config, problem, sources, description, storage)
     bp_started = time.perf_counter()
-    bp = train_network(problem, 'mlp', BP_HYPERPARAMETERS, config.settings, residual=False,
+    # BP keeps the paper's longer budget; a budget shrunk below the default shrinks it too
+    bp_settings = TrainSettings(
+        max_epochs=BP_MAX_EPOCHS if config.max_epochs >= MAX_EPOCHS else config.max_epochs,
+        patience=BP_PATIENCE, seed=config.seed)
+    bp = train_network(problem, 'mlp', BP_HYPERPARAMETERS, bp_settings, residual=False,
                        progress=config.progress, label='BP')
     bp_seconds = time.perf_counter() - bp_started
+    baselines_started = time.perf_counter()
+    baselines = {'ridge': ridge_baseline(problem), 'hgb': hgb_baseline(problem, config.seed)}
+    baselines_seconds = time.perf_counter() - baselines_started
 
     scoring_started = time.perf_counter()
     test = problem.split.test
@@ -251,6 +282,7 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     predictions = {
         'persistence': persistence(problem.error, test),
         'bp': predict_rows(bp.module, problem.rows, test, problem.window),
+        **{name: baseline.predicted for name, baseline in baselines.items()},
         'bo_lstm': predict_rows(tuned.module, problem.rows, test, problem.window)}
     max_step = config.inputs.cleaning.gap_factor * problem.sample_period
     models = score_predictions(predictions, actual, stamps, problem.error_low,
@@ -259,21 +291,26 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
                         target='error', epochs=bp.epochs)
     models['bo_lstm'].update(training_seconds=tuned.training_seconds,
                              hyperparameters=tuned.params, target='residual (e(t+h) - e(t))')
+    for name, baseline in baselines.items():
+        models[name].update(training_seconds=baseline.seconds,
+                            hyperparameters=baseline.settings, target='residual (e(t+h) - e(t))')
     report = _report(config, problem, data, sources, models, tuned, bp.seconds)
     scoring_seconds = time.perf_counter() - scoring_started
     metadata = ModelMetadata(
         features=FEATURES, window=problem.window, horizon=problem.horizon,
         sample_period=problem.sample_period, targets=TARGETS,
         normalisation=normalisation_metadata(tuned.module, problem.error_low,
-                                             problem.error_high),
+                                             problem.error_high, NORMALISATION['lstm']),
         model_type='lstm',
-        hyperparameters={**tuned.params, 'architecture': 'LSTM (last state) + linear highway',
-                         'lstm_steps': LSTM_STEPS,
+        hyperparameters={'lstm_steps': LSTM_STEPS, **tuned.params,
+                         'architecture': 'LSTM over the last lstm_steps rows, last state -> '
+                                         'MLP head (2 GELU layers) + linear highway on the window',
+                         'optimiser': 'AdamW, cosine learning-rate decay over max_epochs',
                          'max_epochs': config.max_epochs, 'patience': config.patience,
                          'cleaning': vars(config.inputs.cleaning)},
         robot_description_sha256=description.sha256,
         training_bags=tuple({'path': str(Path(s.path).resolve()), 'sha256': s.sha256}
-                            for s in sources if not s.skipped_reason),
+                            for s in trained_on if not s.skipped_reason),
         seed=config.seed, library_versions=library_versions(),
         test_metrics=models['bo_lstm']['metrics'])
     total = time.perf_counter() - started
@@ -281,9 +318,13 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     report['timings'] = {'read_clean_fk_seconds': read_seconds,
                          'tuning_seconds': tuned.tuning_seconds,
                          'best_model_seconds': tuned.best_model_seconds,
-                         'bp_seconds': bp_seconds, 'scoring_seconds': scoring_seconds,
+                         'bp_seconds': bp_seconds, 'baselines_seconds': baselines_seconds,
+                         'scoring_seconds': scoring_seconds,
                          'total_seconds': total, 'read_fraction_of_total': read_seconds / total}
     report['model_file'] = str(Path(_model_path(config)).resolve())
+    if config.test_inputs is not None:
+        report['test_part'] = 'every window of the test bags: ' + ', '.join(
+            config.test_inputs.bags)
     return TrainingResult(module=tuned.module, metadata=metadata, report=report,
                           test_part=ScoredPredictions(seconds=seconds_since(stamps),
                                                       actual=actual, predictions=predictions))
@@ -309,6 +350,26 @@ def write_outputs(config: TrainingConfig, result: TrainingResult) -> str:
                  actual=scored.actual, predictions=scored.predictions,
                  before_documents=writing_time)
     return digest
+
+
+class DataError(LomprError):
+    """The recordings cannot make the learning problem (too short for the window, horizon
+    or split)."""
+
+
+def _problem(data: CleanData, test: CleanData | None, config: TrainingConfig) -> LearningProblem:
+    """The learning problem: `data` split chronologically, or trained (and validated) on
+    `data` and tested on `test`; `DataError` (one line, before any training) when the
+    recordings are too short for it."""
+    try:
+        if test is None:
+            return build_problem(data, config.window, config.horizon,
+                                 test_fraction=TEST_FRACTION,
+                                 validation_fraction=VALIDATION_FRACTION)
+        return train_test_problem(data, test, config.window, config.horizon,
+                                  validation_fraction=VALIDATION_FRACTION)
+    except ValueError as err:
+        raise DataError(str(err)) from err
 
 
 def _model_path(config: TrainingConfig) -> Path:
@@ -367,15 +428,21 @@ def _tune(config: TrainingConfig, problem: LearningProblem, sources: list[BagSou
     module, seconds = objective.model_of(best)
     best_model_seconds = time.perf_counter() - started
     counts = trial_counts(study)
+    trials = history(study)
     report = {'study_name': study.study_name, 'storage': storage.spec.describe(),
               'checkpoints': str(config.checkpoint_dir.resolve()),
               'space': config.space.as_dict(), 'budget': study_budget(study),
               'trials_spent': counts.spent, 'trials_complete': counts.complete,
               'trials_pruned': counts.pruned, 'trials_failed': counts.failed,
+              # the pruner stops a trial by ending its training (its best loss is its value)
+              'trials_stopped_by_pruner': sum(1 for t in trials if t.get('pruned_epoch')),
+              'epochs_run': sum(int(t.get('epochs') or 0) for t in trials),
+              'trials_training_seconds': sum(float(t.get('training_seconds') or 0.0)
+                                             for t in trials),
               'trials_run_now': run.trials_run, 'local_workers': list(run.workers),
               'workers': worker_counts(study),
               'best_trial': best.number, 'best_value': best.value, 'best_params': params,
-              'trials': history(study),
+              'trials': trials,
               # the thread count in effect (set by the entry point): the times depend on it
               'settings': {**vars(config.settings), 'threads': torch.get_num_threads()}}
     return _Tuned(module=module, params=params, training_seconds=seconds,
@@ -390,6 +457,8 @@ def _report(config: TrainingConfig, problem: LearningProblem, data: CleanData,
     report.update(
         models=models,
         ratios_to_bp=ratios(models['bo_lstm']['metrics'], models['bp']['metrics']),
+        bo_lstm_beats={name: beats(models['bo_lstm']['metrics'], models[name]['metrics'])
+                       for name in ('persistence', 'bp', *BASELINES)},
         training_time_ratio_lstm_to_bp=(tuned.training_seconds / bp_seconds
                                         if bp_seconds else None),
         tuning_time_ratio_to_bp=tuned.tuning_seconds / bp_seconds if bp_seconds else None,

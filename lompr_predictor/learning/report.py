@@ -2,8 +2,10 @@
 
 `report.json` holds everything (counts, metrics per model and axis, ratios, times, the
 tuning history); `report.md` shows the paper's Table 1 layout per axis (persistence, BP,
-BO-LSTM, and BO-LSTM / BP); the plots are the prediction against the actual error on the
-test window (the paper's Fig. 5) and the tuning history. Files are written atomically.
+the ridge and boosted-tree baselines, BO-LSTM, BO-LSTM / BP, and per metric whether the
+BO-LSTM beats each other model: `bo_lstm_beats` in report.json); the plots are the
+prediction against the actual error on the test window (the paper's Fig. 5) and the tuning
+history. Files are written atomically.
 
 When a bag directory holds the twin's ground truth (`lompr_ground_truth.json`), the
 irreducible RMSE at the model's horizon is read from it and every model's RMSE is also
@@ -32,7 +34,8 @@ from lompr_predictor.plots import pyplot, save_figure
 GROUND_TRUTH_JSON = 'lompr_ground_truth.json'
 PREDICTION_PLOT = 'prediction_test.png'
 TUNING_PLOT = 'tuning_history.png'
-MODEL_LABELS = {'persistence': 'Persistence', 'bp': 'BP', 'bo_lstm': 'BO-LSTM', 'model': 'Model'}
+MODEL_LABELS = {'persistence': 'Persistence', 'bp': 'BP', 'ridge': 'Ridge', 'hgb': 'HGB',
+                'bo_lstm': 'BO-LSTM', 'model': 'Model'}
 METRIC_LABELS = {
     'mse_pct': 'MSE (%^2)', 'rmse_pct': 'RMSE (%)', 'mae_pct': 'MAE (%)',
     'mse_um2': 'MSE (um^2)', 'rmse_um': 'RMSE (um)', 'mae_um': 'MAE (um)',
@@ -88,19 +91,22 @@ def irreducible_fields(models: Mapping[str, Any], sources: Sequence[BagSource],
 def markdown(report: Mapping[str, Any]) -> str:
     """report.md: the Table 1 layout per axis, then data counts, times and tuning."""
     models = report['models']
-    names = [n for n in ('persistence', 'bp', 'bo_lstm', 'model') if n in models]
+    names = [n for n in ('persistence', 'bp', 'ridge', 'hgb', 'bo_lstm', 'model') if n in models]
     with_bp = 'bp' in models and 'bo_lstm' in models
+    beaten = report.get('bo_lstm_beats') or {}
     horizon, period = report['horizon'], report['sample_period']
     lines = [f"# lompr {report['command']} report", '',
              f"Horizon {horizon} samples ({horizon * period:.3g} s), "
              f"window {report['window']} samples, sample period {period * 1e3:.3g} ms; "
-             + (f"test part: {report['split']['test']} windows (chronologically last 10 % of "
-                'the clean samples).' if report['command'] == 'train' else
+             + (f"test part: {report['split']['test']} windows ("
+                + report.get('test_part', 'chronologically last 10 % of the clean samples')
+                + ').' if report['command'] == 'train' else
                 f"scored on all {report['split']['test']} windows of the recordings."), '']
     irreducible = report.get('irreducible_rmse_um')
     for axis in TARGETS:
         header = ['metric', *[MODEL_LABELS[n] for n in names],
-                  *(['BO-LSTM / BP'] if with_bp else [])]
+                  *(['BO-LSTM / BP'] if with_bp else []),
+                  *[f'BO-LSTM beats {MODEL_LABELS[n]}' for n in beaten]]
         lines += [f'## Axis {axis.upper()}', '', '| ' + ' | '.join(header) + ' |',
                   '|' + '---|' * len(header)]
         for metric in METRIC_NAMES:
@@ -109,11 +115,13 @@ def markdown(report: Mapping[str, Any]) -> str:
             if with_bp:
                 ratio = report['ratios_to_bp'][axis][metric]
                 row.append('-' if ratio is None else f'{100 * ratio:.1f} %')
+            row += ['yes' if beaten[n][axis][metric] else '**no**' for n in beaten]
             lines.append('| ' + ' | '.join(row) + ' |')
         if irreducible:
             row = ['RMSE / irreducible'] + [
                 f"{models[n]['metrics'][axis]['rmse_um'] / irreducible[axis]:.3g}" for n in names]
-            lines.append('| ' + ' | '.join(row + ([''] if with_bp else [])) + ' |')
+            lines.append('| ' + ' | '.join(row + ([''] if with_bp else []) + [''] * len(beaten))
+                         + ' |')
         lines.append('')
     if irreducible:
         lines += ['Irreducible RMSE at this horizon (twin ground truth): '
@@ -138,7 +146,10 @@ def markdown(report: Mapping[str, Any]) -> str:
                   f"with validation MSE {tuning['best_value']:.4g}: {tuning['best_params']}.", '']
         if 'trials_complete' in tuning:
             lines += [f"Budget {tuning['budget']}: {tuning['trials_complete']} complete, "
-                      f"{tuning['trials_pruned']} pruned, {tuning['trials_failed']} failed "
+                      f"{tuning['trials_pruned']} pruned, "
+                      f"{tuning.get('trials_stopped_by_pruner', 0)} stopped early by the "
+                      f"pruner (successive halving), {tuning.get('epochs_run', 0)} epochs "
+                      f"in all, {tuning['trials_failed']} failed "
                       "(a failed trial does not count; a dead worker's point is queued again).",
                       '', '| worker | complete | pruned | failed |', '|---|---|---|---|']
             lines += [f"| {name} | {row['complete']} | {row['pruned']} | {row['failed']} |"
