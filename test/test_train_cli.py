@@ -153,7 +153,7 @@ def test_a_bo_lstm_that_does_not_beat_ridge_is_warned_about() -> None:
 
 @pytest.mark.parametrize(('extra', 'message'), [
     (['--space', 'wide'], "argument --space: invalid choice: 'wide'"),
-    (['--learning-rates', '0.01,-1'], "--learning-rates: '-1' in the list: must be a finite number > 0"),
+    (['--learning-rates', '0.01,-1'], "'-1' in the list: must be a finite number > 0"),
     (['--learning-rates', '0.01,2'], 'search space learning-rates: 2.0 is out of range'),
     (['--lstm-steps', '0'], "--lstm-steps: '0' in the list: must be an integer >= 1"),
     (['--batch-sizes', 'a,b'], "--batch-sizes: 'a' in the list: must be an integer >= 1"),
