@@ -148,6 +148,37 @@ def sample_messages(tips: np.ndarray, joints: np.ndarray, k: int,
 
 # -- inference ----------------------------------------------------------------------------
 
+#: The parts of the bench (`--parts`).
+PARTS = ('inference', 'profile', 'end-to-end')
+
+
+def paced_stream(client: Any, tips: np.ndarray, joints: np.ndarray, base_ns: int, count: int,
+                 period: float, sent: np.ndarray | None, step: Callable[[], None]) -> None:
+    """Publish `count` samples `period` s apart from a thread (reference, then joint state,
+    stamped base_ns + k period, row k modulo the rows given), `sent[k]` the wall time each
+    joint state left; `step` (a spin of the caller's executor) runs here until the last."""
+    period_ns = round(period * 1e9)
+
+    def publish() -> None:
+        t0 = time.perf_counter() + 0.1
+        for k in range(count):
+            delay = t0 + k * period - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+            reference, state = sample_messages(tips, joints, k % len(tips),
+                                               base_ns + k * period_ns)
+            client.reference.publish(reference)
+            if sent is not None:
+                sent[k] = time.perf_counter()
+            client.joints.publish(state)
+
+    publisher = threading.Thread(target=publish)
+    publisher.start()
+    while publisher.is_alive():
+        step()
+    publisher.join()
+
+
 def percentiles(values: np.ndarray) -> tuple[float, float]:
     p50, p99 = np.percentile(values, [50, 99])
     return float(p50), float(p99)
@@ -507,24 +538,9 @@ def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path,
         period_ns = round(period * 1e9)
         sent = np.full(samples, np.nan)
 
-        def publish(base_ns: int, count: int, record: bool) -> None:
-            t0 = time.perf_counter() + 0.1
-            for k in range(count):
-                delay = t0 + k * period - time.perf_counter()
-                if delay > 0:
-                    time.sleep(delay)
-                reference, state = sample_messages(tips, joints, k, base_ns + k * period_ns)
-                client.reference.publish(reference)
-                if record:
-                    sent[k] = time.perf_counter()
-                client.joints.publish(state)
-
         def run(base_ns: int, count: int, record: bool) -> None:
-            publisher = threading.Thread(target=publish, args=(base_ns, count, record))
-            publisher.start()
-            while publisher.is_alive():
-                spinner.spin_once(timeout_sec=0.01)
-            publisher.join()
+            paced_stream(client, tips, joints, base_ns, count, period,
+                         sent if record else None, lambda: spinner.spin_once(timeout_sec=0.01))
 
         # Warm-up until the whole chain answers (the graph shows every link before the last
         # reader and writer have matched), on stamps 100 s in the past: the jump to the
@@ -634,12 +650,16 @@ def main() -> int:
     parser.add_argument('--callgrind', action='store_true',
                         help=f'also count the instructions per sample of the profile under '
                              f'callgrind ({CALLGRIND_SAMPLES} samples, several minutes)')
-    parser.add_argument('--parts', default='inference,profile,end-to-end',
+    parser.add_argument('--parts', default=','.join(PARTS),
                         help='comma list of the parts to run (default: all)')
     parser.add_argument('--profile-samples', type=int, default=PROFILE_SAMPLES,
                         help='samples driven through the profile (the first '
                              f'{PROFILE_WARMUP} are not counted)')
     args = parser.parse_args()
+    parts = set(args.parts.split(','))
+    if not parts <= set(PARTS):
+        parser.error(f'--parts: unknown {", ".join(sorted(parts - set(PARTS)))}; '
+                     f'choose from {", ".join(PARTS)}')
     set_torch_threads(1)  # as the predictor node's executable does by default
     isolate_ros_domain()  # this bench talks only to itself
     rows: list[Row] = []
@@ -647,7 +667,6 @@ def main() -> int:
         directory = Path(temporary)
         models = {rate: default_model(directory / f'lstm_{rate}.pt', 1.0 / rate,
                                       HORIZONS[rate]) for rate in RATES}
-        parts = set(args.parts.split(','))
         if 'inference' in parts:
             rows.append(report_inference(models[1000]))
         if 'profile' in parts:

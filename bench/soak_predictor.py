@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -133,29 +132,17 @@ def soak(minutes: float, model: Path) -> dict[str, Any]:
                 raise RuntimeError(msg)
             executor.spin_once(timeout_sec=0.05)
 
-        def publish(base_ns: int, count: int, record: bool) -> None:
-            t0 = time.perf_counter() + 0.1
-            for k in range(count):
-                delay = t0 + k * period - time.perf_counter()
-                if delay > 0:
-                    time.sleep(delay)
-                reference, state = bench.sample_messages(
-                    tips, joints, k % CYCLE, base_ns + k * client.period_ns)
-                client.reference.publish(reference)
-                if record:
-                    sent[k] = time.perf_counter()
-                client.joints.publish(state)
-
         def run(base_ns: int, count: int, record: bool) -> None:
-            publisher = threading.Thread(target=publish, args=(base_ns, count, record))
-            publisher.start()
-            next_rss = time.monotonic()
-            while publisher.is_alive():
+            next_rss = [time.monotonic()]
+
+            def step() -> None:
                 executor.spin_once(timeout_sec=0.01)
-                if record and time.monotonic() >= next_rss:
+                if record and time.monotonic() >= next_rss[0]:
                     rss.append((time.monotonic(), [rss_mb(p.pid) for p in processes]))
-                    next_rss += RSS_EVERY
-            publisher.join()
+                    next_rss[0] += RSS_EVERY
+
+            bench.paced_stream(client, tips, joints, base_ns, count, period,
+                               sent if record else None, step)
 
         while not client.arrivals:  # warm-up: until the whole chain answers
             if time.monotonic() > deadline:
