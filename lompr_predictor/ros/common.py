@@ -12,9 +12,11 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import time
 from collections.abc import Callable, Sequence
+from types import FrameType
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -26,6 +28,7 @@ from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from rclpy.qos_overriding_options import QoSOverridingOptions
+from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
 from lompr_predictor.errors import LomprError
@@ -131,6 +134,20 @@ def make_executor(name: str, context: Context) -> Executor:
     raise ValueError(msg)
 
 
+class StopRequest:
+    """SIGINT and SIGTERM, while installed, set `requested` instead of raising
+    KeyboardInterrupt wherever the main thread happens to be (`run_node`)."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        for number in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(number, self._record)
+
+    def _record(self, number: int, frame: FrameType | None) -> None:
+        del number, frame
+        self.requested = True
+
+
 def run_node(
     node_factory: Callable[[Context], Node | Sequence[Node]],
     *,
@@ -154,6 +171,13 @@ def run_node(
     and notice a shutdown within a step. `--executor single-threaded` spins rclpy's
     `SingleThreadedExecutor` instead (the stable one: the events executor is experimental
     in Jazzy), in the same steps.
+
+    Signals with the events executor: it takes SIGINT and SIGTERM over when it is built
+    and stops at its next step. Before that, rclpy's handlers are not installed and a
+    `StopRequest` records the signal instead: a KeyboardInterrupt raised in the Python code
+    the executor calls while it registers the nodes' entities (which a signal that rclpy
+    passed on late did) leaves them half-registered, and rclpy 7.1.6 aborts (SIGABRT) when
+    that executor is destroyed. Seen in about one start-then-Ctrl-C of four.
     """
     argv = list(sys.argv if argv is None else argv)
     parser = argparse.ArgumentParser(
@@ -171,16 +195,19 @@ def run_node(
               "-p NAME:=\"''\")", file=sys.stderr)
         return 2
     args = parser.parse_args(plain_args)
-    rclpy.init(args=argv)
+    events = args.executor == 'events'
+    stop = StopRequest() if events else None
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO if events else None)
     context = rclpy.get_default_context()
     nodes: Sequence[Node] = ()
+    executor: Executor | None = None
     try:
         built = node_factory(context)
         nodes = [built] if isinstance(built, Node) else list(built)
         executor = make_executor(args.executor, context)
         for node in nodes:
             executor.add_node(node)
-        while context.ok():
+        while context.ok() and not (stop and stop.requested):
             executor.spin_once(timeout_sec=SPIN_STEP)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -188,6 +215,9 @@ def run_node(
         print(f'{parser.prog}: error: {err}', file=sys.stderr)
         return 2
     finally:
+        # The executor goes first, while the nodes and the context it serves still exist.
+        if executor is not None:
+            executor.shutdown()
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown(context=context)
