@@ -20,7 +20,9 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.context import Context
 from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
@@ -90,3 +92,29 @@ class RosHarness:
             node.destroy_node()
         self.executor.shutdown()
         self.context.try_shutdown()
+
+
+def stamp_ns(msg: Any) -> int:
+    """A stamped message's header stamp in integer ns."""
+    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+
+
+def set_stamp(msg: Any, ns: int) -> None:
+    """Set a stamped message's header stamp to `ns` (integer ns)."""
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(ns), 1_000_000_000)
+
+
+def xy(msgs: list[Any]) -> np.ndarray:
+    """(N, 2) X/Y of Vector3Stamped messages."""
+    return np.array([[m.vector.x, m.vector.y] for m in msgs])
+
+
+def latest_status(diagnostics: list[DiagnosticArray], name: str) -> dict[str, Any] | None:
+    """Key-values of the latest status called `name` ('<node>: <status>') in the collected
+    /diagnostics, plus its '_message' and '_level'; None before the first."""
+    for array in reversed(diagnostics):
+        for status in array.status:
+            if status.name == name:
+                return {kv.key: kv.value for kv in status.values} | {
+                    '_message': status.message, '_level': status.level}
+    return None

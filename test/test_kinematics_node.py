@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.parameter import Parameter
-from ros_helpers import RosHarness
+from ros_helpers import RosHarness, latest_status
 from sensor_msgs.msg import JointState
 
 from lompr_predictor.robot.description import MEASURED_JOINTS, RobotDescription
@@ -64,14 +65,9 @@ class Wiring:
         for msg in messages:
             self.publisher.publish(msg)
 
-    def status(self, name: str) -> dict[str, str] | None:
+    def status(self, name: str) -> dict[str, Any] | None:
         """Key-values of the latest status `kinematics_node: <name>`, or None yet."""
-        for array in reversed(self.diagnostics):
-            for status in array.status:
-                if status.name == f'kinematics_node: {name}':
-                    return {kv.key: kv.value for kv in status.values} | {
-                        '_level': status.level, '_message': status.message}
-        return None
+        return latest_status(self.diagnostics, f'kinematics_node: {name}')
 
 
 def test_known_poses_round_trip_with_same_stamp(

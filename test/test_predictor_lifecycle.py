@@ -16,7 +16,7 @@ from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from model_helpers import save_constant
 from rclpy.parameter import Parameter
-from ros_helpers import RosHarness
+from ros_helpers import RosHarness, latest_status, set_stamp, stamp_ns, xy
 from rosgraph_msgs.msg import Clock
 
 from lompr_predictor.data.features import HISTORY
@@ -28,14 +28,6 @@ PERIOD_NS = 40_000_000
 T0 = 1_700_000_000 * 10 ** 9
 WINDOW, HORIZON = 4, 1
 NEEDED = WINDOW + HISTORY
-
-
-def stamp_ns(msg: Any) -> int:
-    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
-
-
-def set_stamp(msg: Any, ns: int) -> None:
-    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(ns), 1_000_000_000)
 
 
 class Plant:
@@ -100,12 +92,7 @@ class Plant:
             what=f'sample {k} taken')
 
     def status(self, name: str) -> dict[str, Any] | None:
-        for array in reversed(self.diagnostics):
-            for status in array.status:
-                if status.name == f'predictor_node: {name}':
-                    return {kv.key: kv.value for kv in status.values} | {
-                        '_message': status.message, '_level': status.level}
-        return None
+        return latest_status(self.diagnostics, f'predictor_node: {name}')
 
 
 def predictor(ros: RosHarness, **overrides: object) -> PredictorNode:
@@ -114,10 +101,6 @@ def predictor(ros: RosHarness, **overrides: object) -> PredictorNode:
         context=ros.context,
         parameter_overrides=[Parameter(k, value=v) for k, v in parameters.items()]))
     return node
-
-
-def xy(msgs: list[Vector3Stamped]) -> np.ndarray:
-    return np.array([[m.vector.x, m.vector.y] for m in msgs])
 
 
 def test_transitions_through_the_lifecycle_services(ros: RosHarness, tmp_path: Path) -> None:

@@ -16,7 +16,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from model_helpers import save_constant, save_linear, write_sidecar
 from rclpy.parameter import Parameter
-from ros_helpers import RosHarness
+from ros_helpers import RosHarness, latest_status, set_stamp, stamp_ns, xy
 from sensor_msgs.msg import JointState
 
 from lompr_predictor.data.bags import (
@@ -68,14 +68,6 @@ def spiral_recording(description: RobotDescription, samples: int,
         joints=JointSamples(T0 + k[:samples] * PERIOD_NS, joints, MEASURED_JOINTS),
         reference=ReferenceSamples(T0 + k * PERIOD_NS + reference_shift_ns, reference,
                                    np.tile([0.0, 0.0, 0.0, 1.0], (len(k), 1))))
-
-
-def stamp_ns(msg: Vector3Stamped) -> int:
-    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-
-
-def set_stamp(msg: Any, ns: int) -> None:
-    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(ns), 1_000_000_000)
 
 
 class Wiring:
@@ -145,16 +137,7 @@ class Wiring:
         return status
 
     def status(self, name: str) -> dict[str, Any] | None:
-        for array in reversed(self.diagnostics):
-            for status in array.status:
-                if status.name == f'predictor_node: {name}':
-                    return {kv.key: kv.value for kv in status.values} | {
-                        '_message': status.message, '_level': status.level}
-        return None
-
-
-def xy(msgs: list[Vector3Stamped]) -> np.ndarray:
-    return np.array([[m.vector.x, m.vector.y] for m in msgs])
+        return latest_status(self.diagnostics, f'predictor_node: {name}')
 
 
 def test_bag_replay_matches_offline_predictions(
