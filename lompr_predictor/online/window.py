@@ -43,14 +43,18 @@ def newest_row(older: Sample, previous: Sample, newest: Sample) -> tuple[float, 
     """The last row of `feature_rows` over three consecutive samples (`Sample`), with the
     stamps as `stamps.seconds_since` the first: the same floating-point operations, so bit
     for bit the same row."""
-    s0, s1, s2 = older[0], previous[0], newest[0]
+    s0, _, _, x0, y0, p0, q0, r0 = older  # p, q, r: the lengths of branches 1, 2, 3
+    s1, _, _, x1, y1, p1, q1, r1 = previous
+    s2, ex, ey, x2, y2, p2, q2, r2 = newest
     t1 = (s1 - s0) * 1e-9  # seconds_since: integer difference first, then to seconds
     dt2 = (s2 - s0) * 1e-9 - t1  # np.diff of the seconds (the first step is t1 - 0.0 = t1)
-    velocity = [(c2 - c1) / dt2 for c1, c2 in zip(previous[3:], newest[3:], strict=True)]
-    acceleration = [(v - (c1 - c0) / t1) / dt2 for v, c0, c1
-                    in zip(velocity, older[3:], previous[3:], strict=True)]
-    # columns: error, reference, reference v and a, branch v, branch a (features.FEATURES)
-    return (*newest[1:5], *velocity[:2], *acceleration[:2], *velocity[2:], *acceleration[2:])
+    vx, vy = (x2 - x1) / dt2, (y2 - y1) / dt2
+    vp, vq, vr = (p2 - p1) / dt2, (q2 - q1) / dt2, (r2 - r1) / dt2
+    return (ex, ey, x2, y2, vx, vy,
+            (vx - (x1 - x0) / t1) / dt2, (vy - (y1 - y0) / t1) / dt2,
+            vp, vq, vr,
+            (vp - (p1 - p0) / t1) / dt2, (vq - (q1 - q0) / t1) / dt2,
+            (vr - (r1 - r0) / t1) / dt2)
 
 
 class FeatureWindow:
