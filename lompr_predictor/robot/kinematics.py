@@ -1,6 +1,6 @@
 """Forward and inverse kinematics of the LOMPR (CONTRACT section 1).
 
-Three entry points, one per use:
+Four entry points, one per use:
 
 - `ForwardKinematics.solve`: one sample, as the kinematics node calls it. Newton on the three
   branch-length equations |B_i(alpha, beta, d) - A_i| = l_i in closed form on Python floats
@@ -10,8 +10,12 @@ Three entry points, one per use:
   vectorised with NumPy over samples (the offline trainer pushes millions through it).
 - `inverse_kinematics`: closed form for a vertical tool, tip position -> all joints, with the
   primary head angle kept continuous along a path. The twin and the tests use it.
+- `VerticalToolBranches`: the same closed form for the three branch lengths only, on one
+  tip in Python floats or on arrays with the same bits: the features' branch velocities
+  (`data.features`), offline and in the predictor node.
 
-All three take their geometry from the robot description (`robot.py`), never from constants.
+All four take their geometry from the robot description (`description.py`), never from
+constants.
 Joint arrays are ordered as `robot.MEASURED_JOINTS`: ups1, ups2, ups3, head_primary,
 head_secondary.
 """
