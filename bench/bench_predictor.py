@@ -196,8 +196,8 @@ def bench_inference(path: Path, rate: int) -> dict[str, float]:
                            CompensationLimits(5e-4, 5e-5, True))
     tips, _ = spiral_joints(WINDOW + HISTORY, rate)
     period_ns = round(1e9 / rate)
-    for k, (x, y, _) in enumerate(tips):  # fill the core's window with samples
-        core.add_reference(k * period_ns + 1, float(x), float(y))
+    for k, (x, y, z) in enumerate(tips):  # fill the core's window with samples
+        core.add_reference(k * period_ns + 1, float(x), float(y), float(z))
         core.add_pose(k * period_ns + 1, float(x) + 1e-5, float(y) - 1e-5)
     assert core.predictions_made == 1, 'the window did not fill'
     infer = core_inference_step(core)

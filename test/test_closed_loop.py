@@ -17,9 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lompr_predictor.data.features import HISTORY, feature_rows
+from lompr_predictor.data.features import FEATURES, HISTORY, feature_rows
 from lompr_predictor.learning.model_file import load_model
 from lompr_predictor.robot.description import RobotDescription
+from lompr_predictor.robot.kinematics import VerticalToolBranches
 from lompr_predictor.scoring.loops import (
     LOOP_PLOT,
     common_instants,
@@ -57,7 +58,8 @@ def fit_ridge_model(path: Path, description: RobotDescription) -> Path:
     """A linear window model of e(t+1), least squares on 4 uncompensated passes."""
     sim = simulate(description, load_twin_parameters(), passes=4, seed=1)
     seconds = (sim.stamps - sim.stamps[0]) * 1e-9
-    rows = feature_rows(seconds, sim.error_measured[:, :2], sim.reference[:, :2])[HISTORY:]
+    rows = feature_rows(seconds, sim.error_measured[:, :2], sim.reference,
+                        VerticalToolBranches(description.geometry))[HISTORY:]
     target = sim.error_measured[HISTORY:, :2]
     ends = np.arange(WINDOW - 1, len(rows) - 1)
     x = rows[ends[:, None] + np.arange(1 - WINDOW, 1)].reshape(len(ends), -1)
@@ -113,7 +115,7 @@ def test_persistence_model_file_predicts_the_last_plant_error(tmp_path: Path) ->
         'persistence', 1, 3)
     import torch
 
-    windows = torch.randn((5, 1, 8), dtype=torch.float64) * 1e-5
+    windows = torch.randn((5, 1, len(FEATURES)), dtype=torch.float64) * 1e-5
     np.testing.assert_allclose(loaded.predict(windows).numpy(), windows[:, -1, :2].numpy(),
                                rtol=0, atol=1e-15)
 

@@ -31,7 +31,7 @@ from lompr_predictor.data.problem import (
     minmax_range,
     window_ends,
 )
-from lompr_predictor.robot.description import RobotDescription
+from lompr_predictor.robot.description import RobotDescription, load_robot_description
 
 
 def test_nonfinite_rows_dropped_and_counted() -> None:
@@ -115,7 +115,8 @@ def test_minmax_from_training_part_only() -> None:
     error[195, 0] = 9e-5  # in the test part: must not widen the range
     stamps = np.arange(n, dtype=np.int64) * PERIOD_NS
     data = CleanData(stamps=stamps, error=error, reference=np.zeros((n, 3)),
-                     segments=np.array([[0, n]]), sample_period=0.04)
+                     segments=np.array([[0, n]]), sample_period=0.04,
+                     geometry=load_robot_description().geometry)
     problem = build_problem(data, 5, 1, test_fraction=0.1, validation_fraction=0.2)
     assert problem.split.test_start == 180
     np.testing.assert_allclose(problem.error_low, [-1e-5, 0.0])

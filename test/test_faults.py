@@ -53,6 +53,7 @@ PERIOD_NS = 40_000_000
 T0 = 1_700_000_000_000_000_000
 WINDOW, HORIZON = 4, 3
 NEEDED = WINDOW + HISTORY
+Z = 1.097  # the mirror's height [m]
 
 
 def stream(sample_period: float = PERIOD) -> StreamSettings:
@@ -138,7 +139,7 @@ def test_clamp_and_slew_are_never_exceeded_under_random_parameter_changes(
             stamp += step * PERIOD_NS
             k += 1
             x, y = spiral_xy(k)
-            check(core.add_reference(stamp, x, y))
+            check(core.add_reference(stamp, x, y, Z))
             check(core.add_pose(stamp, x + error, y - error))
 
 
@@ -146,8 +147,8 @@ def test_clamp_and_slew_are_never_exceeded_under_random_parameter_changes(
 def amplified(tmp_path_factory: pytest.TempPathFactory) -> LoadedModel:
     """A linear model with large gains: predictions of millimetres, far beyond the clamp."""
     path = tmp_path_factory.mktemp('models') / 'amplified.pt'
-    save_linear(path, window=WINDOW, horizon=HORIZON, weight=np.full((WINDOW * 8, 2), 3.0),
-                bias=(1e-3, -1e-3))
+    save_linear(path, window=WINDOW, horizon=HORIZON,
+                weight=np.full((WINDOW * len(FEATURES), 2), 3.0), bias=(1e-3, -1e-3))
     return load_model(path)
 
 
@@ -236,7 +237,7 @@ def test_the_core_drops_impossible_stamps_counted(amplified: LoadedModel) -> Non
                            now_ns=lambda: now)
     for sec, nanosec in ((-1, 0), (1, 2_000_000_000), (T0 // 10**9 + 3600, 0)):
         stamp = SimpleNamespace(sec=sec, nanosec=nanosec)
-        assert core.add_reference(stamp, 0.0, 0.0) == []
+        assert core.add_reference(stamp, 0.0, 0.0, Z) == []
         assert core.add_pose(stamp, 0.0, 0.0) == []
     dropped = core.dropped.counts()
     assert (dropped['bad_stamp'], dropped['future_stamp']) == (2, 1)
@@ -277,7 +278,7 @@ def stream_through(core: OnlinePredictor, clock: NodeClock, samples: int, period
         stamp = T0 + k * period_ns
         clock.ns = max(clock.ns, stamp + delay_ns)
         x, y = spiral_xy(k)
-        for output in core.add_reference(stamp, x, y) + core.add_pose(stamp, x + 1e-5, y):
+        for output in core.add_reference(stamp, x, y, Z) + core.add_pose(stamp, x + 1e-5, y):
             published.append((clock.ns, output))
     return published
 
@@ -346,7 +347,7 @@ def test_a_model_giving_nan_cancels_and_is_counted(tmp_path: Path) -> None:
     outputs = []
     for k in range(40):  # reference x = 0.1 cos(0.05 k) is above 0.095 up to k = 6
         x, y = spiral_xy(k)
-        outputs += core.add_reference(T0 + k * PERIOD_NS, x, y)
+        outputs += core.add_reference(T0 + k * PERIOD_NS, x, y, Z)
         outputs += core.add_pose(T0 + k * PERIOD_NS, x, y)
     assert core.faults['inference'] >= 1
     assert all(np.isfinite(o.compensation).all() for o in outputs)

@@ -94,7 +94,8 @@ def test_export_load_same_predictions(tmp_path: Path, problem: LearningProblem,
 
 def test_mismatched_metadata_refused(tmp_path: Path, problem: LearningProblem,
                                      description: RobotDescription) -> None:
-    module = PredictorModule(MlpNet(len(FEATURES), 12, 4), np.zeros(8), np.ones(8),
+    features = len(FEATURES)
+    module = PredictorModule(MlpNet(features, 12, 4), np.zeros(features), np.ones(features),
                              -np.ones(2), np.ones(2), residual=False, relative_errors=False)
     path = save_model(tmp_path / 'model.pt', module, metadata(problem, description))
     with pytest.raises(MetadataMismatchError, match="'horizon' is 10, this configuration needs 1"):

@@ -12,20 +12,31 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from model_helpers import FailingModel, metadata, save_constant, save_linear
 
-from lompr_predictor.data.features import HISTORY, feature_rows
-from lompr_predictor.learning.model_file import LoadedModel, load_model, save_model
+from lompr_predictor.data.features import FEATURES, HISTORY, feature_rows
+from lompr_predictor.learning.model_file import (
+    LoadedModel,
+    MetadataMismatchError,
+    load_model,
+    save_model,
+)
 from lompr_predictor.online.predictor import (
     CompensationLimits,
     OnlinePredictor,
     Output,
     StreamSettings,
 )
+from lompr_predictor.robot.description import RobotDescription, load_robot_description
+from lompr_predictor.robot.kinematics import VerticalToolBranches
 
 PERIOD = 0.04
 PERIOD_NS = 40_000_000
 T0 = 1_700_000_000_000_000_000  # a realistic epoch stamp [ns]
 WINDOW, HORIZON = 4, 3
 NEEDED = WINDOW + HISTORY
+Z = 1.097  # the mirror's height [m]
+BRANCHES = VerticalToolBranches(load_robot_description().geometry)
+#: The features of the model files written before the branch columns came (issue 10).
+OLD_FEATURES = ('error_x', 'error_y', 'ref_x', 'ref_y', 'ref_vx', 'ref_vy', 'ref_ax', 'ref_ay')
 
 
 class FakeClock:
@@ -48,13 +59,15 @@ def limits(max_compensation: float = 1e-3, max_step: float = 1e-3,
 
 
 def spiral(n: int, start: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Stamps [ns], reference (n, 2) and a measured tip (n, 2) = reference + a smooth error."""
+    """Stamps [ns], reference tool tip (n, 3) and a measured tip (n, 2) = reference X/Y + a
+    smooth error."""
     k = np.arange(start, start + n)
     t_h = 10.0 * k / 1000.0
     angle = np.pi / 2 * t_h + np.pi / 2
-    reference = np.stack([0.02 * t_h * np.cos(angle), 0.02 * t_h * np.sin(angle)], -1)
+    reference = np.stack([0.02 * t_h * np.cos(angle), 0.02 * t_h * np.sin(angle),
+                          np.full(n, Z)], -1)
     error = np.stack([20e-6 * np.sin(0.3 * k), 15e-6 * np.cos(0.2 * k)], -1)
-    return T0 + k * PERIOD_NS, reference, reference + error
+    return T0 + k * PERIOD_NS, reference, reference[:, :2] + error
 
 
 @pytest.fixture
@@ -101,7 +114,8 @@ def test_predictions_equal_offline_ones_sample_for_sample(linear_model: LoadedMo
         else:
             outputs += core.add_reference(int(stamps[i]), *reference[i])
             outputs += core.add_pose(int(stamps[i]), *tips[i])
-    rows = feature_rows((stamps - stamps[0]) * 1e-9, tips - reference, reference)
+    rows = feature_rows((stamps - stamps[0]) * 1e-9, tips - reference[:, :2], reference,
+                        BRANCHES)
     ends = np.arange(NEEDED - 1, len(stamps))
     windows = np.stack([rows[e - WINDOW + 1:e + 1] for e in ends])
     offline = linear_model.predict(torch.from_numpy(windows)).numpy()
@@ -116,8 +130,8 @@ def test_reference_is_interpolated_to_pose_stamps(linear_model: LoadedModel) -> 
     core = OnlinePredictor(linear_model, stream(), limits(enabled=False), FakeClock())
     # references half a period later than the poses, at a slightly different rate
     ref_stamps = stamps[0] - PERIOD_NS // 2 + np.arange(25) * (PERIOD_NS * 4 // 5)
-    ref_xy = np.stack([np.interp(ref_stamps, stamps, reference[:, a]) for a in (0, 1)], -1)
-    ref_xy += np.stack([1e-4 * np.sin(ref_stamps * 1e-9), 0 * ref_stamps], -1)
+    ref_xy = np.stack([np.interp(ref_stamps, stamps, reference[:, a]) for a in (0, 1, 2)], -1)
+    ref_xy += np.stack([1e-4 * np.sin(ref_stamps * 1e-9), 0 * ref_stamps, 0 * ref_stamps], -1)
     for stamp, ref in zip(ref_stamps, ref_xy, strict=False):
         core.add_reference(int(stamp), *ref)
     for stamp, tip in zip(stamps[:NEEDED], tips[:NEEDED], strict=False):
@@ -126,6 +140,9 @@ def test_reference_is_interpolated_to_pose_stamps(linear_model: LoadedModel) -> 
                          for a in (0, 1)], -1)
     rows = core.window_rows()
     np.testing.assert_allclose(rows[:, 2:4], expected[HISTORY:], atol=1e-15)
+    branch_v = np.diff(BRANCHES.along(np.column_stack([expected, np.full(NEEDED, Z)])),
+                       axis=0) / PERIOD
+    np.testing.assert_allclose(rows[:, 8:11], branch_v[HISTORY - 1:], rtol=1e-9)
     np.testing.assert_allclose(rows[:, 0:2], (tips[:NEEDED] - expected)[HISTORY:], atol=1e-15)
 
 
@@ -142,7 +159,7 @@ def test_a_slower_reference_still_brackets_every_pose(linear_model: LoadedModel)
     assert core.faults.total == 0 and core.dropped.total == 0
     # every pose up to the last reference is used, each full window predicts
     assert len(outputs) == 57 - NEEDED + 1
-    assert core.window_rows()[-1, 2:4] == pytest.approx(reference[56], abs=1e-12)
+    assert core.window_rows()[-1, 2:4] == pytest.approx(reference[56, :2], abs=1e-12)
 
 
 def test_feature_rows_keep_nanosecond_stamps(linear_model: LoadedModel) -> None:
@@ -152,8 +169,33 @@ def test_feature_rows_keep_nanosecond_stamps(linear_model: LoadedModel) -> None:
     stamps = stamps + np.arange(NEEDED) * 123  # jitter finer than float64 resolves
     core = OnlinePredictor(linear_model, stream(), limits(enabled=False), FakeClock())
     feed(core, stamps, reference, tips)
-    rows = feature_rows((stamps - stamps[0]) * 1e-9, tips - reference, reference)
+    rows = feature_rows((stamps - stamps[0]) * 1e-9, tips - reference[:, :2], reference,
+                        BRANCHES)
     np.testing.assert_allclose(core.window_rows(), rows[HISTORY:], rtol=1e-12, atol=0)
+
+
+def test_a_model_of_other_features_or_for_another_robot_is_refused(tmp_path: Path) -> None:
+    old = save_linear(tmp_path / 'old.pt', weight=np.zeros((WINDOW * len(OLD_FEATURES), 2)),
+                      window=WINDOW, horizon=HORIZON, features=OLD_FEATURES)
+    needs = r"'features' is \('error_x', .*'ref_ay'\), this configuration needs \(.*'ups3_a'\)"
+    with pytest.raises(MetadataMismatchError, match=needs):
+        OnlinePredictor(load_model(old), stream(), limits(), FakeClock())
+    with pytest.raises(MetadataMismatchError, match=needs):  # as the node loads it
+        load_model(old, expected={'features': FEATURES})
+    other_robot = load_model(save_linear(tmp_path / 'r.pt', robot_sha256='0' * 64))
+    with pytest.raises(MetadataMismatchError, match="'robot_description_sha256' is '0000"):
+        OnlinePredictor(other_robot, stream(), limits(), FakeClock())
+    # the predictor runs another description than the model was trained for
+    packaged = load_robot_description()
+    calibrated = RobotDescription(packaged.urdf_xml + '<!-- calibrated -->\n', 'calibrated.urdf')
+    model = load_model(save_linear(tmp_path / 'm.pt', window=WINDOW, horizon=HORIZON))
+    with pytest.raises(MetadataMismatchError,
+                       match=f"'robot_description_sha256' is '{packaged.sha256}', this "
+                             f"configuration needs '{calibrated.sha256}'"):
+        OnlinePredictor(model, stream(), limits(), FakeClock(), description=calibrated)
+    core = OnlinePredictor(model, stream(), limits(), FakeClock(), description=packaged)
+    with pytest.raises(MetadataMismatchError, match="'robot_description_sha256'"):
+        core.replace_model(other_robot)
 
 
 def test_no_output_before_the_window_is_full(linear_model: LoadedModel) -> None:
@@ -245,7 +287,7 @@ def test_stale_input_zeroes_once(tmp_path: Path) -> None:
     assert core.check_stale() == []
     clock.now += 0.2 * PERIOD
     assert core.check_stale() == []  # once may be a busy executor: confirmed at the next call
-    assert core.add_reference(int(stamps[-1]) + PERIOD_NS, 0.0, 0.0) == []  # no pose: no use
+    assert core.add_reference(int(stamps[-1]) + PERIOD_NS, 0.0, 0.0, Z) == []  # no pose: no use
     zeros = core.check_stale()  # a zero for each instant an offset was published for
     assert [z.instant_ns for z in zeros] == [stamps[-1] + k * PERIOD_NS for k in (1, 2, 3)]
     assert all(z.reason == 'stale' and not z.compensation.any() for z in zeros)
@@ -331,18 +373,19 @@ def test_plant_error_subtracts_the_compensation_published_for_that_instant(tmp_p
     rows = core.window_rows()
     last = len(stamps) - 1
     np.testing.assert_allclose(published[int(stamps[last])], [30e-6, -12e-6])
-    np.testing.assert_allclose(rows[-1, 0:2], tips[last] - reference[last] - [30e-6, -12e-6],
+    np.testing.assert_allclose(rows[-1, 0:2],
+                               tips[last] - reference[last, :2] - [30e-6, -12e-6],
                                atol=1e-15)
     assert int(stamps[last - HORIZON]) not in published  # before the first offset: c = 0
     before = last - HORIZON
-    np.testing.assert_allclose(rows[-HORIZON - 1, 0:2], tips[before] - reference[before],
+    np.testing.assert_allclose(rows[-HORIZON - 1, 0:2], tips[before] - reference[before, :2],
                                atol=1e-15)
 
 
 def test_live_accuracy_is_rms_of_truth_minus_prediction(tmp_path: Path) -> None:
     core = constant_core(tmp_path, (5e-6, -5e-6), enabled=False)
     stamps, reference, _ = spiral(NEEDED + HORIZON + 10)
-    tips = reference + np.array([8e-6, 1e-6])  # a constant true error
+    tips = reference[:, :2] + np.array([8e-6, 1e-6])  # a constant true error
     feed(core, stamps, reference, tips)
     rms, count = core.accuracy()
     assert count == 11
@@ -391,7 +434,7 @@ def test_random_sequences_never_give_a_bad_offset(
     path = tmp_path / 'amplified.pt'
     if not path.exists():
         save_linear(path, window=WINDOW, horizon=HORIZON,
-                    weight=np.full((WINDOW * 8, 2), 3.0), bias=(1e-3, -1e-3))
+                    weight=np.full((WINDOW * len(FEATURES), 2), 3.0), bias=(1e-3, -1e-3))
     clock = FakeClock()
     core = OnlinePredictor(load_model(path), stream(),
                            limits(max_compensation=1e-4, max_step=2e-5), clock)
@@ -407,7 +450,7 @@ def test_random_sequences_never_give_a_bad_offset(
                 outputs += core.check_stale()
                 continue
             if kind in ('reference', 'both'):
-                outputs += core.add_reference(stamp, x, 0.0)
+                outputs += core.add_reference(stamp, x, 0.0, Z)
             if kind in ('pose', 'both'):
                 outputs += core.add_pose(stamp, x + error, error)
     previous = np.zeros(2)

@@ -8,18 +8,23 @@ import torch
 
 from lompr_predictor.data.features import FEATURES, HISTORY, feature_rows
 from lompr_predictor.online.window import FeatureWindow
+from lompr_predictor.robot.description import load_robot_description
+from lompr_predictor.robot.kinematics import VerticalToolBranches
 from lompr_predictor.stamps import seconds_since
 
 T0 = 1_700_000_000_000_000_000
 PERIOD_NS = 40_000_000
+GEOMETRY = load_robot_description().geometry
+BRANCHES = VerticalToolBranches(GEOMETRY)
 
 
 def samples(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Stamps [ns] (with jitter), plant error (n, 2) and reference (n, 2) [m]."""
+    """Stamps [ns] (with jitter), plant error (n, 2) and reference tool tip (n, 3) [m]."""
     k = np.arange(n)
     stamps = T0 + k * PERIOD_NS + (k % 3) * 1_000_123
     error = np.stack([10e-6 * np.sin(0.4 * k), -5e-6 * np.cos(0.3 * k)], -1)
-    reference = np.stack([0.01 * k ** 1.5 * 1e-1, 0.02 - 1e-3 * k ** 2], -1)
+    reference = np.stack([0.01 * k ** 1.5 * 1e-1, 0.02 - 1e-3 * k ** 2,
+                          1.097 + 1e-4 * np.sin(0.2 * k)], -1)
     return stamps, error, reference
 
 
@@ -31,11 +36,11 @@ def push_all(window: FeatureWindow, stamps: np.ndarray, error: np.ndarray,
 
 def test_rows_equal_feature_rows_of_the_same_samples() -> None:
     stamps, error, reference = samples(9)
-    window = FeatureWindow(3)
+    window = FeatureWindow(3, GEOMETRY)
     assert window.needed == 3 + HISTORY
     full = push_all(window, stamps, error, reference)
     assert full == [False] * 4 + [True] * 5
-    offline = feature_rows((stamps - stamps[0]) * 1e-9, error, reference)
+    offline = feature_rows((stamps - stamps[0]) * 1e-9, error, reference, BRANCHES)
     np.testing.assert_allclose(window.rows(), offline[-3:], rtol=1e-12, atol=0)
     # second difference of the reference x: 0.01 * 0.1 * k^1.5 over the last three stamps
     dt = np.diff(stamps[-3:]) * 1e-9
@@ -45,7 +50,7 @@ def test_rows_equal_feature_rows_of_the_same_samples() -> None:
 
 def test_fill_and_a_window_that_is_not_full() -> None:
     stamps, error, reference = samples(4)
-    window = FeatureWindow(3)
+    window = FeatureWindow(3, GEOMETRY)
     assert window.empty
     assert window.last_stamp_ns is None
     push_all(window, stamps, error, reference)
@@ -57,30 +62,33 @@ def test_fill_and_a_window_that_is_not_full() -> None:
 
 def test_a_cleared_window_refills_from_new_samples_only() -> None:
     stamps, error, reference = samples(12)
-    window = FeatureWindow(2)
+    window = FeatureWindow(2, GEOMETRY)
     push_all(window, stamps[:6], error[:6], reference[:6])
     window.clear()
     assert window.empty and window.fill == 0
     assert push_all(window, stamps[6:10], error[6:10], reference[6:10]) == [False] * 3 + [True]
-    offline = feature_rows((stamps[6:10] - stamps[6]) * 1e-9, error[6:10], reference[6:10])
+    offline = feature_rows((stamps[6:10] - stamps[6]) * 1e-9, error[6:10], reference[6:10],
+                           BRANCHES)
     np.testing.assert_allclose(window.rows(), offline[-2:], rtol=1e-12, atol=0)
 
 
 def test_a_window_needs_a_row() -> None:
     with pytest.raises(ValueError, match='at least one row'):
-        FeatureWindow(0)
+        FeatureWindow(0, GEOMETRY)
 
 
 def test_each_row_is_feature_rows_of_its_last_samples_bit_for_bit() -> None:
     # the incremental row is feature_rows on the last HISTORY + 1 samples (stamps as seconds
     # since the first of them), the same operations: equal to the last bit, across the
-    # buffer's wrap-around and a clear
+    # buffer's wrap-around and a clear, in every column (the branch velocities and
+    # accelerations from the inverse kinematics of the newest tip included)
     rng = np.random.default_rng(3)
     n = 60
     stamps = T0 + np.cumsum(rng.integers(900_000, 1_100_000, n))
     error = rng.normal(scale=1e-5, size=(n, 2))
-    reference = np.cumsum(rng.normal(scale=1e-4, size=(n, 2)), axis=0)
-    window = FeatureWindow(5)
+    reference = np.cumsum(rng.normal(scale=1e-4, size=(n, 3)), axis=0)
+    reference += (0.05, -0.1, 1.097)
+    window = FeatureWindow(5, GEOMETRY)
     start = 0
     for k in range(n):
         if k == 31:
@@ -91,7 +99,8 @@ def test_each_row_is_feature_rows_of_its_last_samples_bit_for_bit() -> None:
             continue
         expected = np.stack([
             feature_rows(seconds_since(stamps[j - HISTORY:j + 1]), error[j - HISTORY:j + 1],
-                         reference[j - HISTORY:j + 1])[-1] for j in range(k - 4, k + 1)])
+                         reference[j - HISTORY:j + 1], BRANCHES)[-1]
+            for j in range(k - 4, k + 1)])
         assert np.array_equal(window.rows(), expected)
         tensor = window.tensor()
         assert tensor.shape == (1, 5, len(FEATURES)) and tensor.dtype == torch.float64
@@ -100,7 +109,7 @@ def test_each_row_is_feature_rows_of_its_last_samples_bit_for_bit() -> None:
 
 def test_the_model_input_is_a_view_made_once() -> None:
     stamps, error, reference = samples(12)
-    window = FeatureWindow(3)
+    window = FeatureWindow(3, GEOMETRY)
     push_all(window, stamps[:5], error[:5], reference[:5])
     first = window.tensor()
     assert window.tensor() is first  # no allocation per call
@@ -111,5 +120,6 @@ def test_the_model_input_is_a_view_made_once() -> None:
     for k in range(5, 8):  # three pushes later the same slot starts the window again
         window.push(int(stamps[k]), *error[k], *reference[k])
     assert window.tensor() is first
-    offline = feature_rows((stamps[:8] - stamps[0]) * 1e-9, error[:8], reference[:8])
+    offline = feature_rows((stamps[:8] - stamps[0]) * 1e-9, error[:8], reference[:8], BRANCHES)
     np.testing.assert_allclose(first[0].numpy(), offline[-3:], rtol=1e-12, atol=0)
+

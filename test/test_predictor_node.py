@@ -27,14 +27,18 @@ from lompr_predictor.data.bags import (
     write_recording,
 )
 from lompr_predictor.data.cleaning import clean_recordings
-from lompr_predictor.data.features import HISTORY
+from lompr_predictor.data.features import FEATURES, HISTORY
 from lompr_predictor.learning.model_file import (
     MetadataMismatchError,
     ModelTrustError,
     load_model,
 )
 from lompr_predictor.learning.models import predict_rows
-from lompr_predictor.robot.description import MEASURED_JOINTS, RobotDescription
+from lompr_predictor.robot.description import (
+    MEASURED_JOINTS,
+    RobotDescription,
+    load_robot_description,
+)
 from lompr_predictor.robot.kinematics import inverse_kinematics
 from lompr_predictor.ros.kinematics_node import KinematicsNode
 from lompr_predictor.ros.predictor_node import PredictorNode
@@ -254,6 +258,23 @@ def test_mismatched_model_is_refused_naming_the_field(ros: RosHarness, tmp_path:
     with pytest.raises(MetadataMismatchError, match="'robot_description_sha256'"):
         PredictorNode(context=ros.context,
                       parameter_overrides=[Parameter('model_path', value=str(other_robot))])
+    # the node runs a calibrated URDF (robot_description_file), the model was trained for
+    # the packaged one
+    packaged = load_robot_description()
+    calibrated = tmp_path / 'calibrated.urdf'
+    calibrated.write_text(packaged.urdf_xml + '<!-- calibrated -->\n', encoding='utf-8')
+    with pytest.raises(MetadataMismatchError, match=f"'robot_description_sha256' is "
+                                                    f"'{packaged.sha256}'"):
+        PredictorNode(context=ros.context, parameter_overrides=[
+            Parameter('model_path', value=str(jittered)),
+            Parameter('robot_description_file', value=str(calibrated))])
+    # a model file from before the branch features (issue 10) reads other columns
+    old = save_linear(tmp_path / 'o.pt', weight=np.zeros((WINDOW * 8, 2)), window=WINDOW,
+                      horizon=HORIZON, features=FEATURES[:8])
+    with pytest.raises(MetadataMismatchError, match=r"'features' is \('error_x', .*'ref_ay'\), "
+                                                    r"this configuration needs .*'ups3_a'"):
+        PredictorNode(context=ros.context,
+                      parameter_overrides=[Parameter('model_path', value=str(old))])
     good = save_linear(tmp_path / 'g.pt', window=WINDOW, horizon=HORIZON)
     with pytest.raises(MetadataMismatchError,
                        match=r"'horizon' is 3, this configuration needs 5"):

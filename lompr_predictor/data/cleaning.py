@@ -25,7 +25,7 @@ from scipy import ndimage
 from lompr_predictor.data.bags import JointSamples, Recording, ReferenceSamples
 from lompr_predictor.data.features import FEATURES, feature_rows
 from lompr_predictor.robot.description import LomprGeometry
-from lompr_predictor.robot.kinematics import batch_forward_kinematics
+from lompr_predictor.robot.kinematics import VerticalToolBranches, batch_forward_kinematics
 from lompr_predictor.stamps import seconds_since
 
 #: Defaults of the cleaning rules, in one place (the CLI and the report use these).
@@ -55,6 +55,7 @@ class CleanData:
     reference: np.ndarray  # (N, 3) reference position at the stamps [m]
     segments: np.ndarray  # (S, 2) [start, end) row ranges without a gap
     sample_period: float  # median step [s]
+    geometry: LomprGeometry  # the robot description's, for the features' inverse kinematics
     counts: dict[str, int] = field(default_factory=dict)  # read / dropped by reason / segments
 
     def __len__(self) -> int:
@@ -74,10 +75,11 @@ class CleanData:
         """(N, len(FEATURES)) feature rows, computed segment by segment (NaN where a row
         lacks `HISTORY` samples of its own segment)."""
         rows = np.full((len(self), len(FEATURES)), np.nan)
+        branches = VerticalToolBranches(self.geometry)
         for start, end in self.segments:
             seconds = seconds_since(self.stamps[start:end])
             rows[start:end] = feature_rows(
-                seconds, self.error[start:end], self.reference[start:end, :2])
+                seconds, self.error[start:end], self.reference[start:end], branches)
         return rows
 
 
@@ -248,4 +250,4 @@ def clean_recordings(
     counts['kept'] = len(stamps)
     counts['segments'] = len(segments)
     return CleanData(stamps=stamps, error=error, reference=aligned, segments=segments,
-                     sample_period=period * 1e-9, counts=counts)
+                     sample_period=period * 1e-9, geometry=geometry, counts=counts)

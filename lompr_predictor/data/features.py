@@ -10,12 +10,21 @@ makes node and offline predictions agree sample for sample.
 Why these features: the plant error is mostly a function of the commanded motion (servo
 lag follows velocity and acceleration, friction follows velocity, the elastic and
 posture-dependent terms follow position), plus a slowly varying part seen only in the past
-errors themselves. The reference is the commanded path, known without noise.
+errors themselves. The reference is the commanded path, known without noise. Friction,
+backlash and servo lag act per actuator, and in a parallel robot an actuator's velocity is
+a nonlinear function of the Cartesian velocity and the posture: so the rows also carry the
+velocity and acceleration of the three driven branches along the reference, their lengths
+from the closed-form inverse kinematics (`kinematics.VerticalToolBranches`, tool vertical)
+of the robot description the model is trained for. No scale fitted to one machine enters:
+the model standardises every column with its training data.
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+from lompr_predictor.robot.description import BRANCH_JOINTS
+from lompr_predictor.robot.kinematics import VerticalToolBranches
 
 #: Feature names, in column order. Recorded in the model metadata and checked on load.
 FEATURES: tuple[str, ...] = (
@@ -23,6 +32,8 @@ FEATURES: tuple[str, ...] = (
     'ref_x', 'ref_y',  # reference position [m]
     'ref_vx', 'ref_vy',  # reference velocity [m/s], backward difference
     'ref_ax', 'ref_ay',  # reference acceleration [m/s^2], backward difference
+    *(f'{branch}_v' for branch in BRANCH_JOINTS),  # branch velocity [m/s] along the reference
+    *(f'{branch}_a' for branch in BRANCH_JOINTS),  # branch acceleration [m/s^2]
 )
 #: Samples before a window's first row that its features need (the second difference).
 HISTORY = 2
@@ -30,22 +41,27 @@ HISTORY = 2
 TARGETS: tuple[str, ...] = ('x', 'y')
 
 
-def feature_rows(stamps: np.ndarray, error: np.ndarray, reference: np.ndarray) -> np.ndarray:
+def feature_rows(stamps: np.ndarray, error: np.ndarray, reference: np.ndarray,
+                 branches: VerticalToolBranches) -> np.ndarray:
     """(N, len(FEATURES)) feature rows for N consecutive samples of one gap-free segment.
 
-    stamps: (N,) seconds; error: (N, 2) plant error [m]; reference: (N, 2) reference X/Y [m].
-    The first `HISTORY` rows lack a full difference and are NaN in the derivative columns.
+    stamps: (N,) seconds; error: (N, 2) plant error [m]; reference: (N, 3) reference tool
+    tip [m]; branches: the inverse kinematics of the robot description. The first `HISTORY`
+    rows lack a full difference and are NaN in the derivative columns.
     """
     stamps = np.asarray(stamps, dtype=float)
     error = np.asarray(error, dtype=float)
     reference = np.asarray(reference, dtype=float)
     rows = np.full((len(stamps), len(FEATURES)), np.nan)
     rows[:, 0:2] = error
-    rows[:, 2:4] = reference
+    rows[:, 2:4] = reference[:, :2]
+    # the differenced coordinates: reference X, Y and the three branch lengths
+    coordinates = np.concatenate([reference[:, :2], branches.along(reference)], axis=1)
     if len(stamps) > 1:
         dt = np.diff(stamps)[:, None]
-        velocity = np.diff(reference, axis=0) / dt
-        rows[1:, 4:6] = velocity
+        velocity = np.diff(coordinates, axis=0) / dt
+        rows[1:, 4:6], rows[1:, 8:11] = velocity[:, :2], velocity[:, 2:]
         if len(stamps) > 2:
-            rows[2:, 6:8] = np.diff(velocity, axis=0) / dt[1:]
+            acceleration = np.diff(velocity, axis=0) / dt[1:]
+            rows[2:, 6:8], rows[2:, 11:14] = acceleration[:, :2], acceleration[:, 2:]
     return rows

@@ -46,16 +46,16 @@ class ReferenceTrack:
         self.max_bracket_ns = gap_factor * period_ns
         self._pose_period_ns = period_ns
         self._stamps: deque[int] = deque(maxlen=MAX_REFERENCES)
-        self._positions: deque[tuple[float, float]] = deque(maxlen=MAX_REFERENCES)
+        self._positions: deque[tuple[float, float, float]] = deque(maxlen=MAX_REFERENCES)
         self._steps: deque[int] = deque(maxlen=REFERENCE_STEPS)
 
     @property
     def newest(self) -> int | None:
         return self._stamps[-1] if self._stamps else None
 
-    def add(self, stamp_ns: int, x: float, y: float) -> str:
-        """Keep one reference; '' or the reason it was not kept."""
-        if not (math.isfinite(x) and math.isfinite(y)):
+    def add(self, stamp_ns: int, x: float, y: float, z: float) -> str:
+        """Keep one reference tool tip; '' or the reason it was not kept."""
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
             return 'reference_non_finite'
         newest = self.newest
         if newest is not None and stamp_ns <= newest:
@@ -65,14 +65,14 @@ class ReferenceTrack:
             typical = sorted(self._steps)[len(self._steps) // 2]
             self.max_bracket_ns = self.gap_factor * max(self._pose_period_ns, typical)
         self._stamps.append(stamp_ns)
-        self._positions.append((x, y))
+        self._positions.append((x, y, z))
         return ''
 
-    def restart(self, stamp_ns: int, x: float, y: float) -> None:
+    def restart(self, stamp_ns: int, x: float, y: float, z: float) -> None:
         """Forget the history and start again from one reference (the stream went back)."""
         self.clear()
         self._stamps.append(stamp_ns)
-        self._positions.append((x, y))
+        self._positions.append((x, y, z))
 
     def clear(self) -> None:
         self._stamps.clear()
@@ -87,7 +87,7 @@ class ReferenceTrack:
             self._stamps.pop()
             self._positions.pop()
 
-    def at(self, stamp_ns: int) -> tuple[float, float] | str | None:
+    def at(self, stamp_ns: int) -> tuple[float, float, float] | str | None:
         """The reference at `stamp_ns`; None while no reference at or after it has arrived;
         'no_reference' when the history does not bracket it within `max_bracket_ns`."""
         stamps, positions = self._stamps, self._positions
@@ -108,8 +108,8 @@ class ReferenceTrack:
         if span > self.max_bracket_ns:
             return 'no_reference'
         weight = (stamp_ns - stamps[left]) / span
-        (x0, y0), (x1, y1) = positions[left], positions[right]
-        return x0 + weight * (x1 - x0), y0 + weight * (y1 - y0)
+        (x0, y0, z0), (x1, y1, z1) = positions[left], positions[right]
+        return x0 + weight * (x1 - x0), y0 + weight * (y1 - y0), z0 + weight * (z1 - z0)
 
 
 class AlignedSample(NamedTuple):
@@ -118,8 +118,9 @@ class AlignedSample(NamedTuple):
     stamp_ns: int
     x: float  # measured tool tip X [m]
     y: float  # measured tool tip Y [m]
-    reference_x: float  # reference at the stamp [m]
+    reference_x: float  # reference tool tip at the stamp [m]
     reference_y: float
+    reference_z: float
 
 
 class _Pose(NamedTuple):
@@ -163,12 +164,12 @@ class StampAlignment:
                 return item.arrival
         return None
 
-    def add_reference(self, stamp_ns: int, x: float, y: float) -> list[Event]:
-        """Take one reference sample; returns what became ready."""
-        reason = self.references.add(stamp_ns, x, y)
+    def add_reference(self, stamp_ns: int, x: float, y: float, z: float) -> list[Event]:
+        """Take one reference sample (the commanded tool tip); returns what became ready."""
+        reason = self.references.add(stamp_ns, x, y, z)
         if reason == 'reference_out_of_order':
             self.dropped.add(reason)
-            self.references.restart(stamp_ns, x, y)
+            self.references.restart(stamp_ns, x, y, z)
             return [reason]
         if reason:
             self.dropped.add(reason)

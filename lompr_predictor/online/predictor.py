@@ -3,7 +3,7 @@
 `OnlinePredictor` is the predictor node's core; the node only turns messages into calls.
 It composes the parts, each in its own module and testable alone:
 
-- `alignment.StampAlignment`: `add_reference(stamp, x, y)` and `add_pose(stamp, x, y)` take
+- `alignment.StampAlignment`: `add_reference(stamp, x, y, z)` and `add_pose(stamp, x, y)` take
   the two input streams in arrival order; a pose waits for the reference at or after its
   stamp and gets the reference interpolated to its stamp (CONTRACT section 2).
 - The plant error of a sample is measured tool tip - reference - the offset this predictor
@@ -40,13 +40,14 @@ from collections.abc import Callable
 import numpy as np
 
 from lompr_predictor.data.features import FEATURES
-from lompr_predictor.learning.model_file import LoadedModel
+from lompr_predictor.learning.model_file import LoadedModel, MetadataMismatchError
 from lompr_predictor.monitoring import LatencyRecorder, RejectionCounter
 from lompr_predictor.online.alignment import DROP_REASONS, AlignedSample, Event, StampAlignment
 from lompr_predictor.online.faults import FAULT_REASONS, StaleWatch, StreamRules, StreamSettings
 from lompr_predictor.online.offset import CompensationLimits, LiveAccuracy, OffsetGate, Output
 from lompr_predictor.online.timing import OverrunGuard
 from lompr_predictor.online.window import FeatureWindow
+from lompr_predictor.robot.description import RobotDescription, load_robot_description
 from lompr_predictor.stamps import StampLike, period_ns, stamp_problem, stamp_to_ns
 
 # The names a caller of the core needs, importable from here as before the split.
@@ -60,11 +61,11 @@ class OnlinePredictor:
     def __init__(
         self, model: LoadedModel, stream: StreamSettings, limits: CompensationLimits,
         clock: Callable[[], float] = time.monotonic, latency_samples: int = 1000,
-        now_ns: Callable[[], int] | None = None,
+        now_ns: Callable[[], int] | None = None, description: RobotDescription | None = None,
     ) -> None:
-        if tuple(model.metadata.features) != FEATURES:
-            msg = f'model features {model.metadata.features} are not {FEATURES}'
-            raise ValueError(msg)
+        #: The robot the model must have been trained for (default: the packaged LOMPR).
+        self.description = description or load_robot_description()
+        self._check(model)
         self.model = model
         self.stream = stream
         self.window = model.metadata.window
@@ -74,7 +75,7 @@ class OnlinePredictor:
         self._alignment = StampAlignment(stream.gap_factor, period, clock)
         self._rules = StreamRules(stream, period)
         self._stale = StaleWatch(stream.stale_after, clock)
-        self._window = FeatureWindow(self.window)
+        self._window = FeatureWindow(self.window, self.description.geometry)
         self._gate = OffsetGate(limits, period)
         self._accuracy = LiveAccuracy(stream.accuracy_samples)
         self.faults = RejectionCounter(FAULT_REASONS)
@@ -90,14 +91,15 @@ class OnlinePredictor:
 
     # -- inputs ---------------------------------------------------------------------------
 
-    def add_reference(self, stamp: int | StampLike, x: float, y: float) -> list[Output]:
-        """Take one reference sample (stamp: ns, or a message stamp, which is checked);
-        returns outputs of poses that waited for it."""
+    def add_reference(self, stamp: int | StampLike, x: float, y: float,
+                      z: float) -> list[Output]:
+        """Take one reference sample, the commanded tool tip (stamp: ns, or a message stamp,
+        which is checked); returns outputs of poses that waited for it."""
         now = self._read_clock()
         stamp_ns = self._stamp_ns(stamp, now, 'reference_')
         if stamp_ns is None:
             return []
-        return self._handle(self._alignment.add_reference(stamp_ns, x, y))
+        return self._handle(self._alignment.add_reference(stamp_ns, x, y, z))
 
     def add_pose(self, stamp: int | StampLike, x: float, y: float) -> list[Output]:
         """Take one measured tool-tip sample (the kinematics node's end pose; stamp: ns,
@@ -162,6 +164,7 @@ class OnlinePredictor:
 
     def replace_model(self, model: LoadedModel) -> None:
         """Use `model` from the next sample on; it must read the same window and horizon."""
+        self._check(model)
         metadata = model.metadata
         if (metadata.window, metadata.horizon) != (self.window, self.horizon):
             msg = (f'model {model.path} has window {metadata.window} and horizon '
@@ -223,6 +226,14 @@ class OnlinePredictor:
 
     # -- internals ------------------------------------------------------------------------
 
+    def _check(self, model: LoadedModel) -> None:
+        """Refuse a model that reads other features or was trained for another robot."""
+        for field, needed in (('features', FEATURES),
+                              ('robot_description_sha256', self.description.sha256)):
+            found = getattr(model.metadata, field)
+            if found != needed:
+                raise MetadataMismatchError(model.path, field, needed, found)
+
     def _read_clock(self) -> int:
         if self._now_ns is not None:
             self._now = self._now_ns()
@@ -265,7 +276,7 @@ class OnlinePredictor:
         if predicted is not None:
             self._accuracy.add(np.array([error_x, error_y]), predicted)
         if window.push(sample.stamp_ns, error_x, error_y, sample.reference_x,
-                       sample.reference_y):
+                       sample.reference_y, sample.reference_z):
             outputs += self._predict(sample.stamp_ns)
         return outputs
 

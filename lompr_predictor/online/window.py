@@ -5,14 +5,16 @@ window here equals the offline window over the same samples. A row needs `HISTOR
 before it (the second difference), so a full window of `window` rows takes `window +
 HISTORY` samples after the window was last emptied.
 
-Each sample costs one row, computed incrementally: `newest_row` is `feature_rows` applied to
-the last `HISTORY + 1` samples, written out on Python floats (the same operations in the
-same order, so the same bits), since NumPy's per-call overhead on arrays of three is many
-times the arithmetic. The rows live in a preallocated buffer that holds each row twice, at
-k and k + window (k = its slot modulo window), so that the window, oldest row first, is
-always one contiguous slice of it; `tensor()` gives that slice as a (1, window, F) float64
-tensor sharing the buffer's memory (one view per slot, made once): the model's input with
-no copy and no allocation per sample.
+Each sample costs one row, computed incrementally: the newest sample's branch lengths (one
+`VerticalToolBranches.at` call, the inverse kinematics `feature_rows` does on arrays), then
+`newest_row`, `feature_rows` applied to the last `HISTORY + 1` samples, written out on
+Python floats (the same operations in the same order, so the same bits), since NumPy's
+per-call overhead on arrays of three is many times the arithmetic. The rows live in a
+preallocated buffer that holds each row twice, at k and k + window (k = its slot modulo
+window), so that the window, oldest row first, is always one contiguous slice of it;
+`tensor()` gives that slice as a (1, window, F) float64 tensor sharing the buffer's memory
+(one view per slot, made once): the model's input with no copy and no allocation per
+sample.
 """
 
 from __future__ import annotations
@@ -23,40 +25,52 @@ import numpy as np
 import torch
 
 from lompr_predictor.data.features import FEATURES, HISTORY
+from lompr_predictor.robot.description import LomprGeometry
+from lompr_predictor.robot.kinematics import VerticalToolBranches
 
-# `newest_row` is written for a second difference; a feature change must change it too.
+# `newest_row` is written for a second difference of these columns; a feature change must
+# change it too.
 assert HISTORY == 2, 'window.newest_row computes the features of features.py by hand'
+assert len(FEATURES) == 14, 'window.newest_row computes the features of features.py by hand'
 
-Sample = tuple[int, float, float, float, float]  # stamp [ns], error x, y, reference x, y [m]
-_NONE: Sample = (0, 0.0, 0.0, 0.0, 0.0)
+#: stamp [ns], error x, y [m], then the differenced coordinates: reference x, y and the
+#: three branch lengths [m]
+Sample = tuple[int, float, float, float, float, float, float, float]
+_NONE: Sample = (0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
 def newest_row(older: Sample, previous: Sample, newest: Sample) -> tuple[float, ...]:
-    """The last row of `feature_rows` over three consecutive samples (stamp [ns], plant
-    error x, y, reference x, y [m]), with the stamps as `stamps.seconds_since` the first:
-    the same floating-point operations, so bit for bit the same row."""
-    s0, _, _, r0x, r0y = older
-    s1, _, _, r1x, r1y = previous
-    s2, ex, ey, rx, ry = newest
+    """The last row of `feature_rows` over three consecutive samples (`Sample`), with the
+    stamps as `stamps.seconds_since` the first: the same floating-point operations, so bit
+    for bit the same row."""
+    s0, _, _, x0, y0, p0, q0, r0 = older  # p, q, r: the lengths of branches 1, 2, 3
+    s1, _, _, x1, y1, p1, q1, r1 = previous
+    s2, ex, ey, x2, y2, p2, q2, r2 = newest
     t1 = (s1 - s0) * 1e-9  # seconds_since: integer difference first, then to seconds
     dt2 = (s2 - s0) * 1e-9 - t1  # np.diff of the seconds (the first step is t1 - 0.0 = t1)
-    v1x, v1y = (r1x - r0x) / t1, (r1y - r0y) / t1
-    vx, vy = (rx - r1x) / dt2, (ry - r1y) / dt2
-    return ex, ey, rx, ry, vx, vy, (vx - v1x) / dt2, (vy - v1y) / dt2
+    vx, vy = (x2 - x1) / dt2, (y2 - y1) / dt2
+    vp, vq, vr = (p2 - p1) / dt2, (q2 - q1) / dt2, (r2 - r1) / dt2
+    return (ex, ey, x2, y2, vx, vy,
+            (vx - (x1 - x0) / t1) / dt2, (vy - (y1 - y0) / t1) / dt2,
+            vp, vq, vr,
+            (vp - (p1 - p0) / t1) / dt2, (vq - (q1 - q0) / t1) / dt2,
+            (vr - (r1 - r0) / t1) / dt2)
 
 
 class FeatureWindow:
-    """The feature rows of the last `window` samples since the window was last emptied."""
+    """The feature rows of the last `window` samples since the window was last emptied,
+    for the robot of `geometry` (its branches' inverse kinematics)."""
 
-    def __init__(self, window: int) -> None:
+    def __init__(self, window: int, geometry: LomprGeometry) -> None:
         if window < 1:
             msg = f'a window needs at least one row, got {window}'
             raise ValueError(msg)
         self.window = window
         #: Samples a full window takes after it was emptied.
         self.needed = window + HISTORY
-        # the last HISTORY + 1 samples (stamp, error x, y, reference x, y), those before the
-        # first since the window was emptied left as _NONE (never read: see `_filled`)
+        self._branches = VerticalToolBranches(geometry)
+        # the last HISTORY + 1 samples (`Sample`), those before the first since the window
+        # was emptied left as _NONE (never read: see `_filled`)
         self._previous = self._newest = _NONE
         self._buffer = np.zeros((2 * window, len(FEATURES)))
         # a row is written with one C call: struct packing into the buffer's memory
@@ -88,10 +102,12 @@ class FeatureWindow:
         return self._filled >= self.needed
 
     def push(self, stamp_ns: int, error_x: float, error_y: float, reference_x: float,
-             reference_y: float) -> bool:
-        """Add one sample (plant error and reference, SI); True once the window is full."""
+             reference_y: float, reference_z: float) -> bool:
+        """Add one sample (plant error and reference tool tip, SI); True once the window is
+        full."""
         older, previous = self._previous, self._newest
-        newest = (stamp_ns, error_x, error_y, reference_x, reference_y)
+        newest = (stamp_ns, error_x, error_y, reference_x, reference_y,
+                  *self._branches.at(reference_x, reference_y, reference_z))
         self._previous, self._newest = previous, newest
         self._filled += 1
         if self._filled > HISTORY:

@@ -1,6 +1,6 @@
 """Forward and inverse kinematics of the LOMPR (CONTRACT section 1).
 
-Three entry points, one per use:
+Four entry points, one per use:
 
 - `ForwardKinematics.solve`: one sample, as the kinematics node calls it. Newton on the three
   branch-length equations |B_i(alpha, beta, d) - A_i| = l_i in closed form on Python floats
@@ -10,8 +10,12 @@ Three entry points, one per use:
   vectorised with NumPy over samples (the offline trainer pushes millions through it).
 - `inverse_kinematics`: closed form for a vertical tool, tip position -> all joints, with the
   primary head angle kept continuous along a path. The twin and the tests use it.
+- `VerticalToolBranches`: the same closed form for the three branch lengths only, on one
+  tip in Python floats or on arrays with the same bits: the features' branch velocities
+  (`data.features`), offline and in the predictor node.
 
-All three take their geometry from the robot description (`robot.py`), never from constants.
+All four take their geometry from the robot description (`description.py`), never from
+constants.
 Joint arrays are ordered as `robot.MEASURED_JOINTS`: ups1, ups2, ups3, head_primary,
 head_secondary.
 """
@@ -19,7 +23,7 @@ head_secondary.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -433,3 +437,58 @@ def inverse_kinematics(
     up = np.stack([alpha, beta, d], -1)
     return JointPath(up=up, lengths=branch_lengths(geometry, up),
                      head=np.stack([theta1, theta2], -1))
+
+
+class VerticalToolBranches:
+    """Branch lengths for tool-tip positions with the tool vertical: the closed form of
+    `inverse_kinematics` for the three driven branches, on Python floats (`at`, one sample,
+    as the predictor node calls it) or on arrays (`along`, a whole recording) with the same
+    operations in the same order, so both give the same bits.
+
+    The tool vertical puts the wrist w = tip - h2 e_z on the UP axis: R e_z = w / |w| and
+    d = |w| - h1, so sin beta = w_x / |w|, cos beta = rho / |w|, sin alpha = -w_y / rho,
+    cos alpha = w_z / rho with rho = |(w_y, w_z)|; only + - * / and square roots, which NumPy
+    and Python round alike (trigonometric functions they need not). `inverse_kinematics`
+    gets the same lengths through the angles (equal to about 1e-15 m).
+    """
+
+    def __init__(self, geometry: LomprGeometry) -> None:
+        h1, h2 = geometry.head_offset, geometry.tool_offset
+        if np.abs(h1[:2]).max() > 1e-12 or np.abs(h2[:2]).max() > 1e-12:
+            msg = 'closed-form inverse kinematics needs the head and tool offsets along z'
+            raise KinematicsError(msg)
+        self._h1, self._h2 = float(h1[2]), float(h2[2])
+        self._branches = tuple(
+            (tuple(float(v) for v in b), tuple(float(v) for v in a))
+            for b, a in zip(geometry.platform_anchors, geometry.base_anchors, strict=True))
+
+    def at(self, x: float, y: float, z: float) -> tuple[float, float, float]:
+        """The three branch lengths [m] for one tool tip [m]; NaN where the wrist is on the
+        world X axis (no tool-vertical posture, as NumPy's 0/0 gives offline)."""
+        wy, wz = y, z - self._h2
+        if wy * wy + wz * wz == 0.0:
+            return math.nan, math.nan, math.nan
+        return self._lengths(x, wy, wz, math.sqrt)
+
+    def along(self, tips: np.ndarray) -> np.ndarray:
+        """(N, 3) branch lengths [m] for (N, 3) tool tips [m]."""
+        tips = np.asarray(tips, dtype=float)
+        with np.errstate(invalid='ignore', divide='ignore'):
+            return np.stack(self._lengths(tips[:, 0], tips[:, 1], tips[:, 2] - self._h2,
+                                          np.sqrt), -1)
+
+    def _lengths(self, wx: Any, wy: Any, wz: Any, sqrt: Callable[[Any], Any]) -> Any:
+        """The lengths for wrist w (floats or arrays alike; `sqrt` of the same kind)."""
+        side = wy * wy + wz * wz
+        rho = sqrt(side)
+        reach = sqrt(wx * wx + side)
+        sa, ca = -wy / rho, wz / rho
+        sb, cb = wx / reach, rho / reach
+        d = reach - self._h1
+        lengths = []
+        for (bx, by, bz), (ax, ay, az) in self._branches:
+            z = bz + d
+            rx, rz = cb * bx + sb * z, cb * z - sb * bx  # B = Rx(alpha) Ry(beta) (b + d e_z)
+            vx, vy, vz = rx - ax, ca * by - sa * rz - ay, sa * by + ca * rz - az
+            lengths.append(sqrt(vx * vx + vy * vy + vz * vz))
+        return tuple(lengths)

@@ -139,8 +139,9 @@ class PredictorNodeSettings:
         5e-5, 'largest change of the offset [m] (XY norm) from one sample to the next',
         minimum=0.0, maximum=0.01)
     robot_description_file: str = parameter(
-        '', 'URDF the model must have been trained for (its sha256 is checked); empty: the '
-        'packaged nominal LOMPR description', read_only=True)
+        '', 'URDF of the robot (its calibrated geometry), the one the model must have been '
+        "trained for: it gives the features' branch kinematics and its sha256 is checked; "
+        'empty: the packaged nominal LOMPR description', read_only=True)
     sample_period: float = parameter(
         0.0, 'period [s] of the pose stamps, which the model must have been trained at '
         "(within 2 %); 0: the model file's", minimum=0.0, maximum=10.0, read_only=True)
@@ -426,7 +427,8 @@ class PredictorNode(NodeBase[PredictorNodeSettings], LifecycleNode):
                            settings.accuracy_samples, settings.stale_min_time,
                            settings.max_future_stamp, settings.late_tolerance),
             settings.limits, clock=self.clock_seconds,
-            latency_samples=settings.latency_samples, now_ns=self.clock_ns)
+            latency_samples=settings.latency_samples, now_ns=self.clock_ns,
+            description=self.description)
         self._prediction_publisher = self.advertise(PREDICTED_ERROR)
         self._compensation_publisher = self.advertise(COMPENSATION)
         self._subscriptions_made = [self.subscribe(END_POSE, self.on_end_pose, raw=True),
@@ -489,8 +491,8 @@ class PredictorNode(NodeBase[PredictorNodeSettings], LifecycleNode):
         if self._core is None or not self.active:
             self.dropped_inactive += 1
             return
-        sec, nanosec, x, y, _ = read_pose_stamped(msg)
-        self._publish(self._core.add_reference(Stamp(sec, nanosec), x, y), start)
+        sec, nanosec, x, y, z = read_pose_stamped(msg)
+        self._publish(self._core.add_reference(Stamp(sec, nanosec), x, y, z), start)
 
     def on_stale_timer(self) -> None:
         """Runs on the node's clock: under simulated time only while that time advances."""
