@@ -103,10 +103,22 @@ CALLGRIND_SAMPLES = 300
 BAG = Path(__file__).resolve().parents[1] / 'bags' / 'twin_spiral_seed1_3passes'
 
 
+def feature_span(name: str) -> float:
+    """A plausible SI half-range of a feature column (`FEATURES`): errors ~0.1 mm, positions
+    ~0.2 m, velocities ~0.05 m/s, accelerations ~0.5 m/s^2."""
+    if name.startswith('error_'):
+        return 1e-4
+    if name.endswith(('_v', '_vx', '_vy')):
+        return 0.05
+    if name.endswith(('_a', '_ax', '_ay')):
+        return 0.5
+    return 0.2
+
+
 def timing_module() -> PredictorModule:
     """The trainer's exported module at the default size, with plausible SI ranges."""
     torch.manual_seed(0)
-    span = np.array([1e-4, 1e-4, 0.2, 0.2, 0.05, 0.05, 0.5, 0.5])
+    span = np.array([feature_span(name) for name in FEATURES])
     return PredictorModule(build_network('lstm', len(FEATURES), WINDOW, HIDDEN), -span, span,
                            np.full(2, -2e-5), np.full(2, 2e-5), residual=True,
                            relative_errors=True)

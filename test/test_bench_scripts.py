@@ -25,3 +25,17 @@ def test_bench_script_imports(script: Path) -> None:
     result = subprocess.run([sys.executable, '-c', LOAD, str(script)], capture_output=True,
                             text=True, timeout=120, check=False)
     assert result.returncode == 0, result.stderr[-2000:]
+
+
+def test_predictor_bench_model_loads_and_runs_on_todays_features(tmp_path: Path) -> None:
+    """The timing model of bench_predictor (and the soak) is built for the current FEATURES
+    and passes the loader's warm-up inference: a feature change once broke it unnoticed."""
+    script = (
+        'import sys, pathlib; sys.path.insert(0, sys.argv[1]); import bench_predictor as b\n'
+        'from lompr_predictor.learning.model_file import load_model\n'
+        'path = b.default_model(pathlib.Path(sys.argv[2]) / "m.pt", 0.001, 5)\n'
+        'print(load_model(path).metadata.window)')
+    result = subprocess.run([sys.executable, '-c', script, str(BENCH), str(tmp_path)],
+                            capture_output=True, text=True, timeout=120, check=False)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.split()[-1] == '25'
