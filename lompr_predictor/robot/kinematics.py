@@ -397,6 +397,16 @@ def branch_lengths(geometry: LomprGeometry, up: np.ndarray) -> np.ndarray:
                      in zip(points, geometry.base_anchors, strict=True)], -1)
 
 
+def vertical_offsets(geometry: LomprGeometry) -> tuple[float, float]:
+    """The head and tool offsets h1, h2 [m] along z, which the closed-form inverse
+    kinematics needs (`KinematicsError` when either has an x or y part)."""
+    h1, h2 = geometry.head_offset, geometry.tool_offset
+    if np.abs(h1[:2]).max() > 1e-12 or np.abs(h2[:2]).max() > 1e-12:
+        msg = 'closed-form inverse kinematics needs the head and tool offsets along z'
+        raise KinematicsError(msg)
+    return float(h1[2]), float(h2[2])
+
+
 def inverse_kinematics(
     geometry: LomprGeometry, tips: np.ndarray, theta1_start: float = 0.0
 ) -> JointPath:
@@ -409,15 +419,12 @@ def inverse_kinematics(
     theta2 changes sign when the path crosses the centre. Needs h1 and h2 along z.
     """
     tips = np.atleast_2d(np.asarray(tips, dtype=float))
-    h1, h2 = geometry.head_offset, geometry.tool_offset
-    if np.abs(h1[:2]).max() > 1e-12 or np.abs(h2[:2]).max() > 1e-12:
-        msg = 'closed-form inverse kinematics needs the head and tool offsets along z'
-        raise KinematicsError(msg)
-    wrist = tips - np.array([0.0, 0.0, h2[2]])
+    h1, h2 = vertical_offsets(geometry)
+    wrist = tips - np.array([0.0, 0.0, h2])
     reach = np.linalg.norm(wrist, axis=1)
     beta = np.arcsin(wrist[:, 0] / reach)
     alpha = np.arctan2(-wrist[:, 1], wrist[:, 2])
-    d = reach - h1[2]
+    d = reach - h1
     # The world vertical seen in the platform frame: (-ca sb, sa, ca cb) = Rz(t1) Ry(t2) e_z.
     ca, sa, sb = np.cos(alpha), np.sin(alpha), np.sin(beta)
     horizontal = np.hypot(ca * sb, sa)
@@ -453,11 +460,7 @@ class VerticalToolBranches:
     """
 
     def __init__(self, geometry: LomprGeometry) -> None:
-        h1, h2 = geometry.head_offset, geometry.tool_offset
-        if np.abs(h1[:2]).max() > 1e-12 or np.abs(h2[:2]).max() > 1e-12:
-            msg = 'closed-form inverse kinematics needs the head and tool offsets along z'
-            raise KinematicsError(msg)
-        self._h1, self._h2 = float(h1[2]), float(h2[2])
+        self._h1, self._h2 = vertical_offsets(geometry)
         self._branches = tuple(
             (tuple(float(v) for v in b), tuple(float(v) for v in a))
             for b, a in zip(geometry.platform_anchors, geometry.base_anchors, strict=True))
