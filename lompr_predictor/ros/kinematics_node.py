@@ -49,6 +49,7 @@ from lompr_predictor.ros.node_base import (
     SENSOR_INPUT_QOS,
     Endpoint,
     NodeBase,
+    StatusSettings,
     node_help,
 )
 from lompr_predictor.ros.parameters import parameter
@@ -78,8 +79,9 @@ def _check_joint_names(names: Sequence[str]) -> str:
 
 
 @dataclass(frozen=True)
-class KinematicsNodeSettings:
-    """The node's parameters: one field each, declared by `NodeBase.declare_settings`."""
+class KinematicsNodeSettings(StatusSettings):
+    """The node's parameters: one field each (after the shared `StatusSettings`),
+    declared by `NodeBase.declare_settings`."""
 
     robot_description_file: str = parameter(
         '', 'URDF of the robot (its calibrated geometry); empty: the packaged nominal LOMPR '
@@ -92,17 +94,12 @@ class KinematicsNodeSettings:
                                        read_only=True)
     end_pose_topic: str = parameter('/lompr/end_pose', 'PoseStamped output topic',
                                     read_only=True)
-    diagnostics_topic: str = parameter('/diagnostics', 'DiagnosticArray topic', read_only=True)
     frame_id: str = parameter(WORLD_FRAME, 'header.frame_id of the end poses (the frame the '
                               'robot description calls world)', read_only=True)
     warm_start_max_gap: float = parameter(
         0.5, 'stamp gap [s] above which (or a stamp going backwards) forward kinematics '
         'restarts from the nominal posture instead of extrapolating the last two solutions',
         minimum=0.0, maximum=3600.0)
-    diagnostics_period: float = parameter(1.0, 'seconds between /diagnostics messages',
-                                          minimum=0.05, maximum=60.0, read_only=True)
-    rate_window: float = parameter(5.0, 'seconds over which input/output rates are averaged',
-                                   minimum=0.1, maximum=600.0, read_only=True)
     latency_samples: int = parameter(1000, 'last solve times kept for the p50/p99',
                                      minimum=10, maximum=1_000_000, read_only=True)
     solve_time_warn: float = parameter(

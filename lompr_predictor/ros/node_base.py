@@ -80,6 +80,7 @@ from lompr_predictor.ros.common import DiagnosticsPublisher
 from lompr_predictor.ros.parameters import (
     ParameterSpec,
     changes_problem,
+    parameter,
     parameter_specs,
     settings_help,
 )
@@ -103,6 +104,20 @@ OUTPUT_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 DIAGNOSTICS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 #: Seconds between two warnings of the same kind, for a node without the parameter.
 DEFAULT_THROTTLE_PERIOD = 5.0
+
+
+
+@dataclass(frozen=True)
+class StatusSettings:
+    """The parameters every node's status report shares; a node's settings dataclass
+    derives from it (its own fields follow these)."""
+
+    diagnostics_topic: str = parameter('/diagnostics', 'DiagnosticArray topic', read_only=True)
+    diagnostics_period: float = parameter(1.0, 'seconds between /diagnostics messages',
+                                          minimum=0.05, maximum=60.0, read_only=True)
+    rate_window: float = parameter(5.0, 'seconds over which the rates on /diagnostics are '
+                                   'averaged', minimum=0.1, maximum=600.0, read_only=True)
+
 
 if TYPE_CHECKING:
     _NodeType = Node  # for the type checker the mixin is a Node: its methods use Node's API

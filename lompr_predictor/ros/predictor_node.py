@@ -98,6 +98,7 @@ from lompr_predictor.ros.node_base import (
     SENSOR_INPUT_QOS,
     Endpoint,
     NodeBase,
+    StatusSettings,
     node_help,
 )
 from lompr_predictor.ros.parameters import parameter
@@ -109,8 +110,9 @@ NODE_NAME = 'predictor_node'
 
 
 @dataclass(frozen=True)
-class PredictorNodeSettings:
-    """The node's parameters: one field each, declared by `NodeBase.declare_settings`."""
+class PredictorNodeSettings(StatusSettings):
+    """The node's parameters: one field each (after the shared `StatusSettings`),
+    declared by `NodeBase.declare_settings`."""
 
     autostart: bool = parameter(
         True, 'configure and activate at start, so that a plain `ros2 run` predicts (a model '
@@ -173,15 +175,10 @@ class PredictorNodeSettings:
         '/lompr/predicted_error', 'Vector3Stamped predicted X/Y error output', read_only=True)
     compensation_topic: str = parameter(
         '/lompr/compensation', 'Vector3Stamped compensation offset output', read_only=True)
-    diagnostics_topic: str = parameter('/diagnostics', 'DiagnosticArray topic', read_only=True)
     frame_id: str = parameter(WORLD_FRAME, 'header.frame_id of the outputs', read_only=True)
     inference_threads: int = parameter(
         1, "torch threads, set by the executable's main() (process-wide); 1 keeps inference "
         'from contending with the executor', minimum=1, maximum=256, read_only=True)
-    diagnostics_period: float = parameter(1.0, 'seconds between /diagnostics messages',
-                                          minimum=0.05, maximum=60.0, read_only=True)
-    rate_window: float = parameter(5.0, 'seconds over which input/output rates are averaged',
-                                   minimum=0.1, maximum=600.0, read_only=True)
     latency_samples: int = parameter(1000, 'last latencies kept for the p50/p99',
                                      minimum=10, maximum=1_000_000, read_only=True)
     accuracy_samples: int = parameter(1000, 'last predicted instants the live RMS is over',

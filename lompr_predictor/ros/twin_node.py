@@ -54,6 +54,7 @@ from lompr_predictor.ros.node_base import (
     OUTPUT_QOS,
     Endpoint,
     NodeBase,
+    StatusSettings,
     node_help,
 )
 from lompr_predictor.ros.parameters import parameter
@@ -68,8 +69,9 @@ MODES = ('realtime', 'lockstep')
 
 
 @dataclass(frozen=True)
-class TwinNodeSettings:
-    """The node's parameters: one field each, declared by `NodeBase.declare_settings`."""
+class TwinNodeSettings(StatusSettings):
+    """The node's parameters: one field each (after the shared `StatusSettings`),
+    declared by `NodeBase.declare_settings`."""
 
     robot_description_file: str = parameter(
         '', 'URDF of the robot; empty: the packaged nominal LOMPR description', read_only=True)
@@ -134,13 +136,8 @@ class TwinNodeSettings:
     plant_error_topic: str = parameter('/lompr/twin/plant_error', 'Vector3Stamped debug '
                                        'output: true tool tip - reference - applied offset [m]',
                                        read_only=True)
-    diagnostics_topic: str = parameter('/diagnostics', 'DiagnosticArray topic', read_only=True)
     frame_id: str = parameter(WORLD_FRAME, 'header.frame_id of the reference and the errors',
                               read_only=True)
-    diagnostics_period: float = parameter(1.0, 'seconds between /diagnostics messages',
-                                          minimum=0.05, maximum=60.0, read_only=True)
-    rate_window: float = parameter(5.0, 'seconds over which the sample rate is averaged',
-                                   minimum=0.1, maximum=600.0, read_only=True)
 
 
 JOINT_STATES = Endpoint('publisher', JointState, 'joint_state_topic', OUTPUT_QOS,
