@@ -157,9 +157,10 @@ def print_run(preset: str, horizon: int, wall: float, report: dict[str, Any],
           f'study: {"met" if run_ok else "NOT met"}); tuning {timings["tuning_seconds"]:.1f} s')
     print(f"trials: {tuning['trials_run_now']} run by {len(tuning['local_workers'])} workers: "
           f"{tuning['trials_complete']} complete ({tuning.get('trials_stopped_by_pruner', 0)} "
-          f"stopped early by the pruner), {tuning['trials_pruned']} pruned, "
-          f"{tuning['trials_failed']} failed; {tuning.get('epochs_run', 0)} epochs; "
-          f"best {tuning['best_params']}")
+          f"stopped early by the pruner, {tuning.get('restarts_run', 0)} restarts of the best "
+          f"point), {tuning['trials_pruned']} pruned, {tuning['trials_failed']} failed; "
+          f"{tuning.get('epochs_run', 0)} epochs; best {tuning['best_params']}"
+          + (f", restart {tuning['best_restart']}" if tuning.get('best_restart') else ''))
     print('time split: ' + ', '.join(f'{label} {timings[key]:.1f} s' for label, key in (
         ('read+clean+FK', 'read_clean_fk_seconds'), ('tuning', 'tuning_seconds'),
         ('best model', 'best_model_seconds'), ('BP', 'bp_seconds'),

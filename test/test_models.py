@@ -29,7 +29,13 @@ from lompr_predictor.learning.models import (
     persistence_module,
     predict_rows,
 )
-from lompr_predictor.learning.training import TrainSettings, build_module, train_network
+from lompr_predictor.learning import training
+from lompr_predictor.learning.training import (
+    TrainSettings,
+    build_module,
+    evenly_spaced,
+    train_network,
+)
 from lompr_predictor.robot.description import RobotDescription
 
 SETTINGS = TrainSettings(max_epochs=8, patience=3, seed=3)
@@ -76,6 +82,33 @@ def test_training_never_reads_the_test_part(problem: LearningProblem) -> None:
     assert np.isfinite(trained.validation_loss)
     assert all(torch.isfinite(p).all() for p in trained.module.parameters())
     assert np.isfinite(trained.module.feature_centre.numpy()).all()
+
+
+def test_an_epoch_draws_at_most_epoch_windows(problem: LearningProblem,
+                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each epoch trains on `epoch_windows` windows and scores as many validation windows,
+    whatever the data holds: an epoch costs the same at any sample rate."""
+    seen: list[tuple[bool, int]] = []
+    build = training.build_network
+
+    def counted(*args: object, **kwargs: object) -> torch.nn.Module:
+        net = build(*args, **kwargs)  # type: ignore[arg-type]
+        net.register_forward_pre_hook(lambda module, inputs: seen.append(
+            (module.training, inputs[0].shape[0])))
+        return net
+
+    monkeypatch.setattr(training, 'build_network', counted)
+    cap = 150
+    assert len(problem.split.train) > 10 * cap and len(problem.split.validation) > cap
+    trained = train_network(problem, 'lstm', HYPER,
+                            dataclasses.replace(SETTINGS, max_epochs=3, epoch_windows=cap),
+                            progress=False)
+    assert trained.epochs == 3
+    assert sum(n for train, n in seen if train) == 3 * cap
+    assert sum(n for train, n in seen if not train) == 3 * cap
+    ends = evenly_spaced(problem.split.validation, cap)
+    assert len(ends) == cap and len(set(ends)) == cap
+    assert (ends[0], ends[-1]) == (problem.split.validation[0], problem.split.validation[-1])
 
 
 def test_export_load_same_predictions(tmp_path: Path, problem: LearningProblem,

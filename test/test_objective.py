@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import optuna
 import pytest
 from trainer_data import lissajous_reference, synthetic_recording
 
@@ -18,6 +19,7 @@ from lompr_predictor.learning.storage import default_storage, open_storage
 from lompr_predictor.learning.training import TrainSettings
 from lompr_predictor.learning.tuning import (
     DUPLICATE_OF,
+    RESTART,
     WORKER,
     best_trial,
     open_study,
@@ -70,3 +72,30 @@ def test_objective_trains_checkpoints_and_skips_a_repeated_point(
     retrained, _ = objective.model_of(first)
     np.testing.assert_array_equal(predict_rows(retrained, problem.rows, ends, problem.window),
                                   expected)
+
+
+def test_a_restart_trains_its_point_with_another_seed_and_is_not_pruned(
+        tmp_path: Path, problem: LearningProblem) -> None:
+    """Restart k trains the point with the seed + k (another network, not the duplicate of
+    its first training), never stopped by the pruner (which stops every other trial here
+    at its first report), and gives the same module back when trained again."""
+    storage = open_storage(default_storage(tmp_path))
+    study = open_study(storage, 'restart', seed=0, budget=1, restarts=1)
+    study.pruner = optuna.pruners.ThresholdPruner(upper=0.0)  # prunes every reporting trial
+    settings = TrainSettings(max_epochs=3, seed=1)
+    objective = NetworkObjective(study, problem, SPACE, settings, tmp_path / 'trials')
+    assert run_study(study, storage, objective, progress=False) == 2
+    first, restart = study.trials
+    assert first.user_attrs['pruned_epoch'] == 1
+    assert restart.user_attrs[RESTART] == 1 and restart.params == first.params
+    assert 'pruned_epoch' not in restart.user_attrs and len(restart.intermediate_values) == 3
+    assert DUPLICATE_OF not in restart.user_attrs and restart.value != first.value
+    ends = problem.split.test[:200]
+    loaded, _ = objective.model_of(restart)
+    expected = predict_rows(loaded, problem.rows, ends, problem.window)
+    Path(restart.user_attrs['checkpoint']).unlink()
+    retrained, _ = objective.model_of(restart)
+    np.testing.assert_array_equal(predict_rows(retrained, problem.rows, ends, problem.window),
+                                  expected)
+    reseeded = objective.train(objective.params_of(restart), restart=0)
+    assert reseeded.validation_loss != restart.value  # seed + 1, not the study's seed

@@ -19,7 +19,7 @@ from lompr_predictor.learning.model_file import load_model
 from lompr_predictor.robot.description import RobotDescription
 
 FAST = ['--trials', '2', '--max-epochs', '2', '--window', '8', '--horizon', '2', '--quiet',
-        '--batch-sizes', '500', '--hidden-units', '4,8', '--workers', '1']
+        '--batch-sizes', '500', '--hidden-units', '4,8', '--workers', '1', '--restarts', '1']
 
 
 def run(argv: list[str]) -> int:
@@ -63,7 +63,9 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
         assert all(isinstance(v, bool) and len(beaten[a]) == 10
                    for a in beaten for v in beaten[a].values())
     assert 'BO-LSTM beats Ridge' in (report / 'report.md').read_text()
-    assert content['tuning']['trials_spent'] == 2
+    assert content['tuning']['trials_spent'] == 2 + 1  # and one restart of the best point
+    assert content['tuning']['restarts_run'] == 1
+    assert content['tuning']['best_restart'] in (0, 1)
     assert content['split']['test_start_row'] == 2160
     assert '| RMSE (um) |' in (report / 'report.md').read_text()
     loaded = load_model(model, expected={'features': FEATURES, 'window': 8, 'horizon': 2})
@@ -78,7 +80,7 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
     # the same command again: the study is resumed, its budget already spent
     assert run(['train', *map(str, bags), '--out', str(model), '--report', str(report), *FAST]) == 0
     again = json.loads((report / 'report.json').read_text())
-    assert again['tuning']['trials_run_now'] == 0 and again['tuning']['trials_spent'] == 2
+    assert again['tuning']['trials_run_now'] == 0 and again['tuning']['trials_spent'] == 3
     scored = tmp_path / 'scored'
     assert run(['evaluate', str(model), str(bags[1]), '--report', str(scored), '--quiet']) == 0
     evaluation = json.loads((scored / 'report.json').read_text())

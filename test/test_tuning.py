@@ -11,13 +11,20 @@ import pytest
 from lompr_predictor.learning.space import PAPER_SPACE
 from lompr_predictor.learning.storage import StudyStorage, default_storage, open_storage
 from lompr_predictor.learning.tuning import (
+    _WAIT,
+    RESTART,
+    WORKER,
+    _next_trial,
+    best_trial,
     finished_twin,
     history,
     open_study,
+    restart_index,
     run_study,
     spent_trials,
     startup_trials_for,
     study_name_for,
+    trial_counts,
 )
 
 
@@ -101,6 +108,60 @@ def test_a_repeated_point_is_found_not_retrained(storage: StudyStorage) -> None:
     run_study(study, storage, objective, progress=False)
     assert evaluated == [0]
     assert study.trials[1].value == study.trials[0].value
+
+
+def test_restarts_run_the_best_point_again_after_the_budget(storage: StudyStorage) -> None:
+    """After its tuning budget the study restarts the best point found (restart 1, 2: other
+    seeds for the objective), then stops; a restart is never its own duplicate, and a rerun
+    that asks for more restarts runs only the new ones."""
+    seen: list[tuple[int, int]] = []
+
+    def objective(trial: optuna.Trial) -> float:
+        PAPER_SPACE.suggest(trial)
+        restart = restart_index(trial)
+        assert restart or finished_twin(study, trial) is None
+        seen.append((trial.number, restart))
+        return toy(trial) + 0.01 * (2 - restart)  # restart 2 is the best seed
+
+    study = open_study(storage, 'restarts', seed=3, budget=4, restarts=2)
+    assert run_study(study, storage, objective, progress=False) == 6
+    tuning, restarts = study.trials[:4], study.trials[4:]
+    best_tuning = min(tuning, key=lambda t: t.value)
+    assert [restart_index(t) for t in tuning] == [0] * 4
+    assert [t.user_attrs[RESTART] for t in restarts] == [1, 2]
+    assert all(t.params == best_tuning.params for t in restarts)
+    assert best_trial(study).number == 5  # the lowest validation loss wins, whichever seed
+    assert trial_counts(study).restarts == 2
+    assert _next_trial(study, storage, 'me:1') is None  # every slot spent
+
+    study = open_study(storage, 'restarts', budget=4, restarts=3)  # one more
+    assert run_study(study, storage, objective, progress=False) == 1
+    assert seen[-1] == (6, 3) and study.trials[6].user_attrs[WORKER]
+
+
+def test_a_restart_waits_for_a_finished_point(storage: StudyStorage) -> None:
+    """With the budget's one tuning trial still running there is nothing to restart yet:
+    the next worker waits rather than restart an unknown point."""
+    study = open_study(storage, 'waiting', budget=1, restarts=1)
+    first = _next_trial(study, storage, 'a:1')
+    assert restart_index(first) == 0
+    point = PAPER_SPACE.suggest(first)
+    assert _next_trial(study, storage, 'b:2') is _WAIT
+    study.tell(first, toy(first))
+    restart = _next_trial(study, storage, 'b:2')
+    assert restart_index(restart) == 1 and PAPER_SPACE.suggest(restart) == point
+
+
+def test_no_restart_without_a_finished_point(storage: StudyStorage) -> None:
+    """Every tuning trial pruned (nothing finished to restart), none running: the study is
+    done rather than waiting for ever."""
+    def pruned(trial: optuna.Trial) -> float:
+        PAPER_SPACE.suggest(trial)
+        raise optuna.TrialPruned
+
+    study = open_study(storage, 'all-pruned', budget=2, restarts=2)
+    assert run_study(study, storage, pruned, progress=False) == 2
+    assert _next_trial(study, storage, 'me:1') is None
 
 
 def test_study_name() -> None:

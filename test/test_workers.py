@@ -23,7 +23,7 @@ from trainer_data import lissajous_reference, synthetic_recording
 
 from lompr_predictor.data.bags import write_recording
 from lompr_predictor.learning.model_file import load_model
-from lompr_predictor.learning.space import PAPER_SPACE
+from lompr_predictor.learning.space import DEFAULT_RESTARTS, PAPER_SPACE
 from lompr_predictor.learning.storage import (
     HEARTBEAT_ATTR,
     StudyError,
@@ -161,7 +161,8 @@ def bag(tmp_path_factory: pytest.TempPathFactory, description: RobotDescription)
 
 def test_two_local_workers_share_the_default_study(tmp_path: Path, bag: Path) -> None:
     """`lompr train --workers 2` with the embedded default storage (a journal file): both
-    processes run trials, the budget is met exactly, the model is written once."""
+    processes run trials, the budget and the restarts of the best point are met exactly,
+    the model is written once."""
     from lompr_predictor.cli import main
 
     model, report = tmp_path / 'model.pt', tmp_path / 'report'
@@ -169,12 +170,19 @@ def test_two_local_workers_share_the_default_study(tmp_path: Path, bag: Path) ->
                  '4', '--max-epochs', '4', '--workers', '2', *SMALL]) == 0
     tuning = json.loads((report / 'report.json').read_text())['tuning']
     assert tuning['storage'] == str((report / 'study.journal').resolve())
-    assert (tuning['budget'], tuning['trials_spent'], tuning['trials_failed']) == (4, 4, 0)
-    assert tuning['trials_run_now'] == 4 and len(tuning['local_workers']) == 2
+    spent = 4 + DEFAULT_RESTARTS
+    assert (tuning['budget'], tuning['restarts'], tuning['trials_spent'],
+            tuning['trials_failed']) == (4, DEFAULT_RESTARTS, spent, 0)
+    assert tuning['trials_run_now'] == spent and len(tuning['local_workers']) == 2
     assert sorted(tuning['workers']) == sorted(tuning['local_workers'])
     assert all(row['complete'] + row['pruned'] >= 1 for row in tuning['workers'].values())
     storage = open_storage(tuning['storage'])
-    assert len(open_study(storage, tuning['study_name']).trials) == 4  # none beyond the budget
+    trials = open_study(storage, tuning['study_name']).trials
+    assert len(trials) == spent  # none beyond the budget and the restarts
+    restarts = [t for t in trials if t.user_attrs.get('restart')]
+    assert sorted(t.user_attrs['restart'] for t in restarts) == list(
+        range(1, DEFAULT_RESTARTS + 1))
+    assert all(t.params in [u.params for u in trials[:4]] for t in restarts)
     load_model(model, expected={'window': 8, 'horizon': 2})
 
 
@@ -218,7 +226,8 @@ def _wait_for_running_trial(study: optuna.Study, owned: Callable[[int], bool],
 
 
 def _check_killed_trial_retried(study: optuna.Study, killed: int, budget: int) -> None:
-    """Every trial counted once: the budget spent exactly, the killed trial FAIL, every
+    """Every trial counted once: the budget (trials and restarts) spent exactly, the killed
+    trial FAIL, every
     failed trial's point run again as another trial, nothing left running or queued."""
     counts = trial_counts(study)
     assert counts.spent == budget and counts.running == 0 and counts.waiting == 0
@@ -260,9 +269,9 @@ def test_a_killed_local_worker_loses_only_its_trial(tmp_path: Path, bag: Path) -
             command.kill()
     assert command.returncode == 0, errors[-2000:]
     assert f'during trial {victim.number}: marked failed, its point queued again' in errors
-    _check_killed_trial_retried(study, victim.number, 5)
+    _check_killed_trial_retried(study, victim.number, 5 + DEFAULT_RESTARTS)
     tuning = json.loads((report / 'report.json').read_text())['tuning']
-    assert tuning['trials_failed'] >= 1 and tuning['trials_spent'] == 5
+    assert tuning['trials_failed'] >= 1 and tuning['trials_spent'] == 5 + DEFAULT_RESTARTS
     load_model(model, expected={'window': 8, 'horizon': 2})
 
 
@@ -321,12 +330,13 @@ def test_separate_commands_share_a_postgresql_study(tmp_path: Path) -> None:
         finished = subprocess.run([lompr(), 'train', *common, '--out', str(model), '--report',
                                    str(report)], capture_output=True, text=True, timeout=300)
         assert finished.returncode == 0, finished.stderr[-2000:]
-        _check_killed_trial_retried(study, victim.number, budget)
+        _check_killed_trial_retried(study, victim.number, budget + DEFAULT_RESTARTS)
     tuning = json.loads((report / 'report.json').read_text())['tuning']
     assert tuning['trials_run_now'] == 0  # the budget was spent: the finisher trained nothing
-    assert tuning['trials_spent'] == budget and tuning['storage'].startswith(
+    assert tuning['trials_spent'] == budget + DEFAULT_RESTARTS and tuning['storage'].startswith(
         'postgresql+psycopg://postgres@127.0.0.1:')
-    assert sum(r['complete'] + r['pruned'] for r in tuning['workers'].values()) == budget
+    assert sum(r['complete'] + r['pruned']
+               for r in tuning['workers'].values()) == budget + DEFAULT_RESTARTS
     assert (checkpoints / f"shop-1-{tuning['best_trial']}.pt").is_file()
     loaded = load_model(model, expected={'window': 8, 'horizon': 2})
     assert loaded.metadata.hyperparameters['hidden'] == tuning['best_params']['hidden']

@@ -215,12 +215,14 @@ def _train(args: argparse.Namespace, budget: dict[str, int], bag: Path, model: P
     """What `lompr train` does, on the recording, with the demo's budget and space."""
     from lompr_predictor.learning.pipeline import TrainingConfig, train_predictor, write_outputs
 
-    space = SPACE if budget['trials'] > 1 else dataclasses.replace(
+    tuned = budget['trials'] > 1  # else --quick: the first point once, no restarts
+    space = SPACE if tuned else dataclasses.replace(
         SPACE, batch_sizes=SPACE.batch_sizes[:1], hidden_units=SPACE.hidden_units[:1],
         learning_rates=SPACE.learning_rates[:1])
     config = TrainingConfig(inputs=BagInputs(bags=(str(bag),)), model_path=model,
                             report_dir=report, horizon=args.horizon, trials=budget['trials'],
-                            max_epochs=budget['max_epochs'], seed=args.seed, space=space)
+                            max_epochs=budget['max_epochs'], seed=args.seed, space=space,
+                            **({} if tuned else {'restarts': 0}))
     write_outputs(config, train_predictor(config))
     print(f'model written to {model}; report in {report}')
 

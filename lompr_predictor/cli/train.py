@@ -38,6 +38,7 @@ from lompr_predictor.cli.validation import (
 )
 from lompr_predictor.data.problem import DEFAULT_HORIZON, DEFAULT_WINDOW
 from lompr_predictor.learning.space import (
+    DEFAULT_RESTARTS,
     DEFAULT_SPACE,
     DEFAULT_TRIALS,
     HEARTBEAT_SECONDS,
@@ -72,9 +73,17 @@ def add_parser(subparsers: Any) -> None:
                         help='samples per window')
     parser.add_argument('--trials', type=positive_int, default=DEFAULT_TRIALS,
                         help='tuning budget')
+    parser.add_argument('--restarts', type=non_negative_int, default=DEFAULT_RESTARTS,
+                        help='after the tuning trials, train the best point again with this '
+                             'many other seeds; the lowest validation loss becomes the model '
+                             f'(default {DEFAULT_RESTARTS})')
     parser.add_argument('--seed', type=non_negative_int, default=0)
     parser.add_argument('--max-epochs', type=positive_int, default=None)
     parser.add_argument('--patience', type=positive_int, default=None)
+    parser.add_argument('--epoch-windows', type=positive_int, default=None, metavar='N',
+                        help='training windows drawn per epoch, at most (validation windows '
+                             'scored per epoch likewise): an epoch costs the same at any '
+                             'sample rate (default 20000: every window of 20 passes at 25 Hz)')
     parser.add_argument('--space', default='default', choices=tuple(SPACES),
                         help='search space: default (batch ' + _listed(DEFAULT_SPACE.batch_sizes)
                         + ', hidden ' + _listed(DEFAULT_SPACE.hidden_units) + ', lr '
@@ -146,14 +155,16 @@ def run(args: argparse.Namespace) -> int:
         train_predictor,
         write_outputs,
     )
-    from lompr_predictor.learning.training import MAX_EPOCHS, PATIENCE
+    from lompr_predictor.learning.training import EPOCH_WINDOWS, MAX_EPOCHS, PATIENCE
 
     set_torch_threads(args.threads)
     config = TrainingConfig(
         inputs=bag_inputs(args, args.bags), model_path=_path(args.out),
         report_dir=_path(args.report), robot_description=args.robot_description,
-        window=args.window, horizon=args.horizon, trials=args.trials, seed=args.seed,
+        window=args.window, horizon=args.horizon, trials=args.trials,
+        restarts=args.restarts, seed=args.seed,
         max_epochs=args.max_epochs or MAX_EPOCHS, patience=args.patience or PATIENCE,
+        epoch_windows=args.epoch_windows or EPOCH_WINDOWS,
         space=search_space(args), storage=args.storage, study_name=args.study_name,
         workers=args.workers, checkpoints=_path(args.checkpoints), heartbeat=args.heartbeat,
         progress=not args.quiet,
@@ -161,7 +172,8 @@ def run(args: argparse.Namespace) -> int:
     if args.workers_only:
         summary = run_workers(config)
         run = summary.run
-        print(f'study {summary.study_name} in {summary.storage}: budget {summary.budget} spent '
+        print(f'study {summary.study_name} in {summary.storage}: budget {summary.budget} trials + '
+              f'{summary.restarts} restarts spent '
               f'({summary.complete} complete, {summary.pruned} pruned, {summary.failed} failed); '
               f'{run.trials_run} trials run here by {len(run.workers)} workers in '
               f'{run.seconds:.1f} s; finish it with the same command without --workers-only')
@@ -184,8 +196,9 @@ def summary_line(report: dict[str, Any]) -> str:
         ('best model', 'best_model_seconds'), ('BP', 'bp_seconds'),
         ('ridge+HGB', 'baselines_seconds'), ('scoring', 'scoring_seconds'),
         ('writing', 'writing_seconds')) if key in timings)
-    return (f"tuning: {tuning['trials_spent']} of {tuning['budget']} trials spent "
-            f"({tuning['trials_complete']} complete, {tuning['trials_pruned']} pruned, "
+    return (f"tuning: {tuning['trials_spent']} trials spent ({tuning['budget']} tuning, "
+            f"{tuning.get('restarts', 0)} restarts of the best point; "
+            f"{tuning['trials_complete']} complete, {tuning['trials_pruned']} pruned, "
             f"{tuning.get('trials_stopped_by_pruner', 0)} of them stopped early by the pruner, "
             f"{tuning.get('epochs_run', 0)} epochs in all, "
             f"{tuning['trials_failed']} failed), {tuning['trials_run_now']} run now by "

@@ -6,6 +6,7 @@ and returns its best validation loss, the value the study minimises:
 
 - a point the study has already finished is not trained again: the trial takes its twin's
   value and is marked `tuning.DUPLICATE_OF` it (a seeded run would only repeat it);
+- a restart trial (`tuning.RESTART` k) trains its point with the seed + k and is not pruned;
 - each epoch's validation loss goes to the trial (`training.train_network`), whose pruner
   may stop it; a stopped trial returns its best loss so far (see `train_network`);
 - the trained module is written as a checkpoint named by the study and the trial number
@@ -22,7 +23,7 @@ process working on the same study builds the same objective and carries on.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +38,7 @@ from lompr_predictor.learning.model_file import (
 )
 from lompr_predictor.learning.space import SearchSpace
 from lompr_predictor.learning.training import TrainedModel, TrainSettings, train_network
-from lompr_predictor.learning.tuning import DUPLICATE_OF, finished_twin
+from lompr_predictor.learning.tuning import DUPLICATE_OF, finished_twin, restart_index
 
 #: Folder of the trials' checkpoints inside a report folder.
 CHECKPOINT_FOLDER = 'trials'
@@ -62,11 +63,13 @@ class NetworkObjective:
 
     def __call__(self, trial: optuna.Trial) -> float:
         params = self.space.suggest(trial)
-        twin = finished_twin(self.study, trial)
+        restart = restart_index(trial)
+        twin = None if restart else finished_twin(self.study, trial)
         if twin is not None and twin.value is not None:
             trial.set_user_attr(DUPLICATE_OF, twin.number)
             return twin.value
-        trained = self.train(params, trial=trial, label=f'trial {trial.number}')
+        trained = self.train(params, trial=trial, restart=restart,
+                             label=f'trial {trial.number}')
         path = save_checkpoint(self.checkpoint(trial.number), trained.module)
         trial.set_user_attr('checkpoint', str(path.resolve()))
         trial.set_user_attr('training_seconds', trained.seconds)
@@ -76,10 +79,12 @@ class NetworkObjective:
         return trained.validation_loss
 
     def train(self, params: Mapping[str, Any], *, trial: optuna.Trial | None = None,
-              label: str = '') -> TrainedModel:
-        """Train the network at `params` (reporting to `trial` when given)."""
-        return train_network(self.problem, self.model_type, params, self.settings, trial=trial,
-                             progress=self.progress, label=label)
+              restart: int = 0, label: str = '') -> TrainedModel:
+        """Train the network at `params` (reporting to `trial` when given), as restart
+        `restart` (seed + restart, never pruned) when not 0."""
+        settings = replace(self.settings, seed=self.settings.seed + restart)
+        return train_network(self.problem, self.model_type, params, settings, trial=trial,
+                             prune=not restart, progress=self.progress, label=label)
 
     def checkpoint(self, trial_number: int) -> Path:
         """This study's checkpoint path of trial `trial_number`."""
@@ -98,7 +103,8 @@ class NetworkObjective:
                            Path(trial.user_attrs.get('checkpoint', ''))):
             if checkpoint.is_file() and 'training_seconds' in trial.user_attrs:
                 return load_checkpoint(checkpoint), float(trial.user_attrs['training_seconds'])
-        retrained = self.train(self.params_of(trial), label=f'trial {trial.number} again')
+        retrained = self.train(self.params_of(trial), restart=restart_index(trial),
+                               label=f'trial {trial.number} again')
         module = script_module(retrained.module)
         module.eval()
         return module, retrained.seconds

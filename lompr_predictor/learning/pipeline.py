@@ -72,6 +72,7 @@ from lompr_predictor.learning.report import (
     write_report,
 )
 from lompr_predictor.learning.space import (
+    DEFAULT_RESTARTS,
     DEFAULT_SPACE,
     DEFAULT_TRIALS,
     HEARTBEAT_SECONDS,
@@ -88,6 +89,7 @@ from lompr_predictor.learning.storage import (
 from lompr_predictor.learning.training import (
     BP_MAX_EPOCHS,
     BP_PATIENCE,
+    EPOCH_WINDOWS,
     MAX_EPOCHS,
     NORMALISATION,
     PATIENCE,
@@ -98,8 +100,10 @@ from lompr_predictor.learning.tuning import (
     best_trial,
     history,
     open_study,
+    restart_index,
     study_budget,
     study_name_for,
+    study_restarts,
     trial_counts,
     worker_counts,
 )
@@ -121,9 +125,11 @@ class TrainingConfig:
     window: int = DEFAULT_WINDOW
     horizon: int = DEFAULT_HORIZON
     trials: int = DEFAULT_TRIALS  # tuning budget (finished and pruned trials count)
+    restarts: int = DEFAULT_RESTARTS  # trainings of the best point with other seeds
     seed: int = 0
     max_epochs: int = MAX_EPOCHS
     patience: int = PATIENCE
+    epoch_windows: int = EPOCH_WINDOWS  # training windows per epoch, at most
     space: SearchSpace = DEFAULT_SPACE
     storage: str | None = None  # study storage (`storage.py`); None: a journal file in
     # report_dir
@@ -139,7 +145,8 @@ class TrainingConfig:
     @property
     def settings(self) -> TrainSettings:
         """The training loop's settings (every trial's, and BP's)."""
-        return TrainSettings(max_epochs=self.max_epochs, patience=self.patience, seed=self.seed)
+        return TrainSettings(max_epochs=self.max_epochs, patience=self.patience, seed=self.seed,
+                             epoch_windows=self.epoch_windows)
 
     @property
     def checkpoint_dir(self) -> Path:
@@ -190,6 +197,7 @@ class WorkerSummary:
     storage: str  # the storage, password hidden
     run: TuningRun
     budget: int
+    restarts: int
     complete: int
     pruned: int
     failed: int
@@ -203,15 +211,15 @@ def check_config(config: TrainingConfig, *, finishing: bool = True) -> StorageSp
     if config.workers is not None and config.workers < 1:
         msg = f'--workers must be >= 1, got {config.workers}'
         raise StudyError(msg)
-    if config.trials < 1:
-        msg = f'--trials must be >= 1, got {config.trials}'
+    if config.trials < 1 or config.restarts < 0:
+        msg = f'--trials must be >= 1 and --restarts >= 0, got {config.trials} and {config.restarts}'
         raise StudyError(msg)
     if config.window < 1 or config.horizon < 1:
         msg = f'--window and --horizon must be >= 1, got {config.window} and {config.horizon}'
         raise StudyError(msg)
-    if config.max_epochs < 1 or config.patience < 1:
-        msg = (f'--max-epochs and --patience must be >= 1, got {config.max_epochs} and '
-               f'{config.patience}')
+    if config.max_epochs < 1 or config.patience < 1 or config.epoch_windows < 1:
+        msg = (f'--max-epochs, --patience and --epoch-windows must be >= 1, got '
+               f'{config.max_epochs}, {config.patience} and {config.epoch_windows}')
         raise StudyError(msg)
     config.space.check(config.window)
     if finishing and (config.model_path is None or config.report_dir is None):
@@ -243,7 +251,8 @@ def run_workers(config: TrainingConfig) -> WorkerSummary:
     study, run = _run_study(config, problem, sources, description, storage)
     counts = trial_counts(study)
     return WorkerSummary(study_name=study.study_name, storage=storage.spec.describe(), run=run,
-                         budget=study_budget(study), complete=counts.complete,
+                         budget=study_budget(study), restarts=study_restarts(study),
+                         complete=counts.complete,
                          pruned=counts.pruned, failed=counts.failed, read_seconds=read_seconds)
 
 
@@ -267,7 +276,7 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     # BP keeps the paper's longer budget; a budget shrunk below the default shrinks it too
     bp_settings = TrainSettings(
         max_epochs=BP_MAX_EPOCHS if config.max_epochs >= MAX_EPOCHS else config.max_epochs,
-        patience=BP_PATIENCE, seed=config.seed)
+        patience=BP_PATIENCE, seed=config.seed, epoch_windows=config.epoch_windows)
     bp = train_network(problem, 'mlp', BP_HYPERPARAMETERS, bp_settings, residual=False,
                        progress=config.progress, label='BP')
     bp_seconds = time.perf_counter() - bp_started
@@ -307,6 +316,7 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
                                          'MLP head (2 GELU layers) + linear highway on the window',
                          'optimiser': 'AdamW, cosine learning-rate decay over max_epochs',
                          'max_epochs': config.max_epochs, 'patience': config.patience,
+                         'epoch_windows': config.epoch_windows,
                          'cleaning': vars(config.inputs.cleaning)},
         robot_description_sha256=description.sha256,
         training_bags=tuple({'path': str(Path(s.path).resolve()), 'sha256': s.sha256}
@@ -407,10 +417,11 @@ def _run_study(config: TrainingConfig, problem: LearningProblem, sources: list[B
     definition = study_definition(config, sources, description)
     name = config.study_name or study_name_for(definition)
     study = open_study(storage, name, seed=config.seed, budget=config.trials,
-                       definition=definition)
+                       restarts=config.restarts, definition=definition)
     make_objective = partial(NetworkObjective, problem=problem, space=config.space,
                              settings=config.settings, checkpoints=config.checkpoint_dir)
-    spec = StudySpec(storage=storage.spec, name=name, seed=config.seed, budget=config.trials)
+    spec = StudySpec(storage=storage.spec, name=name, seed=config.seed, budget=config.trials,
+                     restarts=config.restarts)
     workers = config.workers if config.workers is not None else default_workers()
     run = tune(spec, study, storage, make_objective, workers=workers, progress=config.progress)
     return study, run
@@ -432,6 +443,8 @@ def _tune(config: TrainingConfig, problem: LearningProblem, sources: list[BagSou
     report = {'study_name': study.study_name, 'storage': storage.spec.describe(),
               'checkpoints': str(config.checkpoint_dir.resolve()),
               'space': config.space.as_dict(), 'budget': study_budget(study),
+              'restarts': study_restarts(study), 'restarts_run': counts.restarts,
+              'best_restart': restart_index(best),
               'trials_spent': counts.spent, 'trials_complete': counts.complete,
               'trials_pruned': counts.pruned, 'trials_failed': counts.failed,
               # the pruner stops a trial by ending its training (its best loss is its value)

@@ -143,9 +143,14 @@ def markdown(report: Mapping[str, Any]) -> str:
         lines += ['', '## Bayesian tuning', '',
                   f"Study `{tuning['study_name']}` ({tuning['trials_spent']} trials spent, "
                   f"{tuning['trials_run_now']} in this run); best trial {tuning['best_trial']} "
-                  f"with validation MSE {tuning['best_value']:.4g}: {tuning['best_params']}.", '']
+                  f"with validation MSE {tuning['best_value']:.4g}: {tuning['best_params']}"
+                  + (f", restart {tuning['best_restart']} (seed + {tuning['best_restart']})"
+                     if tuning.get('best_restart') else '') + '.', '']
         if 'trials_complete' in tuning:
-            lines += [f"Budget {tuning['budget']}: {tuning['trials_complete']} complete, "
+            lines += [f"Budget {tuning['budget']} trials and {tuning.get('restarts', 0)} "
+                      "restarts of the best point with other seeds (the lowest validation "
+                      f"loss wins): {tuning['trials_complete']} complete "
+                      f"({tuning.get('restarts_run', 0)} of them restarts), "
                       f"{tuning['trials_pruned']} pruned, "
                       f"{tuning.get('trials_stopped_by_pruner', 0)} stopped early by the "
                       f"pruner (successive halving), {tuning.get('epochs_run', 0)} epochs "

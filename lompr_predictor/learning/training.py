@@ -56,6 +56,12 @@ from lompr_predictor.learning.models import (
 #: Defaults of the training loop, in one place.
 MAX_EPOCHS = 60  # the cosine schedule's length: the LSTM's best epoch is near its end
 PATIENCE = 8
+#: Training windows drawn (afresh, at random) per epoch, and validation windows scored per
+#: epoch (evenly spaced), at most: an epoch costs the same whatever the sample rate. At
+#: 25 Hz, 20 passes give ~16 000 training windows, all of them every epoch; at 250 Hz
+#: neighbouring windows are ten times closer and nearly alike, and a full pass over the
+#: 165 000 cost ten times the time for little more information.
+EPOCH_WINDOWS = 20_000
 #: The paper's BP trains with its own budget (min-max inputs, plateau schedule).
 BP_MAX_EPOCHS = 100
 BP_PATIENCE = 10
@@ -72,6 +78,7 @@ class TrainSettings:
     max_epochs: int = MAX_EPOCHS
     patience: int = PATIENCE
     seed: int = 0
+    epoch_windows: int = EPOCH_WINDOWS  # training (and validation) windows per epoch, at most
 
 
 @dataclass
@@ -96,12 +103,18 @@ RANGE_SAMPLE = 20000  # training windows that set the input normalisation
 NORMALISATION = {'lstm': 'standard', 'mlp': 'minmax'}
 
 
+def evenly_spaced(ends: np.ndarray, at_most: int) -> np.ndarray:
+    """`ends` itself, or `at_most` of them evenly spaced from the first to the last."""
+    if len(ends) <= at_most:
+        return ends
+    return ends[np.linspace(0, len(ends) - 1, at_most).astype(int)]
+
+
 def input_windows(problem: LearningProblem, relative_errors: bool) -> np.ndarray:
     """(M * window, F) rows of training windows (evenly spaced, at most `RANGE_SAMPLE`),
     error columns relative to the window's last row if `relative_errors`: the training
     inputs that set the normalisation."""
-    ends = problem.split.train
-    ends = ends[np.linspace(0, len(ends) - 1, min(len(ends), RANGE_SAMPLE)).astype(int)]
+    ends = evenly_spaced(problem.split.train, RANGE_SAMPLE)
     windows = gather_windows(problem.rows, ends, problem.window)
     if relative_errors:
         columns = [FEATURES.index(f'error_{axis}') for axis in TARGETS]
@@ -159,6 +172,7 @@ def train_network(
     residual: bool = True,
     relative_errors: bool = True,
     trial: Any = None,
+    prune: bool = True,
     progress: bool = True,
     label: str = '',
 ) -> TrainedModel:
@@ -166,10 +180,10 @@ def train_network(
     and optionally weight_decay (default 0) and lstm_steps (default `LSTM_STEPS`).
 
     `trial` (an Optuna trial) gets the validation loss each epoch; when its pruner says
-    so, training stops there (`pruned_epoch`) and the result is the best loss so far. The
-    caller returns that as the trial's value rather than raising `TrialPruned`: Optuna's
-    GP sampler learns nothing from a pruned trial and would propose the same point again,
-    whereas a stopped trial's (poor) loss steers it away.
+    so (and `prune`), training stops there (`pruned_epoch`) and the result is the best loss
+    so far. The caller returns that as the trial's value rather than raising
+    `TrialPruned`: Optuna's GP sampler learns nothing from a pruned trial and would propose
+    the same point again, whereas a stopped trial's (poor) loss steers it away.
     """
     torch.manual_seed(settings.seed)
     rng = np.random.default_rng(settings.seed)
@@ -180,15 +194,17 @@ def train_network(
                           steps=int(hyperparameters.get('lstm_steps', LSTM_STEPS)))
     net = module.net
     inputs = ScaledRows(module, problem.rows)
+    validation_ends = evenly_spaced(split.validation, settings.epoch_windows)
     train_y, validation_y = (module.normalise_targets(problem.targets(ends, residual))
-                             for ends in (split.train, split.validation))
+                             for ends in (split.train, validation_ends))
+    epoch_size = min(len(split.train), settings.epoch_windows)
     rate = float(hyperparameters['learning_rate'])
     cosine = model_type == 'lstm'
     optimiser: torch.optim.Optimizer
     if cosine:
         optimiser = torch.optim.AdamW(net.parameters(), lr=rate,
                                       weight_decay=float(hyperparameters.get('weight_decay', 0.0)))
-        steps_per_epoch = math.ceil(len(split.train) / batch)
+        steps_per_epoch = math.ceil(epoch_size / batch)
         step_schedule: Any = torch.optim.lr_scheduler.CosineAnnealingLR(
             optimiser, max(1, settings.max_epochs * steps_per_epoch))
     else:
@@ -203,7 +219,7 @@ def train_network(
     epoch = 0
     for epoch in epochs:
         net.train()
-        order = rng.permutation(len(split.train))
+        order = rng.permutation(len(split.train))[:epoch_size]
         for start in range(0, len(order), batch):
             chosen = order[start:start + batch]
             x = inputs.windows(split.train[chosen], window)
@@ -215,7 +231,7 @@ def train_network(
             if cosine:
                 step_schedule.step()
         net.eval()
-        loss_value = validation_loss(module.net, inputs, split.validation, validation_y, window)
+        loss_value = validation_loss(module.net, inputs, validation_ends, validation_y, window)
         if not math.isfinite(loss_value):
             loss_value = math.inf
         history.append(loss_value)
@@ -226,7 +242,7 @@ def train_network(
             best, best_state, best_epoch = loss_value, copy.deepcopy(net.state_dict()), epoch
         if trial is not None:
             trial.report(loss_value, epoch)
-            if trial.should_prune():
+            if prune and trial.should_prune():
                 pruned_epoch = epoch
                 break
         # with the cosine decay the validation loss is noisy while the rate is high and

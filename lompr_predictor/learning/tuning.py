@@ -22,6 +22,13 @@ gave). Any number of processes, on any machines, run `run_trials` on one study:
   queues their points again (`storage.StudyStorage.fail_stale`);
 - each trial records its worker (`WORKER`, host:pid) and sends heartbeats while it runs.
 
+Once the tuning trials are taken, the study's restart slots (`RESTARTS_ATTR`, `--restarts`)
+train the best point found so far again with other seeds (`RESTART`: 1, 2, ... added to the
+seed), not pruned: the same point's networks differ from seed to seed (on the twin's presets
+a rare event, such as the return at a pass's end, is learned by some seeds and not others),
+and the validation loss tells them apart. The study's best trial, whichever seed, is the
+model.
+
 An interrupted run (Ctrl-C) resumes with the same command and loses no finished trial.
 What a trial does is the objective's business (`objective.py` trains a network); this
 module knows studies only.
@@ -69,9 +76,13 @@ PRUNER_REDUCTION = 3
 DUPLICATE_OF = 'duplicate_of'
 #: User attribute of a trial: the worker (host:pid) that ran it.
 WORKER = 'worker'
-#: Study user attributes: the settings that define the study, and its budget.
+#: User attribute of a restart trial: its index k (trained with the seed + k, not pruned).
+RESTART = 'restart'
+#: Study user attributes: the settings that define the study, its budget (tuning trials)
+#: and its restarts of the best point.
 DEFINITION_ATTR = 'definition'
 BUDGET_ATTR = 'budget'
+RESTARTS_ATTR = 'restarts'
 #: Trial system attribute Optuna's retry callback gives a retried point: the failed trial.
 RETRY_OF_ATTR = 'failed_trial'
 #: Seconds a worker without a free budget slot waits before looking again.
@@ -135,18 +146,20 @@ def make_pruner() -> optuna.pruners.BasePruner:
 
 
 def open_study(storage: StudyStorage, study_name: str, *, seed: int = 0,
-               budget: int = DEFAULT_TRIALS,
+               budget: int = DEFAULT_TRIALS, restarts: int = 0,
                definition: Mapping[str, Any] | None = None) -> optuna.Study:
     """Create or load (resume, join) a minimising study.
 
     `definition` (JSON-able settings) is recorded by the command that creates the study and
     compared by every later one that gives it: a mismatch raises `StudyError`. The budget
     becomes `budget` if that is larger than the study's (so a rerun with a larger --trials
-    extends a study, and a worker that left --trials at its default does not shrink it).
+    extends a study, and a worker that left --trials at its default does not shrink it);
+    the restarts likewise.
     """
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    if budget < 1:
-        msg = f'the tuning budget must be >= 1 trial, got {budget}'
+    if budget < 1 or restarts < 0:
+        msg = (f'the tuning budget must be >= 1 trial and the restarts >= 0, got {budget} and '
+               f'{restarts}')
         raise StudyError(msg)
     with storage.lock(study_name):
         study = optuna.create_study(storage=storage.optuna, study_name=study_name,
@@ -159,6 +172,8 @@ def open_study(storage: StudyStorage, study_name: str, *, seed: int = 0,
         if stored is None or budget > int(stored):
             study.set_user_attr(BUDGET_ATTR, budget)
             stored = budget
+        if restarts > int(attrs.get(RESTARTS_ATTR, 0)):
+            study.set_user_attr(RESTARTS_ATTR, restarts)
     if int(stored) != budget:
         study.sampler = make_sampler(seed, int(stored))
     return study
@@ -189,8 +204,23 @@ def _check_definition(study: optuna.Study, storage: StudyStorage, stored: Any,
 
 
 def study_budget(study: optuna.Study) -> int:
-    """The study's budget (finished + pruned trials it runs)."""
+    """The study's budget of tuning trials (finished + pruned trials it runs)."""
     return int(study.user_attrs.get(BUDGET_ATTR, DEFAULT_TRIALS))
+
+
+def study_restarts(study: optuna.Study) -> int:
+    """The restarts of the best point the study runs after its tuning trials."""
+    return int(study.user_attrs.get(RESTARTS_ATTR, 0))
+
+
+def study_slots(study: optuna.Study) -> int:
+    """Every trial the study runs: its budget and its restarts."""
+    return study_budget(study) + study_restarts(study)
+
+
+def restart_index(trial: FrozenTrial | optuna.Trial) -> int:
+    """A restart trial's index k (its seed is the study's + k); 0 for a tuning trial."""
+    return int(trial.user_attrs.get(RESTART, 0))
 
 
 @dataclass(frozen=True)
@@ -202,6 +232,7 @@ class TrialCounts:
     failed: int = 0
     running: int = 0
     waiting: int = 0  # queued points (retries of failed trials)
+    restarts: int = 0  # restart trials spent or running (`RESTART`)
 
     @property
     def spent(self) -> int:
@@ -210,10 +241,13 @@ class TrialCounts:
 
 
 def trial_counts(study: optuna.Study) -> TrialCounts:
-    counts = Counter(t.state for t in study.get_trials(deepcopy=False))
+    trials = study.get_trials(deepcopy=False)
+    counts = Counter(t.state for t in trials)
     return TrialCounts(complete=counts[TrialState.COMPLETE], pruned=counts[TrialState.PRUNED],
                        failed=counts[TrialState.FAIL], running=counts[TrialState.RUNNING],
-                       waiting=counts[TrialState.WAITING])
+                       waiting=counts[TrialState.WAITING],
+                       restarts=sum(1 for t in trials if restart_index(t)
+                                    and t.state in (*SPENT, TrialState.RUNNING)))
 
 
 def worker_name(pid: int | None = None) -> str:
@@ -257,26 +291,45 @@ _WAIT: Any = object()  # _next_trial: no free budget slot yet
 
 
 def _next_trial(study: optuna.Study, storage: StudyStorage, worker: str) -> Any:
-    """Under the study's lock: fail dead workers' trials, then a new trial if the budget has
-    a free slot, `_WAIT` if running trials hold every slot, None once it is spent."""
+    """Under the study's lock: fail dead workers' trials, then the next trial if a slot is
+    free (a queued point first, then a tuning trial, then a restart of the best point so
+    far), `_WAIT` if running trials hold every slot (or a restart waits for a running trial
+    to finish a point it can restart), None once every slot is spent (or no trial finished
+    a point and none is running)."""
     with storage.lock(study.study_name):
         for dead in storage.fail_stale(study):
             _log.warning('trial %d (worker %s) stopped sending heartbeats: marked failed, its '
                          'point queued again', dead.number, dead.user_attrs.get(WORKER, '?'))
-        counts, budget = trial_counts(study), study_budget(study)
-        if counts.spent >= budget:
+        counts, budget, slots = trial_counts(study), study_budget(study), study_slots(study)
+        if counts.spent >= slots:
             return None
-        if counts.spent + counts.running >= budget:
+        if counts.spent + counts.running >= slots:
             return _WAIT
+        tuning = counts.spent + counts.running - counts.restarts
+        restart = not counts.waiting and tuning >= budget
+        if restart and not _enqueue_restart(study):
+            return _WAIT if counts.running else None  # nothing finished to restart
         with warnings.catch_warnings():  # ask/tell is our optimize loop, heartbeats included
             warnings.filterwarnings('ignore', message='Heartbeat of storage is supposed')
             trial = study.ask()
-        # Optuna samples the GP's point lazily, at the objective's first suggest; sample it
-        # here, under the lock, so the next worker's GP sees it as pending and goes elsewhere
-        trial.relative_params  # noqa: B018 - the property samples and records the point
+        if not restart:
+            # Optuna samples the GP's point lazily, at the objective's first suggest; sample
+            # it here, under the lock, so the next worker's GP sees it as pending and goes
+            # elsewhere
+            trial.relative_params  # noqa: B018 - the property samples and records the point
         trial.set_user_attr(WORKER, worker)
         storage.beat(study, trial._trial_id)  # Optuna's storage API addresses trials by id
         return trial
+
+
+def _enqueue_restart(study: optuna.Study) -> bool:
+    """Queue the next restart of the best point so far (False: no trial has finished)."""
+    if not study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
+        return False
+    best = best_trial(study)
+    index = 1 + max((restart_index(t) for t in study.get_trials(deepcopy=False)), default=0)
+    study.enqueue_trial(dict(best.params), user_attrs={RESTART: index})
+    return True
 
 
 def _run_trial(study: optuna.Study, storage: StudyStorage, trial: optuna.Trial,
@@ -343,7 +396,7 @@ class StudyProgress:
 
     def __enter__(self) -> StudyProgress:
         if self._enabled:
-            self._bar = tqdm(total=study_budget(self._study), desc='tuning', unit='trial')
+            self._bar = tqdm(total=study_slots(self._study), desc='tuning', unit='trial')
             self.update()
             self._thread.start()
         return self
@@ -368,7 +421,7 @@ class StudyProgress:
         if self._bar is None:
             return
         counts = trial_counts(self._study)
-        self._bar.total = study_budget(self._study)
+        self._bar.total = study_slots(self._study)
         self._bar.n = min(counts.spent, self._bar.total)
         postfix: dict[str, Any] = {'running': counts.running}
         if counts.failed:
@@ -422,7 +475,8 @@ def finished_twin(study: optuna.Study, trial: optuna.Trial) -> optuna.trial.Froz
     would only repeat its result. The objective returns the twin's value and marks the trial
     `DUPLICATE_OF` the twin."""
     for other in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
-        if other.number != trial.number and other.params == trial.params:
+        if (other.number != trial.number and other.params == trial.params
+                and not restart_index(other)):
             return other
     return None
 

@@ -5,8 +5,8 @@ trials here with up to N worker processes (processes, not threads: the GIL), eve
 `tuning.run_trials` loop, so the budget is counted exactly across them and across any other
 command joined to the same study on other machines:
 
-- how many: N, but no more than the budget's free slots; none once the budget is spent (a
-  finishing command trains nothing new); a single worker runs in this process;
+- how many: N, but no more than the study's free slots (tuning trials and restarts); none
+  once they are spent (a finishing command trains nothing new); a single worker runs in this process;
 - several: spawned processes with this process's torch thread count, each opening the
   storage and the study again and building its objective with `make_objective` (picklable:
   it carries the learning problem), all starting together (a barrier). This process shows
@@ -46,7 +46,7 @@ from lompr_predictor.learning.tuning import (
     StudyProgress,
     open_study,
     run_trials,
-    study_budget,
+    study_slots,
     trial_counts,
     worker_name,
 )
@@ -78,6 +78,7 @@ class StudySpec:
     name: str
     seed: int
     budget: int
+    restarts: int = 0
 
 
 @dataclass(frozen=True)
@@ -97,10 +98,10 @@ def tune(spec: StudySpec, study: optuna.Study, storage: StudyStorage,
         msg = f'the number of tuning workers must be >= 1, got {workers}'
         raise StudyError(msg)
     started = time.perf_counter()
-    counts, budget = trial_counts(study), study_budget(study)
-    if counts.spent >= budget:
+    counts, slots = trial_counts(study), study_slots(study)
+    if counts.spent >= slots:
         return TuningRun(workers=(), trials_run=0, seconds=time.perf_counter() - started)
-    local = max(1, min(workers, budget - counts.spent - counts.running))
+    local = max(1, min(workers, slots - counts.spent - counts.running))
     names: list[str] = []
     ran = 0
     with StudyProgress(study, enabled=progress):
@@ -198,7 +199,8 @@ def _worker_main(spec: StudySpec, make_objective: ObjectiveFactory, threads: int
     try:
         set_torch_threads(threads)  # this process is an entry point: its parent's count
         storage = open_storage(spec.storage)
-        study = open_study(storage, spec.name, seed=spec.seed, budget=spec.budget)
+        study = open_study(storage, spec.name, seed=spec.seed, budget=spec.budget,
+                           restarts=spec.restarts)
         objective = make_objective(study, progress=False)
         with contextlib.suppress(threading.BrokenBarrierError):
             barrier.wait(START_TIMEOUT)
