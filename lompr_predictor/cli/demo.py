@@ -51,11 +51,11 @@ from lompr_predictor.twin.simulation import simulate
 LOOPS = ('none', 'persistence', 'model')
 LABELS = {'none': 'no compensation', 'persistence': 'persistence', 'model': 'model (BO-LSTM)'}
 #: Budgets: training passes, tuning trials, epochs per trial, closed-loop passes. The demo
-#: spends its minutes on epochs rather than on trials: 60 epochs is the length of the
+#: spends its minutes on epochs rather than on trials: 120 epochs is the length of the
 #: recipe's cosine schedule (`learning.training.MAX_EPOCHS`, not imported here: it would load
 #: torch for `lompr --help`; a test keeps the two equal).
-FULL = {'train_passes': 20, 'trials': 6, 'max_epochs': 60, 'passes': 5}
-QUICK = {'train_passes': 12, 'trials': 1, 'max_epochs': 60, 'passes': 2}
+FULL = {'train_passes': 20, 'trials': 6, 'max_epochs': 120, 'passes': 5}
+QUICK = {'train_passes': 12, 'trials': 1, 'max_epochs': 120, 'passes': 2}
 #: The part of the default search space (`learning.space.DEFAULT_SPACE`) the demo tunes in
 #: its budget: the recipe's region (batch 256-512, hidden 32-64, lr 1e-2 and 3e-3 with the
 #: cosine decay, the LSTM over the last 10 rows). `lompr train` tunes the whole space by

@@ -65,8 +65,8 @@ SPENT = (TrialState.COMPLETE, TrialState.PRUNED)
 #: Random trials that seed the Gaussian process (a third of the default budget).
 STARTUP_TRIALS = 6
 #: Successive halving on the validation loss: a trial goes on past epoch `PRUNER_MIN_EPOCHS`
-#: (then 3x, 9x that: 3, 9, 27 epochs) only if it is in the best third of the trials that
-#: reached that epoch. Most trials of a default study stop after 3 or 9 of their 40 epochs,
+#: (then 3x, 9x, 27x that: 3, 9, 27, 81 epochs) only if it is in the best third of the trials
+#: that reached that epoch. Most trials of a default study stop after 3 or 9 of their epochs,
 #: which is what lets 20 trials fit in minutes; a stopped trial returns its best loss so far
 #: (`training.train_network`), which still steers the GP away from its point. (With 4, the
 #: last rung fell at epoch 36 of 40: trials stopped 4 epochs before their end.)
