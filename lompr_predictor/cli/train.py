@@ -82,8 +82,9 @@ def add_parser(subparsers: Any) -> None:
     parser.add_argument('--patience', type=positive_int, default=None)
     parser.add_argument('--epoch-windows', type=positive_int, default=None, metavar='N',
                         help='training windows drawn per epoch, at most (validation windows '
-                             'scored per epoch likewise): an epoch costs the same at any '
-                             'sample rate (default 20000: every window of 20 passes at 25 Hz)')
+                             'scored per epoch likewise): the cost of an epoch is bounded at '
+                             'any sample rate (default 20000: every window of 20 passes at '
+                             '25 Hz, an eighth of them at 250 Hz)')
     parser.add_argument('--space', default='default', choices=tuple(SPACES),
                         help='search space: default (batch ' + _listed(DEFAULT_SPACE.batch_sizes)
                         + ', hidden ' + _listed(DEFAULT_SPACE.hidden_units) + ', lr '
