@@ -13,6 +13,7 @@ from trainer_data import lissajous_reference, synthetic_recording
 from lompr_predictor.data.cleaning import clean_recordings
 from lompr_predictor.data.features import FEATURES, TARGETS
 from lompr_predictor.data.problem import LearningProblem, build_problem
+from lompr_predictor.learning import training
 from lompr_predictor.learning.model_file import (
     MetadataMismatchError,
     ModelMetadata,
@@ -29,7 +30,6 @@ from lompr_predictor.learning.models import (
     persistence_module,
     predict_rows,
 )
-from lompr_predictor.learning import training
 from lompr_predictor.learning.training import (
     TrainSettings,
     build_module,

@@ -27,6 +27,7 @@ from typing import Any
 
 from tqdm import tqdm
 
+from lompr_predictor.cli.validation import positive_int
 from lompr_predictor.data.loading import BagInputs
 from lompr_predictor.errors import LomprError
 from lompr_predictor.files import write_json
@@ -98,7 +99,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                              '(its horizon is used)')
     parser.add_argument('--no-record', action='store_true',
                         help='do not write the closed-loop runs as rosbag2 directories')
-    parser.add_argument('--threads', type=int, default=2, help='torch threads for training')
+    parser.add_argument('--threads', type=positive_int, default=1,
+                        help='torch threads of each tuning process and of the closed loops '
+                             '(default 1: the tuning runs a process per core)')
     parser.add_argument('--processes', action='store_true',
                         help='run the closed loops as three processes (twin_node, '
                              'kinematics_node, predictor_node) on simulated time, the twin '

@@ -212,7 +212,8 @@ def check_config(config: TrainingConfig, *, finishing: bool = True) -> StorageSp
         msg = f'--workers must be >= 1, got {config.workers}'
         raise StudyError(msg)
     if config.trials < 1 or config.restarts < 0:
-        msg = f'--trials must be >= 1 and --restarts >= 0, got {config.trials} and {config.restarts}'
+        msg = (f'--trials must be >= 1 and --restarts >= 0, got {config.trials} and '
+               f'{config.restarts}')
         raise StudyError(msg)
     if config.window < 1 or config.horizon < 1:
         msg = f'--window and --horizon must be >= 1, got {config.window} and {config.horizon}'

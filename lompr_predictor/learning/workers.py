@@ -6,7 +6,8 @@ trials here with up to N worker processes (processes, not threads: the GIL), eve
 command joined to the same study on other machines:
 
 - how many: N, but no more than the study's free slots (tuning trials and restarts); none
-  once they are spent (a finishing command trains nothing new); a single worker runs in this process;
+  once they are spent (a finishing command trains nothing new); a single worker runs in this
+  process;
 - several: spawned processes with this process's torch thread count, each opening the
   storage and the study again and building its objective with `make_objective` (picklable:
   it carries the learning problem), all starting together (a barrier). This process shows
