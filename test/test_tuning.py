@@ -126,7 +126,7 @@ def test_restarts_run_the_best_point_again_after_the_budget(storage: StudyStorag
     study = open_study(storage, 'restarts', seed=3, budget=4, restarts=2)
     assert run_study(study, storage, objective, progress=False) == 6
     tuning, restarts = study.trials[:4], study.trials[4:]
-    best_tuning = min(tuning, key=lambda t: t.value)
+    best_tuning = min(tuning, key=lambda t: math.inf if t.value is None else t.value)
     assert [restart_index(t) for t in tuning] == [0] * 4
     assert [t.user_attrs[RESTART] for t in restarts] == [1, 2]
     assert all(t.params == best_tuning.params for t in restarts)

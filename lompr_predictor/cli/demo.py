@@ -31,7 +31,7 @@ from lompr_predictor.cli.validation import positive_int
 from lompr_predictor.data.loading import BagInputs
 from lompr_predictor.errors import LomprError
 from lompr_predictor.files import write_json
-from lompr_predictor.learning.space import SearchSpace
+from lompr_predictor.learning.space import DEFAULT_RESTARTS, SearchSpace
 from lompr_predictor.robot.description import load_robot_description
 from lompr_predictor.robot.paths import PATH_KINDS, build_cycle
 from lompr_predictor.scoring.loops import (
@@ -225,7 +225,7 @@ def _train(args: argparse.Namespace, budget: dict[str, int], bag: Path, model: P
     config = TrainingConfig(inputs=BagInputs(bags=(str(bag),)), model_path=model,
                             report_dir=report, horizon=args.horizon, trials=budget['trials'],
                             max_epochs=budget['max_epochs'], seed=args.seed, space=space,
-                            **({} if tuned else {'restarts': 0}))
+                            restarts=DEFAULT_RESTARTS if tuned else 0)
     write_outputs(config, train_predictor(config))
     print(f'model written to {model}; report in {report}')
 
