@@ -172,6 +172,9 @@ def test_the_predictor_executable_is_managed_through_its_lifecycle_services(
         change = ros.node.create_client(ChangeState, '/predictor_node/change_state')
         get = ros.node.create_client(GetState, '/predictor_node/get_state')
         ros.spin_until(change.service_is_ready, timeout=STARTUP_TIMEOUT, what='change_state')
+        # each service is discovered on its own: a request sent before its server is
+        # matched is lost, so wait for both
+        ros.spin_until(get.service_is_ready, timeout=STARTUP_TIMEOUT, what='get_state')
 
         def transition(transition_id: int) -> bool:
             future = change.call_async(ChangeState.Request(
