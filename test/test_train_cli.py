@@ -186,3 +186,13 @@ def test_test_bags_are_the_test_part(tmp_path: Path, bags: list[Path]) -> None:
     assert str(bags[1]) in content['test_part']
     loaded = load_model(model)
     assert [b['path'] for b in loaded.metadata.training_bags] == [str(bags[0].resolve())]
+
+
+def test_the_epoch_windows_help_names_the_training_default() -> None:
+    """`lompr train --help` writes the default out (importing training would load torch)."""
+    from lompr_predictor.learning.training import EPOCH_WINDOWS
+
+    subparsers = argparse.ArgumentParser().add_subparsers()
+    train.add_parser(subparsers)
+    help_text = ' '.join(subparsers.choices['train'].format_help().split())
+    assert f'(default {EPOCH_WINDOWS}:' in help_text
