@@ -79,7 +79,7 @@ from lompr_predictor.learning.model_file import (
     load_model,
     save_model,
 )
-from lompr_predictor.learning.models import PredictorModule, build_network
+from lompr_predictor.learning.models import PredictorModule, build_network, network_columns
 from lompr_predictor.robot.description import MEASURED_JOINTS, load_robot_description
 from lompr_predictor.robot.kinematics import inverse_kinematics
 from lompr_predictor.ros.common import EXECUTORS
@@ -118,10 +118,11 @@ def feature_span(name: str) -> float:
 def timing_module() -> PredictorModule:
     """The trainer's exported module at the default size, with plausible SI ranges."""
     torch.manual_seed(0)
-    span = np.array([feature_span(name) for name in FEATURES])
-    return PredictorModule(build_network('lstm', len(FEATURES), WINDOW, HIDDEN), -span, span,
+    columns, _ = network_columns(FEATURES, relative_errors=True, error_level=True)
+    span = np.array([feature_span(FEATURES[column]) for column in columns])
+    return PredictorModule(build_network('lstm', len(columns), WINDOW, HIDDEN), -span, span,
                            np.full(2, -2e-5), np.full(2, 2e-5), residual=True,
-                           relative_errors=True)
+                           relative_errors=True, error_level=True)
 
 
 def default_model(path: Path, sample_period: float, horizon: int) -> Path:

@@ -137,29 +137,55 @@ def test_mismatched_metadata_refused(tmp_path: Path, problem: LearningProblem,
         load_model(path, expected={'robot_description_sha256': 'f' * 64})
 
 
-def test_residual_module_is_persistence_plus_change_and_shift_invariant(
-        problem: LearningProblem) -> None:
+@pytest.mark.parametrize('error_level', [False, True])
+def test_residual_module_is_persistence_plus_change_over_relative_errors_and_level(
+        problem: LearningProblem, error_level: bool) -> None:
+    """The LSTM's module: last error + the network's change; its input, the features with
+    the errors relative to the last row (a constant offset on every error does not move
+    them, nor, without the level, the change) and, with `error_level`, the errors' level
+    appended (which moves by the offset, in normalised units)."""
     zero = persistence_module()
     ends = problem.split.test[:50]
     np.testing.assert_array_equal(predict_rows(zero, problem.rows, ends, 12),
                                   persistence(problem.error, ends))
-    trained = train_network(problem, 'lstm', HYPER, dataclasses.replace(SETTINGS, max_epochs=1),
-                            progress=False)
+    module = train_network(problem, 'lstm', {**HYPER, 'error_level': error_level},
+                           dataclasses.replace(SETTINGS, max_epochs=1), progress=False).module
     offset = np.array([3e-6, -5e-6])
     shifted = problem.rows.copy()
-    shifted[:, :2] += offset  # the same offset on every error: the output moves with it
-    np.testing.assert_allclose(
-        predict_rows(trained.module, shifted, ends, 12),
-        predict_rows(trained.module, problem.rows, ends, 12) + offset, atol=1e-12)
+    shifted[:, :2] += offset
+    windows, moved = (torch.from_numpy(gather_windows(rows, ends, 12))
+                      for rows in (problem.rows, shifted))
+    before, after = module.normalise(windows), module.normalise(moved)
+    features = len(FEATURES)
+    assert after.shape[2] == features + (len(TARGETS) if error_level else 0)
+    torch.testing.assert_close(after[:, :, :features], before[:, :, :features],
+                               rtol=0, atol=1e-5)
+    with torch.inference_mode():
+        change = module.net(after).double() * module.target_half + module.target_centre
+        predicted = module(moved).numpy()
+    np.testing.assert_allclose(predicted, (moved[:, -1, :2] + change).numpy(), rtol=0,
+                               atol=1e-15)
+    unshifted = predict_rows(module, problem.rows, ends, 12)
+    if not error_level:  # shift invariant: the prediction moves with the offset
+        np.testing.assert_allclose(predicted, unshifted + offset, rtol=0, atol=1e-12)
+        return
+    level_step = torch.tensor(offset * module.feature_inverse_half.numpy()[features:],
+                              dtype=torch.float32)
+    assert float(level_step.abs().min()) > 1e-3  # the offset is visible in the level columns
+    torch.testing.assert_close(after[:, :, features:], before[:, :, features:] + level_step,
+                               rtol=0, atol=1e-5)
+    assert np.abs(predicted - unshifted - offset).max() > 1e-12  # and the network sees it
 
 
-@pytest.mark.parametrize('relative_errors', [True, False])
+@pytest.mark.parametrize(('relative_errors', 'error_level'),
+                         [(True, False), (True, True), (False, False)])
 def test_training_inputs_are_the_exported_modules_normalisation(
-        problem: LearningProblem, relative_errors: bool) -> None:
+        problem: LearningProblem, relative_errors: bool, error_level: bool) -> None:
     """Training normalises windows gathered from rows scaled once in float32 (`ScaledRows`),
     the exported module its raw float64 windows (`PredictorModule.normalise`): one map, the
     same numbers to float32 rounding, on the data's windows and on random rows."""
-    module = build_module(problem, 'lstm', 4, residual=True, relative_errors=relative_errors)
+    module = build_module(problem, 'lstm', 4, residual=True, relative_errors=relative_errors,
+                          error_level=error_level)
     exported = script_module(module)
     rng = np.random.default_rng(5)
     ends = np.sort(rng.choice(np.concatenate([problem.split.train, problem.split.test]), 400))
@@ -174,7 +200,8 @@ def test_training_inputs_are_the_exported_modules_normalisation(
         reference = exported.normalise(torch.from_numpy(raw))
         assert training.dtype == reference.dtype == torch.float32
         # float32 rounding of each scaled operand (window, last row, centre) and of the result
-        operands = (np.abs(raw) + np.abs(raw[:, -1:, :]) * mask + np.abs(centre)) * scale
+        inputs = raw[:, :, module.input_columns.numpy()]
+        operands = (np.abs(inputs) + np.abs(inputs[:, -1:, :]) * mask + np.abs(centre)) * scale
         bound = 4 * np.finfo(np.float32).eps * (operands + np.abs(reference.numpy()))
         difference = np.abs(training.numpy() - reference.numpy())
         assert np.all(difference <= bound), float((difference / bound).max())

@@ -60,7 +60,8 @@ def test_objective_trains_checkpoints_and_skips_a_repeated_point(
     assert not checkpoint_path(tmp_path / 'trials', 'objective', 1).exists()
     best = best_trial(study)
     assert best.number in (0, 2) and objective.params_of(best) == {
-        **point, 'hidden': best.params['hidden'], 'weight_decay': 0.0, 'lstm_steps': 10}
+        **point, 'hidden': best.params['hidden'], 'weight_decay': 0.0, 'lstm_steps': 10,
+        'error_level': False}
 
     # the checkpoint gives the trained module back; without it (the trial ran on another
     # machine) the same seeded training gives the same module again

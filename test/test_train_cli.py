@@ -51,7 +51,9 @@ def bags(tmp_path_factory: pytest.TempPathFactory, description: RobotDescription
 
 def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[Path]) -> None:
     model, report = tmp_path / 'model.pt', tmp_path / 'report'
-    assert run(['train', *map(str, bags), '--out', str(model), '--report', str(report), *FAST]) == 0
+    level = ['--error-levels', 'yes']  # the network sees the error level too
+    assert run(['train', *map(str, bags), '--out', str(model), '--report', str(report), *FAST,
+                *level]) == 0
     for name in ('report.json', 'report.md', 'prediction_test.png', 'tuning_history.png'):
         assert (report / name).is_file()
     content = json.loads((report / 'report.json').read_text())
@@ -74,11 +76,17 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
     assert loaded.verified_by == 'sidecar' and content['model_sha256'] in (
         report / 'report.md').read_text()
     assert len(loaded.metadata.training_bags) == 2
+    assert loaded.metadata.hyperparameters['error_level'] is True
+    columns = loaded.metadata.normalisation['input_columns']
+    assert columns == [*columns[:len(FEATURES)], 'error_x', 'error_y']
+    assert columns[:2] == ['error_x - last row', 'error_y - last row']
+    assert len(loaded.metadata.normalisation['feature_centre']) == len(FEATURES) + 2
     assert all(len(b['sha256']) == 64 for b in loaded.metadata.training_bags)
     assert loaded.metadata.test_metrics['x']['rmse_um'] == pytest.approx(
         content['models']['bo_lstm']['metrics']['x']['rmse_um'])
     # the same command again: the study is resumed, its budget already spent
-    assert run(['train', *map(str, bags), '--out', str(model), '--report', str(report), *FAST]) == 0
+    assert run(['train', *map(str, bags), '--out', str(model), '--report', str(report), *FAST,
+                *level]) == 0
     again = json.loads((report / 'report.json').read_text())
     assert again['tuning']['trials_run_now'] == 0 and again['tuning']['trials_spent'] == 3
     scored = tmp_path / 'scored'
@@ -158,6 +166,7 @@ def test_a_bo_lstm_that_does_not_beat_ridge_is_warned_about() -> None:
     (['--learning-rates', '0.01,-1'], "'-1' in the list: must be a finite number > 0"),
     (['--learning-rates', '0.01,2'], 'search space learning-rates: 2.0 is out of range'),
     (['--lstm-steps', '0'], "--lstm-steps: '0' in the list: must be an integer >= 1"),
+    (['--error-levels', 'yes,maybe'], "--error-levels: 'maybe' in the list: must be yes or no"),
     (['--batch-sizes', 'a,b'], "--batch-sizes: 'a' in the list: must be an integer >= 1"),
     (['--window', '0'], "argument --window: must be an integer >= 1, got '0'"),
     (['--horizon', '0'], "argument --horizon: must be an integer >= 1, got '0'"),

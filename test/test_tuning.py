@@ -178,9 +178,9 @@ def test_paper_space_is_the_papers_grid_and_the_default_space_is_wider() -> None
     assert paper.points() == 48
     trial = optuna.trial.FixedTrial({'batch_size': 600, 'hidden': 35, 'learning_rate': 0.01})
     assert set(paper.suggest(trial)) == {'batch_size', 'hidden', 'learning_rate',
-                                         'weight_decay', 'lstm_steps'}
+                                         'weight_decay', 'lstm_steps', 'error_level'}
     assert SPACES['default'] is DEFAULT_SPACE and DEFAULT_SPACE.points() > paper.points()
-    for name in ('weight_decays', 'lstm_steps'):
+    for name in ('weight_decays', 'lstm_steps', 'error_levels'):
         assert len(getattr(DEFAULT_SPACE, name)) > 1
 
 

@@ -35,6 +35,7 @@ from lompr_predictor.cli.validation import (
     positive_float,
     positive_int,
     storage_url,
+    yes_no,
 )
 from lompr_predictor.data.problem import DEFAULT_HORIZON, DEFAULT_WINDOW
 from lompr_predictor.learning.space import (
@@ -50,7 +51,8 @@ from lompr_predictor.threads import MAX_DEFAULT_WORKERS, default_workers, set_to
 
 
 def _listed(values: tuple[Any, ...]) -> str:
-    return ','.join(map(str, values))
+    return ','.join(({True: 'yes', False: 'no'}[v] if isinstance(v, bool) else str(v))
+                    for v in values)
 
 
 def add_parser(subparsers: Any) -> None:
@@ -90,7 +92,8 @@ def add_parser(subparsers: Any) -> None:
                         + ', hidden ' + _listed(DEFAULT_SPACE.hidden_units) + ', lr '
                         + _listed(DEFAULT_SPACE.learning_rates) + ', weight decay '
                         + _listed(DEFAULT_SPACE.weight_decays) + ', LSTM rows '
-                        + _listed(DEFAULT_SPACE.lstm_steps) + ") or paper (the paper's grid: "
+                        + _listed(DEFAULT_SPACE.lstm_steps) + ', error level '
+                        + _listed(DEFAULT_SPACE.error_levels) + ") or paper (the paper's grid: "
                         'batch ' + _listed(PAPER_SPACE.batch_sizes) + ', hidden '
                         + _listed(PAPER_SPACE.hidden_units) + ', lr '
                         + _listed(PAPER_SPACE.learning_rates) + '); the lists below replace '
@@ -105,6 +108,10 @@ def add_parser(subparsers: Any) -> None:
                         help='comma list (AdamW)')
     parser.add_argument('--lstm-steps', type=comma_list(positive_int), default=None,
                         help="comma list: rows at the window's end the LSTM reads")
+    parser.add_argument('--error-levels', type=comma_list(yes_no), default=None,
+                        help='comma list of yes/no: whether the network also sees the '
+                             "window's error level (no: only its course relative to the last "
+                             'row)')
     parser.add_argument('--storage', type=storage_url, default=None,
                         help='where the tuning study lives: postgresql://USER@HOST/DB (shared by '
                              'several machines), sqlite:///FILE, or a journal file path '
@@ -138,7 +145,8 @@ def search_space(args: argparse.Namespace) -> SearchSpace:
     checked by argparse) instead, checked against the window (`SpaceError`, exit 2, before
     any bag is read)."""
     given = {name: getattr(args, name) for name in
-             ('batch_sizes', 'hidden_units', 'learning_rates', 'weight_decays', 'lstm_steps')}
+             ('batch_sizes', 'hidden_units', 'learning_rates', 'weight_decays', 'lstm_steps',
+              'error_levels')}
     space = dataclasses.replace(SPACES[args.space],
                                 **{name: values for name, values in given.items() if values})
     space.check(args.window)

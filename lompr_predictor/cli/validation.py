@@ -80,6 +80,15 @@ def finite_float(text: str) -> float:
     return value
 
 
+def yes_no(text: str) -> bool:
+    """'yes' or 'no' (also true/false, 1/0, any case)."""
+    answers = {'yes': True, 'true': True, '1': True, 'no': False, 'false': False, '0': False}
+    try:
+        return answers[text.strip().lower()]
+    except KeyError:
+        raise _fail('must be yes or no', text) from None
+
+
 def comma_list(item: Callable[[str], T]) -> Callable[[str], tuple[T, ...]]:
     """'a,b,c' -> a tuple of distinct values, each checked by `item`."""
     def parse(text: str) -> tuple[T, ...]:

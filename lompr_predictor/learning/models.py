@@ -101,6 +101,27 @@ def range_to_affine(low: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, np.n
     return 0.5 * (low + high), 0.5 * (high - low)
 
 
+def error_columns(features: Sequence[str] = FEATURES) -> list[int]:
+    """Indices of the plant error columns (`TARGETS` order) among `features`."""
+    names = list(features)
+    return [names.index(f'error_{axis}') for axis in TARGETS]
+
+
+def network_columns(features: Sequence[str] = FEATURES, relative_errors: bool = True,
+                    error_level: bool = False) -> tuple[list[int], list[float]]:
+    """The network's input columns, as indices into `features`, and which of them are taken
+    relative to the window's last row (1.0) or as they are (0.0): the features, the error
+    columns relative if `relative_errors`, then with `error_level` the error columns again
+    as they are (the level, `PredictorModule`)."""
+    columns = list(range(len(features)))
+    errors = error_columns(features)
+    mask = [1.0 if relative_errors and column in errors else 0.0 for column in columns]
+    if error_level:
+        columns += errors
+        mask += [0.0] * len(errors)
+    return columns, mask
+
+
 def normalise_windows(windows: torch.Tensor, relative_mask: torch.Tensor, centre: torch.Tensor,
                       inverse_half: torch.Tensor | None) -> torch.Tensor:
     """The network's input map, the one definition (TorchScript-able): the masked columns
@@ -117,10 +138,14 @@ def normalise_windows(windows: torch.Tensor, relative_mask: torch.Tensor, centre
 class PredictorModule(nn.Module):
     """Raw SI windows (float64) -> predicted plant X/Y error [m]; TorchScript-able.
 
-    With `relative_errors`, the error columns of a window are first taken relative to its
-    last row (e(k) - e(t)): the network sees the error's recent course, not its level,
-    which neither the change over the horizon nor the noise filtering depends on, and which
-    leaves the normalised inputs a finer resolution.
+    With `relative_errors`, the window's error columns are taken relative to its last row
+    (e(k) - e(t)): the error's recent course, at a fine resolution, which noise filtering
+    and the change over the horizon mostly depend on; a constant offset on every error then
+    moves the prediction by just that offset. With `error_level` too, the error columns are
+    appended again as they are (`network_columns`): the level, which tells where a slow
+    drift stands (how warm the machine is), at the price of that invariance. Tuned
+    (`space.SearchSpace.error_levels`): on a thermal preset at horizon 25 the level cut the
+    RMSE by a tenth to a fifth; on friction and wear presets it cost up to 5 %.
     """
 
     if TYPE_CHECKING:  # the buffers, for the type checker only: TorchScript cannot resolve
@@ -129,12 +154,14 @@ class PredictorModule(nn.Module):
         feature_inverse_half: torch.Tensor
         target_centre: torch.Tensor
         target_half: torch.Tensor
+        input_columns: torch.Tensor
         relative_mask: torch.Tensor
         error_columns: torch.Tensor
 
     def __init__(self, net: nn.Module, feature_low: np.ndarray, feature_high: np.ndarray,
                  target_low: np.ndarray, target_high: np.ndarray, *, residual: bool,
-                 relative_errors: bool, features: Sequence[str] = FEATURES) -> None:
+                 relative_errors: bool, error_level: bool = False,
+                 features: Sequence[str] = FEATURES) -> None:
         super().__init__()
         self.net = net
         centre, half = range_to_affine(feature_low, feature_high)
@@ -144,18 +171,16 @@ class PredictorModule(nn.Module):
         self.register_buffer('target_centre', torch.tensor(centre, dtype=torch.float64))
         self.register_buffer('target_half', torch.tensor(half, dtype=torch.float64))
         self.residual = bool(residual)
-        names = list(features)
-        error_columns = [names.index(f'error_{axis}') for axis in TARGETS]
-        mask = torch.zeros(len(names), dtype=torch.float64)
-        if relative_errors:
-            mask[error_columns] = 1.0
-        self.register_buffer('relative_mask', mask)
-        self.register_buffer('error_columns', torch.tensor(error_columns, dtype=torch.long))
+        columns, mask = network_columns(features, relative_errors, error_level)
+        self.register_buffer('input_columns', torch.tensor(columns, dtype=torch.long))
+        self.register_buffer('relative_mask', torch.tensor(mask, dtype=torch.float64))
+        self.register_buffer('error_columns', torch.tensor(error_columns(features),
+                                                           dtype=torch.long))
 
     @classmethod
     def from_affine(cls, net: nn.Module, feature_centre: np.ndarray, feature_scale: np.ndarray,
                     target_centre: np.ndarray, target_scale: np.ndarray, *, residual: bool,
-                    relative_errors: bool,
+                    relative_errors: bool, error_level: bool = False,
                     features: Sequence[str] = FEATURES) -> PredictorModule:
         """The module of an input map x_n = (x - centre) / scale and the output map
         y = y_n * scale + centre, e.g. standardisation (mean, standard deviation)."""
@@ -164,12 +189,13 @@ class PredictorModule(nn.Module):
                                                  target_scale))
         return cls(net, feature_centre - feature_scale, feature_centre + feature_scale,
                    target_centre - target_scale, target_centre + target_scale,
-                   residual=residual, relative_errors=relative_errors, features=features)
+                   residual=residual, relative_errors=relative_errors,
+                   error_level=error_level, features=features)
 
     def normalise(self, windows: torch.Tensor) -> torch.Tensor:
         """Raw float64 windows -> normalised float32 network input."""
-        return normalise_windows(windows, self.relative_mask, self.feature_centre,
-                                 self.feature_inverse_half).float()
+        return normalise_windows(windows.index_select(2, self.input_columns), self.relative_mask,
+                                 self.feature_centre, self.feature_inverse_half).float()
 
     def normalise_targets(self, targets: np.ndarray) -> torch.Tensor:
         """(B, 2) training targets [m] -> the network's float32 targets: the inverse of the
@@ -191,7 +217,8 @@ class ScaledRows:
 
     def __init__(self, module: PredictorModule, rows: np.ndarray) -> None:
         scale = module.feature_inverse_half.numpy()
-        self.rows = torch.from_numpy((rows * scale).astype(np.float32))
+        self.rows = torch.from_numpy((rows[:, module.input_columns.numpy()] * scale)
+                                     .astype(np.float32))
         self.relative_mask = module.relative_mask.float()
         self.centre = torch.from_numpy((module.feature_centre.numpy() * scale).astype(np.float32))
 
@@ -202,18 +229,26 @@ class ScaledRows:
 
 
 def normalisation_metadata(module: Any, error_low: np.ndarray, error_high: np.ndarray,
-                           scheme: str = 'standard') -> dict[str, Any]:
+                           scheme: str = 'standard',
+                           features: Sequence[str] = FEATURES) -> dict[str, Any]:
     """The constants inside a `PredictorModule` (scripted or not) and the error's training
     range (the metrics' scale), for the model file's metadata: for people and tools.
     `scheme`: how training chose the affine maps ('standard': mean and standard deviation of
     the training windows, 'minmax': their range mapped to [-1, 1])."""
-    relative = bool(module.relative_mask.any())
+    mask = module.relative_mask.tolist()
     how = ('standardised by their training mean and standard deviation' if scheme == 'standard'
            else 'mapped to [-1, 1] by their training min-max')
     target = 'e(t+h) - e(t)' if module.residual else 'e(t+h)'
+    relative = ("; error columns taken relative to the window's last row first"
+                if any(mask) else '')
+    if len(mask) > len(features):
+        relative += ', then appended again as they are (the level)'
+
     return {'scheme': scheme,
-            'input': f'window rows {how}' + ("; error columns taken relative to the window's "
-                                             'last row first' if relative else ''),
+            'input': f'window rows {how}{relative}',
+            'input_columns': [features[column] + (' - last row' if relative_column else '')
+                              for column, relative_column in zip(module.input_columns.tolist(),
+                                                                 mask, strict=True)],
             'feature_centre': module.feature_centre.tolist(),
             'feature_scale': (1.0 / module.feature_inverse_half).tolist(),
             'target': f'{target}, {how}',

@@ -312,7 +312,7 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
         normalisation=normalisation_metadata(tuned.module, problem.error_low,
                                              problem.error_high, NORMALISATION['lstm']),
         model_type='lstm',
-        hyperparameters={'lstm_steps': LSTM_STEPS, **tuned.params,
+        hyperparameters={'lstm_steps': LSTM_STEPS, 'error_level': False, **tuned.params,
                          'architecture': 'LSTM over the last lstm_steps rows, last state -> '
                                          'MLP head (2 GELU layers) + linear highway on the window',
                          'optimiser': 'AdamW, cosine learning-rate decay over max_epochs',

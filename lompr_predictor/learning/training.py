@@ -17,8 +17,9 @@ h25 1.08/1.30 -> 1.07/1.11, thermal h25 1.15/1.31 -> 1.15/1.23; 200 epochs were 
 (two seeds: 1.09/1.12, 1.09/1.11, 1.16/1.23). What the extra epochs buy is mostly one rare
 event learned: the return to the centre at a pass's end, which a horizon-25 prediction has
 to see coming. A per-axis loss balance, per-axis best epochs and the LSTM over the whole
-window did not help; nor did the window's absolute error level as extra input columns or
-the last row fed to the head beside the LSTM's state.
+window did not help; nor did the last row fed to the head beside the LSTM's state. The
+window's error level as extra input columns helps where a slow drift is under way (thermal
+presets) and costs a little elsewhere: it is a tuned choice (`space.DEFAULT_SPACE`).
 The paper's BP keeps its own: min-max inputs, Adam, the rate cut by `LR_DECAY` on a
 validation plateau.
 
@@ -46,7 +47,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from lompr_predictor.data.features import FEATURES, TARGETS
+from lompr_predictor.data.features import FEATURES
 from lompr_predictor.data.problem import LearningProblem, minmax_range
 from lompr_predictor.learning.models import (
     LSTM_STEPS,
@@ -54,6 +55,7 @@ from lompr_predictor.learning.models import (
     ScaledRows,
     build_network,
     gather_windows,
+    network_columns,
 )
 
 #: Defaults of the training loop, in one place.
@@ -116,21 +118,22 @@ def evenly_spaced(ends: np.ndarray, at_most: int) -> np.ndarray:
     return ends[np.linspace(0, len(ends) - 1, at_most).astype(int)]
 
 
-def input_windows(problem: LearningProblem, relative_errors: bool) -> np.ndarray:
-    """(M * window, F) rows of training windows (evenly spaced, at most `RANGE_SAMPLE`),
-    error columns relative to the window's last row if `relative_errors`: the training
-    inputs that set the normalisation."""
+def input_windows(problem: LearningProblem, relative_errors: bool,
+                  error_level: bool = False) -> np.ndarray:
+    """(M * window, C) rows of training windows (evenly spaced, at most `RANGE_SAMPLE`) in
+    the network's input columns (`models.network_columns`): the training inputs that set
+    the normalisation."""
     ends = evenly_spaced(problem.split.train, RANGE_SAMPLE)
-    windows = gather_windows(problem.rows, ends, problem.window)
-    if relative_errors:
-        columns = [FEATURES.index(f'error_{axis}') for axis in TARGETS]
-        windows[:, :, columns] -= windows[:, -1:, columns]
+    columns, mask = network_columns(FEATURES, relative_errors, error_level)
+    windows = gather_windows(problem.rows[:, columns], ends, problem.window)
+    windows -= windows[:, -1:, :] * np.asarray(mask)
     return windows.reshape(-1, windows.shape[-1])
 
 
-def input_range(problem: LearningProblem, relative_errors: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Per-feature (min, max) of the network's input over training windows."""
-    return minmax_range(input_windows(problem, relative_errors))
+def input_range(problem: LearningProblem, relative_errors: bool,
+                error_level: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Per-column (min, max) of the network's input over training windows."""
+    return minmax_range(input_windows(problem, relative_errors, error_level))
 
 
 def moments(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -140,21 +143,24 @@ def moments(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def build_module(problem: LearningProblem, model_type: str, hidden: int, *, residual: bool,
-                 relative_errors: bool, steps: int = LSTM_STEPS) -> PredictorModule:
+                 relative_errors: bool, error_level: bool = False,
+                 steps: int = LSTM_STEPS) -> PredictorModule:
     """An untrained network wrapped with the problem's training normalisation (the model
     type's, `NORMALISATION`)."""
     fit = np.concatenate([problem.split.train, problem.split.validation])
     targets = problem.targets(fit, residual)
-    net = build_network(model_type, problem.rows.shape[1], problem.window, hidden, steps)
+    inputs = len(network_columns(FEATURES, relative_errors, error_level)[0])
+    net = build_network(model_type, inputs, problem.window, hidden, steps)
     if NORMALISATION[model_type] == 'standard':
-        centre, scale = moments(input_windows(problem, relative_errors))
+        centre, scale = moments(input_windows(problem, relative_errors, error_level))
         target_centre, target_scale = moments(targets)
         return PredictorModule.from_affine(net, centre, scale, target_centre, target_scale,
-                                           residual=residual, relative_errors=relative_errors)
-    low, high = input_range(problem, relative_errors)
+                                           residual=residual, relative_errors=relative_errors,
+                                           error_level=error_level)
+    low, high = input_range(problem, relative_errors, error_level)
     target_low, target_high = minmax_range(targets)
     return PredictorModule(net, low, high, target_low, target_high, residual=residual,
-                           relative_errors=relative_errors)
+                           relative_errors=relative_errors, error_level=error_level)
 
 
 def validation_loss(net: nn.Module, inputs: ScaledRows, ends: np.ndarray,
@@ -183,7 +189,9 @@ def train_network(
     label: str = '',
 ) -> TrainedModel:
     """Train one network on `problem`; hyperparameters: batch_size, hidden, learning_rate,
-    and optionally weight_decay (default 0) and lstm_steps (default `LSTM_STEPS`).
+    and optionally weight_decay (default 0), lstm_steps (default `LSTM_STEPS`) and
+    error_level (default False: the window's error level as more input columns,
+    `PredictorModule`).
 
     `trial` (an Optuna trial) gets the validation loss each epoch; when its pruner says
     so (and `prune`), training stops there (`pruned_epoch`) and the result is the best loss
@@ -197,6 +205,7 @@ def train_network(
     batch = int(hyperparameters['batch_size'])
     module = build_module(problem, model_type, int(hyperparameters['hidden']), residual=residual,
                           relative_errors=relative_errors,
+                          error_level=bool(hyperparameters.get('error_level', False)),
                           steps=int(hyperparameters.get('lstm_steps', LSTM_STEPS)))
     net = module.net
     inputs = ScaledRows(module, problem.rows)
