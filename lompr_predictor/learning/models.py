@@ -240,13 +240,12 @@ def normalisation_metadata(module: Any, error_low: np.ndarray, error_high: np.nd
     how = ('standardised by their training mean and standard deviation' if scheme == 'standard'
            else 'mapped to [-1, 1] by their training min-max')
     target = 'e(t+h) - e(t)' if module.residual else 'e(t+h)'
-    relative = ("; error columns taken relative to the window's last row first"
-                if any(mask) else '')
+    errors = ("; error columns taken relative to the window's last row first"
+              if any(mask) else '')
     if len(mask) > len(features):
-        relative += ', then appended again as they are (the level)'
-
+        errors += ', then appended again as they are (the level)'
     return {'scheme': scheme,
-            'input': f'window rows {how}{relative}',
+            'input': f'window rows {how}{errors}',
             'input_columns': [features[column] + (' - last row' if relative_column else '')
                               for column, relative_column in zip(module.input_columns.tolist(),
                                                                  mask, strict=True)],
