@@ -60,7 +60,6 @@ from lompr_predictor.learning.model_file import (
 )
 from lompr_predictor.learning.models import (
     BP_HYPERPARAMETERS,
-    LSTM_STEPS,
     normalisation_metadata,
     persistence,
     predict_rows,
@@ -312,7 +311,7 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
         normalisation=normalisation_metadata(tuned.module, problem.error_low,
                                              problem.error_high, NORMALISATION['lstm']),
         model_type='lstm',
-        hyperparameters={'lstm_steps': LSTM_STEPS, 'error_level': False, **tuned.params,
+        hyperparameters={**tuned.params,  # every one, tuned or fixed (`SearchSpace.suggest`)
                          'architecture': 'LSTM over the last lstm_steps rows, last state -> '
                                          'MLP head (2 GELU layers) + linear highway on the window',
                          'optimiser': 'AdamW, cosine learning-rate decay over max_epochs',
