@@ -28,7 +28,7 @@ demo: venv
 	$(VENV)/bin/lompr demo
 
 bench: venv
-	for script in bench/*.py; do $(VENV)/bin/python $$script || exit 1; done
+	for script in bench/bench_*.py bench/soak_*.py; do $(VENV)/bin/python $$script || exit 1; done
 
 clean:
 	rm -rf $(VENV) build install log .pytest_cache

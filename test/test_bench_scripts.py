@@ -1,4 +1,4 @@
-"""The benchmark scripts still import: they are not run by the suite (speed goals are
+"""The benchmark and analysis scripts still import: they are not run by the suite (speed goals are
 measured by running them, not by timed tests), so an API change would otherwise go
 unnoticed until someone wants the figures."""
 
@@ -18,7 +18,7 @@ LOAD = ('import importlib.util, sys; '
         'assert callable(module.main)')
 
 
-@pytest.mark.parametrize('script', sorted([*BENCH.glob('bench_*.py'), *BENCH.glob('soak_*.py')]),
+@pytest.mark.parametrize('script', sorted(BENCH.glob('*.py')),
                          ids=lambda p: p.stem)
 def test_bench_script_imports(script: Path) -> None:
     # A subprocess: the scripts set thread and ROS environment variables when imported.

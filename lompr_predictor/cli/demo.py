@@ -14,7 +14,7 @@ deterministic); --processes runs twin_node, kinematics_node and predictor_node a
 processes on simulated time, the twin publishing /clock, as a simulator drives real nodes.
 
 Everything goes into one output directory (default runs/demo-<UTC time>/). The default
-budget takes about 6 minutes on 2 cores; --quick about 1.
+budget takes about 2 minutes on 2 cores; --quick about 1.
 """
 
 from __future__ import annotations
