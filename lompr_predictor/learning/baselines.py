@@ -24,9 +24,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lompr_predictor.data.features import FEATURES, TARGETS
+from lompr_predictor.data.features import TARGETS
 from lompr_predictor.data.problem import LearningProblem
-from lompr_predictor.learning.models import gather_windows
+from lompr_predictor.learning.models import error_columns, gather_windows
 
 #: Ridge penalties tried on the validation part (on standardised inputs, targets in um).
 RIDGE_ALPHAS = tuple(10.0 ** k for k in range(-3, 5))
@@ -47,7 +47,7 @@ def flat_windows(problem: LearningProblem, ends: np.ndarray) -> np.ndarray:
     """(B, window * F + 2) inputs of the windows ending at `ends`: the flattened window,
     error columns relative to its last row, then the last row's error."""
     windows = gather_windows(problem.rows, ends, problem.window).copy()
-    columns = [FEATURES.index(f'error_{axis}') for axis in TARGETS]
+    columns = error_columns()
     last = windows[:, -1, columns].copy()
     windows[:, :, columns] -= last[:, None, :]
     return np.concatenate([windows.reshape(len(ends), -1), last], axis=1)
