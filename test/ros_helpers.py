@@ -16,6 +16,9 @@ Everything is created on the harness's own `rclpy.context.Context` and torn down
 
 from __future__ import annotations
 
+import signal
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from typing import Any
@@ -23,6 +26,7 @@ from typing import Any
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.client import Client
 from rclpy.context import Context
 from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
@@ -32,6 +36,10 @@ from rclpy.qos import QoSProfile
 from lompr_predictor.ros.common import spin_until
 
 DEFAULT_TIMEOUT = 10.0
+#: Wait [s] for the answer to a repeatable service request before it is sent again.
+RESEND_AFTER = 2.0
+#: Time [s] a node process gets to exit after SIGINT before it is killed.
+KILL_TIMEOUT = 10.0
 
 
 class RosHarness:
@@ -65,6 +73,35 @@ class RosHarness:
         if not spin_until(self.executor, condition, timeout):
             raise AssertionError(f'timed out after {timeout} s waiting for {what or condition}')
 
+    def call(
+        self, client: Client, request: Any, what: str, *, repeatable: bool = False,
+        timeout: float = DEFAULT_TIMEOUT,
+    ) -> Any:
+        """The response of `client` to `request`, failing the test with `what` after `timeout`.
+
+        `service_is_ready` says the server has matched our requests, not that it has matched
+        our reader of its replies: Fast DDS discovers the two on their own, and a reply sent
+        before its reader is matched is dropped (after rmw_fastrtps' 100 ms wait, with a
+        warning in the server). A `repeatable` request (safe to do twice: a query, a
+        transition that is refused) is therefore sent again every `RESEND_AFTER` s until an
+        answer comes; once one has come, that service's replies are matched for good.
+        """
+        self.spin_until(client.service_is_ready, timeout, f'the {what} service')
+        deadline = time.monotonic() + timeout
+        futures = []
+        while time.monotonic() < deadline:
+            futures.append(client.call_async(request))
+            wait = min(RESEND_AFTER if repeatable else timeout, deadline - time.monotonic())
+            if spin_until(self.executor, lambda: any(f.done() for f in futures), wait):
+                for future in futures:
+                    if not future.done():
+                        client.remove_pending_request(future)
+                return next(f for f in futures if f.done()).result()
+            if not repeatable:
+                break
+        raise AssertionError(f'timed out after {timeout} s waiting for {what} '
+                             f'({len(futures)} request(s) sent)')
+
     def spin_for(self, seconds: float) -> None:
         """Spin for a fixed time: only to give a message that must NOT come its chance."""
         deadline = time.monotonic() + seconds
@@ -92,6 +129,31 @@ class RosHarness:
             node.destroy_node()
         self.executor.shutdown()
         self.context.try_shutdown()
+
+
+def start_executable(name: str, *ros_arguments: str) -> subprocess.Popen[str]:
+    """A lompr executable (`lompr_predictor.ros.<name>`'s `main()`, as its console script
+    runs it) as a process with `--ros-args` `ros_arguments`, in this session's private DDS
+    domain (inherited environment); stdout and stderr piped."""
+    return subprocess.Popen(
+        [sys.executable, '-m', f'lompr_predictor.ros.{name}', '--ros-args', *ros_arguments],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def stop_process(process: subprocess.Popen[str]) -> tuple[int, str]:
+    """SIGINT, then kill after `KILL_TIMEOUT` (a DDS participant can hang at exit); the exit
+    code and stderr. The stderr is also echoed to the test's captured stderr, which pytest
+    shows when the test fails (so a failure in the test body shows what the node said)."""
+    if process.poll() is None:
+        process.send_signal(signal.SIGINT)
+    try:
+        _, stderr = process.communicate(timeout=KILL_TIMEOUT)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        _, stderr = process.communicate()
+    sys.stderr.write(f'node process {process.pid} exited with {process.returncode}, '
+                     f'its stderr:\n{stderr}\n')
+    return process.returncode, stderr
 
 
 def stamp_ns(msg: Any) -> int:

@@ -53,19 +53,16 @@ class Plant:
         self.ros.wait_for_subscribers(self.references)
         self.ros.wait_for_publishers('/lompr/compensation')
 
-    def transition(self, transition_id: int) -> bool:
-        """Request a transition through `change_state`; whether it succeeded."""
-        self.ros.spin_until(self.change_state.service_is_ready, what='change_state')
-        future = self.change_state.call_async(
-            ChangeState.Request(transition=Transition(id=transition_id)))
-        self.ros.spin_until(future.done, what='the change_state answer')
-        return bool(future.result().success)
+    def transition(self, transition_id: int, *, repeatable: bool = False) -> bool:
+        """Request a transition through `change_state`; whether it succeeded (`repeatable`:
+        one that would be refused the second time as the first, see `RosHarness.call`)."""
+        return bool(self.ros.call(
+            self.change_state, ChangeState.Request(transition=Transition(id=transition_id)),
+            'change_state', repeatable=repeatable).success)
 
     def state(self) -> str:
-        self.ros.spin_until(self.get_state.service_is_ready, what='get_state')
-        future = self.get_state.call_async(GetState.Request())
-        self.ros.spin_until(future.done, what='the get_state answer')
-        return str(future.result().current_state.label)
+        return str(self.ros.call(self.get_state, GetState.Request(), 'get_state',
+                                 repeatable=True).current_state.label)
 
     def set_clock(self, ns: int) -> None:
         self.clock.publish(Clock(clock=Time(sec=ns // 10 ** 9, nanosec=ns % 10 ** 9)))
@@ -109,7 +106,7 @@ def test_transitions_through_the_lifecycle_services(ros: RosHarness, tmp_path: P
     plant = Plant(ros, node)
     assert plant.state() == 'unconfigured' and not node.configured
     # a configure that fails leaves the node unconfigured, with the reason
-    assert not plant.transition(Transition.TRANSITION_CONFIGURE)
+    assert not plant.transition(Transition.TRANSITION_CONFIGURE, repeatable=True)
     assert plant.state() == 'unconfigured' and 'no such file' in node.configure_error
     ros.spin_until(lambda: 'no such file' in (plant.status('model') or {}).get('_message', ''),
                    what='the configure failure on /diagnostics')

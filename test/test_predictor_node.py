@@ -3,9 +3,6 @@ over the topics, model refusal and run-time swaps, diagnostics."""
 
 from __future__ import annotations
 
-import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -16,7 +13,15 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from model_helpers import save_constant, save_linear, write_sidecar
 from rclpy.parameter import Parameter
-from ros_helpers import RosHarness, latest_status, set_stamp, stamp_ns, xy
+from ros_helpers import (
+    RosHarness,
+    latest_status,
+    set_stamp,
+    stamp_ns,
+    start_executable,
+    stop_process,
+    xy,
+)
 from sensor_msgs.msg import JointState
 
 from lompr_predictor.data.bags import (
@@ -392,31 +397,14 @@ def test_torch_threads_are_set_by_the_entry_point_not_the_node(
         set_torch_threads(before)
 
 
-def run_process(arguments: list[str]) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, '-m', *arguments], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-
-
-def stop(process: subprocess.Popen, timeout: float = 10.0) -> tuple[str, str]:
-    """SIGINT, then kill after `timeout` (a DDS participant can hang at exit)."""
-    if process.poll() is None:
-        process.send_signal(signal.SIGINT)
-    try:
-        return process.communicate(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        return process.communicate()
-
-
 def test_executable_with_params_file_refuses_a_mismatched_model_in_one_line(tmp_path: Path) -> None:
     model = save_linear(tmp_path / 'm.pt', window=WINDOW, horizon=HORIZON)
-    process = run_process([
-        'lompr_predictor.ros.predictor_node', '--ros-args', '--params-file',
-        str(PARAMS_FILE), '-p', f'model_path:={model}', '-p', 'horizon:=7'])
+    process = start_executable('predictor_node', '--params-file', str(PARAMS_FILE),
+                               '-p', f'model_path:={model}', '-p', 'horizon:=7')
     try:
         code = process.wait(timeout=60)
     finally:
-        _, stderr = stop(process)
+        _, stderr = stop_process(process)
     assert code == 2
     errors = [line for line in stderr.splitlines() if 'error' in line.lower()]
     assert len(errors) == 1 and "metadata field 'horizon' is 3" in errors[0], stderr
@@ -425,8 +413,7 @@ def test_executable_with_params_file_refuses_a_mismatched_model_in_one_line(tmp_
 def test_one_process_pipeline_answers_joint_states(
         ros: RosHarness, description: RobotDescription, tmp_path: Path) -> None:
     model = save_constant(tmp_path / 'c.pt', (-7e-6, 3e-6), window=WINDOW, horizon=HORIZON)
-    process = run_process(['lompr_predictor.ros.pipeline', '--ros-args',
-                           '-p', f'predictor_node:model_path:={model}'])
+    process = start_executable('pipeline', '-p', f'predictor_node:model_path:={model}')
     try:
         compensations = ros.collect('/lompr/compensation', Vector3Stamped, 100)
         joints = ros.node.create_publisher(JointState, '/joint_states', 100)
@@ -466,4 +453,4 @@ def test_one_process_pipeline_answers_joint_states(
         np.testing.assert_allclose(xy(answers()), [[7e-6, -3e-6]] * 2)
         assert stamp_ns(answers()[-1]) == recording.joints.stamps[NEEDED] + HORIZON * PERIOD_NS
     finally:
-        stop(process)
+        stop_process(process)

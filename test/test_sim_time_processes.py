@@ -8,9 +8,6 @@ services."""
 
 from __future__ import annotations
 
-import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -23,7 +20,7 @@ from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from model_helpers import save_linear
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
-from ros_helpers import RosHarness
+from ros_helpers import RosHarness, start_executable, stop_process
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
@@ -39,7 +36,6 @@ NEEDED = WINDOW + HISTORY
 #: The simulator's wait for each sample's answer [s of wall time].
 ANSWER_WAIT = 0.2
 STARTUP_TIMEOUT = 60.0
-KILL_TIMEOUT = 10.0
 
 
 def persistence_window_model(path: Path) -> Path:
@@ -48,27 +44,6 @@ def persistence_window_model(path: Path) -> Path:
     weight = np.zeros((WINDOW * len(FEATURES), 2))
     weight[(WINDOW - 1) * len(FEATURES) + np.arange(2), [0, 1]] = 1.0
     return save_linear(path, weight, window=WINDOW, horizon=1)
-
-
-def start(module: str, *arguments: str) -> subprocess.Popen[str]:
-    """An executable as a process (its `main()`, as the console script runs it), in this
-    session's private DDS domain (inherited environment)."""
-    return subprocess.Popen([sys.executable, '-m', f'lompr_predictor.ros.{module}', '--ros-args',
-                             *arguments], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
-
-
-def stop(process: subprocess.Popen[str]) -> tuple[int, str]:
-    """SIGINT, then kill after `KILL_TIMEOUT` (a DDS participant can hang at exit); the exit
-    code and stderr."""
-    if process.poll() is None:
-        process.send_signal(signal.SIGINT)
-    try:
-        _, stderr = process.communicate(timeout=KILL_TIMEOUT)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        _, stderr = process.communicate()
-    return process.returncode, stderr
 
 
 def ns_of(stamp: Any) -> int:
@@ -146,14 +121,14 @@ def test_an_external_lockstep_simulator_gets_every_sample_answered_after_the_fil
         samples: int, qos: QoSProfile) -> None:
     model = persistence_window_model(tmp_path / 'model.pt')
     plant = ExternalPlant(ros, description, qos)
-    processes = [start('kinematics_node', '-p', 'use_sim_time:=true'),
-                 start('predictor_node', '-p', 'use_sim_time:=true',
+    processes = [start_executable('kinematics_node', '-p', 'use_sim_time:=true'),
+                 start_executable('predictor_node', '-p', 'use_sim_time:=true',
                        '-p', f'model_path:={model}', '-p', 'max_compensation:=0.001')]
     try:
         plant.wait_for_nodes()
         answered, true_error = plant.run(samples, slowdown * plant.twin.params.sample_period)
     finally:
-        results = [stop(process) for process in processes]
+        results = [stop_process(process) for process in processes]
     assert [code for code, _ in results] == [0, 0], [err[-2000:] for _, err in results]
     filled = int(np.argmax(answered))
     # a few lost while the endpoints discover each other (more on a loaded machine)
@@ -167,28 +142,24 @@ def test_an_external_lockstep_simulator_gets_every_sample_answered_after_the_fil
 def test_the_predictor_executable_is_managed_through_its_lifecycle_services(
         ros: RosHarness, tmp_path: Path) -> None:
     model = save_linear(tmp_path / 'model.pt', window=WINDOW, horizon=1)
-    process = start('predictor_node', '-p', 'autostart:=false', '-p', f'model_path:={model}')
+    process = start_executable('predictor_node', '-p', 'autostart:=false',
+                               '-p', f'model_path:={model}')
     try:
         change = ros.node.create_client(ChangeState, '/predictor_node/change_state')
         get = ros.node.create_client(GetState, '/predictor_node/get_state')
-        ros.spin_until(change.service_is_ready, timeout=STARTUP_TIMEOUT, what='change_state')
-        # each service is discovered on its own: a request sent before its server is
-        # matched is lost, so wait for both
-        ros.spin_until(get.service_is_ready, timeout=STARTUP_TIMEOUT, what='get_state')
 
-        def transition(transition_id: int) -> bool:
-            future = change.call_async(ChangeState.Request(
-                transition=Transition(id=transition_id)))
-            ros.spin_until(future.done, what='the change_state answer')
-            return bool(future.result().success)
+        def transition(transition_id: int, *, repeatable: bool = False) -> bool:
+            return bool(ros.call(change, ChangeState.Request(
+                transition=Transition(id=transition_id)), 'change_state',
+                repeatable=repeatable, timeout=STARTUP_TIMEOUT).success)
 
         def state() -> str:
-            future = get.call_async(GetState.Request())
-            ros.spin_until(future.done, what='the get_state answer')
-            return str(future.result().current_state.label)
+            return str(ros.call(get, GetState.Request(), 'get_state', repeatable=True,
+                                timeout=STARTUP_TIMEOUT).current_state.label)
 
         assert state() == 'unconfigured'
-        assert not transition(Transition.TRANSITION_ACTIVATE)  # refused, and still running
+        # refused (so it can be asked again), and still running
+        assert not transition(Transition.TRANSITION_ACTIVATE, repeatable=True)
         assert process.poll() is None and state() == 'unconfigured'
         assert transition(Transition.TRANSITION_CONFIGURE) and state() == 'inactive'
         assert transition(Transition.TRANSITION_ACTIVATE) and state() == 'active'
@@ -214,5 +185,5 @@ def test_the_predictor_executable_is_managed_through_its_lifecycle_services(
         ros.spin_until(lambda: not compensations[-1].vector.x, what='the cancelling zero')
         assert transition(Transition.TRANSITION_CLEANUP) and state() == 'unconfigured'
     finally:
-        code, stderr = stop(process)
+        code, stderr = stop_process(process)
     assert code == 0, stderr[-2000:]
