@@ -21,7 +21,7 @@ test-fast: venv  # everything but the slow tests (closed loops, colcon build)
 	$(VENV)/bin/python -m pytest -q -m "not slow" test
 
 lint: venv
-	$(VENV)/bin/ruff check lompr_predictor test bench
+	$(VENV)/bin/ruff check lompr_predictor test bench tools
 	$(VENV)/bin/mypy
 
 demo: venv

@@ -16,10 +16,11 @@ setup(
         (f'share/{PACKAGE}', ['package.xml']),
         (f'share/{PACKAGE}/description', glob(f'{PACKAGE}/description/*.urdf')),
         (f'share/{PACKAGE}/config', glob(f'{PACKAGE}/config/*.yaml')),
+        (f'share/{PACKAGE}/launch', glob('launch/*.launch.xml')),
         (f'share/{PACKAGE}/config/presets', glob(f'{PACKAGE}/config/presets/*.yaml')),
     ],
     python_requires='>=3.11',
-    # Runtime libraries: requirements.txt pins the exact versions for a pip install; a ROS
+    # What the nodes need: requirements.txt pins the exact versions for a pip install; a ROS
     # install gets them through package.xml and rosdep. torch is pinned here too: a looser
     # requirement pulls a multi-GB CUDA build.
     install_requires=[
@@ -28,19 +29,19 @@ setup(
         'scipy',
         'pin',
         'rosbags',
-        'optuna',
-        'scikit-learn',
         'torch==2.13.0',
-        'matplotlib',
         'pyyaml',
         'tqdm',
-        'psycopg[binary]',
-        'sqlalchemy',
+        'ros-jazzy-domain-coordinator',
     ],
-    extras_require={'test': ['pytest', 'hypothesis']},
+    extras_require={
+        # lompr train / evaluate / demo and the tuning workers (not the nodes)
+        'train': ['optuna', 'scikit-learn', 'matplotlib', 'psycopg[binary]', 'sqlalchemy'],
+        'test': ['pytest', 'hypothesis'],
+    },
     zip_safe=True,
-    maintainer='lompr_predictor developers',
-    maintainer_email='lompr@example.com',
+    maintainer='LOMPR predictor maintainers',
+    maintainer_email='lompr-maintainers@lompr.dev',
     description='Predicts and compensates the end-trajectory error of the LOMPR '
                 '(BO-LSTM, Jin et al. 2022) as ROS 2 nodes and offline tools.',
     license='Apache-2.0',
