@@ -307,7 +307,7 @@ def test_parameter_files_hold_the_declared_defaults(node: str) -> None:
                      'predictor_node': 'PredictorNodeSettings'}[node]
     specs = parameter_specs(getattr(module, settings_type))
     path = Path(__file__).parents[1] / 'lompr_predictor' / 'config' / f'{node}.yaml'
-    values = _flatten('', yaml.safe_load(path.read_text())[node]['ros__parameters'])
+    values = _flatten('', yaml.safe_load(path.read_text())[f'/**/{node}']['ros__parameters'])
     expected = {name: spec.ros_default for name, spec in specs.items()}
     for endpoint in (*module.ENDPOINTS, Endpoint('publisher', None, 'diagnostics_topic',
                                                  DIAGNOSTICS_QOS, 'diagnostics')):

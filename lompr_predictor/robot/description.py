@@ -13,6 +13,7 @@ import hashlib
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from xml.etree import ElementTree
 
 import numpy as np
 import pinocchio as pin
@@ -87,6 +88,8 @@ class RobotDescription:
         except (RuntimeError, ValueError) as err:
             msg = f'cannot parse robot description {source}: {err}'
             raise RobotDescriptionError(msg) from err
+        #: The URDF's robot name: what identifies the robot (diagnostics' hardware_id).
+        self.name = str(self.model.name)
         self._check_joints()
         self.geometry = self._extract_geometry()
 
@@ -193,6 +196,25 @@ class RobotDescription:
 def default_description_path() -> Path:
     """Path of the packaged nominal LOMPR URDF."""
     return Path(str(resources.files('lompr_predictor') / 'description' / 'lompr.urdf'))
+
+
+def robot_name(path: str | Path | None = None) -> str:
+    """The `name` of the URDF's <robot> element (the packaged description's by default):
+    what identifies the robot, e.g. as the `hardware_id` of a node's diagnostics, read
+    without building the model."""
+    path = Path(path) if path else default_description_path()
+    try:
+        root = ElementTree.parse(path).getroot()
+    except OSError as err:
+        msg = f'cannot read robot description {path}: {err.strerror or err}'
+        raise RobotDescriptionError(msg) from err
+    except ElementTree.ParseError as err:
+        msg = f'robot description {path} is not a URDF (XML): {err}'
+        raise RobotDescriptionError(msg) from err
+    if root.tag != 'robot' or not root.get('name'):
+        msg = f'robot description {path}: the root element is not a <robot name="...">'
+        raise RobotDescriptionError(msg)
+    return str(root.get('name'))
 
 
 def load_robot_description(path: str | Path | None = None) -> RobotDescription:

@@ -174,6 +174,14 @@ class ForwardKinematics:
         """Forget the warm start (e.g. after a gap in the stream)."""
         self._history.clear()
 
+    @property
+    def last_up(self) -> tuple[float, float, float]:
+        """The passive UP joints (alpha, beta, d) of the last solved sample."""
+        if not self._history:
+            msg = 'no sample solved since the last reset'
+            raise KinematicsError(msg)
+        return self._history[-1]
+
     def solve(self, joints: Sequence[float]) -> ToolPose:
         """Tool-tip pose for measured joints (ups1..3 lengths [m], head angles [rad]).
 
@@ -259,6 +267,41 @@ class ForwardKinematics:
                     f'{upper:.6f}]: the pose is outside the workspace'
                 )
                 raise WorkspaceError(msg)
+
+
+class AllJoints:
+    """Every movable joint of the URDF for one solved sample, so robot_state_publisher can
+    draw the robot: the measured joints as they are, the passive UP joints from the forward
+    kinematics and each UPS branch's U-joint angles from its direction (base anchor A_i to
+    platform anchor B_i, in the U-joint's frame: first axis x, second the rotated y)."""
+
+    def __init__(self, description: RobotDescription) -> None:
+        model = description.model
+        self.geometry = description.geometry
+        #: Joint names in the order of `positions`: every movable joint of the URDF.
+        self.names: tuple[str, ...] = tuple(model.names[1:])
+        data = model.createData()
+        pin.forwardKinematics(model, data, pin.neutral(model))
+        #: World -> U-joint frame rotation of each branch (constant: the joints sit at q = 0).
+        self._u_frames = tuple(
+            data.oMi[model.getJointId(f'{branch}_u1')].rotation.T.copy()
+            for branch in BRANCH_JOINTS)
+
+    def positions(self, up: Sequence[float], joints: Sequence[float]) -> list[float]:
+        """Positions in `names` order for the UP joints `up` (alpha, beta, d) and the measured
+        joints (`MEASURED_JOINTS` order)."""
+        alpha, beta, d = up
+        rotation = pin.rpy.rpyToMatrix(alpha, 0.0, 0.0) @ pin.rpy.rpyToMatrix(0.0, beta, 0.0)
+        platform = rotation @ np.array([0.0, 0.0, d])
+        values = dict(zip(UP_JOINTS, up, strict=True))
+        values |= dict(zip(MEASURED_JOINTS, joints, strict=True))
+        for branch, to_u, a, b in zip(BRANCH_JOINTS, self._u_frames, self.geometry.base_anchors,
+                                      self.geometry.platform_anchors, strict=True):
+            x, y, z = to_u @ (platform + rotation @ b - a)
+            norm = math.sqrt(x * x + y * y + z * z)
+            values[f'{branch}_u1'] = math.atan2(-y, z)
+            values[f'{branch}_u2'] = math.asin(x / norm)
+        return [float(values[name]) for name in self.names]
 
 
 def _branch_row(trig: tuple[float, float, float, float], d: float,

@@ -12,10 +12,12 @@
 from __future__ import annotations
 
 import argparse
+import itertools
 import signal
 import sys
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from types import FrameType
 
 import rclpy
@@ -43,13 +45,21 @@ def status_message(name: str, hardware_id: str, status: Status) -> DiagnosticSta
         values=[KeyValue(key=str(k), value=str(v)) for k, v in status.values.items()])
 
 
+def status_prefix(node: Node) -> str:
+    """The node part of its diagnostic status names: the fully qualified name without the
+    leading slash, so 'kinematics_node' in the root namespace and 'cell1/kinematics_node'
+    in /cell1 (two robots on one /diagnostics stay apart)."""
+    return node.get_fully_qualified_name().lstrip('/')
+
+
 class DiagnosticsPublisher:
     """Publishes one DiagnosticArray every `period` seconds with a status per provider.
 
     A provider is a function returning a `Status`; it is called on the node's executor, so
     it may read the node's counters without locks. A provider that raises becomes an ERROR
     status naming the exception: diagnostics never take the node down.
-    Status names are '<node name>: <provider name>', as diagnostic_updater writes them.
+    Status names are '<node>: <provider name>', as diagnostic_updater writes them, <node> being
+    the node's fully qualified name without its leading slash (`status_prefix`).
     """
 
     def __init__(
@@ -73,7 +83,7 @@ class DiagnosticsPublisher:
 
     def add(self, name: str, provider: Callable[[], Status]) -> None:
         """Register a status provider under `name`."""
-        self._providers.append((f'{self._node.get_name()}: {name}', provider))
+        self._providers.append((f'{status_prefix(self._node)}: {name}', provider))
 
     def collect(self) -> DiagnosticArray:
         """Call every provider now and build the array (stamped with the node's clock)."""
@@ -148,6 +158,13 @@ class StopRequest:
         self.requested = True
 
 
+def missing_params_files(argv: Sequence[str]) -> list[str]:
+    """The files named by `--params-file` in `argv` that do not exist (rcl's own error does
+    not say which)."""
+    return [path for flag, path in itertools.pairwise(argv)
+            if flag == '--params-file' and not Path(path).is_file()]
+
+
 def run_node(
     node_factory: Callable[[Context], Node | Sequence[Node]],
     *,
@@ -187,6 +204,10 @@ def run_node(
         formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--executor', choices=EXECUTORS, default=EXECUTORS[0],
                         help='the executor that spins the node(s) (default: %(default)s)')
+    missing = missing_params_files(argv)
+    if missing:
+        print(f'{parser.prog}: error: --params-file {missing[0]}: no such file', file=sys.stderr)
+        return 2
     try:
         plain_args = remove_ros_args(argv)[1:]
     except RuntimeError as err:  # rclpy's RCLInvalidROSArgsError: '-p model_path:=' and such

@@ -42,7 +42,7 @@ from lompr_predictor.monitoring import (
     rejection_values,
 )
 from lompr_predictor.robot.description import MEASURED_JOINTS, WORLD_FRAME, load_robot_description
-from lompr_predictor.robot.kinematics import ForwardKinematics, NonFiniteJointError
+from lompr_predictor.robot.kinematics import AllJoints, ForwardKinematics, NonFiniteJointError
 from lompr_predictor.ros.common import run_node
 from lompr_predictor.ros.node_base import (
     OUTPUT_QOS,
@@ -90,10 +90,16 @@ class KinematicsNodeSettings(StatusSettings):
         MEASURED_JOINTS, 'names, as they appear in the JointState, of the joints ups1, ups2, '
         'ups3, head_primary, head_secondary (in this order); other names are ignored',
         read_only=True, check=_check_joint_names)
-    joint_state_topic: str = parameter('/joint_states', 'JointState input topic',
-                                       read_only=True)
-    end_pose_topic: str = parameter('/lompr/end_pose', 'PoseStamped output topic',
+    joint_state_topic: str = parameter('joint_states', 'JointState input topic (relative: '
+                                       "in the node's namespace)", read_only=True)
+    end_pose_topic: str = parameter('lompr/end_pose', 'PoseStamped output topic',
                                     read_only=True)
+    publish_full_joint_state: bool = parameter(
+        False, 'also publish every joint of the URDF (the passive ones from the forward '
+        'kinematics) on full_joint_state_topic, for robot_state_publisher', read_only=True)
+    full_joint_state_topic: str = parameter(
+        'lompr/full_joint_states', 'JointState output of every joint (publish_full_joint_state)',
+        read_only=True)
     frame_id: str = parameter(WORLD_FRAME, 'header.frame_id of the end poses (the frame the '
                               'robot description calls world)', read_only=True)
     warm_start_max_gap: float = parameter(
@@ -117,7 +123,9 @@ class KinematicsNodeSettings(StatusSettings):
 JOINT_STATES = Endpoint('subscription', JointState, 'joint_state_topic', SENSOR_INPUT_QOS,
                         'joint states')
 END_POSE = Endpoint('publisher', PoseStamped, 'end_pose_topic', OUTPUT_QOS, 'end poses')
-ENDPOINTS = (JOINT_STATES, END_POSE)
+FULL_JOINT_STATES = Endpoint('publisher', JointState, 'full_joint_state_topic', OUTPUT_QOS,
+                             'full joint states')
+ENDPOINTS = (JOINT_STATES, END_POSE, FULL_JOINT_STATES)
 
 
 class JointStateError(LomprError):
@@ -154,10 +162,13 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
 
         self._publisher = self.advertise(END_POSE)
         self._pose_writer = PoseStampedWriter(settings.frame_id)
+        self._all_joints = AllJoints(self.description)
+        self._full_publisher = (self.advertise(FULL_JOINT_STATES)
+                                if settings.publish_full_joint_state else None)
         self._subscription = self.subscribe(JOINT_STATES, self.on_joint_state, raw=True)
         self._diagnostics = self.start_diagnostics(
             settings.diagnostics_topic, settings.diagnostics_period,
-            hardware_id=f'urdf sha256 {self.description.sha256[:16]}')
+            hardware_id=self.description.name)
         self._diagnostics.add('joint states', self.input_status)
         self._diagnostics.add('forward kinematics', self.kinematics_status)
         self.get_logger().info(
@@ -199,6 +210,17 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
         self._publisher.publish(self._pose_writer.pack(
             sec, nanosec, pose.position.tolist(), pose.quaternion.tolist()))
         self.output_rate.tick()
+        if self._full_publisher is not None:
+            self.publish_full_joint_state(sec, nanosec, joints)
+
+    def publish_full_joint_state(self, sec: int, nanosec: int, joints: Sequence[float]) -> None:
+        """Every joint of the URDF for the sample just solved (`publish_full_joint_state`)."""
+        assert self._full_publisher is not None
+        message = JointState()
+        message.header.stamp.sec, message.header.stamp.nanosec = sec, nanosec
+        message.name = list(self._all_joints.names)
+        message.position = self._all_joints.positions(self._fk.last_up, joints)
+        self._full_publisher.publish(message)
 
     def _stamp_ns(self, sec: int, nanosec: int) -> int:
         if sec == 0 and nanosec == 0:

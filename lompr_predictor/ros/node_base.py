@@ -130,6 +130,11 @@ class QosOverrideError(LomprError):
     """A `qos_overrides.*` parameter that cannot be applied (unknown value, depth < 1)."""
 
 
+def root_topic(topic: str) -> str:
+    """A topic name as it resolves in the root namespace ('joint_states' -> '/joint_states')."""
+    return topic if topic.startswith('/') else f'/{topic}'
+
+
 @dataclass(frozen=True)
 class Endpoint:
     """A publisher or subscription of a node (module docstring)."""
@@ -141,8 +146,9 @@ class Endpoint:
     what: str  # what flows there, for logs and --help
 
     def parameter_prefix(self, topic: str) -> str:
-        """`qos_overrides.<topic>.<kind>` for the fully qualified `topic`."""
-        return f'qos_overrides.{topic}.{self.kind}'
+        """`qos_overrides.<topic>.<kind>` for the fully qualified `topic` (a relative name
+        is taken in the root namespace, as rclpy resolves it there)."""
+        return f'qos_overrides.{root_topic(topic)}.{self.kind}'
 
     def help_line(self, settings_type: type) -> str:
         """One `--help` line: the override parameters at the default topic, their defaults."""
@@ -257,7 +263,7 @@ class NodeBase(_NodeType, Generic[S]):
         """The publisher of `endpoint` (a lifecycle publisher on a lifecycle node)."""
         create = (self.create_lifecycle_publisher if isinstance(self, LifecycleNodeMixin)
                   else self.create_publisher)
-        topic = getattr(self.settings, endpoint.topic_parameter)
+        topic = self.resolve_topic_name(getattr(self.settings, endpoint.topic_parameter))
         try:
             publisher = create(endpoint.msg_type, topic, copy.copy(endpoint.qos),
                                qos_overriding_options=QOS_OVERRIDING,
@@ -271,7 +277,7 @@ class NodeBase(_NodeType, Generic[S]):
                   raw: bool = False) -> Subscription:
         """The subscription of `endpoint`; `callback` runs through `guard`. `raw`: the
         callback gets the serialized bytes (see `wire`), not a message object."""
-        topic = getattr(self.settings, endpoint.topic_parameter)
+        topic = self.resolve_topic_name(getattr(self.settings, endpoint.topic_parameter))
         try:
             subscription = self.create_subscription(
                 endpoint.msg_type, topic, self.guard(endpoint.what, callback),
@@ -344,7 +350,7 @@ class NodeBase(_NodeType, Generic[S]):
         return Status(Level.OK, 'every matched peer has compatible QoS', values)
 
     def _qos_error(self, endpoint: Endpoint, topic: str, err: Exception) -> QosOverrideError:
-        prefix = endpoint.parameter_prefix(self.resolve_topic_name(topic))
+        prefix = endpoint.parameter_prefix(topic)
         return QosOverrideError(f'{prefix}.*: {err}')
 
     def start_timer(self, period: float, where: str, callback: Callable[[], None], *,

@@ -91,6 +91,7 @@ from lompr_predictor.robot.description import (
     WORLD_FRAME,
     RobotDescription,
     load_robot_description,
+    robot_name,
 )
 from lompr_predictor.ros.common import run_node
 from lompr_predictor.ros.node_base import (
@@ -167,14 +168,14 @@ class PredictorNodeSettings(StatusSettings):
         'sample, whatever the rate: a process on a general-purpose OS stalls for '
         'milliseconds, many periods at kHz rates', minimum=0.0, maximum=3600.0,
         read_only=True)
-    end_pose_topic: str = parameter('/lompr/end_pose', 'PoseStamped measured tool tip input',
+    end_pose_topic: str = parameter('lompr/end_pose', 'PoseStamped measured tool tip input',
                                     read_only=True)
-    reference_topic: str = parameter('/lompr/reference', 'PoseStamped reference input',
+    reference_topic: str = parameter('lompr/reference', 'PoseStamped reference input',
                                      read_only=True)
     predicted_error_topic: str = parameter(
-        '/lompr/predicted_error', 'Vector3Stamped predicted X/Y error output', read_only=True)
+        'lompr/predicted_error', 'Vector3Stamped predicted X/Y error output', read_only=True)
     compensation_topic: str = parameter(
-        '/lompr/compensation', 'Vector3Stamped compensation offset output', read_only=True)
+        'lompr/compensation', 'Vector3Stamped compensation offset output', read_only=True)
     frame_id: str = parameter(WORLD_FRAME, 'header.frame_id of the outputs', read_only=True)
     inference_threads: int = parameter(
         1, "torch threads, set by the executable's main() (process-wide); 1 keeps inference "
@@ -274,7 +275,8 @@ class PredictorNode(NodeBase[PredictorNodeSettings], LifecycleNode):
         self._subscriptions_made: list[Subscription] = []
         self._stale_timer: Timer | None = None
         self._diagnostics = self.start_diagnostics(
-            settings.diagnostics_topic, settings.diagnostics_period, hardware_id=NODE_NAME)
+            settings.diagnostics_topic, settings.diagnostics_period,
+            hardware_id=robot_name(settings.robot_description_file or None))
         self._diagnostics.add('model', self.model_status)
         self._diagnostics.add('inputs', self.input_status)
         self._diagnostics.add('prediction', self.prediction_status)

@@ -125,15 +125,15 @@ class TwinNodeSettings(StatusSettings):
     max_compensation: float = parameter(
         1e-3, 'largest offset [m] accepted in any axis; larger ones are dropped', minimum=0.0,
         maximum=0.05, read_only=True)
-    joint_state_topic: str = parameter('/joint_states', 'JointState output', read_only=True)
-    reference_topic: str = parameter('/lompr/reference', 'PoseStamped output: nominal '
+    joint_state_topic: str = parameter('joint_states', 'JointState output', read_only=True)
+    reference_topic: str = parameter('lompr/reference', 'PoseStamped output: nominal '
                                      'commanded tool tip', read_only=True)
-    compensation_topic: str = parameter('/lompr/compensation', 'Vector3Stamped input: '
+    compensation_topic: str = parameter('lompr/compensation', 'Vector3Stamped input: '
                                         'feedforward offset for the instant in its stamp',
                                         read_only=True)
-    true_error_topic: str = parameter('/lompr/twin/true_error', 'Vector3Stamped debug '
+    true_error_topic: str = parameter('lompr/twin/true_error', 'Vector3Stamped debug '
                                       'output: true tool tip - reference [m]', read_only=True)
-    plant_error_topic: str = parameter('/lompr/twin/plant_error', 'Vector3Stamped debug '
+    plant_error_topic: str = parameter('lompr/twin/plant_error', 'Vector3Stamped debug '
                                        'output: true tool tip - reference - applied offset [m]',
                                        read_only=True)
     frame_id: str = parameter(WORLD_FRAME, 'header.frame_id of the reference and the errors',
@@ -196,7 +196,7 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
                                            self._on_lockstep_timer, clock=steady)
         self._diagnostics = self.start_diagnostics(
             settings.diagnostics_topic, settings.diagnostics_period,
-            hardware_id=f'lompr twin seed {settings.seed}')
+            hardware_id=self.twin.description.name)
         self._diagnostics.add('simulation', self.simulation_status)
         self._diagnostics.add('compensation', self.compensation_status)
         self.get_logger().info(

@@ -1,0 +1,78 @@
+"""Two robots on one network: both nodes started in a namespace with a params file keyed
+/**/<node>: move their relative topics into it and take the file's parameters; their
+diagnostics carry the namespace and the robot's name."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped, Vector3Stamped
+from model_helpers import save_constant
+from ros_helpers import RosHarness, latest_status, set_stamp
+from sensor_msgs.msg import JointState
+
+from lompr_predictor.robot.description import MEASURED_JOINTS
+from lompr_predictor.ros.kinematics_node import KinematicsNode
+from lompr_predictor.ros.predictor_node import PredictorNode
+
+pytestmark = pytest.mark.ros
+NAMESPACE = '/cell1'
+
+
+def test_both_nodes_in_a_namespace_with_a_params_file(ros: RosHarness, tmp_path: Path) -> None:
+    model = save_constant(tmp_path / 'model.pt', (1e-5, -2e-5))
+    params = tmp_path / 'site.yaml'
+    params.write_text(f"""
+/**/kinematics_node:
+  ros__parameters:
+    warm_start_max_gap: 0.25
+    diagnostics_period: 0.1
+/**/predictor_node:
+  ros__parameters:
+    model_path: {model}
+    max_compensation_step: 0.00004
+    diagnostics_period: 0.1
+    stale_periods: 1000.0
+    late_tolerance: 60.0
+""")
+    cli_args = ['--ros-args', '--params-file', str(params)]
+    kinematics = ros.add(KinematicsNode(context=ros.context, namespace=NAMESPACE,
+                                        cli_args=cli_args))
+    predictor = ros.add(PredictorNode(context=ros.context, namespace=NAMESPACE,
+                                      cli_args=cli_args))
+    assert kinematics.settings.warm_start_max_gap == 0.25
+    assert predictor.settings.max_compensation_step == 0.00004
+    assert predictor.lifecycle_state == 'active'
+
+    end_poses = ros.collect(f'{NAMESPACE}/lompr/end_pose', PoseStamped, 100)
+    compensations = ros.collect(f'{NAMESPACE}/lompr/compensation', Vector3Stamped, 100)
+    diagnostics = ros.collect('/diagnostics', DiagnosticArray, 100)
+    joints = ros.node.create_publisher(JointState, f'{NAMESPACE}/joint_states', 100)
+    references = ros.node.create_publisher(PoseStamped, f'{NAMESPACE}/lompr/reference', 100)
+    ros.wait_for_subscribers(joints)
+    ros.wait_for_subscribers(references)
+    ros.wait_for_publishers(f'{NAMESPACE}/lompr/compensation')
+    topics = {name for name, _ in ros.node.get_topic_names_and_types()}
+    assert '/lompr/end_pose' not in topics and '/joint_states' not in topics
+
+    start_ns = 1_700_000_000 * 10**9
+    for k in range(12):
+        stamp = start_ns + k * 40_000_000
+        message = JointState(name=list(MEASURED_JOINTS),
+                             position=[0.8, 0.8, 0.8, 0.0, 0.0])
+        set_stamp(message, stamp)
+        reference = PoseStamped()
+        set_stamp(reference, stamp)
+        reference.pose.position.z = 1.0
+        references.publish(reference)
+        joints.publish(message)
+        ros.spin_until(lambda k=k: len(end_poses) > k, what=f'end pose {k}')
+    ros.spin_until(lambda: len(compensations) > 0, what='a compensation in the namespace')
+
+    ros.spin_until(lambda: latest_status(diagnostics, 'cell1/predictor_node: model') is not None
+                   and latest_status(diagnostics, 'cell1/kinematics_node: joint states')
+                   is not None, what='namespaced status names')
+    hardware = {status.hardware_id for array in diagnostics for status in array.status}
+    assert hardware == {'lompr'}
