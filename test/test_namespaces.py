@@ -68,7 +68,8 @@ def test_both_nodes_in_a_namespace_with_a_params_file(ros: RosHarness, tmp_path:
         reference.pose.position.z = 1.0
         references.publish(reference)
         joints.publish(message)
-        ros.spin_until(lambda k=k: len(end_poses) > k, what=f'end pose {k}')
+        wanted = k + 1
+        ros.spin_until(lambda: len(end_poses) >= wanted, what=f'end pose {k}')  # noqa: B023
     ros.spin_until(lambda: len(compensations) > 0, what='a compensation in the namespace')
 
     ros.spin_until(lambda: latest_status(diagnostics, 'cell1/predictor_node: model') is not None

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from lompr_predictor.cli.validation import (
+    comma_list,
     float_above,
     positive_float,
     positive_int,
@@ -18,12 +19,27 @@ from lompr_predictor.data.cleaning import (
     CleaningConfig,
 )
 from lompr_predictor.data.loading import BagInputs
+from lompr_predictor.robot.description import MEASURED_JOINTS, joint_names_problem
+
+
+def joint_names(text: str) -> tuple[str, ...]:
+    """--joint-names: five distinct names, the order rules of kinematics_node's joint_names."""
+    names = comma_list(str)(text)
+    problem = joint_names_problem(names)
+    if problem:
+        msg = f'{problem}, got {text!r}'
+        raise argparse.ArgumentTypeError(msg)
+    return names
 
 
 def add_data_arguments(parser: argparse.ArgumentParser) -> None:
     """Options shared by train and evaluate: topics, bad bags, cleaning, description."""
     parser.add_argument('--joint-topic', default=DEFAULT_JOINT_TOPIC)
     parser.add_argument('--reference-topic', default=DEFAULT_REFERENCE_TOPIC)
+    parser.add_argument('--joint-names', type=joint_names, default=MEASURED_JOINTS,
+                        metavar='A,B,C,D,E',
+                        help='your JointState names of ups1, ups2, ups3, head_primary, '
+                             "head_secondary, in this order (as kinematics_node's joint_names)")
     parser.add_argument('--skip-bad', action='store_true',
                         help='skip a corrupt or truncated bag (listed in the report) '
                              'instead of stopping')
@@ -50,4 +66,4 @@ def bag_inputs(args: argparse.Namespace, bags: list[str]) -> BagInputs:
     """`bags` with the topics, bad-bag policy and cleaning rules of the options."""
     return BagInputs(bags=tuple(bags), joint_topic=args.joint_topic,
                      reference_topic=args.reference_topic, skip_bad=args.skip_bad,
-                     cleaning=cleaning_config(args))
+                     joint_names=args.joint_names, cleaning=cleaning_config(args))

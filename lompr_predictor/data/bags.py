@@ -175,6 +175,7 @@ def read_recording(
     column = {name: i for i, name in enumerate(names)}
     joint_stamps: list[int] = []
     joint_rows: list[np.ndarray] = []
+    seen: set[str] = set()  # every joint name of the joint-state topic
     ref_stamps: list[int] = []
     ref_rows: list[tuple[float, ...]] = []
     try:
@@ -196,6 +197,7 @@ def read_recording(
                 message: Any = _TYPESTORE.deserialize_cdr(raw, connection.msgtype)
                 stamp = stamp_to_ns(message.header.stamp)
                 if connection.topic == joint_topic:
+                    seen.update(message.name)
                     row = np.full(len(names), np.nan)
                     for name, value in zip(message.name, message.position, strict=False):
                         index = column.get(name)
@@ -214,6 +216,11 @@ def read_recording(
         raise BagError(path, f'cannot read ({type(err).__name__}: {err})') from err
     if read != expected:
         raise BagError(path, f'truncated: {read} messages read, metadata.yaml promises {expected}')
+    missing = [name for name in names if name not in seen]
+    if joint_stamps and missing:
+        raise BagError(path, f'no joint(s) {", ".join(missing)} on {joint_topic}; its joints are '
+                             f'{", ".join(sorted(seen)) or "none"} (name yours with --joint-names '
+                             f'in the order {",".join(MEASURED_JOINTS)})')
     reference = np.array(ref_rows, dtype=float).reshape(-1, 7)
     return Recording(
         joints=JointSamples(
@@ -250,6 +257,7 @@ def read_bags(
     joint_topic: str = DEFAULT_JOINT_TOPIC,
     reference_topic: str = DEFAULT_REFERENCE_TOPIC,
     skip_bad: bool = False,
+    joint_names: Sequence[str] = MEASURED_JOINTS,
 ) -> tuple[list[Recording], list[BagSource]]:
     """Read every bag whole. A bad bag raises its `BagError`, or with `skip_bad` is listed
     with its reason (and contributes nothing: never part of a bag)."""
@@ -258,7 +266,7 @@ def read_bags(
     for path in paths:
         try:
             recording = read_recording(path, joint_topic=joint_topic,
-                                       reference_topic=reference_topic)
+                                       reference_topic=reference_topic, joint_names=joint_names)
         except BagError as err:
             if not skip_bad:
                 raise

@@ -13,7 +13,7 @@ from lompr_predictor.data.bags import (
     read_bags,
 )
 from lompr_predictor.data.cleaning import CleanData, CleaningConfig, clean_recordings
-from lompr_predictor.robot.description import LomprGeometry
+from lompr_predictor.robot.description import MEASURED_JOINTS, LomprGeometry
 
 
 @dataclass(frozen=True)
@@ -25,6 +25,8 @@ class BagInputs:
     joint_topic: str = DEFAULT_JOINT_TOPIC
     reference_topic: str = DEFAULT_REFERENCE_TOPIC
     skip_bad: bool = False  # a bad bag is left out whole and listed, instead of stopping
+    #: The bag's names of the measured joints, in `MEASURED_JOINTS` order.
+    joint_names: tuple[str, ...] = MEASURED_JOINTS
     cleaning: CleaningConfig = field(default_factory=CleaningConfig)
 
 
@@ -34,5 +36,5 @@ def load_clean_data(inputs: BagInputs,
     the sources list every bag, used or skipped."""
     recordings, sources = read_bags(inputs.bags, joint_topic=inputs.joint_topic,
                                     reference_topic=inputs.reference_topic,
-                                    skip_bad=inputs.skip_bad)
+                                    skip_bad=inputs.skip_bad, joint_names=inputs.joint_names)
     return clean_recordings(recordings, geometry, inputs.cleaning), sources

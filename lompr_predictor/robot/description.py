@@ -30,6 +30,16 @@ HEAD_JOINTS: tuple[str, str] = ('head_primary', 'head_secondary')
 #: The measured joints, in the order every array in this package uses.
 MEASURED_JOINTS: tuple[str, ...] = BRANCH_JOINTS + HEAD_JOINTS
 TOOL_FRAME = 'tool_tip'
+
+
+def joint_names_problem(names: tuple[str, ...] | list[str]) -> str:
+    """Why `names` cannot name the measured joints ('' if they can): a robot's own names of
+    ups1, ups2, ups3, head_primary, head_secondary, in that order, distinct and non-empty.
+    The one rule of kinematics_node's `joint_names` and `lompr train --joint-names`."""
+    if len(names) != len(MEASURED_JOINTS) or len(set(names)) != len(names) or '' in names:
+        return (f'needs {len(MEASURED_JOINTS)} distinct names, for '
+                f'{", ".join(MEASURED_JOINTS)} in this order')
+    return ''
 WORLD_FRAME = 'world'
 
 # Pinocchio joint model short names the closed-form kinematics is written for.

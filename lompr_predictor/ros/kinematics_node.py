@@ -41,7 +41,12 @@ from lompr_predictor.monitoring import (
     latency_values,
     rejection_values,
 )
-from lompr_predictor.robot.description import MEASURED_JOINTS, WORLD_FRAME, load_robot_description
+from lompr_predictor.robot.description import (
+    MEASURED_JOINTS,
+    WORLD_FRAME,
+    joint_names_problem,
+    load_robot_description,
+)
 from lompr_predictor.robot.kinematics import AllJoints, ForwardKinematics, NonFiniteJointError
 from lompr_predictor.ros.common import run_node
 from lompr_predictor.ros.node_base import (
@@ -71,13 +76,6 @@ MESSAGE_REASONS = ('malformed', 'unstamped', 'bad_stamp', 'future_stamp', 'missi
 REJECTION_REASONS = (*MESSAGE_REASONS, *KINEMATICS_REASONS.values())
 
 
-def _check_joint_names(names: Sequence[str]) -> str:
-    if len(names) != len(MEASURED_JOINTS) or len(set(names)) != len(names) or '' in names:
-        return (f'needs {len(MEASURED_JOINTS)} distinct names, for '
-                f'{", ".join(MEASURED_JOINTS)}')
-    return ''
-
-
 @dataclass(frozen=True)
 class KinematicsNodeSettings(StatusSettings):
     """The node's parameters: one field each (after the shared `StatusSettings`),
@@ -89,7 +87,7 @@ class KinematicsNodeSettings(StatusSettings):
     joint_names: tuple[str, ...] = parameter(
         MEASURED_JOINTS, 'names, as they appear in the JointState, of the joints ups1, ups2, '
         'ups3, head_primary, head_secondary (in this order); other names are ignored',
-        read_only=True, check=_check_joint_names)
+        read_only=True, check=joint_names_problem)
     joint_state_topic: str = parameter('joint_states', 'JointState input topic (relative: '
                                        "in the node's namespace)", read_only=True)
     end_pose_topic: str = parameter('lompr/end_pose', 'PoseStamped output topic',

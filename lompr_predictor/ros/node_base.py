@@ -73,6 +73,7 @@ from rclpy.qos import (
 from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverridingOptions
 from rclpy.subscription import Subscription
 from rclpy.timer import Timer
+from rclpy.topic_endpoint_info import TopicEndpointInfo
 
 from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import Level, LogThrottle, RateMeter, RejectionCounter, Status
@@ -311,25 +312,38 @@ class NodeBase(_NodeType, Generic[S]):
         return handle
 
     def incompatible_qos_peers(self) -> list[str]:
-        """Endpoints of this node with a peer in the graph whose QoS cannot match."""
+        """Endpoints of this node with a peer in the graph whose QoS cannot match.
+
+        Both sides are compared as the graph reports them: the QoS a publisher is created
+        with leaves policies such as the deadline at "system default", which the middleware
+        fills in (infinite), so comparing it with a peer's reported QoS would see a deadline
+        the publisher lacks and warn about a peer that matches."""
         live = {id(entity) for entity in (*self.publishers, *self.subscriptions)}
         self._endpoints = [entity for entity in self._endpoints if id(entity) in live]
         found = []
-        for entity in self._endpoints:
-            topic = entity.topic_name
-            if isinstance(entity, Subscription):
-                peers = self.get_publishers_info_by_topic(topic)
-                pairs = [(peer.qos_profile, entity.qos_profile) for peer in peers]
-                kind = 'subscription'
+        for topic, kind in dict.fromkeys(
+                (entity.topic_name, 'subscription' if isinstance(entity, Subscription)
+                 else 'publisher') for entity in self._endpoints):
+            publishers = self.get_publishers_info_by_topic(topic)
+            subscriptions = self.get_subscriptions_info_by_topic(topic)
+            ours, peers = ((subscriptions, publishers) if kind == 'subscription'
+                           else (publishers, subscriptions))
+            own = [info.qos_profile for info in ours if self._is_own(info)]
+            others = [info.qos_profile for info in peers if not self._is_own(info)]
+            if kind == 'subscription':
+                pairs = [(peer, mine) for peer in others for mine in own]
             else:
-                peers = self.get_subscriptions_info_by_topic(topic)
-                pairs = [(entity.qos_profile, peer.qos_profile) for peer in peers]
-                kind = 'publisher'
+                pairs = [(mine, peer) for peer in others for mine in own]
             bad = sum(qos_check_compatible(offered, requested)[0] == QoSCompatibility.ERROR
                       for offered, requested in pairs)
             if bad:
                 found.append(f'{topic} {kind} ({bad} peer(s))')
         return found
+
+    def _is_own(self, info: TopicEndpointInfo) -> bool:
+        """Whether a graph endpoint belongs to this node."""
+        return (info.node_name == self.get_name()
+                and info.node_namespace == self.get_namespace())
 
     def qos_status(self) -> Status:
         """The node's `qos` diagnostic status: WARN while a peer with incompatible QoS is
