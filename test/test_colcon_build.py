@@ -57,6 +57,8 @@ def test_ament_index_finds_installed_executables(install: Path) -> None:
     assert (share / 'package.xml').is_file()
     assert (share / 'description' / 'lompr.urdf').is_file()
     assert (share / 'config' / 'kinematics_node.yaml').is_file()
+    assert (share / 'config' / 'lompr.yaml').is_file()
+    assert (share / 'launch' / 'lompr.launch.xml').is_file()
     assert install in module.parents, 'the sourced install must shadow the source tree'
     for name in EXECUTABLES:  # where `ros2 run` looks: <prefix>/lib/<package>/<name>
         executable = prefix / 'lib' / PACKAGE / name

@@ -8,7 +8,9 @@ import re
 from pathlib import Path
 from xml.etree import ElementTree
 
+import pytest
 import yaml
+from ros_helpers import start_executable, stop_process
 from test_node_docs import load_tool
 
 from lompr_predictor.ros.parameters import parameter_specs
@@ -101,3 +103,26 @@ def test_the_joint_names_default_is_the_nodes() -> None:
     specs = parameter_specs(generator.settings_class('kinematics_node'))
     defaults = {arg.get('name'): arg.get('default') for arg in launch_root().iter('arg')}
     assert tuple(str(defaults['joint_names']).split(',')) == specs['joint_names'].default
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize(('node', 'arguments', 'expected'), [
+    ('kinematics_node', ['--params-file', '/missing/site.yaml'],
+     '--params-file /missing/site.yaml: no such file'),
+    ('kinematics_node', ['-p', 'robot_description_file:=/missing/robot.urdf'],
+     'cannot read robot description /missing/robot.urdf'),
+    ('predictor_node', ['-p', 'model_path:=/missing/model.pt'], 'model /missing/model.pt'),
+    ('predictor_node', ['-p', 'model_path:=/missing/model.pt', '-p',
+                        'robot_description_file:=/missing/robot.urdf'],
+     'cannot read robot description /missing/robot.urdf'),
+])
+def test_a_launch_argument_naming_a_missing_file_is_one_line_and_exit_2(
+        node: str, arguments: list[str], expected: str) -> None:
+    process = start_executable(node, *arguments)
+    try:
+        process.wait(timeout=60)
+    finally:
+        code, stderr = stop_process(process)
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1, stderr
+    assert lines[0].startswith(node) and ': error: ' in lines[0] and expected in lines[0]

@@ -146,7 +146,7 @@ class PredictorModule(nn.Module):
     drift stands (how warm the machine is), at the price of that invariance. Tuned
     (`space.SearchSpace.error_levels`): at one point, on a thermal preset at horizon 25, the
     level cut the RMSE by 8 % (X) and 15 % (Y); on friction, wear and backlash presets it
-    mostly cost a few per cent (README, Models).
+    mostly cost a few per cent (docs/training.md, Models).
     """
 
     if TYPE_CHECKING:  # the buffers, for the type checker only: TorchScript cannot resolve

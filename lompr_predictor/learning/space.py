@@ -108,7 +108,7 @@ PAPER_SPACE = SearchSpace()
 #: window's error level (`models.PredictorModule`): at one point, 2-4 seeds each, it took a
 #: thermal preset at horizon 25 from 1.18-1.21 / 1.29-1.42x the irreducible level to
 #: 1.09-1.11 / 1.13-1.14x, and machine 2's friction, wear and backlash presets from
-#: 1.06-1.11x to 1.08-1.19x (README, Models); where the two differed by more than 2 % on
+#: 1.06-1.11x to 1.08-1.19x (docs/training.md, Models); where the two differed by more than 2 % on
 #: the test recording, the validation loss ranked them the same way, so the study chooses.
 DEFAULT_SPACE = SearchSpace(batch_sizes=(128, 256, 512), hidden_units=(16, 32, 64),
                             learning_rates=(0.003, 0.01, 0.02),
