@@ -74,10 +74,11 @@ def test_train_and_evaluate_with_joint_names_then_run_the_nodes_with_them(
         Parameter('model_path', value=str(model)), Parameter('stale_periods', value=1000.0),
         Parameter('late_tolerance', value=60.0)]))
     compensations = ros.collect('/lompr/compensation', Vector3Stamped, 100)
-    joints = ros.node.create_publisher(JointState, '/joint_states', 100)
-    references = ros.node.create_publisher(PoseStamped, '/lompr/reference', 100)
-    ros.wait_for_subscribers(joints)
-    ros.wait_for_subscribers(references)
+    joints, references = publishers = [
+        ros.node.create_publisher(kind, topic, 100)
+        for topic, kind in (('/joint_states', JointState), ('/lompr/reference', PoseStamped))]
+    for publisher in publishers:
+        ros.wait_for_subscribers(publisher)
     ros.wait_for_publishers('/lompr/compensation')
     for k in range(20):
         stamp = int(recording.joints.stamps[k])
