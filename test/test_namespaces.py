@@ -19,6 +19,7 @@ from lompr_predictor.ros.predictor_node import PredictorNode
 
 pytestmark = pytest.mark.ros
 NAMESPACE = '/cell1'
+CONFIG = Path(__file__).resolve().parents[1] / 'lompr_predictor' / 'config'
 
 
 def test_both_nodes_in_a_namespace_with_a_params_file(ros: RosHarness, tmp_path: Path) -> None:
@@ -37,11 +38,15 @@ def test_both_nodes_in_a_namespace_with_a_params_file(ros: RosHarness, tmp_path:
     stale_periods: 1000.0
     late_tolerance: 60.0
 """)
-    cli_args = ['--ros-args', '--params-file', str(params)]
+    def cli_args(node: str) -> list[str]:
+        """As the launch file passes them: packaged defaults, the launch file's, the site's."""
+        files = [CONFIG / f'{node}.yaml', CONFIG / 'lompr.yaml', params]
+        return ['--ros-args', *(part for path in files for part in ('--params-file', str(path)))]
+
     kinematics = ros.add(KinematicsNode(context=ros.context, namespace=NAMESPACE,
-                                        cli_args=cli_args))
+                                        cli_args=cli_args('kinematics_node')))
     predictor = ros.add(PredictorNode(context=ros.context, namespace=NAMESPACE,
-                                      cli_args=cli_args))
+                                      cli_args=cli_args('predictor_node')))
     assert kinematics.settings.warm_start_max_gap == 0.25
     assert predictor.settings.max_compensation_step == 0.00004
     assert predictor.lifecycle_state == 'active'
