@@ -497,18 +497,18 @@ def test_the_node_refuses_an_unverified_model_at_start_and_reports_the_hash(
                    what='the refused node gone (no output)')
     node = ros.add(PredictorNode(context=ros.context, parameter_overrides=[
         Parameter('model_path', value=str(model))]))
-    status = node.model_status()
+    status = node.diagnostics.model_status()
     digest = hashlib.sha256(model.read_bytes()).hexdigest()
     assert status.level == Level.OK
     assert (status.values['sha256'], status.values['sha256_verified_by']) == (digest, 'sidecar')
     # a hot swap to a file whose hash does not check out keeps the running model
     (result,) = node.set_parameters([Parameter('model_path', value=str(bare))])
     assert not result.successful and 'no hash to check it against' in result.reason
-    assert node.core.model.sha256 == digest and node.model_swaps == 0
+    assert node.core.model.sha256 == digest and node.history.swaps == 0
     node.destroy_node()
     loose = ros.add(PredictorNode(context=ros.context, node_name='loose', parameter_overrides=[
         Parameter('model_path', value=str(bare)), Parameter('verify_model_hash', value=False)]))
-    status = loose.model_status()
+    status = loose.diagnostics.model_status()
     assert status.level == Level.WARN and 'NOT verified' in status.message
 
 
@@ -581,6 +581,6 @@ def test_overruns_are_counted_on_diagnostics(ros: Any, tmp_path: Path) -> None:
     overrun = core.overrun
     assert overrun.late_outputs_dropped + overrun.inference_skipped_late >= 3
     assert not [m for m in wiring.compensations if m.vector.x or m.vector.y]  # none late
-    status = wiring.node.prediction_status()
+    status = wiring.node.diagnostics.prediction_status()
     assert status.level == Level.WARN and 'late or skipped' in status.message
     assert status.values['late_outputs_dropped'] == overrun.late_outputs_dropped

@@ -267,10 +267,10 @@ def test_reset_cancels_without_a_fault_and_starts_afresh(tmp_path: Path) -> None
     core = constant_core(tmp_path, (-10e-6, 0.0))
     stamps, reference, tips = spiral(40)
     feed(core, stamps[:NEEDED], reference[:NEEDED], tips[:NEEDED])
-    zeros = core.reset('inactive')
+    zeros = core.reset()
     assert [z.reason for z in zeros] == ['inactive']  # the one offset published
     assert core.faults.total == 0 and core.window_fill == 0
-    assert core.reset('inactive') == []  # nothing in force any more
+    assert core.reset() == []  # nothing in force any more
     # later samples, after a long pause, start a new window without a fault
     outputs = feed(core, stamps[30:30 + NEEDED], reference[30:30 + NEEDED],
                    tips[30:30 + NEEDED])

@@ -9,6 +9,7 @@ import pytest
 from lompr_predictor.online.alignment import (
     MAX_PENDING_POSES,
     AlignedSample,
+    DropReason,
     Event,
     ReferenceTrack,
     StampAlignment,
@@ -138,7 +139,7 @@ def test_waiting_poses_keep_their_arrival_and_clear_counts_them() -> None:
     clock.now += 0.04
     alignment.add_pose(at(1), 0.0, 0.0)
     assert alignment.oldest_waiting_arrival() == 10.0
-    alignment.clear('stale')
+    alignment.clear(DropReason.STALE)
     assert alignment.dropped['stale'] == 2 and alignment.oldest_waiting_arrival() is None
 
 
@@ -163,7 +164,7 @@ def test_a_rewind_takes_the_restarted_streams_without_a_fault(reference_first: b
     alignment.add_pose(at(10), 0.0, 0.0)  # waits for its reference
     if reference_first:
         assert alignment.add_reference(at(0), 0.5, 0.0, 1.097) == ['reference_out_of_order']
-    alignment.rewind(at(0), 'clock_jump')
+    alignment.rewind(at(0), DropReason.CLOCK_JUMP)
     assert alignment.dropped['clock_jump'] == 1 and not alignment.waiting
     assert alignment.newest_pose_ns is None
     if not reference_first:
@@ -172,5 +173,5 @@ def test_a_rewind_takes_the_restarted_streams_without_a_fault(reference_first: b
     (sample,) = samples_of(alignment.add_pose(at(0), 0.5, 0.0))
     assert (sample.stamp_ns, sample.reference_x) == (at(0), 0.5)
     assert alignment.dropped['out_of_order'] == 0
-    alignment.rewind(None, 'inactive')
+    alignment.rewind(None, DropReason.INACTIVE)
     assert alignment.references.newest is None

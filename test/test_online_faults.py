@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from lompr_predictor.online.faults import StaleWatch, StreamRules, StreamSettings
+from lompr_predictor.online.faults import FaultReason, StaleWatch, StreamRules, StreamSettings
 
 PERIOD = 0.04
 PERIOD_NS = 40_000_000
@@ -31,9 +31,9 @@ class FakeClock:
 
 
 @pytest.mark.parametrize(('interval_ns', 'fault'), [
-    (40_000_000, ''), (100_000_000, ''), (100_000_001, 'gap'), (20_000_000, ''),
-    (19_999_999, 'off_rate'), (0, 'off_rate')])
-def test_interval_rules(interval_ns: int, fault: str) -> None:
+    (40_000_000, None), (100_000_000, None), (100_000_001, FaultReason.GAP),
+    (20_000_000, None), (19_999_999, FaultReason.OFF_RATE), (0, FaultReason.OFF_RATE)])
+def test_interval_rules(interval_ns: int, fault: FaultReason | None) -> None:
     rules = StreamRules(stream(), PERIOD_NS)
     assert rules.interval_fault(1_000, 1_000 + interval_ns) == fault
 

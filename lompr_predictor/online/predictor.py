@@ -42,8 +42,8 @@ import numpy as np
 from lompr_predictor.data.features import FEATURES
 from lompr_predictor.learning.model_file import LoadedModel, MetadataMismatchError
 from lompr_predictor.monitoring import LatencyRecorder, RejectionCounter
-from lompr_predictor.online.alignment import DROP_REASONS, AlignedSample, Event, StampAlignment
-from lompr_predictor.online.faults import FAULT_REASONS, StaleWatch, StreamRules, StreamSettings
+from lompr_predictor.online.alignment import AlignedSample, DropReason, Event, StampAlignment
+from lompr_predictor.online.faults import FaultReason, StaleWatch, StreamRules, StreamSettings
 from lompr_predictor.online.offset import CompensationLimits, LiveAccuracy, OffsetGate, Output
 from lompr_predictor.online.timing import OverrunGuard
 from lompr_predictor.online.window import FeatureWindow
@@ -51,7 +51,7 @@ from lompr_predictor.robot.description import RobotDescription, load_robot_descr
 from lompr_predictor.stamps import StampLike, period_ns, stamp_problem, stamp_to_ns
 
 # The names a caller of the core needs, importable from here as before the split.
-__all__ = ['DROP_REASONS', 'FAULT_REASONS', 'CompensationLimits', 'OnlinePredictor', 'Output',
+__all__ = ['CompensationLimits', 'DropReason', 'FaultReason', 'OnlinePredictor', 'Output',
            'StreamSettings']
 
 
@@ -78,7 +78,7 @@ class OnlinePredictor:
         self._window = FeatureWindow(self.window, self.description.geometry)
         self._gate = OffsetGate(limits, period)
         self._accuracy = LiveAccuracy(stream.accuracy_samples)
-        self.faults = RejectionCounter(FAULT_REASONS)
+        self.faults = RejectionCounter(FaultReason)
         self.last_fault = ''
         self.inference_time = LatencyRecorder(latency_samples)
         self.predictions_made = 0
@@ -120,22 +120,22 @@ class OnlinePredictor:
             return []
         if self._window.empty and not alignment.waiting and not self._gate.in_force:
             return []
-        alignment.clear('stale')
-        return self._fault('stale')
+        alignment.clear(DropReason.STALE)
+        return self._fault(FaultReason.STALE)
 
-    def abort(self, reason: str = 'internal') -> list[Output]:
+    def abort(self) -> list[Output]:
         """Empty the window and cancel the offset after a failure outside this class (an
         exception in the caller's own handling)."""
-        self._alignment.clear(reason)
-        return self._fault(reason)
+        self._alignment.clear(DropReason.INTERNAL)
+        return self._fault(FaultReason.INTERNAL)
 
     def clock_jumped_back(self, now_ns: int | None) -> list[Output]:
         """The clock went back to `now_ns` (None: it changed source), as a simulator reset
         does: a 'clock_jump' fault (window emptied, the offset in force cancelled), and the
         inputs are taken as starting again from there (`StampAlignment.rewind`), so the
         restarted streams refill the window without further faults."""
-        outputs = self._fault('clock_jump')
-        self._alignment.rewind(now_ns, 'clock_jump')
+        outputs = self._fault(FaultReason.CLOCK_JUMP)
+        self._alignment.rewind(now_ns, DropReason.CLOCK_JUMP)
         self._stale.restart()
         self.overrun.restart()
         return outputs
@@ -145,7 +145,7 @@ class OnlinePredictor:
         skipping ahead): idle time counts from now (a gap in the stamps is still a fault)."""
         self._stale.restart()
 
-    def reset(self, reason: str = 'inactive') -> list[Output]:
+    def reset(self, reason: DropReason = DropReason.INACTIVE) -> list[Output]:
         """Stop and start afresh, no fault (the node deactivated): the offset in force is
         cancelled (zeros, `reason`), the window emptied, and the inputs forgotten, so that
         the next samples start a new window whatever their stamps."""
@@ -180,7 +180,7 @@ class OnlinePredictor:
 
     @property
     def dropped(self) -> RejectionCounter:
-        """Input samples not used, by reason (`alignment.DROP_REASONS`)."""
+        """Input samples not used, by reason (`alignment.DropReason`)."""
         return self._alignment.dropped
 
     @property
@@ -246,7 +246,7 @@ class OnlinePredictor:
         reason, why = stamp_problem(stamp, now if self._now_ns is not None else 0,
                                     self._max_future_ns)
         if reason:
-            self._alignment.dropped.add(prefix + reason)
+            self._alignment.dropped.add(DropReason(prefix + reason))
             self.last_bad_stamp = f'{prefix or "pose_"}{reason}: {why}'
             return None
         return stamp_to_ns(stamp)
@@ -254,7 +254,7 @@ class OnlinePredictor:
     def _handle(self, events: list[Event]) -> list[Output]:
         outputs: list[Output] = []
         for event in events:
-            if isinstance(event, str):
+            if isinstance(event, FaultReason):
                 outputs += self._fault(event)
             else:
                 outputs += self._use_sample(event)
@@ -266,7 +266,7 @@ class OnlinePredictor:
         previous = window.last_stamp_ns
         if previous is not None:
             reason = self._rules.interval_fault(previous, sample.stamp_ns)
-            if reason:
+            if reason is not None:
                 outputs += self._fault(reason)
         self._stale.used()
         applied, predicted = self._gate.published_for(sample.stamp_ns)
@@ -288,7 +288,7 @@ class OnlinePredictor:
             return []
         prediction = self._infer()
         if prediction is None:
-            return self._fault('inference')
+            return self._fault(FaultReason.INFERENCE)
         self.predictions_made += 1
         if guard is not None:
             started = self._now
@@ -312,7 +312,7 @@ class OnlinePredictor:
         self.inference_time.record(time.perf_counter() - start)
         return (x, y) if math.isfinite(x) and math.isfinite(y) else None
 
-    def _fault(self, reason: str) -> list[Output]:
+    def _fault(self, reason: FaultReason) -> list[Output]:
         """Empty the window; cancel the offsets in force (`offset.OffsetGate.cancel`)."""
         self.faults.add(reason)
         self.last_fault = reason

@@ -46,12 +46,6 @@ class OverrunGuard:
         self._inference_ns = 0  # the last inference's duration on the node's clock
         self.inference_skipped_late = 0
         self.late_outputs_dropped = 0
-        self.restarts = 0
-
-    @property
-    def offset_ns(self) -> int | None:
-        """The estimated best-case node time - stamp time, None before the first sample."""
-        return self._offset
 
     def arrival(self, stamp_ns: int, now_ns: int) -> None:
         """A sample stamped `stamp_ns` arrived (its callback started) at `now_ns`."""
@@ -102,4 +96,3 @@ class OverrunGuard:
         self._offset = None
         self._idle_since = None
         self._last_stamp = None
-        self.restarts += 1
