@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from fake_clock import FakeClock
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from model_helpers import FailingModel, metadata, save_constant, save_linear
@@ -37,14 +38,6 @@ Z = 1.097  # the mirror's height [m]
 BRANCHES = VerticalToolBranches(load_robot_description().geometry)
 #: The features of the model files written before the branch columns came (issue 10).
 OLD_FEATURES = ('error_x', 'error_y', 'ref_x', 'ref_y', 'ref_vx', 'ref_vy', 'ref_ax', 'ref_ay')
-
-
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 100.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 def stream(sample_period: float = PERIOD, stale_min_time: float = 0.0) -> StreamSettings:

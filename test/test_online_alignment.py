@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import pytest
+from fake_clock import FakeClock
 
 from lompr_predictor.online.alignment import (
     MAX_PENDING_POSES,
@@ -19,21 +20,13 @@ PERIOD_NS = 40_000_000
 T0 = 1_700_000_000_000_000_000
 
 
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 10.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
 def at(k: float) -> int:
     """The stamp k periods after T0 [ns]."""
     return T0 + round(k * PERIOD_NS)
 
 
 def aligned(clock: FakeClock | None = None) -> StampAlignment:
-    return StampAlignment(2.5, PERIOD_NS, clock or FakeClock())
+    return StampAlignment(2.5, PERIOD_NS, clock or FakeClock(10.0))
 
 
 def samples_of(events: list[Event]) -> list[AlignedSample]:
@@ -132,7 +125,7 @@ def test_too_many_waiting_poses_drop_the_oldest_as_a_fault() -> None:
 
 
 def test_waiting_poses_keep_their_arrival_and_clear_counts_them() -> None:
-    clock = FakeClock()
+    clock = FakeClock(10.0)
     alignment = aligned(clock)
     assert alignment.oldest_waiting_arrival() is None
     alignment.add_pose(at(0), 0.0, 0.0)
