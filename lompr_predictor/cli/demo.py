@@ -118,8 +118,9 @@ def _stage(number: int, text: str) -> None:
     tqdm.write(f'\n[{number}/5] {text}')
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run the demo; 0 when every stage ran (targets missed are reported, not failed)."""
+def _budget_and_out(args: argparse.Namespace) -> tuple[dict[str, int], Path]:
+    """The run's budget (--quick or the full one, each option overriding) and its output
+    directory, made empty."""
     budget = dict(QUICK if args.quick else FULL)
     for name in budget:
         if getattr(args, name) is not None:
@@ -132,6 +133,12 @@ def run(args: argparse.Namespace) -> int:
         msg = f'{out} exists and is not empty; choose a new --out directory'
         raise LomprError(msg)
     out.mkdir(parents=True, exist_ok=True)
+    return budget, out
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the demo; 0 when every stage ran (targets missed are reported, not failed)."""
+    budget, out = _budget_and_out(args)
     set_torch_threads(args.threads)
     started = time.monotonic()
     description = load_robot_description()

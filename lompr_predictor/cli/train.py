@@ -87,31 +87,7 @@ def add_parser(subparsers: Any) -> None:
                              'scored per epoch likewise): the cost of an epoch is bounded at '
                              'any sample rate (default 20000: every window of 20 passes at '
                              '25 Hz, an eighth of them at 250 Hz)')
-    parser.add_argument('--space', default='default', choices=tuple(SPACES),
-                        help='search space: default (batch ' + _listed(DEFAULT_SPACE.batch_sizes)
-                        + ', hidden ' + _listed(DEFAULT_SPACE.hidden_units) + ', lr '
-                        + _listed(DEFAULT_SPACE.learning_rates) + ', weight decay '
-                        + _listed(DEFAULT_SPACE.weight_decays) + ', LSTM rows '
-                        + _listed(DEFAULT_SPACE.lstm_steps) + ', error level '
-                        + _listed(DEFAULT_SPACE.error_levels) + ") or paper (the paper's grid: "
-                        'batch ' + _listed(PAPER_SPACE.batch_sizes) + ', hidden '
-                        + _listed(PAPER_SPACE.hidden_units) + ', lr '
-                        + _listed(PAPER_SPACE.learning_rates) + '); the lists below replace '
-                        "the named space's")
-    parser.add_argument('--batch-sizes', type=comma_list(positive_int), default=None,
-                        help='comma list')
-    parser.add_argument('--hidden-units', type=comma_list(positive_int), default=None,
-                        help='comma list')
-    parser.add_argument('--learning-rates', type=comma_list(positive_float), default=None,
-                        help='comma list')
-    parser.add_argument('--weight-decays', type=comma_list(finite_float), default=None,
-                        help='comma list (AdamW)')
-    parser.add_argument('--lstm-steps', type=comma_list(positive_int), default=None,
-                        help="comma list: rows at the window's end the LSTM reads")
-    parser.add_argument('--error-levels', type=comma_list(yes_no), default=None,
-                        help='comma list of yes/no: whether the network also sees the '
-                             "window's error level (no: only its course relative to the last "
-                             'row)')
+    _add_space_arguments(parser)
     parser.add_argument('--storage', type=storage_url, default=None,
                         help='where the tuning study lives: postgresql://USER@HOST/DB (shared by '
                              'several machines), sqlite:///FILE, or a journal file path '
@@ -138,6 +114,35 @@ def add_parser(subparsers: Any) -> None:
                              f'again (default {HEARTBEAT_SECONDS})')
     add_data_arguments(parser)
     parser.set_defaults(run=run)
+
+
+def _add_space_arguments(parser: argparse.ArgumentParser) -> None:
+    """The search space: a named one, and lists that replace its own."""
+    parser.add_argument('--space', default='default', choices=tuple(SPACES),
+                        help='search space: default (batch ' + _listed(DEFAULT_SPACE.batch_sizes)
+                        + ', hidden ' + _listed(DEFAULT_SPACE.hidden_units) + ', lr '
+                        + _listed(DEFAULT_SPACE.learning_rates) + ', weight decay '
+                        + _listed(DEFAULT_SPACE.weight_decays) + ', LSTM rows '
+                        + _listed(DEFAULT_SPACE.lstm_steps) + ', error level '
+                        + _listed(DEFAULT_SPACE.error_levels) + ") or paper (the paper's grid: "
+                        'batch ' + _listed(PAPER_SPACE.batch_sizes) + ', hidden '
+                        + _listed(PAPER_SPACE.hidden_units) + ', lr '
+                        + _listed(PAPER_SPACE.learning_rates) + '); the lists below replace '
+                        "the named space's")
+    parser.add_argument('--batch-sizes', type=comma_list(positive_int), default=None,
+                        help='comma list')
+    parser.add_argument('--hidden-units', type=comma_list(positive_int), default=None,
+                        help='comma list')
+    parser.add_argument('--learning-rates', type=comma_list(positive_float), default=None,
+                        help='comma list')
+    parser.add_argument('--weight-decays', type=comma_list(finite_float), default=None,
+                        help='comma list (AdamW)')
+    parser.add_argument('--lstm-steps', type=comma_list(positive_int), default=None,
+                        help="comma list: rows at the window's end the LSTM reads")
+    parser.add_argument('--error-levels', type=comma_list(yes_no), default=None,
+                        help='comma list of yes/no: whether the network also sees the '
+                             "window's error level (no: only its course relative to the last "
+                             'row)')
 
 
 def search_space(args: argparse.Namespace) -> SearchSpace:

@@ -38,7 +38,7 @@ from __future__ import annotations
 import copy
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -175,6 +175,53 @@ def validation_loss(net: nn.Module, inputs: ScaledRows, ends: np.ndarray,
     return total / (len(ends) * targets.shape[1])
 
 
+class _Schedule:
+    """The optimiser and its learning-rate schedule: the LSTM's AdamW with a cosine decay
+    over every step of `max_epochs`, the BP's Adam with a decay on plateaus (the paper's)."""
+
+    def __init__(self, net: nn.Module, model_type: str, hyperparameters: Mapping[str, Any],
+                 total_steps: int) -> None:
+        rate = float(hyperparameters['learning_rate'])
+        self.cosine = model_type == 'lstm'
+        self.optimiser: torch.optim.Optimizer
+        self._per_step: Any = None
+        self._plateau: Any = None
+        if self.cosine:
+            self.optimiser = torch.optim.AdamW(
+                net.parameters(), lr=rate,
+                weight_decay=float(hyperparameters.get('weight_decay', 0.0)))
+            self._per_step = torch.optim.lr_scheduler.CosineAnnealingLR(
+                self.optimiser, max(1, total_steps))
+        else:
+            self.optimiser = torch.optim.Adam(net.parameters(), lr=rate)
+            self._plateau = torch.optim.lr_scheduler.ReduceLROnPlateau(
+                self.optimiser, factor=LR_DECAY, patience=LR_DECAY_PATIENCE)
+
+    def step(self) -> None:
+        """One batch's step of the optimiser, and of the rate if it decays per step."""
+        self.optimiser.step()
+        if self._per_step is not None:
+            self._per_step.step()
+
+    def epoch_done(self, validation_loss: float) -> None:
+        if self._plateau is not None:
+            self._plateau.step(validation_loss)
+
+
+def _train_epoch(net: nn.Module, schedule: _Schedule,
+                 windows: Callable[[np.ndarray, int], torch.Tensor], ends: np.ndarray,
+                 targets: torch.Tensor, batch: int, window: int) -> None:
+    """One epoch over the windows ending at `ends` (in that order), `batch` at a time."""
+    net.train()
+    for start in range(0, len(ends), batch):
+        x = windows(ends[start:start + batch], window)
+        loss = nn.functional.mse_loss(net(x), targets[start:start + batch])
+        schedule.optimiser.zero_grad()
+        loss.backward()
+        nn.utils.clip_grad_norm_(net.parameters(), GRADIENT_CLIP)
+        schedule.step()
+
+
 def train_network(
     problem: LearningProblem,
     model_type: str,
@@ -213,19 +260,9 @@ def train_network(
     train_y, validation_y = (module.normalise_targets(problem.targets(ends, residual))
                              for ends in (split.train, validation_ends))
     epoch_size = min(len(split.train), settings.epoch_windows)
-    rate = float(hyperparameters['learning_rate'])
-    cosine = model_type == 'lstm'
-    optimiser: torch.optim.Optimizer
-    if cosine:
-        optimiser = torch.optim.AdamW(net.parameters(), lr=rate,
-                                      weight_decay=float(hyperparameters.get('weight_decay', 0.0)))
-        steps_per_epoch = math.ceil(epoch_size / batch)
-        step_schedule: Any = torch.optim.lr_scheduler.CosineAnnealingLR(
-            optimiser, max(1, settings.max_epochs * steps_per_epoch))
-    else:
-        optimiser = torch.optim.Adam(net.parameters(), lr=rate)
-        plateau = torch.optim.lr_scheduler.ReduceLROnPlateau(
-            optimiser, factor=LR_DECAY, patience=LR_DECAY_PATIENCE)
+    schedule = _Schedule(net, model_type, hyperparameters,
+                         settings.max_epochs * math.ceil(epoch_size / batch))
+    cosine = schedule.cosine
     best, best_state, best_epoch, history = math.inf, copy.deepcopy(net.state_dict()), 0, []
     pruned_epoch = 0
     started = time.perf_counter()
@@ -233,25 +270,15 @@ def train_network(
                   leave=False, disable=not progress)
     epoch = 0
     for epoch in epochs:
-        net.train()
         order = rng.permutation(len(split.train))[:epoch_size]
-        for start in range(0, len(order), batch):
-            chosen = order[start:start + batch]
-            x = inputs.windows(split.train[chosen], window)
-            loss = nn.functional.mse_loss(net(x), train_y[chosen])
-            optimiser.zero_grad()
-            loss.backward()
-            nn.utils.clip_grad_norm_(net.parameters(), GRADIENT_CLIP)
-            optimiser.step()
-            if cosine:
-                step_schedule.step()
+        _train_epoch(net, schedule, inputs.windows, split.train[order], train_y[order], batch,
+                     window)
         net.eval()
         loss_value = validation_loss(module.net, inputs, validation_ends, validation_y, window)
         if not math.isfinite(loss_value):
             loss_value = math.inf
         history.append(loss_value)
-        if not cosine:
-            plateau.step(loss_value)
+        schedule.epoch_done(loss_value)
         epochs.set_postfix(validation=f'{loss_value:.3g}')
         if loss_value < best:
             best, best_state, best_epoch = loss_value, copy.deepcopy(net.state_dict()), epoch
