@@ -42,7 +42,7 @@ WINDOW, HORIZON = 4, 3
 NEEDED = WINDOW + HISTORY
 Z = 1.097  # the mirror's height [m]
 BRANCHES = VerticalToolBranches(load_robot_description().geometry)
-#: The features of the model files written before the branch columns came (issue 10).
+#: The features of the model files written before the branch columns came.
 OLD_FEATURES = ('error_x', 'error_y', 'ref_x', 'ref_y', 'ref_vx', 'ref_vy', 'ref_ax', 'ref_ay')
 
 

@@ -62,7 +62,7 @@ def stream_through(core: OnlinePredictor, clock: NodeClock, samples: int, period
 @pytest.mark.faults
 @pytest.mark.parametrize('horizon', [1, 5])
 def test_a_slow_model_publishes_nothing_late_and_no_burst(tmp_path: Path, horizon: int) -> None:
-    """100 ms per inference, 25 Hz input (issue 12, case 6)."""
+    """100 ms per inference, 25 Hz input."""
     clock = NodeClock()
     model = load_model(save_constant(tmp_path / 'm.pt', (1e-5, 0.0), window=WINDOW,
                                      horizon=horizon))

@@ -279,7 +279,7 @@ def test_mismatched_model_is_refused_naming_the_field(ros: RosHarness, tmp_path:
         PredictorNode(context=ros.context, parameter_overrides=[
             Parameter('model_path', value=str(jittered)),
             Parameter('robot_description_file', value=str(calibrated))])
-    # a model file from before the branch features (issue 10) reads other columns
+    # a model file from before the branch features reads other columns
     old = save_linear(tmp_path / 'o.pt', weight=np.zeros((WINDOW * 8, 2)), window=WINDOW,
                       horizon=HORIZON, features=FEATURES[:8])
     with pytest.raises(MetadataMismatchError, match=r"'features' is \('error_x', .*'ref_ay'\), "

@@ -74,7 +74,7 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
     assert content['split']['test_start_row'] == 2160
     assert '| RMSE (um) |' in (report / 'report.md').read_text()
     loaded = load_model(model, expected={'features': FEATURES, 'window': 8, 'horizon': 2})
-    # the trust chain (issue 12): the model's sha256 in the report and beside the model
+    # the trust chain: the model's sha256 in the report and beside the model
     assert content['model_sha256'] == loaded.sha256 == file_sha256(model)
     assert loaded.verified_by == 'sidecar' and content['model_sha256'] in (
         report / 'report.md').read_text()

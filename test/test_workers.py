@@ -1,4 +1,4 @@
-"""Tuning with several workers (issues 10 and 14): exact budget across processes, a dead
+"""Tuning with several workers: exact budget across processes, a dead
 worker's trial failed and its point run again, one study shared by separate commands through
 PostgreSQL, settings checked on joining, bad options refused in one line."""
 

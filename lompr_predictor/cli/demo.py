@@ -63,9 +63,9 @@ QUICK = {'train_passes': 12, 'trials': 1, 'max_epochs': 120, 'passes': 2}
 #: default. --quick trains the first point only.
 SPACE = SearchSpace(batch_sizes=(256, 512), hidden_units=(32, 64), learning_rates=(0.01, 0.003),
                     weight_decays=(0.0,), lstm_steps=(10,))
-#: Targets: model RMS at most this share of persistence's at the same horizon (issue 11 at
-#: horizons 1 and 5, issue 6's 70 % at any other), reduction at least (issue 11), no pass
-#: made worse, and every sample after the predictor's window filled answered.
+#: Targets: model RMS at most this share of persistence's at the same horizon (stricter at
+#: horizons 1 and 5 than at any other), reduction at least this, no pass made worse, and
+#: every sample after the predictor's window filled answered.
 TARGET_MODEL_TO_PERSISTENCE_PCT = {1: 50.0, 5: 30.0}
 TARGET_MODEL_TO_PERSISTENCE_OTHER_PCT = 70.0
 TARGET_REDUCTION_PCT = 97.0

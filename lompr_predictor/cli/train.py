@@ -1,4 +1,4 @@
-"""`lompr train BAG_DIR... --out MODEL.pt --report DIR`: the offline trainer (issue 4).
+"""`lompr train BAG_DIR... --out MODEL.pt --report DIR`: the offline trainer.
 
 Reads and cleans the bags, tunes the LSTM's batch size, hidden units and learning rate with
 Bayesian optimisation on a validation split carved from the training 90 %, trains the
@@ -203,7 +203,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def summary_line(report: dict[str, Any]) -> str:
-    """Trials and the run's time split, from a training report (issue 10)."""
+    """Trials and the run's time split, from a training report."""
     tuning, timings = report['tuning'], report['timings']
     split = ', '.join(f'{label} {timings[key]:.1f} s' for label, key in (
         ('read+clean', 'read_clean_fk_seconds'), ('tuning', 'tuning_seconds'),
@@ -221,7 +221,7 @@ def summary_line(report: dict[str, Any]) -> str:
 
 def ridge_warning(report: dict[str, Any]) -> str | None:
     """A warning line when the BO-LSTM's test RMSE is not below the ridge baseline's on some
-    axis: the network then learned no more than a linear filter (issue 10)."""
+    axis: the network then learned no more than a linear filter."""
     beaten = report.get('bo_lstm_beats', {}).get('ridge')
     if not beaten:
         return None

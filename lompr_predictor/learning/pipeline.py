@@ -1,4 +1,4 @@
-"""The offline training pipeline (issue 4) as one library call: what `lompr train` runs.
+"""The offline training pipeline as one library call: what `lompr train` runs.
 
 `train_predictor(config)` reads and cleans the bags (`data.loading`), cuts the learning
 problem (windows, chronological split: `data.problem`), tunes the LSTM's batch size, hidden

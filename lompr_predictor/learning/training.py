@@ -1,36 +1,13 @@
-"""Training loop: mini-batch Adam on the training windows, early stopping on validation.
+"""Training loop: one function, `train_network`, for the LSTM (in tuning and at the end) and
+the paper's BP baseline alike, so their training times compare like for like.
 
-The LSTM's recipe (issue 10, measured on the twin's presets): standardised inputs and
-targets, AdamW with the tuned learning rate and weight decay, a cosine learning-rate decay
-over `max_epochs` (per step), gradient clipping, the best validation epoch kept, early
-stopping after `patience` epochs without improvement in the schedule's last quarter
-(measured on the nominal twin: the validation loss wanders while the rate is high and falls
-by a third in the last 15 epochs; a stop at epoch 23 cost 8-28 % RMSE).
-The schedule is 120 epochs long (issue 10): the network was undertrained at 40 and at 60.
-At 40 epochs the Y axis's training and validation error were still falling at the last
-epoch; 60 took X/Y at a fixed point (batch 256, hidden 32, rate 1e-2, two seeds) from
-1.08/1.25 to 1.07/1.12 (nominal, horizon 25) and from 1.38/1.23 to 1.27/1.16 (sharp friction,
-horizon 1). At the point the default study picks most (batch 512, hidden 32, rate 0.02), 4
-seeds, test RMSE / irreducible, mean X/Y, 60 -> 120 epochs: worn h1 1.23/1.17 -> 1.10/1.09,
-sharp friction h1 1.14/1.12 -> 1.08/1.09, sharp friction h25 1.13/1.27 -> 1.09/1.13, nominal
-h25 1.08/1.30 -> 1.07/1.11, thermal h25 1.15/1.31 -> 1.15/1.23; 200 epochs were no better
-(two seeds: 1.09/1.12, 1.09/1.11, 1.16/1.23). What the extra epochs buy is mostly one rare
-event learned: the return to the centre at a pass's end, which a horizon-25 prediction has
-to see coming. A per-axis loss balance, per-axis best epochs and the LSTM over the whole
-window did not help; nor did the last row fed to the head beside the LSTM's state. The
-window's error level as extra input columns helps where a slow drift is under way (thermal
-presets) and costs a little elsewhere: it is a tuned choice (`space.DEFAULT_SPACE`).
-The paper's BP keeps its own: min-max inputs, Adam, the rate cut by `LR_DECAY` on a
-validation plateau.
-
-One function, `train_network`, trains the LSTM (during tuning and at the end) and the BP
-baseline alike, so their training times compare like for like. Each epoch reports the
-validation loss to an Optuna trial when given (which may prune it), the best epoch's
-weights are kept, and training stops after `patience` epochs without improvement.
-Everything is seeded: the same problem, hyperparameters and seed give the same model. The
-torch thread count is the caller's (an entry point sets it, `threads.set_torch_threads`):
-one thread suits the small LSTM best on a loaded 2-core machine (measured at load 4: 7.5 ms
-per batch-600 step with one thread, 16.9 ms with two).
+The LSTM's recipe: standardised inputs and targets, AdamW, a cosine learning-rate decay
+over `max_epochs` (per step), gradient clipping, the best validation epoch kept, and early
+stopping only in the schedule's last quarter (the validation loss wanders while the rate is
+high). The BP keeps the paper's: min-max inputs, Adam, the rate cut on a validation plateau.
+Each epoch reports the validation loss to an Optuna trial when given (which may prune it).
+Everything is seeded; the torch thread count is the caller's (`threads.set_torch_threads`).
+The measurements behind these choices are in docs/results.md.
 """
 
 from __future__ import annotations

@@ -1,34 +1,11 @@
 """Online error prediction and a bounded compensation offset, sample by sample (ROS-free).
 
-`OnlinePredictor` is the predictor node's core; the node only turns messages into calls.
-It composes the parts, each in its own module and testable alone:
-
-- `alignment.StampAlignment`: `add_reference(stamp, x, y, z)` and `add_pose(stamp, x, y)` take
-  the two input streams in arrival order; a pose waits for the reference at or after its
-  stamp and gets the reference interpolated to its stamp (CONTRACT section 2).
-- The plant error of a sample is measured tool tip - reference - the offset this predictor
-  published for that instant (CONTRACT section 3), zero where it published none.
-- `window.FeatureWindow`: the feature rows of the last samples, as `features.feature_rows`
-  gives them offline; once it is full every new sample gives one `Output`: the predicted
-  plant error for the instant `horizon` sample periods after it, and the offset for it.
-- `offset.OffsetGate`: the one place the offset is bounded (clamp, step limit), scheduled by
-  instant and cancelled by zeros; shadow mode.
-- `faults`: the stream rules (gap, off-rate) and staleness. Any fault (those, the
-  alignment's, a failing or non-finite inference, `abort`) empties the window and cancels
-  the offset in force; output resumes once the window has refilled with good samples.
-
-- `timing.OverrunGuard`: with `now_ns` (the node's clock, integer ns) given, the overrun
-  policy: a sample whose output could only come after its instant gets no inference, an
-  inference that finishes after its instant publishes nothing (both counted); and input
-  stamps are checked (`stamps.stamp_problem`: negative, nanosec >= 1e9, more than
-  `StreamSettings.max_future_stamp` ahead of `now_ns`), a bad one dropped and counted.
-
-Time: `clock` (seconds, monotonic by default) stamps arrivals and times staleness. The
-predictor node gives its ROS clock (simulated time under use_sim_time) and reports the
-clock's jumps: `clock_jumped_back` (a simulator reset: a fault, and the streams are taken as
-starting again) and `restart_staleness` (the clock started or skipped ahead). `now_ns` (the
-same clock in integer ns; None: no overrun policy, no future check) is read once at each
-input and after each inference. Every call returns the outputs to publish, in order.
+`OnlinePredictor` is the predictor node's core: it composes the alignment by stamp
+(`alignment`), the plant error (CONTRACT section 3), the feature window (`window`), the
+model, the offset gate (`offset`), the fault rules (`faults`) and the overrun policy
+(`timing`), each testable alone. Any fault empties the window and cancels the offset in
+force. Time is the caller's clock (the node's ROS clock, simulated under use_sim_time),
+whose jumps the caller reports; every call returns the outputs to publish, in order.
 """
 
 from __future__ import annotations

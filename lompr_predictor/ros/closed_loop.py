@@ -1,33 +1,14 @@
-"""The closed loop on the digital twin, through the real nodes: in one process, or as three
-processes on simulated time.
+"""The closed loop on the digital twin through the real nodes, in one process or as three
+processes on simulated time, so that a model is scored on the true tool-tip error it leaves.
 
     twin_node (lockstep) --/joint_states--> kinematics_node --/lompr/end_pose--> predictor_node
     twin_node --/lompr/reference--> predictor_node --/lompr/compensation--> twin_node
 
-The predictor's offset for an instant moves the twin's command at that instant (CONTRACT
-section 3). The three nodes and a collector run on one executor, on their own rclpy
-`Context` and on private topic names (nothing leaks to, or hears from, a robot on the same
-ROS domain). The twin runs in lockstep: the next sample runs as soon as its offset arrived,
-so a pass of 44 s of machining takes about 3 s (measured: ~380 samples/s on the events
-executor, ~290 on the single-threaded one). The collector keeps the twin's debug
-topics (`/lompr/twin/true_error`, `/lompr/twin/plant_error`) and its joint states and
-references, so a run can be scored on the true tool-tip error and recorded as a bag.
-
-`compensation_enabled` of the predictor node can be switched off at a given sample
-(`LoopSettings.switch_off_at`): the node goes on predicting (shadow mode) and publishes zero
-offsets. A loop without compensation is the same pipeline in shadow mode from the start.
-
-Across processes (`LoopSettings.processes`), as a simulator (Gazebo, Isaac Sim, a
-hardware-in-the-loop rig) drives real nodes: `twin_node`, `kinematics_node` and
-`predictor_node` run as three executables on a private ROS domain; the twin publishes
-/clock (each sample's instant, `publish_clock`) and the two nodes run with
-`use_sim_time:=true` and their default staleness rules; the twin waits for its nodes
-(`wait_for_subscribers`) and writes every sample it ran to a run log (`twin.run_log`), which
-becomes the `LoopRun`. The predictor's counters come from its last /diagnostics. The twin
-still runs in lockstep, so both ways run the same samples and score alike.
-
-`persistence_model` writes the simplest compensator as a model file (offset = minus the
-last measured plant error), so that it runs through the same predictor node.
+Both modes run the twin in lockstep (the next sample runs once its offset arrived), give the
+nodes the same parameters (`loop_parameters`) and count a run alike (`loop_counts`), so
+they score alike. In one process the nodes share an executor on private topic names; across
+processes they run on a private ROS domain, the twin publishes /clock and writes a run log.
+`persistence_model` writes the simplest compensator as a model file, run by the same node.
 """
 
 from __future__ import annotations
