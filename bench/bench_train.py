@@ -34,7 +34,7 @@ from lompr_predictor.learning.pipeline import TrainingConfig, train_predictor, w
 from lompr_predictor.threads import default_workers, set_torch_threads
 
 PRESETS = ('nominal', 'sharp_friction', 'backlash', 'thermal', 'highrate', 'worn')
-#: Issue 10's targets: horizon -> max BO-LSTM RMSE / irreducible; BO-LSTM / ridge at most.
+#: The targets: horizon -> max BO-LSTM RMSE / irreducible; BO-LSTM / ridge at most.
 TARGET_TO_IRREDUCIBLE = {1: 1.25, 25: 1.5}
 TARGET_TO_RIDGE = 0.85
 #: The default study's whole run on 2 cores.

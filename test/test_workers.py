@@ -291,7 +291,7 @@ def _children(pid: int) -> set[int]:
 
 @pytest.mark.slow
 def test_separate_commands_share_a_postgresql_study(tmp_path: Path) -> None:
-    """Issue 14: two `lompr train --workers-only` commands (as on two machines) on one
+    """Two `lompr train --workers-only` commands (as on two machines) on one
     PostgreSQL study, one killed mid-trial, then the finishing command: every trial counted
     once, the budget not exceeded, the killed trial failed (its heartbeats stopped) and run
     again, the model written once (by the finishing command) and loadable."""
