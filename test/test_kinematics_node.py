@@ -234,7 +234,6 @@ def test_input_qos_is_overridable_by_parameters(ros: RosHarness) -> None:
 # -- faults: duplicate joints and impossible stamps -----------------------------------------
 
 @pytest.mark.faults
-@pytest.mark.ros
 def test_duplicate_joint_names_and_impossible_stamps_are_rejected_and_counted(
         ros: Any, description: RobotDescription) -> None:
     from test_kinematics_node import KNOWN_TIPS, Wiring, joint_state

@@ -334,7 +334,6 @@ def test_executors_by_name() -> None:
 # -- faults: incompatible QoS ---------------------------------------------------------------
 
 @pytest.mark.faults
-@pytest.mark.ros
 def test_incompatible_qos_is_counted_and_warns_on_diagnostics(ros: Any, tmp_path: Path) -> None:
     from geometry_msgs.msg import Vector3Stamped
     from rclpy.parameter import Parameter

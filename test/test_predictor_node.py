@@ -465,7 +465,6 @@ def test_one_process_pipeline_answers_joint_states(
 # -- faults: refusals, the trust chain, overruns --------------------------------------------
 
 @pytest.mark.faults
-@pytest.mark.ros
 @pytest.mark.parametrize(('argument', 'expected'), [
     ('model_path:=', "Couldn't parse parameter override rule: '-p model_path:='"),
     ("model_path:=''", 'parameter model_path is empty'),
@@ -480,13 +479,9 @@ def test_predictor_node_refuses_an_empty_model_path_in_one_line(
 
 
 @pytest.mark.faults
-@pytest.mark.ros
 def test_the_node_refuses_an_unverified_model_at_start_and_reports_the_hash(
         ros: Any, tmp_path: Path) -> None:
-    from rclpy.parameter import Parameter
-
     from lompr_predictor.monitoring import Level
-    from lompr_predictor.ros.predictor_node import PredictorNode
 
     model = save_constant(tmp_path / 'model.pt', window=WINDOW, horizon=HORIZON)
     bare = tmp_path / 'bare.pt'
@@ -514,11 +509,8 @@ def test_the_node_refuses_an_unverified_model_at_start_and_reports_the_hash(
 
 
 @pytest.mark.faults
-@pytest.mark.ros
 def test_overruns_are_counted_on_diagnostics(ros: Any, tmp_path: Path) -> None:
     import time
-
-    from test_predictor_node import Wiring
 
     from lompr_predictor.monitoring import Level
 

@@ -8,11 +8,16 @@ from typing import TYPE_CHECKING
 
 from lompr_predictor.monitoring import Status
 from lompr_predictor.online import predictor_status
+from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_status import InputRates, Lifecycle, PredictionLimits
 
 if TYPE_CHECKING:
     from lompr_predictor.ros.common import DiagnosticsPublisher
     from lompr_predictor.ros.predictor_node import PredictorNode
+
+
+def _core_of(node: PredictorNode) -> OnlinePredictor | None:
+    return node.core if node.configured else None
 
 
 class PredictorDiagnostics:
@@ -33,10 +38,11 @@ class PredictorDiagnostics:
     def model_status(self) -> Status:
         node = self._node
         return predictor_status.model_status(self._lifecycle(), node.settings.model_path,
-                                             node.configured_core, node.history)
+                                             _core_of(node), node.history)
 
     def input_status(self) -> Status:
-        node, core = self._node, self._node.configured_core
+        node = self._node
+        core = _core_of(node)
         new_faults = 0
         if core is not None:
             new_faults = core.faults.total - self._faults_at_last_report
@@ -51,7 +57,8 @@ class PredictorDiagnostics:
         return predictor_status.input_status(self._lifecycle(), core, rates, new_faults)
 
     def prediction_status(self) -> Status:
-        node, core = self._node, self._node.configured_core
+        node = self._node
+        core = _core_of(node)
         new_overruns = 0
         if core is not None:
             overruns = predictor_status.overruns(core)

@@ -108,11 +108,6 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
     def configured(self) -> bool:
         return self._core is not None
 
-    @property
-    def configured_core(self) -> OnlinePredictor | None:
-        """The core while configured, else None."""
-        return self._core
-
     def start(self) -> None:
         """Configure and activate if `autostart` (`ManagedNode.autostart`)."""
         if self.settings.autostart:
@@ -126,7 +121,11 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Load, check and warm up the model; create the core and the endpoints. A failure
         leaves the node unconfigured with the reason (log, /diagnostics)."""
-        result = self.configured_as(self._configure())
+        try:
+            error = self._configure()
+        except LomprError as err:  # an endpoint refused (a QoS override it cannot apply)
+            error = err
+        result = self.configured_as(error)
         if result != TransitionCallbackReturn.SUCCESS:
             return result
         return super().on_configure(state)
