@@ -154,7 +154,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             return outcome.error
         self._running = ready = outcome.ready
         model, self.sample_period = ready.model, ready.sample_period
-        self.history = ModelHistory(warm_up_seconds=ready.warm_up_seconds)
+        self.history = replace(self.history, warm_up_seconds=ready.warm_up_seconds)
         self._core = OnlinePredictor(
             model,
             settings.stream(self.sample_period), settings.limits, clock=self.clock_seconds,
