@@ -1,4 +1,4 @@
-"""Forward kinematics speed against the issue's targets; prints figures and PASS/FAIL.
+"""Forward kinematics speed against its targets; prints figures and PASS/FAIL.
 
 - single: `ForwardKinematics.solve` as the kinematics node calls it, one sample after the
   other along the paper's spiral at 25 Hz (warm-started), per-call time p50/p99 [us].

@@ -1,4 +1,4 @@
-"""Benchmark of the offline trainer against issue 10's targets, on the twin's physics presets.
+"""Benchmark of the offline trainer against its targets, on the twin's physics presets.
 
     python bench/bench_train.py [--presets P ...] [--horizons 1 25] [--bags DIR]
                                 [--machine-seed M] [--workers N] [--trials T]
@@ -13,7 +13,7 @@ processes: default the cores available). The recordings are `DIR/{preset}_seed{1
 RMSE per axis of persistence, ridge, boosted trees (HGB), BP and BO-LSTM as multiples of the
 twin's irreducible level (from the test recording's ground truth), the irreducible level
 in um, the tuning wall time and the trials run and stopped by the pruner, and checks
-issue 10's targets: BO-LSTM <= 1.25x irreducible at horizon 1 and <= 1.5x at horizon 25,
+the targets: BO-LSTM <= 1.25x irreducible at horizon 1 and <= 1.5x at horizon 25,
 <= 0.85x ridge, no worse than HGB; and the whole run <= 300 s (the default study on 2
 cores). --quick shrinks the study (6 trials of at most 12 epochs) to check the script; its
 figures are not the targets'. The full reports stay in --out.
@@ -34,10 +34,10 @@ from lompr_predictor.learning.pipeline import TrainingConfig, train_predictor, w
 from lompr_predictor.threads import default_workers, set_torch_threads
 
 PRESETS = ('nominal', 'sharp_friction', 'backlash', 'thermal', 'highrate', 'worn')
-#: Issue 10's targets: horizon -> max BO-LSTM RMSE / irreducible; BO-LSTM / ridge at most.
+#: The targets: horizon -> max BO-LSTM RMSE / irreducible; BO-LSTM / ridge at most.
 TARGET_TO_IRREDUCIBLE = {1: 1.25, 25: 1.5}
 TARGET_TO_RIDGE = 0.85
-#: The default study's whole run on 2 cores (issue 10).
+#: The default study's whole run on 2 cores.
 TARGET_RUN_SECONDS = 300.0
 TRAIN_SEED, TEST_SEED = 1, 2
 PASSES = 20

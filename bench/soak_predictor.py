@@ -15,7 +15,7 @@ parameters, for `--minutes` (default 10), and prints:
   (`faults_total`), its dropped inputs, its overruns (inference skipped or output dropped as
   late), the kinematics node's rejected joint states.
 
-Targets (issue 12): RSS growth < 5 MB over 10 minutes for each node, >= 99.9 % answered.
+Targets: RSS growth < 5 MB over 10 minutes for each node, >= 99.9 % answered.
 Run: .venv/bin/python bench/soak_predictor.py [--minutes M]  (exit code 1 on a miss)
 """
 

@@ -33,10 +33,6 @@ class Stamp(NamedTuple):
     nanosec: int
 
 
-#: Why a message stamp is not a sample instant (`stamp_problem`).
-STAMP_PROBLEMS = ('bad_stamp', 'future_stamp')
-
-
 def stamp_problem(stamp: StampLike, now_ns: int, max_future_ns: int) -> tuple[str, str]:
     """(reason, explanation) if `stamp` cannot be a sample instant, ('', '') if it can.
 

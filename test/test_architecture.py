@@ -106,3 +106,35 @@ def test_package_xml_lists_exactly_the_ros_packages_the_code_imports() -> None:
     root = ElementTree.parse(PACKAGE.parent / 'package.xml').getroot()
     exec_depends = {element.text for element in root.iter('exec_depend')}
     assert {name for name in exec_depends if name in ROS_MODULES} == imported & ROS_MODULES
+
+
+#: The longest a function and a class in the package may be, in lines (decorators and
+#: docstrings included): past that, a reader loses the thread.
+MAX_FUNCTION_LINES = 80
+MAX_CLASS_LINES = 350
+
+
+def oversized(path: Path) -> list[str]:
+    """The functions and classes of `path` longer than allowed, as 'name: N lines'."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(encoding='utf-8'))):
+        if not isinstance(node, (ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        limit = MAX_CLASS_LINES if isinstance(node, ast.ClassDef) else MAX_FUNCTION_LINES
+        first = min([node.lineno, *(d.lineno for d in node.decorator_list)])
+        lines = (node.end_lineno or node.lineno) - first + 1
+        if lines > limit:
+            found.append(f'{node.name}: {lines} lines (at most {limit})')
+    return found
+
+
+@pytest.mark.parametrize('path', SOURCES, ids=lambda p: module_name(p))
+def test_functions_and_classes_stay_short(path: Path) -> None:
+    assert oversized(path) == []
+
+
+def test_the_size_check_sees_a_long_function(tmp_path: Path) -> None:
+    source = tmp_path / 'long.py'
+    body = ''.join(f'    x{i} = {i}\n' for i in range(MAX_FUNCTION_LINES))
+    source.write_text(f'@decorated\ndef long():\n{body}\n\ndef short():\n    pass\n')
+    assert oversized(source) == [f'long: {MAX_FUNCTION_LINES + 2} lines (at most 80)']

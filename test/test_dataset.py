@@ -236,3 +236,17 @@ def test_no_window_spans_a_missing_sample(description: RobotDescription) -> None
     spans = data.stamps[ends + horizon] - data.stamps[first]
     assert (spans == (window + HISTORY - 1 + horizon) * PERIOD_NS).all()
     assert len(ends) == 2 * (150 - HISTORY - window + 1 - horizon) - 1
+
+
+# -- faults: a bag without metadata --------------------------------------------------------
+
+@pytest.mark.faults
+def test_a_bag_without_metadata_is_one_clear_error_or_skipped(
+        tmp_path: Path, description: RobotDescription) -> None:
+    good = write_synthetic_bag(tmp_path / 'good', description.geometry, 200)
+    bare = write_synthetic_bag(tmp_path / 'bare', description.geometry, 200, seed=1)
+    (bare / 'metadata.yaml').unlink()
+    with pytest.raises(BagError, match=r'no metadata\.yaml'):
+        read_bags([good, bare])
+    _, sources = read_bags([good, bare], skip_bad=True)
+    assert [bool(s.skipped_reason) for s in sources] == [False, True]

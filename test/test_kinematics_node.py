@@ -229,3 +229,29 @@ def test_input_qos_is_overridable_by_parameters(ros: RosHarness) -> None:
     assert node._subscription.qos_profile.depth == 5
     assert not node.set_parameters([Parameter(
         'qos_overrides./joint_states.subscription.depth', value=50)])[0].successful
+
+
+# -- faults: duplicate joints and impossible stamps -----------------------------------------
+
+@pytest.mark.faults
+def test_duplicate_joint_names_and_impossible_stamps_are_rejected_and_counted(
+        ros: Any, description: RobotDescription) -> None:
+    from test_kinematics_node import KNOWN_TIPS, Wiring, joint_state
+
+    from lompr_predictor.robot.description import MEASURED_JOINTS
+    from lompr_predictor.robot.kinematics import inverse_kinematics
+
+    wiring = Wiring(ros)
+    joints = inverse_kinematics(description.geometry, KNOWN_TIPS[:1]).joints[0]
+    now = wiring.node.clock_ns() * 1e-9
+    twice = joint_state(now, [*joints, 0.7], [*MEASURED_JOINTS, MEASURED_JOINTS[0]])
+    future = joint_state(now + 3600.0, joints)
+    negative = joint_state(now, joints)
+    negative.header.stamp.sec = -3
+    unnormalised = joint_state(now, joints)
+    unnormalised.header.stamp.nanosec = 1_500_000_000
+    wiring.publish([twice, future, negative, unnormalised, joint_state(now, joints)])
+    ros.spin_until(lambda: len(wiring.poses) == 1 and wiring.node.rejected.total == 4,
+                   what='one pose, four rejections')
+    counts = wiring.node.rejected.counts()
+    assert (counts['duplicate_joint'], counts['future_stamp'], counts['bad_stamp']) == (1, 1, 2)

@@ -3,11 +3,17 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import os
+import stat
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import torch
+from model_helpers import LinearWindowModel, save_constant
+from model_helpers import metadata as file_metadata
 from trainer_data import lissajous_reference, synthetic_recording
 
 from lompr_predictor.data.cleaning import clean_recordings
@@ -17,9 +23,12 @@ from lompr_predictor.learning import training
 from lompr_predictor.learning.model_file import (
     MetadataMismatchError,
     ModelMetadata,
+    ModelTrustError,
     load_model,
     save_model,
     script_module,
+    sidecar_path,
+    write_model,
 )
 from lompr_predictor.learning.models import (
     MlpNet,
@@ -206,3 +215,76 @@ def test_training_inputs_are_the_exported_modules_normalisation(
         difference = np.abs(training.numpy() - reference.numpy())
         assert np.all(difference <= bound), float((difference / bound).max())
         assert float(reference.abs().max()) > 0.5  # not the identity: the ranges are in use
+
+
+# -- faults: only the model that was written is loaded, from one read ----------------------
+
+#: Window and horizon of the models the fault tests write.
+WINDOW, HORIZON = 4, 3
+
+
+def _constant_module(value: float) -> torch.nn.Module:
+    return LinearWindowModel(np.zeros((WINDOW * len(FEATURES), 2)), np.full(2, value))
+
+
+@pytest.mark.faults
+def test_a_module_with_copied_metadata_is_refused(tmp_path: Path) -> None:
+    genuine = save_constant(tmp_path / 'genuine.pt', window=WINDOW, horizon=HORIZON)
+    impostor = tmp_path / 'impostor.pt'  # predicts 1 m, carries the genuine metadata
+    write_model(impostor, _constant_module(1.0), load_model(genuine).metadata)
+    sidecar_path(impostor).unlink()  # copied without a hash
+    with pytest.raises(ModelTrustError, match='no hash to check it against'):
+        load_model(impostor)
+    sidecar_path(impostor).write_bytes(sidecar_path(genuine).read_bytes())  # the genuine one
+    with pytest.raises(ModelTrustError, match='changed or replaced after it was written'):
+        load_model(impostor)
+    with pytest.raises(ModelTrustError, match='the pinned sha256 is'):
+        load_model(impostor, sha256=hashlib.sha256(genuine.read_bytes()).hexdigest())
+    loose = load_model(impostor, verify=False)  # development only: loads, and says so
+    assert loose.verified_by == 'not verified'
+
+
+@pytest.mark.faults
+def test_edited_metadata_is_refused(tmp_path: Path) -> None:
+    path = save_constant(tmp_path / 'model.pt', window=WINDOW, horizon=HORIZON)
+    edited = dataclasses.replace(load_model(path).metadata, horizon=9)
+    staged = write_model(tmp_path / 'edited.pt', _constant_module(0.0), edited)
+    assert staged
+    path.write_bytes((tmp_path / 'edited.pt').read_bytes())  # the old MODEL.pt.sha256 stays
+    with pytest.raises(ModelTrustError, match='changed or replaced'):
+        load_model(path)
+
+
+@pytest.mark.faults
+def test_the_file_is_read_once_and_those_bytes_are_loaded(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    genuine = save_constant(tmp_path / 'model.pt', (1e-5, 0.0), window=WINDOW, horizon=HORIZON)
+    digest = hashlib.sha256(genuine.read_bytes()).hexdigest()
+    evil = save_constant(tmp_path / 'evil.pt', (1.0, 1.0), window=WINDOW, horizon=HORIZON)
+    real_load = torch.jit.load  # noqa: TID251 - the test wraps the deserialiser itself
+
+    def swap_then_load(source: Any, *args: Any, **kwargs: Any) -> Any:
+        # the file is replaced between the hash check and the deserialisation
+        genuine.write_bytes(evil.read_bytes())
+        return real_load(source, *args, **kwargs)
+
+    monkeypatch.setattr('torch.jit.load', swap_then_load)
+    loaded = load_model(genuine)
+    assert loaded.sha256 == digest and loaded.verified_by == 'sidecar'
+    window = torch.zeros((1, WINDOW, len(FEATURES)), dtype=torch.float64)
+    np.testing.assert_allclose(loaded.predict(window).numpy(), [[1e-5, 0.0]])
+
+
+@pytest.mark.faults
+def test_the_writer_records_the_hash_and_writes_with_the_umask(tmp_path: Path) -> None:
+    old = os.umask(0o022)
+    try:
+        path = tmp_path / 'model.pt'
+        digest = write_model(path, _constant_module(0.0), file_metadata(window=WINDOW))
+    finally:
+        os.umask(old)
+    assert digest == hashlib.sha256(path.read_bytes()).hexdigest()
+    assert sidecar_path(path).read_text() == f'{digest}  model.pt\n'  # sha256sum -c reads it
+    for written in (path, sidecar_path(path)):
+        assert stat.S_IMODE(written.stat().st_mode) == 0o644
+    assert load_model(path).verified_by == 'sidecar'

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from fake_clock import FakeClock
 
 from lompr_predictor.monitoring import (
     LatencyRecorder,
@@ -18,16 +19,6 @@ from lompr_predictor.monitoring import (
     latency_values,
     rejection_values,
 )
-
-
-class FakeClock:
-    """A clock the test moves by hand."""
-
-    def __init__(self, now: float = 100.0) -> None:
-        self.now = now
-
-    def __call__(self) -> float:
-        return self.now
 
 
 def test_rejection_counter_counts_by_reason_and_keeps_declared_zeros() -> None:

@@ -4,12 +4,14 @@ node), QoS overrides, the callback-exception policy, diagnostics, run_node."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import Vector3Stamped
+from model_helpers import save_constant
 from rclpy.context import Context
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
@@ -327,3 +329,28 @@ def test_executors_by_name() -> None:
             make_executor('multi', context)
     finally:
         context.try_shutdown()
+
+
+# -- faults: incompatible QoS ---------------------------------------------------------------
+
+@pytest.mark.faults
+def test_incompatible_qos_is_counted_and_warns_on_diagnostics(ros: Any, tmp_path: Path) -> None:
+    from geometry_msgs.msg import Vector3Stamped
+    from rclpy.parameter import Parameter
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+
+    from lompr_predictor.monitoring import Level
+    from lompr_predictor.ros.predictor_node import PredictorNode
+
+    model = save_constant(tmp_path / 'model.pt')
+    node = ros.add(PredictorNode(context=ros.context, parameter_overrides=[
+        Parameter('model_path', value=str(model))]))
+    assert node.qos_status().level == Level.OK
+    # a subscriber asking for transient-local durability from a volatile publisher
+    ros.node.create_subscription(Vector3Stamped, '/lompr/compensation', lambda _: None,
+                                 QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    ros.spin_until(lambda: node.incompatible_qos.total > 0, what='an incompatible-QoS event')
+    status = node.qos_status()
+    assert status.level == Level.WARN and '/lompr/compensation publisher' in status.message
+    assert status.values['incompatible_qos./lompr/compensation publisher'] >= 1
+    assert 'durability' in node.last_incompatible_qos

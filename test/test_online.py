@@ -2,23 +2,29 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
 import torch
+from fake_clock import FakeClock
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from model_helpers import FailingModel, metadata, save_constant, save_linear
 
 from lompr_predictor.data.features import FEATURES, HISTORY, feature_rows
+from lompr_predictor.learning import model_file
 from lompr_predictor.learning.model_file import (
     LoadedModel,
     MetadataMismatchError,
     load_model,
     save_model,
 )
+from lompr_predictor.online.offset import OffsetGate
 from lompr_predictor.online.predictor import (
     CompensationLimits,
     OnlinePredictor,
@@ -27,6 +33,7 @@ from lompr_predictor.online.predictor import (
 )
 from lompr_predictor.robot.description import RobotDescription, load_robot_description
 from lompr_predictor.robot.kinematics import VerticalToolBranches
+from lompr_predictor.stamps import stamp_problem
 
 PERIOD = 0.04
 PERIOD_NS = 40_000_000
@@ -35,16 +42,8 @@ WINDOW, HORIZON = 4, 3
 NEEDED = WINDOW + HISTORY
 Z = 1.097  # the mirror's height [m]
 BRANCHES = VerticalToolBranches(load_robot_description().geometry)
-#: The features of the model files written before the branch columns came (issue 10).
+#: The features of the model files written before the branch columns came.
 OLD_FEATURES = ('error_x', 'error_y', 'ref_x', 'ref_y', 'ref_vx', 'ref_vy', 'ref_ax', 'ref_ay')
-
-
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 100.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 def stream(sample_period: float = PERIOD, stale_min_time: float = 0.0) -> StreamSettings:
@@ -57,6 +56,12 @@ def limits(max_compensation: float = 1e-3, max_step: float = 1e-3,
            enabled: bool = True) -> CompensationLimits:
     return CompensationLimits(max_compensation, max_step, enabled)
 
+
+
+def spiral_xy(k: int) -> tuple[float, float]:
+    """The measured tool tip of sample `k` on a circle of 0.1 m [m]."""
+    angle = 0.05 * k
+    return 0.1 * math.cos(angle), 0.1 * math.sin(angle)
 
 def spiral(n: int, start: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Stamps [ns], reference tool tip (n, 3) and a measured tip (n, 2) = reference X/Y + a
@@ -267,10 +272,10 @@ def test_reset_cancels_without_a_fault_and_starts_afresh(tmp_path: Path) -> None
     core = constant_core(tmp_path, (-10e-6, 0.0))
     stamps, reference, tips = spiral(40)
     feed(core, stamps[:NEEDED], reference[:NEEDED], tips[:NEEDED])
-    zeros = core.reset('inactive')
+    zeros = core.reset()
     assert [z.reason for z in zeros] == ['inactive']  # the one offset published
     assert core.faults.total == 0 and core.window_fill == 0
-    assert core.reset('inactive') == []  # nothing in force any more
+    assert core.reset() == []  # nothing in force any more
     # later samples, after a long pause, start a new window without a fault
     outputs = feed(core, stamps[30:30 + NEEDED], reference[30:30 + NEEDED],
                    tips[30:30 + NEEDED])
@@ -463,3 +468,153 @@ def test_random_sequences_never_give_a_bad_offset(
             assert np.isfinite(predicted(output)).all()
             assert np.hypot(*(output.compensation - previous)) <= 2e-5 * (1 + 1e-12)
         previous = output.compensation
+
+
+# -- faults: a bound lowered at run time holds from the next output ------------------------
+
+@pytest.mark.faults
+def test_a_lowered_clamp_holds_from_the_next_output() -> None:
+    gate = OffsetGate(CompensationLimits(5e-4, 5e-5, True), PERIOD_NS)
+    for k in range(20):  # ramp to the clamp: 500 um in force, offsets out for 3 instants ahead
+        gate.publish(T0 + (k + 3) * PERIOD_NS, np.array([-1e-3, 0.0]), T0 + k * PERIOD_NS)
+    assert math.hypot(*gate.offset_in_force) == pytest.approx(5e-4)
+    newest = T0 + 19 * PERIOD_NS
+    reissued = gate.set_limits(CompensationLimits(1e-6, 5e-5, True), newest)
+    # the offsets already out for instants to come are re-issued within the new clamp
+    assert [o.instant_ns for o in reissued] == [T0 + k * PERIOD_NS for k in (20, 21, 22)]
+    assert all(o.reason == 'clamp_lowered' for o in reissued)
+    assert all(math.hypot(*o.compensation) <= 1e-6 * (1 + 1e-12) for o in reissued)
+    following = [gate.publish(T0 + (k + 3) * PERIOD_NS, np.array([-1e-3, 0.0]),
+                              T0 + k * PERIOD_NS).compensation for k in range(20, 30)]
+    assert max(math.hypot(*c) for c in following) <= 1e-6 * (1 + 1e-12)  # not 450, 400, ... um
+
+
+LIMITS = st.tuples(st.sampled_from([0.0, 1e-6, 2e-5, 1e-4, 5e-4, 1e-2]),  # max_compensation
+                   st.sampled_from([0.0, 1e-7, 5e-6, 5e-5, 1e-2]),  # max_step
+                   st.sampled_from([True, True, True, False]))  # enabled
+EVENT = st.one_of(
+    st.tuples(st.just('limits'), LIMITS),
+    st.tuples(st.just('sample'),
+              st.tuples(st.sampled_from([1] * 8 + [0, 2, 4, -1]),  # stamp step [periods]
+                        st.sampled_from([0.0, 3e-5, -4e-4, 2e-3, math.nan]),  # error [m]
+                        st.integers(1, 12))),  # samples in a row
+)
+
+
+@pytest.mark.faults
+@settings(max_examples=150, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(start=LIMITS, events=st.lists(EVENT, min_size=1, max_size=30))
+def test_clamp_and_slew_are_never_exceeded_under_random_parameter_changes(
+        amplified: LoadedModel, start: tuple[float, float, bool],
+        events: list[tuple[str, Any]]) -> None:
+    """Property: every offset published is within the clamp in force when it is published;
+    every offset from a prediction differs from the one the slew starts from (the previous
+    one, clamped by a lowered limit, zero after a cancel) by at most the step in force;
+    a cancel is zero; shadow mode publishes zeros."""
+    core = OnlinePredictor(amplified, stream(), CompensationLimits(*start), lambda: 0.0)
+    limits = CompensationLimits(*start)
+    slew_from = np.zeros(2)
+    stamp, k = T0, 0
+
+    def check(outputs: list[Output]) -> None:
+        nonlocal slew_from
+        for output in outputs:
+            offset = output.compensation
+            assert np.isfinite(offset).all()
+            assert math.hypot(*offset) <= limits.max_compensation * (1 + 1e-9) + 1e-18
+            if output.reason == 'clamp_lowered':
+                continue  # a re-issue of an offset already out, scaled into the new clamp
+            if output.reason or not limits.enabled:
+                assert not offset.any()
+            else:
+                step = math.hypot(*(offset - slew_from))
+                assert step <= limits.max_step * (1 + 1e-9) + 1e-18
+            slew_from = offset
+
+    for kind, value in events:
+        if kind == 'limits':
+            limits = CompensationLimits(*value)
+            check(core.set_limits(limits))
+            norm = math.hypot(*slew_from)
+            if norm > limits.max_compensation:  # the slew starts from the clamped offset
+                slew_from = slew_from * (limits.max_compensation / norm)
+            continue
+        step, error, repeat = value
+        for _ in range(repeat):
+            stamp += step * PERIOD_NS
+            k += 1
+            x, y = spiral_xy(k)
+            check(core.add_reference(stamp, x, y, Z))
+            check(core.add_pose(stamp, x + error, y - error))
+
+
+@pytest.fixture(scope='module')
+def amplified(tmp_path_factory: pytest.TempPathFactory) -> LoadedModel:
+    """A linear model with large gains: predictions of millimetres, far beyond the clamp."""
+    path = tmp_path_factory.mktemp('models') / 'amplified.pt'
+    save_linear(path, window=WINDOW, horizon=HORIZON,
+                weight=np.full((WINDOW * len(FEATURES), 2), 3.0), bias=(1e-3, -1e-3))
+    return load_model(path)
+
+
+# -- faults: impossible stamps are dropped, counted ----------------------------------------
+
+@pytest.mark.faults
+@pytest.mark.parametrize(('sec', 'nanosec', 'reason'), [
+    (-5, 0, 'bad_stamp'), (10, 1_000_000_000, 'bad_stamp'), (10, 4_000_000_000, 'bad_stamp'),
+    (2_000, 0, 'future_stamp'), (1_000, 0, ''), (1_000, 999_999_999, '')])
+def test_stamp_problems(sec: int, nanosec: int, reason: str) -> None:
+    stamp = SimpleNamespace(sec=sec, nanosec=nanosec)
+    now = 1_000 * 1_000_000_000
+    assert stamp_problem(stamp, now, 1_000_000_000)[0] == reason
+    assert stamp_problem(stamp, 0, 1_000_000_000)[0] == ('bad_stamp' if reason == 'bad_stamp'
+                                                         else '')  # sim time before /clock
+
+
+@pytest.mark.faults
+def test_the_core_drops_impossible_stamps_counted(amplified: LoadedModel) -> None:
+    now = T0 + 100 * PERIOD_NS
+    core = OnlinePredictor(amplified, dataclasses.replace(stream(), max_future_stamp=1.0),
+                           CompensationLimits(1e-4, 1e-5, True), lambda: 0.0,
+                           now_ns=lambda: now)
+    for sec, nanosec in ((-1, 0), (1, 2_000_000_000), (T0 // 10**9 + 3600, 0)):
+        stamp = SimpleNamespace(sec=sec, nanosec=nanosec)
+        assert core.add_reference(stamp, 0.0, 0.0, Z) == []
+        assert core.add_pose(stamp, 0.0, 0.0) == []
+    dropped = core.dropped.counts()
+    assert (dropped['bad_stamp'], dropped['future_stamp']) == (2, 1)
+    assert (dropped['reference_bad_stamp'], dropped['reference_future_stamp']) == (2, 1)
+    assert core.window_fill == 0 and core.last_bad_stamp.startswith('pose_future_stamp')
+
+
+# -- faults: a model giving NaN or raising -------------------------------------------------
+
+class NanAfter(torch.nn.Module):
+    """Predicts zero, then NaN once the last reference x exceeds `threshold`."""
+
+    def __init__(self, threshold: float) -> None:
+        super().__init__()
+        self.threshold = threshold
+
+    def forward(self, windows: torch.Tensor) -> torch.Tensor:
+        out = torch.zeros((windows.shape[0], 2), dtype=torch.float64)
+        if bool((windows[:, -1, 2] > self.threshold).any()):
+            out = out + float('nan')
+        return out
+
+
+@pytest.mark.faults
+def test_a_model_giving_nan_cancels_and_is_counted(tmp_path: Path) -> None:
+    path = tmp_path / 'nan.pt'
+    model_file.save_model(path, NanAfter(0.095), metadata(window=WINDOW, horizon=HORIZON))
+    core = OnlinePredictor(load_model(path), stream(), CompensationLimits(1e-3, 1e-3, True),
+                           lambda: 0.0)
+    outputs = []
+    for k in range(40):  # reference x = 0.1 cos(0.05 k) is above 0.095 up to k = 6
+        x, y = spiral_xy(k)
+        outputs += core.add_reference(T0 + k * PERIOD_NS, x, y, Z)
+        outputs += core.add_pose(T0 + k * PERIOD_NS, x, y)
+    assert core.faults['inference'] >= 1
+    assert all(np.isfinite(o.compensation).all() for o in outputs)
+    assert all(o.prediction is None or np.isfinite(o.prediction).all() for o in outputs)

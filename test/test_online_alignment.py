@@ -5,10 +5,12 @@ from __future__ import annotations
 import math
 
 import pytest
+from fake_clock import FakeClock
 
 from lompr_predictor.online.alignment import (
     MAX_PENDING_POSES,
     AlignedSample,
+    DropReason,
     Event,
     ReferenceTrack,
     StampAlignment,
@@ -18,21 +20,13 @@ PERIOD_NS = 40_000_000
 T0 = 1_700_000_000_000_000_000
 
 
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 10.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
 def at(k: float) -> int:
     """The stamp k periods after T0 [ns]."""
     return T0 + round(k * PERIOD_NS)
 
 
 def aligned(clock: FakeClock | None = None) -> StampAlignment:
-    return StampAlignment(2.5, PERIOD_NS, clock or FakeClock())
+    return StampAlignment(2.5, PERIOD_NS, clock or FakeClock(10.0))
 
 
 def samples_of(events: list[Event]) -> list[AlignedSample]:
@@ -131,14 +125,14 @@ def test_too_many_waiting_poses_drop_the_oldest_as_a_fault() -> None:
 
 
 def test_waiting_poses_keep_their_arrival_and_clear_counts_them() -> None:
-    clock = FakeClock()
+    clock = FakeClock(10.0)
     alignment = aligned(clock)
     assert alignment.oldest_waiting_arrival() is None
     alignment.add_pose(at(0), 0.0, 0.0)
     clock.now += 0.04
     alignment.add_pose(at(1), 0.0, 0.0)
     assert alignment.oldest_waiting_arrival() == 10.0
-    alignment.clear('stale')
+    alignment.clear(DropReason.STALE)
     assert alignment.dropped['stale'] == 2 and alignment.oldest_waiting_arrival() is None
 
 
@@ -163,7 +157,7 @@ def test_a_rewind_takes_the_restarted_streams_without_a_fault(reference_first: b
     alignment.add_pose(at(10), 0.0, 0.0)  # waits for its reference
     if reference_first:
         assert alignment.add_reference(at(0), 0.5, 0.0, 1.097) == ['reference_out_of_order']
-    alignment.rewind(at(0), 'clock_jump')
+    alignment.rewind(at(0), DropReason.CLOCK_JUMP)
     assert alignment.dropped['clock_jump'] == 1 and not alignment.waiting
     assert alignment.newest_pose_ns is None
     if not reference_first:
@@ -172,5 +166,5 @@ def test_a_rewind_takes_the_restarted_streams_without_a_fault(reference_first: b
     (sample,) = samples_of(alignment.add_pose(at(0), 0.5, 0.0))
     assert (sample.stamp_ns, sample.reference_x) == (at(0), 0.5)
     assert alignment.dropped['out_of_order'] == 0
-    alignment.rewind(None, 'inactive')
+    alignment.rewind(None, DropReason.INACTIVE)
     assert alignment.references.newest is None

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import pytest
+from fake_clock import FakeClock
 
-from lompr_predictor.online.faults import StaleWatch, StreamRules, StreamSettings
+from lompr_predictor.online.faults import FaultReason, StaleWatch, StreamRules, StreamSettings
 
 PERIOD = 0.04
 PERIOD_NS = 40_000_000
@@ -22,18 +23,10 @@ def stream(**overrides: float) -> StreamSettings:
         stale_min_time=values['stale_min_time'])
 
 
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 50.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
 @pytest.mark.parametrize(('interval_ns', 'fault'), [
-    (40_000_000, ''), (100_000_000, ''), (100_000_001, 'gap'), (20_000_000, ''),
-    (19_999_999, 'off_rate'), (0, 'off_rate')])
-def test_interval_rules(interval_ns: int, fault: str) -> None:
+    (40_000_000, None), (100_000_000, None), (100_000_001, FaultReason.GAP),
+    (20_000_000, None), (19_999_999, FaultReason.OFF_RATE), (0, FaultReason.OFF_RATE)])
+def test_interval_rules(interval_ns: int, fault: FaultReason | None) -> None:
     rules = StreamRules(stream(), PERIOD_NS)
     assert rules.interval_fault(1_000, 1_000 + interval_ns) == fault
 
@@ -44,7 +37,7 @@ def test_stale_after_has_a_floor_in_seconds() -> None:
 
 
 def test_staleness_is_confirmed_by_a_second_idle_check() -> None:
-    clock = FakeClock()
+    clock = FakeClock(50.0)
     watch = StaleWatch(0.2, clock)
     clock.now += 0.19
     assert not watch.check()
@@ -57,7 +50,7 @@ def test_staleness_is_confirmed_by_a_second_idle_check() -> None:
 
 
 def test_a_check_that_finds_a_recent_sample_clears_the_suspicion() -> None:
-    clock = FakeClock()
+    clock = FakeClock(50.0)
     watch = StaleWatch(0.2, clock)
     clock.now += 0.3
     assert not watch.check()  # suspected
@@ -69,7 +62,7 @@ def test_a_check_that_finds_a_recent_sample_clears_the_suspicion() -> None:
 
 
 def test_a_pose_waiting_for_its_reference_counts_as_no_sample() -> None:
-    clock = FakeClock()
+    clock = FakeClock(50.0)
     watch = StaleWatch(0.2, clock)
     waiting_since = clock.now + 0.1  # a pose arrived then, and still waits
     clock.now += 0.25
@@ -83,7 +76,7 @@ def test_a_pose_waiting_for_its_reference_counts_as_no_sample() -> None:
 def test_a_restart_counts_idle_time_from_the_jump() -> None:
     """A clock that jumps (its first /clock message, a simulator skipping ahead) is no idle
     input: the watch counts from the jump."""
-    clock = FakeClock()
+    clock = FakeClock(50.0)
     watch = StaleWatch(0.2, clock)
     clock.now += 1000.0
     assert not watch.check()  # suspected

@@ -3,12 +3,17 @@ over the topics, model refusal and run-time swaps, diagnostics."""
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import subprocess
+import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pytest
+import torch
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from model_helpers import save_constant, save_linear, write_sidecar
@@ -34,6 +39,7 @@ from lompr_predictor.data.bags import (
 from lompr_predictor.data.cleaning import clean_recordings
 from lompr_predictor.data.features import FEATURES, HISTORY
 from lompr_predictor.learning.model_file import (
+    ExportedModule,
     MetadataMismatchError,
     ModelTrustError,
     load_model,
@@ -273,7 +279,7 @@ def test_mismatched_model_is_refused_naming_the_field(ros: RosHarness, tmp_path:
         PredictorNode(context=ros.context, parameter_overrides=[
             Parameter('model_path', value=str(jittered)),
             Parameter('robot_description_file', value=str(calibrated))])
-    # a model file from before the branch features (issue 10) reads other columns
+    # a model file from before the branch features reads other columns
     old = save_linear(tmp_path / 'o.pt', weight=np.zeros((WINDOW * 8, 2)), window=WINDOW,
                       horizon=HORIZON, features=FEATURES[:8])
     with pytest.raises(MetadataMismatchError, match=r"'features' is \('error_x', .*'ref_ay'\), "
@@ -454,3 +460,74 @@ def test_one_process_pipeline_answers_joint_states(
         assert stamp_ns(answers()[-1]) == recording.joints.stamps[NEEDED] + HORIZON * PERIOD_NS
     finally:
         stop_process(process)
+
+
+# -- faults: refusals, the trust chain, overruns --------------------------------------------
+
+@pytest.mark.faults
+@pytest.mark.parametrize(('argument', 'expected'), [
+    ('model_path:=', "Couldn't parse parameter override rule: '-p model_path:='"),
+    ("model_path:=''", 'parameter model_path is empty'),
+])
+def test_predictor_node_refuses_an_empty_model_path_in_one_line(
+        argument: str, expected: str) -> None:
+    command = [str(Path(sys.executable).parent / 'predictor_node'), '--ros-args', '-p', argument]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=120, check=False)
+    lines = [line for line in result.stderr.splitlines() if '[WARN]' not in line]
+    assert result.returncode == 2 and len(lines) == 1, result.stderr
+    assert lines[0].startswith('predictor_node: error: ') and expected in lines[0]
+
+
+@pytest.mark.faults
+def test_the_node_refuses_an_unverified_model_at_start_and_reports_the_hash(
+        ros: Any, tmp_path: Path) -> None:
+    from lompr_predictor.monitoring import Level
+
+    model = save_constant(tmp_path / 'model.pt', window=WINDOW, horizon=HORIZON)
+    bare = tmp_path / 'bare.pt'
+    bare.write_bytes(model.read_bytes())  # no bare.pt.sha256
+    with pytest.raises(ModelTrustError, match='no hash to check it against'):
+        PredictorNode(context=ros.context, parameter_overrides=[
+            Parameter('model_path', value=str(bare))])
+    ros.spin_until(lambda: 'predictor_node' not in ros.node.get_node_names(),
+                   what='the refused node gone (no output)')
+    node = ros.add(PredictorNode(context=ros.context, parameter_overrides=[
+        Parameter('model_path', value=str(model))]))
+    status = node.diagnostics.model_status()
+    digest = hashlib.sha256(model.read_bytes()).hexdigest()
+    assert status.level == Level.OK
+    assert (status.values['sha256'], status.values['sha256_verified_by']) == (digest, 'sidecar')
+    # a hot swap to a file whose hash does not check out keeps the running model
+    (result,) = node.set_parameters([Parameter('model_path', value=str(bare))])
+    assert not result.successful and 'no hash to check it against' in result.reason
+    assert node.core.model.sha256 == digest and node.history.swaps == 0
+    node.destroy_node()
+    loose = ros.add(PredictorNode(context=ros.context, node_name='loose', parameter_overrides=[
+        Parameter('model_path', value=str(bare)), Parameter('verify_model_hash', value=False)]))
+    status = loose.diagnostics.model_status()
+    assert status.level == Level.WARN and 'NOT verified' in status.message
+
+
+@pytest.mark.faults
+def test_overruns_are_counted_on_diagnostics(ros: Any, tmp_path: Path) -> None:
+    import time
+
+    from lompr_predictor.monitoring import Level
+
+    wiring = Wiring(ros, save_constant(tmp_path / 'model.pt', (1e-5, 0.0), window=WINDOW,
+                                       horizon=HORIZON), late_tolerance=0.005)
+    core = wiring.node.core
+    module = core.model.module
+
+    def slow_module(windows: torch.Tensor) -> torch.Tensor:
+        time.sleep(0.2)  # longer than the lead, 3 x 40 ms
+        return cast(torch.Tensor, module(windows))
+
+    core.model = dataclasses.replace(core.model, module=cast(ExportedModule, slow_module))
+    wiring.run(0, NEEDED + 3)
+    overrun = core.overrun
+    assert overrun.late_outputs_dropped + overrun.inference_skipped_late >= 3
+    assert not [m for m in wiring.compensations if m.vector.x or m.vector.y]  # none late
+    status = wiring.node.diagnostics.prediction_status()
+    assert status.level == Level.WARN and 'late or skipped' in status.message
+    assert status.values['late_outputs_dropped'] == overrun.late_outputs_dropped

@@ -167,7 +167,7 @@ def test_cli_writes_faults_and_logs_them(tmp_path: Path) -> None:
         assert counts == {'gaps': 3, 'dropped_messages': 15, 'duplicates': 4,
                           'out_of_order': 2, 'nans': 3, 'spikes': 2}
         assert len(stamps) == clean - 15 + 4
-    with pytest.raises(SystemExit) as refused:  # checked before the twin runs (issue 12)
+    with pytest.raises(SystemExit) as refused:  # checked before the twin runs
         _run_cli('--out', str(out), '--passes', '1')
     assert refused.value.code == 2
     assert json.loads((out / GROUND_TRUTH_JSON).read_text())['passes'] == 1

@@ -8,14 +8,17 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from trainer_data import lissajous_reference, synthetic_recording, truncate_bag
+from trainer_data import lissajous_reference, synthetic_recording, truncate_bag, write_synthetic_bag
 
 from lompr_predictor.cli import evaluate, train
+from lompr_predictor.cli import main as lompr_main
 from lompr_predictor.data.bags import write_recording
 from lompr_predictor.data.features import FEATURES
 from lompr_predictor.errors import LomprError
 from lompr_predictor.files import file_sha256
-from lompr_predictor.learning.model_file import load_model
+from lompr_predictor.learning.model_file import (
+    load_model,
+)
 from lompr_predictor.robot.description import RobotDescription
 
 FAST = ['--trials', '2', '--max-epochs', '2', '--window', '8', '--horizon', '2', '--quiet',
@@ -71,7 +74,7 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
     assert content['split']['test_start_row'] == 2160
     assert '| RMSE (um) |' in (report / 'report.md').read_text()
     loaded = load_model(model, expected={'features': FEATURES, 'window': 8, 'horizon': 2})
-    # the trust chain (issue 12): the model's sha256 in the report and beside the model
+    # the trust chain: the model's sha256 in the report and beside the model
     assert content['model_sha256'] == loaded.sha256 == file_sha256(model)
     assert loaded.verified_by == 'sidecar' and content['model_sha256'] in (
         report / 'report.md').read_text()
@@ -205,3 +208,106 @@ def test_the_epoch_windows_help_names_the_training_default() -> None:
     train.add_parser(subparsers)
     help_text = ' '.join(subparsers.choices['train'].format_help().split())
     assert f'(default {EPOCH_WINDOWS}:' in help_text
+
+
+# -- faults: every argument checked before any work, one line, exit 2 ----------------------
+
+def refused(capsys: pytest.CaptureFixture[str], *argv: str) -> str:
+    """The one line `lompr ARGV` prints before exiting with code 2."""
+    assert lompr_main(list(argv)) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and 'Traceback' not in err, err
+    return err
+
+
+@pytest.mark.faults
+@pytest.mark.parametrize(('argv', 'expected'), [
+    (['--out', '/proc/x.pt'], 'argument --out: must be writable'),
+    (['--report', '/proc/report'], 'argument --report: must be writable'),
+    (['--storage', 'bogus://x'], 'argument --storage: storage bogus://... is not supported'),
+    (['--storage', 'sqlite://'], 'argument --storage: must name a database file'),
+    (['--trials', '0'], 'argument --trials: must be an integer >= 1'),
+    (['--window', '0'], 'argument --window: must be an integer >= 1'),
+    (['--horizon', '-1'], 'argument --horizon: must be an integer >= 1'),
+    (['--batch-sizes', 'abc'], "argument --batch-sizes: 'abc' in the list"),
+    (['--learning-rates', '0.01,nan'], "argument --learning-rates: 'nan' in the list"),
+    (['--workers', '0'], 'argument --workers: must be an integer >= 1'),
+    (['--heartbeat', '0'], 'argument --heartbeat: must be an integer >= 1'),
+    (['--gap-factor', 'inf'], 'argument --gap-factor: must be a finite number > 1'),
+    (['--robot-description', '/nonexistent.urdf'], 'argument --robot-description: must be an'),
+])
+def test_train_refuses_a_bad_argument_before_reading_a_bag(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str],
+        expected: str) -> None:
+    base = {'--out': str(tmp_path / 'm.pt'), '--report': str(tmp_path / 'r')}
+    base.update(dict(zip(argv[::2], argv[1::2], strict=True)))
+    err = refused(capsys, 'train', str(tmp_path / 'no-such-bag'),
+                  *[item for pair in base.items() for item in pair])
+    assert expected in err
+    assert not (tmp_path / 'r').exists() and not (tmp_path / 'm.pt').exists()
+
+
+@pytest.mark.faults
+def test_train_refuses_an_output_that_is_a_directory(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    err = refused(capsys, 'train', 'bag', '--out', str(tmp_path), '--report', str(tmp_path))
+    assert 'argument --out: must be a file to write, not an existing directory' in err
+
+
+@pytest.mark.faults
+@pytest.mark.parametrize(('argv', 'expected'), [
+    (['--seed', '-1'], 'argument --seed: must be an integer >= 0'),
+    (['--spike-size', 'nan'], 'argument --spike-size: must be a finite number'),
+    (['--passes', '0'], 'argument --passes: must be an integer >= 1'),
+    (['--preset', 'nope'], 'argument --preset: invalid choice'),
+    (['--out', '/proc/sim'], 'argument --out: must be creatable'),
+])
+def test_simulate_refuses_a_bad_argument_before_simulating(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str],
+        expected: str) -> None:
+    options = {'--out': str(tmp_path / 'bag'), **dict(zip(argv[::2], argv[1::2], strict=True))}
+    err = refused(capsys, 'simulate', *[item for pair in options.items() for item in pair])
+    assert expected in err and 'simulate:' not in capsys.readouterr().out
+
+
+@pytest.mark.faults
+def test_evaluate_refuses_a_missing_model_and_an_unwritable_report(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    assert 'argument MODEL: must exist' in refused(capsys, 'evaluate', '/nonexistent.pt', 'bag',
+                                                   '--report', '/tmp/x')
+    assert 'argument --report: must be writable' in refused(capsys, 'evaluate', '/', 'bag',
+                                                            '--report', '/proc/x')
+
+
+@pytest.mark.faults
+def test_a_binary_urdf_is_one_line_not_a_traceback(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    urdf = tmp_path / 'robot.urdf'
+    urdf.write_bytes(bytes(range(256)) * 4)
+    code = lompr_main(['simulate', '--out', str(tmp_path / 'bag'), '--passes', '1',
+                       '--robot-description', str(urdf)])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(lines) == 1
+    assert lines[0].startswith('lompr simulate: error: robot description')
+    assert 'not a URDF' in lines[0]
+    assert not (tmp_path / 'bag').exists()
+
+
+@pytest.mark.faults
+def test_a_window_longer_than_the_data_is_one_line_before_tuning(
+        tmp_path: Path, description: RobotDescription, capsys: pytest.CaptureFixture[str]) -> None:
+    bag = write_synthetic_bag(tmp_path / 'bag', description.geometry, 150)
+    code = lompr_main(['train', str(bag), '--out', str(tmp_path / 'm.pt'), '--report',
+                       str(tmp_path / 'r'), '--window', '500', '--quiet', '--workers', '1'])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and 'too few for this window (--window)' in lines[0]
+    assert not list((tmp_path / 'r').glob('trials/*'))  # no trial ran
+
+
+@pytest.mark.faults
+def test_debug_shows_the_traceback(tmp_path: Path) -> None:
+    urdf = tmp_path / 'robot.urdf'
+    urdf.write_bytes(b'\xff\xfe' * 10)
+    with pytest.raises(Exception, match='not a URDF'):
+        lompr_main(['--debug', 'simulate', '--out', str(tmp_path / 'b'), '--robot-description',
+                    str(urdf)])

@@ -1,4 +1,4 @@
-"""Tuning with several workers (issues 10 and 14): exact budget across processes, a dead
+"""Tuning with several workers: exact budget across processes, a dead
 worker's trial failed and its point run again, one study shared by separate commands through
 PostgreSQL, settings checked on joining, bad options refused in one line."""
 
@@ -67,6 +67,7 @@ def _toy_worker(path: str, budget: int, barrier: Any) -> None:
     run_trials(study, storage, toy, poll=0.1)
 
 
+@pytest.mark.slow
 def test_three_processes_never_exceed_the_budget(tmp_path: Path) -> None:
     """The race the budget lock exists for: every worker counts spent + running trials and
     asks for one under the lock, so 3 processes started together on a budget of 7 run
@@ -159,6 +160,7 @@ def bag(tmp_path_factory: pytest.TempPathFactory, description: RobotDescription)
     return write_recording(tmp_path_factory.mktemp('bag') / 'bag', recording)
 
 
+@pytest.mark.slow
 def test_two_local_workers_share_the_default_study(tmp_path: Path, bag: Path) -> None:
     """`lompr train --workers 2` with the embedded default storage (a journal file): both
     processes run trials, the budget and the restarts of the best point are met exactly,
@@ -291,7 +293,7 @@ def _children(pid: int) -> set[int]:
 
 @pytest.mark.slow
 def test_separate_commands_share_a_postgresql_study(tmp_path: Path) -> None:
-    """Issue 14: two `lompr train --workers-only` commands (as on two machines) on one
+    """Two `lompr train --workers-only` commands (as on two machines) on one
     PostgreSQL study, one killed mid-trial, then the finishing command: every trial counted
     once, the budget not exceeded, the killed trial failed (its heartbeats stopped) and run
     again, the model written once (by the finishing command) and loadable."""

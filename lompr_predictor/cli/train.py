@@ -1,4 +1,4 @@
-"""`lompr train BAG_DIR... --out MODEL.pt --report DIR`: the offline trainer (issue 4).
+"""`lompr train BAG_DIR... --out MODEL.pt --report DIR`: the offline trainer.
 
 Reads and cleans the bags, tunes the LSTM's batch size, hidden units and learning rate with
 Bayesian optimisation on a validation split carved from the training 90 %, trains the
@@ -87,31 +87,7 @@ def add_parser(subparsers: Any) -> None:
                              'scored per epoch likewise): the cost of an epoch is bounded at '
                              'any sample rate (default 20000: every window of 20 passes at '
                              '25 Hz, an eighth of them at 250 Hz)')
-    parser.add_argument('--space', default='default', choices=tuple(SPACES),
-                        help='search space: default (batch ' + _listed(DEFAULT_SPACE.batch_sizes)
-                        + ', hidden ' + _listed(DEFAULT_SPACE.hidden_units) + ', lr '
-                        + _listed(DEFAULT_SPACE.learning_rates) + ', weight decay '
-                        + _listed(DEFAULT_SPACE.weight_decays) + ', LSTM rows '
-                        + _listed(DEFAULT_SPACE.lstm_steps) + ', error level '
-                        + _listed(DEFAULT_SPACE.error_levels) + ") or paper (the paper's grid: "
-                        'batch ' + _listed(PAPER_SPACE.batch_sizes) + ', hidden '
-                        + _listed(PAPER_SPACE.hidden_units) + ', lr '
-                        + _listed(PAPER_SPACE.learning_rates) + '); the lists below replace '
-                        "the named space's")
-    parser.add_argument('--batch-sizes', type=comma_list(positive_int), default=None,
-                        help='comma list')
-    parser.add_argument('--hidden-units', type=comma_list(positive_int), default=None,
-                        help='comma list')
-    parser.add_argument('--learning-rates', type=comma_list(positive_float), default=None,
-                        help='comma list')
-    parser.add_argument('--weight-decays', type=comma_list(finite_float), default=None,
-                        help='comma list (AdamW)')
-    parser.add_argument('--lstm-steps', type=comma_list(positive_int), default=None,
-                        help="comma list: rows at the window's end the LSTM reads")
-    parser.add_argument('--error-levels', type=comma_list(yes_no), default=None,
-                        help='comma list of yes/no: whether the network also sees the '
-                             "window's error level (no: only its course relative to the last "
-                             'row)')
+    _add_space_arguments(parser)
     parser.add_argument('--storage', type=storage_url, default=None,
                         help='where the tuning study lives: postgresql://USER@HOST/DB (shared by '
                              'several machines), sqlite:///FILE, or a journal file path '
@@ -138,6 +114,35 @@ def add_parser(subparsers: Any) -> None:
                              f'again (default {HEARTBEAT_SECONDS})')
     add_data_arguments(parser)
     parser.set_defaults(run=run)
+
+
+def _add_space_arguments(parser: argparse.ArgumentParser) -> None:
+    """The search space: a named one, and lists that replace its own."""
+    parser.add_argument('--space', default='default', choices=tuple(SPACES),
+                        help='search space: default (batch ' + _listed(DEFAULT_SPACE.batch_sizes)
+                        + ', hidden ' + _listed(DEFAULT_SPACE.hidden_units) + ', lr '
+                        + _listed(DEFAULT_SPACE.learning_rates) + ', weight decay '
+                        + _listed(DEFAULT_SPACE.weight_decays) + ', LSTM rows '
+                        + _listed(DEFAULT_SPACE.lstm_steps) + ', error level '
+                        + _listed(DEFAULT_SPACE.error_levels) + ") or paper (the paper's grid: "
+                        'batch ' + _listed(PAPER_SPACE.batch_sizes) + ', hidden '
+                        + _listed(PAPER_SPACE.hidden_units) + ', lr '
+                        + _listed(PAPER_SPACE.learning_rates) + '); the lists below replace '
+                        "the named space's")
+    parser.add_argument('--batch-sizes', type=comma_list(positive_int), default=None,
+                        help='comma list')
+    parser.add_argument('--hidden-units', type=comma_list(positive_int), default=None,
+                        help='comma list')
+    parser.add_argument('--learning-rates', type=comma_list(positive_float), default=None,
+                        help='comma list')
+    parser.add_argument('--weight-decays', type=comma_list(finite_float), default=None,
+                        help='comma list (AdamW)')
+    parser.add_argument('--lstm-steps', type=comma_list(positive_int), default=None,
+                        help="comma list: rows at the window's end the LSTM reads")
+    parser.add_argument('--error-levels', type=comma_list(yes_no), default=None,
+                        help='comma list of yes/no: whether the network also sees the '
+                             "window's error level (no: only its course relative to the last "
+                             'row)')
 
 
 def search_space(args: argparse.Namespace) -> SearchSpace:
@@ -198,7 +203,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def summary_line(report: dict[str, Any]) -> str:
-    """Trials and the run's time split, from a training report (issue 10)."""
+    """Trials and the run's time split, from a training report."""
     tuning, timings = report['tuning'], report['timings']
     split = ', '.join(f'{label} {timings[key]:.1f} s' for label, key in (
         ('read+clean', 'read_clean_fk_seconds'), ('tuning', 'tuning_seconds'),
@@ -216,7 +221,7 @@ def summary_line(report: dict[str, Any]) -> str:
 
 def ridge_warning(report: dict[str, Any]) -> str | None:
     """A warning line when the BO-LSTM's test RMSE is not below the ridge baseline's on some
-    axis: the network then learned no more than a linear filter (issue 10)."""
+    axis: the network then learned no more than a linear filter."""
     beaten = report.get('bo_lstm_beats', {}).get('ridge')
     if not beaten:
         return None

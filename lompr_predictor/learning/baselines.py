@@ -1,4 +1,4 @@
-"""Reference baselines on the BO-LSTM's own windows (issue 10): ridge and boosted trees.
+"""Reference baselines on the BO-LSTM's own windows: ridge and boosted trees.
 
 Both see exactly what the networks see, the learning problem's windows of feature rows, as
 one flattened vector per window (error columns relative to the window's last row, as the

@@ -1,4 +1,4 @@
-"""The offline training pipeline (issue 4) as one library call: what `lompr train` runs.
+"""The offline training pipeline as one library call: what `lompr train` runs.
 
 `train_predictor(config)` reads and cleans the bags (`data.loading`), cuts the learning
 problem (windows, chronological split: `data.problem`), tunes the LSTM's batch size, hidden
@@ -305,7 +305,30 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
                             hyperparameters=baseline.settings, target='residual (e(t+h) - e(t))')
     report = _report(config, problem, data, sources, models, tuned, bp.seconds)
     scoring_seconds = time.perf_counter() - scoring_started
-    metadata = ModelMetadata(
+    metadata = _model_metadata(config, problem, tuned, description, trained_on,
+                               models['bo_lstm']['metrics'])
+    total = time.perf_counter() - started
+    # where the time went; write_outputs adds writing_seconds
+    report['timings'] = {'read_clean_fk_seconds': read_seconds,
+                         'tuning_seconds': tuned.tuning_seconds,
+                         'best_model_seconds': tuned.best_model_seconds,
+                         'bp_seconds': bp_seconds, 'baselines_seconds': baselines_seconds,
+                         'scoring_seconds': scoring_seconds,
+                         'total_seconds': total, 'read_fraction_of_total': read_seconds / total}
+    report['model_file'] = str(Path(_model_path(config)).resolve())
+    if config.test_inputs is not None:
+        report['test_part'] = 'every window of the test bags: ' + ', '.join(
+            config.test_inputs.bags)
+    return TrainingResult(module=tuned.module, metadata=metadata, report=report,
+                          test_part=ScoredPredictions(seconds=seconds_since(stamps),
+                                                      actual=actual, predictions=predictions))
+
+
+def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tuned,
+                    description: RobotDescription, trained_on: list[BagSource],
+                    test_metrics: dict[str, Any]) -> ModelMetadata:
+    """The metadata the model file carries (CONTRACT section 5)."""
+    return ModelMetadata(
         features=FEATURES, window=problem.window, horizon=problem.horizon,
         sample_period=problem.sample_period, targets=TARGETS,
         normalisation=normalisation_metadata(tuned.module, problem.error_low,
@@ -322,22 +345,7 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
         training_bags=tuple({'path': str(Path(s.path).resolve()), 'sha256': s.sha256}
                             for s in trained_on if not s.skipped_reason),
         seed=config.seed, library_versions=library_versions(),
-        test_metrics=models['bo_lstm']['metrics'])
-    total = time.perf_counter() - started
-    # the time split (issue 10); write_outputs adds writing_seconds
-    report['timings'] = {'read_clean_fk_seconds': read_seconds,
-                         'tuning_seconds': tuned.tuning_seconds,
-                         'best_model_seconds': tuned.best_model_seconds,
-                         'bp_seconds': bp_seconds, 'baselines_seconds': baselines_seconds,
-                         'scoring_seconds': scoring_seconds,
-                         'total_seconds': total, 'read_fraction_of_total': read_seconds / total}
-    report['model_file'] = str(Path(_model_path(config)).resolve())
-    if config.test_inputs is not None:
-        report['test_part'] = 'every window of the test bags: ' + ', '.join(
-            config.test_inputs.bags)
-    return TrainingResult(module=tuned.module, metadata=metadata, report=report,
-                          test_part=ScoredPredictions(seconds=seconds_since(stamps),
-                                                      actual=actual, predictions=predictions))
+        test_metrics=test_metrics)
 
 
 def write_outputs(config: TrainingConfig, result: TrainingResult) -> str:

@@ -138,29 +138,7 @@ def markdown(report: Mapping[str, Any]) -> str:
                      f"tuning / BP: {100 * report['tuning_time_ratio_to_bp']:.0f} %")
     for key, value in report.get('timings', {}).items():
         lines.append(f'- {key}: {value:.4g}')
-    tuning = report.get('tuning')
-    if tuning:
-        lines += ['', '## Bayesian tuning', '',
-                  f"Study `{tuning['study_name']}` ({tuning['trials_spent']} trials spent, "
-                  f"{tuning['trials_run_now']} in this run); best trial {tuning['best_trial']} "
-                  f"with validation MSE {tuning['best_value']:.4g}: {tuning['best_params']}"
-                  + (f", restart {tuning['best_restart']} (seed + {tuning['best_restart']})"
-                     if tuning.get('best_restart') else '') + '.', '']
-        if 'trials_complete' in tuning:
-            lines += [f"Budget {tuning['budget']} trials and {tuning.get('restarts', 0)} "
-                      "restarts of the best point with other seeds (the lowest validation "
-                      f"loss wins): {tuning['trials_complete']} complete "
-                      f"({tuning.get('restarts_run', 0)} of them restarts), "
-                      f"{tuning['trials_pruned']} pruned, "
-                      f"{tuning.get('trials_stopped_by_pruner', 0)} stopped early by the "
-                      f"pruner (successive halving), {tuning.get('epochs_run', 0)} epochs "
-                      f"in all, {tuning['trials_failed']} failed "
-                      "(a failed trial does not count; a dead worker's point is queued again).",
-                      '', '| worker | complete | pruned | failed |', '|---|---|---|---|']
-            lines += [f"| {name} | {row['complete']} | {row['pruned']} | {row['failed']} |"
-                      for name, row in tuning['workers'].items()]
-            lines.append('')
-        lines.append(f'![tuning history]({TUNING_PLOT})')
+    lines += _tuning_lines(report.get('tuning'))
     if report.get('model_sha256'):
         lines += ['', f"Model file `{report.get('model_file')}`, sha256 "
                       f"`{report['model_sha256']}` (also in `{report.get('model_sha256_file')}`; "
@@ -171,6 +149,34 @@ def markdown(report: Mapping[str, Any]) -> str:
     lines += [f"- skipped bag {b['path']}: {b['skipped_reason']}" for b in skipped]
     lines += ['', f'![prediction vs actual on the test window]({PREDICTION_PLOT})', '']
     return '\n'.join(lines)
+
+
+def _tuning_lines(tuning: Mapping[str, Any] | None) -> list[str]:
+    """report.md's section on the Bayesian tuning (none without a tuning)."""
+    if not tuning:
+        return []
+    lines = ['', '## Bayesian tuning', '',
+             f"Study `{tuning['study_name']}` ({tuning['trials_spent']} trials spent, "
+             f"{tuning['trials_run_now']} in this run); best trial {tuning['best_trial']} "
+             f"with validation MSE {tuning['best_value']:.4g}: {tuning['best_params']}"
+             + (f", restart {tuning['best_restart']} (seed + {tuning['best_restart']})"
+                if tuning.get('best_restart') else '') + '.', '']
+    if 'trials_complete' in tuning:
+        lines += [f"Budget {tuning['budget']} trials and {tuning.get('restarts', 0)} "
+                  "restarts of the best point with other seeds (the lowest validation "
+                  f"loss wins): {tuning['trials_complete']} complete "
+                  f"({tuning.get('restarts_run', 0)} of them restarts), "
+                  f"{tuning['trials_pruned']} pruned, "
+                  f"{tuning.get('trials_stopped_by_pruner', 0)} stopped early by the "
+                  f"pruner (successive halving), {tuning.get('epochs_run', 0)} epochs "
+                  f"in all, {tuning['trials_failed']} failed "
+                  "(a failed trial does not count; a dead worker's point is queued again).",
+                  '', '| worker | complete | pruned | failed |', '|---|---|---|---|']
+        lines += [f"| {name} | {row['complete']} | {row['pruned']} | {row['failed']} |"
+                  for name, row in tuning['workers'].items()]
+        lines.append('')
+    lines.append(f'![tuning history]({TUNING_PLOT})')
+    return lines
 
 
 def plot_predictions(path: Path, seconds: np.ndarray, actual: np.ndarray,

@@ -1,36 +1,13 @@
-"""Training loop: mini-batch Adam on the training windows, early stopping on validation.
+"""Training loop: one function, `train_network`, for the LSTM (in tuning and at the end) and
+the paper's BP baseline alike, so their training times compare like for like.
 
-The LSTM's recipe (issue 10, measured on the twin's presets): standardised inputs and
-targets, AdamW with the tuned learning rate and weight decay, a cosine learning-rate decay
-over `max_epochs` (per step), gradient clipping, the best validation epoch kept, early
-stopping after `patience` epochs without improvement in the schedule's last quarter
-(measured on the nominal twin: the validation loss wanders while the rate is high and falls
-by a third in the last 15 epochs; a stop at epoch 23 cost 8-28 % RMSE).
-The schedule is 120 epochs long (issue 10): the network was undertrained at 40 and at 60.
-At 40 epochs the Y axis's training and validation error were still falling at the last
-epoch; 60 took X/Y at a fixed point (batch 256, hidden 32, rate 1e-2, two seeds) from
-1.08/1.25 to 1.07/1.12 (nominal, horizon 25) and from 1.38/1.23 to 1.27/1.16 (sharp friction,
-horizon 1). At the point the default study picks most (batch 512, hidden 32, rate 0.02), 4
-seeds, test RMSE / irreducible, mean X/Y, 60 -> 120 epochs: worn h1 1.23/1.17 -> 1.10/1.09,
-sharp friction h1 1.14/1.12 -> 1.08/1.09, sharp friction h25 1.13/1.27 -> 1.09/1.13, nominal
-h25 1.08/1.30 -> 1.07/1.11, thermal h25 1.15/1.31 -> 1.15/1.23; 200 epochs were no better
-(two seeds: 1.09/1.12, 1.09/1.11, 1.16/1.23). What the extra epochs buy is mostly one rare
-event learned: the return to the centre at a pass's end, which a horizon-25 prediction has
-to see coming. A per-axis loss balance, per-axis best epochs and the LSTM over the whole
-window did not help; nor did the last row fed to the head beside the LSTM's state. The
-window's error level as extra input columns helps where a slow drift is under way (thermal
-presets) and costs a little elsewhere: it is a tuned choice (`space.DEFAULT_SPACE`).
-The paper's BP keeps its own: min-max inputs, Adam, the rate cut by `LR_DECAY` on a
-validation plateau.
-
-One function, `train_network`, trains the LSTM (during tuning and at the end) and the BP
-baseline alike, so their training times compare like for like. Each epoch reports the
-validation loss to an Optuna trial when given (which may prune it), the best epoch's
-weights are kept, and training stops after `patience` epochs without improvement.
-Everything is seeded: the same problem, hyperparameters and seed give the same model. The
-torch thread count is the caller's (an entry point sets it, `threads.set_torch_threads`):
-one thread suits the small LSTM best on a loaded 2-core machine (measured at load 4: 7.5 ms
-per batch-600 step with one thread, 16.9 ms with two).
+The LSTM's recipe: standardised inputs and targets, AdamW, a cosine learning-rate decay
+over `max_epochs` (per step), gradient clipping, the best validation epoch kept, and early
+stopping only in the schedule's last quarter (the validation loss wanders while the rate is
+high). The BP keeps the paper's: min-max inputs, Adam, the rate cut on a validation plateau.
+Each epoch reports the validation loss to an Optuna trial when given (which may prune it).
+Everything is seeded; the torch thread count is the caller's (`threads.set_torch_threads`).
+The measurements behind these choices are in docs/results.md.
 """
 
 from __future__ import annotations
@@ -38,7 +15,7 @@ from __future__ import annotations
 import copy
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -175,6 +152,53 @@ def validation_loss(net: nn.Module, inputs: ScaledRows, ends: np.ndarray,
     return total / (len(ends) * targets.shape[1])
 
 
+class _Schedule:
+    """The optimiser and its learning-rate schedule: the LSTM's AdamW with a cosine decay
+    over every step of `max_epochs`, the BP's Adam with a decay on plateaus (the paper's)."""
+
+    def __init__(self, net: nn.Module, model_type: str, hyperparameters: Mapping[str, Any],
+                 total_steps: int) -> None:
+        rate = float(hyperparameters['learning_rate'])
+        self.cosine = model_type == 'lstm'
+        self.optimiser: torch.optim.Optimizer
+        self._per_step: Any = None
+        self._plateau: Any = None
+        if self.cosine:
+            self.optimiser = torch.optim.AdamW(
+                net.parameters(), lr=rate,
+                weight_decay=float(hyperparameters.get('weight_decay', 0.0)))
+            self._per_step = torch.optim.lr_scheduler.CosineAnnealingLR(
+                self.optimiser, max(1, total_steps))
+        else:
+            self.optimiser = torch.optim.Adam(net.parameters(), lr=rate)
+            self._plateau = torch.optim.lr_scheduler.ReduceLROnPlateau(
+                self.optimiser, factor=LR_DECAY, patience=LR_DECAY_PATIENCE)
+
+    def step(self) -> None:
+        """One batch's step of the optimiser, and of the rate if it decays per step."""
+        self.optimiser.step()
+        if self._per_step is not None:
+            self._per_step.step()
+
+    def epoch_done(self, validation_loss: float) -> None:
+        if self._plateau is not None:
+            self._plateau.step(validation_loss)
+
+
+def _train_epoch(net: nn.Module, schedule: _Schedule,
+                 windows: Callable[[np.ndarray, int], torch.Tensor], ends: np.ndarray,
+                 targets: torch.Tensor, batch: int, window: int) -> None:
+    """One epoch over the windows ending at `ends` (in that order), `batch` at a time."""
+    net.train()
+    for start in range(0, len(ends), batch):
+        x = windows(ends[start:start + batch], window)
+        loss = nn.functional.mse_loss(net(x), targets[start:start + batch])
+        schedule.optimiser.zero_grad()
+        loss.backward()
+        nn.utils.clip_grad_norm_(net.parameters(), GRADIENT_CLIP)
+        schedule.step()
+
+
 def train_network(
     problem: LearningProblem,
     model_type: str,
@@ -213,19 +237,9 @@ def train_network(
     train_y, validation_y = (module.normalise_targets(problem.targets(ends, residual))
                              for ends in (split.train, validation_ends))
     epoch_size = min(len(split.train), settings.epoch_windows)
-    rate = float(hyperparameters['learning_rate'])
-    cosine = model_type == 'lstm'
-    optimiser: torch.optim.Optimizer
-    if cosine:
-        optimiser = torch.optim.AdamW(net.parameters(), lr=rate,
-                                      weight_decay=float(hyperparameters.get('weight_decay', 0.0)))
-        steps_per_epoch = math.ceil(epoch_size / batch)
-        step_schedule: Any = torch.optim.lr_scheduler.CosineAnnealingLR(
-            optimiser, max(1, settings.max_epochs * steps_per_epoch))
-    else:
-        optimiser = torch.optim.Adam(net.parameters(), lr=rate)
-        plateau = torch.optim.lr_scheduler.ReduceLROnPlateau(
-            optimiser, factor=LR_DECAY, patience=LR_DECAY_PATIENCE)
+    schedule = _Schedule(net, model_type, hyperparameters,
+                         settings.max_epochs * math.ceil(epoch_size / batch))
+    cosine = schedule.cosine
     best, best_state, best_epoch, history = math.inf, copy.deepcopy(net.state_dict()), 0, []
     pruned_epoch = 0
     started = time.perf_counter()
@@ -233,25 +247,15 @@ def train_network(
                   leave=False, disable=not progress)
     epoch = 0
     for epoch in epochs:
-        net.train()
         order = rng.permutation(len(split.train))[:epoch_size]
-        for start in range(0, len(order), batch):
-            chosen = order[start:start + batch]
-            x = inputs.windows(split.train[chosen], window)
-            loss = nn.functional.mse_loss(net(x), train_y[chosen])
-            optimiser.zero_grad()
-            loss.backward()
-            nn.utils.clip_grad_norm_(net.parameters(), GRADIENT_CLIP)
-            optimiser.step()
-            if cosine:
-                step_schedule.step()
+        _train_epoch(net, schedule, inputs.windows, split.train[order], train_y[order], batch,
+                     window)
         net.eval()
         loss_value = validation_loss(module.net, inputs, validation_ends, validation_y, window)
         if not math.isfinite(loss_value):
             loss_value = math.inf
         history.append(loss_value)
-        if not cosine:
-            plateau.step(loss_value)
+        schedule.epoch_done(loss_value)
         epochs.set_postfix(validation=f'{loss_value:.3g}')
         if loss_value < best:
             best, best_state, best_epoch = loss_value, copy.deepcopy(net.state_dict()), epoch

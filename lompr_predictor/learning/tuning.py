@@ -1,37 +1,13 @@
-"""Bayesian tuning of batch size, hidden units and learning rate with Optuna (the paper's BO).
+"""Bayesian tuning with Optuna (the paper's BO): studies, their budget, and the trials any
+number of workers run on one study.
 
-The sampler is Optuna's `GPSampler`: a Gaussian process surrogate with a (log) expected
-improvement acquisition, as in the seed paper; it takes the points of running trials as
-pending, so parallel workers are not sent to the same point. Its random start-up points are
-drawn per trial number (`TrialSeededSampler`), so workers sharing a seed do not repeat each
-other. Trials are pruned on the validation loss (successive halving, `make_pruner`) and
-count toward the budget like finished ones. `make_sampler` and `make_pruner` are the places
-to change either.
-
-A study lives in a storage (`storage.py`: a journal file in the report folder by default,
-PostgreSQL for several machines) and is opened with `open_study`, which records the settings
-that define it (`DEFINITION_ATTR`: refused with one message if a command with other settings
-joins it by name) and its budget (`BUDGET_ATTR`: the largest `--trials` any of its commands
-gave). Any number of processes, on any machines, run `run_trials` on one study:
-
-- each takes its next trial under the storage's lock, after counting: complete + pruned +
-  running trials never exceed the budget (a running trial holds its slot while it runs, a
-  failed one gives it back); a worker with no free slot waits until the budget is spent
-  or a slot frees;
-- before counting it fails running trials whose heartbeats stopped (their worker died) and
-  queues their points again (`storage.StudyStorage.fail_stale`);
-- each trial records its worker (`WORKER`, host:pid) and sends heartbeats while it runs.
-
-Once the tuning trials are taken, the study's restart slots (`RESTARTS_ATTR`, `--restarts`)
-train the best point found so far again with other seeds (`RESTART`: 1, 2, ... added to the
-seed), not pruned: the same point's networks differ from seed to seed (on the twin's presets
-a rare event, such as the return at a pass's end, is learned by some seeds and not others),
-and the validation loss tells them apart. The study's best trial, whichever seed, is the
-model.
-
-An interrupted run (Ctrl-C) resumes with the same command and loses no finished trial.
-What a trial does is the objective's business (`objective.py` trains a network); this
-module knows studies only.
+`make_sampler` (a Gaussian-process sampler, pending points shared between workers) and
+`make_pruner` (successive halving) are the places to change either. `open_study` records
+the settings that define a study and its budget; `run_trials` takes a trial only while
+complete + pruned + running trials stay within the budget, fails the trials of dead
+workers (heartbeats) and queues their points again, then trains the best point again with
+other seeds (restarts). An interrupted run resumes with the same command. What a trial does
+is the objective's business (`objective.py`); this module knows studies only.
 """
 
 from __future__ import annotations

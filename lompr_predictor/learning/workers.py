@@ -1,4 +1,4 @@
-"""Tuning workers on this machine: N processes working on one study (issues 10 and 14).
+"""Tuning workers on this machine: N processes working on one study.
 
 `tune(study_spec, study, storage, make_objective, workers=N)` runs the study's remaining
 trials here with up to N worker processes (processes, not threads: the GIL), every one a

@@ -4,7 +4,7 @@ CONTRACT section 2: the measured tool tip and the reference may come at differen
 and rates, and in any arrival order; a consumer aligns them by time, never by arrival.
 `StampAlignment` keeps the poses that wait for a reference at or after their stamp, in
 arrival order, and the reference track (`ReferenceTrack`) they are interpolated on. Each
-input returns what became ready, in order: an `AlignedSample` or the reason (a string) of a
+input returns what became ready, in order: an `AlignedSample` or the `FaultReason` of a
 fault the caller must handle there, between the samples. Every input not used is counted by
 reason in `dropped`.
 """
@@ -14,15 +14,33 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Callable
+from enum import StrEnum
 from typing import NamedTuple
 
 from lompr_predictor.monitoring import RejectionCounter
+from lompr_predictor.online.faults import FaultReason
 
-#: Why an input sample was not used; each is counted (`StampAlignment.dropped`).
-DROP_REASONS: tuple[str, ...] = (
-    'non_finite', 'duplicate', 'out_of_order', 'no_reference', 'reference_duplicate',
-    'reference_non_finite', 'reference_out_of_order', 'stale', 'clock_jump', 'inactive',
-    'internal', 'bad_stamp', 'future_stamp', 'reference_bad_stamp', 'reference_future_stamp')
+
+class DropReason(StrEnum):
+    """Why an input sample was not used; each is counted (`StampAlignment.dropped`) and the
+    value is the key on /diagnostics (`rejected.<value>`)."""
+
+    NON_FINITE = 'non_finite'
+    DUPLICATE = 'duplicate'
+    OUT_OF_ORDER = 'out_of_order'
+    NO_REFERENCE = 'no_reference'
+    REFERENCE_DUPLICATE = 'reference_duplicate'
+    REFERENCE_NON_FINITE = 'reference_non_finite'
+    REFERENCE_OUT_OF_ORDER = 'reference_out_of_order'
+    STALE = 'stale'
+    CLOCK_JUMP = 'clock_jump'
+    INACTIVE = 'inactive'
+    INTERNAL = 'internal'
+    BAD_STAMP = 'bad_stamp'
+    FUTURE_STAMP = 'future_stamp'
+    REFERENCE_BAD_STAMP = 'reference_bad_stamp'
+    REFERENCE_FUTURE_STAMP = 'reference_future_stamp'
+
 #: Poses kept waiting for a reference at or after their stamp; beyond, the oldest is dropped.
 MAX_PENDING_POSES = 1000
 #: References kept before the oldest pose that may still need one.
@@ -53,20 +71,21 @@ class ReferenceTrack:
     def newest(self) -> int | None:
         return self._stamps[-1] if self._stamps else None
 
-    def add(self, stamp_ns: int, x: float, y: float, z: float) -> str:
-        """Keep one reference tool tip; '' or the reason it was not kept."""
+    def add(self, stamp_ns: int, x: float, y: float, z: float) -> DropReason | None:
+        """Keep one reference tool tip; None, or the reason it was not kept."""
         if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
-            return 'reference_non_finite'
+            return DropReason.REFERENCE_NON_FINITE
         newest = self.newest
         if newest is not None and stamp_ns <= newest:
-            return 'reference_duplicate' if stamp_ns == newest else 'reference_out_of_order'
+            return (DropReason.REFERENCE_DUPLICATE if stamp_ns == newest
+                    else DropReason.REFERENCE_OUT_OF_ORDER)
         if newest is not None:
             self._steps.append(stamp_ns - newest)
             typical = sorted(self._steps)[len(self._steps) // 2]
             self.max_bracket_ns = self.gap_factor * max(self._pose_period_ns, typical)
         self._stamps.append(stamp_ns)
         self._positions.append((x, y, z))
-        return ''
+        return None
 
     def restart(self, stamp_ns: int, x: float, y: float, z: float) -> None:
         """Forget the history and start again from one reference (the stream went back)."""
@@ -87,9 +106,9 @@ class ReferenceTrack:
             self._stamps.pop()
             self._positions.pop()
 
-    def at(self, stamp_ns: int) -> tuple[float, float, float] | str | None:
+    def at(self, stamp_ns: int) -> tuple[float, float, float] | FaultReason | None:
         """The reference at `stamp_ns`; None while no reference at or after it has arrived;
-        'no_reference' when the history does not bracket it within `max_bracket_ns`."""
+        a no_reference fault when the history does not bracket it within `max_bracket_ns`."""
         stamps, positions = self._stamps, self._positions
         if not stamps or stamp_ns > stamps[-1]:
             return None
@@ -97,7 +116,7 @@ class ReferenceTrack:
             stamps.popleft()
             positions.popleft()
         if stamp_ns < stamps[0]:
-            return 'no_reference'
+            return FaultReason.NO_REFERENCE
         right = 0
         while stamps[right] < stamp_ns:
             right += 1
@@ -106,7 +125,7 @@ class ReferenceTrack:
         left = right - 1
         span = stamps[right] - stamps[left]
         if span > self.max_bracket_ns:
-            return 'no_reference'
+            return FaultReason.NO_REFERENCE
         weight = (stamp_ns - stamps[left]) / span
         (x0, y0, z0), (x1, y1, z1) = positions[left], positions[right]
         return x0 + weight * (x1 - x0), y0 + weight * (y1 - y0), z0 + weight * (z1 - z0)
@@ -131,7 +150,7 @@ class _Pose(NamedTuple):
 
 
 #: What an input made ready, in order: a sample to use, or the reason of a fault.
-Event = AlignedSample | str
+Event = AlignedSample | FaultReason
 
 
 class StampAlignment:
@@ -147,10 +166,10 @@ class StampAlignment:
     def __init__(self, gap_factor: float, period_ns: int, clock: Callable[[], float]) -> None:
         self.references = ReferenceTrack(gap_factor, period_ns)
         self._clock = clock
-        self._pending: deque[_Pose | str] = deque()
+        self._pending: deque[_Pose | FaultReason] = deque()
         #: Stamp of the newest pose taken (the last one, if a stamp went backwards) [ns].
         self.newest_pose_ns: int | None = None
-        self.dropped = RejectionCounter(DROP_REASONS)
+        self.dropped = RejectionCounter(DropReason)
 
     @property
     def waiting(self) -> bool:
@@ -167,45 +186,46 @@ class StampAlignment:
     def add_reference(self, stamp_ns: int, x: float, y: float, z: float) -> list[Event]:
         """Take one reference sample (the commanded tool tip); returns what became ready."""
         reason = self.references.add(stamp_ns, x, y, z)
-        if reason == 'reference_out_of_order':
-            self.dropped.add(reason)
+        if reason is None:
+            return self._drain([])
+        self.dropped.add(reason)
+        if reason == DropReason.REFERENCE_OUT_OF_ORDER:
             self.references.restart(stamp_ns, x, y, z)
-            return [reason]
-        if reason:
-            self.dropped.add(reason)
-            return [reason] if reason == 'reference_non_finite' else []
-        return self._drain([])
+            return [FaultReason.REFERENCE_OUT_OF_ORDER]
+        if reason == DropReason.REFERENCE_NON_FINITE:
+            return [FaultReason.REFERENCE_NON_FINITE]
+        return []
 
     def add_pose(self, stamp_ns: int, x: float, y: float) -> list[Event]:
         """Take one measured tool-tip sample; returns what became ready."""
         if not (math.isfinite(x) and math.isfinite(y)):
-            self.dropped.add('non_finite')
-            self._pending.append('non_finite')
+            self.dropped.add(DropReason.NON_FINITE)
+            self._pending.append(FaultReason.NON_FINITE)
             return self._drain([])
         newest = self.newest_pose_ns
         if newest is not None and stamp_ns == newest:
-            self.dropped.add('duplicate')
+            self.dropped.add(DropReason.DUPLICATE)
             return []
         if newest is not None and stamp_ns < newest:
-            self.dropped.add('out_of_order')
+            self.dropped.add(DropReason.OUT_OF_ORDER)
             self.newest_pose_ns = stamp_ns
-            self.clear('out_of_order')
-            return ['out_of_order']
+            self.clear(DropReason.OUT_OF_ORDER)
+            return [FaultReason.OUT_OF_ORDER]
         self.newest_pose_ns = stamp_ns
         self._pending.append(_Pose(stamp_ns, x, y, self._clock()))
         events: list[Event] = []
         if len(self._pending) > MAX_PENDING_POSES:
             self._pending.popleft()
-            self.dropped.add('no_reference')
-            events.append('no_reference')
+            self.dropped.add(DropReason.NO_REFERENCE)
+            events.append(FaultReason.NO_REFERENCE)
         return self._drain(events)
 
-    def clear(self, reason: str) -> None:
+    def clear(self, reason: DropReason) -> None:
         """Drop the poses waiting for a reference, counted under `reason`."""
         self.dropped.add(reason, sum(isinstance(p, _Pose) for p in self._pending))
         self._pending.clear()
 
-    def rewind(self, stamp_ns: int | None, reason: str) -> None:
+    def rewind(self, stamp_ns: int | None, reason: DropReason) -> None:
         """Take the streams as starting afresh at `stamp_ns` (a clock gone back to it, a
         simulator reset) or anew (None: a node reactivated): drop the waiting poses
         (counted under `reason`) and the references stamped after `stamp_ns` (all if None),
@@ -220,7 +240,7 @@ class StampAlignment:
         pending = self._pending
         while pending:
             head = pending[0]
-            if isinstance(head, str):
+            if isinstance(head, FaultReason):
                 pending.popleft()
                 events.append(head)
                 continue
@@ -228,8 +248,8 @@ class StampAlignment:
             if reference is None:
                 break
             pending.popleft()
-            if isinstance(reference, str):
-                self.dropped.add(reference)
+            if isinstance(reference, FaultReason):
+                self.dropped.add(DropReason.NO_REFERENCE)
                 events.append(reference)
                 continue
             events.append(AlignedSample(head.stamp_ns, head.x, head.y, *reference))

@@ -20,11 +20,33 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from enum import StrEnum
 
-#: Why the window was emptied (and an offset in force cancelled by a zero).
-FAULT_REASONS: tuple[str, ...] = (
-    'non_finite', 'out_of_order', 'gap', 'off_rate', 'no_reference', 'reference_non_finite',
-    'reference_out_of_order', 'inference', 'stale', 'clock_jump', 'internal')
+
+class FaultReason(StrEnum):
+    """Why the window was emptied (and an offset in force cancelled by a zero); the value
+    is the key on /diagnostics (`faults.<value>`)."""
+
+    NON_FINITE = 'non_finite'
+    OUT_OF_ORDER = 'out_of_order'
+    GAP = 'gap'
+    OFF_RATE = 'off_rate'
+    NO_REFERENCE = 'no_reference'
+    REFERENCE_NON_FINITE = 'reference_non_finite'
+    REFERENCE_OUT_OF_ORDER = 'reference_out_of_order'
+    INFERENCE = 'inference'
+    STALE = 'stale'
+    CLOCK_JUMP = 'clock_jump'
+    INTERNAL = 'internal'
+
+
+_FAULT_VALUES = frozenset(FaultReason)
+
+
+def is_fault(reason: str | None) -> bool:
+    """Whether an output's reason is a fault (not a prediction, nor a cancel by the
+    caller such as 'inactive')."""
+    return reason in _FAULT_VALUES
 
 
 @dataclass(frozen=True)
@@ -59,14 +81,14 @@ class StreamRules:
         self.max_interval_ns = stream.gap_factor * period_ns
         self.min_interval_ns = stream.min_interval_factor * period_ns
 
-    def interval_fault(self, previous_ns: int, stamp_ns: int) -> str:
-        """'gap', 'off_rate', or '' for an interval the model was trained on."""
+    def interval_fault(self, previous_ns: int, stamp_ns: int) -> FaultReason | None:
+        """The fault of an interval the model was not trained on, None for one it was."""
         interval = stamp_ns - previous_ns
         if interval > self.max_interval_ns:
-            return 'gap'
+            return FaultReason.GAP
         if interval < self.min_interval_ns:
-            return 'off_rate'
-        return ''
+            return FaultReason.OFF_RATE
+        return None
 
 
 class StaleWatch:

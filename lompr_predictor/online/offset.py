@@ -104,9 +104,6 @@ class InstantSchedule:
             return items.popleft()[1]
         return None
 
-    def clear(self) -> None:
-        self._items.clear()
-
 
 class OffsetGate:
     """Bounds, schedules and cancels the offsets (module docstring), on a grid of instants

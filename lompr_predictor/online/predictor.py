@@ -1,34 +1,11 @@
 """Online error prediction and a bounded compensation offset, sample by sample (ROS-free).
 
-`OnlinePredictor` is the predictor node's core; the node only turns messages into calls.
-It composes the parts, each in its own module and testable alone:
-
-- `alignment.StampAlignment`: `add_reference(stamp, x, y, z)` and `add_pose(stamp, x, y)` take
-  the two input streams in arrival order; a pose waits for the reference at or after its
-  stamp and gets the reference interpolated to its stamp (CONTRACT section 2).
-- The plant error of a sample is measured tool tip - reference - the offset this predictor
-  published for that instant (CONTRACT section 3), zero where it published none.
-- `window.FeatureWindow`: the feature rows of the last samples, as `features.feature_rows`
-  gives them offline; once it is full every new sample gives one `Output`: the predicted
-  plant error for the instant `horizon` sample periods after it, and the offset for it.
-- `offset.OffsetGate`: the one place the offset is bounded (clamp, step limit), scheduled by
-  instant and cancelled by zeros; shadow mode.
-- `faults`: the stream rules (gap, off-rate) and staleness. Any fault (those, the
-  alignment's, a failing or non-finite inference, `abort`) empties the window and cancels
-  the offset in force; output resumes once the window has refilled with good samples.
-
-- `timing.OverrunGuard`: with `now_ns` (the node's clock, integer ns) given, the overrun
-  policy: a sample whose output could only come after its instant gets no inference, an
-  inference that finishes after its instant publishes nothing (both counted); and input
-  stamps are checked (`stamps.stamp_problem`: negative, nanosec >= 1e9, more than
-  `StreamSettings.max_future_stamp` ahead of `now_ns`), a bad one dropped and counted.
-
-Time: `clock` (seconds, monotonic by default) stamps arrivals and times staleness. The
-predictor node gives its ROS clock (simulated time under use_sim_time) and reports the
-clock's jumps: `clock_jumped_back` (a simulator reset: a fault, and the streams are taken as
-starting again) and `restart_staleness` (the clock started or skipped ahead). `now_ns` (the
-same clock in integer ns; None: no overrun policy, no future check) is read once at each
-input and after each inference. Every call returns the outputs to publish, in order.
+`OnlinePredictor` is the predictor node's core: it composes the alignment by stamp
+(`alignment`), the plant error (CONTRACT section 3), the feature window (`window`), the
+model, the offset gate (`offset`), the fault rules (`faults`) and the overrun policy
+(`timing`), each testable alone. Any fault empties the window and cancels the offset in
+force. Time is the caller's clock (the node's ROS clock, simulated under use_sim_time),
+whose jumps the caller reports; every call returns the outputs to publish, in order.
 """
 
 from __future__ import annotations
@@ -42,8 +19,8 @@ import numpy as np
 from lompr_predictor.data.features import FEATURES
 from lompr_predictor.learning.model_file import LoadedModel, MetadataMismatchError
 from lompr_predictor.monitoring import LatencyRecorder, RejectionCounter
-from lompr_predictor.online.alignment import DROP_REASONS, AlignedSample, Event, StampAlignment
-from lompr_predictor.online.faults import FAULT_REASONS, StaleWatch, StreamRules, StreamSettings
+from lompr_predictor.online.alignment import AlignedSample, DropReason, Event, StampAlignment
+from lompr_predictor.online.faults import FaultReason, StaleWatch, StreamRules, StreamSettings
 from lompr_predictor.online.offset import CompensationLimits, LiveAccuracy, OffsetGate, Output
 from lompr_predictor.online.timing import OverrunGuard
 from lompr_predictor.online.window import FeatureWindow
@@ -51,7 +28,7 @@ from lompr_predictor.robot.description import RobotDescription, load_robot_descr
 from lompr_predictor.stamps import StampLike, period_ns, stamp_problem, stamp_to_ns
 
 # The names a caller of the core needs, importable from here as before the split.
-__all__ = ['DROP_REASONS', 'FAULT_REASONS', 'CompensationLimits', 'OnlinePredictor', 'Output',
+__all__ = ['CompensationLimits', 'DropReason', 'FaultReason', 'OnlinePredictor', 'Output',
            'StreamSettings']
 
 
@@ -78,7 +55,7 @@ class OnlinePredictor:
         self._window = FeatureWindow(self.window, self.description.geometry)
         self._gate = OffsetGate(limits, period)
         self._accuracy = LiveAccuracy(stream.accuracy_samples)
-        self.faults = RejectionCounter(FAULT_REASONS)
+        self.faults = RejectionCounter(FaultReason)
         self.last_fault = ''
         self.inference_time = LatencyRecorder(latency_samples)
         self.predictions_made = 0
@@ -120,22 +97,22 @@ class OnlinePredictor:
             return []
         if self._window.empty and not alignment.waiting and not self._gate.in_force:
             return []
-        alignment.clear('stale')
-        return self._fault('stale')
+        alignment.clear(DropReason.STALE)
+        return self._fault(FaultReason.STALE)
 
-    def abort(self, reason: str = 'internal') -> list[Output]:
+    def abort(self) -> list[Output]:
         """Empty the window and cancel the offset after a failure outside this class (an
         exception in the caller's own handling)."""
-        self._alignment.clear(reason)
-        return self._fault(reason)
+        self._alignment.clear(DropReason.INTERNAL)
+        return self._fault(FaultReason.INTERNAL)
 
     def clock_jumped_back(self, now_ns: int | None) -> list[Output]:
         """The clock went back to `now_ns` (None: it changed source), as a simulator reset
         does: a 'clock_jump' fault (window emptied, the offset in force cancelled), and the
         inputs are taken as starting again from there (`StampAlignment.rewind`), so the
         restarted streams refill the window without further faults."""
-        outputs = self._fault('clock_jump')
-        self._alignment.rewind(now_ns, 'clock_jump')
+        outputs = self._fault(FaultReason.CLOCK_JUMP)
+        self._alignment.rewind(now_ns, DropReason.CLOCK_JUMP)
         self._stale.restart()
         self.overrun.restart()
         return outputs
@@ -145,7 +122,7 @@ class OnlinePredictor:
         skipping ahead): idle time counts from now (a gap in the stamps is still a fault)."""
         self._stale.restart()
 
-    def reset(self, reason: str = 'inactive') -> list[Output]:
+    def reset(self, reason: DropReason = DropReason.INACTIVE) -> list[Output]:
         """Stop and start afresh, no fault (the node deactivated): the offset in force is
         cancelled (zeros, `reason`), the window emptied, and the inputs forgotten, so that
         the next samples start a new window whatever their stamps."""
@@ -180,7 +157,7 @@ class OnlinePredictor:
 
     @property
     def dropped(self) -> RejectionCounter:
-        """Input samples not used, by reason (`alignment.DROP_REASONS`)."""
+        """Input samples not used, by reason (`alignment.DropReason`)."""
         return self._alignment.dropped
 
     @property
@@ -246,7 +223,7 @@ class OnlinePredictor:
         reason, why = stamp_problem(stamp, now if self._now_ns is not None else 0,
                                     self._max_future_ns)
         if reason:
-            self._alignment.dropped.add(prefix + reason)
+            self._alignment.dropped.add(DropReason(prefix + reason))
             self.last_bad_stamp = f'{prefix or "pose_"}{reason}: {why}'
             return None
         return stamp_to_ns(stamp)
@@ -254,7 +231,7 @@ class OnlinePredictor:
     def _handle(self, events: list[Event]) -> list[Output]:
         outputs: list[Output] = []
         for event in events:
-            if isinstance(event, str):
+            if isinstance(event, FaultReason):
                 outputs += self._fault(event)
             else:
                 outputs += self._use_sample(event)
@@ -266,7 +243,7 @@ class OnlinePredictor:
         previous = window.last_stamp_ns
         if previous is not None:
             reason = self._rules.interval_fault(previous, sample.stamp_ns)
-            if reason:
+            if reason is not None:
                 outputs += self._fault(reason)
         self._stale.used()
         applied, predicted = self._gate.published_for(sample.stamp_ns)
@@ -288,7 +265,7 @@ class OnlinePredictor:
             return []
         prediction = self._infer()
         if prediction is None:
-            return self._fault('inference')
+            return self._fault(FaultReason.INFERENCE)
         self.predictions_made += 1
         if guard is not None:
             started = self._now
@@ -312,7 +289,7 @@ class OnlinePredictor:
         self.inference_time.record(time.perf_counter() - start)
         return (x, y) if math.isfinite(x) and math.isfinite(y) else None
 
-    def _fault(self, reason: str) -> list[Output]:
+    def _fault(self, reason: FaultReason) -> list[Output]:
         """Empty the window; cancel the offsets in force (`offset.OffsetGate.cancel`)."""
         self.faults.add(reason)
         self.last_fault = reason

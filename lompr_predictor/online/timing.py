@@ -1,34 +1,13 @@
-"""Time rules of the predictor's input and output, on the node's clock (ROS-free).
+"""The overrun policy, on the node's clock (ROS-free, integer nanoseconds).
 
-`now` is always the node's clock in integer nanoseconds (ROS time: sim time under `/clock`),
-passed in by the caller; stamps are the samples' own. The two need not share an epoch (a bag
-replayed without `/clock`, a machine with its own clock), so nothing here compares a stamp
-with `now` directly except the sanity check of `stamps.stamp_problem`.
-
-`OverrunGuard` is the overrun policy: an output is for the instant stamp + lead (lead =
-horizon x sample period). It is late when, on the node's clock, that instant has passed:
-
-    lateness = (now - stamp) - offset > lead + tolerance
-
-where `offset` estimates node time - stamp time for a sample that waited for nothing: the
-best-case delay. It is the minimum of (arrival - stamp) over the samples, except that it may
-rise by as much time as has passed since the node's last inference ended (before the first
-one: freely). So delay that builds up behind inferences (a backlog behind a slow model, a
-stall during one) counts as lateness, whereas delay that builds up while the node waits for
-input (a source slower than the node's clock: a lockstep simulator on wall time waiting for
-its offset, a slowed replay) does not: the node cannot tell it from a slow clock, and it is
-no overrun of the node. Under sim time a lockstep simulator's clock stands still while it
-waits, and nothing is late either way. The estimate restarts when a stamp or the node's
-clock goes backwards (a replay looping, a simulation restarted).
-
-Policy (applied by `predictor.OnlinePredictor`): a sample whose output would be late even if
-its inference started now (already late; or it queued, waiting more than the tolerance, and
-would be late once an inference as long as the last one has run) enters the window (features
-need every sample) but gets no inference (`inference_skipped_late`), so samples that queued
-behind a slow inference are skipped to the newest; an inference that finishes after its
-instant publishes nothing for it (`late_outputs_dropped`). A sample that did not queue is
-always inferred, so one slow inference (a stall) cannot stop the node: the duration is
-measured again on the next fresh sample.
+An output is for the instant stamp + lead (lead = horizon x sample period); it is late when,
+on the node's clock, that instant has passed by more than a tolerance, judged against the
+best-case input delay: delay that builds up behind inferences counts, delay while the node
+waits for input does not (it cannot be told from a slow clock). A sample whose output
+would be late gets no inference, so a backlog behind a slow model is skipped to the newest
+sample; an inference that finishes late publishes nothing. A sample that did not queue is
+always inferred, so one stall cannot stop the node. The estimate restarts when a stamp or
+the clock goes backwards.
 """
 
 from __future__ import annotations
@@ -46,12 +25,6 @@ class OverrunGuard:
         self._inference_ns = 0  # the last inference's duration on the node's clock
         self.inference_skipped_late = 0
         self.late_outputs_dropped = 0
-        self.restarts = 0
-
-    @property
-    def offset_ns(self) -> int | None:
-        """The estimated best-case node time - stamp time, None before the first sample."""
-        return self._offset
 
     def arrival(self, stamp_ns: int, now_ns: int) -> None:
         """A sample stamped `stamp_ns` arrived (its callback started) at `now_ns`."""
@@ -102,4 +75,3 @@ class OverrunGuard:
         self._offset = None
         self._idle_since = None
         self._last_stamp = None
-        self.restarts += 1

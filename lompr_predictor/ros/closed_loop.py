@@ -1,33 +1,14 @@
-"""The closed loop on the digital twin, through the real nodes: in one process, or as three
-processes on simulated time.
+"""The closed loop on the digital twin through the real nodes, in one process or as three
+processes on simulated time, so that a model is scored on the true tool-tip error it leaves.
 
     twin_node (lockstep) --/joint_states--> kinematics_node --/lompr/end_pose--> predictor_node
     twin_node --/lompr/reference--> predictor_node --/lompr/compensation--> twin_node
 
-The predictor's offset for an instant moves the twin's command at that instant (CONTRACT
-section 3). The three nodes and a collector run on one executor, on their own rclpy
-`Context` and on private topic names (nothing leaks to, or hears from, a robot on the same
-ROS domain). The twin runs in lockstep: the next sample runs as soon as its offset arrived,
-so a pass of 44 s of machining takes about 3 s (measured: ~380 samples/s on the events
-executor, ~290 on the single-threaded one). The collector keeps the twin's debug
-topics (`/lompr/twin/true_error`, `/lompr/twin/plant_error`) and its joint states and
-references, so a run can be scored on the true tool-tip error and recorded as a bag.
-
-`compensation_enabled` of the predictor node can be switched off at a given sample
-(`LoopSettings.switch_off_at`): the node goes on predicting (shadow mode) and publishes zero
-offsets. A loop without compensation is the same pipeline in shadow mode from the start.
-
-Across processes (`LoopSettings.processes`), as a simulator (Gazebo, Isaac Sim, a
-hardware-in-the-loop rig) drives real nodes: `twin_node`, `kinematics_node` and
-`predictor_node` run as three executables on a private ROS domain; the twin publishes
-/clock (each sample's instant, `publish_clock`) and the two nodes run with
-`use_sim_time:=true` and their default staleness rules; the twin waits for its nodes
-(`wait_for_subscribers`) and writes every sample it ran to a run log (`twin.run_log`), which
-becomes the `LoopRun`. The predictor's counters come from its last /diagnostics. The twin
-still runs in lockstep, so both ways run the same samples and score alike.
-
-`persistence_model` writes the simplest compensator as a model file (offset = minus the
-last measured plant error), so that it runs through the same predictor node.
+Both modes run the twin in lockstep (the next sample runs once its offset arrived), give the
+nodes the same parameters (`loop_parameters`) and count a run alike (`loop_counts`), so
+they score alike. In one process the nodes share an executor on private topic names; across
+processes they run on a private ROS domain, the twin publishes /clock and writes a run log.
+`persistence_model` writes the simplest compensator as a model file, run by the same node.
 """
 
 from __future__ import annotations
@@ -39,7 +20,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -197,9 +178,9 @@ def run_closed_loop(settings: LoopSettings, *, progress: bool = True,
         msg = (f'passes must be at least 1 and lead-in passes at least 0, got '
                f'{settings.passes} and {settings.lead_in_passes}')
         raise ClosedLoopError(msg)
-    horizon = load_model(settings.model_path).metadata.horizon
+    metadata = load_model(settings.model_path).metadata
     if settings.processes:
-        return _run_processes(settings, horizon, progress, label)
+        return _run_processes(settings, metadata.horizon, progress, label)
     # The nodes' start-up lines would interleave with the progress bar: warnings only.
     levels = {name: rclpy.logging.get_logger_effective_level(name) for name in NODE_LOGGERS}
     for name in NODE_LOGGERS:
@@ -208,7 +189,7 @@ def run_closed_loop(settings: LoopSettings, *, progress: bool = True,
     rclpy.init(context=context, args=[])
     executor = events_executor(context)
     try:
-        loop = _Loop(settings, context, executor, horizon)
+        loop = _Loop(settings, context, executor, metadata.horizon, metadata.sample_period)
         done = Future()
         loop.collector.on_done = lambda: done.set_result(True)
         # The loop is an entry point: torch threads as the predictor executable sets them.
@@ -232,48 +213,96 @@ def run_closed_loop(settings: LoopSettings, *, progress: bool = True,
             rclpy.logging.set_logger_level(name, level)
 
 
+def loop_topics(prefix: str) -> dict[str, str]:
+    """The loop's private topic names, under `prefix`."""
+    return {name: f'{prefix}/{name}' for name in (
+        'joint_states', 'reference', 'end_pose', 'compensation', 'predicted_error',
+        'true_error', 'plant_error', 'diagnostics')}
+
+
+def loop_parameters(settings: LoopSettings, horizon: int,
+                    period: float) -> dict[str, dict[str, Any]]:
+    """The parameters of the loop's three nodes that both modes set alike, by node name
+    (empty strings, the nodes' defaults, left out)."""
+    description = {'robot_description_file': settings.robot_description_file}
+    parameters: dict[str, dict[str, Any]] = {
+        'kinematics_node': description,
+        'predictor_node': {
+            **description, 'model_path': settings.model_path,
+            'compensation_enabled': settings.compensation_enabled,
+            'max_compensation': settings.max_compensation,
+            'max_compensation_step': settings.max_compensation_step},
+        'twin_node': {
+            **description, 'twin_parameters_file': settings.twin_parameters_file,
+            'path': settings.path, 'seed': settings.seed,
+            'passes': settings.lead_in_passes + settings.passes, 'samples': settings.samples,
+            'mode': 'lockstep', 'lockstep_timeout': settings.lockstep_timeout,
+            'answer_timeout': settings.answer_timeout,
+            # an offset is sent `horizon` samples ahead of its instant: let it wait that long
+            'compensation_timeout': max(1.0, (horizon + 2) * period)},
+    }
+    return {node: {name: value for name, value in values.items() if value != ''}
+            for node, values in parameters.items()}
+
+
+def in_process_parameters(settings: LoopSettings, horizon: int, period: float,
+                          topics: dict[str, str]) -> dict[str, dict[str, Any]]:
+    """`loop_parameters` and what only the in-process loop sets: private topic names, and
+    the predictor's staleness on wall time (`LoopSettings.stale_periods`)."""
+    shared = loop_parameters(settings, horizon, period)
+    own: dict[str, dict[str, Any]] = {
+        'kinematics_node': {'joint_state_topic': topics['joint_states'],
+                            'end_pose_topic': topics['end_pose']},
+        'predictor_node': {'stale_periods': settings.stale_periods,
+                           'end_pose_topic': topics['end_pose'],
+                           'reference_topic': topics['reference'],
+                           'compensation_topic': topics['compensation'],
+                           'predicted_error_topic': topics['predicted_error']},
+        'twin_node': {'joint_state_topic': topics['joint_states'],
+                      'reference_topic': topics['reference'],
+                      'compensation_topic': topics['compensation'],
+                      'true_error_topic': topics['true_error'],
+                      'plant_error_topic': topics['plant_error']},
+    }
+    return {node: {**values, **own[node], 'diagnostics_topic': topics['diagnostics']}
+            for node, values in shared.items()}
+
+
+#: The twin's counters of a run and the predictor's, named alike in both modes.
+TWIN_COUNTS = ('offsets_applied', 'samples_without_offset', 'offsets_dropped',
+               'first_answered', 'unanswered_after_first')
+PREDICTOR_COUNTS = ('predictions', 'predictor_faults', 'predictor_dropped', 'clamped',
+                    'step_limited')
+
+
+def loop_counts(twin: Mapping[str, Any], predictor: Mapping[str, Any],
+                **own: Any) -> dict[str, Any]:
+    """A run's `LoopRun.counts`: the twin's (`TWIN_COUNTS`) and the predictor's
+    (`PREDICTOR_COUNTS`) counters, then the mode's own."""
+    return {**{name: twin[name] for name in TWIN_COUNTS},
+            **{name: predictor[name] for name in PREDICTOR_COUNTS}, **own}
+
+
 class _Loop:
     """The nodes of one run, wired on private topics; the twin starts once all are matched."""
 
     def __init__(self, settings: LoopSettings, context: Context, executor: Executor,
-                 horizon: int) -> None:
+                 horizon: int, period: float) -> None:
         self.settings = settings
         self.executor = executor
         self.horizon = horizon
-        prefix = f'/lompr_loop_{os.getpid()}_{id(self):x}'
-        self.topics = {name: f'{prefix}/{name}' for name in (
-            'joint_states', 'reference', 'end_pose', 'compensation', 'predicted_error',
-            'true_error', 'plant_error', 'diagnostics')}
+        self.topics = loop_topics(f'/lompr_loop_{os.getpid()}_{id(self):x}')
+        parameters = in_process_parameters(settings, horizon, period, self.topics)
+
+        def overrides(node: str) -> list[Parameter]:
+            return [Parameter(name, value=value) for name, value in parameters[node].items()]
+
+        self.kinematics = KinematicsNode(context=context,
+                                         parameter_overrides=overrides('kinematics_node'))
+        self.predictor = PredictorNode(context=context,
+                                       parameter_overrides=overrides('predictor_node'))
+        self.twin = TwinNode(context=context, parameter_overrides=overrides('twin_node'))
         topics = self.topics
-
-        def overrides(**values: Any) -> list[Parameter]:
-            return [Parameter(name, value=value) for name, value in values.items()]
-
-        description = {'robot_description_file': settings.robot_description_file}
-        self.kinematics = KinematicsNode(context=context, parameter_overrides=overrides(
-            **description, joint_state_topic=topics['joint_states'],
-            end_pose_topic=topics['end_pose'], diagnostics_topic=topics['diagnostics']))
-        self.predictor = PredictorNode(context=context, parameter_overrides=overrides(
-            **description, model_path=settings.model_path,
-            compensation_enabled=settings.compensation_enabled,
-            max_compensation=settings.max_compensation,
-            max_compensation_step=settings.max_compensation_step,
-            stale_periods=settings.stale_periods, end_pose_topic=topics['end_pose'],
-            reference_topic=topics['reference'], compensation_topic=topics['compensation'],
-            predicted_error_topic=topics['predicted_error'],
-            diagnostics_topic=topics['diagnostics']))
-        period = self.predictor.sample_period
-        self.twin = TwinNode(context=context, parameter_overrides=overrides(
-            **description, twin_parameters_file=settings.twin_parameters_file,
-            path=settings.path, seed=settings.seed,
-            passes=settings.lead_in_passes + settings.passes, samples=settings.samples,
-            mode='lockstep', lockstep_timeout=settings.lockstep_timeout,
-            answer_timeout=settings.answer_timeout,
-            # an offset is sent `horizon` samples ahead of its instant: let it wait that long
-            compensation_timeout=max(1.0, (horizon + 2) * period),
-            joint_state_topic=topics['joint_states'], reference_topic=topics['reference'],
-            compensation_topic=topics['compensation'], true_error_topic=topics['true_error'],
-            plant_error_topic=topics['plant_error'], diagnostics_topic=topics['diagnostics']))
         self.total = int(self.twin.total_samples or 0)
         self.collector = _Collector(context, topics, self.twin.twin, self.total,
                                     self._on_sample)
@@ -315,17 +344,12 @@ class _Loop:
         if self._bar is not None:
             self._bar.close()
         twin, core = self.twin, self.predictor.core
-        counts = {
-            'offsets_applied': twin.schedule.applied,
-            'samples_without_offset': twin.schedule.missing,
-            'offsets_dropped': twin.schedule.rejected.counts(),
-            'predictions': core.predictions_made, 'predictor_faults': core.faults.counts(),
-            'predictor_dropped': core.dropped.counts(), 'clamped': core.clamped,
-            'step_limited': core.step_limited,
-            'kinematics_rejected': self.kinematics.rejected.counts(),
-            'first_answered': twin.log.first_answered,
-            'unanswered_after_first': twin.log.unanswered_after_first,
-        }
+        counts = loop_counts(
+            {**twin.run_document(), **twin.log.counts()},
+            {'predictions': core.predictions_made, 'predictor_faults': core.faults.counts(),
+             'predictor_dropped': core.dropped.counts(), 'clamped': core.clamped,
+             'step_limited': core.step_limited},
+            kinematics_rejected=self.kinematics.rejected.counts())
         data = self.collector.arrays()
         cycle = twin.twin.cycle
         return LoopRun(
@@ -420,43 +444,24 @@ def _environment(values: dict[str, str]) -> Iterator[None]:
                 os.environ[name] = value
 
 
-def _ros_args(**parameters: Any) -> list[str]:
-    """`-p name:=value` for each parameter given a value ('' and None are left out)."""
-    arguments: list[str] = []
-    for name, value in parameters.items():
-        if value is None or value == '':
-            continue
-        text = str(value).lower() if isinstance(value, bool) else str(value)
-        arguments += ['-p', f'{name}:={text}']
-    return arguments
+def ros_value(value: Any) -> str:
+    """A parameter value as `-p name:=value` writes it."""
+    return str(value).lower() if isinstance(value, bool) else str(value)
 
 
 def loop_commands(settings: LoopSettings, horizon: int, period: float,
                   run_log: Path) -> dict[str, list[str]]:
     """The three executables of a cross-process loop, as `python -m` commands (the same
     `main()` as the console scripts)."""
-    description = {'robot_description_file': settings.robot_description_file}
-
-    def command(module: str, **parameters: Any) -> list[str]:
-        return [sys.executable, '-m', f'lompr_predictor.ros.{module}', '--ros-args',
-                *_ros_args(**description, **parameters)]
-
-    return {
-        'kinematics_node': command('kinematics_node', use_sim_time=True),
-        'predictor_node': command(
-            'predictor_node', use_sim_time=True, model_path=settings.model_path,
-            compensation_enabled=settings.compensation_enabled,
-            max_compensation=settings.max_compensation,
-            max_compensation_step=settings.max_compensation_step),
-        'twin_node': command(
-            'twin_node', twin_parameters_file=settings.twin_parameters_file,
-            path=settings.path, seed=settings.seed,
-            passes=settings.lead_in_passes + settings.passes, samples=settings.samples,
-            mode='lockstep', lockstep_timeout=settings.lockstep_timeout,
-            answer_timeout=settings.answer_timeout,
-            compensation_timeout=max(1.0, (horizon + 2) * period), publish_clock=True,
-            wait_for_subscribers=1, run_log=str(run_log)),
-    }
+    parameters = loop_parameters(settings, horizon, period)
+    own: dict[str, dict[str, Any]] = {
+        'kinematics_node': {'use_sim_time': True}, 'predictor_node': {'use_sim_time': True},
+        'twin_node': {'publish_clock': True, 'wait_for_subscribers': 1,
+                      'run_log': str(run_log)}}
+    return {node: [sys.executable, '-m', f'lompr_predictor.ros.{node}', '--ros-args',
+                   *(item for name, value in {**shared, **own[node]}.items()
+                     for item in ('-p', f'{name}:={ros_value(value)}'))]
+            for node, shared in parameters.items()}
 
 
 class _Monitor(Node):
@@ -574,16 +579,10 @@ def _run_processes(settings: LoopSettings, horizon: int, progress: bool,
             context.try_shutdown()
         arrays, document = read_run_log(run_log)
     count = len(arrays['stamps'])
-    counts = {
-        'offsets_applied': document['offsets_applied'],
-        'samples_without_offset': document['samples_without_offset'],
-        'offsets_dropped': document['offsets_dropped'],
-        **monitor.predictor_counts(),
-        'first_answered': document['first_answered'],
-        'unanswered_after_first': document['unanswered_after_first'],
-        'processes': {name: process.returncode for name, process in processes.items()},
-        'ros_domain_id': domain,
-    }
+    counts = loop_counts(
+        document, monitor.predictor_counts(),
+        processes={name: process.returncode for name, process in processes.items()},
+        ros_domain_id=domain)
     return LoopRun(
         settings=settings, horizon=horizon, sample_period=params.sample_period,
         stamps=arrays['stamps'], reference=arrays['reference'], joints=arrays['joints'],

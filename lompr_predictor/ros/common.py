@@ -184,8 +184,8 @@ def run_node(
     Uses the default context, whose SIGINT handler rclpy installs (a non-default context is
     not shut down by Ctrl-C), and by default an `events_executor` spun in `spin_once` steps
     of `SPIN_STEP` s: rclpy 7.1.6's `EventsExecutor.spin()` never returns to Python, so it
-    ignores SIGINT and burns a full core while idle, whereas these steps idle at ~0.3 % CPU
-    and notice a shutdown within a step. `--executor single-threaded` spins rclpy's
+    ignores SIGINT and burns a full core while idle, whereas these steps idle and notice a
+    shutdown within a step. `--executor single-threaded` spins rclpy's
     `SingleThreadedExecutor` instead (the stable one: the events executor is experimental
     in Jazzy), in the same steps.
 

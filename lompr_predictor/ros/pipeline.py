@@ -23,6 +23,7 @@ from rclpy.node import Node
 from lompr_predictor.ros import kinematics_node, predictor_node
 from lompr_predictor.ros.common import run_node
 from lompr_predictor.ros.node_base import node_help
+from lompr_predictor.ros.predictor_settings import ENDPOINTS, PredictorNodeSettings
 
 
 def build_pipeline(context: Context) -> list[Node]:
@@ -43,7 +44,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         f'{kinematics_node.NODE_NAME}:',
         *node_help(kinematics_node.KinematicsNodeSettings, kinematics_node.ENDPOINTS),
         f'{predictor_node.NODE_NAME}:',
-        *node_help(predictor_node.PredictorNodeSettings, predictor_node.ENDPOINTS)]
+        *node_help(PredictorNodeSettings, ENDPOINTS)]
     return run_node(build_pipeline, description=__doc__.split('\n', 1)[0],
                     parameters_help=parameters_help, argv=argv)
 

@@ -262,7 +262,7 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
         if self.finished:
             self.get_logger().info(f'twin: {self.total_samples} samples done')
             if self._logging:
-                write_run_log(self.settings.run_log, self.log, self._document())
+                write_run_log(self.settings.run_log, self.log, self.run_document())
                 self.get_logger().info(f'twin: run written to {self.settings.run_log}')
 
     def _count(self, answered: bool) -> None:
@@ -273,7 +273,8 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
         elif not answered and log.first_answered is not None:
             log.unanswered_after_first += 1
 
-    def _document(self) -> dict[str, object]:
+    def run_document(self) -> dict[str, object]:
+        """The run's settings and the offsets' counters, as the run log keeps them."""
         settings, twin, schedule = self.settings, self.twin, self.schedule
         return {'path': settings.path, 'seed': settings.seed, 'mode': settings.mode,
                 'sample_period': twin.params.sample_period, 'epoch_ns': twin.epoch_ns,

@@ -26,8 +26,8 @@ from lompr_predictor.twin.plant import PlantOutput, TwinPlant
 #: Stamp of sample 0 [ns]: 2023-11-14T22:13:20Z, a fixed instant so runs are reproducible.
 EPOCH_NS = 1_700_000_000 * NS_PER_SECOND
 #: Blocks up to this many samples use the warm-started single-sample forward kinematics
-#: (~30 us a sample); longer ones the vectorised batch solver. Both solve the same
-#: equations to ~1e-11 m.
+#: (cheaper for a few samples); longer ones the vectorised batch solver. Both solve the
+#: same equations to ~1e-11 m.
 SINGLE_SAMPLE_FK_MAX = 8
 
 

@@ -116,7 +116,8 @@ def rotation_matrices(up: np.ndarray) -> np.ndarray:
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross product over the last axis (np.cross costs ~50 us a call on tiny arrays)."""
+    """Row-wise cross product over the last axis (np.cross has a large fixed cost per call on
+    tiny arrays)."""
     ax, ay, az = a[..., 0], a[..., 1], a[..., 2]
     bx, by, bz = b[..., 0], b[..., 1], b[..., 2]
     return np.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], -1)

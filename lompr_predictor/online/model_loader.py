@@ -1,0 +1,152 @@
+"""Load a model file for online use: read it under a hash policy, check it against the
+configuration, warm it up. One entry point, `load_ready_model`, so that configuring a node
+and swapping its model at run time refuse a file for the same reasons, with one message."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import torch
+
+from lompr_predictor.errors import LomprError
+from lompr_predictor.learning.model_file import (
+    LoadedModel,
+    ModelFileError,
+    check_sample_period,
+    load_model,
+)
+
+#: Inferences run on a loaded model before it may answer a sample (the first calls of a
+#: TorchScript module profile and optimise its graph); each must give a finite (1, 2)
+#: prediction.
+WARM_UP_INFERENCES = 5
+
+
+class ModelLoadError(LomprError):
+    """A model file failed with an error of its own code (a model file is code), not one of
+    our checks (`ModelFileError`)."""
+
+
+@dataclass(frozen=True)
+class ModelRequest:
+    """What a model must be to run: its file, the metadata it must have and the hash
+    policy it is read under."""
+
+    path: str
+    #: Metadata fields the model must have (`load_model`'s `expected`).
+    expected: Mapping[str, Any] = field(default_factory=dict)
+    #: Period [s] of the stamps it will see; 0: the model file's own.
+    sample_period: float = 0.0
+    sha256: str = ''  # if not empty, the sha256 the file must have (before the sidecar's)
+    verify: bool = True  # False (development only): an unverified file is loaded
+    hint: str = ''  # how to pin or skip the hash, for the refusal message
+
+
+def expected_metadata(features: tuple[str, ...], description_sha256: str, window: int = -1,
+                      horizon: int = -1) -> dict[str, Any]:
+    """The metadata a model must have to run on these features and this robot (window and
+    horizon: -1 for any)."""
+    expected: dict[str, Any] = {'features': features,
+                                'robot_description_sha256': description_sha256}
+    for name, value in (('window', window), ('horizon', horizon)):
+        if value >= 0:
+            expected[name] = value
+    return expected
+
+
+@dataclass(frozen=True)
+class ReadyModel:
+    """A model loaded, verified, checked and warmed up, with the request it answered."""
+
+    model: LoadedModel
+    sample_period: float  # [s] of the stamps: the request's, else the model's
+    warm_up_seconds: float
+    request: ModelRequest
+
+    def describe(self) -> str:
+        """One line for the log: what model, from where, how it warmed up."""
+        model, metadata = self.model, self.model.metadata
+        return (f'{metadata.model_type} model {model.path} (sha256 {model.sha256[:16]}, '
+                f'window {metadata.window}, horizon {metadata.horizon} x '
+                f'{metadata.sample_period:g} s, warmed up in '
+                f'{self.warm_up_seconds * 1e3:.1f} ms)')
+
+    def swap_request(self, path: str, sha256: str) -> ModelRequest:
+        """The request a model must answer to replace this one while it runs: the same
+        checks, the same window, the controller's lead (horizon) and sample period."""
+        metadata = self.model.metadata
+        return replace(self.request, path=path, sha256=sha256, sample_period=self.sample_period,
+                       expected={**self.request.expected, 'window': metadata.window,
+                                 'horizon': metadata.horizon})
+
+
+@dataclass(frozen=True)
+class LoadOutcome:
+    """`ready` on success; else `error`, whose message is the reason."""
+
+    ready: ReadyModel | None = None
+    error: LomprError | None = None
+
+    @property
+    def reason(self) -> str:
+        """Why the model was refused ('' if it is ready)."""
+        return '' if self.error is None else str(self.error)
+
+
+def load_ready_model(request: ModelRequest) -> LoadOutcome:
+    """Load, verify, check and warm up `request.path`; any failure is a refusal with its
+    reason, never an exception (a model file is code: anything can fail in it)."""
+    try:
+        return LoadOutcome(ready=_load(request))
+    except LomprError as err:
+        return LoadOutcome(error=err)
+    except Exception as err:  # noqa: BLE001 - a model file is code: any failure refuses it
+        return LoadOutcome(error=ModelLoadError(
+            f'model {request.path}: {type(err).__name__}: {err}'))
+
+
+def prepare_swap(running: ReadyModel, path: str | None, sha256: str) -> LoadOutcome:
+    """What replaces `running` when the model path becomes `path` (None: unchanged) and the
+    pin `sha256`: the new model (`ready`), nothing to do (neither), or why the change is
+    refused (`error`); the running model is left as it is either way."""
+    model = running.model
+    if path is None:
+        if sha256 and sha256.lower() != model.sha256:
+            return LoadOutcome(error=ModelFileError(
+                f'the running model {model.path} has sha256 {model.sha256}, not {sha256}; '
+                'set model_path with it'))
+        return LoadOutcome()
+    outcome = load_ready_model(running.swap_request(path, sha256))
+    if outcome.error is not None:
+        return LoadOutcome(error=ModelFileError(
+            f'{outcome.reason}; still running {model.path}'))
+    return outcome
+
+
+def _load(request: ModelRequest) -> ReadyModel:
+    if not request.path:
+        msg = 'parameter model_path is empty: give the model file (lompr train --out)'
+        raise ModelFileError(msg)
+    model = load_model(request.path, expected=request.expected, sha256=request.sha256 or None,
+                       verify=request.verify, hint=request.hint)
+    period = request.sample_period or model.metadata.sample_period
+    check_sample_period(model.metadata, period, request.path)
+    return ReadyModel(model, period, warm_up(model), request)
+
+
+def warm_up(model: LoadedModel, inferences: int = WARM_UP_INFERENCES) -> float:
+    """Run `inferences` predictions of a zero window, each of which must be a finite (1, 2)
+    array (`ModelFileError` otherwise); returns the seconds they took."""
+    window = torch.zeros((1, model.metadata.window, len(model.metadata.features)),
+                         dtype=torch.float64)
+    start = time.perf_counter()
+    for _ in range(inferences):
+        output = model.predict(window)
+        if tuple(output.shape) != (1, 2) or not bool(torch.isfinite(output).all()):
+            msg = (f'model {model.path}: warm-up gave {tuple(output.shape)} '
+                   f'{output.flatten().tolist()[:4]}, not a finite (1, 2) prediction')
+            raise ModelFileError(msg)
+    return time.perf_counter() - start

@@ -1,0 +1,181 @@
+"""The predictor node's /diagnostics statuses (model, inputs, prediction) as pure functions
+of what the node holds, so that their levels and values are tested without ROS."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lompr_predictor.learning.model_file import VERIFIED_BY
+from lompr_predictor.monitoring import (
+    LatencySummary,
+    Level,
+    RateMeter,
+    Status,
+    latency_values,
+    rejection_values,
+)
+from lompr_predictor.online.predictor import OnlinePredictor
+
+
+@dataclass(frozen=True)
+class Lifecycle:
+    """Where the node is in its lifecycle, as every status reports it."""
+
+    state: str  # rclpy's label: unconfigured, inactive, active, finalized
+    autostart: bool
+    configure_error: str  # why the last configure failed ('' after a successful one)
+
+    @property
+    def active(self) -> bool:
+        return self.state == 'active'
+
+    def values(self) -> dict[str, object]:
+        return {'lifecycle_state': self.state, 'autostart': self.autostart,
+                'configure_error': self.configure_error}
+
+
+@dataclass(frozen=True)
+class ModelHistory:
+    """What happened to the node's model since configure."""
+
+    swaps: int = 0
+    warm_up_seconds: float = 0.0
+    reload_error: str = ''  # why the last swap was refused ('' if none was)
+
+
+@dataclass(frozen=True)
+class InputRates:
+    """The input streams' rate meters and what is reported beside them."""
+
+    end_pose: RateMeter
+    reference: RateMeter
+    end_pose_topic: str
+    rate_window: float  # [s] the rates are over
+    clock_values: dict[str, object]  # the node's clock and dropped input, as they are
+    callback_values: dict[str, object]  # callback failures, as they are
+
+
+@dataclass(frozen=True)
+class PredictionLimits:
+    """The settings the prediction status judges against."""
+
+    compensation_enabled: bool
+    inference_time_warn: float  # [s] p99
+    accuracy_warn: float  # [m] live RMS; 0: none
+
+
+def model_status(lifecycle: Lifecycle, model_path: str, core: OnlinePredictor | None,
+                 history: ModelHistory) -> Status:
+    """The model in use (or why there is none)."""
+    values = lifecycle.values()
+    if core is None:
+        values['path'] = model_path
+        if lifecycle.configure_error:
+            return Status(Level.ERROR, f'unconfigured: configure failed: '
+                                       f'{lifecycle.configure_error}', values)
+        return Status(Level.WARN, f'{lifecycle.state}: no model loaded (waiting for '
+                                  'configure)', values)
+    model = core.model
+    metadata = model.metadata
+    values.update({
+        'path': model.path, 'sha256': model.sha256, 'sha256_verified_by': model.verified_by,
+        'type': metadata.model_type,
+        'window': metadata.window, 'horizon': metadata.horizon,
+        'sample_period_s': metadata.sample_period, 'swaps': history.swaps,
+        'robot_description_sha256': metadata.robot_description_sha256,
+        'warm_up_ms': round(history.warm_up_seconds * 1e3, 3),
+    })
+    if history.reload_error:
+        return Status(Level.WARN, f'last reload refused: {history.reload_error}', values)
+    summary = f'{metadata.model_type} {model.sha256[:12]}, horizon {metadata.horizon}'
+    if not lifecycle.active:
+        return Status(Level.WARN, f'{lifecycle.state} (not publishing): {summary}', values)
+    if model.verified_by == VERIFIED_BY[2]:
+        return Status(Level.WARN, f'{summary}; NOT verified (verify_model_hash is false)',
+                      values)
+    return Status(Level.OK, summary, values)
+
+
+def input_status(lifecycle: Lifecycle, core: OnlinePredictor | None, rates: InputRates,
+                 new_faults: int) -> Status:
+    """The input streams: rates, window fill, rejections and faults (`new_faults` since
+    the last report)."""
+    if core is None:
+        return Status(Level.WARN, lifecycle.state, {**lifecycle.values(), **rates.clock_values})
+    values: dict[str, object] = {
+        'end_pose_rate_hz': round(rates.end_pose.rate(), 3),
+        'reference_rate_hz': round(rates.reference.rate(), 3),
+        'end_poses_received': rates.end_pose.total,
+        'references_received': rates.reference.total,
+        'window_fill': f'{core.window_fill}/{core.window_needed}',
+        **rejection_values(core.dropped),
+        'faults_total': core.faults.total,
+        **{f'faults.{reason}': n for reason, n in core.faults.counts().items()},
+        'last_fault': core.last_fault,
+        'last_bad_stamp': core.last_bad_stamp,
+        **rates.clock_values,
+        **rates.callback_values,
+    }
+    if rates.end_pose.seconds_since_last() is None:
+        return Status(Level.WARN, f'no end poses on {rates.end_pose_topic} for '
+                                  f'{rates.rate_window:g} s', values)
+    if new_faults:
+        return Status(Level.WARN, f'{new_faults} faults since the last report (last: '
+                                  f'{core.last_fault}); window {values["window_fill"]}', values)
+    if not lifecycle.active:
+        return Status(Level.WARN, f'{lifecycle.state}: input dropped', values)
+    if core.window_fill < core.window_needed:
+        return Status(Level.WARN, f'filling the window {values["window_fill"]}', values)
+    return Status(Level.OK, f'{values["end_pose_rate_hz"]} Hz', values)
+
+
+def prediction_status(lifecycle: Lifecycle, core: OnlinePredictor | None,
+                      limits: PredictionLimits, input_to_output: LatencySummary,
+                      output_rate_hz: float, new_overruns: int) -> Status:
+    """Predictions and offsets: latencies, live accuracy, limits hit, overruns
+    (`new_overruns` since the last report)."""
+    if core is None:
+        return Status(Level.WARN, lifecycle.state, lifecycle.values())
+    inference = core.inference_time.summary()
+    rms, count = core.accuracy()
+    values: dict[str, object] = {
+        **latency_values('inference', inference),
+        **latency_values('input_to_output', input_to_output),
+        'output_rate_hz': round(output_rate_hz, 3),
+        'predictions_total': core.predictions_made,
+        'accuracy_rms_x_um': round(float(rms[0]) * 1e6, 3),
+        'accuracy_rms_y_um': round(float(rms[1]) * 1e6, 3),
+        'accuracy_samples': count,
+        'compensation_enabled': limits.compensation_enabled,
+        'offset_x_um': round(float(core.offset_in_force[0]) * 1e6, 3),
+        'offset_y_um': round(float(core.offset_in_force[1]) * 1e6, 3),
+        'clamped_total': core.clamped,
+        'step_limited_total': core.step_limited,
+        'zeros_published': core.zeros_published,
+        'reclamped_total': core.reclamped,
+        'inference_skipped_late': core.overrun.inference_skipped_late,
+        'late_outputs_dropped': core.overrun.late_outputs_dropped,
+    }
+    mode = 'compensating' if limits.compensation_enabled else 'shadow mode'
+    if not lifecycle.active:
+        mode = f'{lifecycle.state}, not publishing'
+    if new_overruns:
+        return Status(Level.WARN, f'{mode}; {new_overruns} outputs late or skipped since the '
+                                  'last report (overrun: inference slower than the input)',
+                      values)
+    if inference.samples and inference.p99 > limits.inference_time_warn:
+        return Status(Level.WARN, f'{mode}; inference p99 {inference.p99 * 1e6:.0f} us over '
+                                  f'{limits.inference_time_warn * 1e6:.0f} us', values)
+    warn = limits.accuracy_warn
+    if warn > 0.0 and count and float(np.nanmax(rms)) > warn:
+        return Status(Level.WARN, f'{mode}; live RMS error {np.nanmax(rms) * 1e6:.1f} um '
+                                  f'over {warn * 1e6:.1f} um: the machine has drifted from '
+                                  'the model', values)
+    return Status(Level.OK, f'{mode}; {core.predictions_made} predictions', values)
+
+
+def overruns(core: OnlinePredictor) -> int:
+    """Outputs late or skipped so far (what `new_overruns` is the increase of)."""
+    return core.overrun.inference_skipped_late + core.overrun.late_outputs_dropped

@@ -1,0 +1,140 @@
+"""The predictor node's parameters, as one frozen snapshot (`NodeBase.declare_settings`),
+and its endpoints, whose topics are parameters."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from geometry_msgs.msg import PoseStamped, Vector3Stamped
+
+from lompr_predictor.data.cleaning import GAP_FACTOR
+from lompr_predictor.learning.model_file import check_sha256_text
+from lompr_predictor.online.faults import StreamSettings
+from lompr_predictor.online.offset import CompensationLimits
+from lompr_predictor.robot.description import WORLD_FRAME
+from lompr_predictor.ros.node_base import (
+    OUTPUT_QOS,
+    SENSOR_INPUT_QOS,
+    Endpoint,
+    StatusSettings,
+)
+from lompr_predictor.ros.parameters import parameter
+
+
+@dataclass(frozen=True)
+class PredictorNodeSettings(StatusSettings):
+    """The node's parameters: one field each (after the shared `StatusSettings`),
+    declared by `NodeBase.declare_settings`."""
+
+    autostart: bool = parameter(
+        True, 'configure and activate at start, so that a plain `ros2 run` predicts (a model '
+        'that cannot be configured then stops the executable, exit code 2); false: start '
+        'unconfigured and wait for a lifecycle manager (change_state)', read_only=True)
+    model_path: str = parameter(
+        '', 'TorchScript model file (lompr train); setting it at run time loads, checks and '
+        'warms the new file and swaps it in, or keeps the running model and rejects the '
+        'change with the reason')
+    model_sha256: str = parameter(
+        '', "if not empty, the sha256 the model file must have (the training report's "
+        'model_sha256), checked on the bytes read before they are deserialised (a '
+        'TorchScript file is code); takes precedence over the MODEL.sha256 file beside it',
+        check=check_sha256_text)
+    verify_model_hash: bool = parameter(
+        True, 'refuse a model file whose bytes do not match model_sha256 or, if that is '
+        'empty, the MODEL.sha256 file lompr train writes beside it; false (development '
+        'only): load an unverified file', read_only=True)
+    compensation_enabled: bool = parameter(
+        True, 'publish the offset; false: shadow mode, predictions go on and every offset is '
+        'zero')
+    max_compensation: float = parameter(
+        5e-4, 'largest offset [m] (XY norm); the offset is clamped to it', minimum=0.0,
+        maximum=0.01)
+    max_compensation_step: float = parameter(
+        5e-5, 'largest change of the offset [m] (XY norm) from one sample to the next',
+        minimum=0.0, maximum=0.01)
+    robot_description_file: str = parameter(
+        '', 'URDF of the robot (its calibrated geometry), the one the model must have been '
+        "trained for: it gives the features' branch kinematics and its sha256 is checked; "
+        'empty: the packaged nominal LOMPR description', read_only=True)
+    sample_period: float = parameter(
+        0.0, 'period [s] of the pose stamps, which the model must have been trained at '
+        "(within 2 %); 0: the model file's", minimum=0.0, maximum=10.0, read_only=True)
+    window: int = parameter(
+        -1, "window length the model must have; -1: the model file's (a model swapped in at "
+        "run time must keep the running one's)", minimum=-1, maximum=100_000, read_only=True)
+    horizon: int = parameter(
+        -1, "horizon [samples] the model must have (the controller's lead); -1: the model "
+        "file's", minimum=-1, maximum=100_000, read_only=True)
+    gap_factor: float = parameter(
+        GAP_FACTOR, 'a stamp interval above this many sample periods is a gap (the trainer '
+        'splits its data at the same one)', minimum=1.0, maximum=1000.0, read_only=True)
+    min_interval_factor: float = parameter(
+        0.5, "a stamp interval below this many sample periods means the input is not at the "
+        "model's rate", minimum=0.0, maximum=1.0, read_only=True)
+    stale_periods: float = parameter(
+        5.0, 'no usable sample for this many sample periods: the input is stale and the '
+        'offset is cancelled', minimum=1.0, maximum=1_000_000.0, read_only=True)
+    stale_min_time: float = parameter(
+        0.05, 'the input is stale only after at least this many seconds without a usable '
+        'sample, whatever the rate: a process on a general-purpose OS stalls for '
+        'milliseconds, many periods at kHz rates', minimum=0.0, maximum=3600.0,
+        read_only=True)
+    end_pose_topic: str = parameter('lompr/end_pose', 'PoseStamped measured tool tip input',
+                                    read_only=True)
+    reference_topic: str = parameter('lompr/reference', 'PoseStamped reference input',
+                                     read_only=True)
+    predicted_error_topic: str = parameter(
+        'lompr/predicted_error', 'Vector3Stamped predicted X/Y error output', read_only=True)
+    compensation_topic: str = parameter(
+        'lompr/compensation', 'Vector3Stamped compensation offset output', read_only=True)
+    frame_id: str = parameter(WORLD_FRAME, 'header.frame_id of the outputs', read_only=True)
+    inference_threads: int = parameter(
+        1, "torch threads, set by the executable's main() (process-wide); 1 keeps inference "
+        'from contending with the executor', minimum=1, maximum=256, read_only=True)
+    latency_samples: int = parameter(1000, 'last latencies kept for the p50/p99',
+                                     minimum=10, maximum=1_000_000, read_only=True)
+    accuracy_samples: int = parameter(1000, 'last predicted instants the live RMS is over',
+                                      minimum=1, maximum=10_000_000, read_only=True)
+    inference_time_warn: float = parameter(
+        0.001, 'p99 inference time [s] above which the prediction status is WARN',
+        minimum=1e-6, maximum=10.0)
+    accuracy_warn: float = parameter(
+        0.0, 'live RMS prediction error [m] (either axis) above which the prediction status '
+        'is WARN (the machine has drifted from the model); 0: no such warning', minimum=0.0,
+        maximum=1.0)
+    warning_throttle_period: float = parameter(
+        5.0, 'seconds between two warnings of the same kind', minimum=0.0, maximum=3600.0)
+    max_future_stamp: float = parameter(
+        1.0, "an input stamped more than this many seconds ahead of the node's clock is "
+        'dropped (not checked while the clock reads 0: sim time before the first /clock)',
+        minimum=0.0, maximum=1e9, read_only=True)
+    late_tolerance: float = parameter(
+        0.005, 'seconds an output may come after the instant it is for (judged on the '
+        "node's clock against the best-case input delay) before it is dropped as late; a "
+        'sample whose inference could only finish late gets none', minimum=0.0,
+        maximum=3600.0, read_only=True)
+
+    def stream(self, sample_period: float) -> StreamSettings:
+        """The rules the input stream is held to, at `sample_period` [s]."""
+        return StreamSettings(sample_period, self.gap_factor, self.min_interval_factor,
+                              self.stale_periods, self.accuracy_samples, self.stale_min_time,
+                              self.max_future_stamp, self.late_tolerance)
+
+    @property
+    def limits(self) -> CompensationLimits:
+        return CompensationLimits(self.max_compensation, self.max_compensation_step,
+                                  self.compensation_enabled)
+
+
+END_POSE = Endpoint('subscription', PoseStamped, 'end_pose_topic', SENSOR_INPUT_QOS,
+                    'end pose')
+REFERENCE = Endpoint('subscription', PoseStamped, 'reference_topic', SENSOR_INPUT_QOS,
+                     'reference')
+PREDICTED_ERROR = Endpoint('publisher', Vector3Stamped, 'predicted_error_topic', OUTPUT_QOS,
+                           'predicted error')
+COMPENSATION = Endpoint('publisher', Vector3Stamped, 'compensation_topic', OUTPUT_QOS,
+                        'compensation')
+ENDPOINTS = (END_POSE, REFERENCE, PREDICTED_ERROR, COMPENSATION)
+#: How to pin or skip the model hash, for a refusal message.
+HASH_HINT = ('predictor_node: -p model_sha256:=<sha256>, or for development only '
+             '-p verify_model_hash:=false')

@@ -1,0 +1,81 @@
+"""Both closed-loop modes (one process, three processes) give the nodes the same
+parameters, apart from what each mode sets for itself, and count a run alike."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip('rclpy')
+
+from lompr_predictor.ros.closed_loop import (
+    PREDICTOR_COUNTS,
+    TWIN_COUNTS,
+    LoopSettings,
+    in_process_parameters,
+    loop_commands,
+    loop_counts,
+    loop_topics,
+    ros_value,
+)
+
+pytestmark = pytest.mark.ros
+
+#: What only one mode sets: private topics and a wall-time staleness in one process;
+#: simulated time, the twin's /clock and its run log across processes.
+IN_PROCESS_ONLY = {'stale_periods'}
+PROCESSES_ONLY = {'use_sim_time', 'publish_clock', 'wait_for_subscribers', 'run_log'}
+
+
+def command_parameters(command: list[str]) -> dict[str, str]:
+    """The `-p name:=value` pairs of a command line."""
+    arguments = command[command.index('--ros-args') + 1:]
+    assert arguments[::2] == ['-p'] * (len(arguments) // 2)
+    return dict(argument.split(':=', 1) for argument in arguments[1::2])
+
+
+@pytest.mark.parametrize('settings', [
+    LoopSettings(model_path='model.pt'),
+    LoopSettings(model_path='m.pt', passes=2, lead_in_passes=0, path='grid', seed=7,
+                 compensation_enabled=False, twin_parameters_file='twin.yaml',
+                 robot_description_file='robot.urdf', lockstep_timeout=0.5,
+                 answer_timeout=3.0, max_compensation=1e-4, max_compensation_step=1e-5,
+                 samples=40),
+])
+def test_both_modes_give_the_nodes_the_same_parameters(settings: LoopSettings,
+                                                       tmp_path: Path) -> None:
+    in_process = in_process_parameters(settings, 3, 0.04, loop_topics('/p'))
+    processes = loop_commands(settings, 3, 0.04, tmp_path / 'run.npz')
+    assert set(in_process) == set(processes) == {'kinematics_node', 'predictor_node',
+                                                 'twin_node'}
+    for node, command in processes.items():
+        ours = {name: ros_value(value) for name, value in in_process[node].items()
+                if not name.endswith('_topic') and name not in IN_PROCESS_ONLY}
+        theirs = {name: value for name, value in command_parameters(command).items()
+                  if name not in PROCESSES_ONLY}
+        assert ours == theirs, node
+    twin = command_parameters(processes['twin_node'])
+    assert twin['compensation_timeout'] == '1.0'  # (3 + 2) x 0.04 s, at least 1 s
+    assert twin['passes'] == str(settings.lead_in_passes + settings.passes)
+    assert 'robot_description_file' not in twin or twin['robot_description_file'] == (
+        'robot.urdf')
+
+
+def test_a_long_horizon_lets_the_twin_wait_for_its_offset(tmp_path: Path) -> None:
+    settings = LoopSettings(model_path='model.pt')
+    twin = command_parameters(loop_commands(settings, 48, 0.04, tmp_path / 'r.npz')['twin_node'])
+    assert float(twin['compensation_timeout']) == pytest.approx(2.0)  # (48 + 2) x 0.04 s
+    assert in_process_parameters(settings, 48, 0.04, loop_topics('/p'))['twin_node'][
+        'compensation_timeout'] == pytest.approx(2.0)
+
+
+def test_counts_are_named_alike_and_keep_the_modes_own() -> None:
+    twin = {name: i for i, name in enumerate(TWIN_COUNTS)} | {'path': 'spiral'}
+    predictor = {name: 10 + i for i, name in enumerate(PREDICTOR_COUNTS)}
+    counts = loop_counts(twin, predictor, ros_domain_id=42)
+    assert list(counts) == [*TWIN_COUNTS, *PREDICTOR_COUNTS, 'ros_domain_id']
+    assert counts['offsets_applied'] == 0 and counts['predictions'] == 10
+    assert counts['ros_domain_id'] == 42 and 'path' not in counts
+    with pytest.raises(KeyError, match='clamped'):
+        loop_counts(twin, {name: 0 for name in PREDICTOR_COUNTS if name != 'clamped'})

@@ -1,0 +1,160 @@
+"""The predictor node's /diagnostics statuses, built without ROS from a real core."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fake_clock import FakeClock
+from model_helpers import save_constant
+
+from lompr_predictor.data.features import HISTORY
+from lompr_predictor.learning.model_file import load_model
+from lompr_predictor.monitoring import LatencySummary, Level, RateMeter
+from lompr_predictor.online.predictor import CompensationLimits, OnlinePredictor, StreamSettings
+from lompr_predictor.online.predictor_status import (
+    InputRates,
+    Lifecycle,
+    ModelHistory,
+    PredictionLimits,
+    input_status,
+    model_status,
+    overruns,
+    prediction_status,
+)
+
+PERIOD_NS = 40_000_000
+T0 = 1_700_000_000_000_000_000
+WINDOW = 4
+ACTIVE = Lifecycle('active', autostart=True, configure_error='')
+LIMITS = PredictionLimits(compensation_enabled=True, inference_time_warn=10.0,
+                          accuracy_warn=0.0)
+NO_LATENCY = LatencySummary(0, 0.0, 0.0, 0.0)
+
+
+@pytest.fixture
+def clock() -> FakeClock:
+    return FakeClock()
+
+
+@pytest.fixture
+def core(tmp_path: Path, clock: FakeClock) -> OnlinePredictor:
+    """A core whose model always predicts (-20, 5) um, limits loose enough to publish it."""
+    model = load_model(save_constant(tmp_path / 'c.pt', (-20e-6, 5e-6), window=WINDOW))
+    stream = StreamSettings(0.04, gap_factor=2.5, min_interval_factor=0.5, stale_periods=5.0,
+                            accuracy_samples=100)
+    return OnlinePredictor(model, stream, CompensationLimits(1e-3, 1e-3, True), clock)
+
+
+def feed(core: OnlinePredictor, clock: FakeClock, count: int, start: int = 0) -> None:
+    """`count` samples from sample `start` on: reference and pose 10 um apart in X."""
+    for k in range(start, start + count):
+        clock.now += 0.04
+        core.add_reference(T0 + k * PERIOD_NS, 0.01 * k, 0.0, 1.097)
+        core.add_pose(T0 + k * PERIOD_NS, 0.01 * k + 1e-5, 0.0)
+
+
+def rates(clock: FakeClock, poses: int) -> InputRates:
+    end_pose, reference = RateMeter(5.0, clock), RateMeter(5.0, clock)
+    for _ in range(poses):
+        clock.now += 0.04
+        end_pose.tick()
+        reference.tick()
+    return InputRates(end_pose, reference, '/lompr/end_pose', 5.0, {'clock_s': 1.5},
+                      {'callback_failures': 0})
+
+
+def test_model_status_without_a_model_says_why() -> None:
+    failed = Lifecycle('unconfigured', autostart=False, configure_error='no such file')
+    status = model_status(failed, 'm.pt', None, ModelHistory())
+    assert status.level == Level.ERROR
+    assert status.message == 'unconfigured: configure failed: no such file'
+    assert status.values == {'lifecycle_state': 'unconfigured', 'autostart': False,
+                             'configure_error': 'no such file', 'path': 'm.pt'}
+    waiting = model_status(Lifecycle('unconfigured', False, ''), 'm.pt', None, ModelHistory())
+    assert (waiting.level, waiting.message) == (
+        Level.WARN, 'unconfigured: no model loaded (waiting for configure)')
+
+
+def test_model_status_reports_the_model_and_its_history(core: OnlinePredictor) -> None:
+    model = core.model
+    history = ModelHistory(swaps=2, warm_up_seconds=0.0123456)
+    status = model_status(ACTIVE, 'ignored.pt', core, history)
+    assert status.level == Level.OK
+    assert status.message == f'linear {model.sha256[:12]}, horizon 3'
+    values = status.values
+    assert values['path'] == model.path and values['sha256'] == model.sha256
+    assert (values['sha256_verified_by'], values['window'], values['horizon'],
+            values['sample_period_s'], values['swaps'], values['warm_up_ms']) == (
+        'sidecar', WINDOW, 3, 0.04, 2, 12.346)
+    inactive = model_status(Lifecycle('inactive', True, ''), '', core, history)
+    assert inactive.level == Level.WARN and inactive.message.startswith(
+        'inactive (not publishing): linear ')
+    refused = model_status(ACTIVE, '', core, ModelHistory(reload_error='bad file'))
+    assert (refused.level, refused.message) == (Level.WARN, 'last reload refused: bad file')
+
+
+def test_input_status_from_waiting_to_filling_to_full(core: OnlinePredictor,
+                                                      clock: FakeClock) -> None:
+    quiet = input_status(ACTIVE, core, rates(clock, 0), new_faults=0)
+    assert (quiet.level, quiet.message) == (Level.WARN, 'no end poses on /lompr/end_pose for 5 s')
+    feed(core, clock, 3)
+    filling = input_status(ACTIVE, core, rates(clock, 3), new_faults=0)
+    assert (filling.level, filling.message) == (
+        Level.WARN, f'filling the window 3/{WINDOW + HISTORY}')
+    feed(core, clock, WINDOW + HISTORY, start=3)
+    full = input_status(ACTIVE, core, rates(clock, 25), new_faults=0)
+    assert full.level == Level.OK and full.message == '25.0 Hz'
+    assert full.values['end_poses_received'] == 25 and full.values['clock_s'] == 1.5
+    assert full.values['window_fill'] == f'{WINDOW + HISTORY}/{WINDOW + HISTORY}'
+    assert full.values['faults_total'] == 0 and full.values['callback_failures'] == 0
+    core.add_pose(T0 + 99 * PERIOD_NS, float('nan'), 0.0)
+    faulty = input_status(ACTIVE, core, rates(clock, 25), new_faults=1)
+    assert faulty.level == Level.WARN and faulty.message == (
+        '1 faults since the last report (last: non_finite); window 0/'
+        f'{WINDOW + HISTORY}')
+    assert faulty.values['faults.non_finite'] == 1 and faulty.values['rejected.non_finite'] == 1
+    dropped = input_status(Lifecycle('inactive', True, ''), core, rates(clock, 25), 0)
+    assert (dropped.level, dropped.message) == (Level.WARN, 'inactive: input dropped')
+
+
+def test_input_status_unconfigured_keeps_only_the_clock() -> None:
+    meters = InputRates(RateMeter(), RateMeter(), '/e', 5.0, {'clock_s': 0.0},
+                        {'callback_failures': 3})
+    status = input_status(Lifecycle('unconfigured', True, ''), None, meters, 0)
+    assert (status.level, status.message) == (Level.WARN, 'unconfigured')
+    assert 'callback_failures' not in status.values and status.values['clock_s'] == 0.0
+
+
+def test_prediction_status_counts_predictions_and_the_offset(core: OnlinePredictor,
+                                                            clock: FakeClock) -> None:
+    feed(core, clock, WINDOW + HISTORY + 2)
+    status = prediction_status(ACTIVE, core, LIMITS, NO_LATENCY, 25.0, new_overruns=0)
+    assert (status.level, status.message) == (Level.OK, 'compensating; 3 predictions')
+    values = status.values
+    assert values['predictions_total'] == 3 and values['output_rate_hz'] == 25.0
+    assert values['compensation_enabled'] is True
+    # the offset in force is minus the prediction, grown by at most the step limit
+    assert (values['offset_x_um'], values['offset_y_um']) == (20.0, -5.0)
+    assert overruns(core) == 0
+    late = prediction_status(ACTIVE, core, LIMITS, NO_LATENCY, 25.0, new_overruns=2)
+    assert late.level == Level.WARN and late.message.startswith(
+        'compensating; 2 outputs late or skipped since the last report')
+    slow = prediction_status(ACTIVE, core, PredictionLimits(False, 1e-12, 0.0), NO_LATENCY,
+                             25.0, 0)
+    assert slow.level == Level.WARN and slow.message.startswith('shadow mode; inference p99 ')
+
+
+def test_prediction_status_warns_on_drift(core: OnlinePredictor, clock: FakeClock) -> None:
+    """The model says -20 um where the plant error is +10 um: a live RMS far over 1 um."""
+    feed(core, clock, WINDOW + HISTORY + 10)
+    rms, count = core.accuracy()
+    assert count > 0 and float(np.nanmax(rms)) > 1e-6
+    status = prediction_status(ACTIVE, core, PredictionLimits(True, 10.0, 1e-6), NO_LATENCY,
+                               25.0, 0)
+    assert status.level == Level.WARN and 'the machine has drifted from the model' in (
+        status.message)
+    unconfigured = prediction_status(Lifecycle('finalized', False, ''), None, LIMITS,
+                                     NO_LATENCY, 0.0, 0)
+    assert (unconfigured.level, unconfigured.message) == (Level.WARN, 'finalized')
