@@ -35,31 +35,30 @@ class KinematicsError(LomprError):
     """A kinematic computation has no valid answer for the given input."""
 
 
-class StrokeLimitError(KinematicsError):
+class LimitError(KinematicsError):
+    """A joint value lies outside its limits; the subclasses say which kind of joint."""
+
+    #: The message, formatted with joint, value, lower and upper.
+    template = 'joint {joint} value {value:.6f} is outside its limits [{lower:.6f}, {upper:.6f}]'
+
+    def __init__(self, joint: str, value: float, lower: float, upper: float) -> None:
+        self.joint = joint
+        self.value = value
+        self.lower = lower
+        self.upper = upper
+        super().__init__(self.template.format(joint=joint, value=value, lower=lower,
+                                              upper=upper))
+
+
+class StrokeLimitError(LimitError):
     """A UPS branch length lies outside the stroke of its actuator."""
 
-    def __init__(self, joint: str, value: float, lower: float, upper: float) -> None:
-        self.joint = joint
-        self.value = value
-        self.lower = lower
-        self.upper = upper
-        super().__init__(
-            f'branch {joint} length {value:.6f} m is outside its stroke '
-            f'[{lower:.6f}, {upper:.6f}] m'
-        )
+    template = ('branch {joint} length {value:.6f} m is outside its stroke '
+                '[{lower:.6f}, {upper:.6f}] m')
 
 
-class JointLimitError(KinematicsError):
+class JointLimitError(LimitError):
     """A joint value (head angle, passive UP joint) lies outside its limits."""
-
-    def __init__(self, joint: str, value: float, lower: float, upper: float) -> None:
-        self.joint = joint
-        self.value = value
-        self.lower = lower
-        self.upper = upper
-        super().__init__(
-            f'joint {joint} value {value:.6f} is outside its limits [{lower:.6f}, {upper:.6f}]'
-        )
 
 
 class WorkspaceError(KinematicsError):
