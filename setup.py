@@ -31,6 +31,8 @@ setup(
         'optuna',
         'scikit-learn',
         'torch==2.13.0',
+        'onnxruntime==1.32.0',
+        'onnx==1.23.2',
         'matplotlib',
         'pyyaml',
         'tqdm',

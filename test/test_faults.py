@@ -71,7 +71,7 @@ def spiral_xy(k: int) -> tuple[float, float]:
 def test_a_lowered_clamp_holds_from_the_next_output() -> None:
     gate = OffsetGate(CompensationLimits(5e-4, 5e-5, True), PERIOD_NS)
     for k in range(20):  # ramp to the clamp: 500 um in force, offsets out for 3 instants ahead
-        gate.publish(T0 + (k + 3) * PERIOD_NS, np.array([-1e-3, 0.0]), T0 + k * PERIOD_NS)
+        gate.publish(T0 + (k + 3) * PERIOD_NS, (-1e-3, 0.0), T0 + k * PERIOD_NS)
     assert math.hypot(*gate.offset_in_force) == pytest.approx(5e-4)
     newest = T0 + 19 * PERIOD_NS
     reissued = gate.set_limits(CompensationLimits(1e-6, 5e-5, True), newest)
@@ -79,7 +79,7 @@ def test_a_lowered_clamp_holds_from_the_next_output() -> None:
     assert [o.instant_ns for o in reissued] == [T0 + k * PERIOD_NS for k in (20, 21, 22)]
     assert all(o.reason == 'clamp_lowered' for o in reissued)
     assert all(math.hypot(*o.compensation) <= 1e-6 * (1 + 1e-12) for o in reissued)
-    following = [gate.publish(T0 + (k + 3) * PERIOD_NS, np.array([-1e-3, 0.0]),
+    following = [gate.publish(T0 + (k + 3) * PERIOD_NS, (-1e-3, 0.0),
                               T0 + k * PERIOD_NS).compensation for k in range(20, 30)]
     assert max(math.hypot(*c) for c in following) <= 1e-6 * (1 + 1e-12)  # not 450, 400, ... um
 
@@ -120,11 +120,11 @@ def test_clamp_and_slew_are_never_exceeded_under_random_parameter_changes(
             if output.reason == 'clamp_lowered':
                 continue  # a re-issue of an offset already out, scaled into the new clamp
             if output.reason or not limits.enabled:
-                assert not offset.any()
+                assert not any(offset)
             else:
-                step = math.hypot(*(offset - slew_from))
+                step = math.hypot(*np.subtract(offset, slew_from))
                 assert step <= limits.max_step * (1 + 1e-9) + 1e-18
-            slew_from = offset
+            slew_from = np.asarray(offset)
 
     for kind, value in events:
         if kind == 'limits':
@@ -576,7 +576,8 @@ def test_overruns_are_counted_on_diagnostics(ros: Any, tmp_path: Path) -> None:
         time.sleep(0.2)  # longer than the lead, 3 x 40 ms
         return cast(torch.Tensor, module(windows))
 
-    core.model = dataclasses.replace(core.model, module=cast(ExportedModule, slow_module))
+    core.replace_model(dataclasses.replace(core.model,
+                                           module=cast(ExportedModule, slow_module)))
     wiring.run(0, NEEDED + 3)
     overrun = core.overrun
     assert overrun.late_outputs_dropped + overrun.inference_skipped_late >= 3

@@ -3,6 +3,7 @@ over the topics, model refusal and run-time swaps, diagnostics."""
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -39,6 +40,8 @@ from lompr_predictor.learning.model_file import (
     load_model,
 )
 from lompr_predictor.learning.models import predict_rows
+from lompr_predictor.monitoring import Level
+from lompr_predictor.online.inference import InferenceBackendError
 from lompr_predictor.robot.description import (
     MEASURED_JOINTS,
     RobotDescription,
@@ -454,3 +457,25 @@ def test_one_process_pipeline_answers_joint_states(
         assert stamp_ns(answers()[-1]) == recording.joints.stamps[NEEDED] + HORIZON * PERIOD_NS
     finally:
         stop_process(process)
+
+
+def test_the_inference_backend_in_use_is_on_diagnostics_and_a_missing_one_fails_in_one_line(
+        ros: RosHarness, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    model = save_linear(tmp_path / 'm.pt', window=WINDOW, horizon=HORIZON)
+    node = PredictorNode(context=ros.context,
+                         parameter_overrides=[Parameter('model_path', value=str(model))])
+    status = node.model_status()
+    assert status.values['inference_backend'] == 'onnxruntime'
+    assert status.values['inference_backend_why'] == ''
+    node.destroy_node()
+    monkeypatch.setitem(sys.modules, 'onnxruntime', None)  # import raises ImportError
+    with pytest.raises(InferenceBackendError, match=r'^ONNX Runtime cannot be imported [^\n]*$'):
+        PredictorNode(context=ros.context, parameter_overrides=[
+            Parameter('model_path', value=str(model)),
+            Parameter('inference_backend', value='onnxruntime')])
+    node = PredictorNode(context=ros.context,
+                         parameter_overrides=[Parameter('model_path', value=str(model))])
+    status = node.model_status()
+    assert status.values['inference_backend'] == 'torchscript'
+    assert status.level == Level.WARN and 'ONNX Runtime cannot be imported' in status.message
+    node.destroy_node()

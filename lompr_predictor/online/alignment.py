@@ -176,8 +176,10 @@ class StampAlignment:
             return [reason] if reason == 'reference_non_finite' else []
         return self._drain([])
 
-    def add_pose(self, stamp_ns: int, x: float, y: float) -> list[Event]:
-        """Take one measured tool-tip sample; returns what became ready."""
+    def add_pose(self, stamp_ns: int, x: float, y: float,
+                 arrival: float | None = None) -> list[Event]:
+        """Take one measured tool-tip sample arrived at `arrival` (the clock's reading of
+        the caller's callback; None: read it); returns what became ready."""
         if not (math.isfinite(x) and math.isfinite(y)):
             self.dropped.add('non_finite')
             self._pending.append('non_finite')
@@ -192,7 +194,8 @@ class StampAlignment:
             self.clear('out_of_order')
             return ['out_of_order']
         self.newest_pose_ns = stamp_ns
-        self._pending.append(_Pose(stamp_ns, x, y, self._clock()))
+        self._pending.append(_Pose(stamp_ns, x, y,
+                                   self._clock() if arrival is None else arrival))
         events: list[Event] = []
         if len(self._pending) > MAX_PENDING_POSES:
             self._pending.popleft()

@@ -85,7 +85,8 @@ from lompr_predictor.monitoring import (
     rejection_values,
 )
 from lompr_predictor.online.faults import FAULT_REASONS, StreamSettings
-from lompr_predictor.online.offset import CompensationLimits, Output
+from lompr_predictor.online.inference import BACKENDS, InferenceBackend, select_backend
+from lompr_predictor.online.offset import XY, CompensationLimits, Output
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.robot.description import (
     WORLD_FRAME,
@@ -176,6 +177,12 @@ class PredictorNodeSettings(StatusSettings):
     compensation_topic: str = parameter(
         '/lompr/compensation', 'Vector3Stamped compensation offset output', read_only=True)
     frame_id: str = parameter(WORLD_FRAME, 'header.frame_id of the outputs', read_only=True)
+    inference_backend: str = parameter(
+        'auto', 'what runs the network: onnxruntime (an ONNX graph exported from the verified '
+        'model file at configure, used only if it agrees with TorchScript to 1e-6 relative on '
+        'a warm-up batch; configure fails if it cannot serve), torchscript (the file as '
+        'loaded), or auto (onnxruntime, else torchscript with the reason on /diagnostics)',
+        choices=BACKENDS, read_only=True)
     inference_threads: int = parameter(
         1, "torch threads, set by the executable's main() (process-wide); 1 keeps inference "
         'from contending with the executor', minimum=1, maximum=256, read_only=True)
@@ -253,6 +260,9 @@ class PredictorNode(NodeBase[PredictorNodeSettings], LifecycleNode):
         self.sample_period = 0.0
         self._expected: dict[str, Any] = {}
         self._candidate: LoadedModel | None = None
+        self._candidate_backend: tuple[InferenceBackend, str] | None = None
+        #: Why the backend serving is not the one `inference_backend` prefers ('' if it is).
+        self.backend_why = ''
         self.model_swaps = 0
         self.reload_error = ''
         self.warm_up_seconds = 0.0
@@ -414,6 +424,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], LifecycleNode):
         self.sample_period = settings.sample_period or model.metadata.sample_period
         check_sample_period(model.metadata, self.sample_period, settings.model_path)
         self.warm_up_seconds = warm_up(model)
+        backend, self.backend_why = select_backend(model, settings.inference_backend)
         # A model swapped in later must fit the running window and the controller's lead.
         self._expected = {**expected, 'window': model.metadata.window,
                           'horizon': model.metadata.horizon}
@@ -425,7 +436,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], LifecycleNode):
                            settings.max_future_stamp, settings.late_tolerance),
             settings.limits, clock=self.clock_seconds,
             latency_samples=settings.latency_samples, now_ns=self.clock_ns,
-            description=self.description)
+            description=self.description, backend=backend)
         self._prediction_publisher = self.advertise(PREDICTED_ERROR)
         self._compensation_publisher = self.advertise(COMPENSATION)
         self._subscriptions_made = [self.subscribe(END_POSE, self.on_end_pose, raw=True),
@@ -541,10 +552,10 @@ class PredictorNode(NodeBase[PredictorNodeSettings], LifecycleNode):
                 self.input_to_output.record(time.perf_counter() - start)
                 self.output_rate.tick()
 
-    def _vector(self, stamp_ns: int, xy: np.ndarray) -> bytes:
+    def _vector(self, stamp_ns: int, xy: XY) -> bytes:
         """A serialized Vector3Stamped (`wire`): no message object per output."""
         sec, nanosec = divmod(stamp_ns, NS_PER_SECOND)
-        return self._vector_writer.pack(sec, nanosec, float(xy[0]), float(xy[1]))
+        return self._vector_writer.pack(sec, nanosec, xy[0], xy[1])
 
     def _load(self, path: str, expected: dict[str, Any], pin: str) -> LoadedModel:
         """`load_model` with this node's hash policy (pin, else the sidecar, unless
@@ -575,6 +586,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], LifecycleNode):
             candidate = self._load(path, self._expected, sha)
             check_sample_period(candidate.metadata, self.sample_period, path)
             warm_up(candidate)
+            self._candidate_backend = select_backend(candidate, self.settings.inference_backend)
         except Exception as err:  # noqa: BLE001 - a model file is code: any failure refuses it
             detail = str(err) if isinstance(err, ModelFileError) else (
                 f'model {path}: {type(err).__name__}: {err}')
@@ -593,8 +605,10 @@ class PredictorNode(NodeBase[PredictorNodeSettings], LifecycleNode):
         outputs = self._core.set_limits(self.settings.limits)
         if self.active:
             self._publish(outputs, time.perf_counter())
-        if 'model_path' in changed and self._candidate is not None:
-            self._core.replace_model(self._candidate)
+        if ('model_path' in changed and self._candidate is not None
+                and self._candidate_backend is not None):
+            backend, self.backend_why = self._candidate_backend
+            self._core.replace_model(self._candidate, backend)
             self._candidate = None
             self.model_swaps += 1
             self.reload_error = ''
@@ -625,6 +639,8 @@ class PredictorNode(NodeBase[PredictorNodeSettings], LifecycleNode):
             'sample_period_s': metadata.sample_period, 'swaps': self.model_swaps,
             'robot_description_sha256': metadata.robot_description_sha256,
             'warm_up_ms': round(self.warm_up_seconds * 1e3, 3),
+            'inference_backend': self._core.backend.name,
+            'inference_backend_why': self.backend_why,
         })
         if self.reload_error:
             return Status(Level.WARN, f'last reload refused: {self.reload_error}', values)
@@ -632,6 +648,8 @@ class PredictorNode(NodeBase[PredictorNodeSettings], LifecycleNode):
         if not self.active:
             return Status(Level.WARN, f'{self.lifecycle_state} (not publishing): {summary}',
                           values)
+        if self.backend_why:
+            return Status(Level.WARN, f'{summary}; {self.backend_why}', values)
         if model.verified_by == VERIFIED_BY[2]:
             return Status(Level.WARN, f'{summary}; NOT verified (verify_model_hash is false)',
                           values)
