@@ -223,11 +223,10 @@ def test_the_writer_records_the_hash_and_writes_with_the_umask(tmp_path: Path) -
     (-5, 0, 'bad_stamp'), (10, 1_000_000_000, 'bad_stamp'), (10, 4_000_000_000, 'bad_stamp'),
     (2_000, 0, 'future_stamp'), (1_000, 0, ''), (1_000, 999_999_999, '')])
 def test_stamp_problems(sec: int, nanosec: int, reason: str) -> None:
-    stamp = SimpleNamespace(sec=sec, nanosec=nanosec)
     now = 1_000 * 1_000_000_000
-    assert stamp_problem(stamp, now, 1_000_000_000)[0] == reason
-    assert stamp_problem(stamp, 0, 1_000_000_000)[0] == ('bad_stamp' if reason == 'bad_stamp'
-                                                         else '')  # sim time before /clock
+    assert stamp_problem(sec, nanosec, now, 1_000_000_000)[0] == reason
+    assert stamp_problem(sec, nanosec, 0, 1_000_000_000)[0] == (
+        'bad_stamp' if reason == 'bad_stamp' else '')  # sim time before /clock
 
 
 def test_the_core_drops_impossible_stamps_counted(amplified: LoadedModel) -> None:

@@ -58,7 +58,7 @@ from lompr_predictor.online.offset import ZERO, CompensationLimits, LiveAccuracy
 from lompr_predictor.online.timing import OverrunGuard
 from lompr_predictor.online.window import FeatureWindow
 from lompr_predictor.robot.description import RobotDescription, load_robot_description
-from lompr_predictor.stamps import StampLike, period_ns, stamp_problem, stamp_to_ns
+from lompr_predictor.stamps import NS_PER_SECOND, StampLike, period_ns, stamp_problem
 
 # The names a caller of the core needs, importable from here as before the split.
 __all__ = ['DROP_REASONS', 'FAULT_REASONS', 'STAGES', 'CompensationLimits', 'OnlinePredictor',
@@ -301,13 +301,14 @@ class OnlinePredictor:
         """A stamp in ns; None for a message stamp that is no sample instant (counted)."""
         if isinstance(stamp, (int, np.integer)):
             return int(stamp)
-        reason, why = stamp_problem(stamp, now if self._now_ns is not None else 0,
+        sec, nanosec = stamp.sec, stamp.nanosec
+        reason, why = stamp_problem(sec, nanosec, now if self._now_ns is not None else 0,
                                     self._max_future_ns)
         if reason:
             self._alignment.dropped.add(prefix + reason)
             self.last_bad_stamp = f'{prefix or "pose_"}{reason}: {why}'
             return None
-        return stamp_to_ns(stamp)
+        return sec * NS_PER_SECOND + nanosec
 
     def _handle(self, events: list[Event], seconds: float) -> list[Output]:
         """The outputs of `events`, made in the input call that read `clock` at `seconds`."""
