@@ -10,7 +10,8 @@ Lifecycle (`rclpy.lifecycle`, services `~/change_state`, `~/get_state`, ...):
 
 - unconfigured: parameters and /diagnostics only. `configure` loads the model file, checks it
   against this node's configuration (features, window, horizon, sample period, sha256 of its
-  robot description), warms it up (`WARM_UP_INFERENCES` inferences, each checked) and
+  robot description), warms it up (`WARM_UP_INFERENCES` inferences, each checked), picks
+  what runs the network (`inference_backend`, `online.inference.select_backend`) and
   creates the core, the endpoints and the staleness timer; a failure leaves the node
   unconfigured with the reason in the log and on /diagnostics (`configure_error`).
 - inactive: configured, publishing nothing; input is counted and dropped.
