@@ -19,8 +19,10 @@ from lompr_predictor.learning.model_file import (
     load_model,
     save_model,
 )
+from lompr_predictor.online.inference import select_backend
 from lompr_predictor.online.offset import XY
 from lompr_predictor.online.predictor import (
+    STAGES,
     CompensationLimits,
     OnlinePredictor,
     Output,
@@ -464,3 +466,50 @@ def test_random_sequences_never_give_a_bad_offset(
             assert np.isfinite(predicted(output)).all()
             assert np.hypot(*np.subtract(output.compensation, previous)) <= 2e-5 * (1 + 1e-12)
         previous = output.compensation
+
+
+class RecordingTimer:
+    """A `StageTimer` writing down what it is told."""
+
+    def __init__(self) -> None:
+        self.told: list[str] = []
+
+    def begin(self) -> None:
+        self.told.append('begin')
+
+    def end(self, stage: str) -> None:
+        self.told.append(stage)
+
+
+def test_the_stage_timer_hears_every_stage_of_a_predicting_sample_in_order(
+        linear_model: LoadedModel) -> None:
+    stamps, reference, tips = spiral(NEEDED)
+    core = OnlinePredictor(linear_model, stream(), limits(), FakeClock(),
+                           now_ns=lambda: int(stamps[-1]))
+    for i in range(NEEDED - 1):
+        core.add_reference(int(stamps[i]), *reference[i])
+        core.add_pose(int(stamps[i]), *tips[i])
+    timer = RecordingTimer()
+    core.stage_timer = timer
+    core.add_reference(int(stamps[-1]), *reference[-1])  # no pose waits for it
+    assert timer.told == ['begin', 'stamp', 'alignment']
+    timer.told.clear()
+    assert len(core.add_pose(int(stamps[-1]), *tips[-1])) == 1
+    assert timer.told == ['begin', *STAGES]
+
+
+def test_onnx_runtime_in_the_core_gives_the_torchscript_outputs(linear_model: LoadedModel) -> None:
+    stamps, reference, tips = spiral(40)
+    backend, why = select_backend(linear_model, 'onnxruntime')
+    assert why == ''
+    cores = [OnlinePredictor(linear_model, stream(), limits(max_step=5e-6), FakeClock(),
+                             backend=chosen) for chosen in (backend, None)]
+    outputs: list[list[Output]] = [[], []]
+    for core, out in zip(cores, outputs, strict=True):
+        for i in range(len(stamps)):
+            out += core.add_reference(int(stamps[i]), *reference[i])
+            out += core.add_pose(int(stamps[i]), *tips[i])
+    assert [core.backend.name for core in cores] == ['onnxruntime', 'torchscript']
+    assert len(outputs[0]) == len(stamps) - NEEDED + 1
+    np.testing.assert_allclose([predicted(o) for o in outputs[0]],
+                               [predicted(o) for o in outputs[1]], rtol=1e-6, atol=1e-15)
