@@ -61,9 +61,14 @@ class ReferenceTrack:
         if newest is not None and stamp_ns <= newest:
             return 'reference_duplicate' if stamp_ns == newest else 'reference_out_of_order'
         if newest is not None:
-            self._steps.append(stamp_ns - newest)
-            typical = sorted(self._steps)[len(self._steps) // 2]
-            self.max_bracket_ns = self.gap_factor * max(self._pose_period_ns, typical)
+            steps, step = self._steps, stamp_ns - newest
+            # a step equal to the one it pushes out leaves the median as it is: a regular
+            # stream sorts nothing
+            unchanged = len(steps) == steps.maxlen and steps[0] == step
+            steps.append(step)
+            if not unchanged:
+                typical = sorted(steps)[len(steps) // 2]
+                self.max_bracket_ns = self.gap_factor * max(self._pose_period_ns, typical)
         self._stamps.append(stamp_ns)
         self._positions.append((x, y, z))
         return ''
