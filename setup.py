@@ -30,6 +30,8 @@ setup(
         'pin',
         'rosbags',
         'torch==2.13.0',
+        'onnxruntime==1.32.0',
+        'onnx==1.23.2',
         'pyyaml',
         'tqdm',
         'ros-jazzy-domain-coordinator',

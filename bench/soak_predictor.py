@@ -46,7 +46,7 @@ RATE = 1000
 HORIZON = bench.HORIZONS[RATE]
 CYCLE = 40 * RATE  # one 40 s pass of the spiral, repeated
 RSS_TARGET_MB = 5.0
-ANSWERED_TARGET = 0.999
+ANSWERED_TARGET = bench.ANSWERED_TARGET
 RSS_EVERY = 5.0  # seconds between RSS readings
 #: Counters read from /diagnostics: (status name, key) -> label.
 COUNTERS = {

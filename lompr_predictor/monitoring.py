@@ -78,9 +78,10 @@ class RateMeter:
         self._events: deque[float] = deque()
         self.total = 0
 
-    def tick(self) -> None:
-        """Record one event now."""
-        now = self._now()
+    def tick(self, now: float | None = None) -> None:
+        """Record one event at `now` (the clock's reading of the caller; None: read it)."""
+        if now is None:
+            now = self._now()
         self._events.append(now)
         self.total += 1
         self._forget_before(now - self.window)

@@ -33,14 +33,14 @@ class Stamp(NamedTuple):
     nanosec: int
 
 
-def stamp_problem(stamp: StampLike, now_ns: int, max_future_ns: int) -> tuple[str, str]:
-    """(reason, explanation) if `stamp` cannot be a sample instant, ('', '') if it can.
+def stamp_problem(sec: int, nanosec: int, now_ns: int, max_future_ns: int) -> tuple[str, str]:
+    """(reason, explanation) if the stamp (`sec`, `nanosec`) of a message cannot be a sample
+    instant, ('', '') if it can (plain integers: the callers convert a stamp once).
 
     'bad_stamp': a negative `sec` or a `nanosec` of 1e9 or more (not a normalised time);
     'future_stamp': more than `max_future_ns` after `now_ns`, the receiving node's clock.
     The future check is skipped while that clock reads 0 (sim time before the first
     `/clock` message), and when `max_future_ns` is negative."""
-    sec, nanosec = stamp.sec, stamp.nanosec
     if sec < 0 or not 0 <= nanosec < NS_PER_SECOND:
         return 'bad_stamp', (f'stamp {sec} s {nanosec} ns is not a time (sec must be >= 0, '
                              f'nanosec in [0, 1e9))')

@@ -24,8 +24,10 @@ from lompr_predictor.learning.model_file import (
     load_model,
     save_model,
 )
-from lompr_predictor.online.offset import OffsetGate
+from lompr_predictor.online.inference import select_backend
+from lompr_predictor.online.offset import XY, OffsetGate
 from lompr_predictor.online.predictor import (
+    STAGES,
     CompensationLimits,
     OnlinePredictor,
     Output,
@@ -89,7 +91,7 @@ def constant_core(tmp_path: Path, value: tuple[float, float], clock: FakeClock |
                            clock or FakeClock())
 
 
-def predicted(output: Output) -> np.ndarray:
+def predicted(output: Output) -> XY:
     """The prediction of an output that must carry one."""
     assert output.prediction is not None
     return output.prediction
@@ -127,7 +129,7 @@ def test_predictions_equal_offline_ones_sample_for_sample(linear_model: LoadedMo
     assert [o.instant_ns for o in outputs] == list(stamps[ends] + HORIZON * PERIOD_NS)
     np.testing.assert_allclose(np.array([o.prediction for o in outputs]), offline,
                                rtol=0, atol=1e-12)
-    assert all(np.all(o.compensation == 0.0) for o in outputs)  # shadow mode
+    assert all(o.compensation == (0.0, 0.0) for o in outputs)  # shadow mode
 
 
 def test_reference_is_interpolated_to_pose_stamps(linear_model: LoadedModel) -> None:
@@ -259,7 +261,7 @@ def test_a_clock_jumping_back_zeroes_once_and_the_restarted_run_refills(
     # a zero for every instant after the newest pose an offset was published for
     assert [(z.reason, z.instant_ns) for z in zeros] == [
         ('clock_jump', int(stamps[19]) + k * PERIOD_NS) for k in range(1, HORIZON + 1)]
-    assert all(not z.compensation.any() for z in zeros)
+    assert all(not any(z.compensation) for z in zeros)
     assert core.window_fill == 0 and core.faults['clock_jump'] == 1
     assert core.check_stale() == []
     outputs = feed(core, stamps[:NEEDED], reference[:NEEDED], tips[:NEEDED], clock)
@@ -295,7 +297,7 @@ def test_stale_input_zeroes_once(tmp_path: Path) -> None:
     assert core.add_reference(int(stamps[-1]) + PERIOD_NS, 0.0, 0.0, Z) == []  # no pose: no use
     zeros = core.check_stale()  # a zero for each instant an offset was published for
     assert [z.instant_ns for z in zeros] == [stamps[-1] + k * PERIOD_NS for k in (1, 2, 3)]
-    assert all(z.reason == 'stale' and not z.compensation.any() for z in zeros)
+    assert all(z.reason == 'stale' and not any(z.compensation) for z in zeros)
     clock.now += 10.0
     assert core.check_stale() == []
     assert core.window_fill == 0
@@ -458,15 +460,15 @@ def test_random_sequences_never_give_a_bad_offset(
                 outputs += core.add_reference(stamp, x, 0.0, Z)
             if kind in ('pose', 'both'):
                 outputs += core.add_pose(stamp, x + error, error)
-    previous = np.zeros(2)
+    previous: XY = (0.0, 0.0)
     for output in outputs:
         assert np.isfinite(output.compensation).all()
         assert np.hypot(*output.compensation) <= 1e-4 * (1 + 1e-12)
         if output.reason:
-            assert not output.compensation.any()
+            assert not any(output.compensation)
         else:
             assert np.isfinite(predicted(output)).all()
-            assert np.hypot(*(output.compensation - previous)) <= 2e-5 * (1 + 1e-12)
+            assert np.hypot(*np.subtract(output.compensation, previous)) <= 2e-5 * (1 + 1e-12)
         previous = output.compensation
 
 
@@ -476,7 +478,7 @@ def test_random_sequences_never_give_a_bad_offset(
 def test_a_lowered_clamp_holds_from_the_next_output() -> None:
     gate = OffsetGate(CompensationLimits(5e-4, 5e-5, True), PERIOD_NS)
     for k in range(20):  # ramp to the clamp: 500 um in force, offsets out for 3 instants ahead
-        gate.publish(T0 + (k + 3) * PERIOD_NS, np.array([-1e-3, 0.0]), T0 + k * PERIOD_NS)
+        gate.publish(T0 + (k + 3) * PERIOD_NS, (-1e-3, 0.0), T0 + k * PERIOD_NS)
     assert math.hypot(*gate.offset_in_force) == pytest.approx(5e-4)
     newest = T0 + 19 * PERIOD_NS
     reissued = gate.set_limits(CompensationLimits(1e-6, 5e-5, True), newest)
@@ -484,7 +486,7 @@ def test_a_lowered_clamp_holds_from_the_next_output() -> None:
     assert [o.instant_ns for o in reissued] == [T0 + k * PERIOD_NS for k in (20, 21, 22)]
     assert all(o.reason == 'clamp_lowered' for o in reissued)
     assert all(math.hypot(*o.compensation) <= 1e-6 * (1 + 1e-12) for o in reissued)
-    following = [gate.publish(T0 + (k + 3) * PERIOD_NS, np.array([-1e-3, 0.0]),
+    following = [gate.publish(T0 + (k + 3) * PERIOD_NS, (-1e-3, 0.0),
                               T0 + k * PERIOD_NS).compensation for k in range(20, 30)]
     assert max(math.hypot(*c) for c in following) <= 1e-6 * (1 + 1e-12)  # not 450, 400, ... um
 
@@ -526,11 +528,11 @@ def test_clamp_and_slew_are_never_exceeded_under_random_parameter_changes(
             if output.reason == 'clamp_lowered':
                 continue  # a re-issue of an offset already out, scaled into the new clamp
             if output.reason or not limits.enabled:
-                assert not offset.any()
+                assert not any(offset)
             else:
-                step = math.hypot(*(offset - slew_from))
+                step = math.hypot(*np.subtract(offset, slew_from))
                 assert step <= limits.max_step * (1 + 1e-9) + 1e-18
-            slew_from = offset
+            slew_from = np.asarray(offset)
 
     for kind, value in events:
         if kind == 'limits':
@@ -565,11 +567,10 @@ def amplified(tmp_path_factory: pytest.TempPathFactory) -> LoadedModel:
     (-5, 0, 'bad_stamp'), (10, 1_000_000_000, 'bad_stamp'), (10, 4_000_000_000, 'bad_stamp'),
     (2_000, 0, 'future_stamp'), (1_000, 0, ''), (1_000, 999_999_999, '')])
 def test_stamp_problems(sec: int, nanosec: int, reason: str) -> None:
-    stamp = SimpleNamespace(sec=sec, nanosec=nanosec)
     now = 1_000 * 1_000_000_000
-    assert stamp_problem(stamp, now, 1_000_000_000)[0] == reason
-    assert stamp_problem(stamp, 0, 1_000_000_000)[0] == ('bad_stamp' if reason == 'bad_stamp'
-                                                         else '')  # sim time before /clock
+    assert stamp_problem(sec, nanosec, now, 1_000_000_000)[0] == reason
+    assert stamp_problem(sec, nanosec, 0, 1_000_000_000)[0] == (
+        'bad_stamp' if reason == 'bad_stamp' else '')  # sim time before /clock
 
 
 @pytest.mark.faults
@@ -618,3 +619,50 @@ def test_a_model_giving_nan_cancels_and_is_counted(tmp_path: Path) -> None:
     assert core.faults['inference'] >= 1
     assert all(np.isfinite(o.compensation).all() for o in outputs)
     assert all(o.prediction is None or np.isfinite(o.prediction).all() for o in outputs)
+
+
+class RecordingTimer:
+    """A `StageTimer` writing down what it is told."""
+
+    def __init__(self) -> None:
+        self.told: list[str] = []
+
+    def begin(self) -> None:
+        self.told.append('begin')
+
+    def end(self, stage: str) -> None:
+        self.told.append(stage)
+
+
+def test_the_stage_timer_hears_every_stage_of_a_predicting_sample_in_order(
+        linear_model: LoadedModel) -> None:
+    stamps, reference, tips = spiral(NEEDED)
+    core = OnlinePredictor(linear_model, stream(), limits(), FakeClock(),
+                           now_ns=lambda: int(stamps[-1]))
+    for i in range(NEEDED - 1):
+        core.add_reference(int(stamps[i]), *reference[i])
+        core.add_pose(int(stamps[i]), *tips[i])
+    timer = RecordingTimer()
+    core.stage_timer = timer
+    core.add_reference(int(stamps[-1]), *reference[-1])  # no pose waits for it
+    assert timer.told == ['begin', 'stamp', 'alignment']
+    timer.told.clear()
+    assert len(core.add_pose(int(stamps[-1]), *tips[-1])) == 1
+    assert timer.told == ['begin', *STAGES]
+
+
+def test_onnx_runtime_in_the_core_gives_the_torchscript_outputs(linear_model: LoadedModel) -> None:
+    stamps, reference, tips = spiral(40)
+    backend, why = select_backend(linear_model, 'onnxruntime')
+    assert why == ''
+    cores = [OnlinePredictor(linear_model, stream(), limits(max_step=5e-6), FakeClock(),
+                             backend=chosen) for chosen in (backend, None)]
+    outputs: list[list[Output]] = [[], []]
+    for core, out in zip(cores, outputs, strict=True):
+        for i in range(len(stamps)):
+            out += core.add_reference(int(stamps[i]), *reference[i])
+            out += core.add_pose(int(stamps[i]), *tips[i])
+    assert [core.backend.name for core in cores] == ['onnxruntime', 'torchscript']
+    assert len(outputs[0]) == len(stamps) - NEEDED + 1
+    np.testing.assert_allclose([predicted(o) for o in outputs[0]],
+                               [predicted(o) for o in outputs[1]], rtol=1e-6, atol=1e-15)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from lompr_predictor.online.offset import (
+    XY,
     CompensationLimits,
     InstantSchedule,
     LiveAccuracy,
@@ -20,7 +21,7 @@ def at(k: int) -> int:
     return T0 + k * PERIOD_NS
 
 
-def held(value: np.ndarray | None) -> np.ndarray:
+def held(value: XY | None) -> XY:
     """A value the schedule must hold."""
     assert value is not None
     return value
@@ -33,18 +34,18 @@ def gate(max_compensation: float = 1e-3, max_step: float = 1.0,
 
 def test_the_offset_is_clamped_in_norm_with_its_direction_kept() -> None:
     offsets = gate(max_compensation=1e-3)
-    output = offsets.publish(at(3), np.array([3e-3, -4e-3]), at(0))
+    output = offsets.publish(at(3), (3e-3, -4e-3), at(0))
     np.testing.assert_allclose(output.compensation, [-0.6e-3, 0.8e-3], rtol=0, atol=1e-15)
     np.testing.assert_allclose(held(output.prediction), [3e-3, -4e-3])
     assert (output.instant_ns, output.reason, output.sample_stamp_ns) == (at(3), '', at(0))
-    small = offsets.publish(at(4), np.array([-3e-4, 4e-4]), at(1))  # 0.5 mm: not clamped
+    small = offsets.publish(at(4), (-3e-4, 4e-4), at(1))  # 0.5 mm: not clamped
     np.testing.assert_allclose(small.compensation, [3e-4, -4e-4], rtol=0, atol=1e-15)
     assert offsets.clamped == 1
 
 
 def test_the_offset_ramps_by_at_most_max_step() -> None:
     offsets = gate(max_step=20e-6)
-    compensations = [offsets.publish(at(k), np.array([-50e-6, 0.0]), at(k)).compensation[0]
+    compensations = [offsets.publish(at(k), (-50e-6, 0.0), at(k)).compensation[0]
                      for k in range(5)]
     np.testing.assert_allclose(compensations, [20e-6, 40e-6, 50e-6, 50e-6, 50e-6], atol=1e-15)
     assert offsets.step_limited == 2
@@ -53,47 +54,49 @@ def test_the_offset_ramps_by_at_most_max_step() -> None:
 
 def test_what_was_published_is_found_by_instant_within_half_a_period() -> None:
     offsets = gate()
-    offsets.publish(at(5), np.array([1e-5, 2e-5]), at(2))
-    offsets.publish(at(6), np.array([3e-5, 4e-5]), at(3))
-    assert offsets.published_for(at(4)) == (None, None)
-    offset, prediction = offsets.published_for(at(5) + PERIOD_NS // 2 - 1)  # a late clock
+    offsets.publish(at(5), (1e-5, 2e-5), at(2))
+    offsets.publish(at(6), (3e-5, 4e-5), at(3))
+    assert offsets.offset_for(at(4)) is None and offsets.prediction_for(at(4)) is None
+    late = at(5) + PERIOD_NS // 2 - 1  # a late clock
+    offset, prediction = offsets.offset_for(late), offsets.prediction_for(late)
     np.testing.assert_allclose(held(offset), [-1e-5, -2e-5])
     np.testing.assert_allclose(held(prediction), [1e-5, 2e-5])
-    assert offsets.published_for(at(5)) == (None, None)  # taken once
-    offset, _ = offsets.published_for(at(6))
+    assert offsets.offset_for(at(5)) is None  # taken once
+    assert offsets.prediction_for(at(5)) is None
+    offset = offsets.offset_for(at(6))
     np.testing.assert_allclose(held(offset), [-3e-5, -4e-5])
 
 
 def test_cancel_zeroes_every_future_instant_once() -> None:
     offsets = gate()
     for k in range(3):  # offsets for instants 3, 4, 5, made from poses 0, 1, 2
-        offsets.publish(at(k + 3), np.array([-1e-5, 0.0]), at(k))
+        offsets.publish(at(k + 3), (-1e-5, 0.0), at(k))
     zeros = offsets.cancel('gap', newest_pose_ns=at(3))
     assert [(z.instant_ns, z.reason, z.prediction) for z in zeros] == [
         (at(4), 'gap', None), (at(5), 'gap', None)]
-    assert all(not z.compensation.any() for z in zeros)
+    assert all(not any(z.compensation) for z in zeros)
     assert offsets.cancel('gap', at(3)) == []  # nothing in force any more
     assert offsets.zeros_published == 2 and not offsets.in_force
-    offset, _ = offsets.published_for(at(4))  # the plant error sees the zero
+    offset = offsets.offset_for(at(4))  # the plant error sees the zero
     np.testing.assert_array_equal(held(offset), [0.0, 0.0])
 
 
 def test_cancel_without_future_offsets_zeroes_the_next_instant() -> None:
     offsets = gate()
-    offsets.publish(at(2), np.array([-1e-5, 0.0]), at(1))
+    offsets.publish(at(2), (-1e-5, 0.0), at(1))
     (zero,) = offsets.cancel('stale', newest_pose_ns=at(7))
     assert zero.instant_ns == at(8) and zero.sample_stamp_ns == at(7)
 
 
 def test_shadow_mode_cancels_then_publishes_zeros_and_ramps_in_when_back() -> None:
     offsets = gate(max_step=10e-6)
-    offsets.publish(at(4), np.array([-10e-6, 0.0]), at(1))
+    offsets.publish(at(4), (-10e-6, 0.0), at(1))
     (zero,) = offsets.set_limits(CompensationLimits(1e-3, 10e-6, False), at(1))
     assert (zero.instant_ns, zero.reason) == (at(4), 'compensation_disabled')
-    shadow = offsets.publish(at(5), np.array([-30e-6, 0.0]), at(2))
-    assert not shadow.compensation.any() and shadow.prediction is not None
+    shadow = offsets.publish(at(5), (-30e-6, 0.0), at(2))
+    assert not any(shadow.compensation) and shadow.prediction is not None
     assert offsets.set_limits(CompensationLimits(1e-3, 10e-6, True), at(2)) == []
-    back = [offsets.publish(at(k), np.array([-30e-6, 0.0]), at(k)).compensation[0]
+    back = [offsets.publish(at(k), (-30e-6, 0.0), at(k)).compensation[0]
             for k in range(6, 9)]
     np.testing.assert_allclose(back, [10e-6, 20e-6, 30e-6], atol=1e-15)
 
@@ -101,8 +104,8 @@ def test_shadow_mode_cancels_then_publishes_zeros_and_ramps_in_when_back() -> No
 def test_schedule_a_later_value_supersedes_from_its_instant_on() -> None:
     schedule = InstantSchedule(tolerance_ns=PERIOD_NS // 2)
     for k in range(4):
-        schedule.add(at(k), np.array([float(k)]))
-    schedule.add(at(2), np.array([9.0]))  # forgets instants 2 and 3, holds the new value
+        schedule.add(at(k), (float(k), 0.0))
+    schedule.add(at(2), (9.0, 0.0))  # forgets instants 2 and 3, holds the new value
     assert schedule.instants_after(at(0)) == [at(1), at(2)]
     assert held(schedule.take(at(2)))[0] == 9.0
     assert schedule.take(at(3)) is None
@@ -112,9 +115,9 @@ def test_live_accuracy_is_the_rms_of_truth_minus_prediction() -> None:
     accuracy = LiveAccuracy(samples=2)
     rms, count = accuracy.rms()
     assert count == 0 and np.isnan(rms).all()
-    accuracy.add(np.array([9e-6, 0.0]), np.array([0.0, 0.0]))  # pushed out by the next two
-    accuracy.add(np.array([3e-6, 1e-6]), np.array([0.0, 2e-6]))
-    accuracy.add(np.array([-1e-6, 0.0]), np.array([3e-6, 1e-6]))
+    accuracy.add(9e-6, 0.0, (0.0, 0.0))  # pushed out by the next two
+    accuracy.add(3e-6, 1e-6, (0.0, 2e-6))
+    accuracy.add(-1e-6, 0.0, (3e-6, 1e-6))
     rms, count = accuracy.rms()
     assert count == 2
     np.testing.assert_allclose(rms, [np.sqrt((9 + 16) / 2) * 1e-6, 1e-6], rtol=1e-12)
@@ -123,6 +126,6 @@ def test_live_accuracy_is_the_rms_of_truth_minus_prediction() -> None:
 @pytest.mark.parametrize('limit', [0.0, 1e-6])
 def test_a_zero_or_tiny_limit_still_gives_finite_offsets(limit: float) -> None:
     offsets = gate(max_compensation=limit, max_step=limit)
-    output = offsets.publish(at(1), np.array([1e-3, 1e-3]), at(0))
+    output = offsets.publish(at(1), (1e-3, 1e-3), at(0))
     assert np.isfinite(output.compensation).all()
     assert np.hypot(*output.compensation) <= limit * (1 + 1e-12)

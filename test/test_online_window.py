@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
 from lompr_predictor.data.features import FEATURES, HISTORY, feature_rows
 from lompr_predictor.online.window import FeatureWindow
@@ -102,24 +101,24 @@ def test_each_row_is_feature_rows_of_its_last_samples_bit_for_bit() -> None:
                          reference[j - HISTORY:j + 1], BRANCHES)[-1]
             for j in range(k - 4, k + 1)])
         assert np.array_equal(window.rows(), expected)
-        tensor = window.tensor()
-        assert tensor.shape == (1, 5, len(FEATURES)) and tensor.dtype == torch.float64
-        assert np.array_equal(tensor[0].numpy(), expected)
+        array = window.array()
+        assert array.shape == (1, 5, len(FEATURES)) and array.dtype == np.float64
+        assert np.array_equal(array[0], expected)
 
 
 def test_the_model_input_is_a_view_made_once() -> None:
     stamps, error, reference = samples(12)
     window = FeatureWindow(3, GEOMETRY)
     push_all(window, stamps[:5], error[:5], reference[:5])
-    first = window.tensor()
-    assert window.tensor() is first  # no allocation per call
-    assert first.is_contiguous()
+    first = window.array()
+    assert window.array() is first  # no allocation per call
+    assert first.flags.c_contiguous
     rows = window.rows()
     rows[:] = 0.0  # a copy: the window is untouched
-    assert first.abs().sum() > 0
+    assert np.abs(first).sum() > 0
     for k in range(5, 8):  # three pushes later the same slot starts the window again
         window.push(int(stamps[k]), *error[k], *reference[k])
-    assert window.tensor() is first
+    assert window.array() is first
     offline = feature_rows((stamps[:8] - stamps[0]) * 1e-9, error[:8], reference[:8], BRANCHES)
-    np.testing.assert_allclose(first[0].numpy(), offline[-3:], rtol=1e-12, atol=0)
+    np.testing.assert_allclose(first[0], offline[-3:], rtol=1e-12, atol=0)
 

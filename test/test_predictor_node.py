@@ -45,6 +45,7 @@ from lompr_predictor.learning.model_file import (
     load_model,
 )
 from lompr_predictor.learning.models import predict_rows
+from lompr_predictor.monitoring import Level
 from lompr_predictor.robot.description import (
     MEASURED_JOINTS,
     RobotDescription,
@@ -481,7 +482,6 @@ def test_predictor_node_refuses_an_empty_model_path_in_one_line(
 @pytest.mark.faults
 def test_the_node_refuses_an_unverified_model_at_start_and_reports_the_hash(
         ros: Any, tmp_path: Path) -> None:
-    from lompr_predictor.monitoring import Level
 
     model = save_constant(tmp_path / 'model.pt', window=WINDOW, horizon=HORIZON)
     bare = tmp_path / 'bare.pt'
@@ -512,7 +512,6 @@ def test_the_node_refuses_an_unverified_model_at_start_and_reports_the_hash(
 def test_overruns_are_counted_on_diagnostics(ros: Any, tmp_path: Path) -> None:
     import time
 
-    from lompr_predictor.monitoring import Level
 
     wiring = Wiring(ros, save_constant(tmp_path / 'model.pt', (1e-5, 0.0), window=WINDOW,
                                        horizon=HORIZON), late_tolerance=0.005)
@@ -523,7 +522,8 @@ def test_overruns_are_counted_on_diagnostics(ros: Any, tmp_path: Path) -> None:
         time.sleep(0.2)  # longer than the lead, 3 x 40 ms
         return cast(torch.Tensor, module(windows))
 
-    core.model = dataclasses.replace(core.model, module=cast(ExportedModule, slow_module))
+    core.replace_model(dataclasses.replace(core.model,
+                                           module=cast(ExportedModule, slow_module)))
     wiring.run(0, NEEDED + 3)
     overrun = core.overrun
     assert overrun.late_outputs_dropped + overrun.inference_skipped_late >= 3

@@ -33,6 +33,7 @@ import io
 import json
 import platform
 import re
+import warnings
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -135,6 +136,37 @@ class LoadedModel:
         inference mode."""
         with torch.inference_mode() if _INFERENCE_MODE is None else _INFERENCE_MODE(True):
             return self.module(windows)
+
+
+#: Names of the input and output of the ONNX graph `export_onnx` writes.
+ONNX_INPUT = 'window'
+ONNX_OUTPUT = 'error'
+#: The ONNX operator set of that graph (ONNX Runtime 1.32 runs it).
+ONNX_OPSET = 17
+
+
+def export_onnx(model: LoadedModel) -> bytes:
+    """The loaded (checked) module as an ONNX graph in memory: one window (1, window,
+    features) float64 -> (1, 2) float64, the input and output scaling inside it. Exported
+    from the verified module itself, so no second file needs trusting. Raises
+    `ModelFileError` if the exporter cannot take the module."""
+    metadata = model.metadata
+    example = torch.zeros((1, metadata.window, len(metadata.features)), dtype=torch.float64)
+    buffer = io.BytesIO()
+    try:
+        with warnings.catch_warnings():
+            # the TorchScript-based exporter (the one that takes a ScriptModule and writes to
+            # a file object, which its annotation omits) warns about its deprecation and
+            # about LSTMs with a batch other than one (ours is 1)
+            warnings.simplefilter('ignore')
+            torch.onnx.export(model.module, (example,), buffer,  # type: ignore[arg-type]
+                              dynamo=False, input_names=[ONNX_INPUT],
+                              output_names=[ONNX_OUTPUT], opset_version=ONNX_OPSET)
+    except Exception as err:  # the exporter raises many types for one cause
+        first = str(err).splitlines()[0] if str(err) else type(err).__name__
+        msg = f'model {model.path}: cannot be exported to ONNX ({first})'
+        raise ModelFileError(msg) from err
+    return buffer.getvalue()
 
 
 #: What `torch.inference_mode()` enters: its C++ guard, without the Python wrapper (a

@@ -80,9 +80,14 @@ class ReferenceTrack:
             return (DropReason.REFERENCE_DUPLICATE if stamp_ns == newest
                     else DropReason.REFERENCE_OUT_OF_ORDER)
         if newest is not None:
-            self._steps.append(stamp_ns - newest)
-            typical = sorted(self._steps)[len(self._steps) // 2]
-            self.max_bracket_ns = self.gap_factor * max(self._pose_period_ns, typical)
+            steps, step = self._steps, stamp_ns - newest
+            # a step equal to the one it pushes out leaves the median as it is: a regular
+            # stream sorts nothing
+            unchanged = len(steps) == steps.maxlen and steps[0] == step
+            steps.append(step)
+            if not unchanged:
+                typical = sorted(steps)[len(steps) // 2]
+                self.max_bracket_ns = self.gap_factor * max(self._pose_period_ns, typical)
         self._stamps.append(stamp_ns)
         self._positions.append((x, y, z))
         return None
@@ -196,8 +201,10 @@ class StampAlignment:
             return [FaultReason.REFERENCE_NON_FINITE]
         return []
 
-    def add_pose(self, stamp_ns: int, x: float, y: float) -> list[Event]:
-        """Take one measured tool-tip sample; returns what became ready."""
+    def add_pose(self, stamp_ns: int, x: float, y: float,
+                 arrival: float | None = None) -> list[Event]:
+        """Take one measured tool-tip sample arrived at `arrival` (the clock's reading of
+        the caller's callback; None: read it); returns what became ready."""
         if not (math.isfinite(x) and math.isfinite(y)):
             self.dropped.add(DropReason.NON_FINITE)
             self._pending.append(FaultReason.NON_FINITE)
@@ -212,7 +219,8 @@ class StampAlignment:
             self.clear(DropReason.OUT_OF_ORDER)
             return [FaultReason.OUT_OF_ORDER]
         self.newest_pose_ns = stamp_ns
-        self._pending.append(_Pose(stamp_ns, x, y, self._clock()))
+        self._pending.append(_Pose(stamp_ns, x, y,
+                                   self._clock() if arrival is None else arrival))
         events: list[Event] = []
         if len(self._pending) > MAX_PENDING_POSES:
             self._pending.popleft()

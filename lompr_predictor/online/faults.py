@@ -107,9 +107,10 @@ class StaleWatch:
         self._last_used = clock()
         self._suspected = False
 
-    def used(self) -> None:
-        """A sample was used now."""
-        self._last_used = self._clock()
+    def used(self, now: float | None = None) -> None:
+        """A sample was used at `now` (the clock's reading of the caller's callback; None:
+        read it)."""
+        self._last_used = self._clock() if now is None else now
 
     def restart(self) -> None:
         """Count idle time from now on, and forget a suspicion: the clock jumped (it

@@ -1,5 +1,6 @@
 """Load a model file for online use: read it under a hash policy, check it against the
-configuration, warm it up. One entry point, `load_ready_model`, so that configuring a node
+configuration, warm it up and choose what runs its network (`inference.select_backend`).
+One entry point, `load_ready_model`, so that configuring a node
 and swapping its model at run time refuse a file for the same reasons, with one message."""
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from lompr_predictor.learning.model_file import (
     check_sample_period,
     load_model,
 )
+from lompr_predictor.online.inference import InferenceBackend, select_backend
 
 #: Inferences run on a loaded model before it may answer a sample (the first calls of a
 #: TorchScript module profile and optimise its graph); each must give a finite (1, 2)
@@ -43,6 +45,7 @@ class ModelRequest:
     sha256: str = ''  # if not empty, the sha256 the file must have (before the sidecar's)
     verify: bool = True  # False (development only): an unverified file is loaded
     hint: str = ''  # how to pin or skip the hash, for the refusal message
+    backend: str = 'auto'  # what should run the network (`inference.BACKENDS`)
 
 
 def expected_metadata(features: tuple[str, ...], description_sha256: str, window: int = -1,
@@ -59,12 +62,15 @@ def expected_metadata(features: tuple[str, ...], description_sha256: str, window
 
 @dataclass(frozen=True)
 class ReadyModel:
-    """A model loaded, verified, checked and warmed up, with the request it answered."""
+    """A model loaded, verified, checked and warmed up, with what runs its network and
+    the request it answered."""
 
     model: LoadedModel
     sample_period: float  # [s] of the stamps: the request's, else the model's
     warm_up_seconds: float
     request: ModelRequest
+    backend: InferenceBackend
+    backend_why: str = ''  # why the backend is not the one the request prefers ('' if it is)
 
     def describe(self) -> str:
         """One line for the log: what model, from where, how it warmed up."""
@@ -72,7 +78,7 @@ class ReadyModel:
         return (f'{metadata.model_type} model {model.path} (sha256 {model.sha256[:16]}, '
                 f'window {metadata.window}, horizon {metadata.horizon} x '
                 f'{metadata.sample_period:g} s, warmed up in '
-                f'{self.warm_up_seconds * 1e3:.1f} ms)')
+                f'{self.warm_up_seconds * 1e3:.1f} ms, run by {self.backend.name})')
 
     def swap_request(self, path: str, sha256: str) -> ModelRequest:
         """The request a model must answer to replace this one while it runs: the same
@@ -134,7 +140,9 @@ def _load(request: ModelRequest) -> ReadyModel:
                        verify=request.verify, hint=request.hint)
     period = request.sample_period or model.metadata.sample_period
     check_sample_period(model.metadata, period, request.path)
-    return ReadyModel(model, period, warm_up(model), request)
+    warm_up_seconds = warm_up(model)
+    backend, why = select_backend(model, request.backend)
+    return ReadyModel(model, period, warm_up_seconds, request, backend, why)
 
 
 def warm_up(model: LoadedModel, inferences: int = WARM_UP_INFERENCES) -> float:

@@ -45,12 +45,17 @@ class CompensationLimits:
     enabled: bool  # False: shadow mode, predictions go on, every offset is zero
 
 
+#: An X/Y pair [m], on Python floats: the per-sample path builds no arrays.
+XY = tuple[float, float]
+ZERO: XY = (0.0, 0.0)
+
+
 class Output(NamedTuple):
     """What to publish for one instant."""
 
     instant_ns: int  # the instant both values are for [ns]
-    prediction: np.ndarray | None  # (2,) predicted plant X/Y error [m]; None for a zero
-    compensation: np.ndarray  # (2,) X/Y offset [m]
+    prediction: XY | None  # predicted plant X/Y error [m]; None for a zero
+    compensation: XY  # X/Y offset [m]
     reason: str  # '' for a prediction, else the fault (or 'compensation_disabled') that
     # cancelled the offset
     sample_stamp_ns: int  # stamp of the newest sample the output was made from [ns]
@@ -65,23 +70,25 @@ class InstantSchedule:
 
     def __init__(self, tolerance_ns: int, capacity: int = 100_000) -> None:
         self.tolerance_ns = tolerance_ns
-        self._items: deque[tuple[int, np.ndarray]] = deque(maxlen=capacity)
+        self._items: deque[tuple[int, XY]] = deque(maxlen=capacity)
 
-    def add(self, instant_ns: int, value: np.ndarray) -> None:
+    def add(self, instant_ns: int, value: XY) -> None:
         self.cancel_from(instant_ns)
         self._items.append((instant_ns, value))
 
-    def clamp_after(self, stamp_ns: int, limit: float) -> list[tuple[int, np.ndarray]]:
+    def clamp_after(self, stamp_ns: int, limit: float) -> list[tuple[int, XY]]:
         """Clamp to `limit` (XY norm, direction kept) the values held for instants after
         `stamp_ns`; returns the (instant, new value) pairs that changed."""
-        changed: list[tuple[int, np.ndarray]] = []
+        changed: list[tuple[int, XY]] = []
         items = self._items
         for i, (instant, value) in enumerate(items):
             if instant <= stamp_ns + self.tolerance_ns:
                 continue
-            norm = math.hypot(value[0], value[1])
+            x, y = value
+            norm = math.hypot(x, y)
             if norm > limit:
-                clamped = value * (limit / norm)
+                scale = limit / norm
+                clamped = (x * scale, y * scale)
                 items[i] = (instant, clamped)
                 changed.append((instant, clamped))
         return changed
@@ -96,7 +103,7 @@ class InstantSchedule:
         while items and items[-1][0] >= instant_ns - self.tolerance_ns:
             items.pop()
 
-    def take(self, stamp_ns: int) -> np.ndarray | None:
+    def take(self, stamp_ns: int) -> XY | None:
         items = self._items
         while items and items[0][0] < stamp_ns - self.tolerance_ns:
             items.popleft()
@@ -114,7 +121,7 @@ class OffsetGate:
         self._period_ns = period_ns
         self._compensations = InstantSchedule(period_ns // 2)
         self._predictions = InstantSchedule(period_ns // 2)
-        self._offset = np.zeros(2)
+        self._offset = ZERO
         self._in_force = False
         self.clamped = 0  # offsets clamped to max_compensation
         self.step_limited = 0  # offsets limited to max_step from the previous one
@@ -128,18 +135,22 @@ class OffsetGate:
 
     @property
     def offset_in_force(self) -> np.ndarray:
-        """The last offset published (zero after a cancel or in shadow mode)."""
-        return self._offset.copy()
+        """(2,) the last offset published (zero after a cancel or in shadow mode)."""
+        return np.array(self._offset)
 
-    def published_for(self, stamp_ns: int) -> tuple[np.ndarray | None, np.ndarray | None]:
-        """(offset, prediction) published for the instant of `stamp_ns`, None where none
-        was; both are forgotten with every earlier instant. Stamps asked for must increase."""
-        return self._compensations.take(stamp_ns), self._predictions.take(stamp_ns)
+    def offset_for(self, stamp_ns: int) -> XY | None:
+        """The offset published for the instant of `stamp_ns`, None where none was; it is
+        forgotten with every earlier one. Stamps asked for must increase."""
+        return self._compensations.take(stamp_ns)
 
-    def publish(self, instant_ns: int, prediction: np.ndarray, sample_stamp_ns: int) -> Output:
+    def prediction_for(self, stamp_ns: int) -> XY | None:
+        """The prediction published for the instant of `stamp_ns` (as `offset_for`)."""
+        return self._predictions.take(stamp_ns)
+
+    def publish(self, instant_ns: int, prediction: XY, sample_stamp_ns: int) -> Output:
         """The bounded offset for `prediction` (the plant error predicted for `instant_ns`),
         scheduled with it."""
-        compensation = self._bounded(-prediction)
+        compensation = self._bounded(-prediction[0], -prediction[1])
         self._predictions.add(instant_ns, prediction)
         self._compensations.add(instant_ns, compensation)
         self._offset = compensation
@@ -155,11 +166,11 @@ class OffsetGate:
         instants = (self._compensations.instants_after(newest)
                     or [newest + self._period_ns])
         for instant in instants:
-            self._compensations.add(instant, np.zeros(2))
-        self._offset = np.zeros(2)
+            self._compensations.add(instant, ZERO)
+        self._offset = ZERO
         self._in_force = False
         self.zeros_published += len(instants)
-        return [Output(instant, None, np.zeros(2), reason, newest) for instant in instants]
+        return [Output(instant, None, ZERO, reason, newest) for instant in instants]
 
     def set_limits(self, limits: CompensationLimits, newest_pose_ns: int | None) -> list[Output]:
         """New bounds from the next output on. Disabling compensation cancels the offsets
@@ -171,9 +182,9 @@ class OffsetGate:
         if disabled:
             return self.cancel('compensation_disabled', newest_pose_ns)
         limit = limits.max_compensation
-        self._offset = _clamped(self._offset, limit)
+        self._offset = _clamped(*self._offset, limit)
         newest = newest_pose_ns or 0
-        outputs = [Output(instant, None, value.copy(), 'clamp_lowered', newest)
+        outputs = [Output(instant, None, value, 'clamp_lowered', newest)
                    for instant, value in self._compensations.clamp_after(newest, limit)]
         self.reclamped += len(outputs)
         return outputs
@@ -181,29 +192,36 @@ class OffsetGate:
     def missed(self) -> None:
         """An instant got no offset (the controller applies zero there): the next offset
         ramps in from zero."""
-        self._offset = np.zeros(2)
+        self._offset = ZERO
 
-    def _bounded(self, wanted: np.ndarray) -> np.ndarray:
+    def _bounded(self, x: float, y: float) -> XY:
+        """The offset for the wanted offset (x, y): clamped, step-limited, clamped."""
         limits = self.limits
         if not limits.enabled:
-            return np.zeros(2)
-        norm = math.hypot(wanted[0], wanted[1])
+            return ZERO
+        norm = math.hypot(x, y)
         if norm > limits.max_compensation:
-            wanted = wanted * (limits.max_compensation / norm)
+            scale = limits.max_compensation / norm
+            x, y = x * scale, y * scale
             self.clamped += 1
-        change = wanted - self._offset
-        step = math.hypot(change[0], change[1])
+        offset_x, offset_y = self._offset
+        change_x, change_y = x - offset_x, y - offset_y
+        step = math.hypot(change_x, change_y)
         if step > limits.max_step:
-            wanted = self._offset + change * (limits.max_step / step)
+            scale = limits.max_step / step
+            x, y = offset_x + change_x * scale, offset_y + change_y * scale
             self.step_limited += 1
         # The clamp is the last operation, whatever the offset the step started from.
-        return _clamped(wanted, limits.max_compensation)
+        return _clamped(x, y, limits.max_compensation)
 
 
-def _clamped(value: np.ndarray, limit: float) -> np.ndarray:
-    """`value` scaled to XY norm `limit` (direction kept) if it is longer."""
-    norm = math.hypot(value[0], value[1])
-    return value * (limit / norm) if norm > limit else value
+def _clamped(x: float, y: float, limit: float) -> XY:
+    """(x, y) scaled to XY norm `limit` (direction kept) if it is longer."""
+    norm = math.hypot(x, y)
+    if norm > limit:
+        scale = limit / norm
+        return x * scale, y * scale
+    return x, y
 
 
 class LiveAccuracy:
@@ -211,14 +229,16 @@ class LiveAccuracy:
     arrived: a live figure to hold against the model's test RMSE."""
 
     def __init__(self, samples: int) -> None:
-        self._residuals: deque[np.ndarray] = deque(maxlen=samples)
+        self._x: deque[float] = deque(maxlen=samples)
+        self._y: deque[float] = deque(maxlen=samples)
 
-    def add(self, truth: np.ndarray, prediction: np.ndarray) -> None:
-        self._residuals.append(truth - prediction)
+    def add(self, truth_x: float, truth_y: float, prediction: XY) -> None:
+        self._x.append(truth_x - prediction[0])
+        self._y.append(truth_y - prediction[1])
 
     def rms(self) -> tuple[np.ndarray, int]:
         """(2,) RMS [m] and how many residuals it is over; NaN before the first."""
-        if not self._residuals:
+        if not self._x:
             return np.full(2, np.nan), 0
-        residuals = np.asarray(self._residuals)
+        residuals = np.column_stack((self._x, self._y))
         return np.sqrt(np.mean(residuals ** 2, axis=0)), len(residuals)

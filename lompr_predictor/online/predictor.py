@@ -6,6 +6,8 @@ model, the offset gate (`offset`), the fault rules (`faults`) and the overrun po
 (`timing`), each testable alone. Any fault empties the window and cancels the offset in
 force. Time is the caller's clock (the node's ROS clock, simulated under use_sim_time),
 whose jumps the caller reports; every call returns the outputs to publish, in order.
+The network runs on the backend `inference.select_backend` chose; `stage_timer` (off by
+default) lets a profiler time the stages of an input call through a public hook.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
+from typing import Protocol
 
 import numpy as np
 
@@ -21,15 +24,35 @@ from lompr_predictor.learning.model_file import LoadedModel, MetadataMismatchErr
 from lompr_predictor.monitoring import LatencyRecorder, RejectionCounter
 from lompr_predictor.online.alignment import AlignedSample, DropReason, Event, StampAlignment
 from lompr_predictor.online.faults import FaultReason, StaleWatch, StreamRules, StreamSettings
-from lompr_predictor.online.offset import CompensationLimits, LiveAccuracy, OffsetGate, Output
+from lompr_predictor.online.inference import InferenceBackend, TorchScriptBackend
+from lompr_predictor.online.offset import ZERO, CompensationLimits, LiveAccuracy, OffsetGate, Output
 from lompr_predictor.online.timing import OverrunGuard
 from lompr_predictor.online.window import FeatureWindow
 from lompr_predictor.robot.description import RobotDescription, load_robot_description
-from lompr_predictor.stamps import StampLike, period_ns, stamp_problem, stamp_to_ns
+from lompr_predictor.stamps import NS_PER_SECOND, StampLike, period_ns, stamp_problem
 
 # The names a caller of the core needs, importable from here as before the split.
-__all__ = ['CompensationLimits', 'DropReason', 'FaultReason', 'OnlinePredictor', 'Output',
-           'StreamSettings']
+__all__ = ['STAGES', 'CompensationLimits', 'DropReason', 'FaultReason', 'OnlinePredictor',
+           'Output', 'StageTimer', 'StreamSettings']
+
+#: The stages of an input call a `StageTimer` hears the end of, in the order they run:
+#: checking and converting the stamp, aligning pose and reference, the plant error (the
+#: offset and prediction published for the instant, live accuracy), the window's feature
+#: row, the overrun policy, the network, the offset gate.
+STAGES = ('stamp', 'alignment', 'plant error', 'feature rows', 'overrun', 'inference',
+          'offset gate')
+
+
+class StageTimer(Protocol):
+    """Told where an input call is (`OnlinePredictor.stage_timer`), to time its stages."""
+
+    def begin(self) -> None:
+        """An input call (`add_pose`, `add_reference`) begins."""
+        ...
+
+    def end(self, stage: str) -> None:
+        """The stage `stage` (one of `STAGES`) ended."""
+        ...
 
 
 class OnlinePredictor:
@@ -39,20 +62,22 @@ class OnlinePredictor:
         self, model: LoadedModel, stream: StreamSettings, limits: CompensationLimits,
         clock: Callable[[], float] = time.monotonic, latency_samples: int = 1000,
         now_ns: Callable[[], int] | None = None, description: RobotDescription | None = None,
+        backend: InferenceBackend | None = None,
     ) -> None:
         #: The robot the model must have been trained for (default: the packaged LOMPR).
         self.description = description or load_robot_description()
         self._check(model)
-        self.model = model
         self.stream = stream
         self.window = model.metadata.window
         self.horizon = model.metadata.horizon
         period = period_ns(stream.sample_period)
         self._lead_ns = self.horizon * period
+        self._clock = clock
         self._alignment = StampAlignment(stream.gap_factor, period, clock)
         self._rules = StreamRules(stream, period)
         self._stale = StaleWatch(stream.stale_after, clock)
         self._window = FeatureWindow(self.window, self.description.geometry)
+        self._use(model, backend)
         self._gate = OffsetGate(limits, period)
         self._accuracy = LiveAccuracy(stream.accuracy_samples)
         self.faults = RejectionCounter(FaultReason)
@@ -65,6 +90,8 @@ class OnlinePredictor:
         self._max_future_ns = (period_ns(stream.max_future_stamp)
                                if stream.max_future_stamp >= 0.0 else -1)
         self.last_bad_stamp = ''  # why the last stamp dropped was not a sample instant
+        #: Told of each stage's end (`STAGES`); None: no profiling.
+        self.stage_timer: StageTimer | None = None
 
     # -- inputs ---------------------------------------------------------------------------
 
@@ -72,22 +99,39 @@ class OnlinePredictor:
                       z: float) -> list[Output]:
         """Take one reference sample, the commanded tool tip (stamp: ns, or a message stamp,
         which is checked); returns outputs of poses that waited for it."""
+        timer = self.stage_timer
+        if timer is not None:
+            timer.begin()
         now = self._read_clock()
         stamp_ns = self._stamp_ns(stamp, now, 'reference_')
         if stamp_ns is None:
             return []
-        return self._handle(self._alignment.add_reference(stamp_ns, x, y, z))
+        if timer is not None:
+            timer.end('stamp')
+        events = self._alignment.add_reference(stamp_ns, x, y, z)
+        if timer is not None:
+            timer.end('alignment')
+        return self._handle(events, self._clock()) if events else []
 
     def add_pose(self, stamp: int | StampLike, x: float, y: float) -> list[Output]:
         """Take one measured tool-tip sample (the kinematics node's end pose; stamp: ns,
         or a message stamp, which is checked)."""
+        timer = self.stage_timer
+        if timer is not None:
+            timer.begin()
         now = self._read_clock()
         stamp_ns = self._stamp_ns(stamp, now, '')
         if stamp_ns is None:
             return []
         if self._now_ns is not None:
             self.overrun.arrival(stamp_ns, now)
-        return self._handle(self._alignment.add_pose(stamp_ns, x, y))
+        if timer is not None:
+            timer.end('stamp')
+        seconds = self._clock()
+        events = self._alignment.add_pose(stamp_ns, x, y, seconds)
+        if timer is not None:
+            timer.end('alignment')
+        return self._handle(events, seconds)
 
     def check_stale(self) -> list[Output]:
         """Call periodically: a 'stale' fault once `faults.StaleWatch` confirms that no
@@ -139,15 +183,17 @@ class OnlinePredictor:
         predictions go on (shadow mode)."""
         return self._gate.set_limits(limits, self._alignment.newest_pose_ns)
 
-    def replace_model(self, model: LoadedModel) -> None:
-        """Use `model` from the next sample on; it must read the same window and horizon."""
+    def replace_model(self, model: LoadedModel,
+                      backend: InferenceBackend | None = None) -> None:
+        """Use `model` (run by `backend`, default TorchScript) from the next sample on; it
+        must read the same window and horizon."""
         self._check(model)
         metadata = model.metadata
         if (metadata.window, metadata.horizon) != (self.window, self.horizon):
             msg = (f'model {model.path} has window {metadata.window} and horizon '
                    f'{metadata.horizon}; the running one {self.window} and {self.horizon}')
             raise ValueError(msg)
-        self.model = model
+        self._use(model, backend)
 
     # -- state for diagnostics ------------------------------------------------------------
 
@@ -211,6 +257,12 @@ class OnlinePredictor:
             if found != needed:
                 raise MetadataMismatchError(model.path, field, needed, found)
 
+    def _use(self, model: LoadedModel, backend: InferenceBackend | None) -> None:
+        """Serve `model` with `backend` (default TorchScript), one call bound per view."""
+        self.model = model
+        self.backend = backend or TorchScriptBackend(model)
+        self._runners = tuple(self.backend.runner(array) for array in self._window.arrays)
+
     def _read_clock(self) -> int:
         if self._now_ns is not None:
             self._now = self._now_ns()
@@ -220,52 +272,69 @@ class OnlinePredictor:
         """A stamp in ns; None for a message stamp that is no sample instant (counted)."""
         if isinstance(stamp, (int, np.integer)):
             return int(stamp)
-        reason, why = stamp_problem(stamp, now if self._now_ns is not None else 0,
+        sec, nanosec = stamp.sec, stamp.nanosec
+        reason, why = stamp_problem(sec, nanosec, now if self._now_ns is not None else 0,
                                     self._max_future_ns)
         if reason:
             self._alignment.dropped.add(DropReason(prefix + reason))
             self.last_bad_stamp = f'{prefix or "pose_"}{reason}: {why}'
             return None
-        return stamp_to_ns(stamp)
+        return sec * NS_PER_SECOND + nanosec
 
-    def _handle(self, events: list[Event]) -> list[Output]:
+    def _handle(self, events: list[Event], seconds: float) -> list[Output]:
+        """The outputs of `events`, made in the input call that read `clock` at `seconds`."""
         outputs: list[Output] = []
         for event in events:
             if isinstance(event, FaultReason):
                 outputs += self._fault(event)
             else:
-                outputs += self._use_sample(event)
+                self._use_sample(event, seconds, outputs)
         return outputs
 
-    def _use_sample(self, sample: AlignedSample) -> list[Output]:
-        outputs: list[Output] = []
+    def _use_sample(self, sample: AlignedSample, seconds: float, outputs: list[Output]) -> None:
+        """Append the outputs of one aligned sample to `outputs`."""
+        timer = self.stage_timer
         window = self._window
+        stamp_ns = sample.stamp_ns
         previous = window.last_stamp_ns
         if previous is not None:
-            reason = self._rules.interval_fault(previous, sample.stamp_ns)
+            reason = self._rules.interval_fault(previous, stamp_ns)
             if reason is not None:
                 outputs += self._fault(reason)
-        self._stale.used()
-        applied, predicted = self._gate.published_for(sample.stamp_ns)
-        offset = applied if applied is not None else (0.0, 0.0)
-        error_x = sample.x - sample.reference_x - offset[0]
-        error_y = sample.y - sample.reference_y - offset[1]
+        self._stale.used(seconds)
+        gate = self._gate
+        offset_x, offset_y = gate.offset_for(stamp_ns) or ZERO
+        predicted = gate.prediction_for(stamp_ns)
+        reference_x, reference_y = sample.reference_x, sample.reference_y
+        error_x = sample.x - reference_x - offset_x
+        error_y = sample.y - reference_y - offset_y
         if predicted is not None:
-            self._accuracy.add(np.array([error_x, error_y]), predicted)
-        if window.push(sample.stamp_ns, error_x, error_y, sample.reference_x,
-                       sample.reference_y, sample.reference_z):
-            outputs += self._predict(sample.stamp_ns)
-        return outputs
+            self._accuracy.add(error_x, error_y, predicted)
+        if timer is not None:
+            timer.end('plant error')
+        full = window.push(stamp_ns, error_x, error_y, reference_x, reference_y,
+                           sample.reference_z)
+        if timer is not None:
+            timer.end('feature rows')
+        if full:
+            self._predict(stamp_ns, outputs)
 
-    def _predict(self, stamp_ns: int) -> list[Output]:
+    def _predict(self, stamp_ns: int, outputs: list[Output]) -> None:
+        """Append the output of the window that ends at `stamp_ns`, if it is not late."""
+        timer = self.stage_timer
         guard = self.overrun if self._now_ns is not None else None
         if guard is not None and guard.skip(stamp_ns, self._now):
             guard.inference_skipped_late += 1
             self._gate.missed()
-            return []
+            return
+        if timer is not None:
+            timer.end('overrun')
         prediction = self._infer()
+        if timer is not None:
+            timer.end('inference')
         if prediction is None:
-            return self._fault(FaultReason.INFERENCE)
+            outputs += self._fault(FaultReason.INFERENCE)
+            return
         self.predictions_made += 1
         if guard is not None:
             started = self._now
@@ -274,15 +343,18 @@ class OnlinePredictor:
             if guard.late(stamp_ns, ended):
                 guard.late_outputs_dropped += 1
                 self._gate.missed()
-                return []
-        return [self._gate.publish(stamp_ns + self._lead_ns, np.array(prediction), stamp_ns)]
+                return
+        outputs.append(self._gate.publish(stamp_ns + self._lead_ns, prediction, stamp_ns))
+        if timer is not None:
+            timer.end('offset gate')
 
     def _infer(self) -> tuple[float, float] | None:
-        """The model on the window (its buffer, no copy): the predicted X/Y plant error, or
-        None if the model raised or gave anything but one row of two finite numbers."""
+        """The network on the window (the call bound to its current view): the predicted
+        X/Y plant error, or None if the model raised or gave anything but one row of two
+        finite numbers."""
         start = time.perf_counter()
         try:
-            (x, y), = self.model.predict(self._window.tensor()).tolist()
+            x, y = self._runners[self._window.start]()
             x, y = float(x), float(y)
         except Exception:  # noqa: BLE001 - a model file is code: any failure is a fault
             x = y = math.nan

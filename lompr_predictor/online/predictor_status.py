@@ -43,6 +43,7 @@ class ModelHistory:
     swaps: int = 0
     warm_up_seconds: float = 0.0
     reload_error: str = ''  # why the last swap was refused ('' if none was)
+    backend_why: str = ''  # why the network is not run by the preferred backend ('' if it is)
 
 
 @dataclass(frozen=True)
@@ -86,12 +87,16 @@ def model_status(lifecycle: Lifecycle, model_path: str, core: OnlinePredictor | 
         'sample_period_s': metadata.sample_period, 'swaps': history.swaps,
         'robot_description_sha256': metadata.robot_description_sha256,
         'warm_up_ms': round(history.warm_up_seconds * 1e3, 3),
+        'inference_backend': core.backend.name,
+        'inference_backend_why': history.backend_why,
     })
     if history.reload_error:
         return Status(Level.WARN, f'last reload refused: {history.reload_error}', values)
     summary = f'{metadata.model_type} {model.sha256[:12]}, horizon {metadata.horizon}'
     if not lifecycle.active:
         return Status(Level.WARN, f'{lifecycle.state} (not publishing): {summary}', values)
+    if history.backend_why:
+        return Status(Level.WARN, f'{summary}; {history.backend_why}', values)
     if model.verified_by == VERIFIED_BY[2]:
         return Status(Level.WARN, f'{summary}; NOT verified (verify_model_hash is false)',
                       values)

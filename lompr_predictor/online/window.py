@@ -22,7 +22,6 @@ from __future__ import annotations
 import struct
 
 import numpy as np
-import torch
 
 from lompr_predictor.data.features import FEATURES, HISTORY
 from lompr_predictor.robot.description import LomprGeometry
@@ -78,8 +77,9 @@ class FeatureWindow:
         self._memory = self._buffer.data.cast('B')
         self._row_bytes = self._buffer.strides[0]
         self._copy_bytes = window * self._row_bytes  # from a row to its second copy
-        buffer = torch.from_numpy(self._buffer)  # the same memory
-        self._views = [buffer[start:start + window].unsqueeze(0) for start in range(window)]
+        #: The window's view for each start slot (`array`), made once.
+        self.arrays = tuple(self._buffer[start:start + window][np.newaxis]
+                            for start in range(window))
         self._next = 0  # slot of the next row; the window starts there once full
         self._filled = 0  # samples since the window was last emptied
 
@@ -119,18 +119,23 @@ class FeatureWindow:
             self._next = slot + 1 if slot + 1 < self.window else 0
         return self._filled >= self.needed
 
-    def tensor(self) -> torch.Tensor:
+    @property
+    def start(self) -> int:
+        """The slot a full window starts at: `arrays[start]` is the window."""
+        return self._next
+
+    def array(self) -> np.ndarray:
         """(1, window, len(FEATURES)) float64 rows of a full window, oldest first: a view
         of the buffer (no copy), valid until the next `push` or `clear`; read, never keep
         or write it."""
         if not self.full:
             msg = f'the window holds {self.fill} of {self.needed} samples'
             raise ValueError(msg)
-        return self._views[self._next]
+        return self.arrays[self._next]
 
     def rows(self) -> np.ndarray:
         """(window, len(FEATURES)) copy of the rows of a full window (the model's input)."""
-        return self.tensor()[0].numpy().copy()
+        return self.array()[0].copy()
 
     def clear(self) -> None:
         """Empty the window: the next `needed` samples refill it."""

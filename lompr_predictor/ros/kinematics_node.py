@@ -59,7 +59,7 @@ from lompr_predictor.ros.node_base import (
 )
 from lompr_predictor.ros.parameters import parameter
 from lompr_predictor.ros.wire import PoseStampedWriter, WireError, read_joint_state
-from lompr_predictor.stamps import Stamp, period_ns, stamp_problem, stamp_to_ns
+from lompr_predictor.stamps import NS_PER_SECOND, period_ns, stamp_problem
 
 NODE_NAME = 'kinematics_node'
 
@@ -174,23 +174,20 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
             f'{settings.end_pose_topic} with {self.description.source} '
             f'(sha256 {self.description.sha256[:16]})')
 
-    def on_joint_state(self, data: bytes | JointState) -> None:
-        """Publish the end pose of one JointState (serialized, as the subscription takes it
-        raw, or a message object), or count why it has none."""
-        self.input_rate.tick()
+    def on_joint_state(self, data: bytes) -> None:
+        """Publish the end pose of one serialized JointState (the subscription takes it raw:
+        `wire`), or count why it has none. The node's clock is read once."""
+        now_ns = self.clock_ns()
+        now = now_ns * 1e-9  # clock_seconds, read once
+        self.input_rate.tick(now)
         sec = nanosec = 0
         clock = time.perf_counter
         try:
-            if isinstance(data, bytes):
-                try:
-                    sec, nanosec, names, positions = read_joint_state(data)
-                except WireError as err:
-                    raise JointStateError('malformed', str(err)) from err
-            else:
-                stamp = data.header.stamp
-                sec, nanosec, names, positions = (stamp.sec, stamp.nanosec, tuple(data.name),
-                                                  tuple(data.position))
-            stamp_ns = self._stamp_ns(sec, nanosec)
+            try:
+                sec, nanosec, names, positions = read_joint_state(data)
+            except WireError as err:
+                raise JointStateError('malformed', str(err)) from err
+            stamp_ns = self._stamp_ns(sec, nanosec, now_ns)
             joints = self._measured_joints(names, positions)
             self._check_gap(stamp_ns)
             start = clock()
@@ -207,7 +204,7 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
             return
         self._publisher.publish(self._pose_writer.pack(
             sec, nanosec, pose.position.tolist(), pose.quaternion.tolist()))
-        self.output_rate.tick()
+        self.output_rate.tick(now)
         if self._full_publisher is not None:
             self.publish_full_joint_state(sec, nanosec, joints)
 
@@ -220,15 +217,15 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
         message.position = self._all_joints.positions(self._fk.last_up, joints)
         self._full_publisher.publish(message)
 
-    def _stamp_ns(self, sec: int, nanosec: int) -> int:
+    def _stamp_ns(self, sec: int, nanosec: int, now_ns: int) -> int:
         if sec == 0 and nanosec == 0:
             raise JointStateError('unstamped', 'header.stamp is zero: the sample instant is '
                                   'unknown, so its pose could not be aligned with anything')
-        reason, why = stamp_problem(stamp := Stamp(sec, nanosec), self.clock_ns(),
+        reason, why = stamp_problem(sec, nanosec, now_ns,
                                     period_ns(self.settings.max_future_stamp))
         if reason:
             raise JointStateError(reason, why)
-        return stamp_to_ns(stamp)
+        return sec * NS_PER_SECOND + nanosec
 
     def _measured_joints(self, names: tuple[str, ...],
                          positions: Sequence[float]) -> list[float]:

@@ -1,11 +1,10 @@
 """predictor_node: end poses + reference -> predicted error and a bounded compensation offset.
 
-A managed (lifecycle) node over `online.OnlinePredictor`: it turns /lompr/end_pose and
-/lompr/reference into calls of the core and publishes every `Output` on
-/lompr/predicted_error and /lompr/compensation. Loading a model (`online.model_loader`) and
-the /diagnostics statuses (`online.predictor_status`) are ROS-free; the lifecycle state is
-rclpy's. A sample is answered from its own callback, never from a timer, so a simulator
-that waits for the answer (lockstep) gets it.
+A managed (lifecycle) node over `online.OnlinePredictor`: end poses and references in, every
+`Output` out on the predicted error and compensation topics. Loading a model and choosing
+what runs it (`online.model_loader`) and the /diagnostics statuses (`online.predictor_status`)
+are ROS-free; the lifecycle state is rclpy's. A sample is answered from its own callback,
+never a timer, so a simulator that waits for the answer (lockstep) gets it.
 """
 
 from __future__ import annotations
@@ -150,17 +149,17 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             settings.model_path, expected_metadata(FEATURES, description.sha256,
                                                    settings.window, settings.horizon),
             settings.sample_period, settings.model_sha256, settings.verify_model_hash,
-            HASH_HINT))
+            HASH_HINT, settings.inference_backend))
         if outcome.ready is None:
             return outcome.error
         self._running = ready = outcome.ready
-        model, self.sample_period = ready.model, ready.sample_period
-        self.history = replace(self.history, warm_up_seconds=ready.warm_up_seconds)
+        self.sample_period = ready.sample_period
+        self.history = replace(self.history, warm_up_seconds=ready.warm_up_seconds,
+                               backend_why=ready.backend_why)
         self._core = OnlinePredictor(
-            model,
-            settings.stream(self.sample_period), settings.limits, clock=self.clock_seconds,
-            latency_samples=settings.latency_samples, now_ns=self.clock_ns,
-            description=description)
+            ready.model, settings.stream(self.sample_period), settings.limits,
+            clock=self.clock_seconds, latency_samples=settings.latency_samples,
+            now_ns=self.clock_ns, description=description, backend=ready.backend)
         self.outputs.attach(self.own(self.advertise(PREDICTED_ERROR)),
                             self.own(self.advertise(COMPENSATION)))
         self.own(self.subscribe(END_POSE, self.on_end_pose, raw=True))
@@ -270,11 +269,12 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         outputs = self._core.set_limits(self.settings.limits)
         if self.active:
             self.outputs.publish(outputs, time.perf_counter())
-        if 'model_path' in changed and self._candidate is not None:
-            self._core.replace_model(self._candidate.model)
-            self._running, self._candidate = self._candidate, None
+        candidate = self._candidate
+        if 'model_path' in changed and candidate is not None:
+            self._core.replace_model(candidate.model, candidate.backend)
+            self._running, self._candidate = candidate, None
             self.history = replace(self.history, swaps=self.history.swaps + 1,
-                                   reload_error='')
+                                   reload_error='', backend_why=candidate.backend_why)
             self.get_logger().info(f'model swapped: now {self._core.model.path} '
                                    f'(sha256 {self._core.model.sha256[:16]})')
 

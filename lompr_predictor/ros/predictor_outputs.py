@@ -7,12 +7,11 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-import numpy as np
 from rclpy.publisher import Publisher
 
 from lompr_predictor.monitoring import LatencyRecorder, RateMeter
 from lompr_predictor.online.faults import is_fault
-from lompr_predictor.online.offset import Output
+from lompr_predictor.online.offset import XY, Output
 from lompr_predictor.ros.wire import Vector3StampedWriter
 from lompr_predictor.stamps import NS_PER_SECOND
 
@@ -51,6 +50,6 @@ class OutputPublisher:
                 self.latency.record(time.perf_counter() - start)
                 self.rate.tick()
 
-    def _vector(self, stamp_ns: int, xy: np.ndarray) -> bytes:
+    def _vector(self, stamp_ns: int, xy: XY) -> bytes:
         sec, nanosec = divmod(stamp_ns, NS_PER_SECOND)
-        return self._writer.pack(sec, nanosec, float(xy[0]), float(xy[1]))
+        return self._writer.pack(sec, nanosec, xy[0], xy[1])

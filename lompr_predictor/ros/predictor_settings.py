@@ -10,6 +10,7 @@ from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from lompr_predictor.data.cleaning import GAP_FACTOR
 from lompr_predictor.learning.model_file import check_sha256_text
 from lompr_predictor.online.faults import StreamSettings
+from lompr_predictor.online.inference import BACKENDS
 from lompr_predictor.online.offset import CompensationLimits
 from lompr_predictor.robot.description import WORLD_FRAME
 from lompr_predictor.ros.node_base import (
@@ -88,6 +89,12 @@ class PredictorNodeSettings(StatusSettings):
     compensation_topic: str = parameter(
         'lompr/compensation', 'Vector3Stamped compensation offset output', read_only=True)
     frame_id: str = parameter(WORLD_FRAME, 'header.frame_id of the outputs', read_only=True)
+    inference_backend: str = parameter(
+        'auto', 'what runs the network: onnxruntime (an ONNX graph exported from the verified '
+        'model file at configure, used only if it agrees with TorchScript to 1e-6 relative on '
+        'a warm-up batch; configure fails if it cannot serve), torchscript (the file as '
+        'loaded), or auto (onnxruntime, else torchscript with the reason on /diagnostics)',
+        choices=BACKENDS, read_only=True)
     inference_threads: int = parameter(
         1, "torch threads, set by the executable's main() (process-wide); 1 keeps inference "
         'from contending with the executor', minimum=1, maximum=256, read_only=True)

@@ -1,0 +1,192 @@
+"""Inference backends: the network of a loaded model on one window, per sample (ROS-free).
+
+The model file stays the TorchScript file `model_file.load_model` opened and verified. For
+the 1 kHz path its module is also exported, in memory, to an ONNX graph (`export_onnx`:
+input and output scaling inside it, no second file to trust) and run by ONNX Runtime with
+one intra-op and one inter-op thread, sequential execution and I/O binding: the input is
+the window's own buffer, the output a preallocated array, so a call allocates nothing but
+the two floats it returns.
+
+`select_backend` decides which one serves. 'torchscript': the module as loaded.
+'onnxruntime' and 'auto' build the ONNX Runtime backend and run both on a warm-up batch
+(`warm_up_windows`); ONNX Runtime serves only if its outputs agree with TorchScript's to
+`RELATIVE_TOLERANCE` of the largest output. 'auto' falls back to TorchScript on any failure
+and says why (never silently worse output); 'onnxruntime', asked for by name, raises
+`InferenceBackendError` with one line naming the cause.
+
+A backend gives `runner(window)`: a call without arguments that runs the network on
+`window` (a (1, window, features) float64 C-contiguous array, read afresh at every call,
+whose memory the caller keeps alive as long as the call) and returns the predicted X/Y
+error [m] as two Python floats.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from lompr_predictor.errors import LomprError
+from lompr_predictor.learning.model_file import (
+    ONNX_INPUT,
+    ONNX_OUTPUT,
+    LoadedModel,
+    ModelFileError,
+    export_onnx,
+)
+
+#: Values of the `inference_backend` choice.
+BACKENDS = ('auto', 'onnxruntime', 'torchscript')
+#: Largest |ONNX Runtime - TorchScript| accepted, relative to the largest |output| of the
+#: warm-up batch.
+RELATIVE_TOLERANCE = 1e-6
+#: Windows of the warm-up batch: one of zeros and random ones.
+WARM_UP_WINDOWS = 32
+
+#: Runs the network on the window it was made for: predicted X/Y error [m].
+Runner = Callable[[], tuple[float, float]]
+
+
+class InferenceBackendError(LomprError):
+    """The inference backend asked for cannot serve (`select_backend`)."""
+
+
+class InferenceBackend(Protocol):
+    """Runs a loaded model's network on one window (module docstring)."""
+
+    name: str
+
+    def runner(self, window: np.ndarray) -> Runner:
+        """A call running the network on `window` as it holds at each call."""
+        ...
+
+
+class TorchScriptBackend:
+    """The verified TorchScript module itself, on a tensor sharing the window's memory."""
+
+    name = 'torchscript'
+
+    def __init__(self, model: LoadedModel) -> None:
+        self.model = model
+
+    def runner(self, window: np.ndarray) -> Runner:
+        tensor = torch.from_numpy(window)
+        predict = self.model.predict
+
+        def run() -> tuple[float, float]:
+            (x, y), = predict(tensor).tolist()
+            return x, y
+        return run
+
+
+class OnnxRuntimeBackend:
+    """An ONNX graph of the model run by ONNX Runtime, bound to the window's buffer."""
+
+    name = 'onnxruntime'
+
+    def __init__(self, graph: bytes, onnxruntime: Any) -> None:
+        options = onnxruntime.SessionOptions()
+        options.intra_op_num_threads = 1
+        options.inter_op_num_threads = 1
+        options.execution_mode = onnxruntime.ExecutionMode.ORT_SEQUENTIAL
+        self._session = onnxruntime.InferenceSession(
+            graph, options, providers=['CPUExecutionProvider'])
+
+    def runner(self, window: np.ndarray) -> Runner:
+        if window.dtype != np.float64 or not window.flags.c_contiguous:
+            msg = 'an ONNX Runtime input must be a C-contiguous float64 array'
+            raise ValueError(msg)
+        output = np.zeros((1, 2))
+        binding = self._session.io_binding()
+        binding.bind_input(ONNX_INPUT, 'cpu', 0, np.float64, list(window.shape),
+                           window.ctypes.data)
+        binding.bind_output(ONNX_OUTPUT, 'cpu', 0, np.float64, list(output.shape),
+                            output.ctypes.data)
+        run_bound = self._session.run_with_iobinding
+        read = output.tolist
+
+        def run() -> tuple[float, float]:
+            run_bound(binding)
+            (x, y), = read()
+            return x, y
+        return run
+
+
+def warm_up_windows(model: LoadedModel, count: int = WARM_UP_WINDOWS) -> np.ndarray:
+    """(count, 1, window, features) float64: a zero window, then seeded random ones."""
+    metadata = model.metadata
+    shape = (count, 1, metadata.window, len(metadata.features))
+    windows = np.random.default_rng(0).normal(scale=0.01, size=shape)
+    windows[0] = 0.0
+    return windows
+
+
+def select_backend(model: LoadedModel,
+                   requested: str = 'auto') -> tuple[InferenceBackend, str]:
+    """The backend to serve `model` with and why it is not the one preferred ('' when it
+    is: ONNX Runtime for 'auto' and 'onnxruntime', TorchScript for 'torchscript'); see the
+    module docstring."""
+    if requested not in BACKENDS:
+        msg = f'inference backend {requested!r} is none of {", ".join(BACKENDS)}'
+        raise InferenceBackendError(msg)
+    torchscript = TorchScriptBackend(model)
+    if requested == 'torchscript':
+        return torchscript, ''
+    try:
+        return onnxruntime_backend(model, torchscript), ''
+    except InferenceBackendError as err:
+        if requested == 'onnxruntime':
+            raise
+        return torchscript, f'TorchScript serves: {err}'
+
+
+def onnxruntime_backend(model: LoadedModel,
+                        reference: InferenceBackend | None = None) -> OnnxRuntimeBackend:
+    """The ONNX Runtime backend of `model`, checked against `reference` (default: its
+    TorchScript backend) on the warm-up batch; `InferenceBackendError` naming why not."""
+    try:
+        onnxruntime = importlib.import_module('onnxruntime')
+    except ImportError as err:
+        msg = f'ONNX Runtime cannot be imported ({err}); pip install -r requirements.txt'
+        raise InferenceBackendError(msg) from err
+    try:
+        backend = OnnxRuntimeBackend(export_onnx(model), onnxruntime)
+    except ModelFileError as err:
+        raise InferenceBackendError(str(err)) from err
+    except Exception as err:  # ONNX Runtime raises its own types for a bad graph
+        first = str(err).splitlines()[0] if str(err) else type(err).__name__
+        msg = f'model {model.path}: ONNX Runtime cannot take its graph ({first})'
+        raise InferenceBackendError(msg) from err
+    disagreement = compare(backend, reference or TorchScriptBackend(model),
+                           warm_up_windows(model))
+    if disagreement:
+        msg = f'model {model.path}: {disagreement}'
+        raise InferenceBackendError(msg)
+    return backend
+
+
+def compare(candidate: InferenceBackend, reference: InferenceBackend,
+            windows: np.ndarray) -> str:
+    """Why `candidate` disagrees with `reference` on `windows` (beyond
+    `RELATIVE_TOLERANCE` of the largest reference output, or not finite where the reference
+    is), '' if it agrees; a candidate that raises disagrees."""
+    window = np.zeros(windows.shape[1:])
+    run_candidate, run_reference = candidate.runner(window), reference.runner(window)
+    got, wanted = np.empty((len(windows), 2)), np.empty((len(windows), 2))
+    for k, values in enumerate(windows):
+        window[:] = values
+        wanted[k] = run_reference()
+        try:
+            got[k] = run_candidate()
+        except Exception as err:  # noqa: BLE001 - any failure of the candidate refuses it
+            return f'{candidate.name} failed on a warm-up window ({type(err).__name__}: {err})'
+    scale = float(np.max(np.abs(wanted)))
+    worst = float(np.max(np.abs(got - wanted))) if np.isfinite(got).all() else np.inf
+    if not worst <= RELATIVE_TOLERANCE * scale:
+        return (f'{candidate.name} and {reference.name} disagree on the warm-up batch by '
+                f'{worst:.3g} m, over {RELATIVE_TOLERANCE:g} of the largest output '
+                f'{scale:.3g} m')
+    return ''

@@ -1,0 +1,132 @@
+"""Inference backends: ONNX Runtime agrees with TorchScript on a trained LSTM, and every way
+it cannot serve falls back to TorchScript with the reason (or, asked for by name, fails in
+one line)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from model_helpers import save_linear
+from trainer_data import lissajous_reference, synthetic_recording
+
+from lompr_predictor.data.cleaning import clean_recordings
+from lompr_predictor.data.features import FEATURES, TARGETS
+from lompr_predictor.data.problem import LearningProblem, build_problem
+from lompr_predictor.learning.model_file import (
+    LoadedModel,
+    ModelMetadata,
+    export_onnx,
+    load_model,
+    save_model,
+)
+from lompr_predictor.learning.models import gather_windows
+from lompr_predictor.learning.training import TrainSettings, train_network
+from lompr_predictor.online import inference
+from lompr_predictor.online.inference import (
+    RELATIVE_TOLERANCE,
+    InferenceBackendError,
+    OnnxRuntimeBackend,
+    TorchScriptBackend,
+    select_backend,
+)
+from lompr_predictor.robot.description import RobotDescription
+
+WINDOW, HORIZON = 12, 10
+
+
+@pytest.fixture(scope='module')
+def problem(description: RobotDescription) -> LearningProblem:
+    recording, _ = synthetic_recording(description.geometry, 2000, noise=2e-7,
+                                       reference=lissajous_reference(2000))
+    return build_problem(clean_recordings([recording], description.geometry),
+                         window=WINDOW, horizon=HORIZON)
+
+
+@pytest.fixture(scope='module')
+def trained(problem: LearningProblem, description: RobotDescription,
+            tmp_path_factory: pytest.TempPathFactory) -> LoadedModel:
+    """A small LSTM trained for a few epochs, saved and loaded as the node loads it."""
+    hyper = {'batch_size': 200, 'hidden': 8, 'learning_rate': 0.01}
+    network = train_network(problem, 'lstm', hyper,
+                            TrainSettings(max_epochs=3, patience=3, seed=3), progress=False)
+    metadata = ModelMetadata(
+        features=FEATURES, window=WINDOW, horizon=HORIZON, sample_period=problem.sample_period,
+        targets=TARGETS, normalisation={}, model_type='lstm', hyperparameters=hyper,
+        robot_description_sha256=description.sha256,
+        training_bags=({'path': 'synthetic', 'sha256': '0' * 64},), seed=3,
+        library_versions={'torch': torch.__version__})
+    path = tmp_path_factory.mktemp('model') / 'lstm.pt'
+    return load_model(save_model(path, network.module, metadata))
+
+
+def test_onnxruntime_serves_a_trained_lstm_and_agrees_with_torchscript(
+        trained: LoadedModel, problem: LearningProblem) -> None:
+    backend, why = select_backend(trained, 'auto')
+    assert (backend.name, why) == ('onnxruntime', '')
+    windows = gather_windows(problem.rows, problem.split.test[:200], WINDOW)
+    window = np.zeros((1, WINDOW, len(FEATURES)))
+    run_ort, run_torch = backend.runner(window), TorchScriptBackend(trained).runner(window)
+    got, wanted = [], []
+    for values in windows:
+        window[0] = values  # the runners read the bound buffer afresh
+        got.append(run_ort())
+        wanted.append(run_torch())
+    scale = np.max(np.abs(wanted))
+    assert scale > 0
+    np.testing.assert_allclose(got, wanted, rtol=0, atol=RELATIVE_TOLERANCE * scale)
+    # scaling is inside the graph: the outputs are in metres, as the module's (batched in
+    # float32 inside, so equal to a nanometre)
+    np.testing.assert_allclose(got, trained.predict(torch.from_numpy(windows)).numpy(),
+                               rtol=0, atol=1e-9)
+
+
+def test_torchscript_when_asked(trained: LoadedModel) -> None:
+    backend, why = select_backend(trained, 'torchscript')
+    assert (backend.name, why) == ('torchscript', '')
+
+
+def test_a_graph_onnx_runtime_cannot_take_falls_back_with_the_reason(
+        trained: LoadedModel, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(inference, 'export_onnx', lambda model: b'not an ONNX graph')
+    backend, why = select_backend(trained, 'auto')
+    assert backend.name == 'torchscript'
+    assert why.startswith('TorchScript serves: ') and 'ONNX Runtime cannot take its graph' in why
+    with pytest.raises(InferenceBackendError, match='ONNX Runtime cannot take its graph'):
+        select_backend(trained, 'onnxruntime')
+
+
+def test_disagreeing_outputs_fall_back_with_the_reason(
+        trained: LoadedModel, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A graph of another network (as a mismatched graph would be) is refused."""
+    other = load_model(save_linear(tmp_path / 'other.pt', window=WINDOW, horizon=HORIZON))
+    monkeypatch.setattr(inference, 'export_onnx', lambda model: export_onnx(other))
+    backend, why = select_backend(trained, 'auto')
+    assert backend.name == 'torchscript'
+    assert 'onnxruntime and torchscript disagree on the warm-up batch' in why
+    assert trained.path in why
+
+
+def test_without_onnx_runtime_auto_falls_back_and_onnxruntime_fails_in_one_line(
+        trained: LoadedModel, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, 'onnxruntime', None)  # import raises ImportError
+    backend, why = select_backend(trained, 'auto')
+    assert backend.name == 'torchscript' and 'ONNX Runtime cannot be imported' in why
+    with pytest.raises(InferenceBackendError, match='ONNX Runtime cannot be imported') as err:
+        select_backend(trained, 'onnxruntime')
+    assert '\n' not in str(err.value)
+
+
+def test_an_unknown_backend_is_refused(trained: LoadedModel) -> None:
+    with pytest.raises(InferenceBackendError, match="'tensorrt' is none of auto, onnxruntime"):
+        select_backend(trained, 'tensorrt')
+
+
+def test_the_onnx_runtime_input_must_be_the_buffer_itself(trained: LoadedModel) -> None:
+    backend, _ = select_backend(trained, 'onnxruntime')
+    assert isinstance(backend, OnnxRuntimeBackend)
+    with pytest.raises(ValueError, match='C-contiguous float64'):
+        backend.runner(np.zeros((1, WINDOW, len(FEATURES)), dtype=np.float32))
