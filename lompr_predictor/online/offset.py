@@ -1,6 +1,6 @@
 """The offset gate: the one place the published offset is bounded, scheduled and cancelled.
 
-Safety rules (README, predictor node):
+Safety rules (docs/safety.md, docs/nodes.md):
 
 - The offset for an instant is minus the prediction for it, clamped to `max_compensation`
   (XY norm, direction kept) and to `max_step` change from the previous offset (XY norm of
