@@ -10,7 +10,7 @@ dropped by the predictor's overrun policy).
 - inference: the bare TorchScript call (`torch.jit.load` of the file, `module(x)` on one
   window inside `torch.inference_mode`) and the predictor core's inference step (the backend
   `inference.select_backend` picks, 'auto': ONNX Runtime bound to the window's buffer ->
-  prediction as floats, as `OnlinePredictor` runs it), interleaved in one run; p50/p99 of
+  prediction as floats, as `OnlinePredictor` runs it), in alternating blocks of one run; p50/p99 of
   wall time [us] and median CPU time.
 - profile: the per-sample path driven in this process through the real node objects
   (`KinematicsNode`, `PredictorNode`, their subscription callbacks and publishers, with
@@ -99,6 +99,8 @@ ANSWERED_TARGET = 0.999  # share of the answerable samples answered
 P99_TARGET_MS = {('two processes', 1000): 2.0, ('one process', 1000): 1.0,
                  ('two processes', 250): 5.0, ('one process', 250): 5.0}
 INFERENCE_CALLS = 3000
+#: Calls of one kind in a row (`bench_inference`).
+INFERENCE_BLOCK = 250
 PROFILE_SAMPLES = 3000
 PROFILE_WARMUP = 300
 DISCOVERY_TIMEOUT = 60.0
@@ -204,7 +206,7 @@ def percentiles(values: np.ndarray) -> tuple[float, float]:
 
 def bench_inference(path: Path, rate: int) -> dict[str, float]:
     """Bare TorchScript call and the core's inference step (the backend 'auto' selects),
-    interleaved: wall p50/p99 and CPU median [us], and the backend's name."""
+    in alternating blocks: wall p50/p99 and CPU median [us], and the backend's name."""
     from lompr_predictor.online.faults import StreamSettings
     from lompr_predictor.online.inference import select_backend
     from lompr_predictor.online.offset import CompensationLimits
@@ -234,13 +236,16 @@ def bench_inference(path: Path, rate: int) -> dict[str, float]:
         for _ in range(300):
             for call in calls.values():
                 call()
-        for i in range(INFERENCE_CALLS):
+        # alternating blocks, not alternating calls: a TorchScript call evicts the caches
+        # the next call of the other would find warm, as no call of the node's path does
+        for first in range(0, INFERENCE_CALLS, INFERENCE_BLOCK):
             for name, call in calls.items():
-                c0, w0 = cpu(), clock()
-                call()
-                w1, c1 = clock(), cpu()
-                timings[name][0][i] = (w1 - w0) * 1e-3
-                timings[name][1][i] = (c1 - c0) * 1e-3
+                for i in range(first, min(first + INFERENCE_BLOCK, INFERENCE_CALLS)):
+                    c0, w0 = cpu(), clock()
+                    call()
+                    w1, c1 = clock(), cpu()
+                    timings[name][0][i] = (w1 - w0) * 1e-3
+                    timings[name][1][i] = (c1 - c0) * 1e-3
     result: dict[str, Any] = {'backend': backend.name}
     for name, (wall, cpu_us) in timings.items():
         result[f'{name}_p50'], result[f'{name}_p99'] = percentiles(wall)
@@ -389,7 +394,7 @@ def _drive(kinematics: Any, predictor: Any,
     core.stage_timer = core_stages
     for topic in ('/lompr/compensation', '/lompr/predicted_error'):
         stages.wrap(endpoint(predictor.publishers, topic), 'publish', 'publish outputs')
-    stages.wrap(predictor, '_vector', 'publish outputs')  # the output message or bytes
+    stages.wrap(predictor.outputs, '_vector', 'publish outputs')  # the output bytes
 
     for subscription in (joint_subscription, pose_subscription, reference_subscription):
         if not subscription.raw:
@@ -714,7 +719,7 @@ def main() -> int:
 def report_inference(model: Path) -> list[Row]:
     inference = bench_inference(model, 1000)
     print(f'inference (LSTM window {WINDOW}, hidden {HIDDEN}, 1 thread, {INFERENCE_CALLS} '
-          'calls each, interleaved), wall p50 / p99, CPU median [us]:')
+          'calls each, in alternating blocks), wall p50 / p99, CPU median [us]:')
     backend = inference['backend']
     for name, what in (('bare', 'bare TorchScript call'),
                        ('core', f"predictor core's inference step ({backend})")):
