@@ -666,7 +666,6 @@ def main() -> int:
     parser.add_argument('--training', action=argparse.BooleanOptionalAction, default=True,
                         help='run the end-to-end figures once more beside a training job '
                              "(default: yes; the issue's targets hold with and without)")
-    parser.add_argument('--with-training', action='store_true', help=argparse.SUPPRESS)
     parser.add_argument('--executors', default=EXECUTORS[0],
                         help=f"comma list of the node executables' executors to run the end-"
                              f'to-end figures with, of {", ".join(EXECUTORS)} (default: '
@@ -709,7 +708,7 @@ def main() -> int:
         if 'end-to-end' in parts:
             loads: list[tuple[str, contextlib.AbstractContextManager[Any]]] = [
                 ('', contextlib.nullcontext())]
-            if args.training or args.with_training:
+            if args.training:
                 loads.append((' + training', training_job(directory)))
             rates = [int(r) for r in args.rates.split(',')]
             executors = args.executors.split(',')
