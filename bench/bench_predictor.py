@@ -30,7 +30,9 @@ dropped by the predictor's overrun policy).
   Twice: the two node executables as two processes, and the one-process pipeline
   (`lompr_pipeline`), each with its default parameters and executor (`--executors
   events,single-threaded` compares rclpy's two), then once more beside a training job
-  (`lompr train --threads 1` on a small simulated bag; `--no-training` skips it).
+  (`lompr train --threads 1` on a small simulated bag; `--no-training` skips it). Each run
+  beside the same chain through `relay_chain.py` (the nodes' topics, QoS and executor, no
+  work): the transport floor of this machine, which no node can go below.
 
 Targets: at 1 kHz, with a training job beside and without, >= 99.9 % of the samples
 answered, p99 <= 2 ms across processes and <= 1 ms in one process; the core's inference
@@ -108,6 +110,7 @@ KILL_TIMEOUT = 10.0
 CALLGRIND_VARIABLE = 'LOMPR_BENCH_UNDER_CALLGRIND'
 CALLGRIND_SAMPLES = 300
 BAG = Path(__file__).resolve().parents[1] / 'bags' / 'twin_spiral_seed1_3passes'
+RELAY = Path(__file__).resolve().parent / 'relay_chain.py'
 
 
 def feature_span(name: str) -> float:
@@ -528,6 +531,7 @@ def cpu_seconds(pid: int) -> float:
 
 def node_commands(mode: str, model: Path, period: float,
                   executor: str = EXECUTORS[0]) -> list[list[str]]:
+    """The command lines of the chain `mode` names, through the node executables."""
     bin_dir = Path(sys.executable).parent
     predictor = [f'model_path:={model}', f'sample_period:={period}']
     spin = ['--executor', executor]
@@ -539,14 +543,26 @@ def node_commands(mode: str, model: Path, period: float,
              *[item for p in predictor for item in ('-p', p)]]]
 
 
-def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path,
+def relay_commands(mode: str, lead_ns: int, executor: str = EXECUTORS[0]) -> list[list[str]]:
+    """The command lines of the same chain through `relay_chain.py` (the transport floor)."""
+    relay = [sys.executable, str(RELAY), '--executor', executor]
+    lead = ['--ros-args', '-p', f'lead_ns:={lead_ns}']
+    if mode == 'one process':
+        return [[*relay[:2], 'both', *relay[2:], *lead]]
+    return [[*relay[:2], 'kinematics', *relay[2:]], [*relay[:2], 'predictor', *relay[2:], *lead]]
+
+
+def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path | None,
                      executor: str = EXECUTORS[0]) -> dict[str, Any]:
+    """The chain `mode` names through the nodes running `model`, or through the relays
+    (`relay_chain.py`) when `model` is None."""
     period = 1.0 / rate
     horizon = HORIZONS[rate]
     samples = max(int(seconds * rate), WINDOW + HISTORY + 50)
     tips, joints = spiral_joints(samples, rate)
-    processes = [start(command)
-                 for command in node_commands(mode, model, period, executor)]
+    commands = (relay_commands(mode, horizon * round(period * 1e9), executor) if model is None
+                else node_commands(mode, model, period, executor))
+    processes = [start(command) for command in commands]
     context = Context()
     rclpy.init(context=context)
     client = Client(context)
@@ -759,41 +775,47 @@ def report_end_to_end(load: str, job: contextlib.AbstractContextManager[Any],
                       executors: list[str]) -> list[Row]:
     rows: list[Row] = []
     print(f'\nend to end{load or ", no training job"} (CPU us per sample: kinematics / '
-          'predictor process, or the one process):')
-    print(f'{"mode":14s} {"executor":15s} {"rate":>6s} {"answered":>15s} {"share":>7s} '
-          f'{"p50 ms":>7s} {"p99 ms":>7s} {"max ms":>7s} {"late":>5s}  CPU us')
+          'predictor process, or the one process; chain "relays": the same topics, QoS and '
+          'executor without work, the transport floor):')
+    print(f'{"mode":14s} {"chain":7s} {"executor":15s} {"rate":>6s} {"answered":>15s} '
+          f'{"share":>7s} {"p50 ms":>7s} {"p99 ms":>7s} {"max ms":>7s} {"late":>5s}  CPU us')
     with job:
         for executor in executors:
             for mode in ('two processes', 'one process'):
                 for rate in rates:
-                    result = bench_end_to_end(mode, rate, max(seconds, 8.0) if rate == 25
-                                              else seconds, models[rate], executor)
-                    share = result['answered'] / result['answerable']
-                    cpu = ' / '.join(f'{c:.0f}' for c in result['cpu_us'])
-                    print(f'{mode:14s} {executor:15s} {rate:5d}Hz '
-                          f'{result["answered"]:7d}/{result["answerable"]:<7d} '
-                          f'{share:7.4f} {result["p50"]:7.2f} {result["p99"]:7.2f} '
-                          f'{result["max"]:7.2f} {result["late"]:5d}  {cpu}')
+                    duration = max(seconds, 8.0) if rate == 25 else seconds
+                    results = {chain: bench_end_to_end(mode, rate, duration, model, executor)
+                               for chain, model in (('nodes', models[rate]), ('relays', None))}
+                    for chain, result in results.items():
+                        share = result['answered'] / result['answerable']
+                        cpu = ' / '.join(f'{c:.0f}' for c in result['cpu_us'])
+                        print(f'{mode:14s} {chain:7s} {executor:15s} {rate:5d}Hz '
+                              f'{result["answered"]:7d}/{result["answerable"]:<7d} '
+                              f'{share:7.4f} {result["p50"]:7.2f} {result["p99"]:7.2f} '
+                              f'{result["max"]:7.2f} {result["late"]:5d}  {cpu}')
                     suffix = load if executor == EXECUTORS[0] else f'{load}, {executor}'
-                    rows += end_to_end_rows(mode, rate, suffix, result, share)
+                    rows += end_to_end_rows(mode, rate, suffix, results['nodes'],
+                                            results['relays'])
     return rows
 
 
 def end_to_end_rows(mode: str, rate: int, load: str, result: dict[str, Any],
-                    share: float) -> list[Row]:
+                    floor: dict[str, Any]) -> list[Row]:
+    """Answered share and p99 of the nodes against their targets, the relays' p99 beside."""
     rate_name = '1 kHz' if rate == 1000 else f'{rate} Hz'
     name = f'{mode}, {rate_name}{load}'
     if rate == 1000:
         name += f' (horizon {HORIZONS[rate]})'
     target = P99_TARGET_MS.get((mode, rate))
+    share = result['answered'] / result['answerable']
     answered = f'{result["answered"]}/{result["answerable"]}'
-    rows = [Row(f'{name}: answered', f'>= {100 * ANSWERED_TARGET:g} %' if target else '',
-                f'{100 * share:.2f} % ({answered})',
-                share >= ANSWERED_TARGET if target else None)]
     p99 = result['p99']
-    rows.append(Row(f'{name}: p99', f'<= {target:g} ms' if target else '', f'{p99:.2f} ms',
-                    bool(p99 <= target) if target else None))
-    return rows
+    return [Row(f'{name}: answered', f'>= {100 * ANSWERED_TARGET:g} %' if target else '',
+                f'{100 * share:.2f} % ({answered})',
+                share >= ANSWERED_TARGET if target else None),
+            Row(f'{name}: p99', f'<= {target:g} ms' if target else '', f'{p99:.2f} ms',
+                bool(p99 <= target) if target else None),
+            Row(f'{name}: p99 of the relays (floor)', '', f'{floor["p99"]:.2f} ms', None)]
 
 
 if __name__ == '__main__':
