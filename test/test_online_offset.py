@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from lompr_predictor.online.faults import FaultReason
 from lompr_predictor.online.offset import (
     XY,
     CompensationLimits,
@@ -71,11 +72,11 @@ def test_cancel_zeroes_every_future_instant_once() -> None:
     offsets = gate()
     for k in range(3):  # offsets for instants 3, 4, 5, made from poses 0, 1, 2
         offsets.publish(at(k + 3), (-1e-5, 0.0), at(k))
-    zeros = offsets.cancel('gap', newest_pose_ns=at(3))
+    zeros = offsets.cancel(FaultReason.GAP, newest_pose_ns=at(3))
     assert [(z.instant_ns, z.reason, z.prediction) for z in zeros] == [
         (at(4), 'gap', None), (at(5), 'gap', None)]
     assert all(not any(z.compensation) for z in zeros)
-    assert offsets.cancel('gap', at(3)) == []  # nothing in force any more
+    assert offsets.cancel(FaultReason.GAP, at(3)) == []  # nothing in force any more
     assert offsets.zeros_published == 2 and not offsets.in_force
     offset = offsets.offset_for(at(4))  # the plant error sees the zero
     np.testing.assert_array_equal(held(offset), [0.0, 0.0])
@@ -84,7 +85,7 @@ def test_cancel_zeroes_every_future_instant_once() -> None:
 def test_cancel_without_future_offsets_zeroes_the_next_instant() -> None:
     offsets = gate()
     offsets.publish(at(2), (-1e-5, 0.0), at(1))
-    (zero,) = offsets.cancel('stale', newest_pose_ns=at(7))
+    (zero,) = offsets.cancel(FaultReason.STALE, newest_pose_ns=at(7))
     assert zero.instant_ns == at(8) and zero.sample_stamp_ns == at(7)
 
 

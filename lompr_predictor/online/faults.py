@@ -21,6 +21,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import StrEnum
+from typing import TypeGuard
 
 
 class FaultReason(StrEnum):
@@ -43,7 +44,7 @@ class FaultReason(StrEnum):
 _FAULT_VALUES = frozenset(FaultReason)
 
 
-def is_fault(reason: str | None) -> bool:
+def is_fault(reason: StrEnum | None) -> TypeGuard[FaultReason]:
     """Whether an output's reason is a fault (not a prediction, nor a cancel by the
     caller such as 'inactive')."""
     return reason in _FAULT_VALUES

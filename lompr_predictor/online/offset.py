@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from enum import StrEnum
 from typing import NamedTuple
 
 import numpy as np
@@ -50,14 +51,22 @@ XY = tuple[float, float]
 ZERO: XY = (0.0, 0.0)
 
 
+class GateReason(StrEnum):
+    """Why the gate itself re-issued offsets already published."""
+
+    COMPENSATION_DISABLED = 'compensation_disabled'  # cancelled to zero
+    CLAMP_LOWERED = 'clamp_lowered'  # clamped to a lowered `max_compensation`
+
+
 class Output(NamedTuple):
     """What to publish for one instant."""
 
     instant_ns: int  # the instant both values are for [ns]
     prediction: XY | None  # predicted plant X/Y error [m]; None for a zero
     compensation: XY  # X/Y offset [m]
-    reason: str  # '' for a prediction, else the fault (or 'compensation_disabled') that
-    # cancelled the offset
+    # None for a prediction; else why the offset was re-issued: a `GateReason`, or the
+    # caller's (a `faults.FaultReason`, an `alignment.DropReason`) for a cancel
+    reason: StrEnum | None
     sample_stamp_ns: int  # stamp of the newest sample the output was made from [ns]
 
 
@@ -155,9 +164,9 @@ class OffsetGate:
         self._compensations.add(instant_ns, compensation)
         self._offset = compensation
         self._in_force = True
-        return Output(instant_ns, prediction, compensation, '', sample_stamp_ns)
+        return Output(instant_ns, prediction, compensation, None, sample_stamp_ns)
 
-    def cancel(self, reason: str, newest_pose_ns: int | None) -> list[Output]:
+    def cancel(self, reason: StrEnum, newest_pose_ns: int | None) -> list[Output]:
         """Zero outputs for the instants after `newest_pose_ns` that already have an offset,
         or for the next instant; none if no offset was published since the last cancel."""
         if not self._in_force:
@@ -180,11 +189,11 @@ class OffsetGate:
         disabled = self.limits.enabled and not limits.enabled
         self.limits = limits
         if disabled:
-            return self.cancel('compensation_disabled', newest_pose_ns)
+            return self.cancel(GateReason.COMPENSATION_DISABLED, newest_pose_ns)
         limit = limits.max_compensation
         self._offset = _clamped(*self._offset, limit)
         newest = newest_pose_ns or 0
-        outputs = [Output(instant, None, value, 'clamp_lowered', newest)
+        outputs = [Output(instant, None, value, GateReason.CLAMP_LOWERED, newest)
                    for instant, value in self._compensations.clamp_after(newest, limit)]
         self.reclamped += len(outputs)
         return outputs

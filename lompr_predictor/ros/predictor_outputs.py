@@ -46,7 +46,7 @@ class OutputPublisher:
             if is_fault(output.reason):
                 self._warn(output.reason, f'offset set to zero ({output.reason}); output '
                            'resumes once the window has refilled with good samples')
-            elif not output.reason:
+            elif output.reason is None:
                 self.latency.record(time.perf_counter() - start)
                 self.rate.tick()
 
