@@ -4,6 +4,7 @@ unnoticed until someone wants the figures."""
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -39,3 +40,23 @@ def test_predictor_bench_model_loads_and_runs_on_todays_features(tmp_path: Path)
                             capture_output=True, text=True, timeout=120, check=False)
     assert result.returncode == 0, result.stderr[-2000:]
     assert result.stdout.split()[-1] == '25'
+
+
+@pytest.mark.slow
+def test_predictor_bench_profile_times_every_stage_of_the_path() -> None:
+    """A short profile through the real nodes: every stage of both nodes and the core is in
+    the table (a renamed function or a silent stage stops the bench instead)."""
+    from lompr_predictor.online.predictor import STAGES
+
+    result = subprocess.run(
+        [sys.executable, str(BENCH / 'bench_predictor.py'), '--parts', 'profile',
+         '--profile-samples', '400'], capture_output=True, text=True, timeout=300, check=False)
+    assert 'Traceback' not in result.stderr, result.stderr[-2000:]
+    assert result.returncode in (0, 1)  # 1: a target missed, on a loaded machine
+    table = result.stdout.split('CPU us per sample', 1)[1].split('summary', 1)[0]
+    stages = [re.split(r'\s{2,}', line.strip())[0] for line in table.splitlines()[2:]
+              if line.strip()]
+    assert stages == ['receive joint state', 'forward kinematics', 'publish end pose',
+                      'kinematics node, rest', 'kinematics node, total',
+                      'receive reference + end pose', *STAGES, 'publish outputs',
+                      'predictor node, rest', 'predictor node, total', 'total']

@@ -265,7 +265,7 @@ def test_a_clock_jumping_back_zeroes_once_and_the_restarted_run_refills(
     assert core.window_fill == 0 and core.faults['clock_jump'] == 1
     assert core.check_stale() == []
     outputs = feed(core, stamps[:NEEDED], reference[:NEEDED], tips[:NEEDED], clock)
-    assert [o.reason for o in outputs] == ['']  # resumed after the refill, no other fault
+    assert [o.reason for o in outputs] == [None]  # resumed after the refill, no other fault
     assert outputs[0].instant_ns == stamps[NEEDED - 1] + HORIZON * PERIOD_NS
     assert core.faults.total == 1
 
@@ -281,7 +281,7 @@ def test_reset_cancels_without_a_fault_and_starts_afresh(tmp_path: Path) -> None
     # later samples, after a long pause, start a new window without a fault
     outputs = feed(core, stamps[30:30 + NEEDED], reference[30:30 + NEEDED],
                    tips[30:30 + NEEDED])
-    assert [o.reason for o in outputs] == [''] and core.faults.total == 0
+    assert [o.reason for o in outputs] == [None] and core.faults.total == 0
 
 
 @pytest.mark.faults
@@ -358,7 +358,7 @@ def test_bad_pose_zeroes_once_then_refills(tmp_path: Path, fault: str) -> None:
     assert core.add_pose(bad_stamp, bad_x, tips[10, 1]) == []  # the fault is not repeated
     outputs = feed(core, stamps[11:11 + NEEDED], reference[11:11 + NEEDED],
                    tips[11:11 + NEEDED])
-    assert [o.reason for o in outputs] == ['']
+    assert [o.reason for o in outputs] == [None]
 
 
 @pytest.mark.faults

@@ -38,7 +38,7 @@ def test_the_offset_is_clamped_in_norm_with_its_direction_kept() -> None:
     output = offsets.publish(at(3), (3e-3, -4e-3), at(0))
     np.testing.assert_allclose(output.compensation, [-0.6e-3, 0.8e-3], rtol=0, atol=1e-15)
     np.testing.assert_allclose(held(output.prediction), [3e-3, -4e-3])
-    assert (output.instant_ns, output.reason, output.sample_stamp_ns) == (at(3), '', at(0))
+    assert (output.instant_ns, output.reason, output.sample_stamp_ns) == (at(3), None, at(0))
     small = offsets.publish(at(4), (-3e-4, 4e-4), at(1))  # 0.5 mm: not clamped
     np.testing.assert_allclose(small.compensation, [3e-4, -4e-4], rtol=0, atol=1e-15)
     assert offsets.clamped == 1

@@ -186,16 +186,15 @@ def run_node(
     not shut down by Ctrl-C), and by default an `events_executor` spun in `spin_once` steps
     of `SPIN_STEP` s: rclpy 7.1.6's `EventsExecutor.spin()` never returns to Python, so it
     ignores SIGINT and burns a full core while idle, whereas these steps idle and notice a
-    shutdown within a step. `--executor single-threaded` spins rclpy's
-    `SingleThreadedExecutor` instead (the stable one: the events executor is experimental
-    in Jazzy), in the same steps.
+    shutdown within a step. `--executor single-threaded` spins rclpy's stable
+    `SingleThreadedExecutor` instead (the events executor is experimental in Jazzy).
 
     Signals with the events executor: it takes SIGINT and SIGTERM over when it is built
     and stops at its next step. Before that, rclpy's handlers are not installed and a
     `StopRequest` records the signal instead: a KeyboardInterrupt raised in the Python code
     the executor calls while it registers the nodes' entities (which a signal that rclpy
     passed on late did) leaves them half-registered, and rclpy 7.1.6 aborts (SIGABRT) when
-    that executor is destroyed. Seen in about one start-then-Ctrl-C of four.
+    that executor is destroyed.
     """
     argv = list(sys.argv if argv is None else argv)
     parser = argparse.ArgumentParser(
@@ -229,9 +228,8 @@ def run_node(
         executor = make_executor(args.executor, context)
         for node in nodes:
             executor.add_node(node)
-        # The libraries and the node are built: move what exists now out of the collector's
-        # sight, or each full collection walks every object torch and rclpy made at import
-        # and stalls a callback for tens of milliseconds.
+        # out of the collector's sight: a full collection over every object torch and rclpy
+        # made at start-up stalls a callback for a hundred milliseconds
         gc.freeze()
         while context.ok() and not (stop and stop.requested):
             executor.spin_once(timeout_sec=SPIN_STEP)
