@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
+from nav_msgs.msg import Path as NavPath
 from rclpy.parameter import Parameter
 from ros_helpers import RosHarness
 from rosgraph_msgs.msg import Clock
@@ -179,3 +180,31 @@ def test_as_the_clock_it_waits_for_its_nodes_stamps_clock_and_writes_its_run(
         stamps.tolist()
     ros.spin_for(0.3)
     assert twin.twin.next_index == 30  # done: the twin stops
+
+
+def test_the_preview_is_the_reference_the_twin_then_commands(ros: RosHarness) -> None:
+    """With preview_samples K each sample comes with a Path of the next K samples, each pose
+    stamped with its instant, equal to the reference the twin publishes at that instant."""
+    references = ros.collect('/lompr/reference', PoseStamped, 100)
+    previews = ros.collect('/lompr/reference_preview', NavPath, 100)
+    _twin(ros, speed_factor=10.0, samples=12, preview_samples=3)
+    ros.spin_until(lambda: len(references) == 12 and len(previews) == 12,
+                   what='12 references and previews')
+    commanded = {_stamp_ns(m): (m.pose.position.x, m.pose.position.y, m.pose.position.z)
+                 for m in references}
+    for preview, reference in zip(previews, references, strict=True):
+        now = _stamp_ns(reference)
+        assert _stamp_ns(preview) == now and preview.header.frame_id == 'world'
+        stamps = [_stamp_ns(pose) for pose in preview.poses]
+        assert stamps == [now + j * PERIOD for j in (1, 2, 3)]
+        for stamp, pose in zip(stamps, preview.poses, strict=True):
+            if stamp in commanded:  # the last previews reach past the run's end
+                position = pose.pose.position
+                assert (position.x, position.y, position.z) == commanded[stamp]
+    # 12 previews of 3 poses; the last three reach 1, 2 and 3 samples past the run
+    assert sum(_stamp_ns(p) in commanded for m in previews for p in m.poses) == 36 - 6
+
+
+def test_without_preview_samples_no_preview_is_advertised(ros: RosHarness) -> None:
+    twin = _twin(ros, samples=1)
+    assert twin.count_publishers('/lompr/reference_preview') == 0

@@ -8,6 +8,10 @@ after that instant, waited longer than `compensation_timeout`, is off the sample
 non-finite or larger than `max_compensation`. For scoring it publishes, per sample, its true
 error (tool tip - reference) and its plant error (tool tip - reference - offset applied).
 
+With `preview_samples` K > 0 it also publishes, with each sample, the path it will command
+for the next K samples (/lompr/reference_preview, CONTRACT section 2), as a path generator
+with look-ahead does: each pose stamped with the instant it is commanded for.
+
 Modes: `realtime` runs a sample every sample period divided by `speed_factor` (faster or
 slower than real time); `lockstep` runs the next sample as soon as its offset has arrived,
 or `lockstep_timeout` wall seconds after the previous sample without one (`answer_timeout`
@@ -33,6 +37,7 @@ from typing import Any
 
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
+from nav_msgs.msg import Path
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -136,6 +141,13 @@ class TwinNodeSettings(StatusSettings):
     plant_error_topic: str = parameter('lompr/twin/plant_error', 'Vector3Stamped debug '
                                        'output: true tool tip - reference - applied offset [m]',
                                        read_only=True)
+    preview_samples: int = parameter(
+        0, 'publish with each sample the reference of the next this many samples on '
+        'reference_preview_topic (a path generator with look-ahead); 0: no preview',
+        minimum=0, maximum=10_000, read_only=True)
+    reference_preview_topic: str = parameter(
+        'lompr/reference_preview', 'nav_msgs/Path output: the planned reference of the next '
+        'preview_samples samples, each pose stamped with its instant', read_only=True)
     frame_id: str = parameter(WORLD_FRAME, 'header.frame_id of the reference and the errors',
                               read_only=True)
 
@@ -153,7 +165,10 @@ COMPENSATION = Endpoint('subscription', Vector3Stamped, 'compensation_topic',
 #: Reliable; a node's time source subscribes best effort, depth 1 (rclpy, rclcpp).
 CLOCK = Endpoint('publisher', ClockMessage, 'clock_topic',
                  QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE), 'clock')
-ENDPOINTS = (JOINT_STATES, REFERENCE, TRUE_ERROR, PLANT_ERROR, COMPENSATION, CLOCK)
+REFERENCE_PREVIEW = Endpoint('publisher', Path, 'reference_preview_topic', OUTPUT_QOS,
+                             'reference preview')
+ENDPOINTS = (JOINT_STATES, REFERENCE, REFERENCE_PREVIEW, TRUE_ERROR, PLANT_ERROR,
+             COMPENSATION, CLOCK)
 
 
 class TwinNode(NodeBase[TwinNodeSettings], Node):
@@ -188,6 +203,8 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
         self._plant_error_publisher = self.advertise(PLANT_ERROR)
         self._compensation_subscription = self.subscribe(COMPENSATION, self.on_compensation)
         self._clock_publisher = self.advertise(CLOCK) if settings.publish_clock else None
+        self._preview_publisher = (self.advertise(REFERENCE_PREVIEW)
+                                   if settings.preview_samples else None)
         if settings.mode == 'realtime':  # the twin as the clock paces itself on wall time
             self._timer = self.start_timer(period / settings.speed_factor, 'step', self.step,
                                            clock=steady if settings.publish_clock else None)
@@ -299,6 +316,8 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
         position.x, position.y, position.z = (float(v) for v in samples.reference[0])
         reference.pose.orientation.w = 1.0  # tool axis along world +Z
         self._reference_publisher.publish(reference)
+        if self._preview_publisher is not None:
+            self._preview_publisher.publish(self._preview(stamp))
         for publisher, error in ((self._true_error_publisher, samples.error_true[0]),
                                  (self._plant_error_publisher, samples.plant_error_true[0])):
             out = Vector3Stamped()
@@ -306,6 +325,22 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
             out.header.frame_id = self.settings.frame_id
             out.vector.x, out.vector.y, out.vector.z = (float(v) for v in error)
             publisher.publish(out)
+
+    def _preview(self, stamp: Time) -> Path:
+        """The planned reference of the samples after the one just run, as a Path made at
+        that sample's instant."""
+        stamps, positions = self.twin.planned(self.settings.preview_samples)
+        preview = Path()
+        preview.header.stamp = stamp
+        preview.header.frame_id = self.settings.frame_id
+        for ns, xyz in zip(stamps.tolist(), positions.tolist(), strict=True):
+            pose = PoseStamped()
+            pose.header.stamp = self._stamp(ns)
+            pose.header.frame_id = self.settings.frame_id
+            pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = xyz
+            pose.pose.orientation.w = 1.0
+            preview.poses.append(pose)
+        return preview
 
     @staticmethod
     def _stamp(ns: int) -> Time:

@@ -79,6 +79,11 @@ class DigitalTwin:
         """Sample number whose stamp is nearest `stamp_ns`."""
         return round((int(stamp_ns) - self.epoch_ns) / self.period_ns)
 
+    def planned(self, count: int) -> tuple[np.ndarray, np.ndarray]:
+        """The next `count` samples as planned, not yet run: (count,) stamps [ns] and
+        (count, 3) nominal commanded tool tips [m] (the reference preview)."""
+        return self.stamps(self.next_index, count), self.cycle.sample(self.next_index, count)
+
     def step(self, count: int = 1, compensation: np.ndarray | None = None) -> TwinSamples:
         """Run the next `count` samples; `compensation` (count, 3) [m] is added to the command."""
         start = self.next_index
