@@ -229,7 +229,7 @@ def run_node(
         for node in nodes:
             executor.add_node(node)
         # out of the collector's sight: a full collection over every object torch and rclpy
-        # made at start-up stalls a callback for a hundred milliseconds
+        # made at start-up stalls a callback for many sample periods
         gc.freeze()
         while context.ok() and not (stop and stop.requested):
             executor.spin_once(timeout_sec=SPIN_STEP)
