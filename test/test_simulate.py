@@ -217,3 +217,44 @@ def test_sample_bag_is_what_its_command_makes(description: RobotDescription) -> 
     difference = np.abs(recording.joints.positions - again.joints_measured)
     assert (difference <= 1.01 * np.array(step)).all()
     assert (recording.joints.positions == again.joints_measured).mean() > 0.999
+
+
+def test_cli_records_the_reference_preview_a_path_generator_would_publish(
+        tmp_path: Path) -> None:
+    """--preview K: with each sample a nav_msgs/Path of the next K references, each pose
+    stamped with its instant and equal to the reference recorded for it; fewer at the end of
+    the run; written in stamp order with the other topics; the inputs read as before."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_typestore
+
+    out = tmp_path / 'preview'
+    assert _run_cli('--out', str(out), '--passes', '1', '--seed', '4', '--preview', '3',
+                    '--no-plot') == 0
+    recording = read_recording(out)  # the inputs, as without a preview
+    reference = dict(zip(recording.reference.stamps.tolist(),
+                         recording.reference.positions.tolist(), strict=True))
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    log_times: list[int] = []
+    previews: list[Any] = []
+    with Reader(out) as reader:
+        assert {c.topic: c.msgtype for c in reader.connections}['/lompr/reference_preview'] \
+            == 'nav_msgs/msg/Path'
+        for connection, log_time, raw in reader.messages():
+            log_times.append(log_time)
+            if connection.topic == '/lompr/reference_preview':
+                previews.append(typestore.deserialize_cdr(raw, connection.msgtype))
+    assert log_times == sorted(log_times)
+    stamps = recording.reference.stamps.tolist()
+    assert len(previews) == len(stamps)
+
+    def ns(stamp: Any) -> int:
+        return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+    for k, preview in enumerate(previews):
+        assert ns(preview.header.stamp) == stamps[k] and preview.header.frame_id == 'world'
+        assert [ns(p.header.stamp) for p in preview.poses] == stamps[k + 1:k + 4]
+        for pose in preview.poses:
+            p = pose.pose.position
+            assert [p.x, p.y, p.z] == reference[ns(pose.header.stamp)]
+    assert [len(p.poses) for p in previews[-4:]] == [3, 2, 1, 0]
+    assert read_ground_truth(out)[1]['preview_samples'] == 3

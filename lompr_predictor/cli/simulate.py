@@ -56,6 +56,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help='URDF (default: the packaged LOMPR)')
     parser.add_argument('--storage', choices=tuple(STORAGES), default='mcap',
                         help='rosbag2 storage (default mcap)')
+    parser.add_argument('--preview', type=non_negative_int, default=0, metavar='K',
+                        help='also record /lompr/reference_preview: with each sample, the '
+                             'planned reference of the next K samples (nav_msgs/Path), as a '
+                             'path generator with look-ahead publishes it (default: 0, none)')
     parser.add_argument('--no-plot', dest='plot', action='store_false',
                         help='skip lompr_error.png (the error over time and radius)')
     faults = parser.add_argument_group('faults (to test the consumers; logged in the ground truth)')
@@ -92,7 +96,8 @@ def run(args: argparse.Namespace) -> int:
         sim = simulate(description, params, passes=args.passes, seed=args.seed,
                        machine_seed=args.machine_seed, path=args.path, progress=bar.update)
     out = write_simulation(args.out, sim, params, description.sha256, storage=args.storage,
-                           faults=faults, plot=args.plot, preset=args.preset)
+                           faults=faults, plot=args.plot, preset=args.preset,
+                           preview_samples=args.preview)
     summary = error_summary(sim.error_measured)
     irreducible = irreducible_rmse(sim, 1) * 1e6
     print(f'wrote {out} ({len(sim.stamps)} samples, {sim.stamps.size * sim.sample_period:.0f} s '

@@ -30,9 +30,13 @@ from lompr_predictor.stamps import ns_to_sec_nanosec, stamp_to_ns
 
 JOINT_STATE = 'sensor_msgs/msg/JointState'
 POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
+PATH = 'nav_msgs/msg/Path'
 DEFAULT_JOINT_TOPIC = '/joint_states'
 DEFAULT_REFERENCE_TOPIC = '/lompr/reference'
+DEFAULT_PREVIEW_TOPIC = '/lompr/reference_preview'
 STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
+#: The orientation of a tool along world +Z (x, y, z, w): the reference's and the preview's.
+VERTICAL_TOOL = (0.0, 0.0, 0.0, 1.0)
 
 _TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
@@ -65,12 +69,26 @@ class ReferenceSamples:
 
 
 @dataclass(frozen=True)
+class PreviewSamples:
+    """Path messages of the reference preview: message i, made at `stamps[i]`, plans the
+    poses `starts[i]` to `starts[i + 1]` (exclusive) of `pose_stamps` and `positions`, tool
+    axis along +Z."""
+
+    stamps: np.ndarray  # (P,) int64 [ns]
+    starts: np.ndarray  # (P + 1,) int64, non-decreasing, starts[0] == 0
+    pose_stamps: np.ndarray  # (M,) int64 [ns], the instant each pose is commanded for
+    positions: np.ndarray  # (M, 3) [m]
+
+
+@dataclass(frozen=True)
 class Recording:
-    """The LOMPR input topics of one bag, as recorded."""
+    """The LOMPR input topics of one bag, as recorded; `preview` only when written (the
+    trainer takes the planned path from the reference itself, CONTRACT section 2)."""
 
     joints: JointSamples
     reference: ReferenceSamples
     source: str = ''
+    preview: PreviewSamples | None = None
 
 
 def _stamp(ns: int) -> Any:
@@ -89,6 +107,7 @@ def write_recording(
     storage: str = 'mcap',
     joint_topic: str = DEFAULT_JOINT_TOPIC,
     reference_topic: str = DEFAULT_REFERENCE_TOPIC,
+    preview_topic: str = DEFAULT_PREVIEW_TOPIC,
     frame_id: str = 'world',
 ) -> Path:
     """Write a recording as one rosbag2 directory at `path`, atomically.
@@ -104,19 +123,23 @@ def write_recording(
     if path.exists():
         msg = f'{path} already exists; rosbag2 writes a new directory'
         raise FileExistsError(msg)
-    types = _TYPESTORE.types
-    joint_state, pose_stamped = types[JOINT_STATE], types[POSE_STAMPED]
-    point, quaternion, pose = (types['geometry_msgs/msg/Point'],
-                               types['geometry_msgs/msg/Quaternion'],
-                               types['geometry_msgs/msg/Pose'])
-    joints, reference = recording.joints, recording.reference
-    events = _interleave(joints.stamps, reference.stamps)
+    joint_state = _TYPESTORE.types[JOINT_STATE]
+    joints, reference, preview = recording.joints, recording.reference, recording.preview
+    streams = [joints.stamps, reference.stamps]
+    if preview is not None:
+        streams.append(preview.stamps)
     with atomic_directory(path) as bag_dir, \
             Writer(bag_dir, version=9, storage_plugin=STORAGES[storage]) as writer:
         joint_conn = writer.add_connection(joint_topic, JOINT_STATE, typestore=_TYPESTORE)
         ref_conn = writer.add_connection(reference_topic, POSE_STAMPED, typestore=_TYPESTORE)
-        for topic, index in events:
-            if topic == 0:
+        preview_conn = (writer.add_connection(preview_topic, PATH, typestore=_TYPESTORE)
+                        if preview is not None else None)
+        for topic, index in _interleave(streams):
+            if topic == 2 and preview is not None and preview_conn is not None:
+                stamp = int(preview.stamps[index])
+                writer.write(preview_conn, stamp, _TYPESTORE.serialize_cdr(
+                    _preview_message(preview, index, frame_id), PATH))
+            elif topic == 0:
                 stamp = int(joints.stamps[index])
                 message = joint_state(
                     header=_header(stamp, ''), name=list(joints.names),
@@ -126,34 +149,51 @@ def write_recording(
                              _TYPESTORE.serialize_cdr(message, JOINT_STATE))
             else:
                 stamp = int(reference.stamps[index])
-                x, y, z = (float(v) for v in reference.positions[index])
-                qx, qy, qz, qw = (float(v) for v in reference.orientations[index])
-                message = pose_stamped(
-                    header=_header(stamp, frame_id),
-                    pose=pose(position=point(x=x, y=y, z=z),
-                              orientation=quaternion(x=qx, y=qy, z=qz, w=qw)))
+                message = _pose(stamp, frame_id, reference.positions[index],
+                                reference.orientations[index])
                 writer.write(ref_conn, stamp, _TYPESTORE.serialize_cdr(message, POSE_STAMPED))
     return path
 
 
-def _interleave(joint_stamps: np.ndarray, reference_stamps: np.ndarray) -> list[tuple[int, int]]:
-    """Merge two message streams by stamp while keeping each stream's own order.
+def _pose(stamp_ns: int, frame_id: str, position: np.ndarray,
+          orientation: Sequence[float] = VERTICAL_TOOL) -> Any:
+    """A PoseStamped of the bag's typestore."""
+    types = _TYPESTORE.types
+    x, y, z = (float(v) for v in position)
+    qx, qy, qz, qw = (float(v) for v in orientation)
+    return types[POSE_STAMPED](
+        header=_header(stamp_ns, frame_id),
+        pose=types['geometry_msgs/msg/Pose'](
+            position=types['geometry_msgs/msg/Point'](x=x, y=y, z=z),
+            orientation=types['geometry_msgs/msg/Quaternion'](x=qx, y=qy, z=qz, w=qw)))
+
+
+def _preview_message(preview: PreviewSamples, index: int, frame_id: str) -> Any:
+    first, end = int(preview.starts[index]), int(preview.starts[index + 1])
+    poses = [_pose(int(stamp), frame_id, position)
+             for stamp, position in zip(preview.pose_stamps[first:end],
+                                        preview.positions[first:end], strict=True)]
+    return _TYPESTORE.types[PATH](header=_header(int(preview.stamps[index]), frame_id),
+                                  poses=poses)
+
+
+def _interleave(streams: Sequence[np.ndarray]) -> list[tuple[int, int]]:
+    """Merge message streams by stamp while keeping each stream's own order: (stream,
+    index) pairs, the earlier stream first on equal stamps.
 
     A stream's out-of-order message is written where it stands in that stream, as a real
     recorder would have received it.
     """
     events: list[tuple[int, int]] = []
-    i = j = 0
-    while i < len(joint_stamps) or j < len(reference_stamps):
-        take_joint = j >= len(reference_stamps) or (
-            i < len(joint_stamps) and joint_stamps[i] <= reference_stamps[j])
-        if take_joint:
-            events.append((0, i))
-            i += 1
-        else:
-            events.append((1, j))
-            j += 1
-    return events
+    heads = [0] * len(streams)
+    while True:
+        waiting = [(int(stream[head]), k) for k, (stream, head) in enumerate(
+            zip(streams, heads, strict=True)) if head < len(stream)]
+        if not waiting:
+            return events
+        _, k = min(waiting)
+        events.append((k, heads[k]))
+        heads[k] += 1
 
 
 def read_recording(

@@ -40,7 +40,13 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from tqdm import tqdm
 
-from lompr_predictor.data.bags import JointSamples, Recording, ReferenceSamples, write_recording
+from lompr_predictor.data.bags import (
+    VERTICAL_TOOL,
+    JointSamples,
+    Recording,
+    ReferenceSamples,
+    write_recording,
+)
 from lompr_predictor.data.features import FEATURES, TARGETS
 from lompr_predictor.errors import LomprError
 from lompr_predictor.files import atomic_directory, write_json
@@ -64,7 +70,6 @@ from lompr_predictor.stamps import stamp_to_ns
 from lompr_predictor.threads import torch_threads
 from lompr_predictor.twin.digital_twin import EPOCH_NS, DigitalTwin
 from lompr_predictor.twin.parameters import load_twin_parameters
-from lompr_predictor.twin.recording import VERTICAL_TOOL
 from lompr_predictor.twin.run_log import read_run_log
 
 #: Loggers of the nodes in the loop (their node names).

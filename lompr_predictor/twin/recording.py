@@ -31,7 +31,14 @@ from typing import Any
 
 import numpy as np
 
-from lompr_predictor.data.bags import JointSamples, Recording, ReferenceSamples, write_recording
+from lompr_predictor.data.bags import (
+    VERTICAL_TOOL,
+    JointSamples,
+    PreviewSamples,
+    Recording,
+    ReferenceSamples,
+    write_recording,
+)
 from lompr_predictor.errors import LomprError
 from lompr_predictor.files import atomic_directory
 from lompr_predictor.robot.description import MEASURED_JOINTS
@@ -49,17 +56,29 @@ GROUND_TRUTH_NPZ = 'lompr_ground_truth.npz'
 GROUND_TRUTH_JSON = 'lompr_ground_truth.json'
 ERROR_PLOT = 'lompr_error.png'
 GROUND_TRUTH_FORMAT = 1
-#: Reference orientation: tool axis along world +Z (vertical), quaternion x, y, z, w.
-VERTICAL_TOOL = (0.0, 0.0, 0.0, 1.0)
 
 
 class RecordingExistsError(LomprError, FileExistsError):
     """The output directory of a recording exists already (rosbag2 writes a new one)."""
 
 
-def to_recording(sim: Simulation, faults: FaultSpec | None = None,
-                 seed: int = 0) -> tuple[Recording, dict[str, FaultLog]]:
-    """The bag content of a simulation, with `faults` injected (drawn from `seed`)."""
+def planned_preview(sim: Simulation, samples: int) -> PreviewSamples:
+    """With each sample of `sim`, the clean reference of the next `samples` samples (fewer
+    at the end of the run: the program ends there), as the twin's path generator plans it."""
+    count = len(sim.stamps)
+    firsts = np.arange(1, count + 1)
+    ends = np.minimum(firsts + samples, count)
+    taken = np.concatenate([np.arange(first, end) for first, end in zip(firsts, ends,
+                                                                       strict=True)])
+    starts = np.concatenate([[0], np.cumsum(ends - firsts)]).astype(np.int64)
+    return PreviewSamples(stamps=sim.stamps.copy(), starts=starts,
+                          pose_stamps=sim.stamps[taken], positions=sim.reference[taken])
+
+
+def to_recording(sim: Simulation, faults: FaultSpec | None = None, seed: int = 0,
+                 preview_samples: int = 0) -> tuple[Recording, dict[str, FaultLog]]:
+    """The bag content of a simulation, with `faults` injected (drawn from `seed`), and
+    with `preview_samples` the reference preview (`planned_preview`, never faulted)."""
     faults = faults or FaultSpec()
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0xFA017]))
     orientations = np.tile(VERTICAL_TOOL, (len(sim.stamps), 1))
@@ -75,7 +94,8 @@ def to_recording(sim: Simulation, faults: FaultSpec | None = None,
     recording = Recording(
         joints=JointSamples(stamps=joint_stamps, positions=joints, names=MEASURED_JOINTS),
         reference=ReferenceSamples(stamps=ref_stamps, positions=ref[:, :3].copy(),
-                                   orientations=ref[:, 3:].copy()))
+                                   orientations=ref[:, 3:].copy()),
+        preview=planned_preview(sim, preview_samples) if preview_samples else None)
     return recording, logs
 
 
@@ -120,16 +140,18 @@ def ground_truth(sim: Simulation, params: TwinParameters, description_sha256: st
 def write_simulation(out: str | Path, sim: Simulation, params: TwinParameters,
                      description_sha256: str, *, storage: str = 'mcap',
                      faults: FaultSpec | None = None, plot: bool = True,
-                     preset: str | None = None) -> Path:
+                     preset: str | None = None, preview_samples: int = 0) -> Path:
     """Write the bag directory `out` with its ground-truth files (and the error plot
-    `lompr_error.png` if `plot`), atomically; `preset` names the twin preset in them."""
+    `lompr_error.png` if `plot`), atomically; `preset` names the twin preset in them;
+    `preview_samples` > 0 adds the reference preview topic (`planned_preview`)."""
     out = Path(out)
     if out.exists():
         msg = f'{out} already exists; choose a new directory'
         raise RecordingExistsError(msg)
     faults = faults or FaultSpec()
-    recording, logs = to_recording(sim, faults, sim.seed)
+    recording, logs = to_recording(sim, faults, sim.seed, preview_samples)
     arrays, document = ground_truth(sim, params, description_sha256, faults, logs, preset)
+    document['preview_samples'] = preview_samples
     with atomic_directory(out) as staged:
         bag = write_recording(staged, recording, storage=storage)
         # numpy's stub lets **arrays fill allow_pickle: bool; they are all arrays
