@@ -66,11 +66,10 @@ def planned_preview(sim: Simulation, samples: int) -> PreviewSamples:
     """With each sample of `sim`, the clean reference of the next `samples` samples (fewer
     at the end of the run: the program ends there), as the twin's path generator plans it."""
     count = len(sim.stamps)
-    firsts = np.arange(1, count + 1)
-    ends = np.minimum(firsts + samples, count)
-    taken = np.concatenate([np.arange(first, end) for first, end in zip(firsts, ends,
-                                                                       strict=True)])
-    starts = np.concatenate([[0], np.cumsum(ends - firsts)]).astype(np.int64)
+    ahead = np.arange(count)[:, None] + np.arange(1, samples + 1)  # row i: i+1 .. i+samples
+    inside = ahead < count
+    taken = ahead[inside]  # row by row: message order
+    starts = np.concatenate([[0], np.cumsum(inside.sum(axis=1))]).astype(np.int64)
     return PreviewSamples(stamps=sim.stamps.copy(), starts=starts,
                           pose_stamps=sim.stamps[taken], positions=sim.reference[taken])
 
