@@ -79,7 +79,7 @@ def save_linear(path: Path, weight: np.ndarray | None = None,
 def save_constant(path: Path, value: tuple[float, float] = (0.0, 0.0), **meta: Any) -> Path:
     """A model whose prediction is always `value` [m]."""
     info = metadata(**meta)
-    weight = np.zeros((info.window * len(FEATURES), 2))
+    weight = np.zeros((info.window * len(info.features), 2))
     return save_model(path, LinearWindowModel(weight, np.asarray(value, dtype=float)), info)
 
 

@@ -95,6 +95,13 @@ def test_windows_never_cross_a_gap() -> None:
         assert len(set(segment_of[rows])) == 1
     # every admissible window is there: 30 - 2 - 10 - 3 + 1 = 16 and 45 - 2 - 10 - 3 + 1 = 31
     assert len(ends) == 16 + 31
+    # a preview of 5 samples after each row: the window's last row and the 5 after it, too
+    ahead = window_ends(segments, window, horizon, preview=5)
+    assert set(ahead) <= set(ends) and len(ahead) == 16 - 2 + 31 - 2
+    for end in ahead:
+        assert len(set(segment_of[np.arange(end - window + 1 - HISTORY, end + 6)])) == 1
+    with pytest.raises(ValueError, match='preview'):
+        window_ends(segments, window, horizon, preview=-1)
 
 
 def test_split_is_chronological_and_test_is_last_tenth() -> None:

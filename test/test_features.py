@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lompr_predictor.data.features import FEATURES, HISTORY, feature_rows
+from lompr_predictor.data.features import (
+    FEATURES,
+    HISTORY,
+    PREVIEW_FEATURES,
+    feature_names,
+    feature_rows,
+    with_preview,
+)
 from lompr_predictor.robot.description import load_robot_description
 from lompr_predictor.robot.kinematics import VerticalToolBranches, inverse_kinematics
 
@@ -68,3 +75,31 @@ def test_a_straight_line_gives_the_differences_of_the_ik_lengths() -> None:
     np.testing.assert_allclose(rows[2:, BRANCH_A], acceleration, rtol=0, atol=1e-9)
     # the branches move at different, nonzero speeds: the line is no symmetric motion
     assert np.ptp(velocity[-1]) > 1e-3 and (np.abs(velocity) > 1e-4).all()
+
+
+def test_the_preview_block_is_the_commanded_motion_of_the_row_k_samples_later() -> None:
+    n, preview = 12, 3
+    seconds = np.arange(n) * PERIOD
+    angle = np.linspace(0.0, 1.0, n)
+    tips = np.stack([0.1 * np.cos(angle), 0.1 * np.sin(angle), np.full(n, 1.097)], -1)
+    rows = feature_rows(seconds, np.full((n, 2), 3e-6), tips, BRANCHES)
+    assert with_preview(rows, 0) is rows and feature_names(0) == FEATURES
+    extended = with_preview(rows, preview)
+    names = feature_names(preview)
+    assert extended.shape == (n, len(FEATURES) + len(PREVIEW_FEATURES)) == (n, len(names))
+    np.testing.assert_array_equal(extended[:, :len(FEATURES)], rows)
+    for k in range(n - preview):
+        planned = rows[k + preview]
+        assert extended[k, names.index('plan_dx')] == planned[2] - rows[k, 2]
+        assert extended[k, names.index('plan_dy')] == planned[3] - rows[k, 3]
+        for name in ('ref_vx', 'ref_ay', 'ups2_v', 'ups3_a'):
+            assert extended[k, names.index(f'plan_{name}')] == planned[FEATURES.index(name)]
+    # the displacement by hand: the chord of the arc over the preview
+    assert extended[4, names.index('plan_dx')] == pytest.approx(
+        0.1 * (np.cos(angle[7]) - np.cos(angle[4])), abs=1e-15)
+    assert np.isnan(extended[n - preview:, len(FEATURES):]).all()
+    assert not np.isnan(extended[HISTORY:n - preview]).any()
+    # a preview longer than the segment: every block is missing, nothing raises
+    assert np.isnan(with_preview(rows, n + 5)[:, len(FEATURES):]).all()
+    with pytest.raises(ValueError, match='>= 0'):
+        feature_names(-1)

@@ -6,7 +6,6 @@ from pathlib import Path
 
 from model_helpers import save_constant
 
-from lompr_predictor.data.features import FEATURES
 from lompr_predictor.learning.model_file import MetadataMismatchError, ModelFileError
 from lompr_predictor.online.model_loader import (
     ModelRequest,
@@ -20,7 +19,7 @@ SHA = load_robot_description().sha256
 
 
 def request(path: Path | str, sample_period: float = 0.0) -> ModelRequest:
-    return ModelRequest(str(path), expected_metadata(FEATURES, SHA), sample_period)
+    return ModelRequest(str(path), expected_metadata(SHA), sample_period)
 
 
 def test_a_good_file_is_loaded_verified_and_warmed_up(tmp_path: Path) -> None:
@@ -46,9 +45,8 @@ def test_every_refusal_is_a_reason_not_an_exception(tmp_path: Path) -> None:
 
 
 def test_expected_metadata_leaves_out_what_the_configuration_leaves_open() -> None:
-    assert expected_metadata(FEATURES, 'abc') == {'features': FEATURES,
-                                                  'robot_description_sha256': 'abc'}
-    assert expected_metadata(FEATURES, 'abc', window=8, horizon=0)['horizon'] == 0
+    assert expected_metadata('abc') == {'robot_description_sha256': 'abc'}
+    assert expected_metadata('abc', window=8, horizon=0)['horizon'] == 0
 
 
 def test_a_swap_keeps_the_running_window_and_horizon(tmp_path: Path) -> None:

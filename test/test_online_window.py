@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lompr_predictor.data.features import FEATURES, HISTORY, feature_rows
+from lompr_predictor.data.features import (
+    FEATURES,
+    HISTORY,
+    feature_names,
+    feature_rows,
+    with_preview,
+)
 from lompr_predictor.online.window import FeatureWindow
 from lompr_predictor.robot.description import load_robot_description
 from lompr_predictor.robot.kinematics import VerticalToolBranches
@@ -122,3 +128,41 @@ def test_the_model_input_is_a_view_made_once() -> None:
     offline = feature_rows((stamps[:8] - stamps[0]) * 1e-9, error[:8], reference[:8], BRANCHES)
     np.testing.assert_allclose(first[0], offline[-3:], rtol=1e-12, atol=0)
 
+
+
+def sample(error: np.ndarray, reference: np.ndarray,
+           k: int) -> tuple[float, float, float, float, float]:
+    """Error x, y and reference x, y, z of sample `k`, as `FeatureWindow.push` takes them."""
+    (ex, ey), (rx, ry, rz) = error[k].tolist(), reference[k].tolist()
+    return ex, ey, rx, ry, rz
+
+
+def test_preview_blocks_equal_the_offline_blocks_of_the_commanded_path() -> None:
+    n, preview, size = 30, 4, 5
+    stamps, error, reference = samples(n + preview)
+    offline = with_preview(feature_rows(seconds_since(stamps), error, reference, BRANCHES),
+                           preview)[:n]
+    window = FeatureWindow(size, GEOMETRY, preview)
+    full = [window.push(int(stamps[k]), *sample(error, reference, k),
+                        planned=(int(stamps[k + preview]), *reference[k + preview].tolist()))
+            for k in range(n)]
+    assert full == [False] * (size + HISTORY - 1) + [True] * (n - size - HISTORY + 1)
+    assert window.rows().shape == (size, len(feature_names(preview)))
+    np.testing.assert_allclose(window.rows(), offline[-size:], rtol=1e-9, atol=1e-15)
+
+
+def test_a_sample_without_a_plan_holds_the_window_until_every_row_has_a_block() -> None:
+    n, preview, size = 20, 2, 3
+    stamps, error, reference = samples(n + preview)
+
+    def push(k: int, planned: bool = True) -> bool:
+        plan = (int(stamps[k + preview]), *reference[k + preview].tolist()) if planned else None
+        return window.push(int(stamps[k]), *sample(error, reference, k), planned=plan)
+
+    window = FeatureWindow(size, GEOMETRY, preview)
+    assert [push(k) for k in range(6)] == [False] * 4 + [True] * 2
+    assert not push(6, planned=False)  # no plan for this sample's row
+    assert [push(k) for k in range(7, 12)] == [False] * 4 + [True]
+    window.plan_lost()  # a contradicted plan: the same
+    assert [push(k) for k in range(12, 17)] == [False] * 4 + [True]
+    assert window.fill == window.needed  # the rows themselves were kept throughout

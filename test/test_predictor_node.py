@@ -17,6 +17,7 @@ import torch
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from model_helpers import save_constant, save_linear, write_sidecar
+from nav_msgs.msg import Path as NavPath
 from rclpy.parameter import Parameter
 from ros_helpers import (
     RosHarness,
@@ -37,7 +38,7 @@ from lompr_predictor.data.bags import (
     write_recording,
 )
 from lompr_predictor.data.cleaning import clean_recordings
-from lompr_predictor.data.features import FEATURES, HISTORY
+from lompr_predictor.data.features import FEATURES, HISTORY, feature_names
 from lompr_predictor.learning.model_file import (
     ExportedModule,
     MetadataMismatchError,
@@ -531,3 +532,42 @@ def test_overruns_are_counted_on_diagnostics(ros: Any, tmp_path: Path) -> None:
     status = wiring.node.diagnostics.prediction_status()
     assert status.level == Level.WARN and 'late or skipped' in status.message
     assert status.values['late_outputs_dropped'] == overrun.late_outputs_dropped
+
+
+def test_a_preview_model_reads_the_planned_path_and_counts_a_bad_one(
+        ros: RosHarness, tmp_path: Path) -> None:
+    preview = 2
+    model = save_constant(tmp_path / 'p.pt', (-20e-6, 5e-6), window=WINDOW, horizon=HORIZON,
+                          features=feature_names(preview), preview=preview)
+    wiring = Wiring(ros, model)
+    plans = ros.node.create_publisher(NavPath, '/lompr/reference_preview', 100)
+    ros.wait_for_subscribers(plans)
+
+    def plan(k: int, frame: str = 'world') -> None:
+        """The next preview + 2 samples of `Wiring.run`'s path, planned at sample k."""
+        msg = NavPath()
+        msg.header.frame_id = frame
+        for j in range(k + 1, k + preview + 3):
+            pose = PoseStamped()
+            set_stamp(pose, T0 + j * PERIOD_NS)
+            pose.pose.position.x, pose.pose.position.y = 0.01 + 1e-3 * j, 0.02 + 1e-3 * j
+            msg.poses.append(pose)
+        received = wiring.node.preview_rate.total
+        plans.publish(msg)
+        ros.spin_until(lambda: wiring.node.preview_rate.total > received, what='a preview')
+
+    for k in range(NEEDED + 2):
+        plan(k)
+        wiring.run(k, 1)
+    ros.spin_until(lambda: len(wiring.predictions) == 3, what='3 predictions')
+    np.testing.assert_allclose(xy(wiring.predictions), [[-20e-6, 5e-6]] * 3)
+    plan(NEEDED + 2, frame='map')  # refused whole: the plan stops two samples later
+    wiring.run(NEEDED + 2, 4)
+    ros.spin_until(lambda: (wiring.status('reference preview') or {}).get(
+        'rejected.missing') == '2', what='the samples without a plan on /diagnostics')
+    status = wiring.latest('reference preview')
+    assert status['rejected.wrong_frame'] == '1' and status['previews_used'] == str(NEEDED + 2)
+    warnings = [s.message for array in wiring.diagnostics for s in array.status
+                if s.name == 'predictor_node: reference preview' and s.level == b'\x01']
+    assert warnings and 'without a plan' in warnings[0]
+    assert len(wiring.predictions) == 3 + 2

@@ -13,7 +13,7 @@ from trainer_data import lissajous_reference, synthetic_recording, truncate_bag,
 from lompr_predictor.cli import evaluate, train
 from lompr_predictor.cli import main as lompr_main
 from lompr_predictor.data.bags import write_recording
-from lompr_predictor.data.features import FEATURES
+from lompr_predictor.data.features import FEATURES, feature_names
 from lompr_predictor.errors import LomprError
 from lompr_predictor.files import file_sha256
 from lompr_predictor.learning.model_file import (
@@ -311,3 +311,28 @@ def test_debug_shows_the_traceback(tmp_path: Path) -> None:
     with pytest.raises(Exception, match='not a URDF'):
         lompr_main(['--debug', 'simulate', '--out', str(tmp_path / 'b'), '--robot-description',
                     str(urdf)])
+
+
+def test_a_preview_model_records_its_preview_and_the_report_shows_the_plain_baselines(
+        tmp_path: Path, bags: list[Path]) -> None:
+    model, report = tmp_path / 'model.pt', tmp_path / 'report'
+    assert run(['train', str(bags[0]), '--test-bags', str(bags[1]), '--out', str(model),
+                '--report', str(report), *FAST, '--preview', '4']) == 0
+    loaded = load_model(model)
+    assert loaded.metadata.preview == 4
+    assert loaded.metadata.features == feature_names(4) != FEATURES
+    content = json.loads((report / 'report.json').read_text())
+    assert content['preview'] == 4 and content['features'] == list(feature_names(4))
+    # every window also has its last row's 4 samples after it: 2 fewer than with horizon 2
+    assert content['split']['test'] == 1200 - 2 - 8 + 1 - 4
+    assert set(content['models']) == {'persistence', 'bp', 'ridge', 'hgb', 'ridge_no_preview',
+                                      'hgb_no_preview', 'bo_lstm'}
+    assert set(content['bo_lstm_beats']) == set(content['models']) - {'bo_lstm'}
+    text = (report / 'report.md').read_text()
+    assert 'reference preview 4 samples' in text and '| HGB (no preview) |' in text
+    scored = tmp_path / 'scored'
+    assert run(['evaluate', str(model), str(bags[1]), '--report', str(scored), '--quiet']) == 0
+    evaluation = json.loads((scored / 'report.json').read_text())
+    assert evaluation['split']['test'] == content['split']['test']
+    assert evaluation['models']['model']['metrics']['x']['rmse_um'] == pytest.approx(
+        content['models']['bo_lstm']['metrics']['x']['rmse_um'], rel=1e-9)

@@ -17,7 +17,7 @@ import numpy as np
 
 from lompr_predictor.cli.common import add_data_arguments, bag_inputs, cleaning_config
 from lompr_predictor.cli.validation import existing_path, output_directory
-from lompr_predictor.data.features import FEATURES, TARGETS
+from lompr_predictor.data.features import TARGETS
 from lompr_predictor.data.loading import load_clean_data
 from lompr_predictor.data.problem import LearningProblem, Split
 from lompr_predictor.errors import LomprError
@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     set_torch_threads(args.threads)
     description = load_robot_description(args.robot_description)
-    model = load_model(args.model, expected={'features': FEATURES, 'targets': TARGETS,
+    model = load_model(args.model, expected={'targets': TARGETS,
                                              'robot_description_sha256': description.sha256})
     meta = model.metadata
     inputs = bag_inputs(args, args.bags)
@@ -77,18 +77,19 @@ def run(args: argparse.Namespace) -> int:
         msg = (f'the recordings are sampled every {data.sample_period * 1e3:.3g} ms, the model '
                f'{args.model} was trained at {meta.sample_period * 1e3:.3g} ms')
         raise EvaluationError(msg)
-    offline = offline_predictions(model.module, data, meta.window, meta.horizon)
+    offline = offline_predictions(model.module, data, meta.window, meta.horizon, meta.preview)
     if len(offline.ends) == 0:
         msg = f'no window of {meta.window} samples plus horizon {meta.horizon} in the recordings'
         raise EvaluationError(msg)
     norm = meta.normalisation
     ends = offline.ends
     problem = LearningProblem(
-        rows=np.zeros((0, len(FEATURES))), error=data.error, stamps=data.stamps,
+        rows=np.zeros((0, len(meta.features))), error=data.error, stamps=data.stamps,
         window=meta.window, horizon=meta.horizon, sample_period=data.sample_period,
         split=Split(train=ends[:0], validation=ends[:0], test=ends, validation_start=0,
                     test_start=0),
-        error_low=np.array(norm['error_low']), error_high=np.array(norm['error_high']))
+        error_low=np.array(norm['error_low']), error_high=np.array(norm['error_high']),
+        preview=meta.preview)
     predictions = {'persistence': persistence(data.error, ends), 'model': offline.predicted}
     models = score_predictions(predictions, offline.actual, offline.stamps, problem.error_low,
                                problem.error_high, inputs.cleaning.gap_factor * data.sample_period)

@@ -73,6 +73,11 @@ def add_parser(subparsers: Any) -> None:
                         help="samples between the window's last row and the predicted instant")
     parser.add_argument('--window', type=positive_int, default=DEFAULT_WINDOW,
                         help='samples per window')
+    parser.add_argument('--preview', type=non_negative_int, default=0, metavar='K',
+                        help='also read the planned reference K samples after each row of '
+                             'the window (K = --horizon reaches the predicted instant), taken '
+                             "from the bags' reference topic; the node then needs "
+                             '/lompr/reference_preview. 0: no preview (default)')
     parser.add_argument('--trials', type=positive_int, default=DEFAULT_TRIALS,
                         help='tuning budget')
     parser.add_argument('--restarts', type=non_negative_int, default=DEFAULT_RESTARTS,
@@ -175,7 +180,7 @@ def run(args: argparse.Namespace) -> int:
     config = TrainingConfig(
         inputs=bag_inputs(args, args.bags), model_path=_path(args.out),
         report_dir=_path(args.report), robot_description=args.robot_description,
-        window=args.window, horizon=args.horizon, trials=args.trials,
+        window=args.window, horizon=args.horizon, preview=args.preview, trials=args.trials,
         restarts=args.restarts, seed=args.seed,
         max_epochs=args.max_epochs or MAX_EPOCHS, patience=args.patience or PATIENCE,
         epoch_windows=args.epoch_windows or EPOCH_WINDOWS,

@@ -23,7 +23,7 @@ import numpy as np
 from scipy import ndimage
 
 from lompr_predictor.data.bags import JointSamples, Recording, ReferenceSamples
-from lompr_predictor.data.features import FEATURES, feature_rows
+from lompr_predictor.data.features import feature_names, feature_rows, with_preview
 from lompr_predictor.robot.description import LomprGeometry
 from lompr_predictor.robot.kinematics import VerticalToolBranches, batch_forward_kinematics
 from lompr_predictor.stamps import seconds_since
@@ -71,15 +71,16 @@ class CleanData:
                                    MISSING_SAMPLE_FACTOR * self.sample_period * 1e9)
             for start, end in self.segments] or [np.zeros((0, 2), dtype=np.int64)])
 
-    def features(self) -> np.ndarray:
-        """(N, len(FEATURES)) feature rows, computed segment by segment (NaN where a row
-        lacks `HISTORY` samples of its own segment)."""
-        rows = np.full((len(self), len(FEATURES)), np.nan)
+    def features(self, preview: int = 0) -> np.ndarray:
+        """(N, len(feature_names(preview))) feature rows, computed segment by segment (NaN
+        where a row lacks `HISTORY` samples of its own segment, or the `preview` samples
+        after it)."""
+        rows = np.full((len(self), len(feature_names(preview))), np.nan)
         branches = VerticalToolBranches(self.geometry)
         for start, end in self.segments:
             seconds = seconds_since(self.stamps[start:end])
-            rows[start:end] = feature_rows(
-                seconds, self.error[start:end], self.reference[start:end], branches)
+            rows[start:end] = with_preview(feature_rows(
+                seconds, self.error[start:end], self.reference[start:end], branches), preview)
         return rows
 
 

@@ -39,6 +39,25 @@ FEATURES: tuple[str, ...] = (
 HISTORY = 2
 #: Target axes, in output order.
 TARGETS: tuple[str, ...] = ('x', 'y')
+#: The columns of `FEATURES` the reference preview gives for a coming instant: the commanded
+#: motion there (its position enters as a displacement, `PREVIEW_FEATURES`).
+PLANNED_COLUMNS: tuple[int, ...] = tuple(
+    index for index, name in enumerate(FEATURES)
+    if not name.startswith('error_') and name not in ('ref_x', 'ref_y'))
+_REFERENCE_XY = (FEATURES.index('ref_x'), FEATURES.index('ref_y'))
+#: The preview block of a row k of a model with preview K: the reference's displacement from
+#: row k to row k + K [m], then the commanded velocities and accelerations of row k + K.
+PREVIEW_FEATURES: tuple[str, ...] = (
+    'plan_dx', 'plan_dy', *(f'plan_{FEATURES[index]}' for index in PLANNED_COLUMNS))
+
+
+def feature_names(preview: int = 0) -> tuple[str, ...]:
+    """The columns of a model's rows: `FEATURES`, then with a preview (K > 0 samples of the
+    planned reference after each row) the `PREVIEW_FEATURES` block."""
+    if preview < 0:
+        msg = f'the preview is a number of samples >= 0, got {preview}'
+        raise ValueError(msg)
+    return FEATURES + PREVIEW_FEATURES if preview else FEATURES
 
 
 def feature_rows(stamps: np.ndarray, error: np.ndarray, reference: np.ndarray,
@@ -65,3 +84,25 @@ def feature_rows(stamps: np.ndarray, error: np.ndarray, reference: np.ndarray,
             acceleration = np.diff(velocity, axis=0) / dt[1:]
             rows[2:, 6:8], rows[2:, 11:14] = acceleration[:, :2], acceleration[:, 2:]
     return rows
+
+
+def preview_block(rows: np.ndarray, planned: np.ndarray) -> np.ndarray:
+    """(N, len(PREVIEW_FEATURES)) preview blocks of `rows` given `planned`, the rows of the
+    instants K samples after each (both (N, len(FEATURES))): the one definition of the block,
+    offline (`with_preview`) and online (`online.window`)."""
+    block = np.empty((len(rows), len(PREVIEW_FEATURES)))
+    block[:, :2] = planned[:, _REFERENCE_XY] - rows[:, _REFERENCE_XY]
+    block[:, 2:] = planned[:, PLANNED_COLUMNS]
+    return block
+
+
+def with_preview(rows: np.ndarray, preview: int) -> np.ndarray:
+    """`feature_rows` of one gap-free segment with the preview block of `preview` samples
+    appended (K = 0: the rows as they are): offline, the preview is the commanded path
+    itself, row k + K of the segment; the last K rows, which have none, get NaN."""
+    if preview == 0:
+        return rows
+    planned = np.full_like(rows, np.nan)
+    covered = max(len(rows) - preview, 0)
+    planned[:covered] = rows[preview:]
+    return np.concatenate([rows, preview_block(rows, planned)], axis=1)

@@ -10,12 +10,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from lompr_predictor.data.cleaning import CleanData
-from lompr_predictor.data.features import HISTORY
+from lompr_predictor.data.features import FEATURES, HISTORY, feature_names
 from lompr_predictor.errors import LomprError
 
 #: Defaults of the learning problem, in one place (`lompr train` uses these).
@@ -31,13 +31,17 @@ class ProblemError(LomprError, ValueError):
     trial runs."""
 
 
-def window_ends(segments: np.ndarray, window: int, horizon: int) -> np.ndarray:
-    """Indices of the last row of every window that, with its target `horizon` rows later
-    and the `HISTORY` rows its features need, lies inside one segment."""
-    if window < 1 or horizon < 0:
-        msg = f'window must be >= 1 and horizon >= 0, got {window}, {horizon}'
+def window_ends(segments: np.ndarray, window: int, horizon: int,
+                preview: int = 0) -> np.ndarray:
+    """Indices of the last row of every window that, with its target `horizon` rows later,
+    the `HISTORY` rows its features need and the `preview` rows after its last row (the
+    preview block's), lies inside one segment."""
+    if window < 1 or horizon < 0 or preview < 0:
+        msg = (f'window must be >= 1, horizon and preview >= 0, got {window}, {horizon}, '
+               f'{preview}')
         raise ValueError(msg)
-    parts = [np.arange(start + HISTORY + window - 1, end - horizon) for start, end in segments]
+    reach = max(horizon, preview)
+    parts = [np.arange(start + HISTORY + window - 1, end - reach) for start, end in segments]
     return np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, dtype=np.int64)
 
 
@@ -93,7 +97,7 @@ class LearningProblem:
     length and horizon; the error's range over the training part (the metrics' scale; the
     models take their input ranges from training windows, `training.input_range`)."""
 
-    rows: np.ndarray  # (N, F) raw feature rows (features.FEATURES)
+    rows: np.ndarray  # (N, F) raw feature rows (features.feature_names(preview))
     error: np.ndarray  # (N, 2) plant error [m]
     stamps: np.ndarray  # (N,) int64 [ns]
     window: int
@@ -102,6 +106,12 @@ class LearningProblem:
     split: Split
     error_low: np.ndarray  # (2,) training-part min of the error (the metrics' scale)
     error_high: np.ndarray  # (2,)
+    preview: int = 0  # samples of the planned reference after each row (0: none)
+
+    @property
+    def features(self) -> tuple[str, ...]:
+        """Names of the columns of `rows`."""
+        return feature_names(self.preview)
 
     def targets(self, ends: np.ndarray, residual: bool) -> np.ndarray:
         """(B, 2) what a model learns for windows ending at `ends`: the error `horizon`
@@ -110,29 +120,38 @@ class LearningProblem:
         return target - self.error[ends] if residual else target
 
 
+def without_preview(problem: LearningProblem) -> LearningProblem:
+    """The same windows and split with the rows' preview block left out (the K = 0 inputs
+    of the same instants, to see what the preview gives)."""
+    return replace(problem, rows=problem.rows[:, :len(FEATURES)], preview=0)
+
+
 def build_problem(data: CleanData, window: int = DEFAULT_WINDOW,
-                  horizon: int = DEFAULT_HORIZON, *, test_fraction: float = TEST_FRACTION,
+                  horizon: int = DEFAULT_HORIZON, *, preview: int = 0,
+                  test_fraction: float = TEST_FRACTION,
                   validation_fraction: float = VALIDATION_FRACTION) -> LearningProblem:
-    """Windows, chronological split and training-range normalisation of `data`."""
-    ends = window_ends(data.regular_runs(), window, horizon)
+    """Windows, chronological split and training-range normalisation of `data`, with the
+    preview block of `preview` samples in the rows (0: none)."""
+    ends = window_ends(data.regular_runs(), window, horizon, preview)
     split = chronological_split(len(data), ends, horizon, test_fraction=test_fraction,
                                 validation_fraction=validation_fraction)
     error_low, error_high = minmax_range(data.error[:split.test_start])
-    return LearningProblem(rows=data.features(), error=data.error, stamps=data.stamps,
+    return LearningProblem(rows=data.features(preview), error=data.error, stamps=data.stamps,
                            window=window, horizon=horizon, sample_period=data.sample_period,
-                           split=split, error_low=error_low, error_high=error_high)
+                           split=split, error_low=error_low, error_high=error_high,
+                           preview=preview)
 
 
 def train_test_problem(train: CleanData, test: CleanData, window: int = DEFAULT_WINDOW,
-                       horizon: int = DEFAULT_HORIZON, *,
+                       horizon: int = DEFAULT_HORIZON, *, preview: int = 0,
                        validation_fraction: float = VALIDATION_FRACTION) -> LearningProblem:
     """Train on one recording, test on another (e.g. another seed of the same machine):
     `train`'s windows split chronologically into training and validation (its last
     `validation_fraction`), every window of `test` the test part. The rows of `test` follow
     those of `train` (`split.test_start` is the first of them); no window spans both."""
     n_train = len(train)
-    train_ends = window_ends(train.regular_runs(), window, horizon)
-    test_ends = window_ends(test.regular_runs(), window, horizon) + n_train
+    train_ends = window_ends(train.regular_runs(), window, horizon, preview)
+    test_ends = window_ends(test.regular_runs(), window, horizon, preview) + n_train
     validation_start = round(n_train * (1 - validation_fraction))
     target = train_ends + horizon
     split = Split(train=train_ends[target < validation_start],
@@ -144,8 +163,9 @@ def train_test_problem(train: CleanData, test: CleanData, window: int = DEFAULT_
                    f'horizon {horizon} (or the gaps leave no segment long enough)')
             raise ValueError(msg)
     error_low, error_high = minmax_range(train.error)
-    return LearningProblem(rows=np.vstack([train.features(), test.features()]),
+    return LearningProblem(rows=np.vstack([train.features(preview), test.features(preview)]),
                            error=np.vstack([train.error, test.error]),
                            stamps=np.concatenate([train.stamps, test.stamps]),
                            window=window, horizon=horizon, sample_period=train.sample_period,
-                           split=split, error_low=error_low, error_high=error_high)
+                           split=split, error_low=error_low, error_high=error_high,
+                           preview=preview)

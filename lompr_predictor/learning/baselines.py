@@ -25,13 +25,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from lompr_predictor.data.features import TARGETS
-from lompr_predictor.data.problem import LearningProblem
+from lompr_predictor.data.problem import LearningProblem, without_preview
 from lompr_predictor.learning.models import error_columns, gather_windows
 
 #: Ridge penalties tried on the validation part (on standardised inputs, targets in um).
 RIDGE_ALPHAS = tuple(10.0 ** k for k in range(-3, 5))
 #: Baselines in the report, by key; the BO-LSTM is compared with each.
 BASELINES = ('ridge', 'hgb')
+#: Suffix of a baseline's key fitted without the reference preview, beside a preview model.
+NO_PREVIEW = '_no_preview'
 
 
 @dataclass(frozen=True)
@@ -47,7 +49,7 @@ def flat_windows(problem: LearningProblem, ends: np.ndarray) -> np.ndarray:
     """(B, window * F + 2) inputs of the windows ending at `ends`: the flattened window,
     error columns relative to its last row, then the last row's error."""
     windows = gather_windows(problem.rows, ends, problem.window).copy()
-    columns = error_columns()
+    columns = error_columns(problem.features)
     last = windows[:, -1, columns].copy()
     windows[:, :, columns] -= last[:, None, :]
     return np.concatenate([windows.reshape(len(ends), -1), last], axis=1)
@@ -103,6 +105,18 @@ def hgb_baseline(problem: LearningProblem, seed: int = 0) -> BaselinePrediction:
                               seconds=time.perf_counter() - started,
                               settings={'model': 'HistGradientBoostingRegressor (defaults)',
                                         'random_state': seed})
+
+
+def fit_baselines(problem: LearningProblem, seed: int = 0) -> dict[str, BaselinePrediction]:
+    """The report's baselines (`BASELINES`) on the problem's windows; with a reference preview
+    also on the same windows without it (keys ending in `NO_PREVIEW`), so that the report
+    says what the preview gives."""
+    fitted = {'ridge': ridge_baseline(problem), 'hgb': hgb_baseline(problem, seed)}
+    if problem.preview:
+        plain = without_preview(problem)
+        fitted |= {'ridge' + NO_PREVIEW: ridge_baseline(plain),
+                   'hgb' + NO_PREVIEW: hgb_baseline(plain, seed)}
+    return fitted
 
 
 def beats(metrics: dict[str, dict[str, float]],

@@ -41,6 +41,7 @@ from typing import Any
 
 import torch
 
+from lompr_predictor.data.features import feature_names
 from lompr_predictor.errors import LomprError
 from lompr_predictor.files import atomic_file, write_atomic
 
@@ -96,6 +97,9 @@ class ModelMetadata:
     seed: int
     library_versions: Mapping[str, str]
     test_metrics: Mapping[str, Any] = field(default_factory=dict)
+    #: samples of the planned reference after each row the model reads (CONTRACT section 2,
+    #: reference preview; 0: none, as in files written before it existed)
+    preview: int = 0
     format_version: int = FORMAT_VERSION
 
     def to_json(self) -> str:
@@ -303,6 +307,9 @@ def load_model(
         msg = f'model {path}: no {METADATA_NAME} inside; not a lompr_predictor model'
         raise ModelFileError(msg)
     metadata = ModelMetadata.from_json(extra[METADATA_NAME], str(path))
+    defined = feature_names(metadata.preview)
+    if metadata.features != defined:  # the columns its preview defines, in their order
+        raise MetadataMismatchError(str(path), 'features', defined, metadata.features)
     for name, value in (expected or {}).items():
         found = getattr(metadata, name)
         if _normalised(found) != _normalised(value):

@@ -318,12 +318,14 @@ class OfflinePredictions:
     actual: np.ndarray  # (B, 2) measured plant error at those instants [m]
 
 
-def offline_predictions(module: nn.Module, data: CleanData, window: int,
-                        horizon: int) -> OfflinePredictions:
+def offline_predictions(module: nn.Module, data: CleanData, window: int, horizon: int,
+                        preview: int = 0) -> OfflinePredictions:
     """Predict every window of `data` (no window crosses a gap) with a raw-SI module, e.g.
-    `model_file.load_model(path).module`: what the predictor node would have published
-    for these recordings, sample for sample."""
-    ends = window_ends(data.regular_runs(), window, horizon)
+    `model_file.load_model(path).module`, reading `preview` samples of the commanded path
+    after each row: what the predictor node would have published for these recordings,
+    sample for sample, given a preview that matched the path."""
+    ends = window_ends(data.regular_runs(), window, horizon, preview)
     return OfflinePredictions(ends=ends, stamps=data.stamps[ends + horizon],
-                              predicted=predict_rows(module, data.features(), ends, window),
+                              predicted=predict_rows(module, data.features(preview), ends,
+                                                     window),
                               actual=data.error[ends + horizon])

@@ -37,7 +37,7 @@ import torch
 
 from lompr_predictor.data.bags import BagSource
 from lompr_predictor.data.cleaning import CleanData
-from lompr_predictor.data.features import FEATURES, TARGETS
+from lompr_predictor.data.features import TARGETS
 from lompr_predictor.data.loading import BagInputs, load_clean_data
 from lompr_predictor.data.problem import (
     DEFAULT_HORIZON,
@@ -49,7 +49,7 @@ from lompr_predictor.data.problem import (
     train_test_problem,
 )
 from lompr_predictor.errors import LomprError
-from lompr_predictor.learning.baselines import BASELINES, beats, hgb_baseline, ridge_baseline
+from lompr_predictor.learning.baselines import beats, fit_baselines
 from lompr_predictor.learning.metrics import ratios, score_predictions
 from lompr_predictor.learning.model_file import (
     ExportedModule,
@@ -123,6 +123,7 @@ class TrainingConfig:
     robot_description: str | None = None  # URDF file; None: the packaged LOMPR description
     window: int = DEFAULT_WINDOW
     horizon: int = DEFAULT_HORIZON
+    preview: int = 0  # samples of the planned reference after each row (0: no preview)
     trials: int = DEFAULT_TRIALS  # tuning budget (finished and pruned trials count)
     restarts: int = DEFAULT_RESTARTS  # trainings of the best point with other seeds
     seed: int = 0
@@ -214,8 +215,9 @@ def check_config(config: TrainingConfig, *, finishing: bool = True) -> StorageSp
         msg = (f'--trials must be >= 1 and --restarts >= 0, got {config.trials} and '
                f'{config.restarts}')
         raise StudyError(msg)
-    if config.window < 1 or config.horizon < 1:
-        msg = f'--window and --horizon must be >= 1, got {config.window} and {config.horizon}'
+    if config.window < 1 or config.horizon < 1 or config.preview < 0:
+        msg = (f'--window and --horizon must be >= 1 and --preview >= 0, got {config.window}, '
+               f'{config.horizon} and {config.preview}')
         raise StudyError(msg)
     if config.max_epochs < 1 or config.patience < 1 or config.epoch_windows < 1:
         msg = (f'--max-epochs, --patience and --epoch-windows must be >= 1, got '
@@ -281,7 +283,7 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
                        progress=config.progress, label='BP')
     bp_seconds = time.perf_counter() - bp_started
     baselines_started = time.perf_counter()
-    baselines = {'ridge': ridge_baseline(problem), 'hgb': hgb_baseline(problem, config.seed)}
+    baselines = fit_baselines(problem, config.seed)
     baselines_seconds = time.perf_counter() - baselines_started
 
     scoring_started = time.perf_counter()
@@ -329,10 +331,12 @@ def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tu
                     test_metrics: dict[str, Any]) -> ModelMetadata:
     """The metadata the model file carries (CONTRACT section 5)."""
     return ModelMetadata(
-        features=FEATURES, window=problem.window, horizon=problem.horizon,
+        features=problem.features, preview=problem.preview, window=problem.window,
+        horizon=problem.horizon,
         sample_period=problem.sample_period, targets=TARGETS,
         normalisation=normalisation_metadata(tuned.module, problem.error_low,
-                                             problem.error_high, NORMALISATION['lstm']),
+                                             problem.error_high, NORMALISATION['lstm'],
+                                             problem.features),
         model_type='lstm',
         hyperparameters={**tuned.params,  # every one, tuned or fixed (`SearchSpace.suggest`)
                          'architecture': 'LSTM over the last lstm_steps rows, last state -> '
@@ -381,10 +385,11 @@ def _problem(data: CleanData, test: CleanData | None, config: TrainingConfig) ->
     recordings are too short for it."""
     try:
         if test is None:
-            return build_problem(data, config.window, config.horizon,
+            return build_problem(data, config.window, config.horizon, preview=config.preview,
                                  test_fraction=TEST_FRACTION,
                                  validation_fraction=VALIDATION_FRACTION)
         return train_test_problem(data, test, config.window, config.horizon,
+                                  preview=config.preview,
                                   validation_fraction=VALIDATION_FRACTION)
     except ValueError as err:
         raise DataError(str(err)) from err
@@ -415,6 +420,8 @@ def study_definition(config: TrainingConfig, sources: list[BagSource],
             'topics': [config.inputs.joint_topic, config.inputs.reference_topic],
             'cleaning': vars(config.inputs.cleaning), 'window': config.window,
             'horizon': config.horizon, 'space': config.space.as_dict(), 'seed': config.seed,
+            # only when set: studies of models without a preview keep their names
+            **({'preview': config.preview} if config.preview else {}),
             'settings': vars(config.settings), 'model_type': 'lstm'}
 
 
@@ -479,7 +486,7 @@ def _report(config: TrainingConfig, problem: LearningProblem, data: CleanData,
         models=models,
         ratios_to_bp=ratios(models['bo_lstm']['metrics'], models['bp']['metrics']),
         bo_lstm_beats={name: beats(models['bo_lstm']['metrics'], models[name]['metrics'])
-                       for name in ('persistence', 'bp', *BASELINES)},
+                       for name in models if name != 'bo_lstm'},
         training_time_ratio_lstm_to_bp=(tuned.training_seconds / bp_seconds
                                         if bp_seconds else None),
         tuning_time_ratio_to_bp=tuned.tuning_seconds / bp_seconds if bp_seconds else None,

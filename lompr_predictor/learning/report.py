@@ -25,7 +25,7 @@ import numpy as np
 
 from lompr_predictor.data.bags import BagSource
 from lompr_predictor.data.cleaning import CleanData, CleaningConfig
-from lompr_predictor.data.features import FEATURES, TARGETS
+from lompr_predictor.data.features import TARGETS
 from lompr_predictor.data.problem import LearningProblem
 from lompr_predictor.files import write_atomic, write_json
 from lompr_predictor.learning.metrics import METRIC_NAMES
@@ -35,6 +35,7 @@ GROUND_TRUTH_JSON = 'lompr_ground_truth.json'
 PREDICTION_PLOT = 'prediction_test.png'
 TUNING_PLOT = 'tuning_history.png'
 MODEL_LABELS = {'persistence': 'Persistence', 'bp': 'BP', 'ridge': 'Ridge', 'hgb': 'HGB',
+                'ridge_no_preview': 'Ridge (no preview)', 'hgb_no_preview': 'HGB (no preview)',
                 'bo_lstm': 'BO-LSTM', 'model': 'Model'}
 METRIC_LABELS = {
     'mse_pct': 'MSE (%^2)', 'rmse_pct': 'RMSE (%)', 'mae_pct': 'MAE (%)',
@@ -68,7 +69,8 @@ def base_report(command: str, problem: LearningProblem, data: CleanData,
         'created_utc': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
         'bags': [vars(s) for s in sources], 'counts': data.counts, 'cleaning': vars(cleaning),
         'sample_period': problem.sample_period, 'window': problem.window,
-        'horizon': problem.horizon, 'features': list(FEATURES), 'targets': list(TARGETS),
+        'horizon': problem.horizon, 'preview': problem.preview,
+        'features': list(problem.features), 'targets': list(TARGETS),
         'split': {'train': len(split.train), 'validation': len(split.validation),
                   'test': len(split.test), 'validation_start_row': split.validation_start,
                   'test_start_row': split.test_start},
@@ -91,13 +93,16 @@ def irreducible_fields(models: Mapping[str, Any], sources: Sequence[BagSource],
 def markdown(report: Mapping[str, Any]) -> str:
     """report.md: the Table 1 layout per axis, then data counts, times and tuning."""
     models = report['models']
-    names = [n for n in ('persistence', 'bp', 'ridge', 'hgb', 'bo_lstm', 'model') if n in models]
+    names = [n for n in MODEL_LABELS if n in models]
     with_bp = 'bp' in models and 'bo_lstm' in models
     beaten = report.get('bo_lstm_beats') or {}
     horizon, period = report['horizon'], report['sample_period']
     lines = [f"# lompr {report['command']} report", '',
              f"Horizon {horizon} samples ({horizon * period:.3g} s), "
-             f"window {report['window']} samples, sample period {period * 1e3:.3g} ms; "
+             f"window {report['window']} samples, "
+             + (f"reference preview {report['preview']} samples after each row, "
+                if report.get('preview') else '')
+             + f'sample period {period * 1e3:.3g} ms; '
              + (f"test part: {report['split']['test']} windows ("
                 + report.get('test_part', 'chronologically last 10 % of the clean samples')
                 + ').' if report['command'] == 'train' else

@@ -24,7 +24,6 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from lompr_predictor.data.features import FEATURES
 from lompr_predictor.data.problem import LearningProblem, minmax_range
 from lompr_predictor.learning.models import (
     LSTM_STEPS,
@@ -101,7 +100,7 @@ def input_windows(problem: LearningProblem, relative_errors: bool,
     the network's input columns (`models.network_columns`): the training inputs that set
     the normalisation."""
     ends = evenly_spaced(problem.split.train, RANGE_SAMPLE)
-    columns, mask = network_columns(FEATURES, relative_errors, error_level)
+    columns, mask = network_columns(problem.features, relative_errors, error_level)
     windows = gather_windows(problem.rows[:, columns], ends, problem.window)
     windows -= windows[:, -1:, :] * np.asarray(mask)
     return windows.reshape(-1, windows.shape[-1])
@@ -126,18 +125,19 @@ def build_module(problem: LearningProblem, model_type: str, hidden: int, *, resi
     type's, `NORMALISATION`)."""
     fit = np.concatenate([problem.split.train, problem.split.validation])
     targets = problem.targets(fit, residual)
-    inputs = len(network_columns(FEATURES, relative_errors, error_level)[0])
+    inputs = len(network_columns(problem.features, relative_errors, error_level)[0])
     net = build_network(model_type, inputs, problem.window, hidden, steps)
     if NORMALISATION[model_type] == 'standard':
         centre, scale = moments(input_windows(problem, relative_errors, error_level))
         target_centre, target_scale = moments(targets)
         return PredictorModule.from_affine(net, centre, scale, target_centre, target_scale,
                                            residual=residual, relative_errors=relative_errors,
-                                           error_level=error_level)
+                                           error_level=error_level, features=problem.features)
     low, high = input_range(problem, relative_errors, error_level)
     target_low, target_high = minmax_range(targets)
     return PredictorModule(net, low, high, target_low, target_high, residual=residual,
-                           relative_errors=relative_errors, error_level=error_level)
+                           relative_errors=relative_errors, error_level=error_level,
+                           features=problem.features)
 
 
 def validation_loss(net: nn.Module, inputs: ScaledRows, ends: np.ndarray,

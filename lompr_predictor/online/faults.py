@@ -68,6 +68,9 @@ class StreamSettings:
     #: [s] An output may come this much after its instant before it counts as late
     #: (`timing.OverrunGuard`).
     late_tolerance: float = 0.005
+    #: [m] How far the commanded reference may lie from the preview's plan for the same
+    #: instant before the plan counts as contradicted (`preview.PlannedPath.check`).
+    preview_tolerance: float = 1e-5
 
     @property
     def stale_after(self) -> float:

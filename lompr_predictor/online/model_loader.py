@@ -48,12 +48,11 @@ class ModelRequest:
     backend: str = 'auto'  # what should run the network (`inference.BACKENDS`)
 
 
-def expected_metadata(features: tuple[str, ...], description_sha256: str, window: int = -1,
+def expected_metadata(description_sha256: str, window: int = -1,
                       horizon: int = -1) -> dict[str, Any]:
-    """The metadata a model must have to run on these features and this robot (window and
-    horizon: -1 for any)."""
-    expected: dict[str, Any] = {'features': features,
-                                'robot_description_sha256': description_sha256}
+    """The metadata a model must have to run for this robot (window and horizon: -1 for
+    any); its features are checked against its own preview on load."""
+    expected: dict[str, Any] = {'robot_description_sha256': description_sha256}
     for name, value in (('window', window), ('horizon', horizon)):
         if value >= 0:
             expected[name] = value
@@ -86,7 +85,7 @@ class ReadyModel:
         metadata = self.model.metadata
         return replace(self.request, path=path, sha256=sha256, sample_period=self.sample_period,
                        expected={**self.request.expected, 'window': metadata.window,
-                                 'horizon': metadata.horizon})
+                                 'horizon': metadata.horizon, 'preview': metadata.preview})
 
 
 @dataclass(frozen=True)

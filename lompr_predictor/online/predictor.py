@@ -19,13 +19,14 @@ from typing import Protocol
 
 import numpy as np
 
-from lompr_predictor.data.features import FEATURES
+from lompr_predictor.data.features import feature_names
 from lompr_predictor.learning.model_file import LoadedModel, MetadataMismatchError
 from lompr_predictor.monitoring import LatencyRecorder, RejectionCounter
 from lompr_predictor.online.alignment import AlignedSample, DropReason, Event, StampAlignment
 from lompr_predictor.online.faults import FaultReason, StaleWatch, StreamRules, StreamSettings
 from lompr_predictor.online.inference import InferenceBackend, TorchScriptBackend
 from lompr_predictor.online.offset import ZERO, CompensationLimits, LiveAccuracy, OffsetGate, Output
+from lompr_predictor.online.preview import PlannedPath, PreviewDrop
 from lompr_predictor.online.timing import OverrunGuard
 from lompr_predictor.online.window import FeatureWindow
 from lompr_predictor.robot.description import RobotDescription, load_robot_description
@@ -76,7 +77,14 @@ class OnlinePredictor:
         self._alignment = StampAlignment(stream.gap_factor, period, clock)
         self._rules = StreamRules(stream, period)
         self._stale = StaleWatch(stream.stale_after, clock)
-        self._window = FeatureWindow(self.window, self.description.geometry)
+        #: Samples of the planned reference the model reads after each row (0: none).
+        self.preview = model.metadata.preview
+        self._preview_lead_ns = self.preview * period
+        self._window = FeatureWindow(self.window, self.description.geometry, self.preview)
+        self.plan = PlannedPath(stream.gap_factor * period, stream.preview_tolerance)
+        self._planned_seconds: float | None = None  # clock when a sample last had a plan
+        #: No plan for `stale_after`: the model cannot predict (zeros were published).
+        self.preview_stale = False
         self._use(model, backend)
         self._gate = OffsetGate(limits, period)
         self._accuracy = LiveAccuracy(stream.accuracy_samples)
@@ -108,10 +116,17 @@ class OnlinePredictor:
             return []
         if timer is not None:
             timer.end('stamp')
+        if self.preview and not self.plan.check(stamp_ns, x, y, z):
+            self._window.plan_lost()
         events = self._alignment.add_reference(stamp_ns, x, y, z)
         if timer is not None:
             timer.end('alignment')
         return self._handle(events, self._clock()) if events else []
+
+    def add_preview(self, stamps_ns: np.ndarray, positions: np.ndarray) -> PreviewDrop | None:
+        """Take one reference preview: (n,) int64 instants [ns], (n, 3) planned tool tips
+        [m]; the reason it was refused (counted in `plan.dropped`), or None."""
+        return self.plan.add(stamps_ns, positions)
 
     def add_pose(self, stamp: int | StampLike, x: float, y: float) -> list[Output]:
         """Take one measured tool-tip sample (the kinematics node's end pose; stamp: ns,
@@ -189,9 +204,11 @@ class OnlinePredictor:
         must read the same window and horizon."""
         self._check(model)
         metadata = model.metadata
-        if (metadata.window, metadata.horizon) != (self.window, self.horizon):
-            msg = (f'model {model.path} has window {metadata.window} and horizon '
-                   f'{metadata.horizon}; the running one {self.window} and {self.horizon}')
+        if ((metadata.window, metadata.horizon, metadata.preview)
+                != (self.window, self.horizon, self.preview)):
+            msg = (f'model {model.path} has window {metadata.window}, horizon '
+                   f'{metadata.horizon} and preview {metadata.preview}; the running one '
+                   f'{self.window}, {self.horizon} and {self.preview}')
             raise ValueError(msg)
         self._use(model, backend)
 
@@ -244,14 +261,14 @@ class OnlinePredictor:
         return self._accuracy.rms()
 
     def window_rows(self) -> np.ndarray:
-        """(window, len(FEATURES)) feature rows of the current window (the model's input)."""
+        """(window, len(model features)) rows of the current window (the model's input)."""
         return self._window.rows()
 
     # -- internals ------------------------------------------------------------------------
 
     def _check(self, model: LoadedModel) -> None:
         """Refuse a model that reads other features or was trained for another robot."""
-        for field, needed in (('features', FEATURES),
+        for field, needed in (('features', feature_names(model.metadata.preview)),
                               ('robot_description_sha256', self.description.sha256)):
             found = getattr(model.metadata, field)
             if found != needed:
@@ -312,12 +329,32 @@ class OnlinePredictor:
             self._accuracy.add(error_x, error_y, predicted)
         if timer is not None:
             timer.end('plant error')
+        planned = self._planned(stamp_ns, seconds, outputs) if self.preview else None
         full = window.push(stamp_ns, error_x, error_y, reference_x, reference_y,
-                           sample.reference_z)
+                           sample.reference_z, planned)
         if timer is not None:
             timer.end('feature rows')
         if full:
             self._predict(stamp_ns, outputs)
+
+    def _planned(self, stamp_ns: int, seconds: float,
+                 outputs: list[Output]) -> tuple[int, float, float, float] | None:
+        """The plan `preview` samples after the sample at `stamp_ns`, or None (counted);
+        once none came for `stale_after`, the offsets in force are cancelled, once."""
+        instant_ns = stamp_ns + self._preview_lead_ns
+        position = self.plan.at(instant_ns)
+        if position is not None:
+            self._planned_seconds = seconds
+            self.preview_stale = False
+            return (instant_ns, *position)
+        self.plan.dropped.add(PreviewDrop.MISSING)
+        since = self._planned_seconds
+        if since is None:
+            self._planned_seconds = since = seconds
+        if not self.preview_stale and seconds - since >= self.stream.stale_after:
+            self.preview_stale = True
+            outputs += self._gate.cancel(PreviewDrop.MISSING, self._alignment.newest_pose_ns)
+        return None
 
     def _predict(self, stamp_ns: int, outputs: list[Output]) -> None:
         """Append the output of the window that ends at `stamp_ns`, if it is not late."""

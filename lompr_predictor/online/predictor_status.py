@@ -136,6 +136,36 @@ def input_status(lifecycle: Lifecycle, core: OnlinePredictor | None, rates: Inpu
     return Status(Level.OK, f'{values["end_pose_rate_hz"]} Hz', values)
 
 
+def preview_status(lifecycle: Lifecycle, core: OnlinePredictor | None, rate: RateMeter,
+                   topic: str, new_missing: int) -> Status:
+    """The reference preview a model with K > 0 needs: ERROR once no plan covered its
+    samples for the stale time (no offsets, zeros published), WARN for samples without one
+    (`new_missing` since the last report), refused previews counted."""
+    if core is None:
+        return Status(Level.WARN, lifecycle.state, lifecycle.values())
+    if not core.preview:
+        return Status(Level.OK, 'the model reads no preview', {'preview_samples': 0})
+    plan = core.plan
+    values: dict[str, object] = {
+        'preview_samples': core.preview,
+        'preview_rate_hz': round(rate.rate(), 3),
+        'previews_received': rate.total,
+        'previews_used': plan.previews_used,
+        **rejection_values(plan.dropped),
+        'planned_until_s': None if plan.horizon_ns is None else plan.horizon_ns * 1e-9,
+    }
+    if core.preview_stale:
+        return Status(Level.ERROR, f'no preview on {topic} covers the instant '
+                                   f'{core.preview} samples ahead: the model cannot predict, '
+                                   'no offsets (zeros)', values)
+    if new_missing:
+        return Status(Level.WARN, f'{new_missing} samples without a plan {core.preview} '
+                                  'samples ahead since the last report (no offset for them)',
+                      values)
+    return Status(Level.OK, f'{values["preview_rate_hz"]} Hz, {core.preview} samples ahead',
+                  values)
+
+
 def prediction_status(lifecycle: Lifecycle, core: OnlinePredictor | None,
                       limits: PredictionLimits, input_to_output: LatencySummary,
                       output_rate_hz: float, new_overruns: int) -> Status:

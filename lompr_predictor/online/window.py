@@ -12,9 +12,17 @@ Python floats (the same operations in the same order, so the same bits), since N
 per-call overhead on arrays of three is many times the arithmetic. The rows live in a
 preallocated buffer that holds each row twice, at k and k + window (k = its slot modulo
 window), so that the window, oldest row first, is always one contiguous slice of it;
-`tensor()` gives that slice as a (1, window, F) float64 tensor sharing the buffer's memory
+`arrays[start]` is that slice as a (1, window, F) float64 array sharing the buffer's memory
 (one view per slot, made once): the model's input with no copy and no allocation per
 sample.
+
+With a reference preview of K samples (`features.with_preview`), each row also carries the
+preview block of the planned instant K samples after it: the caller passes the planned
+position there with each sample (`push`), the window keeps the last `HISTORY + 1` planned
+samples as it does the measured ones and writes the block from `newest_row` of those, so
+that a plan that matches the commanded path gives the offline block. A window is full
+only once its every row has a block: a sample without a plan restarts that count
+(`plan_lost`), the rows themselves are kept.
 """
 
 from __future__ import annotations
@@ -23,7 +31,7 @@ import struct
 
 import numpy as np
 
-from lompr_predictor.data.features import FEATURES, HISTORY
+from lompr_predictor.data.features import FEATURES, HISTORY, PLANNED_COLUMNS, feature_names
 from lompr_predictor.robot.description import LomprGeometry
 from lompr_predictor.robot.kinematics import VerticalToolBranches
 
@@ -31,11 +39,15 @@ from lompr_predictor.robot.kinematics import VerticalToolBranches
 # change it too.
 assert HISTORY == 2, 'window.newest_row computes the features of features.py by hand'
 assert len(FEATURES) == 14, 'window.newest_row computes the features of features.py by hand'
+assert tuple(range(4, 14)) == PLANNED_COLUMNS, 'FeatureWindow._block writes the preview block'
 
 #: stamp [ns], error x, y [m], then the differenced coordinates: reference x, y and the
 #: three branch lengths [m]
 Sample = tuple[int, float, float, float, float, float, float, float]
 _NONE: Sample = (0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+#: The planned instant K samples after a sample [ns] and the planned tool tip there [m].
+Planned = tuple[int, float, float, float]
+_NO_BLOCK = (0.0,) * (len(feature_names(1)) - len(FEATURES))
 
 
 def newest_row(older: Sample, previous: Sample, newest: Sample) -> tuple[float, ...]:
@@ -58,22 +70,27 @@ def newest_row(older: Sample, previous: Sample, newest: Sample) -> tuple[float, 
 
 class FeatureWindow:
     """The feature rows of the last `window` samples since the window was last emptied,
-    for the robot of `geometry` (its branches' inverse kinematics)."""
+    for the robot of `geometry` (its branches' inverse kinematics), with the preview block
+    of `preview` samples (0: none)."""
 
-    def __init__(self, window: int, geometry: LomprGeometry) -> None:
+    def __init__(self, window: int, geometry: LomprGeometry, preview: int = 0) -> None:
         if window < 1:
             msg = f'a window needs at least one row, got {window}'
             raise ValueError(msg)
         self.window = window
+        self.preview = preview
+        columns = len(feature_names(preview))
+        self._planned_older = self._planned_previous = _NONE
+        self._planned_run = 0  # consecutive samples pushed with a plan
         #: Samples a full window takes after it was emptied.
         self.needed = window + HISTORY
         self._branches = VerticalToolBranches(geometry)
         # the last HISTORY + 1 samples (`Sample`), those before the first since the window
         # was emptied left as _NONE (never read: see `_filled`)
         self._previous = self._newest = _NONE
-        self._buffer = np.zeros((2 * window, len(FEATURES)))
+        self._buffer = np.zeros((2 * window, columns))
         # a row is written with one C call: struct packing into the buffer's memory
-        self._write_row = struct.Struct(f'={len(FEATURES)}d').pack_into
+        self._write_row = struct.Struct(f'={columns}d').pack_into
         self._memory = self._buffer.data.cast('B')
         self._row_bytes = self._buffer.strides[0]
         self._copy_bytes = window * self._row_bytes  # from a row to its second copy
@@ -99,25 +116,50 @@ class FeatureWindow:
 
     @property
     def full(self) -> bool:
-        return self._filled >= self.needed
+        return self._filled >= self.needed and (
+            not self.preview or self._planned_run >= self.needed)
 
     def push(self, stamp_ns: int, error_x: float, error_y: float, reference_x: float,
-             reference_y: float, reference_z: float) -> bool:
-        """Add one sample (plant error and reference tool tip, SI); True once the window is
-        full."""
+             reference_y: float, reference_z: float, planned: Planned | None = None) -> bool:
+        """Add one sample (plant error and reference tool tip, SI) and, with a preview, the
+        plan `preview` samples later (None: no plan there); True once the window is full."""
         older, previous = self._previous, self._newest
         newest = (stamp_ns, error_x, error_y, reference_x, reference_y,
                   *self._branches.at(reference_x, reference_y, reference_z))
         self._previous, self._newest = previous, newest
         self._filled += 1
+        block = self._block(reference_x, reference_y, planned) if self.preview else ()
         if self._filled > HISTORY:
-            row = newest_row(older, previous, newest)
+            row = newest_row(older, previous, newest) + block
             slot = self._next
             offset = slot * self._row_bytes
             self._write_row(self._memory, offset, *row)
             self._write_row(self._memory, offset + self._copy_bytes, *row)
             self._next = slot + 1 if slot + 1 < self.window else 0
-        return self._filled >= self.needed
+        return self.full
+
+    def plan_lost(self) -> None:
+        """The plan behind the rows' blocks was dropped: the window fills again from the
+        next planned samples (its rows are kept)."""
+        self._planned_run = 0
+
+    def _block(self, reference_x: float, reference_y: float,
+               planned: Planned | None) -> tuple[float, ...]:
+        """The preview block of the sample at (reference_x, reference_y) given the plan
+        `preview` samples later (`features.preview_block`), zeros until the last three
+        samples had a plan (such a row is never read: `full`)."""
+        if planned is None:
+            self._planned_run = 0
+            return _NO_BLOCK
+        stamp_ns, x, y, z = planned
+        older, previous = self._planned_older, self._planned_previous
+        newest = (stamp_ns, 0.0, 0.0, x, y, *self._branches.at(x, y, z))
+        self._planned_older, self._planned_previous = previous, newest
+        self._planned_run += 1
+        if self._planned_run <= HISTORY:
+            return _NO_BLOCK
+        row = newest_row(older, previous, newest)
+        return (row[2] - reference_x, row[3] - reference_y, *row[4:])
 
     @property
     def start(self) -> int:
@@ -125,7 +167,7 @@ class FeatureWindow:
         return self._next
 
     def array(self) -> np.ndarray:
-        """(1, window, len(FEATURES)) float64 rows of a full window, oldest first: a view
+        """(1, window, F) float64 rows of a full window, oldest first: a view
         of the buffer (no copy), valid until the next `push` or `clear`; read, never keep
         or write it."""
         if not self.full:
@@ -134,10 +176,11 @@ class FeatureWindow:
         return self.arrays[self._next]
 
     def rows(self) -> np.ndarray:
-        """(window, len(FEATURES)) copy of the rows of a full window (the model's input)."""
+        """(window, F) copy of the rows of a full window (the model's input)."""
         return self.array()[0].copy()
 
     def clear(self) -> None:
         """Empty the window: the next `needed` samples refill it."""
         self._previous = self._newest = _NONE
         self._filled = 0
+        self._planned_run = 0

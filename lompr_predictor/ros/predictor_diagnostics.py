@@ -10,6 +10,7 @@ from lompr_predictor.monitoring import Status
 from lompr_predictor.online import predictor_status
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_status import InputRates, Lifecycle, PredictionLimits
+from lompr_predictor.online.preview import PreviewDrop
 
 if TYPE_CHECKING:
     from lompr_predictor.ros.common import DiagnosticsPublisher
@@ -21,14 +22,17 @@ def _core_of(node: PredictorNode) -> OnlinePredictor | None:
 
 
 class PredictorDiagnostics:
-    """The statuses 'model', 'inputs' and 'prediction' of one predictor node."""
+    """The statuses 'model', 'inputs', 'reference preview' and 'prediction' of one
+    predictor node."""
 
     def __init__(self, node: PredictorNode, publisher: DiagnosticsPublisher) -> None:
         self._node = node
         self._faults_at_last_report = 0
         self._overruns_at_last_report = 0
+        self._missing_at_last_report = 0
         publisher.add('model', self.model_status)
         publisher.add('inputs', self.input_status)
+        publisher.add('reference preview', self.preview_status)
         publisher.add('prediction', self.prediction_status)
 
     def _lifecycle(self) -> Lifecycle:
@@ -55,6 +59,18 @@ class PredictorDiagnostics:
         rates = InputRates(node.pose_rate, node.reference_rate, node.settings.end_pose_topic,
                            node.settings.rate_window, clock_values, node.callback_values())
         return predictor_status.input_status(self._lifecycle(), core, rates, new_faults)
+
+    def preview_status(self) -> Status:
+        node = self._node
+        core = _core_of(node)
+        new_missing = 0
+        if core is not None:
+            missing = core.plan.dropped.counts().get(PreviewDrop.MISSING, 0)
+            new_missing, self._missing_at_last_report = (
+                missing - self._missing_at_last_report, missing)
+        return predictor_status.preview_status(self._lifecycle(), core, node.preview_rate,
+                                               node.settings.reference_preview_topic,
+                                               new_missing)
 
     def prediction_status(self) -> Status:
         node = self._node

@@ -15,12 +15,12 @@ from collections.abc import Sequence
 from dataclasses import replace
 from typing import Any
 
+from nav_msgs.msg import Path
 from rclpy.clock import ClockChange, JumpThreshold, TimeJump
 from rclpy.context import Context
 from rclpy.duration import Duration
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
-from lompr_predictor.data.features import FEATURES
 from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import LatencyRecorder
 from lompr_predictor.online.model_loader import (
@@ -32,13 +32,11 @@ from lompr_predictor.online.model_loader import (
 )
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_status import ModelHistory
+from lompr_predictor.online.preview import PreviewDrop
 from lompr_predictor.robot.description import load_robot_description, robot_name
 from lompr_predictor.ros.common import run_node
 from lompr_predictor.ros.managed import ManagedNode
-from lompr_predictor.ros.node_base import (
-    NodeBase,
-    node_help,
-)
+from lompr_predictor.ros.node_base import NodeBase, node_help
 from lompr_predictor.ros.predictor_diagnostics import PredictorDiagnostics
 from lompr_predictor.ros.predictor_outputs import OutputPublisher
 from lompr_predictor.ros.predictor_settings import (
@@ -48,9 +46,10 @@ from lompr_predictor.ros.predictor_settings import (
     HASH_HINT,
     PREDICTED_ERROR,
     REFERENCE,
+    REFERENCE_PREVIEW,
     PredictorNodeSettings,
 )
-from lompr_predictor.ros.wire import read_pose_stamped
+from lompr_predictor.ros.wire import read_path, read_pose_stamped
 from lompr_predictor.stamps import Stamp
 from lompr_predictor.threads import set_torch_threads
 
@@ -80,6 +79,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self._clock_started = False
         self.pose_rate = self.rate_meter(settings.rate_window)
         self.reference_rate = self.rate_meter(settings.rate_window)
+        self.preview_rate = self.rate_meter(settings.rate_window)
         self.outputs = OutputPublisher(settings.frame_id, self.rate_meter(settings.rate_window),
                                        LatencyRecorder(settings.latency_samples),
                                        self.warn_throttled)
@@ -146,8 +146,8 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         except LomprError as err:
             return err
         outcome = load_ready_model(ModelRequest(
-            settings.model_path, expected_metadata(FEATURES, description.sha256,
-                                                   settings.window, settings.horizon),
+            settings.model_path, expected_metadata(description.sha256, settings.window,
+                                                   settings.horizon),
             settings.sample_period, settings.model_sha256, settings.verify_model_hash,
             HASH_HINT, settings.inference_backend))
         if outcome.ready is None:
@@ -164,6 +164,8 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
                             self.own(self.advertise(COMPENSATION)))
         self.own(self.subscribe(END_POSE, self.on_end_pose, raw=True))
         self.own(self.subscribe(REFERENCE, self.on_reference, raw=True))
+        if self._core.preview:
+            self.own(self.subscribe(REFERENCE_PREVIEW, self.on_reference_preview))
         stale_after = self._core.stream.stale_after
         self.own(self.start_timer(min(max(stale_after / 4, 0.005), 0.5), 'staleness check',
                                   self.on_stale_timer))
@@ -208,6 +210,19 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             return
         sec, nanosec, x, y, z = read_pose_stamped(msg)
         self.outputs.publish(self._core.add_reference(Stamp(sec, nanosec), x, y, z), start)
+
+    def on_reference_preview(self, msg: Path) -> None:
+        """One planned path: refused whole (counted) in another frame than the outputs'
+        or, by the core, with a non-finite pose or stamps that do not increase."""
+        self.preview_rate.tick()
+        if self._core is None or not self.active:
+            self.dropped_inactive += 1
+            return
+        plan = read_path(msg, self.settings.frame_id)
+        if plan is None:
+            self._core.plan.dropped.add(PreviewDrop.WRONG_FRAME)
+            return
+        self._core.add_preview(*plan)
 
     def on_stale_timer(self) -> None:
         """Runs on the node's clock: under simulated time only while that time advances."""

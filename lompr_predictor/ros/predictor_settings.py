@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
+from nav_msgs.msg import Path
 
 from lompr_predictor.data.cleaning import GAP_FACTOR
 from lompr_predictor.learning.model_file import check_sha256_text
@@ -84,6 +85,14 @@ class PredictorNodeSettings(StatusSettings):
                                     read_only=True)
     reference_topic: str = parameter('lompr/reference', 'PoseStamped reference input',
                                      read_only=True)
+    reference_preview_topic: str = parameter(
+        'lompr/reference_preview', 'nav_msgs/Path input: the planned reference of the coming '
+        'samples, subscribed only when the model reads a preview (lompr train --preview)',
+        read_only=True)
+    preview_tolerance: float = parameter(
+        1e-5, 'distance [m] the commanded reference may lie from the preview planned for the '
+        'same instant; further, the plan is dropped (the path changed) and the model waits '
+        'for a window of rows with a new one', minimum=0.0, maximum=0.1, read_only=True)
     predicted_error_topic: str = parameter(
         'lompr/predicted_error', 'Vector3Stamped predicted X/Y error output', read_only=True)
     compensation_topic: str = parameter(
@@ -125,7 +134,8 @@ class PredictorNodeSettings(StatusSettings):
         """The rules the input stream is held to, at `sample_period` [s]."""
         return StreamSettings(sample_period, self.gap_factor, self.min_interval_factor,
                               self.stale_periods, self.accuracy_samples, self.stale_min_time,
-                              self.max_future_stamp, self.late_tolerance)
+                              self.max_future_stamp, self.late_tolerance,
+                              self.preview_tolerance)
 
     @property
     def limits(self) -> CompensationLimits:
@@ -137,11 +147,13 @@ END_POSE = Endpoint('subscription', PoseStamped, 'end_pose_topic', SENSOR_INPUT_
                     'end pose')
 REFERENCE = Endpoint('subscription', PoseStamped, 'reference_topic', SENSOR_INPUT_QOS,
                      'reference')
+REFERENCE_PREVIEW = Endpoint('subscription', Path, 'reference_preview_topic', SENSOR_INPUT_QOS,
+                             'reference preview (models with a preview only)')
 PREDICTED_ERROR = Endpoint('publisher', Vector3Stamped, 'predicted_error_topic', OUTPUT_QOS,
                            'predicted error')
 COMPENSATION = Endpoint('publisher', Vector3Stamped, 'compensation_topic', OUTPUT_QOS,
                         'compensation')
-ENDPOINTS = (END_POSE, REFERENCE, PREDICTED_ERROR, COMPENSATION)
+ENDPOINTS = (END_POSE, REFERENCE, REFERENCE_PREVIEW, PREDICTED_ERROR, COMPENSATION)
 #: How to pin or skip the model hash, for a refusal message.
 HASH_HINT = ('predictor_node: -p model_sha256:=<sha256>, or for development only '
              '-p verify_model_hash:=false')

@@ -21,11 +21,14 @@ from __future__ import annotations
 import struct
 from typing import Any
 
+import numpy as np
 from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 
 from lompr_predictor.errors import LomprError
+from lompr_predictor.stamps import NS_PER_SECOND
 
 #: Encapsulation header of little-endian plain CDR.
 CDR_LE = b'\x00\x01\x00\x00'
@@ -130,3 +133,21 @@ class Vector3StampedWriter(_StampedWriter):
 
     def pack(self, sec: int, nanosec: int, x: float, y: float, z: float = 0.0) -> bytes:
         return self._pack(sec, nanosec, x, y, z)
+
+
+def read_path(msg: Path, frame_id: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """(n,) int64 stamps [ns] and (n, 3) positions [m] of a planned path's poses; None if
+    the path or one of its poses is in another frame than `frame_id` (a pose without a
+    frame is in the path's)."""
+    if msg.header.frame_id != frame_id:
+        return None
+    poses = msg.poses
+    stamps = np.empty(len(poses), dtype=np.int64)
+    positions = np.empty((len(poses), 3))
+    for index, pose in enumerate(poses):
+        if pose.header.frame_id not in ('', frame_id):
+            return None
+        stamp, position = pose.header.stamp, pose.pose.position
+        stamps[index] = stamp.sec * NS_PER_SECOND + stamp.nanosec
+        positions[index] = (position.x, position.y, position.z)
+    return stamps, positions

@@ -1,0 +1,174 @@
+"""The reference preview online: the plan by stamp, and OnlinePredictor with a preview model
+(offline parity, missing, stale and contradicted plans)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from fake_clock import FakeClock
+from model_helpers import save_linear
+
+from lompr_predictor.data.features import feature_names, feature_rows, with_preview
+from lompr_predictor.learning.model_file import LoadedModel, load_model
+from lompr_predictor.monitoring import RateMeter
+from lompr_predictor.online.offset import CompensationLimits
+from lompr_predictor.online.predictor import OnlinePredictor, Output, StreamSettings
+from lompr_predictor.online.predictor_status import Lifecycle, preview_status
+from lompr_predictor.online.preview import PlannedPath, PreviewDrop
+from lompr_predictor.robot.description import load_robot_description
+from lompr_predictor.robot.kinematics import VerticalToolBranches
+
+T0 = 1_700_000_000_000_000_000
+PERIOD = 0.04
+PERIOD_NS = 40_000_000
+WINDOW, HORIZON, PREVIEW = 4, 3, 3
+PLANNED_AHEAD = PREVIEW + 2  # samples each preview plans, as a path generator publishes
+BRANCHES = VerticalToolBranches(load_robot_description().geometry)
+ACTIVE = Lifecycle('active', True, '')
+
+
+def path(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Stamps [ns], reference (n, 3) [m] on an arc, measured tip (n, 2) = reference + error."""
+    k = np.arange(n)
+    angle = 0.03 * k
+    reference = np.stack([0.15 * np.cos(angle), 0.15 * np.sin(angle), np.full(n, 1.097)], -1)
+    error = np.stack([20e-6 * np.sin(0.3 * k), 15e-6 * np.cos(0.2 * k)], -1)
+    return T0 + k * PERIOD_NS, reference, reference[:, :2] + error
+
+
+@pytest.fixture
+def preview_model(tmp_path: Path) -> LoadedModel:
+    names = feature_names(PREVIEW)
+    # weights on every column, the preview block's too, each column at its own scale
+    weight = np.random.default_rng(3).normal(size=(WINDOW * len(names), 2)) * 1e-4
+    return load_model(save_linear(tmp_path / 'preview.pt', weight, window=WINDOW,
+                                  horizon=HORIZON, features=names, preview=PREVIEW))
+
+
+def core_of(model: LoadedModel, clock: FakeClock, enabled: bool = False) -> OnlinePredictor:
+    stream = StreamSettings(sample_period=PERIOD, gap_factor=2.5, min_interval_factor=0.5,
+                            stale_periods=5.0, accuracy_samples=100)
+    return OnlinePredictor(model, stream, CompensationLimits(1e-3, 1e-3, enabled), clock)
+
+
+def feed(core: OnlinePredictor, clock: FakeClock, stamps: np.ndarray, reference: np.ndarray,
+         tips: np.ndarray, samples: range, planned: np.ndarray | None = None) -> list[Output]:
+    """Each sample's preview (of `planned`, default the reference itself; none if the
+    sample's index is past it), reference and pose, in that order; the outputs."""
+    plan = reference if planned is None else planned
+    outputs: list[Output] = []
+    for k in samples:
+        clock.now += PERIOD
+        ahead = slice(k + 1, k + 1 + PLANNED_AHEAD)
+        if len(stamps[ahead]) == PLANNED_AHEAD:
+            core.add_preview(stamps[ahead], plan[ahead])
+        outputs += core.add_reference(int(stamps[k]), *reference[k])
+        outputs += core.add_pose(int(stamps[k]), *tips[k])
+    return outputs
+
+
+def test_a_newer_preview_replaces_an_older_one_where_both_plan() -> None:
+    plan = PlannedPath(max_step_ns=2.5 * PERIOD_NS, tolerance=1e-6)
+    stamps = T0 + np.arange(5) * PERIOD_NS
+    positions = np.stack([np.arange(5) * 1e-3, np.zeros(5), np.full(5, 1.1)], -1)
+    assert plan.add(stamps, positions) is None
+    assert plan.at(int(stamps[1]) + PERIOD_NS // 4) == pytest.approx((1.25e-3, 0.0, 1.1))
+    assert plan.at(int(stamps[0]) - 1) is None and plan.at(int(stamps[4]) + 1) is None
+    assert plan.add(stamps[2:4], positions[2:4] + np.array([0.0, 1e-3, 0.0])) is None  # 2, 3
+    assert plan.at(int(stamps[3])) == pytest.approx((3e-3, 1e-3, 1.1))
+    assert plan.at(int(stamps[4])) == pytest.approx((4e-3, 0.0, 1.1))  # kept from the first
+    assert plan.horizon_ns == int(stamps[4]) and plan.previews_used == 2
+    gap = PlannedPath(max_step_ns=2.5 * PERIOD_NS, tolerance=1e-6)
+    gap.add(stamps[[0, 4]], positions[[0, 4]])  # 4 periods apart: a gap, not interpolated
+    assert gap.at(int(stamps[2])) is None
+
+
+def test_a_bad_preview_is_refused_whole_with_its_reason() -> None:
+    plan = PlannedPath(max_step_ns=2.5 * PERIOD_NS, tolerance=1e-6)
+    stamps = T0 + np.arange(3) * PERIOD_NS
+    positions = np.zeros((3, 3))
+    assert plan.add(stamps[:0], positions[:0]) == PreviewDrop.EMPTY
+    bad = positions.copy()
+    bad[0, 1] = np.nan
+    assert plan.add(stamps, bad) == PreviewDrop.NON_FINITE
+    assert plan.add(stamps[::-1], positions) == PreviewDrop.OUT_OF_ORDER
+    assert plan.check(int(stamps[2]), 0.0, 0.0, 0.0)  # nothing planned yet: no contradiction
+    assert plan.add(stamps, positions) == PreviewDrop.PAST  # all at or before that reference
+    assert plan.horizon_ns is None
+    assert {k: n for k, n in plan.dropped.counts().items() if n} == {
+        'empty': 1, 'non_finite': 1, 'out_of_order': 1, 'past': 1}
+
+
+def test_predictions_with_a_preview_equal_offline_ones(preview_model: LoadedModel) -> None:
+    n = 40
+    stamps, reference, tips = path(n + PLANNED_AHEAD)
+    clock = FakeClock()
+    core = core_of(preview_model, clock)
+    outputs = feed(core, clock, stamps, reference, tips, range(n))
+    rows = with_preview(feature_rows((stamps - stamps[0]) * 1e-9, tips - reference[:, :2],
+                                     reference, BRANCHES), PREVIEW)
+    ends = np.arange(WINDOW + 1, n)  # a full window takes window + HISTORY samples
+    windows = np.stack([rows[e - WINDOW + 1:e + 1] for e in ends])
+    offline = preview_model.predict(torch.from_numpy(windows)).numpy()
+    assert [o.instant_ns for o in outputs] == list(stamps[ends] + HORIZON * PERIOD_NS)
+    np.testing.assert_allclose(np.array([o.prediction for o in outputs]), offline,
+                               rtol=1e-9, atol=1e-13)
+    # the preview columns moved the prediction: without them it would differ
+    names = feature_names(PREVIEW)
+    assert np.abs(windows[:, :, names.index('plan_dx')]).min() > 1e-4
+    assert core.plan.dropped.total == 0 and core.plan.previews_used == n
+
+
+def test_without_a_preview_no_offset_then_zeros_and_an_error_once_stale(
+        preview_model: LoadedModel) -> None:
+    n = 30
+    stamps, reference, tips = path(n + 40)
+    clock = FakeClock()
+    core = core_of(preview_model, clock, enabled=True)
+    assert feed(core, clock, stamps, reference, tips, range(n))  # predicting, offsets in force
+    # the previews stop: the plan still covers two more samples, then nothing is published
+    outputs = []
+    for k in range(n, n + 12):
+        clock.now += PERIOD
+        outputs += core.add_reference(int(stamps[k]), *reference[k])
+        outputs += core.add_pose(int(stamps[k]), *tips[k])
+    answered = [o for o in outputs if o.reason is None]
+    assert len(answered) == PLANNED_AHEAD - PREVIEW
+    zeros = [o for o in outputs if o.reason is not None]
+    assert zeros and all(o.compensation == (0.0, 0.0) for o in zeros)
+    assert {o.reason for o in zeros} == {PreviewDrop.MISSING} and core.preview_stale
+    missing = core.plan.dropped.counts()['missing']
+    assert missing == 12 - (PLANNED_AHEAD - PREVIEW)
+    status = preview_status(ACTIVE, core, RateMeter(clock=clock), '/lompr/reference_preview',
+                            missing)
+    assert status.level.name == 'ERROR' and 'cannot predict' in status.message
+    # previews again: predictions once every row of a window has its block
+    outputs = feed(core, clock, stamps, reference, tips, range(n + 12, n + 30))
+    resumed = n + 12 + WINDOW + 1  # the sample whose window is the first with every block
+    assert outputs[0].reason is None and not core.preview_stale
+    assert outputs[0].instant_ns == stamps[resumed] + HORIZON * PERIOD_NS
+
+
+def test_a_plan_the_reference_contradicts_is_dropped_and_the_window_refills(
+        preview_model: LoadedModel) -> None:
+    n = 40
+    stamps, reference, tips = path(n + PLANNED_AHEAD)
+    clock = FakeClock()
+    core = core_of(preview_model, clock)
+    assert len(feed(core, clock, stamps, reference, tips, range(20))) == 20 - WINDOW - 1
+    # one preview plans the next samples 1 mm off the path that is then commanded
+    ahead = slice(21, 21 + PLANNED_AHEAD)
+    core.add_preview(stamps[ahead], reference[ahead] + [1e-3, 0.0, 0.0])
+    clock.now += PERIOD
+    core.add_reference(int(stamps[20]), *reference[20])
+    core.add_pose(int(stamps[20]), *tips[20])
+    outputs = feed(core, clock, stamps, reference, tips, range(21, n))
+    assert core.plan.dropped.counts()['contradicted'] == 1
+    # sample 21's reference contradicts the plan: it is dropped (the newer preview with it)
+    # and sample 22 starts a new run of planned rows; the rows built on the wrong plan are
+    # never read, answers resume once a window of new ones is full
+    assert outputs[0].instant_ns == stamps[22 + WINDOW + 1] + HORIZON * PERIOD_NS
+
