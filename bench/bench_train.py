@@ -17,6 +17,11 @@ the targets: BO-LSTM <= 1.25x irreducible at horizon 1 and <= 1.5x at horizon 25
 <= 0.85x ridge, no worse than HGB; and the whole run <= 300 s (the default study on 2
 cores). --quick shrinks the study (6 trials of at most 12 epochs) to check the script; its
 figures are not the targets'. The full reports stay in --out.
+
+--preview h trains every model with the reference preview reaching the predicted instant
+(`lompr train --preview` with K = the horizon; an integer: that K at every horizon); ridge
+and HGB then also appear without the preview, on the same windows, and the summary gives
+the preview's gain for them (K > 0 / K = 0, X / Y).
 """
 
 from __future__ import annotations
@@ -30,10 +35,11 @@ from pathlib import Path
 from typing import Any
 
 from lompr_predictor.data.loading import BagInputs
+from lompr_predictor.learning.baselines import NO_PREVIEW
 from lompr_predictor.learning.pipeline import TrainingConfig, train_predictor, write_outputs
 from lompr_predictor.threads import default_workers, set_torch_threads
 
-PRESETS = ('nominal', 'sharp_friction', 'backlash', 'thermal', 'highrate', 'worn')
+PRESETS = ('nominal', 'sharp_friction', 'backlash', 'thermal', 'highrate', 'worn', 'varied')
 #: The targets: horizon -> max BO-LSTM RMSE / irreducible; BO-LSTM / ridge at most.
 TARGET_TO_IRREDUCIBLE = {1: 1.25, 25: 1.5}
 TARGET_TO_RIDGE = 0.85
@@ -61,12 +67,13 @@ def recording(bags: Path, preset: str, seed: int, machine_seed: int) -> Path:
 
 
 def run_study(train: Path, test: Path, out: Path, label: str, horizon: int, workers: int,
-              shrink: dict[str, int | None]) -> tuple[float, dict[str, Any], TrainingConfig]:
+              shrink: dict[str, int | None],
+              preview: int = 0) -> tuple[float, dict[str, Any], TrainingConfig]:
     """One `lompr train TRAIN --test-bags TEST` run (a fresh study): wall time, report."""
     config = TrainingConfig(
         inputs=BagInputs(bags=(str(train),)), test_inputs=BagInputs(bags=(str(test),)),
         model_path=out / f'model_{label}.pt', report_dir=out / f'report_{label}',
-        horizon=horizon, progress=False, workers=workers,
+        horizon=horizon, preview=preview, progress=False, workers=workers,
         study_name=f'bench-{label}-{time.time_ns()}')
     if shrink.get('trials'):
         config = dataclasses.replace(config, trials=int(shrink['trials'] or 0))
@@ -92,6 +99,9 @@ def main() -> int:
     parser.add_argument('--quick', action='store_true',
                         help=f"a small study ({QUICK['trials']} trials of at most "
                              f"{QUICK['max_epochs']} epochs) to check the script")
+    parser.add_argument('--preview', default='0', metavar='K|h',
+                        help='reference preview of every model: h (K = the horizon) or K '
+                             '(default 0: none)')
     parser.add_argument('--out', default='bench_train_out')
     args = parser.parse_args()
     shrink: dict[str, int | None] = dict(QUICK) if args.quick else {}
@@ -107,16 +117,19 @@ def main() -> int:
         train = recording(bags, preset, TRAIN_SEED, args.machine_seed)
         test = recording(bags, preset, TEST_SEED, args.machine_seed)
         for horizon in args.horizons:
-            label = f'{preset}-h{horizon}'
+            preview = horizon if args.preview == 'h' else int(args.preview)
+            label = f'{preset}-h{horizon}' + (f'-k{preview}' if preview else '')
             wall, report, config = run_study(train, test, out, label, horizon, args.workers,
-                                             shrink)
+                                             shrink, preview)
             missed, line = print_run(preset, horizon, wall, report, config, train, test)
             failures += missed
             table.append(line)
     print('\n=== summary: RMSE / irreducible, X / Y (train seed 1, test seed 2, machine seed '
-          f'{args.machine_seed}' + (', --quick' if args.quick else '') + ')')
+          f'{args.machine_seed}' + (', --quick' if args.quick else '')
+          + (f', --preview {args.preview}' if args.preview != '0' else '') + ')')
     print(f'{"preset":<16}{"h":>3}' + ''.join(f'{label:>14}' for _, label in ROWS)
-          + f'{"irr. um":>14}{"wall s":>8}')
+          + f'{"irr. um":>14}{"wall s":>8}'
+          + (f'{"ridge K>0/0":>14}{"HGB K>0/0":>14}' if args.preview != '0' else ''))
     for line in table:
         print(line)
     return 1 if failures else 0
@@ -172,7 +185,18 @@ def print_run(preset: str, horizon: int, wall: float, report: dict[str, Any],
     line = (f'{preset:<16}{horizon:>3}'
             + ''.join(f'{"/".join(cells[name]):>14}' for name, _ in ROWS)
             + f'{level:>14}{wall:>8.0f}')
+    if config.preview:
+        line += ''.join(f'{preview_gain(models, name):>14}' for name in ('ridge', 'hgb'))
     return failures, line
+
+
+def preview_gain(models: dict[str, Any], name: str) -> str:
+    """'X/Y' test RMSE of baseline `name` with the preview over the same without it."""
+    def rmse(key: str, axis: str) -> float:
+        return float(models[key]['metrics'][axis]['rmse_um'])
+
+    return '/'.join(f'{rmse(name, axis) / rmse(name + NO_PREVIEW, axis):.2f}'
+                    for axis in ('x', 'y'))
 
 
 if __name__ == '__main__':

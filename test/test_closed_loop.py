@@ -17,7 +17,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lompr_predictor.data.features import FEATURES, HISTORY, feature_rows
+from lompr_predictor.data.features import (
+    FEATURES,
+    HISTORY,
+    feature_names,
+    feature_rows,
+    with_preview,
+)
 from lompr_predictor.learning.model_file import load_model
 from lompr_predictor.robot.description import RobotDescription
 from lompr_predictor.robot.kinematics import VerticalToolBranches
@@ -54,16 +60,19 @@ LOOP_SEED = 2
 NOISE_UM = 0.87  # RMS of the default twin's measurement noise at the tool tip
 
 
-def fit_ridge_model(path: Path, description: RobotDescription) -> Path:
-    """A linear window model of e(t+1), least squares on 4 uncompensated passes."""
+def fit_ridge_model(path: Path, description: RobotDescription, horizon: int = 1,
+                    preview: int = 0) -> Path:
+    """A linear window model of e(t+horizon), least squares on 4 uncompensated passes, its
+    rows with the preview block of `preview` samples (`features.with_preview`)."""
     sim = simulate(description, load_twin_parameters(), passes=4, seed=1)
     seconds = (sim.stamps - sim.stamps[0]) * 1e-9
-    rows = feature_rows(seconds, sim.error_measured[:, :2], sim.reference,
-                        VerticalToolBranches(description.geometry))[HISTORY:]
+    rows = with_preview(feature_rows(seconds, sim.error_measured[:, :2], sim.reference,
+                                     VerticalToolBranches(description.geometry)),
+                        preview)[HISTORY:]
     target = sim.error_measured[HISTORY:, :2]
-    ends = np.arange(WINDOW - 1, len(rows) - 1)
+    ends = np.arange(WINDOW - 1, len(rows) - max(horizon, preview))
     x = rows[ends[:, None] + np.arange(1 - WINDOW, 1)].reshape(len(ends), -1)
-    y = target[ends + 1] - target[ends]  # the change: persistence is the prior
+    y = target[ends + horizon] - target[ends]  # the change: persistence is the prior
     centre, scale = x.mean(axis=0), x.std(axis=0) + 1e-30
     z = (x - centre) / scale
     coef = np.linalg.solve(z.T @ z + RIDGE * len(z) * np.eye(z.shape[1]), z.T @ (y - y.mean(0)))
@@ -71,7 +80,8 @@ def fit_ridge_model(path: Path, description: RobotDescription) -> Path:
     bias = y.mean(axis=0) - centre @ weight
     last_error = (WINDOW - 1) * rows.shape[1] + np.arange(2)  # e(t) columns of the last row
     weight[last_error, [0, 1]] += 1.0
-    return save_linear(path, weight, bias, window=WINDOW, horizon=1)
+    return save_linear(path, weight, bias, window=WINDOW, horizon=horizon,
+                       features=feature_names(preview), preview=preview)
 
 
 @pytest.fixture(scope='module')
@@ -209,6 +219,32 @@ def test_the_loop_across_processes_on_simulated_time(
     np.testing.assert_array_equal(runs['none'].reference, runs['model'].reference)
 
 
+def test_a_preview_model_in_closed_loop_reads_the_twins_plan(
+        tmp_path: Path, description: RobotDescription) -> None:
+    """A model of e(t+5) that reads the plan 5 samples ahead: the twin publishes its plan,
+    every sample after the window filled is answered, and it removes the error at least as
+    well as the model without the preview."""
+    horizon = 5
+    models = {name: str(fit_ridge_model(tmp_path / f'{name}.pt', description, horizon, k))
+              for name, k in (('plain', 0), ('preview', horizon))}
+    settings = LoopSettings(model_path=models['plain'], passes=1, seed=LOOP_SEED,
+                            lockstep_timeout=0.05)
+    runs = {'none': run_closed_loop(dataclasses.replace(settings, compensation_enabled=False),
+                                    progress=False),
+            **{name: run_closed_loop(dataclasses.replace(settings, model_path=path),
+                                     progress=False) for name, path in models.items()}}
+    run = runs['preview']
+    assert run.settings.preview_samples == horizon + 2
+    assert runs['plain'].settings.preview_samples == 0
+    assert run.counts['unanswered_after_first'] == 0, run.counts
+    assert not any(run.counts['predictor_faults'].values()), run.counts
+    scored = run.scored
+    none, plain, preview = (rms(runs[name].true_error[scored])
+                            for name in ('none', 'plain', 'preview'))
+    assert np.all(preview < 0.1 * none), (preview, none)
+    assert np.all(preview < 1.05 * plain), (preview, plain)
+
+
 def test_evaluate_closed_loop_gives_the_demo_figures_from_bags(
         loops: dict[str, LoopRun], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     names = ('none', 'persistence', 'model')
@@ -237,25 +273,30 @@ def test_demo_runs_every_stage_and_prints_the_table(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / 'demo'
     argv = ['demo', '--quick', '--out', str(out), '--train-passes', '3', '--trials', '1',
-            '--max-epochs', '1', '--passes', '1', '--threads', '1']
+            '--max-epochs', '1', '--passes', '1', '--threads', '1', '--preview', '2']
     assert lompr_main(argv) == 0
     printed = capsys.readouterr().out
     for stage in range(1, 6):
         assert f'[{stage}/5]' in printed
-    rows = re.findall(r'^(no compensation|persistence|model \(BO-LSTM\)|irreducible level)\s+'
-                      r'([XY])\s+([\d.]+)', printed, flags=re.MULTILINE)
-    assert len(rows) == 8  # three loops and the floor, per axis
+    rows = re.findall(r'^(no compensation|persistence|model \(BO-LSTM\)|model with preview|'
+                      r'irreducible level)\s+([XY])\s+([\d.]+)', printed, flags=re.MULTILINE)
+    assert len(rows) == 10  # four loops and the floor, per axis
     document = json.loads((out / 'closed_loop.json').read_text())
     for name, axis, value in rows:
         loop = {'no compensation': 'none', 'persistence': 'persistence',
-                'model (BO-LSTM)': 'model'}.get(name)
+                'model (BO-LSTM)': 'model', 'model with preview': 'preview'}.get(name)
         figure = (document['irreducible_um'][axis.lower()] if loop is None else
                   document['comparison']['loops'][loop][axis.lower()]['rms_um'])
         assert float(value) == pytest.approx(figure, abs=0.006)
     none = document['comparison']['loops']['none']
     assert none['x']['rms_um'] > 15.0 and none['y']['rms_um'] > 15.0
-    for path in ('model.pt', 'persistence.pt', 'closed_loop_error.png',
+    preview = document['targets']['preview_rms_to_model_pct']
+    assert preview['x'] == pytest.approx(100 * document['comparison']['loops']['preview']['x'][
+        'rms_um'] / document['comparison']['loops']['model']['x']['rms_um'])
+    assert document['loop_counts']['preview']['unanswered_after_first'] == 0
+    for path in ('model.pt', 'persistence.pt', 'closed_loop_error.png', 'model_preview.pt',
                  'training_report/report.md', 'loops/model/lompr_closed_loop.npz',
+                 'training_report_preview/report.md', 'loops/preview/lompr_closed_loop.npz',
                  'training_bag/lompr_ground_truth.json'):
         assert (out / path).is_file(), path
     assert lompr_main(['demo', '--out', str(out)]) == 2  # an existing output is never overwritten

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -65,3 +67,32 @@ def test_speed_profile_runs_from_rest_to_rest() -> None:
     assert np.median(speed) == pytest.approx(0.05, rel=1e-3)
     assert len(arc) == pytest.approx((1.0 / 0.05 + 1.0) / 0.04, abs=2)  # ramps cost ramp_time
     assert np.abs(np.diff(speed)).max() / 0.04 < 1.6 * 0.05 / 1.0  # smoothstep peak 1.5 v/T
+
+
+@pytest.mark.parametrize('kind', PATH_KINDS)
+def test_a_varied_feed_runs_each_pass_on_the_same_geometry_at_another_speed(kind: str) -> None:
+    variation = 0.5
+    config = dataclasses.replace(CONFIG, feed_variation=variation)
+    cycle = build_cycle(kind, config, seed=4)
+    nominal = build_cycle(kind, CONFIG)
+    count, n = cycle.pass_samples, len(cycle)
+    assert n == len(nominal)
+    path = cycle.sample(0, 3 * n)
+    passes = [path[k * n:(k + 1) * n] for k in range(3)]
+    for run in passes:  # same ends, same return, the pass on the nominal geometry
+        np.testing.assert_allclose(run[[0, count - 1]], nominal.positions[[0, count - 1]],
+                                   atol=1e-12)
+        np.testing.assert_array_equal(run[count:], nominal.positions[count:])
+        assert np.linalg.norm(run[:, :2], axis=1).max() <= CONFIG.radius + 1e-9
+    assert np.abs(passes[0] - passes[1]).max() > 1e-3  # the passes differ
+    np.testing.assert_array_equal(cycle.sample(n + 5, 7), passes[1][5:12])  # by pass number
+    np.testing.assert_array_equal(build_cycle(kind, config, seed=4).sample(0, n), passes[0])
+    # the speed along the pass: the nominal one times g in [1 - variation, 1 + variation]
+    if kind == 'spiral':  # (the others start and end at rest: ratios of tiny speeds there)
+        speed = np.linalg.norm(np.diff(passes[0][:count, :2], axis=0), axis=1)
+        base = np.linalg.norm(np.diff(nominal.positions[:count, :2], axis=0), axis=1)
+        ratio = speed / base
+        assert 1 - variation - 0.02 <= ratio.min() < 0.9 and 1.1 < ratio.max() <= (
+            1 + variation + 0.02)
+    with pytest.raises(ValueError, match='feed_variation'):
+        build_cycle(kind, dataclasses.replace(CONFIG, feed_variation=1.0))

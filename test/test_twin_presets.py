@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -29,6 +30,9 @@ INTENDED = {
     'worn': lambda p: all(getattr(p, s).enabled for s in (
         'servo', 'backlash', 'friction', 'elastic', 'head', 'thermal', 'drift', 'noise',
         'quantisation')),
+    'varied': lambda p: (p.path.feed_variation >= 0.3 and NOMINAL.path.feed_variation == 0.0
+                         and p == dataclasses.replace(NOMINAL, path=dataclasses.replace(
+                             NOMINAL.path, feed_variation=p.path.feed_variation))),
 }
 
 
@@ -66,7 +70,7 @@ def test_an_unknown_preset_is_one_line_and_exit_2(tmp_path: Path,
     captured = capsys.readouterr()
     assert captured.err == ("lompr simulate: error: argument --preset: invalid choice: 'shiny' "
                             "(choose from 'backlash', 'highrate', 'nominal', 'sharp_friction', "
-                            "'thermal', 'worn') (see lompr simulate --help)\n")
+                            "'thermal', 'varied', 'worn') (see lompr simulate --help)\n")
     assert captured.out == ''
     assert not out.exists()
 

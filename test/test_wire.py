@@ -5,8 +5,10 @@ from __future__ import annotations
 import math
 import struct
 
+import numpy as np
 import pytest
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
+from nav_msgs.msg import Path
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import JointState
 
@@ -15,6 +17,7 @@ from lompr_predictor.ros.wire import (
     Vector3StampedWriter,
     WireError,
     read_joint_state,
+    read_path,
     read_pose_stamped,
 )
 
@@ -81,3 +84,41 @@ def test_unreadable_bytes(data: bytes) -> None:
         read_pose_stamped(data)
     with pytest.raises(WireError):
         read_joint_state(data)
+    with pytest.raises(WireError):
+        read_path(data, 'world')
+
+
+def planned_path(frame_id: str, pose_frames: list[str], seed: int) -> Path:
+    rng = np.random.default_rng(seed)
+    msg = Path()
+    msg.header.frame_id = frame_id
+    for pose_frame in pose_frames:
+        pose = PoseStamped()
+        pose.header.frame_id = pose_frame
+        pose.header.stamp.sec = int(rng.integers(0, 2 ** 31 - 1))
+        pose.header.stamp.nanosec = int(rng.integers(0, 10 ** 9))
+        point = pose.pose.position
+        point.x, point.y, point.z = (float(v) for v in rng.normal(size=3))
+        msg.poses.append(pose)
+    return msg
+
+
+@pytest.mark.parametrize('frames', [[], ['world'], ['', 'world', ''], ['world'] * 30,
+                                    ['', ''] + ['world'] * 5, ['world', 'map', 'world'],
+                                    ['w'] * 4])
+@pytest.mark.parametrize('frame_id', ['world', 'w', 'world_x'])
+def test_path_poses_as_rclpy_reads_them(frames: list[str], frame_id: str) -> None:
+    msg = planned_path('world', frames, len(frames))
+    read = read_path(serialize_message(msg), frame_id)
+    if frame_id != 'world' or any(frame not in ('', 'world') for frame in frames):
+        assert read is None  # the path's frame or a pose's is another
+        return
+    assert read is not None
+    stamps, positions = read
+    assert stamps.tolist() == [p.header.stamp.sec * 10 ** 9 + p.header.stamp.nanosec
+                               for p in msg.poses]
+    assert positions.tolist() == [[p.pose.position.x, p.pose.position.y, p.pose.position.z]
+                                  for p in msg.poses]
+    # truncated: an error, never a partial path
+    with pytest.raises(WireError):
+        read_path(serialize_message(msg)[:-9], 'world')

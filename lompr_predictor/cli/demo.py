@@ -27,12 +27,12 @@ from typing import Any
 
 from tqdm import tqdm
 
-from lompr_predictor.cli.validation import positive_int
+from lompr_predictor.cli.validation import non_negative_int, positive_int
 from lompr_predictor.data.loading import BagInputs
 from lompr_predictor.errors import LomprError
 from lompr_predictor.files import write_json
 from lompr_predictor.learning.space import DEFAULT_RESTARTS, SearchSpace
-from lompr_predictor.robot.description import load_robot_description
+from lompr_predictor.robot.description import RobotDescription, load_robot_description
 from lompr_predictor.robot.paths import PATH_KINDS, build_cycle
 from lompr_predictor.scoring.loops import (
     LOOP_PLOT,
@@ -44,13 +44,14 @@ from lompr_predictor.scoring.loops import (
 )
 from lompr_predictor.stamps import seconds_since
 from lompr_predictor.threads import set_torch_threads
-from lompr_predictor.twin.parameters import load_twin_parameters
+from lompr_predictor.twin.parameters import TwinParameters, load_twin_parameters
 from lompr_predictor.twin.recording import write_simulation
 from lompr_predictor.twin.simulation import simulate
 
-#: Loops in the order they run and print; the first is the baseline.
-LOOPS = ('none', 'persistence', 'model')
-LABELS = {'none': 'no compensation', 'persistence': 'persistence', 'model': 'model (BO-LSTM)'}
+#: The loops, in the order they run and print (the first is the baseline); 'preview' only
+#: with --preview: the model that also reads the twin's plan.
+LABELS = {'none': 'no compensation', 'persistence': 'persistence', 'model': 'model (BO-LSTM)',
+          'preview': 'model with preview'}
 #: Budgets: training passes, tuning trials, epochs per trial, closed-loop passes. The demo
 #: spends its minutes on epochs rather than on trials: 120 epochs is the length of the
 #: recipe's cosine schedule (`learning.training.MAX_EPOCHS`, not imported here: it would load
@@ -94,6 +95,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                              'twin with seed + 1 (new noise, drift and tolerances)')
     parser.add_argument('--params', default='',
                         help='twin parameter YAML (default: the packaged config/twin.yaml)')
+    parser.add_argument('--preview', type=non_negative_int, default=0, metavar='K',
+                        help='also train a model that reads the planned path K samples ahead '
+                             '(lompr train --preview) and run a fourth loop with it, the twin '
+                             'publishing its plan (default 0: no such loop)')
     parser.add_argument('--model', default=None,
                         help='use this trained model file and skip recording and training '
                              '(its horizon is used)')
@@ -128,6 +133,9 @@ def _budget_and_out(args: argparse.Namespace) -> tuple[dict[str, int], Path]:
     if min(budget.values()) < 1 or args.horizon < 1:
         msg = 'passes, trials, epochs and horizon must all be at least 1'
         raise LomprError(msg)
+    if args.preview and args.model:
+        msg = '--preview trains its model on the recording: leave out --model'
+        raise LomprError(msg)
     out = Path(args.out or f'runs/demo-{time.strftime("%Y%m%d-%H%M%S", time.gmtime())}')
     if out.exists() and any(out.iterdir()):
         msg = f'{out} exists and is not empty; choose a new --out directory'
@@ -146,24 +154,11 @@ def run(args: argparse.Namespace) -> int:
     tqdm.write(f'lompr demo: {args.path}, horizon {args.horizon}, {_budget_text(budget)}; '
                f'output in {out}')
 
+    model = (Path(args.model) if args.model else
+             _record_and_train(args, budget, out, description, params))
     if args.model:
-        model = Path(args.model)
         _stage(1, 'Recording: skipped (--model)')
         _stage(2, f'Training: skipped, using {model}')
-    else:
-        bag = out / 'training_bag'
-        _stage(1, f'Recording {budget["train_passes"]} training passes of the twin '
-                  f'(seed {args.seed}, no compensation) -> {bag}')
-        cycle = len(build_cycle(args.path, params.path, params.sample_period))
-        with tqdm(total=budget['train_passes'] * cycle, unit='sample', desc='simulate') as bar:
-            sim = simulate(description, params, passes=budget['train_passes'],
-                           seed=args.seed, path=args.path, progress=bar.update)
-        write_simulation(bag, sim, params, description.sha256)
-        model = out / 'model.pt'
-        _stage(2, f'Tuning and training the BO-LSTM ({budget["trials"]} trials of up to '
-                  f'{budget["max_epochs"]} epochs) -> {model}, report in '
-                  f'{out / "training_report"}')
-        _train(args, budget, bag, model, out / 'training_report')
 
     from lompr_predictor.learning.model_file import load_model
 
@@ -192,11 +187,14 @@ def run(args: argparse.Namespace) -> int:
     variants = {'none': dataclasses.replace(settings, compensation_enabled=False),
                 'persistence': dataclasses.replace(settings, model_path=str(persistence)),
                 'model': settings}
+    if args.preview:
+        variants['preview'] = dataclasses.replace(
+            settings, model_path=str(out / 'model_preview.pt'))
     truth = simulate(description, params, passes=settings.lead_in_passes + budget['passes'],
                      seed=loop_seed, path=args.path)
     floor = true_error_floor(truth, args.horizon)
     runs = {}
-    for name in LOOPS:
+    for name in variants:
         runs[name] = run_closed_loop(variants[name], label=LABELS[name])
         if not args.no_record:
             record_loop(out / 'loops' / name, runs[name], irreducible_um=floor)
@@ -204,15 +202,40 @@ def run(args: argparse.Namespace) -> int:
     _stage(5, 'Scoring the true tool-tip error of each loop')
     first = runs['model']
     scored = first.scored
-    comparison = compare_loops({name: runs[name].true_error[scored] for name in LOOPS},
+    comparison = compare_loops({name: run.true_error[scored] for name, run in runs.items()},
                                first.pass_index[scored])
     document = _summary(args, budget, runs, comparison, floor, started)
     write_json(out / 'closed_loop.json', document)
     plot_loops(out / LOOP_PLOT, seconds_since(first.stamps[scored], first.stamps[0]),
-               {name: runs[name].true_error[scored] for name in LOOPS}, comparison, LABELS,
+               {name: run.true_error[scored] for name, run in runs.items()}, comparison, LABELS,
                title=f'True tool-tip error in closed loop, {args.path}, horizon {args.horizon}')
     _print_result(args, budget, out, comparison, floor, document, period_ms)
     return 0
+
+
+def _record_and_train(args: argparse.Namespace, budget: dict[str, int], out: Path,
+                      description: RobotDescription, params: TwinParameters) -> Path:
+    """Stages 1 and 2: record the training passes, train the model (and with --preview the
+    model that reads the plan, `model_preview.pt`); the model file."""
+    bag = out / 'training_bag'
+    _stage(1, f'Recording {budget["train_passes"]} training passes of the twin '
+              f'(seed {args.seed}, no compensation) -> {bag}')
+    cycle = len(build_cycle(args.path, params.path, params.sample_period))
+    with tqdm(total=budget['train_passes'] * cycle, unit='sample', desc='simulate') as bar:
+        sim = simulate(description, params, passes=budget['train_passes'],
+                       seed=args.seed, path=args.path, progress=bar.update)
+    write_simulation(bag, sim, params, description.sha256)
+    model = out / 'model.pt'
+    _stage(2, f'Tuning and training the BO-LSTM ({budget["trials"]} trials of up to '
+              f'{budget["max_epochs"]} epochs) -> {model}, report in '
+              f'{out / "training_report"}'
+              + (f'; then with the preview of {args.preview} samples -> model_preview.pt'
+                 if args.preview else ''))
+    _train(args, budget, bag, model, out / 'training_report')
+    if args.preview:
+        _train(args, budget, bag, out / 'model_preview.pt', out / 'training_report_preview',
+               args.preview)
+    return model
 
 
 def target_ratio_pct(horizon: int) -> float:
@@ -221,8 +244,9 @@ def target_ratio_pct(horizon: int) -> float:
 
 
 def _train(args: argparse.Namespace, budget: dict[str, int], bag: Path, model: Path,
-           report: Path) -> None:
-    """What `lompr train` does, on the recording, with the demo's budget and space."""
+           report: Path, preview: int = 0) -> None:
+    """What `lompr train` does (with `--preview preview`), on the recording, with the
+    demo's budget and space."""
     from lompr_predictor.learning.pipeline import TrainingConfig, train_predictor, write_outputs
 
     tuned = budget['trials'] > 1  # else --quick: the first point once, no restarts
@@ -230,7 +254,8 @@ def _train(args: argparse.Namespace, budget: dict[str, int], bag: Path, model: P
         SPACE, batch_sizes=SPACE.batch_sizes[:1], hidden_units=SPACE.hidden_units[:1],
         learning_rates=SPACE.learning_rates[:1])
     config = TrainingConfig(inputs=BagInputs(bags=(str(bag),)), model_path=model,
-                            report_dir=report, horizon=args.horizon, trials=budget['trials'],
+                            report_dir=report, horizon=args.horizon, preview=preview,
+                            trials=budget['trials'],
                             max_epochs=budget['max_epochs'], seed=args.seed, space=space,
                             restarts=DEFAULT_RESTARTS if tuned else 0)
     write_outputs(config, train_predictor(config))
@@ -257,7 +282,12 @@ def _summary(args: argparse.Namespace, budget: dict[str, int], runs: dict[str, A
         and min(reduction.values()) >= TARGET_REDUCTION_PCT
         and not targets['passes_made_worse']['model']
         and not any(targets['unanswered_after_fill'].values()))
-    return {'path': args.path, 'horizon': args.horizon, 'budget': budget,
+    if 'preview' in runs:
+        targets['preview_rms_to_model_pct'] = ratio_pct(comparison, 'preview', 'model')
+        targets['preview_passes_made_worse'] = comparison['loops']['preview'][
+            'passes_made_worse']
+    return {'path': args.path, 'horizon': args.horizon, 'preview': args.preview,
+            'budget': budget,
             'loops_in': 'processes' if args.processes else 'one process',
             'training_seed': args.seed, 'loop_seed': args.seed + 1,
             'scored_on': 'twin true tool-tip error (tool tip - reference), every sample of '
@@ -288,11 +318,16 @@ def _print_result(args: argparse.Namespace, budget: dict[str, int], out: Path,
           f'{reduction["x"]:.1f} %, Y {reduction["y"]:.1f} % (target >= '
           f'{TARGET_REDUCTION_PCT:.0f} %); passes made worse: {worse or "none"} -> targets '
           f'{"met" if targets["met"] else "MISSED"}')
+    if 'preview_rms_to_model_pct' in targets:
+        gain = targets['preview_rms_to_model_pct']
+        print(f'with the preview ({args.preview} samples ahead) / without: X {gain["x"]:.1f} %, '
+              f'Y {gain["y"]:.1f} %; passes made worse with it: '
+              f'{targets["preview_passes_made_worse"] or "none"}')
     print(f'\nplot: {out / LOOP_PLOT}\nscores: {out / "closed_loop.json"}')
     if not args.model:
         print(f'training report: {out / "training_report" / "report.md"}')
     if not args.no_record:
-        loops = ' '.join(str(out / 'loops' / name) for name in LOOPS)
+        loops = ' '.join(str(out / 'loops' / name) for name in document['loop_counts'])
         print(f'closed-loop bags: lompr evaluate --closed-loop {loops} --report DIR '
               'gives the same figures')
     print(f'total {document["total_seconds"] / 60:.1f} min')

@@ -24,6 +24,7 @@ class PreviewDrop(StrEnum):
     """Why a preview (or the plan it built) was not used; each is counted
     (`PlannedPath.dropped`), the value is the key on /diagnostics."""
 
+    UNREADABLE = 'unreadable'
     WRONG_FRAME = 'wrong_frame'
     EMPTY = 'empty'
     NON_FINITE = 'non_finite'

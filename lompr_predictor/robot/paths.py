@@ -9,8 +9,11 @@ Three paths are in use on the mirror (a disk of radius 0.200 m at z = 1.097 m):
 
 Processing is continuous: each pass is followed by a smooth return to the start of the next
 pass (a cubic Hermite segment matching position and velocity at both ends, held inside the
-disk), so one pass plus its return is a `PathCycle` that repeats exactly. Every sample is a
-tool-tip position in `world` [m] with the tool axis vertical. Corners of the grid and
+disk), so one pass plus its return is a `PathCycle` that repeats exactly, unless the feed
+varies (`feed_variation`): then each pass runs the same geometry at a feed that speeds up
+and slows down along it, drawn anew for each pass (as a feed override and a CAM program's
+feed changes do), so that what the tool does next is not a function of where it is. Every
+sample is a tool-tip position in `world` [m] with the tool axis vertical. Corners of the grid and
 concentric paths are rounded by a moving average over `corner_time`, and those passes start
 and end at rest (speed ramps over `ramp_time`), so commanded accelerations stay finite.
 """
@@ -41,23 +44,63 @@ class PathConfig:
     feed_speed: float  # tool speed along the grid and concentric paths [m/s]
     ramp_time: float  # grid/concentric passes start and end at rest: time to reach feed [s]
     corner_time: float  # moving-average window rounding grid/concentric corners [s]
+    #: largest relative change of the feed along a pass, drawn anew for each pass, in [0, 1)
+    #: (0: every pass the same)
+    feed_variation: float = 0.0
+
+
+#: Shortest period of the feed's variation along a pass [s] (`PathCycle.pass_positions`).
+FEED_VARIATION_PERIOD = 4.0
 
 
 @dataclass(frozen=True)
 class PathCycle:
-    """One pass followed by its return: the unit that repeats, pass after pass."""
+    """One pass followed by its return: the unit that repeats, pass after pass (with
+    `feed_variation`, the same geometry at another feed each pass, seeded by `seed`)."""
 
     kind: str
     positions: np.ndarray  # (M, 3) tool-tip positions [m], one per sample period
     pass_samples: int  # rows [0, pass_samples) are the pass, the rest is the return
     sample_period: float  # [s]
+    feed_variation: float = 0.0
+    seed: int = 0
 
     def __len__(self) -> int:
         return len(self.positions)
 
     def sample(self, start: int, count: int) -> np.ndarray:
         """(count, 3) positions of samples start .. start+count-1 of the endless path."""
-        return self.positions[np.arange(start, start + count) % len(self.positions)]
+        index = np.arange(start, start + count)
+        if not self.feed_variation:
+            return self.positions[index % len(self.positions)]
+        passes = index // len(self.positions)
+        out = np.empty((count, 3))
+        for number in np.unique(passes):
+            rows = passes == number
+            out[rows] = self.pass_positions(int(number))[index[rows] % len(self.positions)]
+        return out
+
+    def pass_positions(self, number: int) -> np.ndarray:
+        """(M, 3) positions of pass `number` and its return: the pass's geometry run at
+        the feed x g(s), s in [0, 1] along the pass's time, g = 1 + sum_j a_j sin(2 pi j s)
+        with random a_j (sum |a_j| = feed_variation, periods down to
+        `FEED_VARIATION_PERIOD`): the pass keeps its duration, its ends their speed (so the
+        return joins smoothly), and the samples are the pass's cubic spline at the warped
+        times."""
+        from scipy.interpolate import CubicSpline  # the twin only: not on the nodes' path
+
+        count = self.pass_samples
+        duration = (count - 1) * self.sample_period
+        harmonics = np.arange(1, max(1, int(duration / FEED_VARIATION_PERIOD)) + 1)
+        weights = np.random.default_rng([self.seed, number]).normal(size=len(harmonics))
+        weights *= self.feed_variation / np.abs(weights).sum()
+        s = np.linspace(0.0, 1.0, count)[:, None]
+        warped = s[:, 0] + ((1.0 - np.cos(2 * np.pi * harmonics * s)) / (2 * np.pi * harmonics)
+                            ) @ weights
+        spline = CubicSpline(np.linspace(0.0, 1.0, count), self.positions[:count])
+        positions = self.positions.copy()
+        positions[:count] = spline(warped)
+        return positions
 
     def pass_index(self, start: int, count: int) -> np.ndarray:
         """(count,) pass number of each sample (a return belongs to the pass before it)."""
@@ -164,9 +207,11 @@ def pass_xy(kind: str, config: PathConfig, sample_period: float = SAMPLE_PERIOD)
     return constant_speed(waypoints, config, sample_period)
 
 
-def build_cycle(kind: str, config: PathConfig, sample_period: float = SAMPLE_PERIOD) -> PathCycle:
+def build_cycle(kind: str, config: PathConfig, sample_period: float = SAMPLE_PERIOD,
+                seed: int = 0) -> PathCycle:
     """One pass of `kind` and the smooth return to its own start (velocities by differences
-    at both ends), at height `config.height`."""
+    at both ends), at height `config.height`; with `config.feed_variation`, each pass's feed
+    drawn from `seed` and the pass number."""
     xy = pass_xy(kind, config, sample_period)
     velocity_end = (xy[-1] - xy[-2]) / sample_period
     velocity_start = (xy[1] - xy[0]) / sample_period
@@ -178,5 +223,9 @@ def build_cycle(kind: str, config: PathConfig, sample_period: float = SAMPLE_PER
     back *= np.minimum(1.0, config.radius / np.maximum(radius, 1e-300))
     cycle = np.vstack([xy, back])
     positions = np.column_stack([cycle, np.full(len(cycle), config.height)])
+    if not 0.0 <= config.feed_variation < 1.0:
+        msg = f'feed_variation must lie in [0, 1), got {config.feed_variation}'
+        raise ValueError(msg)
     return PathCycle(kind=kind, positions=positions, pass_samples=len(xy),
-                     sample_period=sample_period)
+                     sample_period=sample_period, feed_variation=config.feed_variation,
+                     seed=seed)

@@ -22,7 +22,7 @@ import tempfile
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, cast
 
@@ -119,6 +119,9 @@ class LoopSettings:
     processes: bool = False
     #: If not 0, stop after this many samples (a run shorter than lead-in + passes).
     samples: int = 0
+    #: Samples of its planned path the twin publishes with each sample (the reference
+    #: preview); `run_closed_loop` sets it for a model that reads one (its K + 2).
+    preview_samples: int = 0
 
 
 @dataclass(frozen=True)
@@ -184,6 +187,9 @@ def run_closed_loop(settings: LoopSettings, *, progress: bool = True,
                f'{settings.passes} and {settings.lead_in_passes}')
         raise ClosedLoopError(msg)
     metadata = load_model(settings.model_path).metadata
+    if metadata.preview and not settings.preview_samples:
+        # a plan reaching past the instant the model reads, so it has arrived in time
+        settings = replace(settings, preview_samples=metadata.preview + 2)
     if settings.processes:
         return _run_processes(settings, metadata.horizon, progress, label)
     # The nodes' start-up lines would interleave with the progress bar: warnings only.
@@ -221,8 +227,8 @@ def run_closed_loop(settings: LoopSettings, *, progress: bool = True,
 def loop_topics(prefix: str) -> dict[str, str]:
     """The loop's private topic names, under `prefix`."""
     return {name: f'{prefix}/{name}' for name in (
-        'joint_states', 'reference', 'end_pose', 'compensation', 'predicted_error',
-        'true_error', 'plant_error', 'diagnostics')}
+        'joint_states', 'reference', 'reference_preview', 'end_pose', 'compensation',
+        'predicted_error', 'true_error', 'plant_error', 'diagnostics')}
 
 
 def loop_parameters(settings: LoopSettings, horizon: int,
@@ -243,6 +249,7 @@ def loop_parameters(settings: LoopSettings, horizon: int,
             'passes': settings.lead_in_passes + settings.passes, 'samples': settings.samples,
             'mode': 'lockstep', 'lockstep_timeout': settings.lockstep_timeout,
             'answer_timeout': settings.answer_timeout,
+            'preview_samples': settings.preview_samples,
             # an offset is sent `horizon` samples ahead of its instant: let it wait that long
             'compensation_timeout': max(1.0, (horizon + 2) * period)},
     }
@@ -261,10 +268,12 @@ def in_process_parameters(settings: LoopSettings, horizon: int, period: float,
         'predictor_node': {'stale_periods': settings.stale_periods,
                            'end_pose_topic': topics['end_pose'],
                            'reference_topic': topics['reference'],
+                           'reference_preview_topic': topics['reference_preview'],
                            'compensation_topic': topics['compensation'],
                            'predicted_error_topic': topics['predicted_error']},
         'twin_node': {'joint_state_topic': topics['joint_states'],
                       'reference_topic': topics['reference'],
+                      'reference_preview_topic': topics['reference_preview'],
                       'compensation_topic': topics['compensation'],
                       'true_error_topic': topics['true_error'],
                       'plant_error_topic': topics['plant_error']},

@@ -15,7 +15,6 @@ from collections.abc import Sequence
 from dataclasses import replace
 from typing import Any
 
-from nav_msgs.msg import Path
 from rclpy.clock import ClockChange, JumpThreshold, TimeJump
 from rclpy.context import Context
 from rclpy.duration import Duration
@@ -49,7 +48,7 @@ from lompr_predictor.ros.predictor_settings import (
     REFERENCE_PREVIEW,
     PredictorNodeSettings,
 )
-from lompr_predictor.ros.wire import read_path, read_pose_stamped
+from lompr_predictor.ros.wire import WireError, read_path, read_pose_stamped
 from lompr_predictor.stamps import Stamp
 from lompr_predictor.threads import set_torch_threads
 
@@ -165,7 +164,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self.own(self.subscribe(END_POSE, self.on_end_pose, raw=True))
         self.own(self.subscribe(REFERENCE, self.on_reference, raw=True))
         if self._core.preview:
-            self.own(self.subscribe(REFERENCE_PREVIEW, self.on_reference_preview))
+            self.own(self.subscribe(REFERENCE_PREVIEW, self.on_reference_preview, raw=True))
         stale_after = self._core.stream.stale_after
         self.own(self.start_timer(min(max(stale_after / 4, 0.005), 0.5), 'staleness check',
                                   self.on_stale_timer))
@@ -211,14 +210,19 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         sec, nanosec, x, y, z = read_pose_stamped(msg)
         self.outputs.publish(self._core.add_reference(Stamp(sec, nanosec), x, y, z), start)
 
-    def on_reference_preview(self, msg: Path) -> None:
-        """One planned path: refused whole (counted) in another frame than the outputs'
-        or, by the core, with a non-finite pose or stamps that do not increase."""
+    def on_reference_preview(self, msg: bytes) -> None:
+        """One serialized planned path: refused whole (counted) if unreadable, in another
+        frame than the outputs' or, by the core, with a non-finite pose or stamps that do not
+        increase; never a fault (the samples it would have served get no offset)."""
         self.preview_rate.tick()
         if self._core is None or not self.active:
             self.dropped_inactive += 1
             return
-        plan = read_path(msg, self.settings.frame_id)
+        try:
+            plan = read_path(msg, self.settings.frame_id)
+        except WireError:
+            self._core.plan.dropped.add(PreviewDrop.UNREADABLE)
+            return
         if plan is None:
             self._core.plan.dropped.add(PreviewDrop.WRONG_FRAME)
             return

@@ -34,6 +34,7 @@ from lompr_predictor.stamps import NS_PER_SECOND
 CDR_LE = b'\x00\x01\x00\x00'
 _HEADER = struct.Struct('<iiI')  # stamp sec, nanosec, frame_id length (with its NUL)
 _UINT32 = struct.Struct('<I')
+_POINT = struct.Struct('<3d')
 
 
 class WireError(LomprError):
@@ -135,10 +136,77 @@ class Vector3StampedWriter(_StampedWriter):
         return self._pack(sec, nanosec, x, y, z)
 
 
-def read_path(msg: Path, frame_id: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """(n,) int64 stamps [ns] and (n, 3) positions [m] of a planned path's poses; None if
-    the path or one of its poses is in another frame than `frame_id` (a pose without a
-    frame is in the path's)."""
+def read_path(data: bytes, frame_id: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """(n,) int64 stamps [ns] and (n, 3) positions [m] of the poses of a serialized
+    nav_msgs/Path; None if the path or one of its poses is in another frame than
+    `frame_id` (a pose without a frame is in the path's)."""
+    try:
+        if data[:4] != CDR_LE:
+            return _path_poses(deserialize_message(data, Path), frame_id)
+        _, _, offset = _read_header(data)
+        if _string(data, 8, offset) != frame_id:
+            return None
+        offset = _align(offset, 4)
+        count, = _UINT32.unpack_from(data, 4 + offset)
+        stamps = np.empty(count, dtype=np.int64)
+        positions = np.empty((count, 3))
+        if not _read_poses(data, offset + 4, frame_id, stamps, positions):
+            return None
+    except Exception as err:
+        msg = f'not a Path: {type(err).__name__}: {err}'
+        raise WireError(msg) from err
+    return stamps, positions
+
+
+def _read_poses(data: bytes, offset: int, frame_id: str, stamps: np.ndarray,
+                positions: np.ndarray) -> bool:
+    """Fill `stamps` and `positions` from the PoseStamped sequence at `offset`; False if a
+    pose is in another frame. A pose starting 8-byte aligned has the layout of every pose
+    after it with the same frame (the pose ends 8-byte aligned): those are read at once, as
+    strided arrays over the bytes, instead of one by one."""
+    count = len(stamps)
+    index = 0
+    while index < count:
+        offset = _align(offset, 4)
+        sec, nanosec, length = _HEADER.unpack_from(data, 4 + offset)
+        end = offset + 12 + length
+        if _string(data, offset + 8, end) not in ('', frame_id):
+            return False
+        position = _align(end, 8)
+        stride = position + 7 * 8 - offset  # the position and the orientation's quaternion
+        if 4 + offset + stride > len(data):
+            msg = f'pose {index} of {count} runs past the data'
+            raise ValueError(msg)
+        rows = count - index
+        if offset % 8 == 0 and rows > 1 and 4 + offset + rows * stride <= len(data):
+            base = 4 + offset
+            lengths = np.ndarray((rows,), '<u4', data, base + 8, (stride,))
+            frames = np.ndarray((rows, length), 'u1', data, base + 12, (stride, 1))
+            if (lengths == length).all() and (frames == frames[0]).all():
+                seconds = np.ndarray((rows,), '<i4', data, base, (stride,))
+                nanoseconds = np.ndarray((rows,), '<u4', data, base + 4, (stride,))
+                stamps[index:] = seconds.astype(np.int64) * NS_PER_SECOND + nanoseconds
+                positions[index:] = np.ndarray((rows, 3), '<f8', data,
+                                               base + position - offset, (stride, 8))
+                return True
+        stamps[index] = sec * NS_PER_SECOND + nanosec
+        positions[index] = _POINT.unpack_from(data, 4 + position)
+        offset = position + 7 * 8
+        index += 1
+    return True
+
+
+def _string(data: bytes, start: int, end: int) -> str:
+    """The string whose length field is at `start` and which ends at `end` (offsets after
+    the encapsulation header), without its NUL."""
+    if 4 + end > len(data) or end - start < 5:
+        msg = f'string at {start} runs past the data'
+        raise ValueError(msg)
+    return data[4 + start + 4:4 + end - 1].decode()
+
+
+def _path_poses(msg: Path, frame_id: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """`read_path` of a message object (bytes in another encapsulation)."""
     if msg.header.frame_id != frame_id:
         return None
     poses = msg.poses

@@ -64,7 +64,7 @@ class DigitalTwin:
         self.description = description
         self.params = params
         self.seed = int(seed)
-        self.cycle: PathCycle = build_cycle(path, params.path, params.sample_period)
+        self.cycle: PathCycle = build_cycle(path, params.path, params.sample_period, self.seed)
         self.plant = TwinPlant(description.geometry, params, seed, machine_seed)
         self.epoch_ns = int(epoch_ns)
         self.period_ns = period_ns(params.sample_period)
