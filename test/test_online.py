@@ -219,7 +219,7 @@ def test_offset_is_clamped_to_max_compensation(tmp_path: Path) -> None:
     np.testing.assert_allclose(predicted(outputs[0]), [3e-3, -4e-3])
     for output in outputs:  # direction kept, norm at the limit
         np.testing.assert_allclose(output.compensation, [-0.6e-3, 0.8e-3], atol=1e-15)
-    assert core.clamped == 4
+    assert core.gate.clamped == 4
 
 
 def test_offset_changes_at_most_max_step_per_sample(tmp_path: Path) -> None:

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 from fake_clock import FakeClock
-from model_helpers import save_linear
+from model_helpers import save_constant, save_linear
 
 from lompr_predictor.data.features import feature_names, feature_rows, with_preview
-from lompr_predictor.learning.model_file import LoadedModel, load_model
+from lompr_predictor.learning.model_file import LoadedModel, MetadataMismatchError, load_model
 from lompr_predictor.monitoring import RateMeter
 from lompr_predictor.online.offset import CompensationLimits
 from lompr_predictor.online.predictor import OnlinePredictor, Output, StreamSettings
@@ -172,3 +172,42 @@ def test_a_plan_the_reference_contradicts_is_dropped_and_the_window_refills(
     # never read, answers resume once a window of new ones is full
     assert outputs[0].instant_ns == stamps[22 + WINDOW + 1] + HORIZON * PERIOD_NS
 
+
+
+def test_a_fallback_model_answers_where_the_plan_is_missing(
+        preview_model: LoadedModel, tmp_path: Path) -> None:
+    n = 30
+    stamps, reference, tips = path(n + 40)
+    clock = FakeClock()
+    fallback = load_model(save_constant(tmp_path / 'fallback.pt', (7e-6, -3e-6),
+                                        window=WINDOW, horizon=HORIZON))
+    stream = StreamSettings(sample_period=PERIOD, gap_factor=2.5, min_interval_factor=0.5,
+                            stale_periods=5.0, accuracy_samples=100)
+    core = OnlinePredictor(preview_model, stream, CompensationLimits(1e-3, 1e-3, True), clock,
+                           fallback=fallback)
+    with_plan = feed(core, clock, stamps, reference, tips, range(n))
+    # the window of either model is full after the same samples: the preview model answers
+    assert len(with_plan) == n - WINDOW - 1 and core.fallback_answers == 0
+    outputs = []
+    for k in range(n, n + 12):  # no previews: the plan reaches two more samples
+        clock.now += PERIOD
+        outputs += core.add_reference(int(stamps[k]), *reference[k])
+        outputs += core.add_pose(int(stamps[k]), *tips[k])
+    assert len(outputs) == 12 and all(o.reason is None for o in outputs)  # no zeros
+    assert [o.prediction for o in outputs[PLANNED_AHEAD - PREVIEW:]] == [(7e-6, -3e-6)] * 10
+    assert core.fallback_answers == 10 and core.preview_stale
+    # previews again: the preview model takes over once its window has a plan in every row
+    again = feed(core, clock, stamps, reference, tips, range(n + 12, n + 30))
+    assert core.fallback_answers == 10 + WINDOW + 1 and len(again) == 18
+
+
+def test_a_fallback_must_read_no_preview_and_predict_the_same_instant(
+        preview_model: LoadedModel, tmp_path: Path) -> None:
+    stream = StreamSettings(sample_period=PERIOD, gap_factor=2.5, min_interval_factor=0.5,
+                            stale_periods=5.0, accuracy_samples=100)
+    limits = CompensationLimits(1e-3, 1e-3, True)
+    other = load_model(save_constant(tmp_path / 'h2.pt', window=WINDOW, horizon=HORIZON + 1))
+    with pytest.raises(MetadataMismatchError, match="'horizon' is 4"):
+        OnlinePredictor(preview_model, stream, limits, FakeClock(), fallback=other)
+    with pytest.raises(MetadataMismatchError, match="'preview' is 3"):
+        OnlinePredictor(preview_model, stream, limits, FakeClock(), fallback=preview_model)

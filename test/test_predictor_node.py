@@ -571,3 +571,23 @@ def test_a_preview_model_reads_the_planned_path_and_counts_a_bad_one(
                 if s.name == 'predictor_node: reference preview' and s.level == b'\x01']
     assert warnings and 'without a plan' in warnings[0]
     assert len(wiring.predictions) == 3 + 2
+
+
+def test_without_a_preview_the_fallback_model_answers(ros: RosHarness, tmp_path: Path) -> None:
+    model = save_constant(tmp_path / 'p.pt', (-20e-6, 5e-6), window=WINDOW, horizon=HORIZON,
+                          features=feature_names(2), preview=2)
+    fallback = save_constant(tmp_path / 'f.pt', (4e-6, -1e-6), window=2, horizon=HORIZON)
+    wiring = Wiring(ros, model, fallback_model_path=str(fallback))
+    wiring.run(0, 8)  # no preview ever: the fallback answers once its window of 2 has filled
+    ros.spin_until(lambda: len(wiring.predictions) == 8 - 2 - HISTORY + 1, what='fallback')
+    np.testing.assert_allclose(xy(wiring.predictions), [[4e-6, -1e-6]] * 5)
+    ros.spin_until(lambda: (wiring.status('reference preview') or {}).get(
+        'fallback_answers') == '5', what='the fallback on /diagnostics')
+    assert wiring.latest('reference preview')['fallback_model'] == str(fallback)
+    # a fallback for another instant is refused at configure, naming the field
+    other = save_constant(tmp_path / 'h.pt', window=2, horizon=HORIZON + 1)
+    with pytest.raises(MetadataMismatchError, match=r"'horizon' is 4, this configuration "
+                                                    r'needs 3'):
+        PredictorNode(context=ros.context, parameter_overrides=[
+            Parameter('model_path', value=str(model)),
+            Parameter('fallback_model_path', value=str(other))])

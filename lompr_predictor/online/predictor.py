@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -26,7 +26,7 @@ from lompr_predictor.online.alignment import AlignedSample, DropReason, Event, S
 from lompr_predictor.online.faults import FaultReason, StaleWatch, StreamRules, StreamSettings
 from lompr_predictor.online.inference import InferenceBackend, TorchScriptBackend
 from lompr_predictor.online.offset import ZERO, CompensationLimits, LiveAccuracy, OffsetGate, Output
-from lompr_predictor.online.preview import PlannedPath, PreviewDrop
+from lompr_predictor.online.preview import PlannedPath, PlanReader, PreviewDrop
 from lompr_predictor.online.timing import OverrunGuard
 from lompr_predictor.online.window import FeatureWindow
 from lompr_predictor.robot.description import RobotDescription, load_robot_description
@@ -63,7 +63,8 @@ class OnlinePredictor:
         self, model: LoadedModel, stream: StreamSettings, limits: CompensationLimits,
         clock: Callable[[], float] = time.monotonic, latency_samples: int = 1000,
         now_ns: Callable[[], int] | None = None, description: RobotDescription | None = None,
-        backend: InferenceBackend | None = None,
+        backend: InferenceBackend | None = None, fallback: LoadedModel | None = None,
+        fallback_backend: InferenceBackend | None = None,
     ) -> None:
         #: The robot the model must have been trained for (default: the packaged LOMPR).
         self.description = description or load_robot_description()
@@ -79,14 +80,24 @@ class OnlinePredictor:
         self._stale = StaleWatch(stream.stale_after, clock)
         #: Samples of the planned reference the model reads after each row (0: none).
         self.preview = model.metadata.preview
-        self._preview_lead_ns = self.preview * period
         self._window = FeatureWindow(self.window, self.description.geometry, self.preview)
         self.plan = PlannedPath(stream.gap_factor * period, stream.preview_tolerance)
-        self._planned_seconds: float | None = None  # clock when a sample last had a plan
-        #: No plan for `stale_after`: the model cannot predict (zeros were published).
-        self.preview_stale = False
+        self._reader = PlanReader(self.plan, self.preview * period, stream.stale_after)
         self._use(model, backend)
-        self._gate = OffsetGate(limits, period)
+        #: The model without a preview that answers where the plan is missing (or None),
+        #: with its own window of the same samples.
+        self.fallback = fallback
+        self.fallback_answers = 0
+        if fallback is not None:
+            self._check_fallback(fallback)
+            self._fallback_window = FeatureWindow(fallback.metadata.window,
+                                                  self.description.geometry)
+            run_fallback = fallback_backend or TorchScriptBackend(fallback)
+            self._fallback_runners = tuple(run_fallback.runner(array)
+                                           for array in self._fallback_window.arrays)
+        #: The offsets published and their bounds, with their counters (`offset.OffsetGate`;
+        #: change the bounds with `set_limits`).
+        self.gate = OffsetGate(limits, period)
         self._accuracy = LiveAccuracy(stream.accuracy_samples)
         self.faults = RejectionCounter(FaultReason)
         self.last_fault = ''
@@ -154,7 +165,7 @@ class OnlinePredictor:
         alignment = self._alignment
         if not self._stale.check(alignment.oldest_waiting_arrival()):
             return []
-        if self._window.empty and not alignment.waiting and not self._gate.in_force:
+        if self._window.empty and not alignment.waiting and not self.gate.in_force:
             return []
         alignment.clear(DropReason.STALE)
         return self._fault(FaultReason.STALE)
@@ -185,8 +196,8 @@ class OnlinePredictor:
         """Stop and start afresh, no fault (the node deactivated): the offset in force is
         cancelled (zeros, `reason`), the window emptied, and the inputs forgotten, so that
         the next samples start a new window whatever their stamps."""
-        outputs = self._gate.cancel(reason, self._alignment.newest_pose_ns)
-        self._window.clear()
+        outputs = self.gate.cancel(reason, self._alignment.newest_pose_ns)
+        self._clear_windows()
         self._alignment.rewind(None, reason)
         self._stale.restart()
         self.overrun.restart()
@@ -196,7 +207,7 @@ class OnlinePredictor:
         """New bounds from the next sample on. Disabling compensation also cancels the
         offsets already published (reason 'compensation_disabled'); the window is kept and
         predictions go on (shadow mode)."""
-        return self._gate.set_limits(limits, self._alignment.newest_pose_ns)
+        return self.gate.set_limits(limits, self._alignment.newest_pose_ns)
 
     def replace_model(self, model: LoadedModel,
                       backend: InferenceBackend | None = None) -> None:
@@ -215,30 +226,14 @@ class OnlinePredictor:
     # -- state for diagnostics ------------------------------------------------------------
 
     @property
-    def limits(self) -> CompensationLimits:
-        return self._gate.limits
+    def preview_stale(self) -> bool:
+        """No plan for the stale time: a preview model cannot predict."""
+        return self._reader.stale
 
     @property
     def dropped(self) -> RejectionCounter:
         """Input samples not used, by reason (`alignment.DropReason`)."""
         return self._alignment.dropped
-
-    @property
-    def clamped(self) -> int:
-        return self._gate.clamped
-
-    @property
-    def step_limited(self) -> int:
-        return self._gate.step_limited
-
-    @property
-    def zeros_published(self) -> int:
-        return self._gate.zeros_published
-
-    @property
-    def reclamped(self) -> int:
-        """Offsets re-issued clamped after max_compensation was lowered."""
-        return self._gate.reclamped
 
     @property
     def window_fill(self) -> int:
@@ -249,11 +244,6 @@ class OnlinePredictor:
     def window_needed(self) -> int:
         """Samples a full window takes: `window + features.HISTORY`."""
         return self._window.needed
-
-    @property
-    def offset_in_force(self) -> np.ndarray:
-        """The last offset published (zero after a fault or in shadow mode)."""
-        return self._gate.offset_in_force
 
     def accuracy(self) -> tuple[np.ndarray, int]:
         """(2,) RMS [m] of truth - prediction over the last predicted instants whose truth
@@ -273,6 +263,14 @@ class OnlinePredictor:
             found = getattr(model.metadata, field)
             if found != needed:
                 raise MetadataMismatchError(model.path, field, needed, found)
+
+    def _check_fallback(self, fallback: LoadedModel) -> None:
+        """Refuse a fallback that reads a preview or predicts for another instant."""
+        self._check(fallback)
+        for field, needed in (('preview', 0), ('horizon', self.horizon)):
+            found = getattr(fallback.metadata, field)
+            if found != needed:
+                raise MetadataMismatchError(fallback.path, field, needed, found)
 
     def _use(self, model: LoadedModel, backend: InferenceBackend | None) -> None:
         """Serve `model` with `backend` (default TorchScript), one call bound per view."""
@@ -319,7 +317,7 @@ class OnlinePredictor:
             if reason is not None:
                 outputs += self._fault(reason)
         self._stale.used(seconds)
-        gate = self._gate
+        gate = self.gate
         offset_x, offset_y = gate.offset_for(stamp_ns) or ZERO
         predicted = gate.prediction_for(stamp_ns)
         reference_x, reference_y = sample.reference_x, sample.reference_y
@@ -329,44 +327,39 @@ class OnlinePredictor:
             self._accuracy.add(error_x, error_y, predicted)
         if timer is not None:
             timer.end('plant error')
-        planned = self._planned(stamp_ns, seconds, outputs) if self.preview else None
-        full = window.push(stamp_ns, error_x, error_y, reference_x, reference_y,
-                           sample.reference_z, planned)
+        planned = None
+        if self.preview:
+            was_stale = self._reader.stale
+            planned = self._reader.at_sample(stamp_ns, seconds)
+            if self._reader.stale and not was_stale and self.fallback is None:
+                outputs += gate.cancel(PreviewDrop.MISSING, self._alignment.newest_pose_ns)
+        runner = None
+        if window.push(stamp_ns, error_x, error_y, reference_x, reference_y,
+                       sample.reference_z, planned):
+            runner = self._runners[window.start]
+        if self.fallback is not None:
+            fallback = self._fallback_window
+            if fallback.push(stamp_ns, error_x, error_y, reference_x, reference_y,
+                             sample.reference_z) and runner is None:
+                runner = self._fallback_runners[fallback.start]
+                self.fallback_answers += 1
         if timer is not None:
             timer.end('feature rows')
-        if full:
-            self._predict(stamp_ns, outputs)
+        if runner is not None:
+            self._predict(stamp_ns, outputs, runner)
 
-    def _planned(self, stamp_ns: int, seconds: float,
-                 outputs: list[Output]) -> tuple[int, float, float, float] | None:
-        """The plan `preview` samples after the sample at `stamp_ns`, or None (counted);
-        once none came for `stale_after`, the offsets in force are cancelled, once."""
-        instant_ns = stamp_ns + self._preview_lead_ns
-        position = self.plan.at(instant_ns)
-        if position is not None:
-            self._planned_seconds = seconds
-            self.preview_stale = False
-            return (instant_ns, *position)
-        self.plan.dropped.add(PreviewDrop.MISSING)
-        since = self._planned_seconds
-        if since is None:
-            self._planned_seconds = since = seconds
-        if not self.preview_stale and seconds - since >= self.stream.stale_after:
-            self.preview_stale = True
-            outputs += self._gate.cancel(PreviewDrop.MISSING, self._alignment.newest_pose_ns)
-        return None
-
-    def _predict(self, stamp_ns: int, outputs: list[Output]) -> None:
+    def _predict(self, stamp_ns: int, outputs: list[Output],
+                 runner: Callable[[], Any]) -> None:
         """Append the output of the window that ends at `stamp_ns`, if it is not late."""
         timer = self.stage_timer
         guard = self.overrun if self._now_ns is not None else None
         if guard is not None and guard.skip(stamp_ns, self._now):
             guard.inference_skipped_late += 1
-            self._gate.missed()
+            self.gate.missed()
             return
         if timer is not None:
             timer.end('overrun')
-        prediction = self._infer()
+        prediction = self._infer(runner)
         if timer is not None:
             timer.end('inference')
         if prediction is None:
@@ -379,28 +372,33 @@ class OnlinePredictor:
             guard.inference_took(started, ended)
             if guard.late(stamp_ns, ended):
                 guard.late_outputs_dropped += 1
-                self._gate.missed()
+                self.gate.missed()
                 return
-        outputs.append(self._gate.publish(stamp_ns + self._lead_ns, prediction, stamp_ns))
+        outputs.append(self.gate.publish(stamp_ns + self._lead_ns, prediction, stamp_ns))
         if timer is not None:
             timer.end('offset gate')
 
-    def _infer(self) -> tuple[float, float] | None:
-        """The network on the window (the call bound to its current view): the predicted
-        X/Y plant error, or None if the model raised or gave anything but one row of two
-        finite numbers."""
+    def _infer(self, runner: Callable[[], Any]) -> tuple[float, float] | None:
+        """The network on a window (`runner`, the call bound to its current view): the
+        predicted X/Y plant error, or None if the model raised or gave anything but one row
+        of two finite numbers."""
         start = time.perf_counter()
         try:
-            x, y = self._runners[self._window.start]()
+            x, y = runner()
             x, y = float(x), float(y)
         except Exception:  # noqa: BLE001 - a model file is code: any failure is a fault
             x = y = math.nan
         self.inference_time.record(time.perf_counter() - start)
         return (x, y) if math.isfinite(x) and math.isfinite(y) else None
 
+    def _clear_windows(self) -> None:
+        self._window.clear()
+        if self.fallback is not None:
+            self._fallback_window.clear()
+
     def _fault(self, reason: FaultReason) -> list[Output]:
         """Empty the window; cancel the offsets in force (`offset.OffsetGate.cancel`)."""
         self.faults.add(reason)
         self.last_fault = reason
-        self._window.clear()
-        return self._gate.cancel(reason, self._alignment.newest_pose_ns)
+        self._clear_windows()
+        return self.gate.cancel(reason, self._alignment.newest_pose_ns)

@@ -153,15 +153,21 @@ def preview_status(lifecycle: Lifecycle, core: OnlinePredictor | None, rate: Rat
         'previews_used': plan.previews_used,
         **rejection_values(plan.dropped),
         'planned_until_s': None if plan.horizon_ns is None else plan.horizon_ns * 1e-9,
+        'fallback_model': '' if core.fallback is None else core.fallback.path,
+        'fallback_answers': core.fallback_answers,
     }
+    fallback = ('; the fallback model answers' if core.fallback is not None else
+                ' (no offset for them)')
     if core.preview_stale:
+        if core.fallback is not None:
+            return Status(Level.WARN, f'no preview on {topic}: the fallback model answers',
+                          values)
         return Status(Level.ERROR, f'no preview on {topic} covers the instant '
                                    f'{core.preview} samples ahead: the model cannot predict, '
                                    'no offsets (zeros)', values)
     if new_missing:
         return Status(Level.WARN, f'{new_missing} samples without a plan {core.preview} '
-                                  'samples ahead since the last report (no offset for them)',
-                      values)
+                                  f'samples ahead since the last report{fallback}', values)
     return Status(Level.OK, f'{values["preview_rate_hz"]} Hz, {core.preview} samples ahead',
                   values)
 
@@ -184,12 +190,12 @@ def prediction_status(lifecycle: Lifecycle, core: OnlinePredictor | None,
         'accuracy_rms_y_um': round(float(rms[1]) * 1e6, 3),
         'accuracy_samples': count,
         'compensation_enabled': limits.compensation_enabled,
-        'offset_x_um': round(float(core.offset_in_force[0]) * 1e6, 3),
-        'offset_y_um': round(float(core.offset_in_force[1]) * 1e6, 3),
-        'clamped_total': core.clamped,
-        'step_limited_total': core.step_limited,
-        'zeros_published': core.zeros_published,
-        'reclamped_total': core.reclamped,
+        'offset_x_um': round(float(core.gate.offset_in_force[0]) * 1e6, 3),
+        'offset_y_um': round(float(core.gate.offset_in_force[1]) * 1e6, 3),
+        'clamped_total': core.gate.clamped,
+        'step_limited_total': core.gate.step_limited,
+        'zeros_published': core.gate.zeros_published,
+        'reclamped_total': core.gate.reclamped,
         'inference_skipped_late': core.overrun.inference_skipped_late,
         'late_outputs_dropped': core.overrun.late_outputs_dropped,
     }

@@ -361,8 +361,8 @@ class _Loop:
         counts = loop_counts(
             {**twin.run_document(), **twin.log.counts()},
             {'predictions': core.predictions_made, 'predictor_faults': core.faults.counts(),
-             'predictor_dropped': core.dropped.counts(), 'clamped': core.clamped,
-             'step_limited': core.step_limited},
+             'predictor_dropped': core.dropped.counts(), 'clamped': core.gate.clamped,
+             'step_limited': core.gate.step_limited},
             kinematics_rejected=self.kinematics.rejected.counts())
         data = self.collector.arrays()
         cycle = twin.twin.cycle

@@ -152,13 +152,22 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         if outcome.ready is None:
             return outcome.error
         self._running = ready = outcome.ready
+        fallback = None
+        if settings.fallback_model_path and ready.model.metadata.preview:
+            fallback_outcome = load_ready_model(
+                ready.fallback_request(settings.fallback_model_path))
+            if fallback_outcome.ready is None:
+                return fallback_outcome.error
+            fallback = fallback_outcome.ready
         self.sample_period = ready.sample_period
         self.history = replace(self.history, warm_up_seconds=ready.warm_up_seconds,
                                backend_why=ready.backend_why)
         self._core = OnlinePredictor(
             ready.model, settings.stream(self.sample_period), settings.limits,
             clock=self.clock_seconds, latency_samples=settings.latency_samples,
-            now_ns=self.clock_ns, description=description, backend=ready.backend)
+            now_ns=self.clock_ns, description=description, backend=ready.backend,
+            fallback=fallback.model if fallback else None,
+            fallback_backend=fallback.backend if fallback else None)
         self.outputs.attach(self.own(self.advertise(PREDICTED_ERROR)),
                             self.own(self.advertise(COMPENSATION)))
         self.own(self.subscribe(END_POSE, self.on_end_pose, raw=True))

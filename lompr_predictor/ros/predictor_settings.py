@@ -36,6 +36,11 @@ class PredictorNodeSettings(StatusSettings):
         '', 'TorchScript model file (lompr train); setting it at run time loads, checks and '
         'warms the new file and swaps it in, or keeps the running model and rejects the '
         'change with the reason')
+    fallback_model_path: str = parameter(
+        '', 'for a model that reads a reference preview: a model without one (same robot, '
+        'horizon and sample period; verified like model_path, by its MODEL.sha256 file) that '
+        'answers the samples the plan does not reach; empty: those samples get no offset',
+        read_only=True)
     model_sha256: str = parameter(
         '', "if not empty, the sha256 the model file must have (the training report's "
         'model_sha256), checked on the bytes read before they are deserialised (a '
