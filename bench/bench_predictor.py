@@ -76,7 +76,7 @@ from rclpy.parameter import Parameter
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import JointState
 
-from lompr_predictor.data.features import FEATURES, HISTORY, TARGETS
+from lompr_predictor.data.features import HISTORY, TARGETS, feature_names
 from lompr_predictor.learning.model_file import (
     ModelMetadata,
     load_checkpoint,
@@ -114,8 +114,9 @@ RELAY = Path(__file__).resolve().parent / 'relay_chain.py'
 
 
 def feature_span(name: str) -> float:
-    """A plausible SI half-range of a feature column (`FEATURES`): errors ~0.1 mm, positions
-    ~0.2 m, velocities ~0.05 m/s, accelerations ~0.5 m/s^2."""
+    """A plausible SI half-range of a feature column (`features.feature_names`): errors
+    ~0.1 mm, positions and displacements ~0.2 m, velocities ~0.05 m/s, accelerations
+    ~0.5 m/s^2."""
     if name.startswith('error_'):
         return 1e-4
     if name.endswith(('_v', '_vx', '_vy')):
@@ -125,20 +126,23 @@ def feature_span(name: str) -> float:
     return 0.2
 
 
-def timing_module() -> PredictorModule:
-    """The trainer's exported module at the default size, with plausible SI ranges."""
+def timing_module(preview: int = 0) -> PredictorModule:
+    """The trainer's exported module at the default size, with plausible SI ranges (its
+    rows with the preview block of `preview` samples)."""
     torch.manual_seed(0)
-    columns, _ = network_columns(FEATURES, relative_errors=True, error_level=True)
-    span = np.array([feature_span(FEATURES[column]) for column in columns])
+    features = feature_names(preview)
+    columns, _ = network_columns(features, relative_errors=True, error_level=True)
+    span = np.array([feature_span(features[column]) for column in columns])
     return PredictorModule(build_network('lstm', len(columns), WINDOW, HIDDEN), -span, span,
                            np.full(2, -2e-5), np.full(2, 2e-5), residual=True,
-                           relative_errors=True, error_level=True)
+                           relative_errors=True, error_level=True, features=features)
 
 
-def default_model(path: Path, sample_period: float, horizon: int) -> Path:
+def default_model(path: Path, sample_period: float, horizon: int, preview: int = 0) -> Path:
     """A default-size LSTM predictor saved as a model file."""
     metadata = ModelMetadata(
-        features=FEATURES, window=WINDOW, horizon=horizon, sample_period=sample_period,
+        features=feature_names(preview), preview=preview, window=WINDOW, horizon=horizon,
+        sample_period=sample_period,
         targets=TARGETS, normalisation={}, model_type='lstm',
         hyperparameters={'hidden': HIDDEN, 'note': 'untrained, for timing only'},
         robot_description_sha256=load_robot_description().sha256, training_bags=(), seed=0,

@@ -35,6 +35,8 @@ def test_predictor_bench_model_loads_and_runs_on_todays_features(tmp_path: Path)
         'import sys, pathlib; sys.path.insert(0, sys.argv[1]); import bench_predictor as b\n'
         'from lompr_predictor.learning.model_file import load_model\n'
         'path = b.default_model(pathlib.Path(sys.argv[2]) / "m.pt", 0.001, 5)\n'
+        'ahead = b.default_model(pathlib.Path(sys.argv[2]) / "p.pt", 0.001, 5, 3)\n'
+        'assert load_model(ahead).metadata.preview == 3\n'
         'print(load_model(path).metadata.window)')
     result = subprocess.run([sys.executable, '-c', script, str(BENCH), str(tmp_path)],
                             capture_output=True, text=True, timeout=120, check=False)
