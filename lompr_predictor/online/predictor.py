@@ -3,11 +3,13 @@
 `OnlinePredictor` is the predictor node's core: it composes the alignment by stamp
 (`alignment`), the plant error (CONTRACT section 3), the feature window (`window`), the
 model, the offset gate (`offset`), the fault rules (`faults`) and the overrun policy
-(`timing`), each testable alone. Any fault empties the window and cancels the offset in
-force. Time is the caller's clock (the node's ROS clock, simulated under use_sim_time),
-whose jumps the caller reports; every call returns the outputs to publish, in order.
-The network runs on the backend `inference.select_backend` chose; `stage_timer` (off by
-default) lets a profiler time the stages of an input call through a public hook.
+(`timing`), each testable alone, and for a model that reads the reference preview the plan
+(`preview`) and, optionally, a fallback model without one that answers where the plan is
+missing. Any fault empties the windows and cancels the offset in force. Time is the
+caller's clock (the node's ROS clock, simulated under use_sim_time), whose jumps the caller
+reports; every call returns the outputs to publish, in order. The network runs on the
+backend `inference.select_backend` chose; `stage_timer` (off by default) lets a profiler
+time the stages of an input call through a public hook.
 """
 
 from __future__ import annotations
