@@ -11,6 +11,7 @@ dropped, since the instants it covered were predicted from a path that will not 
 
 from __future__ import annotations
 
+import math
 from enum import StrEnum
 
 import numpy as np
@@ -63,13 +64,12 @@ class PlannedPath:
         if reason is not None:
             self.dropped.add(reason)
             return reason
-        first, last = stamps[0], stamps[-1]
-        keep_before = self._stamps < first
-        keep_after = self._stamps > last
-        self._stamps = np.concatenate([self._stamps[keep_before], stamps,
-                                       self._stamps[keep_after]])
-        self._positions = np.concatenate([self._positions[keep_before], positions,
-                                          self._positions[keep_after]])
+        old = self._stamps  # sorted: what the new plan does not cover is before or after it
+        before = int(np.searchsorted(old, stamps[0]))
+        after = int(np.searchsorted(old, stamps[-1], side='right'))
+        self._stamps = np.concatenate([old[:before], stamps, old[after:]])
+        self._positions = np.concatenate([self._positions[:before], positions,
+                                          self._positions[after:]])
         self.previews_used += 1
         return None
 
@@ -97,9 +97,9 @@ class PlannedPath:
         the plan before it is let go."""
         self._newest_reference_ns = max(self._newest_reference_ns, stamp_ns)
         planned = self.at(stamp_ns)
-        stale = self._stamps < stamp_ns
-        if stale.any():  # keep the one before: it brackets instants after the reference
-            cut = max(int(np.count_nonzero(stale)) - 1, 0)
+        # keep the instant before: it brackets instants after the reference
+        cut = int(np.searchsorted(self._stamps, stamp_ns)) - 1
+        if cut > 0:
             self._stamps, self._positions = self._stamps[cut:], self._positions[cut:]
         if planned is None:
             return True
@@ -118,9 +118,11 @@ class PlannedPath:
     def _problem(self, stamps: np.ndarray, positions: np.ndarray) -> PreviewDrop | None:
         if len(stamps) == 0:
             return PreviewDrop.EMPTY
-        if not np.isfinite(positions).all():
+        # one sum instead of a mask: NaN and infinity carry through it (a sum that overflows
+        # holds positions no robot has, refused alike)
+        if not math.isfinite(float(positions.sum())):
             return PreviewDrop.NON_FINITE
-        if len(stamps) > 1 and not (np.diff(stamps) > 0).all():
+        if not (stamps[1:] > stamps[:-1]).all():
             return PreviewDrop.OUT_OF_ORDER
         if stamps[-1] <= self._newest_reference_ns:
             return PreviewDrop.PAST
