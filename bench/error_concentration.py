@@ -42,19 +42,20 @@ def main() -> int:
                         help='worst samples (by squared error above the trees) to single out')
     args = parser.parse_args()
     set_torch_threads(1)
-    model = load_model(args.model, expected={'features': FEATURES, 'targets': TARGETS})
+    model = load_model(args.model, expected={'targets': TARGETS})
     window, horizon = model.metadata.window, model.metadata.horizon
     geometry = load_robot_description(None).geometry
     train, _ = load_clean_data(BagInputs(bags=tuple(map(str, args.train_bags))), geometry)
     test, _ = load_clean_data(BagInputs(bags=tuple(map(str, args.test_bags))), geometry)
-    problem = train_test_problem(train, test, window, horizon)
+    problem = train_test_problem(train, test, window, horizon, preview=model.metadata.preview)
     ends = problem.split.test
     actual = problem.error[ends + horizon]
     residuals = {'model': predict_rows(model.module, problem.rows, ends, window) - actual,
                  'trees': hgb_baseline(problem).predicted - actual}
     velocity = problem.rows[:, [FEATURES.index('ref_vx'), FEATURES.index('ref_vy')]]
     seconds = (problem.stamps[ends] - problem.stamps[ends[0]]) * 1e-9
-    print(f'{args.model.name}: window {window}, horizon {horizon}, {len(ends)} test windows')
+    print(f'{args.model.name}: window {window}, horizon {horizon}, preview '
+          f'{model.metadata.preview}, {len(ends)} test windows (the trees given the same rows)')
     for axis, name in enumerate(TARGETS):
         squared = {key: (r[:, axis] * UM) ** 2 for key, r in residuals.items()}
         worst = np.argsort(squared['model'] - squared['trees'])[-args.top:]
