@@ -320,7 +320,8 @@ def _print_result(args: argparse.Namespace, budget: dict[str, int], out: Path,
           f'{"met" if targets["met"] else "MISSED"}')
     if 'preview_rms_to_model_pct' in targets:
         gain = targets['preview_rms_to_model_pct']
-        print(f'with the preview ({args.preview} samples ahead) / without: X {gain["x"]:.1f} %, '
+        ahead = f'{args.preview} sample{"s" if args.preview > 1 else ""} ahead'
+        print(f'with the preview ({ahead}) / without: X {gain["x"]:.1f} %, '
               f'Y {gain["y"]:.1f} %; passes made worse with it: '
               f'{targets["preview_passes_made_worse"] or "none"}')
     print(f'\nplot: {out / LOOP_PLOT}\nscores: {out / "closed_loop.json"}')
