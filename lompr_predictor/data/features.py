@@ -88,8 +88,8 @@ def feature_rows(stamps: np.ndarray, error: np.ndarray, reference: np.ndarray,
 
 def preview_block(rows: np.ndarray, planned: np.ndarray) -> np.ndarray:
     """(N, len(PREVIEW_FEATURES)) preview blocks of `rows` given `planned`, the rows of the
-    instants K samples after each (both (N, len(FEATURES))): the one definition of the block,
-    offline (`with_preview`) and online (`online.window`)."""
+    instants K samples after each (both (N, len(FEATURES))): the definition of the block,
+    which `online.window` writes again on floats, sample by sample (tested equal)."""
     block = np.empty((len(rows), len(PREVIEW_FEATURES)))
     block[:, :2] = planned[:, _REFERENCE_XY] - rows[:, _REFERENCE_XY]
     block[:, 2:] = planned[:, PLANNED_COLUMNS]
