@@ -20,7 +20,7 @@ and end at rest (speed ramps over `ramp_time`), so commanded accelerations stay 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -64,6 +64,10 @@ class PathCycle:
     sample_period: float  # [s]
     feed_variation: float = 0.0
     seed: int = 0
+    #: The last passes' positions (`pass_positions`), by pass number: a twin asks for each
+    #: sample, and for the plan after it, many times per pass.
+    _passes: dict[int, np.ndarray] = field(default_factory=dict, init=False, repr=False,
+                                           compare=False)
 
     def __len__(self) -> int:
         return len(self.positions)
@@ -87,6 +91,9 @@ class PathCycle:
         `FEED_VARIATION_PERIOD`): the pass keeps its duration, its ends their speed (so the
         return joins smoothly), and the samples are the pass's cubic spline at the warped
         times."""
+        cached = self._passes.get(number)
+        if cached is not None:
+            return cached
         from scipy.interpolate import CubicSpline  # the twin only: not on the nodes' path
 
         count = self.pass_samples
@@ -100,6 +107,10 @@ class PathCycle:
         spline = CubicSpline(np.linspace(0.0, 1.0, count), self.positions[:count])
         positions = self.positions.copy()
         positions[:count] = spline(warped)
+        positions.flags.writeable = False  # shared by every caller of the cache
+        if len(self._passes) >= 2:  # this pass and the one before (a plan crosses a join)
+            self._passes.pop(min(self._passes))
+        self._passes[number] = positions
         return positions
 
     def pass_index(self, start: int, count: int) -> np.ndarray:
