@@ -85,6 +85,7 @@ from lompr_predictor.learning.model_file import (
 )
 from lompr_predictor.learning.models import PredictorModule, build_network, network_columns
 from lompr_predictor.online.predictor import STAGES
+from lompr_predictor.processes import stop_processes
 from lompr_predictor.robot.description import MEASURED_JOINTS, load_robot_description
 from lompr_predictor.robot.kinematics import inverse_kinematics
 from lompr_predictor.ros.common import EXECUTORS
@@ -106,7 +107,6 @@ INFERENCE_BLOCK = 250
 PROFILE_SAMPLES = 3000
 PROFILE_WARMUP = 300
 DISCOVERY_TIMEOUT = 60.0
-KILL_TIMEOUT = 10.0
 CALLGRIND_VARIABLE = 'LOMPR_BENCH_UNDER_CALLGRIND'
 CALLGRIND_SAMPLES = 300
 BAG = Path(__file__).resolve().parents[1] / 'bags' / 'twin_spiral_seed1_3passes'
@@ -520,17 +520,6 @@ def start(command: list[str], **kwargs: Any) -> subprocess.Popen:
                             text=True, **kwargs)
 
 
-def stop(process: subprocess.Popen) -> None:
-    """SIGINT, then kill after KILL_TIMEOUT (a DDS participant can hang at exit)."""
-    if process.poll() is None:
-        process.send_signal(signal.SIGINT)
-    try:
-        process.communicate(timeout=KILL_TIMEOUT)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.communicate()
-
-
 def cpu_seconds(pid: int) -> float:
     """User + system CPU time [s] a process has used so far (/proc)."""
     fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
@@ -614,8 +603,7 @@ def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path | None,
         spinner.shutdown()
         client.destroy_node()
         context.try_shutdown()
-        for process in processes:
-            stop(process)
+        stop_processes(processes)
     first = WINDOW + HISTORY - 1
     latencies = []
     for k in range(first, samples):
@@ -655,7 +643,7 @@ def training_job(directory: Path) -> Iterator[subprocess.Popen]:
     finally:
         if process.poll() is None:
             os.killpg(process.pid, signal.SIGINT)
-        stop(process)
+        stop_processes([process])
 
 
 # -- report ---------------------------------------------------------------------------------

@@ -39,6 +39,7 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 
 from lompr_predictor.data.features import HISTORY
+from lompr_predictor.processes import stop_processes
 from lompr_predictor.ros.domain import isolate_ros_domain
 from lompr_predictor.threads import set_torch_threads
 
@@ -165,8 +166,7 @@ def soak(minutes: float, model: Path) -> dict[str, Any]:
         executor.shutdown()
         client.destroy_node()
         context.try_shutdown()
-        for process in processes:
-            bench.stop(process)
+        stop_processes(processes)
     first = bench.WINDOW + HISTORY - 1
     latency = (client.arrival - sent)[first:] * 1e3
     answered = latency[np.isfinite(latency)]

@@ -16,7 +16,6 @@ Everything is created on the harness's own `rclpy.context.Context` and torn down
 
 from __future__ import annotations
 
-import signal
 import subprocess
 import sys
 import time
@@ -33,13 +32,12 @@ from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.qos import QoSProfile
 
+from lompr_predictor.processes import stop_processes
 from lompr_predictor.ros.common import spin_until
 
 DEFAULT_TIMEOUT = 10.0
 #: Wait [s] for the answer to a repeatable service request before it is sent again.
 RESEND_AFTER = 2.0
-#: Time [s] a node process gets to exit after SIGINT before it is killed.
-KILL_TIMEOUT = 10.0
 
 
 class RosHarness:
@@ -141,19 +139,13 @@ def start_executable(name: str, *ros_arguments: str) -> subprocess.Popen[str]:
 
 
 def stop_process(process: subprocess.Popen[str]) -> tuple[int, str]:
-    """SIGINT, then kill after `KILL_TIMEOUT` (a DDS participant can hang at exit); the exit
-    code and stderr. The stderr is also echoed to the test's captured stderr, which pytest
-    shows when the test fails (so a failure in the test body shows what the node said)."""
-    if process.poll() is None:
-        process.send_signal(signal.SIGINT)
-    try:
-        _, stderr = process.communicate(timeout=KILL_TIMEOUT)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        _, stderr = process.communicate()
-    sys.stderr.write(f'node process {process.pid} exited with {process.returncode}, '
-                     f'its stderr:\n{stderr}\n')
-    return process.returncode, stderr
+    """Stop a node process as `ros2 launch` does (`processes.stop_processes`); the exit code
+    and stderr. The stderr is also echoed to the test's captured stderr, which pytest shows
+    when the test fails (so a failure in the test body shows what the node said)."""
+    stopped = stop_processes([process])[0]
+    sys.stderr.write(f'node process {process.pid} exited with {stopped.returncode} '
+                     f'(stopped by {stopped.signal}), its stderr:\n{stopped.stderr}\n')
+    return stopped.returncode, stopped.stderr
 
 
 def stamp_ns(msg: Any) -> int:

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import functools
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -57,6 +56,7 @@ from lompr_predictor.learning.model_file import (
     save_model,
 )
 from lompr_predictor.learning.models import persistence_module
+from lompr_predictor.processes import stop_processes
 from lompr_predictor.robot.description import MEASURED_JOINTS
 from lompr_predictor.robot.paths import build_cycle
 from lompr_predictor.ros import kinematics_node, predictor_node, twin_node
@@ -76,9 +76,6 @@ from lompr_predictor.twin.run_log import read_run_log
 NODE_LOGGERS = (kinematics_node.NODE_NAME, predictor_node.NODE_NAME, twin_node.NODE_NAME)
 #: Wall seconds the nodes may take to discover each other.
 DISCOVERY_TIMEOUT = 10.0
-#: Wall seconds a node process may take to stop after SIGINT before it is killed (a Fast DDS
-#: participant can hang at exit).
-KILL_TIMEOUT = 10.0
 
 
 class ClosedLoopError(LomprError):
@@ -516,20 +513,6 @@ class _Monitor(Node):
         }
 
 
-def _stop_processes(processes: dict[str, subprocess.Popen[bytes]]) -> None:
-    """SIGINT every process, then kill the ones still running after `KILL_TIMEOUT`."""
-    for process in processes.values():
-        if process.poll() is None:
-            process.send_signal(signal.SIGINT)
-    deadline = time.monotonic() + KILL_TIMEOUT
-    for process in processes.values():
-        try:
-            process.wait(timeout=max(0.1, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
-
-
 def _log_tail(path: Path, lines: int = 15) -> str:
     try:
         return '\n'.join(path.read_text(errors='replace').splitlines()[-lines:])
@@ -586,7 +569,7 @@ def _run_processes(settings: LoopSettings, horizon: int, progress: bool,
             bar.n = total
             bar.close()
         finally:
-            _stop_processes(processes)
+            stop_processes(list(processes.values()))
             executor.remove_node(monitor)
             monitor.destroy_node()
             executor.shutdown()
