@@ -11,7 +11,7 @@ from lompr_predictor.processes import stop_processes
 #: A child that says it is ready, then handles the signals as its argument says: `interrupt`
 #: exits 0 on SIGINT; `lost` ignores SIGINT (as one started in the background while still
 #: importing) and exits 3 on SIGTERM; `stuck` ignores both.
-CHILD = '''
+CHILD = """
 import signal, sys, time
 mode = sys.argv[1]
 def leave(code):
@@ -26,7 +26,7 @@ sys.stderr.write('x' * 200_000)  # more than a pipe holds: stopping must read it
 sys.stderr.flush()
 while True:
     time.sleep(0.01)
-'''
+"""
 
 
 def start(mode: str) -> subprocess.Popen[str]:
