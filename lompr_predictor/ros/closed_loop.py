@@ -569,7 +569,8 @@ def _run_processes(settings: LoopSettings, horizon: int, progress: bool,
             bar.n = total
             bar.close()
         finally:
-            stop_processes(list(processes.values()))
+            stopped = dict(zip(processes, stop_processes(list(processes.values())),
+                               strict=True))
             executor.remove_node(monitor)
             monitor.destroy_node()
             executor.shutdown()
@@ -579,6 +580,9 @@ def _run_processes(settings: LoopSettings, horizon: int, progress: bool,
     counts = loop_counts(
         document, monitor.predictor_counts(),
         processes={name: process.returncode for name, process in processes.items()},
+        # the signal each obeyed (SIGINT unless it was lost or the process hung at exit)
+        stopped_by={name: end.signal.name if end.signal else 'exited'
+                     for name, end in stopped.items()},
         ros_domain_id=domain)
     return LoopRun(
         settings=settings, horizon=horizon, sample_period=params.sample_period,
