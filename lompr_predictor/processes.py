@@ -39,8 +39,8 @@ def stop_processes(
     terminate_timeout: float = TERMINATE_TIMEOUT,
 ) -> list[Stopped]:
     """Stop every process still running, all at once (each step signals all that remain, then
-    waits one deadline for them), reading their piped output meanwhile so that none blocks on
-    a full pipe; one `Stopped` per process, in order."""
+    waits one deadline for them), reading each one's piped output while waiting for it (a
+    child blocked on a full pipe would not exit); one `Stopped` per process, in order."""
     outputs: list[tuple[Any, Any]] = [(None, None)] * len(processes)
     sent: list[signal.Signals | None] = [None] * len(processes)
     pending = list(range(len(processes)))
