@@ -106,13 +106,35 @@ def test_windows_never_cross_a_gap() -> None:
 
 def test_split_is_chronological_and_test_is_last_tenth() -> None:
     ends = window_ends(np.array([[0, 1000]]), 10, 5)
-    split = chronological_split(1000, ends, 5, test_fraction=0.1, validation_fraction=0.2)
-    assert split.test_start == 900 and split.validation_start == 720
+    split = chronological_split(np.array([[0, 1000]]), ends, 5, test_fraction=0.1,
+                                validation_fraction=0.2)
+    np.testing.assert_array_equal(split.parts, [[0, 720, 900, 1000]])
+    assert split.training_rows().sum() == 900 and split.training_rows()[:900].all()
     assert (split.train + 5 < 720).all()
     assert ((split.validation + 5 >= 720) & (split.validation + 5 < 900)).all()
     assert (split.test + 5 >= 900).all()
     assert split.train.max() < split.validation.min() < split.test.min()
     assert len(split.train) + len(split.validation) + len(split.test) == len(ends)
+
+
+def test_each_recording_is_split_on_its_own() -> None:
+    """Recordings of several programs: each one's last tenth tests and the last part of
+    the rest validates, so every program is trained, validated and scored."""
+    recordings = np.array([[0, 600], [600, 1000]])
+    ends = window_ends(recordings, 10, 5)
+    split = chronological_split(recordings, ends, 5, test_fraction=0.1,
+                                validation_fraction=0.2)
+    np.testing.assert_array_equal(split.parts, [[0, 432, 540, 600], [600, 888, 960, 1000]])
+    for part, low, high in ((split.train, [0, 600], [432, 888]),
+                            (split.validation, [432, 888], [540, 960]),
+                            (split.test, [540, 960], [600, 1000])):
+        target = part + 5
+        first = target < 600
+        assert first.any() and (~first).any()  # both recordings in every part
+        assert ((target >= np.where(first, low[0], low[1]))
+                & (target < np.where(first, high[0], high[1]))).all()
+    rows = split.training_rows()
+    assert rows.sum() == 540 + 360 and rows[:540].all() and rows[600:960].all()
 
 
 def test_minmax_from_training_part_only() -> None:
@@ -125,7 +147,7 @@ def test_minmax_from_training_part_only() -> None:
                      segments=np.array([[0, n]]), sample_period=0.04,
                      geometry=load_robot_description().geometry)
     problem = build_problem(data, 5, 1, test_fraction=0.1, validation_fraction=0.2)
-    assert problem.split.test_start == 180
+    np.testing.assert_array_equal(problem.split.parts, [[0, 144, 180, 200]])
     np.testing.assert_allclose(problem.error_low, [-1e-5, 0.0])
     np.testing.assert_allclose(problem.error_high, [2e-5, 1.0])  # constant column: min + 1
     low, high = minmax_range(np.array([[1.0, np.nan], [3.0, 2.0]]))

@@ -71,7 +71,9 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
     assert content['tuning']['trials_spent'] == 2 + 1  # and one restart of the best point
     assert content['tuning']['restarts_run'] == 1
     assert content['tuning']['best_restart'] in (0, 1)
-    assert content['split']['test_start_row'] == 2160
+    # each bag (1200 samples) is split on its own: its last tenth tests
+    assert content['split']['recording_parts'] == [[0, 918, 1080, 1200],
+                                                   [1200, 2118, 2280, 2400]]
     assert '| RMSE (um) |' in (report / 'report.md').read_text()
     loaded = load_model(model, expected={'features': FEATURES, 'window': 8, 'horizon': 2})
     # the trust chain: the model's sha256 in the report and beside the model
@@ -194,7 +196,8 @@ def test_test_bags_are_the_test_part(tmp_path: Path, bags: list[Path]) -> None:
                 '--report', str(report), *FAST]) == 0
     content = json.loads((report / 'report.json').read_text())
     assert content['split']['test'] == 1200 - 2 - 8 + 1 - 2  # every window of the second bag
-    assert content['split']['test_start_row'] == 1200
+    assert content['split']['recording_parts'] == [[0, 1020, 1200, 1200],
+                                                   [1200, 1200, 1200, 2400]]
     assert str(bags[1]) in content['test_part']
     loaded = load_model(model)
     assert [b['path'] for b in loaded.metadata.training_bags] == [str(bags[0].resolve())]

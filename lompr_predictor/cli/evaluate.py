@@ -86,8 +86,8 @@ def run(args: argparse.Namespace) -> int:
     problem = LearningProblem(
         rows=np.zeros((0, len(meta.features))), error=data.error, stamps=data.stamps,
         window=meta.window, horizon=meta.horizon, sample_period=data.sample_period,
-        split=Split(train=ends[:0], validation=ends[:0], test=ends, validation_start=0,
-                    test_start=0),
+        split=Split(train=ends[:0], validation=ends[:0], test=ends,
+                    parts=np.array([[0, 0, 0, len(data)]])),
         error_low=np.array(norm['error_low']), error_high=np.array(norm['error_high']),
         preview=meta.preview)
     predictions = {'persistence': persistence(data.error, ends), 'model': offline.predicted}

@@ -43,6 +43,7 @@ from lompr_predictor.learning.space import (
     DEFAULT_SPACE,
     DEFAULT_TRIALS,
     HEARTBEAT_SECONDS,
+    NETWORK_INPUTS,
     PAPER_SPACE,
     SPACES,
     SearchSpace,
@@ -78,6 +79,17 @@ def add_parser(subparsers: Any) -> None:
                              'the window (K = --horizon reaches the predicted instant), taken '
                              "from the bags' reference topic; the node then needs "
                              '/lompr/reference_preview. 0: no preview (default)')
+    parser.add_argument('--no-machine-map', dest='machine_map', action='store_false',
+                        help='the plain BO-LSTM of the paper: no machine map under it (the '
+                             "map, fitted first, carries each actuator's error to the tool "
+                             'through the kinematics: what makes a model hold on programs '
+                             'it was not trained on; docs/training.md)')
+    parser.add_argument('--network-inputs', choices=NETWORK_INPUTS, default=None,
+                        help="what the LSTM reads: 'machine' (the machine map's residuals: "
+                             "what holds on programs it was not trained on; the default with "
+                             "the map) or 'all' (every feature, the path's too: best on the "
+                             "program it was trained on, worse on others; the default "
+                             'with --no-machine-map)')
     parser.add_argument('--trials', type=positive_int, default=DEFAULT_TRIALS,
                         help='tuning budget')
     parser.add_argument('--restarts', type=non_negative_int, default=DEFAULT_RESTARTS,
@@ -186,7 +198,8 @@ def run(args: argparse.Namespace) -> int:
         epoch_windows=args.epoch_windows or EPOCH_WINDOWS,
         space=search_space(args), storage=args.storage, study_name=args.study_name,
         workers=args.workers, checkpoints=_path(args.checkpoints), heartbeat=args.heartbeat,
-        progress=not args.quiet,
+        progress=not args.quiet, machine_map=args.machine_map,
+        network_inputs=args.network_inputs or ('machine' if args.machine_map else 'all'),
         test_inputs=bag_inputs(args, args.test_bags) if args.test_bags else None)
     if args.workers_only:
         summary = run_workers(config)

@@ -57,9 +57,18 @@ class CleanData:
     sample_period: float  # median step [s]
     geometry: LomprGeometry  # the robot description's, for the features' inverse kinematics
     counts: dict[str, int] = field(default_factory=dict)  # read / dropped by reason / segments
+    #: (R, 2) [start, end) rows of each recording (bag), in time order; None: one recording
+    recording_rows: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.stamps)
+
+    @property
+    def recordings(self) -> np.ndarray:
+        """(R, 2) [start, end) rows of each recording (one recording if not told)."""
+        if self.recording_rows is None:
+            return np.array([[0, len(self)]], dtype=np.int64)
+        return self.recording_rows
 
     def regular_runs(self) -> np.ndarray:
         """(R, 2) [start, end) row ranges sampled without a missing sample: the segments,
@@ -251,4 +260,15 @@ def clean_recordings(
     counts['kept'] = len(stamps)
     counts['segments'] = len(segments)
     return CleanData(stamps=stamps, error=error, reference=aligned, segments=segments,
-                     sample_period=period * 1e-9, geometry=geometry, counts=counts)
+                     sample_period=period * 1e-9, geometry=geometry, counts=counts,
+                     recording_rows=recording_rows(stamps, ordered))
+
+
+def recording_rows(stamps: np.ndarray, recordings: Sequence[Recording]) -> np.ndarray:
+    """(R, 2) [start, end) rows of clean `stamps` that each of the time-ordered, separated
+    `recordings` holds (a recording that lost every sample is left out)."""
+    bounds = [(int(np.searchsorted(stamps, r.joints.stamps.min(), side='left')),
+               int(np.searchsorted(stamps, r.joints.stamps.max(), side='right')))
+              for r in recordings]
+    return np.array([b for b in bounds if b[1] > b[0]] or [(0, len(stamps))],
+                    dtype=np.int64).reshape(-1, 2)

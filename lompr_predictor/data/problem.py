@@ -3,8 +3,9 @@
 - `window_ends`: windows of `window` rows whose last row and predicted row (`horizon`
   samples later) lie in one run without a missing sample (`CleanData.regular_runs`), so no
   window crosses a gap or spans more time than it says;
-- `chronological_split`: the chronologically last `test_fraction` of the samples is the test
-  part, and the validation part is carved from the end of the training part;
+- `chronological_split`: the chronologically last `test_fraction` of each recording's
+  samples is the test part, and the validation part is carved from the end of its training
+  part (so that recordings of several programs each train, validate and test);
 - `minmax_range`: ranges from the training part only.
 """
 
@@ -47,39 +48,67 @@ def window_ends(segments: np.ndarray, window: int, horizon: int,
 
 @dataclass(frozen=True)
 class Split:
-    """Window ends of each part, and the first row of the validation and test parts."""
+    """Window ends of each part, and where each recording's parts begin."""
 
     train: np.ndarray
     validation: np.ndarray
     test: np.ndarray
-    validation_start: int  # rows before this train (and set the normalisation)
-    test_start: int  # rows from here on are the test part, never seen while tuning
+    #: (R, 4) rows, per recording: its first row, its first validation row, its first test
+    #: row, its end
+    parts: np.ndarray
+
+    def training_rows(self) -> np.ndarray:
+        """(N,) bool: the rows before each recording's test part, the data that trains (and
+        sets the metrics' scale, the machine map and the envelope); never a test row."""
+        rows = np.zeros(int(self.parts[:, 3].max()) if len(self.parts) else 0, dtype=bool)
+        for first, _, test, _ in self.parts:
+            rows[first:test] = True
+        return rows
 
 
-def chronological_split(n_rows: int, ends: np.ndarray, horizon: int, *,
-                        test_fraction: float = TEST_FRACTION,
-                        validation_fraction: float = VALIDATION_FRACTION) -> Split:
-    """Split by time: the last `test_fraction` of the rows is the test part; the last
-    `validation_fraction` of the rest validates. A window belongs to the part of its
-    predicted row, and a training or validation window's target row always precedes the
-    test part (its inputs, being earlier still, too)."""
-    if not 0 < test_fraction < 1 or not 0 < validation_fraction < 1:
-        msg = 'test and validation fractions must lie in (0, 1)'
+def recording_parts(recordings: np.ndarray, test_fraction: float,
+                    validation_fraction: float) -> np.ndarray:
+    """(R, 4) the parts of each recording's rows [first, end) (`Split.parts`): its last
+    `test_fraction` tests, the last `validation_fraction` of the rest validates."""
+    if not 0 <= test_fraction < 1 or not 0 < validation_fraction < 1:
+        msg = 'the test fraction must lie in [0, 1) and the validation fraction in (0, 1)'
         raise ValueError(msg)
-    test_start = round(n_rows * (1 - test_fraction))
-    validation_start = round(test_start * (1 - validation_fraction))
+    first, end = np.asarray(recordings, dtype=np.int64).reshape(-1, 2).T
+    test = first + np.round((end - first) * (1 - test_fraction)).astype(np.int64)
+    validation = first + np.round((test - first) * (1 - validation_fraction)).astype(np.int64)
+    return np.stack([first, validation, test, end], -1)
+
+
+def split_by_parts(parts: np.ndarray, ends: np.ndarray, horizon: int) -> Split:
+    """The windows ending at `ends` by the part of their predicted row (`horizon` rows
+    later), each recording split as `parts` says; a part without windows is a
+    `ProblemError` naming the options that make windows."""
     target = ends + horizon
-    split = Split(train=ends[target < validation_start],
-                  validation=ends[(target >= validation_start) & (target < test_start)],
-                  test=ends[target >= test_start],
-                  validation_start=validation_start, test_start=test_start)
+    recording = np.searchsorted(parts[:, 0], target, side='right') - 1
+    validation, test = parts[recording, 1], parts[recording, 2]
+    split = Split(train=ends[target < validation],
+                  validation=ends[(target >= validation) & (target < test)],
+                  test=ends[target >= test], parts=parts)
     for name in ('train', 'validation', 'test'):
         if len(getattr(split, name)) == 0:
-            msg = (f'no {name} windows: {n_rows} clean samples are too few for this window '
-                   f'(--window) and horizon {horizon} (--horizon), or the gaps leave no '
-                   f'segment long enough')
+            msg = (f'no {name} windows: {int(parts[:, 3].max())} clean samples are too few for '
+                   f'this window (--window) and horizon {horizon} (--horizon), or the gaps '
+                   f'leave no segment long enough')
             raise ProblemError(msg)
     return split
+
+
+def chronological_split(recordings: np.ndarray, ends: np.ndarray, horizon: int, *,
+                        test_fraction: float = TEST_FRACTION,
+                        validation_fraction: float = VALIDATION_FRACTION) -> Split:
+    """Split each recording (rows [first, end), `CleanData.recordings`) by time: its last
+    `test_fraction` of rows is the test part; the last `validation_fraction` of the rest
+    validates. A window belongs to the part of its predicted row, and a training or
+    validation window's target row always precedes its recording's test part (its inputs,
+    being earlier still, too). With recordings of several programs every program is in
+    every part, so the test part scores each one."""
+    return split_by_parts(recording_parts(recordings, test_fraction, validation_fraction),
+                          ends, horizon)
 
 
 def minmax_range(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -95,7 +124,7 @@ def minmax_range(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class LearningProblem:
     """Feature rows, errors and the split windows of one clean data set, for one window
     length and horizon; the error's range over the training part (the metrics' scale; the
-    models take their input ranges from training windows, `training.input_range`)."""
+    models take their input ranges from training windows, `training.input_windows`)."""
 
     rows: np.ndarray  # (N, F) raw feature rows (features.feature_names(preview))
     error: np.ndarray  # (N, 2) plant error [m]
@@ -133,9 +162,9 @@ def build_problem(data: CleanData, window: int = DEFAULT_WINDOW,
     """Windows, chronological split and training-range normalisation of `data`, with the
     preview block of `preview` samples in the rows (0: none)."""
     ends = window_ends(data.regular_runs(), window, horizon, preview)
-    split = chronological_split(len(data), ends, horizon, test_fraction=test_fraction,
+    split = chronological_split(data.recordings, ends, horizon, test_fraction=test_fraction,
                                 validation_fraction=validation_fraction)
-    error_low, error_high = minmax_range(data.error[:split.test_start])
+    error_low, error_high = minmax_range(data.error[split.training_rows()])
     return LearningProblem(rows=data.features(preview), error=data.error, stamps=data.stamps,
                            window=window, horizon=horizon, sample_period=data.sample_period,
                            split=split, error_low=error_low, error_high=error_high,
@@ -145,24 +174,18 @@ def build_problem(data: CleanData, window: int = DEFAULT_WINDOW,
 def train_test_problem(train: CleanData, test: CleanData, window: int = DEFAULT_WINDOW,
                        horizon: int = DEFAULT_HORIZON, *, preview: int = 0,
                        validation_fraction: float = VALIDATION_FRACTION) -> LearningProblem:
-    """Train on one recording, test on another (e.g. another seed of the same machine):
-    `train`'s windows split chronologically into training and validation (its last
-    `validation_fraction`), every window of `test` the test part. The rows of `test` follow
-    those of `train` (`split.test_start` is the first of them); no window spans both."""
+    """Train on some recordings, test on others (e.g. another seed of the same machine, or
+    another program): each of `train`'s recordings split chronologically into training and
+    validation (its last `validation_fraction`), every window of `test` the test part. The
+    rows of `test` follow those of `train`; no window spans both."""
     n_train = len(train)
-    train_ends = window_ends(train.regular_runs(), window, horizon, preview)
-    test_ends = window_ends(test.regular_runs(), window, horizon, preview) + n_train
-    validation_start = round(n_train * (1 - validation_fraction))
-    target = train_ends + horizon
-    split = Split(train=train_ends[target < validation_start],
-                  validation=train_ends[target >= validation_start], test=test_ends,
-                  validation_start=validation_start, test_start=n_train)
-    for name in ('train', 'validation', 'test'):
-        if len(getattr(split, name)) == 0:
-            msg = (f'no {name} windows: the recordings are too short for window {window} and '
-                   f'horizon {horizon} (or the gaps leave no segment long enough)')
-            raise ValueError(msg)
-    error_low, error_high = minmax_range(train.error)
+    ends = np.concatenate([window_ends(train.regular_runs(), window, horizon, preview),
+                           window_ends(test.regular_runs(), window, horizon, preview) + n_train])
+    trained = recording_parts(train.recordings, 0.0, validation_fraction)
+    tested = np.repeat(test.recordings[:, :1], 3, axis=1)
+    parts = np.concatenate([trained, np.column_stack([tested, test.recordings[:, 1:]]) + n_train])
+    split = split_by_parts(parts, ends, horizon)
+    error_low, error_high = minmax_range(train.error[split.training_rows()[:n_train]])
     return LearningProblem(rows=np.vstack([train.features(preview), test.features(preview)]),
                            error=np.vstack([train.error, test.error]),
                            stamps=np.concatenate([train.stamps, test.stamps]),

@@ -100,6 +100,12 @@ class ModelMetadata:
     #: samples of the planned reference after each row the model reads (CONTRACT section 2,
     #: reference preview; 0: none, as in files written before it existed)
     preview: int = 0
+    #: the machine map the model builds on (`machine_map.MachineMap.metadata`; empty: none,
+    #: as in files written before it existed)
+    machine_map: Mapping[str, Any] = field(default_factory=dict)
+    #: the inputs it was trained on (`envelope.InputEnvelope.to_metadata`; empty: unknown,
+    #: as in files written before it existed)
+    envelope: Mapping[str, Any] = field(default_factory=dict)
     format_version: int = FORMAT_VERSION
 
     def to_json(self) -> str:

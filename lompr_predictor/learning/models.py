@@ -13,8 +13,11 @@ it to rows scaled once in float32 (`ScaledRows`, the same map by distributivity)
 Learning problem (recorded in the model metadata):
 - LSTM: the target is the *change* of the error over the horizon, e(t+h) - e(t)
   (`residual=True`): persistence is the prior and the network learns what moves the error
-  away from it, from the reference's position, velocity and acceleration and the recent
-  errors. The LSTM's last state goes through an MLP head, and the network adds a linear
+  away from it. With a machine map (`machine_map.py`, the default of `lompr train`) the prior
+  is persistence plus the change the map predicts from the commanded motion, e(t) + g(t+h) -
+  g(t), and the network also reads every row's map residual e - g: the map carries what
+  transfers between programs (per actuator, through the kinematics), the network what the
+  map misses. The LSTM's last state goes through an MLP head, and the network adds a linear
   "autoregressive highway" on the flattened window (as LSTNet does): the linear part carries
   noise averaging and the linear extrapolation of the path, the LSTM and its head the
   non-linear rest (friction and backlash switching at reversals, posture).
@@ -36,8 +39,13 @@ from torch import nn
 from lompr_predictor.data.cleaning import CleanData
 from lompr_predictor.data.features import FEATURES, TARGETS
 from lompr_predictor.data.problem import window_ends
+from lompr_predictor.learning.machine_map import MachineMap
+from lompr_predictor.learning.space import NETWORK_INPUTS
 
 MODEL_TYPES = ('lstm', 'mlp')
+#: The columns a machine map appends to the rows the network reads: each row's plant error
+#: minus the map's value there (`PredictorModule`).
+MAP_RESIDUALS = ('map_residual_x', 'map_residual_y')
 
 
 #: Rows at the end of the window the LSTM runs over unless the hyperparameters say otherwise
@@ -107,18 +115,41 @@ def error_columns(features: Sequence[str] = FEATURES) -> list[int]:
     return [names.index(f'error_{axis}') for axis in TARGETS]
 
 
+def network_features(features: Sequence[str], machine_map: bool) -> tuple[str, ...]:
+    """The columns of the rows the network's input is taken from: the features, then with a
+    machine map its residuals (`MAP_RESIDUALS`)."""
+    return tuple(features) + (MAP_RESIDUALS if machine_map else ())
+
+
 def network_columns(features: Sequence[str] = FEATURES, relative_errors: bool = True,
-                    error_level: bool = False) -> tuple[list[int], list[float]]:
-    """The network's input columns, as indices into `features`, and which of them are taken
-    relative to the window's last row (1.0) or as they are (0.0): the features, the error
-    columns relative if `relative_errors`, then with `error_level` the error columns again
-    as they are (the level, `PredictorModule`)."""
-    columns = list(range(len(features)))
+                    error_level: bool = False,
+                    inputs: str = 'all') -> tuple[list[int], list[float]]:
+    """The network's input columns, as indices into `features` (`network_features`), and
+    which of them are taken relative to the window's last row (1.0) or as they are (0.0).
+
+    `inputs` 'all': every feature, the error columns (and map residuals) relative if
+    `relative_errors`, then with `error_level` the error columns again as they are (the
+    level, `PredictorModule`). 'machine' (needs a map): the map residuals alone, relative,
+    then with `error_level` again as they are: what the map leaves of the error is the
+    machine's drift, noise and unmodelled dynamics, while the raw error and the motion
+    columns also tell where the path goes, which a network trained on one program learns
+    and then gets wrong on another (docs/training.md, "Programs")."""
+    names = list(features)
     errors = error_columns(features)
-    mask = [1.0 if relative_errors and column in errors else 0.0 for column in columns]
+    residuals = [names.index(name) for name in MAP_RESIDUALS if name in names]
+    if inputs not in NETWORK_INPUTS:
+        msg = f'unknown network inputs {inputs!r}; choose one of {", ".join(NETWORK_INPUTS)}'
+        raise ValueError(msg)
+    if inputs == 'machine' and not residuals:
+        msg = "the network inputs 'machine' are the machine map's residuals: give it a map"
+        raise ValueError(msg)
+    columns = list(range(len(features))) if inputs == 'all' else list(residuals)
+    relative = errors + residuals
+    mask = [1.0 if relative_errors and column in relative else 0.0 for column in columns]
     if error_level:
-        columns += errors
-        mask += [0.0] * len(errors)
+        level = errors if inputs == 'all' else residuals
+        columns += level
+        mask += [0.0] * len(level)
     return columns, mask
 
 
@@ -162,9 +193,16 @@ class PredictorModule(nn.Module):
     def __init__(self, net: nn.Module, feature_low: np.ndarray, feature_high: np.ndarray,
                  target_low: np.ndarray, target_high: np.ndarray, *, residual: bool,
                  relative_errors: bool, error_level: bool = False,
-                 features: Sequence[str] = FEATURES) -> None:
+                 features: Sequence[str] = FEATURES,
+                 machine_map: MachineMap | None = None, inputs: str = 'all') -> None:
         super().__init__()
         self.net = net
+        #: The machine map whose change over the horizon joins the prior and whose residual
+        #: the network reads; a model without one holds an unused empty map (TorchScript
+        #: wants the attribute's type fixed).
+        self.use_map = machine_map is not None
+        self.machine_map = (machine_map if machine_map is not None
+                            else MachineMap(FEATURES, horizon=0, preview=0, sample_period=0.0))
         centre, half = range_to_affine(feature_low, feature_high)
         self.register_buffer('feature_centre', torch.tensor(centre, dtype=torch.float64))
         self.register_buffer('feature_inverse_half', torch.tensor(1.0 / half, dtype=torch.float64))
@@ -172,7 +210,8 @@ class PredictorModule(nn.Module):
         self.register_buffer('target_centre', torch.tensor(centre, dtype=torch.float64))
         self.register_buffer('target_half', torch.tensor(half, dtype=torch.float64))
         self.residual = bool(residual)
-        columns, mask = network_columns(features, relative_errors, error_level)
+        columns, mask = network_columns(network_features(features, self.use_map),
+                                        relative_errors, error_level, inputs)
         self.register_buffer('input_columns', torch.tensor(columns, dtype=torch.long))
         self.register_buffer('relative_mask', torch.tensor(mask, dtype=torch.float64))
         self.register_buffer('error_columns', torch.tensor(error_columns(features),
@@ -182,7 +221,9 @@ class PredictorModule(nn.Module):
     def from_affine(cls, net: nn.Module, feature_centre: np.ndarray, feature_scale: np.ndarray,
                     target_centre: np.ndarray, target_scale: np.ndarray, *, residual: bool,
                     relative_errors: bool, error_level: bool = False,
-                    features: Sequence[str] = FEATURES) -> PredictorModule:
+                    features: Sequence[str] = FEATURES,
+                    machine_map: MachineMap | None = None,
+                    inputs: str = 'all') -> PredictorModule:
         """The module of an input map x_n = (x - centre) / scale and the output map
         y = y_n * scale + centre, e.g. standardisation (mean, standard deviation)."""
         feature_centre, feature_scale, target_centre, target_scale = (
@@ -191,10 +232,12 @@ class PredictorModule(nn.Module):
         return cls(net, feature_centre - feature_scale, feature_centre + feature_scale,
                    target_centre - target_scale, target_centre + target_scale,
                    residual=residual, relative_errors=relative_errors,
-                   error_level=error_level, features=features)
+                   error_level=error_level, features=features, machine_map=machine_map,
+                   inputs=inputs)
 
     def normalise(self, windows: torch.Tensor) -> torch.Tensor:
-        """Raw float64 windows -> normalised float32 network input."""
+        """Float64 windows of the network's rows (`network_features`) -> normalised float32
+        network input."""
         return normalise_windows(windows.index_select(2, self.input_columns), self.relative_mask,
                                  self.feature_centre, self.feature_inverse_half).float()
 
@@ -205,10 +248,37 @@ class PredictorModule(nn.Module):
         return torch.from_numpy(scaled.astype(np.float32))
 
     def forward(self, windows: torch.Tensor) -> torch.Tensor:
-        output = self.net(self.normalise(windows)).double() * self.target_half + self.target_centre
+        if not self.use_map:
+            return self._predict(windows, windows)
+        mapped = self.machine_map.rows(windows)
+        inputs = torch.cat([windows, windows.index_select(2, self.error_columns) - mapped], 2)
+        return (self._predict(inputs, windows) + self.machine_map.ahead(windows[:, -1])
+                - mapped[:, -1])
+
+    def _predict(self, inputs: torch.Tensor, windows: torch.Tensor) -> torch.Tensor:
+        """The network on its rows `inputs`, as an error prediction for raw `windows`."""
+        output = self.net(self.normalise(inputs)).double() * self.target_half + self.target_centre
         if self.residual:
             output = output + windows[:, -1].index_select(1, self.error_columns)
         return output
+
+
+def map_values(machine_map: MachineMap, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 2) the machine map at raw feature rows (N, F), and (N, 2) its value at the
+    instant the model predicts for from each row (`MachineMap.ahead`)."""
+    table = torch.from_numpy(np.ascontiguousarray(rows, dtype=np.float64))
+    with torch.no_grad():
+        return (machine_map.rows(table.unsqueeze(0))[0].numpy(),
+                machine_map.ahead(table).numpy())
+
+
+def with_map_residuals(machine_map: MachineMap, rows: np.ndarray,
+                       errors: Sequence[int]) -> np.ndarray:
+    """(N, F + 2) raw feature rows (N, F) with each row's plant error (columns `errors`)
+    minus the map there appended (`MAP_RESIDUALS`; NaN where the map lacks a feature): the
+    rows a network with a machine map reads (`network_features`)."""
+    values, _ = map_values(machine_map, rows)
+    return np.concatenate([rows, rows[:, list(errors)] - values], axis=1)
 
 
 class ScaledRows:

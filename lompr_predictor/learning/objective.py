@@ -30,6 +30,7 @@ from typing import Any
 import optuna
 
 from lompr_predictor.data.problem import LearningProblem
+from lompr_predictor.learning.machine_map import MachineMap
 from lompr_predictor.learning.model_file import (
     ExportedModule,
     load_checkpoint,
@@ -60,6 +61,10 @@ class NetworkObjective:
     checkpoints: Path  # folder of the trials' checkpoints
     model_type: str = 'lstm'
     progress: bool = False
+    #: The fitted machine map every trial's network builds on (None: the plain network),
+    #: and what the network reads of its rows (`models.network_columns`).
+    machine_map: MachineMap | None = None
+    network_inputs: str = 'all'
 
     def __call__(self, trial: optuna.Trial) -> float:
         params = self.space.suggest(trial)
@@ -84,7 +89,8 @@ class NetworkObjective:
         `restart` (seed + restart, never pruned) when not 0."""
         settings = replace(self.settings, seed=self.settings.seed + restart)
         return train_network(self.problem, self.model_type, params, settings, trial=trial,
-                             prune=not restart, progress=self.progress, label=label)
+                             prune=not restart, progress=self.progress, label=label,
+                             machine_map=self.machine_map, network_inputs=self.network_inputs)
 
     def checkpoint(self, trial_number: int) -> Path:
         """This study's checkpoint path of trial `trial_number`."""

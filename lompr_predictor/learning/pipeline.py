@@ -50,6 +50,8 @@ from lompr_predictor.data.problem import (
 )
 from lompr_predictor.errors import LomprError
 from lompr_predictor.learning.baselines import beats, fit_baselines
+from lompr_predictor.learning.envelope import fit_envelope
+from lompr_predictor.learning.machine_map import MachineMap, fit_machine_map
 from lompr_predictor.learning.metrics import ratios, score_predictions
 from lompr_predictor.learning.model_file import (
     ExportedModule,
@@ -141,6 +143,10 @@ class TrainingConfig:
     progress: bool = True  # progress bars
     test_inputs: BagInputs | None = None  # other recordings as the test part (e.g. another
     # seed of the same machine); None: the chronologically last 10 % of `inputs`
+    machine_map: bool = True  # the BO-LSTM builds on a fitted machine map (`machine_map.py`)
+    #: what its network reads (`models.network_columns`): 'machine' (the map's residuals;
+    #: needs the map) or 'all' (every feature)
+    network_inputs: str = 'machine'
 
     @property
     def settings(self) -> TrainSettings:
@@ -219,6 +225,10 @@ def check_config(config: TrainingConfig, *, finishing: bool = True) -> StorageSp
         msg = (f'--window and --horizon must be >= 1 and --preview >= 0, got {config.window}, '
                f'{config.horizon} and {config.preview}')
         raise StudyError(msg)
+    if config.network_inputs == 'machine' and not config.machine_map:
+        msg = ("--network-inputs machine reads the machine map's residuals: keep the map "
+               '(no --no-machine-map) or give --network-inputs all')
+        raise StudyError(msg)
     if config.max_epochs < 1 or config.patience < 1 or config.epoch_windows < 1:
         msg = (f'--max-epochs, --patience and --epoch-windows must be >= 1, got '
                f'{config.max_epochs}, {config.patience} and {config.epoch_windows}')
@@ -250,7 +260,8 @@ def run_workers(config: TrainingConfig) -> WorkerSummary:
     data, sources = load_clean_data(config.inputs, description.geometry)
     read_seconds = time.perf_counter() - started
     problem = _problem(data, None, config)
-    study, run = _run_study(config, problem, sources, description, storage)
+    machine_map = _machine_map(config, problem, data, description)
+    study, run = _run_study(config, problem, machine_map, sources, description, storage)
     counts = trial_counts(study)
     return WorkerSummary(study_name=study.study_name, storage=storage.spec.describe(), run=run,
                          budget=study_budget(study), restarts=study_restarts(study),
@@ -273,7 +284,8 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
         problem = _problem(data, test_data, config)
         sources = sources + test_sources  # the irreducible level: the test bags' (last)
     read_seconds = time.perf_counter() - started
-    tuned = _tune(config, problem, sources, description, storage)
+    machine_map = _machine_map(config, problem, data, description)
+    tuned = _tune(config, problem, machine_map, sources, description, storage)
     bp_started = time.perf_counter()
     # BP keeps the paper's longer budget; a budget shrunk below the default shrinks it too
     bp_settings = TrainSettings(
@@ -307,7 +319,7 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
                             hyperparameters=baseline.settings, target='residual (e(t+h) - e(t))')
     report = _report(config, problem, data, sources, models, tuned, bp.seconds)
     scoring_seconds = time.perf_counter() - scoring_started
-    metadata = _model_metadata(config, problem, tuned, description, trained_on,
+    metadata = _model_metadata(config, problem, tuned, machine_map, description, trained_on,
                                models['bo_lstm']['metrics'])
     total = time.perf_counter() - started
     # where the time went; write_outputs adds writing_seconds
@@ -327,8 +339,8 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
 
 
 def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tuned,
-                    description: RobotDescription, trained_on: list[BagSource],
-                    test_metrics: dict[str, Any]) -> ModelMetadata:
+                    machine_map: MachineMap | None, description: RobotDescription,
+                    trained_on: list[BagSource], test_metrics: dict[str, Any]) -> ModelMetadata:
     """The metadata the model file carries (CONTRACT section 5)."""
     return ModelMetadata(
         features=problem.features, preview=problem.preview, window=problem.window,
@@ -340,7 +352,9 @@ def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tu
         model_type='lstm',
         hyperparameters={**tuned.params,  # every one, tuned or fixed (`SearchSpace.suggest`)
                          'architecture': 'LSTM over the last lstm_steps rows, last state -> '
-                                         'MLP head (2 GELU layers) + linear highway on the window',
+                                         'MLP head (2 GELU layers) + linear highway on the window'
+                                         + (', on the machine map' if machine_map else ''),
+                         'network_inputs': config.network_inputs if machine_map else 'all',
                          'optimiser': 'AdamW, cosine learning-rate decay over max_epochs',
                          'max_epochs': config.max_epochs, 'patience': config.patience,
                          'epoch_windows': config.epoch_windows,
@@ -349,7 +363,10 @@ def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tu
         training_bags=tuple({'path': str(Path(s.path).resolve()), 'sha256': s.sha256}
                             for s in trained_on if not s.skipped_reason),
         seed=config.seed, library_versions=library_versions(),
-        test_metrics=test_metrics)
+        test_metrics=test_metrics,
+        machine_map=machine_map.metadata() if machine_map is not None else {},
+        envelope=fit_envelope(problem.rows[problem.split.training_rows()],
+                              problem.features).to_metadata())
 
 
 def write_outputs(config: TrainingConfig, result: TrainingResult) -> str:
@@ -422,10 +439,22 @@ def study_definition(config: TrainingConfig, sources: list[BagSource],
             'horizon': config.horizon, 'space': config.space.as_dict(), 'seed': config.seed,
             # only when set: studies of models without a preview keep their names
             **({'preview': config.preview} if config.preview else {}),
+            **({'machine_map': True, 'network_inputs': config.network_inputs}
+               if config.machine_map else {}),
             'settings': vars(config.settings), 'model_type': 'lstm'}
 
 
-def _run_study(config: TrainingConfig, problem: LearningProblem, sources: list[BagSource],
+def _machine_map(config: TrainingConfig, problem: LearningProblem, data: CleanData,
+                 description: RobotDescription) -> MachineMap | None:
+    """The machine map of the problem's training part (None when the config wants none)."""
+    if not config.machine_map:
+        return None
+    training = problem.split.training_rows()[:len(data)]
+    return fit_machine_map(problem, data.reference[training], description.geometry)
+
+
+def _run_study(config: TrainingConfig, problem: LearningProblem,
+               machine_map: MachineMap | None, sources: list[BagSource],
                description: RobotDescription,
                storage: StudyStorage) -> tuple[optuna.Study, TuningRun]:
     """Open (create, resume or join) the study and run it to its budget here."""
@@ -434,7 +463,8 @@ def _run_study(config: TrainingConfig, problem: LearningProblem, sources: list[B
     study = open_study(storage, name, seed=config.seed, budget=config.trials,
                        restarts=config.restarts, definition=definition)
     make_objective = partial(NetworkObjective, problem=problem, space=config.space,
-                             settings=config.settings, checkpoints=config.checkpoint_dir)
+                             settings=config.settings, checkpoints=config.checkpoint_dir,
+                             machine_map=machine_map, network_inputs=config.network_inputs)
     spec = StudySpec(storage=storage.spec, name=name, seed=config.seed, budget=config.trials,
                      restarts=config.restarts)
     workers = config.workers if config.workers is not None else default_workers()
@@ -442,12 +472,14 @@ def _run_study(config: TrainingConfig, problem: LearningProblem, sources: list[B
     return study, run
 
 
-def _tune(config: TrainingConfig, problem: LearningProblem, sources: list[BagSource],
-          description: RobotDescription, storage: StudyStorage) -> _Tuned:
+def _tune(config: TrainingConfig, problem: LearningProblem, machine_map: MachineMap | None,
+          sources: list[BagSource], description: RobotDescription,
+          storage: StudyStorage) -> _Tuned:
     """Run (or resume, or finish) the study to its budget; the best trial's module."""
-    study, run = _run_study(config, problem, sources, description, storage)
+    study, run = _run_study(config, problem, machine_map, sources, description, storage)
     objective = NetworkObjective(study, problem, config.space, config.settings,
-                                 config.checkpoint_dir, progress=config.progress)
+                                 config.checkpoint_dir, progress=config.progress,
+                                 machine_map=machine_map, network_inputs=config.network_inputs)
     started = time.perf_counter()
     best = best_trial(study)
     params = objective.params_of(best)

@@ -72,8 +72,9 @@ def base_report(command: str, problem: LearningProblem, data: CleanData,
         'horizon': problem.horizon, 'preview': problem.preview,
         'features': list(problem.features), 'targets': list(TARGETS),
         'split': {'train': len(split.train), 'validation': len(split.validation),
-                  'test': len(split.test), 'validation_start_row': split.validation_start,
-                  'test_start_row': split.test_start},
+                  'test': len(split.test),
+                  # per recording: first row, first validation row, first test row, end
+                  'recording_parts': split.parts.tolist()},
         'error_range_um': {axis: [problem.error_low[i] * 1e6, problem.error_high[i] * 1e6]
                            for i, axis in enumerate(TARGETS)},
     }

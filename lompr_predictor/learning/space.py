@@ -31,6 +31,9 @@ HEARTBEAT_SECONDS = 10
 #: The LSTM rows a search space uses unless told otherwise (`models.LSTM_STEPS`, kept here
 #: too so that the command line needs no torch).
 DEFAULT_LSTM_STEPS = 10
+#: What the network reads of its rows (`models.network_columns`): the machine map's
+#: residuals, or every feature.
+NETWORK_INPUTS = ('machine', 'all')
 
 
 class SpaceError(LomprError, ValueError):

@@ -25,13 +25,18 @@ from torch import nn
 from tqdm import tqdm
 
 from lompr_predictor.data.problem import LearningProblem, minmax_range
+from lompr_predictor.learning.machine_map import MachineMap
 from lompr_predictor.learning.models import (
     LSTM_STEPS,
     PredictorModule,
     ScaledRows,
     build_network,
+    error_columns,
     gather_windows,
+    map_values,
     network_columns,
+    network_features,
+    with_map_residuals,
 )
 
 #: Defaults of the training loop, in one place.
@@ -94,22 +99,43 @@ def evenly_spaced(ends: np.ndarray, at_most: int) -> np.ndarray:
     return ends[np.linspace(0, len(ends) - 1, at_most).astype(int)]
 
 
-def input_windows(problem: LearningProblem, relative_errors: bool,
-                  error_level: bool = False) -> np.ndarray:
+@dataclass(frozen=True)
+class NetworkRows:
+    """What a network learns from, for one learning problem: the rows its input is taken
+    from (the problem's rows, with a machine map each row's map residual appended,
+    `models.network_features`) and the map's change over the horizon from each row, which
+    the prior already predicts (zeros without a map)."""
+
+    rows: np.ndarray  # (N, F')
+    features: tuple[str, ...]  # names of the columns of `rows`
+    map_change: np.ndarray  # (N, 2) [m]
+
+    def targets(self, problem: LearningProblem, ends: np.ndarray, residual: bool) -> np.ndarray:
+        """(B, 2) the network's targets for the windows ending at `ends`, in SI units."""
+        return problem.targets(ends, residual) - self.map_change[ends]
+
+
+def network_rows(problem: LearningProblem, machine_map: MachineMap | None) -> NetworkRows:
+    """The rows and targets a network of `problem` learns from, with or without a map."""
+    if machine_map is None:
+        return NetworkRows(problem.rows, problem.features, np.zeros((len(problem.rows), 2)))
+    values, ahead = map_values(machine_map, problem.rows)
+    return NetworkRows(with_map_residuals(machine_map, problem.rows,
+                                          error_columns(problem.features)),
+                       network_features(problem.features, True), ahead - values)
+
+
+def input_windows(problem: LearningProblem, inputs: NetworkRows, relative_errors: bool,
+                  error_level: bool = False, network_inputs: str = 'all') -> np.ndarray:
     """(M * window, C) rows of training windows (evenly spaced, at most `RANGE_SAMPLE`) in
     the network's input columns (`models.network_columns`): the training inputs that set
     the normalisation."""
     ends = evenly_spaced(problem.split.train, RANGE_SAMPLE)
-    columns, mask = network_columns(problem.features, relative_errors, error_level)
-    windows = gather_windows(problem.rows[:, columns], ends, problem.window)
+    columns, mask = network_columns(inputs.features, relative_errors, error_level,
+                                    network_inputs)
+    windows = gather_windows(inputs.rows[:, columns], ends, problem.window)
     windows -= windows[:, -1:, :] * np.asarray(mask)
     return windows.reshape(-1, windows.shape[-1])
-
-
-def input_range(problem: LearningProblem, relative_errors: bool,
-                error_level: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """Per-column (min, max) of the network's input over training windows."""
-    return minmax_range(input_windows(problem, relative_errors, error_level))
 
 
 def moments(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -120,24 +146,31 @@ def moments(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def build_module(problem: LearningProblem, model_type: str, hidden: int, *, residual: bool,
                  relative_errors: bool, error_level: bool = False,
-                 steps: int = LSTM_STEPS) -> PredictorModule:
+                 steps: int = LSTM_STEPS, machine_map: MachineMap | None = None,
+                 network_inputs: str = 'all',
+                 inputs: NetworkRows | None = None) -> PredictorModule:
     """An untrained network wrapped with the problem's training normalisation (the model
-    type's, `NORMALISATION`)."""
+    type's, `NORMALISATION`) and the fitted `machine_map` if any, reading
+    `network_inputs` of its rows (`models.network_columns`; `inputs`: the problem's
+    `network_rows`, when the caller has them already)."""
+    inputs = inputs or network_rows(problem, machine_map)
     fit = np.concatenate([problem.split.train, problem.split.validation])
-    targets = problem.targets(fit, residual)
-    inputs = len(network_columns(problem.features, relative_errors, error_level)[0])
-    net = build_network(model_type, inputs, problem.window, hidden, steps)
+    targets = inputs.targets(problem, fit, residual)
+    width = len(network_columns(inputs.features, relative_errors, error_level,
+                                network_inputs)[0])
+    net = build_network(model_type, width, problem.window, hidden, steps)
+    windows = input_windows(problem, inputs, relative_errors, error_level, network_inputs)
+    options: dict[str, Any] = {'residual': residual, 'relative_errors': relative_errors,
+                               'error_level': error_level, 'features': problem.features,
+                               'machine_map': machine_map, 'inputs': network_inputs}
     if NORMALISATION[model_type] == 'standard':
-        centre, scale = moments(input_windows(problem, relative_errors, error_level))
+        centre, scale = moments(windows)
         target_centre, target_scale = moments(targets)
         return PredictorModule.from_affine(net, centre, scale, target_centre, target_scale,
-                                           residual=residual, relative_errors=relative_errors,
-                                           error_level=error_level, features=problem.features)
-    low, high = input_range(problem, relative_errors, error_level)
+                                           **options)
+    low, high = minmax_range(windows)
     target_low, target_high = minmax_range(targets)
-    return PredictorModule(net, low, high, target_low, target_high, residual=residual,
-                           relative_errors=relative_errors, error_level=error_level,
-                           features=problem.features)
+    return PredictorModule(net, low, high, target_low, target_high, **options)
 
 
 def validation_loss(net: nn.Module, inputs: ScaledRows, ends: np.ndarray,
@@ -211,11 +244,14 @@ def train_network(
     prune: bool = True,
     progress: bool = True,
     label: str = '',
+    machine_map: MachineMap | None = None,
+    network_inputs: str = 'all',
 ) -> TrainedModel:
     """Train one network on `problem`; hyperparameters: batch_size, hidden, learning_rate,
     and optionally weight_decay (default 0), lstm_steps (default `LSTM_STEPS`) and
     error_level (default False: the window's error level as more input columns,
-    `PredictorModule`).
+    `PredictorModule`). With a fitted `machine_map` the network builds on it and reads
+    `network_inputs` of its rows (`models.network_columns`).
 
     `trial` (an Optuna trial) gets the validation loss each epoch; when its pruner says
     so (and `prune`), training stops there (`pruned_epoch`) and the result is the best loss
@@ -227,14 +263,17 @@ def train_network(
     rng = np.random.default_rng(settings.seed)
     window, split = problem.window, problem.split
     batch = int(hyperparameters['batch_size'])
+    rows = network_rows(problem, machine_map)
     module = build_module(problem, model_type, int(hyperparameters['hidden']), residual=residual,
                           relative_errors=relative_errors,
                           error_level=bool(hyperparameters.get('error_level', False)),
-                          steps=int(hyperparameters.get('lstm_steps', LSTM_STEPS)))
+                          steps=int(hyperparameters.get('lstm_steps', LSTM_STEPS)),
+                          machine_map=machine_map, network_inputs=network_inputs,
+                          inputs=rows)
     net = module.net
-    inputs = ScaledRows(module, problem.rows)
+    inputs = ScaledRows(module, rows.rows)
     validation_ends = evenly_spaced(split.validation, settings.epoch_windows)
-    train_y, validation_y = (module.normalise_targets(problem.targets(ends, residual))
+    train_y, validation_y = (module.normalise_targets(rows.targets(problem, ends, residual))
                              for ends in (split.train, validation_ends))
     epoch_size = min(len(split.train), settings.epoch_windows)
     schedule = _Schedule(net, model_type, hyperparameters,

@@ -489,6 +489,31 @@ def inverse_kinematics(
                      head=np.stack([theta1, theta2], -1))
 
 
+def tool_branch_jacobian(geometry: LomprGeometry, tips: np.ndarray) -> np.ndarray:
+    """(N, 2, 3) d(tool-tip X, Y) / d(branch lengths ups1..3) at the vertical-tool postures of
+    (N, 3) tool tips, the head angles held: where a branch that is longer or shorter than
+    commanded puts the tool tip. The learned machine map carries its branch errors to the
+    tool with it, so that what it learns is per actuator, as the error arises.
+
+    dtip/dL = dtip/dq (dL/dq)^-1, q the UP-branch joints (alpha, beta, d): the branch rows of
+    `_lengths_and_jacobian` in closed form, the tip's by central differences of `_tool_tip`
+    (offline only: the trainer, never the per-sample path).
+    """
+    path = inverse_kinematics(geometry, tips)
+    up, head = path.up, path.head
+    rows, _ = _lengths_and_jacobian(geometry, up)
+    length_rows = np.stack([np.stack(row, -1) for row in rows], 1)  # (N, branch, q)
+    step = 1e-7
+    tip_columns = []
+    for column in range(3):
+        delta = np.zeros(3)
+        delta[column] = step
+        tip_columns.append((_tool_tip(geometry, up + delta, head)
+                            - _tool_tip(geometry, up - delta, head)) / (2.0 * step))
+    tip_rows = np.stack(tip_columns, -1)  # (N, xyz, q)
+    return (tip_rows @ np.linalg.inv(length_rows))[:, :2, :]
+
+
 class VerticalToolBranches:
     """Branch lengths for tool-tip positions with the tool vertical: the closed form of
     `inverse_kinematics` for the three driven branches, on Python floats (`at`, one sample,

@@ -1,0 +1,99 @@
+"""The trained envelope: the ranges of the inputs a model was trained on, carried in its
+metadata, so that the predictor knows when a sample lies outside what training saw.
+
+A learned model is trustworthy where its training data were; a program that moves faster,
+accelerates harder or reaches poses the recordings never did makes it extrapolate. For each
+feature column that describes the commanded motion and posture (every column but the plant
+error, whose level drifts with the machine's temperature and is taken relative inside the
+model), the envelope holds the training rows' range widened by `margin` of it on each side.
+A row is inside when every such column is; the predictor counts the rows outside, names the
+column that left it first, and the live guard (`online.guard`) holds the model back while
+too many recent rows lie outside.
+
+Cheap at the sample rate: `contains` compares one row's floats, a few dozen comparisons.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+#: Widening of each column's training range, as a fraction of the range, on each side:
+#: recordings of the same program differ by a little (noise, feed override rounding), which
+#: is no extrapolation.
+ENVELOPE_MARGIN = 0.1
+
+
+@dataclass(frozen=True)
+class InputEnvelope:
+    """Per checked feature column (`columns`, indices into the model's features, named
+    `names`), the inclusive [low, high] of the inputs inside the envelope."""
+
+    columns: tuple[int, ...]
+    names: tuple[str, ...]
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+    margin: float
+
+    def contains(self, row: Sequence[float]) -> bool:
+        """Whether every checked column of the feature row `row` lies in its range (a NaN
+        does not)."""
+        for column, low, high in zip(self.columns, self.low, self.high, strict=True):
+            value = row[column]
+            if not low <= value <= high:
+                return False
+        return True
+
+    def first_outside(self, row: Sequence[float]) -> str | None:
+        """The name of the first checked column of `row` outside its range, None if none."""
+        for name, column, low, high in zip(self.names, self.columns, self.low, self.high,
+                                           strict=True):
+            if not low <= row[column] <= high:
+                return name
+        return None
+
+    def to_metadata(self) -> dict[str, Any]:
+        """The model file's `envelope` entry: the ranges by feature name."""
+        return {'margin': self.margin,
+                'ranges': {name: [low, high]
+                           for name, low, high in zip(self.names, self.low, self.high,
+                                                      strict=True)}}
+
+    @classmethod
+    def from_metadata(cls, entry: Mapping[str, Any],
+                      features: Sequence[str]) -> InputEnvelope | None:
+        """The envelope a model file's metadata holds for its `features`; None for a file
+        written without one (it still loads: the guard then compares live scores only)."""
+        if not entry:
+            return None
+        names = list(features)
+        ranges = entry['ranges']
+        checked = [name for name in names if name in ranges]
+        return cls(columns=tuple(names.index(name) for name in checked),
+                   names=tuple(checked),
+                   low=tuple(float(ranges[name][0]) for name in checked),
+                   high=tuple(float(ranges[name][1]) for name in checked),
+                   margin=float(entry.get('margin', 0.0)))
+
+
+def fit_envelope(rows: np.ndarray, features: Sequence[str],
+                 margin: float = ENVELOPE_MARGIN) -> InputEnvelope:
+    """The envelope of training feature rows (N, F) named `features`: every column but the
+    plant error's, its finite values' range widened by `margin` of it on each side."""
+    if margin < 0:
+        msg = f'the envelope margin is a fraction >= 0 of each range, got {margin}'
+        raise ValueError(msg)
+    columns = [i for i, name in enumerate(features) if not name.startswith('error_')]
+    values = np.asarray(rows, dtype=float)[:, columns]
+    finite = np.isfinite(values).all(axis=1)
+    if not finite.any():
+        msg = 'no training row has every feature: the envelope has nothing to span'
+        raise ValueError(msg)
+    low, high = values[finite].min(axis=0), values[finite].max(axis=0)
+    widen = margin * (high - low)
+    return InputEnvelope(columns=tuple(columns), names=tuple(features[i] for i in columns),
+                         low=tuple((low - widen).tolist()), high=tuple((high + widen).tolist()),
+                         margin=margin)

@@ -1,0 +1,249 @@
+"""The machine map: the plant error that the commanded motion and posture explain, in the
+form the robot's kinematics give it; fitted by least squares, the prior of the BO-LSTM.
+
+Why. The error sources of this machine act per actuator: a branch's servo lags its commanded
+velocity and acceleration, its friction follows its direction of motion and speed, and its
+error reaches the tool tip through the robot's Jacobian; a static part (elastic sag, head and
+geometric errors) follows the posture. A network that reads the path's positions and
+velocities instead learns the path: trained on one program it predicted another worse than
+persistence. A map with the machine's structure has a few dozen coefficients, each a property
+of one actuator or of the posture, and what it learns on one program holds on the others
+(docs/training.md, "Programs"; docs/results.md has the figures).
+
+For a feature row (the commanded tool tip x, y; per driven branch i its commanded velocity
+v_i and acceleration a_i along the reference, `data.features`):
+
+    g = J (c_v v + c_a a + sum_k c_k tanh(v / s_k)) + P(x, y)
+
+- J (2 x 3): tool-tip X, Y per unit branch length, `kinematics.tool_branch_jacobian`
+  averaged over the training poses (the robot description's kinematics, not fitted);
+- c_v, c_a, c_k (one per branch each): the branch's length error per unit of its motion, the
+  inner sum being the branch's own error (servo lag, friction);
+- s_k: friction speed scales, `FRICTION_SCALES` times the training rows' RMS branch speed, so
+  that a friction sign switching sharply or smoothly is in reach whatever the machine's feed;
+- P: a quadratic in x, y per axis (the posture's static error).
+
+How the model uses it (`models.PredictorModule`): the prior for the instant h samples after
+row t is e(t) + g(row t+h) - g(row t), the row t+h being the reference preview's where the
+model has one and row t's extrapolated at constant acceleration beyond what the preview
+covers; the network reads every row's map residual e - g and predicts what the prior misses
+(the noise averaging and drift of the residual, non-linear effects the map lacks).
+
+The map is a TorchScript-able module: the exported model computes it from the raw window,
+so the node runs the same numbers as the trainer.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from lompr_predictor.data.features import TARGETS
+from lompr_predictor.data.problem import LearningProblem
+from lompr_predictor.robot.description import BRANCH_JOINTS, LomprGeometry
+from lompr_predictor.robot.kinematics import tool_branch_jacobian
+
+#: Friction speed scales as fractions of the training rows' RMS commanded branch speed: a
+#: sign change smoothed over a third of the typical speed down to one switching within a
+#: sample. The map's least squares weighs them; an unused scale costs one coefficient.
+FRICTION_SCALES = (0.3, 0.1, 0.03, 0.01, 0.003)
+#: Terms of the posture polynomial in the tool's x, y (per axis).
+POSTURE_TERMS = ('1', 'x', 'y', 'x^2', 'x*y', 'y^2')
+#: Relative Tikhonov penalty of the least squares (times the basis' mean square): keeps a
+#: scale that the training motion never excites at zero instead of at a large value.
+RIDGE = 1e-9
+#: Commanded poses the Jacobian is averaged over (it changes by a few per cent over the
+#: mirror, so a few thousand evenly spaced poses give its mean to far better than that).
+JACOBIAN_POSES = 2000
+
+
+class MachineMap(nn.Module):
+    """The map g of a feature row (module docstring), for the feature columns `features`,
+    predicting `horizon` samples ahead with a preview of `preview` samples at
+    `sample_period` [s]. Coefficients zero until `fit`."""
+
+    if TYPE_CHECKING:  # the buffers, for the type checker only (see `models.PredictorModule`)
+        jacobian: torch.Tensor
+        scales: torch.Tensor
+        branch_coefficients: torch.Tensor
+        posture_coefficients: torch.Tensor
+        position_columns: torch.Tensor
+        velocity_columns: torch.Tensor
+        acceleration_columns: torch.Tensor
+        ahead_position_columns: torch.Tensor
+        ahead_tool_velocity_columns: torch.Tensor
+        ahead_velocity_columns: torch.Tensor
+        ahead_acceleration_columns: torch.Tensor
+
+    def __init__(self, features: Sequence[str], horizon: int, preview: int,
+                 sample_period: float, jacobian: np.ndarray | None = None,
+                 speed_scales: np.ndarray | None = None) -> None:
+        super().__init__()
+        names = list(features)
+        scales = np.ones(len(FRICTION_SCALES)) if speed_scales is None else speed_scales
+        self.register_buffer('jacobian', _tensor(np.zeros((len(TARGETS), len(BRANCH_JOINTS)))
+                                                 if jacobian is None else jacobian))
+        self.register_buffer('scales', _tensor(scales))
+        self.register_buffer('branch_coefficients',
+                             torch.zeros(2 + len(scales), len(BRANCH_JOINTS), dtype=torch.float64))
+        self.register_buffer('posture_coefficients',
+                             torch.zeros(len(POSTURE_TERMS), len(TARGETS), dtype=torch.float64))
+        # where the map reads a row, and the row it takes for the predicted instant: the
+        # preview's (its position as a displacement from the row) or the row's own
+        ahead = 'plan_' if preview else ''
+        self.register_buffer('position_columns', _columns(names, ('ref_x', 'ref_y')))
+        self.register_buffer('velocity_columns', _columns(names, _branch('v')))
+        self.register_buffer('acceleration_columns', _columns(names, _branch('a')))
+        self.register_buffer('ahead_position_columns', _columns(
+            names, ('plan_dx', 'plan_dy') if preview else ('ref_x', 'ref_y')))
+        self.register_buffer('ahead_tool_velocity_columns', _columns(
+            names, (f'{ahead}ref_vx', f'{ahead}ref_vy')))
+        self.register_buffer('ahead_velocity_columns',
+                             _columns(names, tuple(ahead + n for n in _branch('v'))))
+        self.register_buffer('ahead_acceleration_columns',
+                             _columns(names, tuple(ahead + n for n in _branch('a'))))
+        self.plan_is_displacement = bool(preview)
+        #: how far beyond the row read for the predicted instant it lies [s]
+        self.extrapolation = float(max(horizon - preview, 0) * sample_period)
+
+    # -- the map --------------------------------------------------------------------------
+
+    def evaluate(self, x: torch.Tensor, y: torch.Tensor, velocity: torch.Tensor,
+                 acceleration: torch.Tensor) -> torch.Tensor:
+        """(..., 2) g for positions x, y (...) and branch velocities and accelerations
+        (..., 3)."""
+        motion = self.branch_motion(velocity, acceleration)
+        branch_error = (motion * self.branch_coefficients).sum(-2)  # (..., 3)
+        return (branch_error @ self.jacobian.t()
+                + posture_terms(x, y) @ self.posture_coefficients)
+
+    def branch_motion(self, velocity: torch.Tensor, acceleration: torch.Tensor) -> torch.Tensor:
+        """(..., 2 + S, 3): per branch its velocity, acceleration and friction signs."""
+        signs = torch.tanh(velocity.unsqueeze(-2) / self.scales.unsqueeze(-1))
+        return torch.cat([velocity.unsqueeze(-2), acceleration.unsqueeze(-2), signs], -2)
+
+    def rows(self, windows: torch.Tensor) -> torch.Tensor:
+        """(B, W, 2) g of every row of raw windows (B, W, F)."""
+        position = windows.index_select(2, self.position_columns)
+        return self.evaluate(position[..., 0], position[..., 1],
+                             windows.index_select(2, self.velocity_columns),
+                             windows.index_select(2, self.acceleration_columns))
+
+    def ahead(self, last: torch.Tensor) -> torch.Tensor:
+        """(B, 2) g at the predicted instant from the windows' last rows (B, F): the
+        preview's row (or the last row), extrapolated by `extrapolation` seconds at
+        constant acceleration."""
+        position = last.index_select(1, self.ahead_position_columns)
+        if self.plan_is_displacement:
+            position = position + last.index_select(1, self.position_columns)
+        velocity = last.index_select(1, self.ahead_velocity_columns)
+        acceleration = last.index_select(1, self.ahead_acceleration_columns)
+        lead = self.extrapolation
+        position = position + last.index_select(1, self.ahead_tool_velocity_columns) * lead
+        velocity = velocity + acceleration * lead
+        return self.evaluate(position[:, 0], position[:, 1], velocity, acceleration)
+
+    # -- fitting --------------------------------------------------------------------------
+
+    def basis(self, rows: np.ndarray) -> np.ndarray:
+        """(N, 2, C) the map's basis at feature rows (N, F): g = basis @ coefficients."""
+        table = torch.from_numpy(np.ascontiguousarray(rows, dtype=np.float64))
+        with torch.no_grad():
+            position = table.index_select(1, self.position_columns)
+            motion = self.branch_motion(table.index_select(1, self.velocity_columns),
+                                        table.index_select(1, self.acceleration_columns))
+            # branch part: motion[n, p, i] * J[a, i]; posture part: term[n, m] * delta(a, a')
+            branch = motion.unsqueeze(1) * self.jacobian.unsqueeze(-2)  # (N, 2, P, 3)
+            terms = posture_terms(position[:, 0], position[:, 1])  # (N, M)
+            eye = torch.eye(len(TARGETS), dtype=torch.float64)
+            posture = terms.unsqueeze(1).unsqueeze(-1) * eye.unsqueeze(1)  # (N, 2, M, 2)
+        return torch.cat([branch.flatten(2), posture.flatten(2)], 2).numpy()
+
+    def fit(self, rows: np.ndarray, error: np.ndarray) -> float:
+        """Least squares of the coefficients on feature rows (N, F) and their plant errors
+        (N, 2), rows with a NaN left out; returns the RMS [m] of the fit's residual."""
+        basis = self.basis(rows)
+        usable = np.isfinite(basis).all(axis=(1, 2)) & np.isfinite(error).all(axis=1)
+        if usable.sum() < basis.shape[2]:
+            msg = (f'the machine map needs at least {basis.shape[2]} rows with every feature, '
+                   f'got {int(usable.sum())}')
+            raise ValueError(msg)
+        design = basis[usable].reshape(-1, basis.shape[2])
+        target = np.asarray(error, dtype=float)[usable].reshape(-1)
+        scale = np.sqrt(np.mean(design ** 2, axis=0))
+        scale[scale == 0] = 1.0
+        scaled = design / scale
+        gram = scaled.T @ scaled
+        gram[np.diag_indices_from(gram)] += RIDGE * len(scaled)
+        coefficients = np.linalg.solve(gram, scaled.T @ target) / scale
+        n_branch = self.branch_coefficients.numel()
+        with torch.no_grad():
+            self.branch_coefficients.copy_(torch.from_numpy(
+                coefficients[:n_branch].reshape(self.branch_coefficients.shape)))
+            self.posture_coefficients.copy_(torch.from_numpy(
+                coefficients[n_branch:].reshape(self.posture_coefficients.shape)))
+        residual = target - design @ coefficients
+        return float(np.sqrt(np.mean(residual ** 2)))
+
+    def metadata(self) -> dict[str, Any]:
+        """The map's constants, for the model file's metadata (people and tools)."""
+        return {'form': 'g = J (c_v v + c_a a + sum_k c_k tanh(v / s_k)) + P(x, y)',
+                'jacobian': self.jacobian.tolist(),
+                'friction_scales': self.scales.tolist(),
+                'branch_coefficients': dict(zip(
+                    ('velocity', 'acceleration',
+                     *(f'tanh(v / {s:.3g})' for s in self.scales.tolist())),
+                    self.branch_coefficients.tolist(), strict=True)),
+                'posture_terms': list(POSTURE_TERMS),
+                'posture_coefficients': self.posture_coefficients.tolist(),
+                'extrapolation_seconds': self.extrapolation}
+
+
+def posture_terms(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """(..., len(POSTURE_TERMS)) the posture polynomial's terms at x, y (...)."""
+    return torch.stack([torch.ones_like(x), x, y, x * x, x * y, y * y], -1)
+
+
+def speed_scales(rows: np.ndarray, features: Sequence[str]) -> np.ndarray:
+    """(S,) friction speed scales [m/s]: `FRICTION_SCALES` times the RMS commanded branch
+    speed of feature rows (N, F)."""
+    columns = [list(features).index(name) for name in _branch('v')]
+    speeds = np.asarray(rows, dtype=float)[:, columns]
+    rms = float(np.sqrt(np.nanmean(speeds ** 2))) if np.isfinite(speeds).any() else 0.0
+    if not rms > 0.0:
+        msg = 'the machine map needs commanded motion: the training rows never move a branch'
+        raise ValueError(msg)
+    return rms * np.asarray(FRICTION_SCALES)
+
+
+def _branch(quantity: str) -> tuple[str, ...]:
+    return tuple(f'{branch}_{quantity}' for branch in BRANCH_JOINTS)
+
+
+def _columns(names: list[str], wanted: Sequence[str]) -> torch.Tensor:
+    return torch.tensor([names.index(name) for name in wanted], dtype=torch.long)
+
+
+def _tensor(values: np.ndarray) -> torch.Tensor:
+    return torch.tensor(np.asarray(values, dtype=float), dtype=torch.float64)
+
+
+def fit_machine_map(problem: LearningProblem, tips: np.ndarray,
+                    geometry: LomprGeometry) -> MachineMap:
+    """The machine map of `problem`, fitted on its training part's rows: its Jacobian from
+    the robot's kinematics at the training recordings' commanded tool tips (N, 3) [m]
+    (`JACOBIAN_POSES` of them, evenly spaced, suffice for a mean)."""
+    training = problem.split.training_rows()
+    rows, error = problem.rows[training], problem.error[training]
+    tips = np.asarray(tips, dtype=float)
+    sample = tips[np.linspace(0, len(tips) - 1, min(len(tips), JACOBIAN_POSES)).astype(int)]
+    jacobian = tool_branch_jacobian(geometry, sample)
+    machine_map = MachineMap(problem.features, problem.horizon, problem.preview,
+                             problem.sample_period,
+                             np.nanmean(jacobian, axis=0), speed_scales(rows, problem.features))
+    machine_map.fit(rows, error)
+    return machine_map

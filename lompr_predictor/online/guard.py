@@ -1,0 +1,213 @@
+"""The live guard: the model compensates only while it does better than persistence.
+
+A learned model can be wrong on a program or a machine it was not trained on, and then its
+offset makes the error worse than the simplest compensator, persistence (the offset for an
+instant is minus the plant error measured `horizon` samples before it). The guard scores
+both on the same instants as their truth arrives (the contract's plant error, which holds
+under compensation), per axis, and chooses, per axis, whose prediction is published:
+
+- each aligned sample's plant error e(t) is the truth of the predictions made for t: the
+  model's (the prediction it made `horizon` samples earlier, kept by instant whether it was
+  published or not) and persistence's (e(t - horizon)); where both exist, the squared
+  residuals enter an exponentially weighted mean over about `window` instants;
+- an axis is handed over to persistence when the model's live RMS exceeds persistence's by
+  more than `margin` (relative), and handed back when it is below persistence's by
+  `margin`: the gap between the two thresholds is the hysteresis; no switch within
+  `min_dwell` instants of the last one, and none before `min_scored` instants were scored;
+- a sample whose feature row lies outside the model's trained envelope (`envelope.py`) is
+  counted; while more than `envelope_fraction` of the recent rows lie outside it, both axes
+  are held back whatever the live scores (the model is extrapolating);
+- persistence's prediction is the last plant error, which the guard is handed with every
+  prediction, so holding back costs nothing but the choice.
+
+The guard is ROS-free and runs on Python floats: a few dozen operations per sample. A model
+file without an envelope is guarded by the live comparison alone.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+
+from lompr_predictor.online.offset import XY, InstantSchedule
+
+AXES = ('x', 'y')
+
+
+class GuardState(StrEnum):
+    """Whose prediction an axis publishes."""
+
+    MODEL = 'model'
+    PERSISTENCE = 'persistence'
+
+
+class GuardReason(StrEnum):
+    """Why the guard holds the model back on an axis."""
+
+    WORSE_THAN_PERSISTENCE = 'worse_than_persistence'  # its live RMS, by the margin
+    OUTSIDE_ENVELOPE = 'outside_envelope'  # the inputs left what training saw
+
+
+@dataclass(frozen=True)
+class GuardSettings:
+    """The guard's rules (module docstring); `enabled` False publishes the model always
+    (the scores and counts go on)."""
+
+    enabled: bool = True
+    window: int = 250  # instants the live RMS is weighted over (time constant)
+    margin: float = 0.05  # relative: hand over above (1 + margin) x, back below (1 - margin) x
+    min_dwell: int = 50  # instants between two switches of an axis, at least
+    min_scored: int = 50  # instants scored before the first decision
+    envelope_fraction: float = 0.2  # recent rows outside the envelope that hold the model back
+
+    def __post_init__(self) -> None:
+        if self.window < 1 or self.min_dwell < 0 or self.min_scored < 0:
+            msg = (f'guard window must be >= 1, min_dwell and min_scored >= 0, got '
+                   f'{self.window}, {self.min_dwell}, {self.min_scored}')
+            raise ValueError(msg)
+        if not 0.0 <= self.margin < 1.0 or not 0.0 <= self.envelope_fraction <= 1.0:
+            msg = (f'guard margin must lie in [0, 1) and envelope_fraction in [0, 1], got '
+                   f'{self.margin} and {self.envelope_fraction}')
+            raise ValueError(msg)
+
+
+@dataclass(frozen=True)
+class AxisStatus:
+    """One axis of the guard, for diagnostics."""
+
+    state: GuardState
+    reason: GuardReason | None  # why the model is held back (None: it is not)
+    model_rms: float  # live RMS of the model's residual [m] (NaN before the first)
+    persistence_rms: float  # live RMS of persistence's residual [m], same instants
+    hand_overs: int  # switches model -> persistence
+    hand_backs: int  # switches persistence -> model
+
+
+class _Axis:
+    """The live scores and state of one axis."""
+
+    def __init__(self) -> None:
+        self.model_ms = 0.0
+        self.persistence_ms = 0.0
+        self.state = GuardState.MODEL
+        self.reason: GuardReason | None = None
+        self.since_switch = 0
+        self.hand_overs = 0
+        self.hand_backs = 0
+
+    def score(self, model_residual: float, persistence_residual: float, weight: float) -> None:
+        self.model_ms += weight * (model_residual * model_residual - self.model_ms)
+        self.persistence_ms += weight * (persistence_residual * persistence_residual
+                                         - self.persistence_ms)
+
+    def decide(self, settings: GuardSettings, scored: int, outside: bool) -> None:
+        """Switch if the rules say so (module docstring)."""
+        self.since_switch += 1
+        if self.since_switch < settings.min_dwell:
+            return
+        wanted, reason = self._wanted(settings, scored, outside)
+        if wanted is self.state:
+            if wanted is GuardState.PERSISTENCE:
+                self.reason = reason
+            return
+        self.state, self.reason, self.since_switch = wanted, reason, 0
+        if wanted is GuardState.PERSISTENCE:
+            self.hand_overs += 1
+        else:
+            self.hand_backs += 1
+
+    def _wanted(self, settings: GuardSettings, scored: int,
+                outside: bool) -> tuple[GuardState, GuardReason | None]:
+        if outside:
+            return GuardState.PERSISTENCE, GuardReason.OUTSIDE_ENVELOPE
+        if scored < settings.min_scored:
+            return self.state, self.reason
+        # compare mean squares: (1 + margin)^2 is the RMS ratio's threshold squared
+        model, reference = self.model_ms, self.persistence_ms
+        if self.state is GuardState.MODEL:
+            if model > (1.0 + settings.margin) ** 2 * reference:
+                return GuardState.PERSISTENCE, GuardReason.WORSE_THAN_PERSISTENCE
+            return GuardState.MODEL, None
+        if model < (1.0 - settings.margin) ** 2 * reference:
+            return GuardState.MODEL, None
+        return GuardState.PERSISTENCE, GuardReason.WORSE_THAN_PERSISTENCE
+
+
+class LiveGuard:
+    """Chooses per axis between the model's prediction and persistence's (module
+    docstring), on a grid of instants `period_ns` apart, predictions `lead_ns` ahead."""
+
+    def __init__(self, settings: GuardSettings, lead_ns: int, period_ns: int) -> None:
+        self.settings = settings
+        self._lead_ns = lead_ns
+        tolerance = period_ns // 2
+        self._model = InstantSchedule(tolerance)
+        self._persistence = InstantSchedule(tolerance)
+        self._weight = 1.0 / settings.window
+        self._axes = (_Axis(), _Axis())
+        self._outside = 0.0  # weighted fraction of recent rows outside the envelope
+        self.scored = 0  # instants where both predictions met their truth
+        self.outside_rows = 0  # rows outside the envelope, in all
+        self.published_persistence = 0  # predictions published with an axis held back
+
+    def observe(self, stamp_ns: int, error_x: float, error_y: float) -> None:
+        """The plant error of the sample at `stamp_ns`: the truth of the predictions made
+        for it, scored where both exist."""
+        model = self._model.take(stamp_ns)
+        persistence = self._persistence.take(stamp_ns)
+        if model is None or persistence is None:
+            return
+        weight = max(self._weight, 1.0 / (self.scored + 1))  # a plain mean until `window`
+        self.scored += 1
+        axis_x, axis_y = self._axes
+        axis_x.score(error_x - model[0], error_x - persistence[0], weight)
+        axis_y.score(error_y - model[1], error_y - persistence[1], weight)
+
+    def choose(self, stamp_ns: int, model: XY, last_error: XY, inside_envelope: bool) -> XY:
+        """The prediction to publish for the instant `lead_ns` after the sample at
+        `stamp_ns`, given the model's, the sample's plant error (persistence's prediction)
+        and whether the sample's feature row lies inside the trained envelope."""
+        instant = stamp_ns + self._lead_ns
+        self._model.add(instant, model)
+        self._persistence.add(instant, last_error)
+        if not inside_envelope:
+            self.outside_rows += 1
+        self._outside += self._weight * ((0.0 if inside_envelope else 1.0) - self._outside)
+        outside = self._outside > self.settings.envelope_fraction
+        axis_x, axis_y = self._axes
+        axis_x.decide(self.settings, self.scored, outside)
+        axis_y.decide(self.settings, self.scored, outside)
+        if not self.settings.enabled:
+            return model
+        use_x = axis_x.state is GuardState.MODEL
+        use_y = axis_y.state is GuardState.MODEL
+        if use_x and use_y:
+            return model
+        self.published_persistence += 1
+        return (model[0] if use_x else last_error[0], model[1] if use_y else last_error[1])
+
+    def reset(self) -> None:
+        """Forget the predictions awaiting their truth (the window was emptied: a fault, a
+        restart); the live scores and states are kept, being the machine's."""
+        self._model = InstantSchedule(self._model.tolerance_ns)
+        self._persistence = InstantSchedule(self._persistence.tolerance_ns)
+
+    @property
+    def holding(self) -> bool:
+        """Whether the model is held back on an axis (or would be, with the guard off)."""
+        return any(axis.state is GuardState.PERSISTENCE for axis in self._axes)
+
+    @property
+    def outside_fraction(self) -> float:
+        """The weighted fraction of recent rows outside the envelope."""
+        return self._outside
+
+    def status(self) -> tuple[AxisStatus, AxisStatus]:
+        """Per axis (X, Y): state, reason, live RMS of both, switches."""
+        def one(axis: _Axis) -> AxisStatus:
+            nan = float('nan')
+            return AxisStatus(state=axis.state, reason=axis.reason,
+                              model_rms=axis.model_ms ** 0.5 if self.scored else nan,
+                              persistence_rms=axis.persistence_ms ** 0.5 if self.scored else nan,
+                              hand_overs=axis.hand_overs, hand_backs=axis.hand_backs)
+        return one(self._axes[0]), one(self._axes[1])

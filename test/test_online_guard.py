@@ -1,0 +1,142 @@
+"""The live guard: the model compensates an axis only while it beats persistence there, and
+not while its inputs lie outside what it was trained on."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lompr_predictor.learning.envelope import InputEnvelope, fit_envelope
+from lompr_predictor.online.guard import GuardReason, GuardSettings, GuardState, LiveGuard
+
+PERIOD = 40_000_000
+HORIZON = 2
+LEAD = HORIZON * PERIOD
+
+
+def _run(guard: LiveGuard, truth: np.ndarray, model_error: np.ndarray,
+         inside: np.ndarray | None = None) -> np.ndarray:
+    """Feed a plant error series `truth` (N, 2); the model predicts each instant's truth plus
+    `model_error` (N, 2), persistence the truth HORIZON samples before. Returns the
+    published predictions (N, 2), NaN until the first."""
+    published = np.full_like(truth, np.nan)
+    for k in range(len(truth)):
+        stamp = k * PERIOD
+        guard.observe(stamp, *truth[k])
+        if k + HORIZON < len(truth):
+            target = truth[k + HORIZON] + model_error[k + HORIZON]
+            published[k] = guard.choose(stamp, (float(target[0]), float(target[1])),
+                                        (float(truth[k, 0]), float(truth[k, 1])),
+                                        True if inside is None else bool(inside[k]))
+    return published
+
+
+def _walk(count: int, seed: int = 0) -> np.ndarray:
+    """A plant error that changes by 1 um per sample on average: persistence misses by
+    about sqrt(HORIZON) um."""
+    return np.cumsum(np.random.default_rng(seed).normal(0.0, 1e-6, (count, 2)), axis=0)
+
+
+def test_a_model_better_than_persistence_keeps_both_axes() -> None:
+    guard = LiveGuard(GuardSettings(), LEAD, PERIOD)
+    truth = _walk(600)
+    model_error = np.random.default_rng(1).normal(0.0, 0.2e-6, truth.shape)
+    published = _run(guard, truth, model_error)
+    np.testing.assert_array_equal(published[:-HORIZON], (truth + model_error)[HORIZON:])
+    x, y = guard.status()
+    assert x.state is y.state is GuardState.MODEL and x.hand_overs == y.hand_overs == 0
+    assert not guard.holding and guard.published_persistence == 0
+    # both scored on the same instants: the model's live RMS near its 0.2 um, persistence's
+    # near the walk's sqrt(2) um
+    assert 0.15e-6 < x.model_rms < 0.25e-6 and 1.2e-6 < x.persistence_rms < 1.6e-6
+
+
+def test_an_axis_where_the_model_is_worse_goes_to_persistence() -> None:
+    """X of the model misses by 5 um, Y by 0.2 um: X is handed over after `min_scored`
+    instants, Y stays; the published X is the last plant error (persistence's)."""
+    settings = GuardSettings(min_scored=50, min_dwell=50)
+    guard = LiveGuard(settings, LEAD, PERIOD)
+    truth = _walk(400, seed=2)
+    model_error = np.random.default_rng(3).normal(0.0, 0.2e-6, truth.shape)
+    model_error[:, 0] = 5e-6
+    published = _run(guard, truth, model_error)
+    x, y = guard.status()
+    assert x.state is GuardState.PERSISTENCE and x.reason is GuardReason.WORSE_THAN_PERSISTENCE
+    assert y.state is GuardState.MODEL and y.reason is None
+    assert x.hand_overs == 1 and guard.holding
+    # scored from the instant HORIZON on: the first decision comes with the 50th score
+    handed = np.flatnonzero(published[:-HORIZON, 0] == truth[:-HORIZON, 0])
+    assert handed[0] == settings.min_scored + HORIZON - 1
+    assert (np.diff(handed) == 1).all()  # and it stays there
+    np.testing.assert_array_equal(published[:-HORIZON, 1], (truth + model_error)[HORIZON:, 1])
+    # the live figures: a constant 5 um miss has an RMS of 5 um exactly
+    assert math.isclose(x.model_rms, 5e-6, rel_tol=1e-9)
+
+
+def test_hand_back_needs_the_margin_and_the_dwell() -> None:
+    """Worse, then better: the axis comes back once the model's weighted RMS is below
+    (1 - margin) x persistence's and `min_dwell` instants have passed, not before."""
+    settings = GuardSettings(window=20, margin=0.1, min_scored=10, min_dwell=100)
+    guard = LiveGuard(settings, LEAD, PERIOD)
+    truth = _walk(700, seed=4)
+    model_error = np.zeros_like(truth)
+    model_error[:300] = 6e-6  # far worse than persistence (~1.4 um)
+    published = _run(guard, truth, model_error)
+    x, _ = guard.status()
+    assert x.hand_overs == 1 and x.hand_backs == 1 and x.state is GuardState.MODEL
+    from_model = published[:-HORIZON, 0] == (truth + model_error)[HORIZON:, 0]
+    first_persistence = int(np.argmin(from_model))
+    back = first_persistence + int(np.argmax(from_model[first_persistence:]))
+    # held at least the dwell, and only after the model's misses stopped (instant 300,
+    # scored HORIZON samples later) and the weighted mean forgot them
+    assert back - first_persistence >= settings.min_dwell
+    assert back > 300
+
+
+def test_rows_outside_the_envelope_hold_the_model_back() -> None:
+    settings = GuardSettings(window=10, envelope_fraction=0.5, min_dwell=0)
+    guard = LiveGuard(settings, LEAD, PERIOD)
+    truth = _walk(200, seed=5)
+    inside = np.ones(len(truth), dtype=bool)
+    inside[100:150] = False
+    published = _run(guard, truth, np.zeros_like(truth), inside)
+    held = published[:-HORIZON, 0] == truth[:-HORIZON, 0]
+    assert not held[:100].any() and held[110:150].all() and not held[170:].any()
+    assert guard.outside_rows == 50
+    x, _ = guard.status()
+    assert x.hand_overs == 1 and x.hand_backs == 1
+
+
+def test_disabled_guard_publishes_the_model_and_still_reports() -> None:
+    guard = LiveGuard(GuardSettings(enabled=False, min_scored=10, min_dwell=10), LEAD, PERIOD)
+    truth = _walk(200, seed=6)
+    model_error = np.full_like(truth, 5e-6)
+    published = _run(guard, truth, model_error)
+    np.testing.assert_array_equal(published[:-HORIZON], (truth + model_error)[HORIZON:])
+    assert guard.holding  # what the guard would do, for diagnostics
+    assert guard.published_persistence == 0
+
+
+def test_settings_are_checked() -> None:
+    with pytest.raises(ValueError, match='margin'):
+        GuardSettings(margin=1.0)
+    with pytest.raises(ValueError, match='window'):
+        GuardSettings(window=0)
+
+
+def test_envelope_is_the_widened_training_range_of_the_motion_columns() -> None:
+    features = ('error_x', 'error_y', 'ref_x', 'ups1_v')
+    rows = np.array([[1.0, 2.0, 0.0, -0.01], [5.0, -3.0, 0.1, 0.03], [0.0, 0.0, np.nan, 0.0]])
+    envelope = fit_envelope(rows, features, margin=0.1)
+    assert envelope.names == ('ref_x', 'ups1_v')  # the plant error is never checked
+    np.testing.assert_allclose(envelope.low, [-0.01, -0.014])
+    np.testing.assert_allclose(envelope.high, [0.11, 0.034])
+    assert envelope.contains([99.0, -99.0, 0.105, 0.0])
+    assert not envelope.contains([0.0, 0.0, 0.0, 0.04])
+    assert not envelope.contains([0.0, 0.0, math.nan, 0.0])
+    assert envelope.first_outside([0.0, 0.0, 0.0, 0.04]) == 'ups1_v'
+    again = InputEnvelope.from_metadata(envelope.to_metadata(), features)
+    assert again == envelope
+    assert InputEnvelope.from_metadata({}, features) is None
