@@ -10,10 +10,13 @@ from typing import Any
 import numpy as np
 import pytest
 
+from lompr_predictor.cli import main as lompr_main
 from lompr_predictor.cli import simulate as simulate_cli
 from lompr_predictor.data.bags import JointSamples, Recording, read_recording, write_recording
+from lompr_predictor.data.loading import BagInputs, load_clean_data
 from lompr_predictor.robot.description import MEASURED_JOINTS, RobotDescription
 from lompr_predictor.robot.kinematics import ForwardKinematics
+from lompr_predictor.robot.paths import build_cycle
 from lompr_predictor.twin import Simulation, load_twin_parameters, simulate
 from lompr_predictor.twin.faults import FaultSpec, inject_faults
 from lompr_predictor.twin.recording import (
@@ -258,3 +261,34 @@ def test_cli_records_the_reference_preview_a_path_generator_would_publish(
             assert [p.x, p.y, p.z] == reference[ns(pose.header.stamp)]
     assert [len(p.poses) for p in previews[-4:]] == [3, 2, 1, 0]
     assert read_ground_truth(out)[1]['preview_samples'] == 3
+
+
+def test_the_new_programs_record_bags_that_lompr_train_reads(
+        tmp_path: Path, description: RobotDescription) -> None:
+    """`lompr simulate --path K` for each program beyond the paper's three; the trainer's
+    read-and-clean step gives back the ground truth's error, and `lompr train` trains on
+    two programs and scores on the third."""
+    bags, samples = {}, {}
+    for kind in ('lissajous', 'radial', 'random'):
+        bags[kind] = tmp_path / kind
+        assert _run_cli('--out', str(bags[kind]), '--passes', '2', '--seed', '1', '--path',
+                        kind, '--no-plot') == 0
+        truth, document = read_ground_truth(bags[kind])
+        samples[kind] = 2 * len(build_cycle(kind, PARAMS.path, PARAMS.sample_period, 1))
+        assert document['path'] == kind and document['samples'] == samples[kind]
+        clean, _ = load_clean_data(BagInputs((str(bags[kind]),)), description.geometry)
+        kept = np.isin(truth['stamps'], clean.stamps)
+        assert kept.sum() == len(clean) >= samples[kind] - 5  # a few spikes may be dropped
+        np.testing.assert_allclose(clean.error, truth['error_measured'][kept, :2], rtol=0,
+                                   atol=1e-9)
+    window, horizon = 8, 2
+    report = tmp_path / 'report'
+    assert lompr_main([
+        'train', str(bags['lissajous']), str(bags['radial']), '--test-bags',
+        str(bags['random']), '--out', str(tmp_path / 'model.pt'), '--report', str(report),
+        '--trials', '2', '--max-epochs', '2', '--window', str(window), '--horizon',
+        str(horizon), '--quiet', '--batch-sizes', '500', '--hidden-units', '4,8',
+        '--workers', '1', '--restarts', '1']) == 0
+    content = json.loads((report / 'report.json').read_text())
+    assert content['counts']['joint_read'] == samples['lissajous'] + samples['radial']
+    assert content['split']['test'] == samples['random'] - horizon - window + 1 - horizon

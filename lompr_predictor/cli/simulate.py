@@ -40,7 +40,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument('--passes', type=positive_int, default=20,
                         help='passes of the path (default 20)')
     parser.add_argument('--seed', type=non_negative_int, default=0,
-                        help='random seed of the run: drift and noise (default 0)')
+                        help="random seed of the run: drift, noise and the random path's passes "
+                             '(default 0)')
     parser.add_argument('--machine-seed', type=non_negative_int,
                         help='seed of the machine: its per-branch tolerances (servo gains, '
                              'play); default: --seed. Two runs of one machine share it')
@@ -48,7 +49,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help='twin preset applied over the defaults: one of '
                              f'{", ".join(preset_names())}')
     parser.add_argument('--path', choices=PATH_KINDS, default='spiral',
-                        help='path (default spiral)')
+                        help='machining program, run pass after pass (default spiral; '
+                             'docs/twin.md)')
     parser.add_argument('--params', type=readable_file,
                         help='twin parameter YAML overriding the packaged config/twin.yaml '
                              'and the preset (any subset of its keys)')

@@ -85,7 +85,7 @@ class TwinNodeSettings(StatusSettings):
         read_only=True)
     path: str = parameter('spiral', 'path the robot runs, pass after pass',
                           choices=PATH_KINDS, read_only=True)
-    seed: int = parameter(0, 'random seed of the twin (tolerances, drift, noise)',
+    seed: int = parameter(0, 'random seed of the twin (tolerances, drift, noise, the random path)',
                           minimum=0, maximum=2 ** 31 - 1, read_only=True)
     passes: int = parameter(0, 'passes to run before stopping; 0: run until shut down',
                             minimum=0, maximum=1_000_000, read_only=True)

@@ -168,7 +168,8 @@ _NON_NEGATIVE = {'primary_cyclic_amplitude', 'coulomb_force', 'load_coefficient'
                  'viscous_coefficient', 'velocity_feedforward', 'amplitude'}
 #: Relative spreads, drawn in [-1, 1] times the value: below 1, so that a drawn gain, time
 #: constant, play or thermal amplitude keeps its sign, and a pass's feed never stops.
-_FRACTIONS = {'branch_tolerance', 'play_tolerance', 'amplitude_tolerance', 'feed_variation'}
+_FRACTIONS = {'branch_tolerance', 'play_tolerance', 'amplitude_tolerance', 'feed_variation',
+              'random_feed_variation'}
 #: Values that are ratios of a larger to a smaller force: at least 1.
 _AT_LEAST_ONE = {'static_ratio'}
 
