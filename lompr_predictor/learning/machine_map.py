@@ -107,6 +107,8 @@ class MachineMap(nn.Module):
         self.register_buffer('ahead_acceleration_columns',
                              _columns(names, tuple(ahead + n for n in _branch('a'))))
         self.plan_is_displacement = bool(preview)
+        #: RMS [m] of the least squares' residual over its rows (NaN until `fit`)
+        self.fit_rms = float('nan')
         #: how far beyond the row read for the predicted instant it lies [s]
         self.extrapolation = float(max(horizon - preview, 0) * sample_period)
 
@@ -146,6 +148,13 @@ class MachineMap(nn.Module):
         position = position + last.index_select(1, self.ahead_tool_velocity_columns) * lead
         velocity = velocity + acceleration * lead
         return self.evaluate(position[:, 0], position[:, 1], velocity, acceleration)
+
+    def values(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 2) g at raw feature rows (N, F), and (N, 2) g at the instant predicted from
+        each row (`ahead`), in float64 (NaN where a row lacks a feature)."""
+        table = torch.from_numpy(np.ascontiguousarray(rows, dtype=np.float64))
+        with torch.no_grad():
+            return self.rows(table.unsqueeze(0))[0].numpy(), self.ahead(table).numpy()
 
     # -- fitting --------------------------------------------------------------------------
 
@@ -187,7 +196,8 @@ class MachineMap(nn.Module):
             self.posture_coefficients.copy_(torch.from_numpy(
                 coefficients[n_branch:].reshape(self.posture_coefficients.shape)))
         residual = target - design @ coefficients
-        return float(np.sqrt(np.mean(residual ** 2)))
+        self.fit_rms = float(np.sqrt(np.mean(residual ** 2)))
+        return self.fit_rms
 
     def metadata(self) -> dict[str, Any]:
         """The map's constants, for the model file's metadata (people and tools)."""
@@ -247,3 +257,11 @@ def fit_machine_map(problem: LearningProblem, tips: np.ndarray,
                              np.nanmean(jacobian, axis=0), speed_scales(rows, problem.features))
     machine_map.fit(rows, error)
     return machine_map
+
+
+def map_prior(machine_map: MachineMap, problem: LearningProblem,
+              ends: np.ndarray) -> np.ndarray:
+    """(B, 2) the prior alone for the windows ending at `ends`, e(t) + g(t+h) - g(t): what
+    the BO-LSTM starts from, a baseline of the report."""
+    values, ahead = machine_map.values(problem.rows[ends])
+    return problem.error[ends] + ahead - values

@@ -263,21 +263,12 @@ class PredictorModule(nn.Module):
         return output
 
 
-def map_values(machine_map: MachineMap, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 2) the machine map at raw feature rows (N, F), and (N, 2) its value at the
-    instant the model predicts for from each row (`MachineMap.ahead`)."""
-    table = torch.from_numpy(np.ascontiguousarray(rows, dtype=np.float64))
-    with torch.no_grad():
-        return (machine_map.rows(table.unsqueeze(0))[0].numpy(),
-                machine_map.ahead(table).numpy())
-
-
 def with_map_residuals(machine_map: MachineMap, rows: np.ndarray,
                        errors: Sequence[int]) -> np.ndarray:
     """(N, F + 2) raw feature rows (N, F) with each row's plant error (columns `errors`)
     minus the map there appended (`MAP_RESIDUALS`; NaN where the map lacks a feature): the
     rows a network with a machine map reads (`network_features`)."""
-    values, _ = map_values(machine_map, rows)
+    values, _ = machine_map.values(rows)
     return np.concatenate([rows, rows[:, list(errors)] - values], axis=1)
 
 

@@ -51,7 +51,7 @@ from lompr_predictor.data.problem import (
 from lompr_predictor.errors import LomprError
 from lompr_predictor.learning.baselines import beats, fit_baselines
 from lompr_predictor.learning.envelope import fit_envelope
-from lompr_predictor.learning.machine_map import MachineMap, fit_machine_map
+from lompr_predictor.learning.machine_map import MachineMap, fit_machine_map, map_prior
 from lompr_predictor.learning.metrics import ratios, score_predictions
 from lompr_predictor.learning.model_file import (
     ExportedModule,
@@ -306,6 +306,7 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
         'persistence': persistence(problem.error, test),
         'bp': predict_rows(bp.module, problem.rows, test, problem.window),
         **{name: baseline.predicted for name, baseline in baselines.items()},
+        **({'machine_map': map_prior(machine_map, problem, test)} if machine_map else {}),
         'bo_lstm': predict_rows(tuned.module, problem.rows, test, problem.window)}
     max_step = config.inputs.cleaning.gap_factor * problem.sample_period
     models = score_predictions(predictions, actual, stamps, problem.error_low,
@@ -317,6 +318,9 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     for name, baseline in baselines.items():
         models[name].update(training_seconds=baseline.seconds,
                             hyperparameters=baseline.settings, target='residual (e(t+h) - e(t))')
+    if machine_map is not None:
+        models['machine_map'].update(target='e(t) + g(t+h) - g(t)',
+                                     map_fit_rms_um=machine_map.fit_rms * 1e6)
     report = _report(config, problem, data, sources, models, tuned, bp.seconds)
     scoring_seconds = time.perf_counter() - scoring_started
     metadata = _model_metadata(config, problem, tuned, machine_map, description, trained_on,

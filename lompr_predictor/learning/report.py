@@ -36,7 +36,7 @@ PREDICTION_PLOT = 'prediction_test.png'
 TUNING_PLOT = 'tuning_history.png'
 MODEL_LABELS = {'persistence': 'Persistence', 'bp': 'BP', 'ridge': 'Ridge', 'hgb': 'HGB',
                 'ridge_no_preview': 'Ridge (no preview)', 'hgb_no_preview': 'HGB (no preview)',
-                'bo_lstm': 'BO-LSTM', 'model': 'Model'}
+                'machine_map': 'Machine map (prior)', 'bo_lstm': 'BO-LSTM', 'model': 'Model'}
 METRIC_LABELS = {
     'mse_pct': 'MSE (%^2)', 'rmse_pct': 'RMSE (%)', 'mae_pct': 'MAE (%)',
     'mse_um2': 'MSE (um^2)', 'rmse_um': 'RMSE (um)', 'mae_um': 'MAE (um)',
@@ -105,7 +105,8 @@ def markdown(report: Mapping[str, Any]) -> str:
                 if report.get('preview') else '')
              + f'sample period {period * 1e3:.3g} ms; '
              + (f"test part: {report['split']['test']} windows ("
-                + report.get('test_part', 'chronologically last 10 % of the clean samples')
+                + report.get('test_part', 'chronologically last 10 % of the clean samples of '
+                                          'each recording')
                 + ').' if report['command'] == 'train' else
                 f"scored on all {report['split']['test']} windows of the recordings."), '']
     irreducible = report.get('irreducible_rmse_um')

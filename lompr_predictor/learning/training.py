@@ -33,7 +33,6 @@ from lompr_predictor.learning.models import (
     build_network,
     error_columns,
     gather_windows,
-    map_values,
     network_columns,
     network_features,
     with_map_residuals,
@@ -119,7 +118,7 @@ def network_rows(problem: LearningProblem, machine_map: MachineMap | None) -> Ne
     """The rows and targets a network of `problem` learns from, with or without a map."""
     if machine_map is None:
         return NetworkRows(problem.rows, problem.features, np.zeros((len(problem.rows), 2)))
-    values, ahead = map_values(machine_map, problem.rows)
+    values, ahead = machine_map.values(problem.rows)
     return NetworkRows(with_map_residuals(machine_map, problem.rows,
                                           error_columns(problem.features)),
                        network_features(problem.features, True), ahead - values)
