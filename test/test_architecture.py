@@ -81,21 +81,24 @@ def test_the_checker_sees_a_violation(tmp_path: Path) -> None:
     assert layer_of('lompr_predictor.files') == 'base'
 
 
+def loaded_after(code: str, modules: tuple[str, ...]) -> list[str]:
+    """Which of `modules` a fresh interpreter has loaded after running `code`."""
+    probe = (f'import sys\n{code}\n'
+             f'print("LOADED", sorted(m for m in {modules!r} if m in sys.modules))\n')
+    result = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True,
+                            timeout=120, check=True)
+    return ast.literal_eval(result.stdout.split('LOADED', 1)[1].strip())
+
+
 @pytest.mark.parametrize('command', [['--help'], ['train', '--help'], ['simulate', '--help'],
                                      ['evaluate', '--help'], ['demo', '--help']])
 def test_lompr_help_loads_neither_torch_nor_optuna(command: list[str]) -> None:
-    probe = ('import sys\n'
-             'from lompr_predictor.cli import main\n'
-             'try:\n'
-             f'    main({command!r})\n'
-             'except SystemExit:\n'
-             '    pass\n'
-             'heavy = sorted(m for m in ("torch", "optuna", "rclpy", "sklearn", "lightgbm") '
-             'if m in sys.modules)\n'
-             'print("HEAVY", heavy)\n')
-    result = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True,
-                            timeout=60, check=True)
-    assert 'HEAVY []' in result.stdout, result.stdout[-500:]
+    code = ('from lompr_predictor.cli import main\n'
+            'try:\n'
+            f'    main({command!r})\n'
+            'except SystemExit:\n'
+            '    pass')
+    assert loaded_after(code, ('torch', 'optuna', 'rclpy', 'sklearn', 'lightgbm')) == []
 
 
 @pytest.mark.parametrize('node', ['kinematics_node', 'predictor_node', 'pipeline'])
@@ -103,13 +106,8 @@ def test_a_node_process_loads_no_trainer_library(node: str) -> None:
     """The node executables import nothing of the trainer's data and tuning stack (bags,
     signal processing, the study, plots): a robot's controller PC needs none of it."""
     pytest.importorskip('rclpy')
-    probe = (f'import sys\nimport lompr_predictor.ros.{node}\n'
-             'heavy = sorted(m for m in ("scipy", "rosbags", "optuna", "sklearn", '
-             '"matplotlib") if m in sys.modules)\n'
-             'print("HEAVY", heavy)\n')
-    result = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True,
-                            timeout=120, check=True)
-    assert 'HEAVY []' in result.stdout, result.stdout[-500:]
+    assert loaded_after(f'import lompr_predictor.ros.{node}',
+                        ('scipy', 'rosbags', 'optuna', 'sklearn', 'matplotlib')) == []
 
 
 def test_package_xml_lists_exactly_the_ros_packages_the_code_imports() -> None:

@@ -391,7 +391,7 @@ def test_live_accuracy_is_rms_of_truth_minus_prediction(tmp_path: Path) -> None:
     stamps, reference, _ = spiral(NEEDED + HORIZON + 10)
     tips = reference[:, :2] + np.array([8e-6, 1e-6])  # a constant true error
     feed(core, stamps, reference, tips)
-    rms, count = core.accuracy()
+    rms, count = core.accuracy.rms()
     assert count == 11
     np.testing.assert_allclose(rms, [3e-6, 6e-6], atol=1e-15)
 

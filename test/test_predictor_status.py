@@ -157,7 +157,7 @@ def test_prediction_status_counts_predictions_and_the_offset(core: OnlinePredict
 def test_prediction_status_warns_on_drift(core: OnlinePredictor, clock: FakeClock) -> None:
     """The model says -20 um where the plant error is +10 um: a live RMS far over 1 um."""
     feed(core, clock, WINDOW + HISTORY + 10)
-    rms, count = core.accuracy()
+    rms, count = core.accuracy.rms()
     assert count > 0 and float(np.nanmax(rms)) > 1e-6
     status = prediction_status(ACTIVE, core, PredictionLimits(True, 10.0, 1e-6), NO_LATENCY,
                                25.0, 0)
@@ -203,5 +203,5 @@ def test_counts_missing_from_the_statuses_are_named() -> None:
     del renamed['clamped_total']
     with pytest.raises(CountsMissingError, match="has no 'clamped_total'"):
         read_counts({**written, PREDICTION_STATUS: renamed})
-    with pytest.raises(CountsMissingError, match='no faults.<reason> counts'):
+    with pytest.raises(CountsMissingError, match=r'no faults\.<reason> counts'):
         read_counts({**written, INPUTS_STATUS: {'rejected.duplicate': '1'}})

@@ -9,7 +9,17 @@ import numpy as np
 import pytest
 from fake_clock import FakeClock
 from model_helpers import save_linear
-from test_online import HORIZON, NEEDED, PERIOD_NS, WINDOW, feed, limits, spiral, stream
+from test_online import (
+    HORIZON,
+    NEEDED,
+    PERIOD_NS,
+    WINDOW,
+    feed,
+    limits,
+    predicted,
+    spiral,
+    stream,
+)
 
 from lompr_predictor.learning.model_file import LoadedModel, load_model
 from lompr_predictor.online.alignment import AlignedSample
@@ -126,11 +136,11 @@ def test_a_unit_can_replace_the_prediction_the_gate_publishes(
     # each output predicts, for stamp + horizon, the plant error measured at its stamp
     errors = tips - reference[:, :2]
     assert [o.sample_stamp_ns for o in outputs] == stamps[NEEDED - 1:].tolist()
-    np.testing.assert_allclose([o.prediction for o in outputs], errors[NEEDED - 1:],
+    np.testing.assert_allclose([predicted(o) for o in outputs], errors[NEEDED - 1:],
                                rtol=0, atol=1e-15)
     assert all(o.instant_ns == o.sample_stamp_ns + HORIZON * PERIOD_NS for o in outputs)
     # the live accuracy judges what was published: persistence's residuals
-    rms, count = core.accuracy()
+    rms, count = core.accuracy.rms()
     residuals = errors[NEEDED - 1 + HORIZON:] - errors[NEEDED - 1:-HORIZON]
     assert count == len(residuals)
     np.testing.assert_allclose(rms, np.sqrt(np.mean(residuals ** 2, axis=0)), rtol=1e-9)

@@ -12,8 +12,9 @@ predict and hands the prediction to the gate. Any fault empties the windows and 
 offset in force.
 
 Time is one clock, the caller's, in integer nanoseconds (the node's ROS clock, simulated
-under use_sim_time), read once per input call and again after an inference; the caller
-reports its jumps. Every call returns the outputs to publish, in order. The counters come
+under use_sim_time), read when an input call begins and again after each inference (the
+overrun policy judges the next sample by the latest reading); the caller reports its
+jumps. Every call returns the outputs to publish, in order. The counters come
 out as one snapshot (`counts`, `predictor_counts`); a profiler times the stages from outside
 (`stage_timing.time_stages` wraps the steps `stage_steps` lists).
 """
@@ -69,8 +70,11 @@ class OnlinePredictor:
         period = period_ns(stream.sample_period)
         self._lead_ns = self.horizon * period
         self._clock = clock
+        self._now = 0  # the clock's latest reading [ns]
         self._alignment = StampAlignment(stream.gap_factor, period, clock)
-        self._stamps = InputStamps(self._alignment.dropped, stream.max_future_stamp)
+        #: Input samples not used, by reason (`alignment.DropReason`).
+        self.dropped = self._alignment.dropped
+        self._stamps = InputStamps(self.dropped, stream.max_future_stamp)
         self._rules = StreamRules(stream, period)
         self._stale = StaleWatch(stream.stale_after, clock)
         self.plan = PlannedPath(stream.gap_factor * period, stream.preview_tolerance)
@@ -89,8 +93,9 @@ class OnlinePredictor:
         #: The offsets published and their bounds, with their counters (change the bounds
         #: with `set_limits`).
         self.gate = OffsetGate(limits, period)
-        self._accuracy = LiveAccuracy(stream.accuracy_samples)
-        self._units: tuple[SampleUnit, ...] = (self._accuracy, *units)
+        #: RMS of truth - prediction over the last predicted instants (`rms()`).
+        self.accuracy = LiveAccuracy(stream.accuracy_samples)
+        self._units: tuple[SampleUnit, ...] = (self.accuracy, *units)
         self.faults = RejectionCounter(FaultReason)
         self.last_fault: FaultReason | None = None
         self.overrun = OverrunGuard(self._lead_ns, period_ns(stream.late_tolerance))
@@ -101,14 +106,14 @@ class OnlinePredictor:
                       z: float) -> list[Output]:
         """Take one reference sample, the commanded tool tip (stamp: ns, or a message stamp,
         which is checked); returns outputs of poses that waited for it."""
-        now = self._clock()
+        now = self._now = self._clock()
         stamp_ns = self._stamps.reference_ns(stamp, now)
         if stamp_ns is None:
             return []
         if self.preview and not self.plan.check(stamp_ns, x, y, z):
             self.primary.window.plan_lost()
         events = self._alignment.add_reference(stamp_ns, x, y, z)
-        return self._handle(events, now) if events else []
+        return self._handle(events) if events else []
 
     def add_preview(self, stamps_ns: np.ndarray, positions: np.ndarray) -> PreviewDrop | None:
         """Take one reference preview: (n,) int64 instants [ns], (n, 3) planned tool tips
@@ -118,12 +123,12 @@ class OnlinePredictor:
     def add_pose(self, stamp: int | StampLike, x: float, y: float) -> list[Output]:
         """Take one measured tool-tip sample (the kinematics node's end pose; stamp: ns,
         or a message stamp, which is checked)."""
-        now = self._clock()
+        now = self._now = self._clock()
         stamp_ns = self._stamps.pose_ns(stamp, now)
         if stamp_ns is None:
             return []
         self.overrun.arrival(stamp_ns, now)
-        return self._handle(self._alignment.add_pose(stamp_ns, x, y, now), now)
+        return self._handle(self._alignment.add_pose(stamp_ns, x, y, now))
 
     def check_stale(self) -> list[Output]:
         """Call periodically: a 'stale' fault once `faults.StaleWatch` confirms that no
@@ -144,13 +149,10 @@ class OnlinePredictor:
 
     def clock_jumped_back(self, now_ns: int | None) -> list[Output]:
         """The clock went back to `now_ns` (None: it changed source), as a simulator reset
-        does: a 'clock_jump' fault (window emptied, the offset in force cancelled), and the
-        inputs are taken as starting again from there (`StampAlignment.rewind`), so the
-        restarted streams refill the window without further faults."""
+        does: a 'clock_jump' fault, and the inputs start again from there (`_restart`), so
+        the restarted streams refill the window without further faults."""
         outputs = self._fault(FaultReason.CLOCK_JUMP)
-        self._alignment.rewind(now_ns, DropReason.CLOCK_JUMP)
-        self._stale.restart()
-        self.overrun.restart()
+        self._restart(now_ns, DropReason.CLOCK_JUMP)
         return outputs
 
     def restart_staleness(self) -> None:
@@ -159,14 +161,11 @@ class OnlinePredictor:
         self._stale.restart()
 
     def reset(self, reason: DropReason = DropReason.INACTIVE) -> list[Output]:
-        """Stop and start afresh, no fault (the node deactivated): the offset in force is
-        cancelled (zeros, `reason`), the window emptied, and the inputs forgotten, so that
-        the next samples start a new window whatever their stamps."""
+        """Stop and start afresh, no fault (the node deactivated): the offset in force
+        cancelled (zeros, `reason`), the window emptied, the inputs forgotten."""
         outputs = self.gate.cancel(reason, self._alignment.newest_pose_ns)
         self._clear()
-        self._alignment.rewind(None, reason)
-        self._stale.restart()
-        self.overrun.restart()
+        self._restart(None, reason)
         return outputs
 
     def set_limits(self, limits: CompensationLimits) -> list[Output]:
@@ -195,11 +194,6 @@ class OnlinePredictor:
         return self._reader.stale
 
     @property
-    def dropped(self) -> RejectionCounter:
-        """Input samples not used, by reason (`alignment.DropReason`)."""
-        return self._alignment.dropped
-
-    @property
     def last_bad_stamp(self) -> str | None:
         """Why the last message stamp dropped was no sample instant (None: none was)."""
         return self._stamps.last_bad
@@ -208,11 +202,6 @@ class OnlinePredictor:
     def predictions_made(self) -> int:
         """Finite predictions of any slot."""
         return sum(slot.predictions for slot in self._slots)
-
-    def accuracy(self) -> tuple[np.ndarray, int]:
-        """(2,) RMS [m] of truth - prediction over the last predicted instants whose truth
-        arrived, and how many; NaN before the first."""
-        return self._accuracy.rms()
 
     def counts(self) -> PredictorCounts:
         """The counters as one snapshot (`predictor_counts`)."""
@@ -238,29 +227,29 @@ class OnlinePredictor:
 
     # -- the per-sample path --------------------------------------------------------------
 
-    def _handle(self, events: list[Event], now: int) -> list[Output]:
-        """The outputs of `events`, made in the input call that read the clock at `now`."""
+    def _handle(self, events: list[Event]) -> list[Output]:
+        """The outputs of `events`, in order."""
         outputs: list[Output] = []
         for event in events:
             if isinstance(event, FaultReason):
                 outputs += self._fault(event)
             else:
-                self._use_sample(event, now, outputs)
+                self._use_sample(event, outputs)
         return outputs
 
-    def _use_sample(self, sample: AlignedSample, now: int, outputs: list[Output]) -> None:
+    def _use_sample(self, sample: AlignedSample, outputs: list[Output]) -> None:
         """Append the outputs of one aligned sample to `outputs`."""
-        error = self._plant_error(sample, now, outputs)
-        slot = self._feature_rows(sample, error, now, outputs)
-        if slot is None or not self._in_time(sample.stamp_ns, now):
+        error = self._plant_error(sample, outputs)
+        slot = self._feature_rows(sample, error, outputs)
+        if slot is None or not self._in_time(sample.stamp_ns):
             return
         prediction = slot.predict()
         if prediction is None:
             outputs += self._fault(FaultReason.INFERENCE)
             return
-        self._publish(sample.stamp_ns, prediction, slot, now, outputs)
+        self._publish(sample.stamp_ns, prediction, slot, outputs)
 
-    def _plant_error(self, sample: AlignedSample, now: int, outputs: list[Output]) -> XY:
+    def _plant_error(self, sample: AlignedSample, outputs: list[Output]) -> XY:
         """The plant error at the sample's stamp, after the interval rules, shown to the
         units with the prediction published for its instant."""
         stamp_ns = sample.stamp_ns
@@ -269,7 +258,7 @@ class OnlinePredictor:
             reason = self._rules.interval_fault(previous, stamp_ns)
             if reason is not None:
                 outputs += self._fault(reason)
-        self._stale.used(now)
+        self._stale.used(self._now)
         gate = self.gate
         offset_x, offset_y = gate.offset_for(stamp_ns) or ZERO
         error = (sample.x - sample.reference_x - offset_x,
@@ -279,7 +268,7 @@ class OnlinePredictor:
             unit.observe(sample, error, published)
         return error
 
-    def _feature_rows(self, sample: AlignedSample, error: XY, now: int,
+    def _feature_rows(self, sample: AlignedSample, error: XY,
                       outputs: list[Output]) -> ModelSlot | None:
         """Push the sample into every slot's window; the first slot whose window is full
         (the model's, else the fallback's), None while none is."""
@@ -287,7 +276,7 @@ class OnlinePredictor:
         if self.preview:
             reader = self._reader
             was_stale = reader.stale
-            planned = reader.at_sample(sample.stamp_ns, now)
+            planned = reader.at_sample(sample.stamp_ns, self._now)
             if reader.stale and not was_stale and self.fallback is None:
                 outputs += self.gate.cancel(PreviewDrop.MISSING,
                                             self._alignment.newest_pose_ns)
@@ -301,19 +290,19 @@ class OnlinePredictor:
             answering.answers += 1
         return answering
 
-    def _in_time(self, stamp_ns: int, now: int) -> bool:
-        """Whether the sample is worth an inference (`timing.OverrunGuard.skip`); an instant
-        skipped gets no offset."""
-        if not self.overrun.skip(stamp_ns, now):
+    def _in_time(self, stamp_ns: int) -> bool:
+        """Whether the sample is worth an inference (`timing.OverrunGuard.skip`) at the
+        clock's latest reading; an instant skipped gets no offset."""
+        if not self.overrun.skip(stamp_ns, self._now):
             return True
         self.overrun.inference_skipped_late += 1
         self.gate.missed()
         return False
 
-    def _publish(self, stamp_ns: int, prediction: XY, slot: ModelSlot, started: int,
+    def _publish(self, stamp_ns: int, prediction: XY, slot: ModelSlot,
                  outputs: list[Output]) -> None:
         """Append the output of a prediction from the window that ends at `stamp_ns`, as
-        the units revise it, unless it comes too late (the call began at `started`)."""
+        the units revise it, unless it comes too late; the clock is read again."""
         instant_ns = stamp_ns + self._lead_ns
         kept: XY | None = prediction
         for unit in self._units:
@@ -321,7 +310,8 @@ class OnlinePredictor:
             if kept is None:
                 break
             prediction = kept
-        overrun, ended = self.overrun, self._clock()
+        overrun, started = self.overrun, self._now
+        ended = self._now = self._clock()
         overrun.inference_took(started, ended)
         if kept is None:
             self.gate.missed()
@@ -330,6 +320,13 @@ class OnlinePredictor:
             self.gate.missed()
         else:
             outputs.append(self.gate.publish(instant_ns, prediction, stamp_ns))
+
+    def _restart(self, stamp_ns: int | None, reason: DropReason) -> None:
+        """Take the inputs as starting afresh at `stamp_ns` (None: anew), the waiting poses
+        dropped under `reason`; idle time and the overrun estimate start again."""
+        self._alignment.rewind(stamp_ns, reason)
+        self._stale.restart()
+        self.overrun.restart()
 
     def _clear(self) -> None:
         """Empty every window and clear the units."""

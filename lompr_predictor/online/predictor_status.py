@@ -193,7 +193,7 @@ def prediction_status(lifecycle: Lifecycle, core: OnlinePredictor | None,
     if core is None:
         return Status(Level.WARN, lifecycle.state, lifecycle.values())
     inference = core.inference_time.summary()
-    rms, count = core.accuracy()
+    rms, count = core.accuracy.rms()
     offset = core.gate.offset_in_force
     values: dict[str, object] = {
         **latency_values('inference', inference),
