@@ -10,15 +10,15 @@ dropped by the predictor's overrun policy).
 - inference: the bare TorchScript call (`torch.jit.load` of the file, `module(x)` on one
   window inside `torch.inference_mode`) and the predictor core's inference step (the backend
   `inference.select_backend` picks, 'auto': ONNX Runtime bound to the window's buffer ->
-  prediction as floats, as `OnlinePredictor` runs it), in alternating blocks of one run; p50/p99 of
-  wall time [us] and median CPU time.
+  prediction as floats, as `OnlinePredictor`'s model slot runs it), in alternating blocks of one
+  run; p50/p99 of wall time [us] and median CPU time.
 - profile: the per-sample path driven in this process through the real node objects
   (`KinematicsNode`, `PredictorNode`, their subscription callbacks and publishers, with
   subscribers in another context), CPU time per stage [us per sample] (thread CPU time, so
   other processes on the machine inflate it far less than wall time): deserialisation of
   the joint state, forward kinematics, publishing the end pose (serialisation + rmw),
-  deserialisation of the reference and end pose, the core's `STAGES` (timed through its
-  public `stage_timer` hook), publishing the outputs, and what each node's callbacks spend
+  deserialisation of the reference and end pose, the core's `STAGES` (timed from outside by
+  `stage_timing.time_stages`), publishing the outputs, and what each node's callbacks spend
   besides (rate meters, the callback guard). A stage that never reports, or a function to
   time that is not there, stops the bench: no stage silently drops out of the table.
 - end to end: a JointState leaving this process's publisher (the reference for the same
@@ -84,7 +84,8 @@ from lompr_predictor.learning.model_file import (
     save_model,
 )
 from lompr_predictor.learning.models import PredictorModule, build_network, network_columns
-from lompr_predictor.online.predictor import STAGES
+from lompr_predictor.online.faults import StreamSettings
+from lompr_predictor.online.stage_timing import STAGES, time_stages
 from lompr_predictor.processes import stop_processes
 from lompr_predictor.robot.description import MEASURED_JOINTS, load_robot_description
 from lompr_predictor.robot.kinematics import inverse_kinematics
@@ -173,6 +174,15 @@ def sample_messages(tips: np.ndarray, joints: np.ndarray, k: int,
     return reference, state
 
 
+def core_stream(rate: int) -> StreamSettings:
+    """The stream rules of a core driven faster than its stamps advance: never stale, no
+    stamp from the future, no output late."""
+    return StreamSettings(sample_period=1.0 / rate, gap_factor=2.5, min_interval_factor=0.5,
+                          stale_periods=5.0, stale_min_time=1000.0, accuracy_samples=1000,
+                          max_future_stamp=3600.0, late_tolerance=3600.0,
+                          preview_tolerance=1e-5)
+
+
 # -- inference ----------------------------------------------------------------------------
 
 #: The parts of the bench (`--parts`).
@@ -214,30 +224,28 @@ def percentiles(values: np.ndarray) -> tuple[float, float]:
 def bench_inference(path: Path, rate: int) -> dict[str, float]:
     """Bare TorchScript call and the core's inference step (the backend 'auto' selects),
     in alternating blocks: wall p50/p99 and CPU median [us], and the backend's name."""
-    from lompr_predictor.online.faults import StreamSettings
     from lompr_predictor.online.inference import select_backend
     from lompr_predictor.online.offset import CompensationLimits
     from lompr_predictor.online.predictor import OnlinePredictor
 
     model = load_model(path)
     backend, why = select_backend(model, 'auto')
-    if why:
+    if why is not None:
         print(f'inference backend: {why}')
-    core = OnlinePredictor(model, StreamSettings(1.0 / rate, 2.5, 0.5, 5.0, 1000, 1000.0),
-                           CompensationLimits(5e-4, 5e-5, True), backend=backend)
+    core = OnlinePredictor(model, core_stream(rate), CompensationLimits(5e-4, 5e-5, True),
+                           clock=time.monotonic_ns, backend=backend)
     tips, _ = spiral_joints(WINDOW + HISTORY, rate)
     period_ns = round(1e9 / rate)
     for k, (x, y, z) in enumerate(tips):  # fill the core's window with samples
         core.add_reference(k * period_ns + 1, float(x), float(y), float(z))
         core.add_pose(k * period_ns + 1, float(x) + 1e-5, float(y) - 1e-5)
     assert core.predictions_made == 1, 'the window did not fill'
-    runner = core._runners[core._window.start]  # the network bound to the window's view
-
-    def infer() -> object:  # the core's inference step: backend call, checks, timing
-        return core._infer(runner)
+    # the core's inference step: the backend's call bound to the window's view, the checks
+    # and the timing
+    infer = core.primary.predict
 
     bare_module = load_checkpoint(path)  # torch.jit.load, eval(): nothing more
-    window = torch.from_numpy(core.window_rows()[None].copy())
+    window = torch.from_numpy(core.primary.window.rows()[None].copy())
     timings = {name: (np.empty(INFERENCE_CALLS), np.empty(INFERENCE_CALLS))
                for name in ('bare', 'core')}
     clock, cpu = time.perf_counter_ns, time.thread_time_ns
@@ -404,7 +412,7 @@ def _drive(kinematics: Any, predictor: Any,
     stages.wrap(kinematics._pose_writer, 'pack', 'publish end pose')  # serialized, then sent
     core = predictor.core
     core_stages = CoreStages(stages)
-    core.stage_timer = core_stages
+    time_stages(core, core_stages)
     for topic in ('/lompr/compensation', '/lompr/predicted_error'):
         stages.wrap(endpoint(predictor.publishers, topic), 'publish', 'publish outputs')
     stages.wrap(predictor.outputs, '_vector', 'publish outputs')  # the output bytes

@@ -25,12 +25,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_predictor import default_model, spiral_joints
+from bench_predictor import core_stream, default_model, spiral_joints
 
 from lompr_predictor.learning.model_file import load_model
+from lompr_predictor.online.faults import StreamSettings
 from lompr_predictor.online.inference import select_backend
 from lompr_predictor.online.offset import CompensationLimits
-from lompr_predictor.online.predictor import OnlinePredictor, StreamSettings
+from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.threads import set_torch_threads
 
 RATE = 1000
@@ -40,13 +41,14 @@ BLOCK = 500  # samples of one model in a row
 def core(path: Path, stream: StreamSettings) -> OnlinePredictor:
     model = load_model(path)
     backend, _ = select_backend(model, 'auto')
-    return OnlinePredictor(model, stream, CompensationLimits(5e-4, 5e-5, True), backend=backend)
+    return OnlinePredictor(model, stream, CompensationLimits(5e-4, 5e-5, True),
+                           clock=time.monotonic_ns, backend=backend)
 
 
 def per_sample_cpu(samples: int, preview: int) -> dict[str, np.ndarray]:
     """CPU seconds per sample of the input path of a preview model and of a plain one."""
     period_ns = 1_000_000_000 // RATE
-    stream = StreamSettings(1.0 / RATE, 2.5, 0.5, 5.0, 1000, 1000.0)
+    stream = core_stream(RATE)
     ahead = preview + 2
     tips, _ = spiral_joints(samples + ahead + 1, RATE)
     stamps = (np.arange(len(tips)) + 1) * period_ns

@@ -7,11 +7,16 @@ Differences are taken in integers first and only then turned into seconds.
 
 from __future__ import annotations
 
+from enum import StrEnum
 from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
 NS_PER_SECOND = 1_000_000_000
+#: A stamp interval above this many sample periods is a gap: the trainer splits its data
+#: there (`data.cleaning`) and the predictor empties its window (`online.faults`). Here, in
+#: the lightest module both import, so that the node's process loads no trainer code.
+GAP_FACTOR = 2.5
 
 
 class StampLike(Protocol):
@@ -33,23 +38,40 @@ class Stamp(NamedTuple):
     nanosec: int
 
 
-def stamp_problem(sec: int, nanosec: int, now_ns: int, max_future_ns: int) -> tuple[str, str]:
-    """(reason, explanation) if the stamp (`sec`, `nanosec`) of a message cannot be a sample
-    instant, ('', '') if it can (plain integers: the callers convert a stamp once).
+class StampReason(StrEnum):
+    """Why a message stamp cannot be a sample instant (`stamp_problem`)."""
+
+    BAD_STAMP = 'bad_stamp'  # a negative `sec` or a `nanosec` of 1e9 or more
+    FUTURE_STAMP = 'future_stamp'  # further ahead of the receiving node's clock than allowed
+
+
+class StampProblem(NamedTuple):
+    """A message stamp that cannot be a sample instant: the reason and what was wrong."""
+
+    reason: StampReason
+    explanation: str
+
+
+def stamp_problem(sec: int, nanosec: int, now_ns: int,
+                  max_future_ns: int | None) -> StampProblem | None:
+    """Why the stamp (`sec`, `nanosec`) of a message cannot be a sample instant, None if it
+    can (plain integers: the callers convert a stamp once).
 
     'bad_stamp': a negative `sec` or a `nanosec` of 1e9 or more (not a normalised time);
     'future_stamp': more than `max_future_ns` after `now_ns`, the receiving node's clock.
     The future check is skipped while that clock reads 0 (sim time before the first
-    `/clock` message), and when `max_future_ns` is negative."""
+    `/clock` message), and when `max_future_ns` is None."""
     if sec < 0 or not 0 <= nanosec < NS_PER_SECOND:
-        return 'bad_stamp', (f'stamp {sec} s {nanosec} ns is not a time (sec must be >= 0, '
-                             f'nanosec in [0, 1e9))')
-    if now_ns > 0 and max_future_ns >= 0:
+        return StampProblem(StampReason.BAD_STAMP, (
+            f'stamp {sec} s {nanosec} ns is not a time (sec must be >= 0, nanosec in '
+            '[0, 1e9))'))
+    if now_ns > 0 and max_future_ns is not None:
         ahead = sec * NS_PER_SECOND + nanosec - now_ns
         if ahead > max_future_ns:
-            return 'future_stamp', (f'stamp {sec}.{nanosec:09d} is {ahead * 1e-9:.3f} s ahead of '
-                                    f"this node's clock (more than {max_future_ns * 1e-9:g} s)")
-    return '', ''
+            return StampProblem(StampReason.FUTURE_STAMP, (
+                f'stamp {sec}.{nanosec:09d} is {ahead * 1e-9:.3f} s ahead of this '
+                f"node's clock (more than {max_future_ns * 1e-9:g} s)"))
+    return None
 
 
 def stamp_to_ns(stamp: StampLike) -> int:

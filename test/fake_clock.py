@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
+from lompr_predictor.stamps import NS_PER_SECOND
+
 
 class FakeClock:
-    """A clock the test moves by hand (`clock.now += dt`); call it for the time [s]."""
+    """A clock the test moves by hand (`clock.now += dt`); call it for the time [s], or
+    `ns` for it in nanoseconds."""
 
     def __init__(self, now: float = 100.0) -> None:
         self.now = now
 
     def __call__(self) -> float:
         return self.now
+
+    def ns(self) -> int:
+        """The time in integer nanoseconds: the clock of the predictor core."""
+        return round(self.now * NS_PER_SECOND)

@@ -31,8 +31,9 @@ def layer_of(module: str) -> str:
     return 'base'
 
 
-def module_name(path: Path) -> str:
-    relative = path.relative_to(PACKAGE.parent).with_suffix('')
+def module_name(path: Path, root: Path = PACKAGE.parent) -> str:
+    """The dotted name of the module at `path` under `root` (the package's parent)."""
+    relative = path.relative_to(root).with_suffix('')
     parts = relative.parts[:-1] if relative.name == '__init__' else relative.parts
     return '.'.join(parts)
 
@@ -80,21 +81,33 @@ def test_the_checker_sees_a_violation(tmp_path: Path) -> None:
     assert layer_of('lompr_predictor.files') == 'base'
 
 
+def loaded_after(code: str, modules: tuple[str, ...]) -> list[str]:
+    """Which of `modules` a fresh interpreter has loaded after running `code`."""
+    probe = (f'import sys\n{code}\n'
+             f'print("LOADED", sorted(m for m in {modules!r} if m in sys.modules))\n')
+    result = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True,
+                            timeout=120, check=True)
+    return ast.literal_eval(result.stdout.split('LOADED', 1)[1].strip())
+
+
 @pytest.mark.parametrize('command', [['--help'], ['train', '--help'], ['simulate', '--help'],
                                      ['evaluate', '--help'], ['demo', '--help']])
 def test_lompr_help_loads_neither_torch_nor_optuna(command: list[str]) -> None:
-    probe = ('import sys\n'
-             'from lompr_predictor.cli import main\n'
-             'try:\n'
-             f'    main({command!r})\n'
-             'except SystemExit:\n'
-             '    pass\n'
-             'heavy = sorted(m for m in ("torch", "optuna", "rclpy", "sklearn", "lightgbm") '
-             'if m in sys.modules)\n'
-             'print("HEAVY", heavy)\n')
-    result = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True,
-                            timeout=60, check=True)
-    assert 'HEAVY []' in result.stdout, result.stdout[-500:]
+    code = ('from lompr_predictor.cli import main\n'
+            'try:\n'
+            f'    main({command!r})\n'
+            'except SystemExit:\n'
+            '    pass')
+    assert loaded_after(code, ('torch', 'optuna', 'rclpy', 'sklearn', 'lightgbm')) == []
+
+
+@pytest.mark.parametrize('node', ['kinematics_node', 'predictor_node', 'pipeline'])
+def test_a_node_process_loads_no_trainer_library(node: str) -> None:
+    """The node executables import nothing of the trainer's data and tuning stack (bags,
+    signal processing, the study, plots): a robot's controller PC needs none of it."""
+    pytest.importorskip('rclpy')
+    assert loaded_after(f'import lompr_predictor.ros.{node}',
+                        ('scipy', 'rosbags', 'optuna', 'sklearn', 'matplotlib')) == []
 
 
 def test_package_xml_lists_exactly_the_ros_packages_the_code_imports() -> None:
@@ -110,8 +123,17 @@ def test_package_xml_lists_exactly_the_ros_packages_the_code_imports() -> None:
 
 #: The longest a function and a class in the package may be, in lines (decorators and
 #: docstrings included): past that, a reader loses the thread.
-MAX_FUNCTION_LINES = 80
-MAX_CLASS_LINES = 350
+MAX_FUNCTION_LINES = 60
+MAX_CLASS_LINES = 300
+#: Functions over the limit in the modules the trainer's rework (its options declared once,
+#: the baselines behind one seam) reshapes, by module: each entry goes with that work.
+OVERSIZED_UNTIL_REWORKED = {
+    'lompr_predictor.cli.train': {'add_parser'},
+    'lompr_predictor.learning.pipeline': {'train_predictor'},
+    'lompr_predictor.learning.report': {'markdown'},
+    'lompr_predictor.learning.training': {'train_network'},
+    'lompr_predictor.learning.model_file': {'load_model'},
+}
 
 
 def oversized(path: Path) -> list[str]:
@@ -130,11 +152,91 @@ def oversized(path: Path) -> list[str]:
 
 @pytest.mark.parametrize('path', SOURCES, ids=lambda p: module_name(p))
 def test_functions_and_classes_stay_short(path: Path) -> None:
-    assert oversized(path) == []
+    allowed = OVERSIZED_UNTIL_REWORKED.get(module_name(path), set())
+    found = oversized(path)
+    assert [entry for entry in found if entry.split(':')[0] not in allowed] == []
+    assert {entry.split(':')[0] for entry in found} == allowed, 'reworked: drop the entry'
 
 
 def test_the_size_check_sees_a_long_function(tmp_path: Path) -> None:
     source = tmp_path / 'long.py'
     body = ''.join(f'    x{i} = {i}\n' for i in range(MAX_FUNCTION_LINES))
     source.write_text(f'@decorated\ndef long():\n{body}\n\ndef short():\n    pass\n')
-    assert oversized(source) == [f'long: {MAX_FUNCTION_LINES + 2} lines (at most 80)']
+    assert oversized(source) == [
+        f'long: {MAX_FUNCTION_LINES + 2} lines (at most {MAX_FUNCTION_LINES})']
+
+
+def import_graph(paths: list[Path], root: Path = PACKAGE.parent) -> dict[str, set[str]]:
+    """{module: the package's modules it imports}, every import statement counted (inside
+    functions and `if TYPE_CHECKING:` too: a circle there is still one); `from a import b`
+    counts module `a.b` where there is one, else `a`."""
+    modules = {module_name(path, root) for path in paths}
+
+    def module_of(name: str) -> str | None:
+        while name and name not in modules:
+            name = name.rpartition('.')[0]
+        return name or None
+
+    graph: dict[str, set[str]] = {}
+    for path in paths:
+        own, found = module_name(path, root), set()
+        for node in ast.walk(ast.parse(path.read_text(encoding='utf-8'))):
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names = [f'{node.module}.{alias.name}' for alias in node.names]
+            else:
+                continue
+            found |= {module_of(name) for name in names if name.startswith(PACKAGE.name)}
+        graph[own] = {module for module in found if module not in (None, own)}
+    return graph
+
+
+def import_circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The circles of `graph`: one list of modules per set that import each other, round
+    (Tarjan's strongly connected components of more than one module)."""
+    order: dict[str, int] = {}
+    lowest: dict[str, int] = {}
+    stack: list[str] = []
+    circles: list[list[str]] = []
+
+    def visit(module: str) -> None:
+        order[module] = lowest[module] = len(order)
+        stack.append(module)
+        for other in sorted(graph.get(module, ())):
+            if other not in order:
+                visit(other)
+                lowest[module] = min(lowest[module], lowest[other])
+            elif other in stack:
+                lowest[module] = min(lowest[module], order[other])
+        if lowest[module] == order[module]:
+            component = stack[stack.index(module):]
+            del stack[stack.index(module):]
+            if len(component) > 1:
+                circles.append(sorted(component))
+
+    for module in sorted(graph):
+        if module not in order:
+            visit(module)
+    return circles
+
+
+def test_no_import_circle() -> None:
+    """A module never imports, however indirectly, one that imports it."""
+    assert import_circles(import_graph(SOURCES)) == []
+
+
+def test_the_circle_check_sees_a_circle(tmp_path: Path) -> None:
+    """Two modules that import each other, one only for the type checker, are a circle."""
+    package = tmp_path / PACKAGE.name
+    (package / 'ros').mkdir(parents=True)
+    (package / 'ros' / 'node.py').write_text(
+        f'from {PACKAGE.name}.ros.diagnostics import Diagnostics\n')
+    (package / 'ros' / 'diagnostics.py').write_text(
+        'from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n'
+        f'    from {PACKAGE.name}.ros import node\n')
+    (package / 'ros' / 'alone.py').write_text(f'from {PACKAGE.name}.ros import diagnostics\n')
+    graph = import_graph(sorted(package.rglob('*.py')), root=tmp_path)
+    ros = f'{PACKAGE.name}.ros'
+    assert graph[f'{ros}.alone'] == {f'{ros}.diagnostics'}
+    assert import_circles(graph) == [[f'{ros}.diagnostics', f'{ros}.node']]

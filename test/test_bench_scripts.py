@@ -48,7 +48,7 @@ def test_predictor_bench_model_loads_and_runs_on_todays_features(tmp_path: Path)
 def test_predictor_bench_profile_times_every_stage_of_the_path() -> None:
     """A short profile through the real nodes: every stage of both nodes and the core is in
     the table (a renamed function or a silent stage stops the bench instead)."""
-    from lompr_predictor.online.predictor import STAGES
+    from lompr_predictor.online.stage_timing import STAGES
 
     result = subprocess.run(
         [sys.executable, str(BENCH / 'bench_predictor.py'), '--parts', 'profile',

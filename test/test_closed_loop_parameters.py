@@ -9,16 +9,10 @@ import pytest
 
 pytest.importorskip('rclpy')
 
-from lompr_predictor.ros.closed_loop import (
-    PREDICTOR_COUNTS,
-    TWIN_COUNTS,
-    LoopSettings,
-    in_process_parameters,
-    loop_commands,
-    loop_counts,
-    loop_topics,
-    ros_value,
-)
+from lompr_predictor.online.predictor_counts import PredictorCounts
+from lompr_predictor.ros.loop_in_process import in_process_parameters, loop_topics
+from lompr_predictor.ros.loop_processes import loop_commands, ros_value
+from lompr_predictor.ros.loop_settings import TWIN_COUNTS, LoopSettings, loop_counts
 
 pytestmark = pytest.mark.ros
 
@@ -72,10 +66,14 @@ def test_a_long_horizon_lets_the_twin_wait_for_its_offset(tmp_path: Path) -> Non
 
 def test_counts_are_named_alike_and_keep_the_modes_own() -> None:
     twin = {name: i for i, name in enumerate(TWIN_COUNTS)} | {'path': 'spiral'}
-    predictor = {name: 10 + i for i, name in enumerate(PREDICTOR_COUNTS)}
+    predictor = PredictorCounts(dropped={'duplicate': 2}, faults={'gap': 1}, predictions=10,
+                                clamped=3, step_limited=4, zeros_published=5, reclamped=6,
+                                inference_skipped_late=7, late_outputs_dropped=8)
     counts = loop_counts(twin, predictor, ros_domain_id=42)
-    assert list(counts) == [*TWIN_COUNTS, *PREDICTOR_COUNTS, 'ros_domain_id']
-    assert counts['offsets_applied'] == 0 and counts['predictions'] == 10
-    assert counts['ros_domain_id'] == 42 and 'path' not in counts
-    with pytest.raises(KeyError, match='clamped'):
-        loop_counts(twin, {name: 0 for name in PREDICTOR_COUNTS if name != 'clamped'})
+    assert counts == {**{name: i for i, name in enumerate(TWIN_COUNTS)},
+                      'predictions': 10, 'predictor_faults': {'gap': 1},
+                      'predictor_dropped': {'duplicate': 2}, 'clamped': 3, 'step_limited': 4,
+                      'ros_domain_id': 42}
+    assert list(counts)[:len(TWIN_COUNTS)] == list(TWIN_COUNTS)
+    with pytest.raises(KeyError, match='samples_without_offset'):
+        loop_counts({'offsets_applied': 0}, predictor)

@@ -66,7 +66,7 @@ def trained(problem: LearningProblem, description: RobotDescription,
 def test_onnxruntime_serves_a_trained_lstm_and_agrees_with_torchscript(
         trained: LoadedModel, problem: LearningProblem) -> None:
     backend, why = select_backend(trained, 'auto')
-    assert (backend.name, why) == ('onnxruntime', '')
+    assert (backend.name, why) == ('onnxruntime', None)
     windows = gather_windows(problem.rows, problem.split.test[:200], WINDOW)
     window = np.zeros((1, WINDOW, len(FEATURES)))
     run_ort, run_torch = backend.runner(window), TorchScriptBackend(trained).runner(window)
@@ -86,14 +86,14 @@ def test_onnxruntime_serves_a_trained_lstm_and_agrees_with_torchscript(
 
 def test_torchscript_when_asked(trained: LoadedModel) -> None:
     backend, why = select_backend(trained, 'torchscript')
-    assert (backend.name, why) == ('torchscript', '')
+    assert (backend.name, why) == ('torchscript', None)
 
 
 def test_a_graph_onnx_runtime_cannot_take_falls_back_with_the_reason(
         trained: LoadedModel, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(inference, 'export_onnx', lambda model: b'not an ONNX graph')
     backend, why = select_backend(trained, 'auto')
-    assert backend.name == 'torchscript'
+    assert backend.name == 'torchscript' and why is not None
     assert why.startswith('TorchScript serves: ') and 'ONNX Runtime cannot take its graph' in why
     with pytest.raises(InferenceBackendError, match='ONNX Runtime cannot take its graph'):
         select_backend(trained, 'onnxruntime')
@@ -105,7 +105,7 @@ def test_disagreeing_outputs_fall_back_with_the_reason(
     other = load_model(save_linear(tmp_path / 'other.pt', window=WINDOW, horizon=HORIZON))
     monkeypatch.setattr(inference, 'export_onnx', lambda model: export_onnx(other))
     backend, why = select_backend(trained, 'auto')
-    assert backend.name == 'torchscript'
+    assert backend.name == 'torchscript' and why is not None
     assert 'onnxruntime and torchscript disagree on the warm-up batch' in why
     assert trained.path in why
 
@@ -114,7 +114,8 @@ def test_without_onnx_runtime_auto_falls_back_and_onnxruntime_fails_in_one_line(
         trained: LoadedModel, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(sys.modules, 'onnxruntime', None)  # import raises ImportError
     backend, why = select_backend(trained, 'auto')
-    assert backend.name == 'torchscript' and 'ONNX Runtime cannot be imported' in why
+    assert backend.name == 'torchscript' and why is not None
+    assert 'ONNX Runtime cannot be imported' in why
     with pytest.raises(InferenceBackendError, match='ONNX Runtime cannot be imported') as err:
         select_backend(trained, 'onnxruntime')
     assert '\n' not in str(err.value)

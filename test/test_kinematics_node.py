@@ -18,7 +18,7 @@ from sensor_msgs.msg import JointState
 
 from lompr_predictor.robot.description import MEASURED_JOINTS, RobotDescription
 from lompr_predictor.robot.kinematics import inverse_kinematics
-from lompr_predictor.ros.kinematics_node import REJECTION_REASONS, KinematicsNode
+from lompr_predictor.ros.kinematics_node import JointStateDrop, KinematicsNode
 
 pytestmark = pytest.mark.ros
 
@@ -131,9 +131,9 @@ def test_bad_inputs_are_dropped_counted_and_next_good_answered(
     inputs = wiring.status('joint states')
     assert inputs is not None
     assert inputs['rejected_total'] == str(sum(expected.values()))
-    assert {reason: int(inputs[f'rejected.{reason}']) for reason in REJECTION_REASONS} == {
-        reason: expected.get(reason, 0) for reason in REJECTION_REASONS}
-    assert wiring.node.rejected.counts() == {r: expected.get(r, 0) for r in REJECTION_REASONS}
+    assert {reason: int(inputs[f'rejected.{reason}']) for reason in JointStateDrop} == {
+        reason: expected.get(reason, 0) for reason in JointStateDrop}
+    assert wiring.node.rejected.counts() == {r: expected.get(r, 0) for r in JointStateDrop}
     # The 1.84 s gap between 10.16 and 12.00 restarted the warm start once.
     kinematics = wiring.status('forward kinematics')
     assert kinematics is not None and kinematics['warm_start_resets'] == '1'

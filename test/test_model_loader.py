@@ -8,6 +8,7 @@ from model_helpers import save_constant
 
 from lompr_predictor.learning.model_file import MetadataMismatchError, ModelFileError
 from lompr_predictor.online.model_loader import (
+    LoadOutcome,
     ModelRequest,
     expected_metadata,
     load_ready_model,
@@ -18,13 +19,19 @@ from lompr_predictor.robot.description import load_robot_description
 SHA = load_robot_description().sha256
 
 
+def refusal(outcome: LoadOutcome) -> str:
+    """Why `outcome` is a refusal (it must be one)."""
+    assert outcome.reason is not None
+    return outcome.reason
+
+
 def request(path: Path | str, sample_period: float = 0.0) -> ModelRequest:
     return ModelRequest(str(path), expected_metadata(SHA), sample_period)
 
 
 def test_a_good_file_is_loaded_verified_and_warmed_up(tmp_path: Path) -> None:
     outcome = load_ready_model(request(save_constant(tmp_path / 'c.pt', (1e-6, 2e-6))))
-    assert outcome.ready is not None and outcome.error is None and outcome.reason == ''
+    assert outcome.ready is not None and outcome.error is None and outcome.reason is None
     ready = outcome.ready
     assert ready.sample_period == 0.04  # the model's, none asked for
     assert ready.model.verified_by == 'sidecar' and ready.warm_up_seconds > 0.0
@@ -32,16 +39,16 @@ def test_a_good_file_is_loaded_verified_and_warmed_up(tmp_path: Path) -> None:
 
 
 def test_every_refusal_is_a_reason_not_an_exception(tmp_path: Path) -> None:
-    assert load_ready_model(request('')).reason.startswith('parameter model_path is empty')
+    assert refusal(load_ready_model(request(''))).startswith('parameter model_path is empty')
     missing = load_ready_model(request(tmp_path / 'missing.pt'))
-    assert missing.ready is None and 'no such file' in missing.reason
+    assert missing.ready is None and 'no such file' in refusal(missing)
     model = save_constant(tmp_path / 'c.pt')
     window = load_ready_model(ModelRequest(str(model), {'window': 9}))
-    assert isinstance(window.error, MetadataMismatchError) and 'window' in window.reason
+    assert isinstance(window.error, MetadataMismatchError) and 'window' in refusal(window)
     period = load_ready_model(request(model, sample_period=0.01))
-    assert isinstance(period.error, ModelFileError) and '0.01' in period.reason
+    assert isinstance(period.error, ModelFileError) and '0.01' in refusal(period)
     nan = load_ready_model(request(save_constant(tmp_path / 'nan.pt', (float('nan'), 0.0))))
-    assert nan.reason.endswith('not a finite (1, 2) prediction')
+    assert refusal(nan).endswith('not a finite (1, 2) prediction')
 
 
 def test_expected_metadata_leaves_out_what_the_configuration_leaves_open() -> None:
@@ -55,11 +62,11 @@ def test_a_swap_keeps_the_running_window_and_horizon(tmp_path: Path) -> None:
     assert prepare_swap(running, None, '').ready is None  # nothing to do
     assert prepare_swap(running, None, running.model.sha256.upper()).error is None
     pin = prepare_swap(running, None, 'f' * 64)
-    assert pin.reason.startswith(f'the running model {running.model.path} has sha256 ')
+    assert refusal(pin).startswith(f'the running model {running.model.path} has sha256 ')
     other = save_constant(tmp_path / 'b.pt', (3e-6, 0.0))
     swapped = prepare_swap(running, str(other), '').ready
     assert swapped is not None and swapped.model.path == str(other)
     longer = save_constant(tmp_path / 'w.pt', window=6)
     refused = prepare_swap(running, str(longer), '')
-    assert refused.ready is None and 'window' in refused.reason
-    assert refused.reason.endswith(f'; still running {running.model.path}')
+    assert refused.ready is None and 'window' in refusal(refused)
+    assert refusal(refused).endswith(f'; still running {running.model.path}')

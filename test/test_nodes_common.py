@@ -3,6 +3,7 @@ node), QoS overrides, the callback-exception policy, diagnostics, run_node."""
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -38,8 +39,8 @@ from lompr_predictor.ros.parameters import declare_settings, parameter, paramete
 pytestmark = pytest.mark.ros
 
 
-def _even(value: int) -> str:
-    return '' if value % 2 == 0 else 'must be even'
+def _even(value: int) -> str | None:
+    return None if value % 2 == 0 else 'must be even'
 
 
 @dataclass(frozen=True)
@@ -75,12 +76,12 @@ class ToyNode(NodeBase[ToySettings], Node):
             raise ValueError(f'negative x {msg.vector.x}')
         self.output.publish(msg)
 
-    def validate_settings(self, changes: dict[str, Any]) -> str:
+    def validate_settings(self, changes: dict[str, Any]) -> str | None:
         if changes.get('period') == 9.0:
             raise RuntimeError('validation blew up')
         return 'slow needs a period of 2 s or more' if (
             changes.get('mode') == 'slow' and changes.get('period', self.settings.period) < 2
-        ) else ''
+        ) else None
 
     def apply_settings(self, previous: ToySettings, changed: frozenset[str]) -> None:
         self.applied.append(changed)
@@ -387,3 +388,19 @@ def test_run_node_spins_with_the_start_up_heap_frozen(tmp_path: Path) -> None:
     assert code == 0
     assert frozen > 10_000  # rclpy's and the node's objects, not a handful
     assert tracked < frozen / 10  # what the collector still walks is what came after
+
+
+def test_the_stream_settings_are_the_predictors_declared_parameters() -> None:
+    """`StreamSettings` has no defaults of its own: each field but the model's sample period
+    is the predictor node's parameter of the same name, so it is declared once."""
+    from lompr_predictor.online.faults import StreamSettings
+    from lompr_predictor.ros.predictor_settings import PredictorNodeSettings
+
+    fields = dataclasses.fields(StreamSettings)
+    assert all(item.default is dataclasses.MISSING for item in fields)
+    specs = parameter_specs(PredictorNodeSettings)
+    changed = {name: spec.default * 2 for name, spec in specs.items()
+               if name in {item.name for item in fields} and name != 'sample_period'}
+    assert set(changed) == {item.name for item in fields} - {'sample_period'}
+    stream = dataclasses.replace(PredictorNodeSettings(), **changed).stream(0.004)
+    assert dataclasses.asdict(stream) == {**changed, 'sample_period': 0.004}

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from pathlib import Path
 from types import SimpleNamespace
@@ -24,18 +23,14 @@ from lompr_predictor.learning.model_file import (
     load_model,
     save_model,
 )
+from lompr_predictor.online.faults import StreamSettings
 from lompr_predictor.online.inference import select_backend
-from lompr_predictor.online.offset import XY, OffsetGate
-from lompr_predictor.online.predictor import (
-    STAGES,
-    CompensationLimits,
-    OnlinePredictor,
-    Output,
-    StreamSettings,
-)
+from lompr_predictor.online.offset import XY, CompensationLimits, OffsetGate, Output
+from lompr_predictor.online.predictor import OnlinePredictor
+from lompr_predictor.online.stage_timing import STAGES, time_stages
 from lompr_predictor.robot.description import RobotDescription, load_robot_description
 from lompr_predictor.robot.kinematics import VerticalToolBranches
-from lompr_predictor.stamps import stamp_problem
+from lompr_predictor.stamps import StampReason, stamp_problem
 
 PERIOD = 0.04
 PERIOD_NS = 40_000_000
@@ -49,9 +44,11 @@ OLD_FEATURES = ('error_x', 'error_y', 'ref_x', 'ref_y', 'ref_vx', 'ref_vy', 'ref
 
 
 def stream(sample_period: float = PERIOD, stale_min_time: float = 0.0) -> StreamSettings:
+    """The stream rules the core's tests run on (no staleness floor unless asked)."""
     return StreamSettings(sample_period=sample_period, gap_factor=2.5, min_interval_factor=0.5,
-                          stale_periods=5.0, accuracy_samples=1000,
-                          stale_min_time=stale_min_time)
+                          stale_periods=5.0, stale_min_time=stale_min_time,
+                          accuracy_samples=1000, max_future_stamp=1.0, late_tolerance=0.005,
+                          preview_tolerance=1e-5)
 
 
 def limits(max_compensation: float = 1e-3, max_step: float = 1e-3,
@@ -88,7 +85,7 @@ def constant_core(tmp_path: Path, value: tuple[float, float], clock: FakeClock |
     model = load_model(save_constant(tmp_path / 'constant.pt', value, window=WINDOW,
                                      horizon=HORIZON))
     return OnlinePredictor(model, stream(), limits(max_compensation, max_step, enabled),
-                           clock or FakeClock())
+                           clock=(clock or FakeClock()).ns)
 
 
 def predicted(output: Output) -> XY:
@@ -111,7 +108,7 @@ def feed(core: OnlinePredictor, stamps: np.ndarray, reference: np.ndarray, tips:
 
 def test_predictions_equal_offline_ones_sample_for_sample(linear_model: LoadedModel) -> None:
     stamps, reference, tips = spiral(60)
-    core = OnlinePredictor(linear_model, stream(), limits(enabled=False), FakeClock())
+    core = OnlinePredictor(linear_model, stream(), limits(enabled=False), clock=FakeClock().ns)
     # poses arrive before the reference for odd samples: alignment waits, never pairs.
     outputs = []
     for i in range(len(stamps)):
@@ -134,7 +131,7 @@ def test_predictions_equal_offline_ones_sample_for_sample(linear_model: LoadedMo
 
 def test_reference_is_interpolated_to_pose_stamps(linear_model: LoadedModel) -> None:
     stamps, reference, tips = spiral(20)
-    core = OnlinePredictor(linear_model, stream(), limits(enabled=False), FakeClock())
+    core = OnlinePredictor(linear_model, stream(), limits(enabled=False), clock=FakeClock().ns)
     # references half a period later than the poses, at a slightly different rate
     ref_stamps = stamps[0] - PERIOD_NS // 2 + np.arange(25) * (PERIOD_NS * 4 // 5)
     ref_xy = np.stack([np.interp(ref_stamps, stamps, reference[:, a]) for a in (0, 1, 2)], -1)
@@ -145,7 +142,7 @@ def test_reference_is_interpolated_to_pose_stamps(linear_model: LoadedModel) -> 
         core.add_pose(int(stamp), *tip)
     expected = np.stack([np.interp(stamps[:NEEDED], ref_stamps, ref_xy[:, a])
                          for a in (0, 1)], -1)
-    rows = core.window_rows()
+    rows = core.primary.window.rows()
     np.testing.assert_allclose(rows[:, 2:4], expected[HISTORY:], atol=1e-15)
     branch_v = np.diff(BRANCHES.along(np.column_stack([expected, np.full(NEEDED, Z)])),
                        axis=0) / PERIOD
@@ -157,7 +154,7 @@ def test_a_slower_reference_still_brackets_every_pose(linear_model: LoadedModel)
     """The reference at a quarter of the pose rate (CONTRACT section 2 allows any rates):
     its steps of 4 periods exceed gap_factor (2.5) pose periods, yet no pose is faulted."""
     stamps, reference, tips = spiral(60)
-    core = OnlinePredictor(linear_model, stream(), limits(enabled=False), FakeClock())
+    core = OnlinePredictor(linear_model, stream(), limits(enabled=False), clock=FakeClock().ns)
     outputs = []
     for i in range(len(stamps)):
         if i % 4 == 0:
@@ -166,7 +163,7 @@ def test_a_slower_reference_still_brackets_every_pose(linear_model: LoadedModel)
     assert core.faults.total == 0 and core.dropped.total == 0
     # every pose up to the last reference is used, each full window predicts
     assert len(outputs) == 57 - NEEDED + 1
-    assert core.window_rows()[-1, 2:4] == pytest.approx(reference[56, :2], abs=1e-12)
+    assert core.primary.window.rows()[-1, 2:4] == pytest.approx(reference[56, :2], abs=1e-12)
 
 
 def test_feature_rows_keep_nanosecond_stamps(linear_model: LoadedModel) -> None:
@@ -174,11 +171,11 @@ def test_feature_rows_keep_nanosecond_stamps(linear_model: LoadedModel) -> None:
     stamp differences taken in integers, as the trainer does."""
     stamps, reference, tips = spiral(NEEDED)
     stamps = stamps + np.arange(NEEDED) * 123  # jitter finer than float64 resolves
-    core = OnlinePredictor(linear_model, stream(), limits(enabled=False), FakeClock())
+    core = OnlinePredictor(linear_model, stream(), limits(enabled=False), clock=FakeClock().ns)
     feed(core, stamps, reference, tips)
     rows = feature_rows((stamps - stamps[0]) * 1e-9, tips - reference[:, :2], reference,
                         BRANCHES)
-    np.testing.assert_allclose(core.window_rows(), rows[HISTORY:], rtol=1e-12, atol=0)
+    np.testing.assert_allclose(core.primary.window.rows(), rows[HISTORY:], rtol=1e-12, atol=0)
 
 
 def test_a_model_of_other_features_or_for_another_robot_is_refused(tmp_path: Path) -> None:
@@ -186,12 +183,12 @@ def test_a_model_of_other_features_or_for_another_robot_is_refused(tmp_path: Pat
                       window=WINDOW, horizon=HORIZON, features=OLD_FEATURES)
     needs = r"'features' is \('error_x', .*'ref_ay'\), this configuration needs \(.*'ups3_a'\)"
     with pytest.raises(MetadataMismatchError, match=needs):
-        OnlinePredictor(load_model(old), stream(), limits(), FakeClock())
+        OnlinePredictor(load_model(old), stream(), limits(), clock=FakeClock().ns)
     with pytest.raises(MetadataMismatchError, match=needs):  # as the node loads it
         load_model(old, expected={'features': FEATURES})
     other_robot = load_model(save_linear(tmp_path / 'r.pt', robot_sha256='0' * 64))
     with pytest.raises(MetadataMismatchError, match="'robot_description_sha256' is '0000"):
-        OnlinePredictor(other_robot, stream(), limits(), FakeClock())
+        OnlinePredictor(other_robot, stream(), limits(), clock=FakeClock().ns)
     # the predictor runs another description than the model was trained for
     packaged = load_robot_description()
     calibrated = RobotDescription(packaged.urdf_xml + '<!-- calibrated -->\n', 'calibrated.urdf')
@@ -199,17 +196,17 @@ def test_a_model_of_other_features_or_for_another_robot_is_refused(tmp_path: Pat
     with pytest.raises(MetadataMismatchError,
                        match=f"'robot_description_sha256' is '{packaged.sha256}', this "
                              f"configuration needs '{calibrated.sha256}'"):
-        OnlinePredictor(model, stream(), limits(), FakeClock(), description=calibrated)
-    core = OnlinePredictor(model, stream(), limits(), FakeClock(), description=packaged)
+        OnlinePredictor(model, stream(), limits(), clock=FakeClock().ns, description=calibrated)
+    core = OnlinePredictor(model, stream(), limits(), clock=FakeClock().ns, description=packaged)
     with pytest.raises(MetadataMismatchError, match="'robot_description_sha256'"):
         core.replace_model(other_robot)
 
 
 def test_no_output_before_the_window_is_full(linear_model: LoadedModel) -> None:
     stamps, reference, tips = spiral(NEEDED)
-    core = OnlinePredictor(linear_model, stream(), limits(), FakeClock())
+    core = OnlinePredictor(linear_model, stream(), limits(), clock=FakeClock().ns)
     assert feed(core, stamps[:-1], reference[:-1], tips[:-1]) == []
-    assert core.window_fill == NEEDED - 1
+    assert core.primary.window.fill == NEEDED - 1
     assert len(feed(core, stamps[-1:], reference[-1:], tips[-1:])) == 1
 
 
@@ -262,7 +259,7 @@ def test_a_clock_jumping_back_zeroes_once_and_the_restarted_run_refills(
     assert [(z.reason, z.instant_ns) for z in zeros] == [
         ('clock_jump', int(stamps[19]) + k * PERIOD_NS) for k in range(1, HORIZON + 1)]
     assert all(not any(z.compensation) for z in zeros)
-    assert core.window_fill == 0 and core.faults['clock_jump'] == 1
+    assert core.primary.window.fill == 0 and core.faults['clock_jump'] == 1
     assert core.check_stale() == []
     outputs = feed(core, stamps[:NEEDED], reference[:NEEDED], tips[:NEEDED], clock)
     assert [o.reason for o in outputs] == [None]  # resumed after the refill, no other fault
@@ -276,7 +273,7 @@ def test_reset_cancels_without_a_fault_and_starts_afresh(tmp_path: Path) -> None
     feed(core, stamps[:NEEDED], reference[:NEEDED], tips[:NEEDED])
     zeros = core.reset()
     assert [z.reason for z in zeros] == ['inactive']  # the one offset published
-    assert core.faults.total == 0 and core.window_fill == 0
+    assert core.faults.total == 0 and core.primary.window.fill == 0
     assert core.reset() == []  # nothing in force any more
     # later samples, after a long pause, start a new window without a fault
     outputs = feed(core, stamps[30:30 + NEEDED], reference[30:30 + NEEDED],
@@ -300,7 +297,7 @@ def test_stale_input_zeroes_once(tmp_path: Path) -> None:
     assert all(z.reason == 'stale' and not any(z.compensation) for z in zeros)
     clock.now += 10.0
     assert core.check_stale() == []
-    assert core.window_fill == 0
+    assert core.primary.window.fill == 0
 
 
 def test_staleness_has_a_floor_in_seconds(tmp_path: Path) -> None:
@@ -311,7 +308,7 @@ def test_staleness_has_a_floor_in_seconds(tmp_path: Path) -> None:
     clock = FakeClock()
     model = load_model(save_constant(tmp_path / 'constant.pt', (-10e-6, 0.0), window=WINDOW,
                                      horizon=HORIZON))
-    core = OnlinePredictor(model, stream(stale_min_time=20 * PERIOD), limits(), clock)
+    core = OnlinePredictor(model, stream(stale_min_time=20 * PERIOD), limits(), clock=clock.ns)
     stamps, reference, tips = spiral(NEEDED + 2)
     feed(core, stamps, reference, tips, clock)
     for _ in range(2):  # two calls confirm; 19 periods is not yet stale
@@ -338,7 +335,7 @@ def test_poses_without_references_go_stale(tmp_path: Path) -> None:
     assert stamp == stamps[NEEDED + 6]  # the first waiting pose waited 5 periods, confirmed
     # the offsets published were for instants before the newest pose: one zero, next instant
     assert [(z.reason, z.instant_ns) for z in zeros] == [('stale', stamp + PERIOD_NS)]
-    assert core.dropped['stale'] == 7 and core.window_fill == 0
+    assert core.dropped['stale'] == 7 and core.primary.window.fill == 0
 
 
 @pytest.mark.parametrize('fault', ['non_finite', 'out_of_order'])
@@ -363,7 +360,7 @@ def test_bad_pose_zeroes_once_then_refills(tmp_path: Path, fault: str) -> None:
 
 @pytest.mark.faults
 def test_duplicates_are_dropped_without_a_fault(linear_model: LoadedModel) -> None:
-    core = OnlinePredictor(linear_model, stream(), limits(), FakeClock())
+    core = OnlinePredictor(linear_model, stream(), limits(), clock=FakeClock().ns)
     stamps, reference, tips = spiral(NEEDED + 2)
     first = feed(core, stamps, reference, tips)
     assert core.add_pose(int(stamps[-1]), *tips[-1]) == []
@@ -377,7 +374,7 @@ def test_plant_error_subtracts_the_compensation_published_for_that_instant(tmp_p
     stamps, reference, tips = spiral(NEEDED + HORIZON + 2)
     outputs = feed(core, stamps, reference, tips)
     published = {o.instant_ns: o.compensation for o in outputs}
-    rows = core.window_rows()
+    rows = core.primary.window.rows()
     last = len(stamps) - 1
     np.testing.assert_allclose(published[int(stamps[last])], [30e-6, -12e-6])
     np.testing.assert_allclose(rows[-1, 0:2],
@@ -394,7 +391,7 @@ def test_live_accuracy_is_rms_of_truth_minus_prediction(tmp_path: Path) -> None:
     stamps, reference, _ = spiral(NEEDED + HORIZON + 10)
     tips = reference[:, :2] + np.array([8e-6, 1e-6])  # a constant true error
     feed(core, stamps, reference, tips)
-    rms, count = core.accuracy()
+    rms, count = core.accuracy.rms()
     assert count == 11
     np.testing.assert_allclose(rms, [3e-6, 6e-6], atol=1e-15)
 
@@ -403,7 +400,7 @@ def test_live_accuracy_is_rms_of_truth_minus_prediction(tmp_path: Path) -> None:
 def test_inference_failure_zeroes_once(tmp_path: Path) -> None:
     path = save_model(tmp_path / 'failing.pt', FailingModel(threshold=0.01),
                       metadata(window=WINDOW, horizon=HORIZON))
-    core = OnlinePredictor(load_model(path), stream(), limits(), FakeClock())
+    core = OnlinePredictor(load_model(path), stream(), limits(), clock=FakeClock().ns)
     stamps, reference, tips = spiral(120)
     outputs = feed(core, stamps, reference, tips)
     assert outputs[0].reason is None
@@ -414,7 +411,7 @@ def test_inference_failure_zeroes_once(tmp_path: Path) -> None:
 
 @pytest.mark.faults
 def test_off_rate_input_never_fills_the_window(linear_model: LoadedModel) -> None:
-    core = OnlinePredictor(linear_model, stream(), limits(), FakeClock())
+    core = OnlinePredictor(linear_model, stream(), limits(), clock=FakeClock().ns)
     _, reference, tips = spiral(30)
     fast = T0 + np.arange(30) * (PERIOD_NS // 10)
     assert feed(core, fast, reference, tips) == []
@@ -444,7 +441,7 @@ def test_random_sequences_never_give_a_bad_offset(
                     weight=np.full((WINDOW * len(FEATURES), 2), 3.0), bias=(1e-3, -1e-3))
     clock = FakeClock()
     core = OnlinePredictor(load_model(path), stream(),
-                           limits(max_compensation=1e-4, max_step=2e-5), clock)
+                           limits(max_compensation=1e-4, max_step=2e-5), clock=clock.ns)
     stamp = T0
     outputs = []
     for kind, step, error, repeat in events:
@@ -514,7 +511,7 @@ def test_clamp_and_slew_are_never_exceeded_under_random_parameter_changes(
     every offset from a prediction differs from the one the slew starts from (the previous
     one, clamped by a lowered limit, zero after a cancel) by at most the step in force;
     a cancel is zero; shadow mode publishes zeros."""
-    core = OnlinePredictor(amplified, stream(), CompensationLimits(*start), lambda: 0.0)
+    core = OnlinePredictor(amplified, stream(), CompensationLimits(*start), clock=lambda: 0)
     limits = CompensationLimits(*start)
     slew_from = np.zeros(2)
     stamp, k = T0, 0
@@ -564,21 +561,26 @@ def amplified(tmp_path_factory: pytest.TempPathFactory) -> LoadedModel:
 
 @pytest.mark.faults
 @pytest.mark.parametrize(('sec', 'nanosec', 'reason'), [
-    (-5, 0, 'bad_stamp'), (10, 1_000_000_000, 'bad_stamp'), (10, 4_000_000_000, 'bad_stamp'),
-    (2_000, 0, 'future_stamp'), (1_000, 0, ''), (1_000, 999_999_999, '')])
-def test_stamp_problems(sec: int, nanosec: int, reason: str) -> None:
+    (-5, 0, StampReason.BAD_STAMP), (10, 1_000_000_000, StampReason.BAD_STAMP),
+    (10, 4_000_000_000, StampReason.BAD_STAMP), (2_000, 0, StampReason.FUTURE_STAMP),
+    (1_000, 0, None), (1_000, 999_999_999, None)])
+def test_stamp_problems(sec: int, nanosec: int, reason: StampReason | None) -> None:
+    def reason_of(now: int, max_future_ns: int | None) -> StampReason | None:
+        problem = stamp_problem(sec, nanosec, now, max_future_ns)
+        return None if problem is None else problem.reason
+
     now = 1_000 * 1_000_000_000
-    assert stamp_problem(sec, nanosec, now, 1_000_000_000)[0] == reason
-    assert stamp_problem(sec, nanosec, 0, 1_000_000_000)[0] == (
-        'bad_stamp' if reason == 'bad_stamp' else '')  # sim time before /clock
+    assert reason_of(now, 1_000_000_000) == reason
+    bad_only = reason if reason == StampReason.BAD_STAMP else None
+    assert reason_of(0, 1_000_000_000) == bad_only  # sim time before /clock
+    assert reason_of(now, None) == bad_only  # no future check
 
 
 @pytest.mark.faults
 def test_the_core_drops_impossible_stamps_counted(amplified: LoadedModel) -> None:
     now = T0 + 100 * PERIOD_NS
-    core = OnlinePredictor(amplified, dataclasses.replace(stream(), max_future_stamp=1.0),
-                           CompensationLimits(1e-4, 1e-5, True), lambda: 0.0,
-                           now_ns=lambda: now)
+    core = OnlinePredictor(amplified, stream(), CompensationLimits(1e-4, 1e-5, True),
+                           clock=lambda: now)
     for sec, nanosec in ((-1, 0), (1, 2_000_000_000), (T0 // 10**9 + 3600, 0)):
         stamp = SimpleNamespace(sec=sec, nanosec=nanosec)
         assert core.add_reference(stamp, 0.0, 0.0, Z) == []
@@ -586,7 +588,8 @@ def test_the_core_drops_impossible_stamps_counted(amplified: LoadedModel) -> Non
     dropped = core.dropped.counts()
     assert (dropped['bad_stamp'], dropped['future_stamp']) == (2, 1)
     assert (dropped['reference_bad_stamp'], dropped['reference_future_stamp']) == (2, 1)
-    assert core.window_fill == 0 and core.last_bad_stamp.startswith('pose_future_stamp')
+    assert core.primary.window.fill == 0
+    assert str(core.last_bad_stamp).startswith('pose_future_stamp')
 
 
 # -- faults: a model giving NaN or raising -------------------------------------------------
@@ -610,7 +613,7 @@ def test_a_model_giving_nan_cancels_and_is_counted(tmp_path: Path) -> None:
     path = tmp_path / 'nan.pt'
     model_file.save_model(path, NanAfter(0.095), metadata(window=WINDOW, horizon=HORIZON))
     core = OnlinePredictor(load_model(path), stream(), CompensationLimits(1e-3, 1e-3, True),
-                           lambda: 0.0)
+                           clock=lambda: 0)
     outputs = []
     for k in range(40):  # reference x = 0.1 cos(0.05 k) is above 0.095 up to k = 6
         x, y = spiral_xy(k)
@@ -637,13 +640,12 @@ class RecordingTimer:
 def test_the_stage_timer_hears_every_stage_of_a_predicting_sample_in_order(
         linear_model: LoadedModel) -> None:
     stamps, reference, tips = spiral(NEEDED)
-    core = OnlinePredictor(linear_model, stream(), limits(), FakeClock(),
-                           now_ns=lambda: int(stamps[-1]))
+    core = OnlinePredictor(linear_model, stream(), limits(), clock=lambda: int(stamps[-1]))
     for i in range(NEEDED - 1):
         core.add_reference(int(stamps[i]), *reference[i])
         core.add_pose(int(stamps[i]), *tips[i])
     timer = RecordingTimer()
-    core.stage_timer = timer
+    time_stages(core, timer)
     core.add_reference(int(stamps[-1]), *reference[-1])  # no pose waits for it
     assert timer.told == ['begin', 'stamp', 'alignment']
     timer.told.clear()
@@ -654,15 +656,15 @@ def test_the_stage_timer_hears_every_stage_of_a_predicting_sample_in_order(
 def test_onnx_runtime_in_the_core_gives_the_torchscript_outputs(linear_model: LoadedModel) -> None:
     stamps, reference, tips = spiral(40)
     backend, why = select_backend(linear_model, 'onnxruntime')
-    assert why == ''
-    cores = [OnlinePredictor(linear_model, stream(), limits(max_step=5e-6), FakeClock(),
-                             backend=chosen) for chosen in (backend, None)]
+    assert why is None
+    cores = [OnlinePredictor(linear_model, stream(), limits(max_step=5e-6),
+                             clock=FakeClock().ns, backend=chosen) for chosen in (backend, None)]
     outputs: list[list[Output]] = [[], []]
     for core, out in zip(cores, outputs, strict=True):
         for i in range(len(stamps)):
             out += core.add_reference(int(stamps[i]), *reference[i])
             out += core.add_pose(int(stamps[i]), *tips[i])
-    assert [core.backend.name for core in cores] == ['onnxruntime', 'torchscript']
+    assert [core.primary.backend.name for core in cores] == ['onnxruntime', 'torchscript']
     assert len(outputs[0]) == len(stamps) - NEEDED + 1
     np.testing.assert_allclose([predicted(o) for o in outputs[0]],
                                [predicted(o) for o in outputs[1]], rtol=1e-6, atol=1e-15)

@@ -26,7 +26,7 @@ def at(k: float) -> int:
 
 
 def aligned(clock: FakeClock | None = None) -> StampAlignment:
-    return StampAlignment(2.5, PERIOD_NS, clock or FakeClock(10.0))
+    return StampAlignment(2.5, PERIOD_NS, (clock or FakeClock(10.0)).ns)
 
 
 def samples_of(events: list[Event]) -> list[AlignedSample]:
@@ -131,7 +131,7 @@ def test_waiting_poses_keep_their_arrival_and_clear_counts_them() -> None:
     alignment.add_pose(at(0), 0.0, 0.0)
     clock.now += 0.04
     alignment.add_pose(at(1), 0.0, 0.0)
-    assert alignment.oldest_waiting_arrival() == 10.0
+    assert alignment.oldest_waiting_arrival() == 10_000_000_000
     alignment.clear(DropReason.STALE)
     assert alignment.dropped['stale'] == 2 and alignment.oldest_waiting_arrival() is None
 

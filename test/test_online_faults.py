@@ -11,16 +11,11 @@ PERIOD = 0.04
 PERIOD_NS = 40_000_000
 
 
-def stream(**overrides: float) -> StreamSettings:
-    values: dict[str, float] = {'sample_period': PERIOD, 'gap_factor': 2.5,
-                                'min_interval_factor': 0.5, 'stale_periods': 5.0,
-                                'accuracy_samples': 100, 'stale_min_time': 0.0}
-    values.update(overrides)
-    return StreamSettings(
-        sample_period=values['sample_period'], gap_factor=values['gap_factor'],
-        min_interval_factor=values['min_interval_factor'],
-        stale_periods=values['stale_periods'], accuracy_samples=int(values['accuracy_samples']),
-        stale_min_time=values['stale_min_time'])
+def stream(sample_period: float = PERIOD, stale_min_time: float = 0.0) -> StreamSettings:
+    return StreamSettings(sample_period=sample_period, gap_factor=2.5, min_interval_factor=0.5,
+                          stale_periods=5.0, stale_min_time=stale_min_time,
+                          accuracy_samples=100, max_future_stamp=1.0, late_tolerance=0.005,
+                          preview_tolerance=1e-5)
 
 
 @pytest.mark.parametrize(('interval_ns', 'fault'), [
@@ -38,7 +33,7 @@ def test_stale_after_has_a_floor_in_seconds() -> None:
 
 def test_staleness_is_confirmed_by_a_second_idle_check() -> None:
     clock = FakeClock(50.0)
-    watch = StaleWatch(0.2, clock)
+    watch = StaleWatch(0.2, clock.ns)
     clock.now += 0.19
     assert not watch.check()
     clock.now += 0.02
@@ -51,7 +46,7 @@ def test_staleness_is_confirmed_by_a_second_idle_check() -> None:
 
 def test_a_check_that_finds_a_recent_sample_clears_the_suspicion() -> None:
     clock = FakeClock(50.0)
-    watch = StaleWatch(0.2, clock)
+    watch = StaleWatch(0.2, clock.ns)
     clock.now += 0.3
     assert not watch.check()  # suspected
     watch.used()
@@ -63,8 +58,8 @@ def test_a_check_that_finds_a_recent_sample_clears_the_suspicion() -> None:
 
 def test_a_pose_waiting_for_its_reference_counts_as_no_sample() -> None:
     clock = FakeClock(50.0)
-    watch = StaleWatch(0.2, clock)
-    waiting_since = clock.now + 0.1  # a pose arrived then, and still waits
+    watch = StaleWatch(0.2, clock.ns)
+    waiting_since = clock.ns() + 100_000_000  # a pose arrived then, and still waits
     clock.now += 0.25
     assert not watch.check(waiting_since)  # idle 0.25 s since the last use, 0.15 s waiting...
     assert not watch.check(waiting_since)  # ...the newer of the two counts: not yet stale
@@ -77,7 +72,7 @@ def test_a_restart_counts_idle_time_from_the_jump() -> None:
     """A clock that jumps (its first /clock message, a simulator skipping ahead) is no idle
     input: the watch counts from the jump."""
     clock = FakeClock(50.0)
-    watch = StaleWatch(0.2, clock)
+    watch = StaleWatch(0.2, clock.ns)
     clock.now += 1000.0
     assert not watch.check()  # suspected
     watch.restart()

@@ -10,7 +10,6 @@ from lompr_predictor.online.offset import (
     XY,
     CompensationLimits,
     InstantSchedule,
-    LiveAccuracy,
     OffsetGate,
 )
 
@@ -110,18 +109,6 @@ def test_schedule_a_later_value_supersedes_from_its_instant_on() -> None:
     assert schedule.instants_after(at(0)) == [at(1), at(2)]
     assert held(schedule.take(at(2)))[0] == 9.0
     assert schedule.take(at(3)) is None
-
-
-def test_live_accuracy_is_the_rms_of_truth_minus_prediction() -> None:
-    accuracy = LiveAccuracy(samples=2)
-    rms, count = accuracy.rms()
-    assert count == 0 and np.isnan(rms).all()
-    accuracy.add(9e-6, 0.0, (0.0, 0.0))  # pushed out by the next two
-    accuracy.add(3e-6, 1e-6, (0.0, 2e-6))
-    accuracy.add(-1e-6, 0.0, (3e-6, 1e-6))
-    rms, count = accuracy.rms()
-    assert count == 2
-    np.testing.assert_allclose(rms, [np.sqrt((9 + 16) / 2) * 1e-6, 1e-6], rtol=1e-12)
 
 
 @pytest.mark.parametrize('limit', [0.0, 1e-6])

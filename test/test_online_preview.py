@@ -10,12 +10,13 @@ import pytest
 import torch
 from fake_clock import FakeClock
 from model_helpers import save_constant, save_linear
+from test_online import stream
 
 from lompr_predictor.data.features import feature_names, feature_rows, with_preview
 from lompr_predictor.learning.model_file import LoadedModel, MetadataMismatchError, load_model
 from lompr_predictor.monitoring import RateMeter
-from lompr_predictor.online.offset import CompensationLimits
-from lompr_predictor.online.predictor import OnlinePredictor, Output, StreamSettings
+from lompr_predictor.online.offset import CompensationLimits, Output
+from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_status import Lifecycle, preview_status
 from lompr_predictor.online.preview import PlannedPath, PreviewDrop
 from lompr_predictor.robot.description import load_robot_description
@@ -27,7 +28,7 @@ PERIOD_NS = 40_000_000
 WINDOW, HORIZON, PREVIEW = 4, 3, 3
 PLANNED_AHEAD = PREVIEW + 2  # samples each preview plans, as a path generator publishes
 BRANCHES = VerticalToolBranches(load_robot_description().geometry)
-ACTIVE = Lifecycle('active', True, '')
+ACTIVE = Lifecycle('active', True, None)
 
 
 def path(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -49,9 +50,8 @@ def preview_model(tmp_path: Path) -> LoadedModel:
 
 
 def core_of(model: LoadedModel, clock: FakeClock, enabled: bool = False) -> OnlinePredictor:
-    stream = StreamSettings(sample_period=PERIOD, gap_factor=2.5, min_interval_factor=0.5,
-                            stale_periods=5.0, accuracy_samples=100)
-    return OnlinePredictor(model, stream, CompensationLimits(1e-3, 1e-3, enabled), clock)
+    return OnlinePredictor(model, stream(), CompensationLimits(1e-3, 1e-3, enabled),
+                           clock=clock.ns)
 
 
 def feed(core: OnlinePredictor, clock: FakeClock, stamps: np.ndarray, reference: np.ndarray,
@@ -181,13 +181,13 @@ def test_a_fallback_model_answers_where_the_plan_is_missing(
     clock = FakeClock()
     fallback = load_model(save_constant(tmp_path / 'fallback.pt', (7e-6, -3e-6),
                                         window=WINDOW, horizon=HORIZON))
-    stream = StreamSettings(sample_period=PERIOD, gap_factor=2.5, min_interval_factor=0.5,
-                            stale_periods=5.0, accuracy_samples=100)
-    core = OnlinePredictor(preview_model, stream, CompensationLimits(1e-3, 1e-3, True), clock,
-                           fallback=fallback)
+    core = OnlinePredictor(preview_model, stream(), CompensationLimits(1e-3, 1e-3, True),
+                           clock=clock.ns, fallback=(fallback, None))
+    fallback_slot = core.fallback
+    assert fallback_slot is not None
     with_plan = feed(core, clock, stamps, reference, tips, range(n))
     # the window of either model is full after the same samples: the preview model answers
-    assert len(with_plan) == n - WINDOW - 1 and core.fallback_answers == 0
+    assert len(with_plan) == n - WINDOW - 1 and fallback_slot.answers == 0
     outputs = []
     for k in range(n, n + 12):  # no previews: the plan reaches two more samples
         clock.now += PERIOD
@@ -195,19 +195,19 @@ def test_a_fallback_model_answers_where_the_plan_is_missing(
         outputs += core.add_pose(int(stamps[k]), *tips[k])
     assert len(outputs) == 12 and all(o.reason is None for o in outputs)  # no zeros
     assert [o.prediction for o in outputs[PLANNED_AHEAD - PREVIEW:]] == [(7e-6, -3e-6)] * 10
-    assert core.fallback_answers == 10 and core.preview_stale
+    assert fallback_slot.answers == 10 and core.preview_stale
     # previews again: the preview model takes over once its window has a plan in every row
     again = feed(core, clock, stamps, reference, tips, range(n + 12, n + 30))
-    assert core.fallback_answers == 10 + WINDOW + 1 and len(again) == 18
+    assert fallback_slot.answers == 10 + WINDOW + 1 and len(again) == 18
 
 
 def test_a_fallback_must_read_no_preview_and_predict_the_same_instant(
         preview_model: LoadedModel, tmp_path: Path) -> None:
-    stream = StreamSettings(sample_period=PERIOD, gap_factor=2.5, min_interval_factor=0.5,
-                            stale_periods=5.0, accuracy_samples=100)
     limits = CompensationLimits(1e-3, 1e-3, True)
     other = load_model(save_constant(tmp_path / 'h2.pt', window=WINDOW, horizon=HORIZON + 1))
     with pytest.raises(MetadataMismatchError, match="'horizon' is 4"):
-        OnlinePredictor(preview_model, stream, limits, FakeClock(), fallback=other)
+        OnlinePredictor(preview_model, stream(), limits, clock=FakeClock().ns,
+                        fallback=(other, None))
     with pytest.raises(MetadataMismatchError, match="'preview' is 3"):
-        OnlinePredictor(preview_model, stream, limits, FakeClock(), fallback=preview_model)
+        OnlinePredictor(preview_model, stream(), limits, clock=FakeClock().ns,
+                        fallback=(preview_model, None))

@@ -29,8 +29,8 @@ class NodeClock:
     def __init__(self) -> None:
         self.ns = T0
 
-    def seconds(self) -> float:
-        return self.ns * 1e-9
+    def now(self) -> int:
+        return self.ns
 
 
 def slow(model: LoadedModel, clock: NodeClock, durations: Iterator[int]) -> LoadedModel:
@@ -67,8 +67,7 @@ def test_a_slow_model_publishes_nothing_late_and_no_burst(tmp_path: Path, horizo
     model = load_model(save_constant(tmp_path / 'm.pt', (1e-5, 0.0), window=WINDOW,
                                      horizon=horizon))
     core = OnlinePredictor(slow(model, clock, iter(lambda: 100_000_000, None)), stream(),
-                           CompensationLimits(1e-3, 1e-3, True), clock.seconds,
-                           now_ns=lambda: clock.ns)
+                           CompensationLimits(1e-3, 1e-3, True), clock=clock.now)
     published = stream_through(core, clock, 100, PERIOD_NS)
     lead, tolerance, delay = horizon * PERIOD_NS, 5_000_000, 1_000_000
     predictions = [(at, o) for at, o in published if not o.reason]
@@ -92,8 +91,7 @@ def test_one_stall_does_not_stop_the_answers(tmp_path: Path) -> None:
     model = load_model(save_constant(tmp_path / 'm.pt', (1e-5, 0.0), window=WINDOW,
                                      horizon=HORIZON))
     core = OnlinePredictor(slow(model, clock, durations), stream(),
-                           CompensationLimits(1e-3, 1e-3, True), clock.seconds,
-                           now_ns=lambda: clock.ns)
+                           CompensationLimits(1e-3, 1e-3, True), clock=clock.now)
     published = stream_through(core, clock, 120, PERIOD_NS)
     late_part = [o for _, o in published
                  if not o.reason and o.sample_stamp_ns > T0 + 60 * PERIOD_NS]

@@ -372,7 +372,7 @@ def test_a_failing_callback_aborts_the_core_with_one_zero(
     ros.spin_until(lambda: len(wiring.compensations) == 2, what='the cancelling zero')
     assert not xy(wiring.compensations)[1].any()
     assert stamp_ns(wiring.compensations[1]) == stamp_ns(wiring.compensations[0])
-    assert core.faults['internal'] == 1 and core.window_fill == 0
+    assert core.faults['internal'] == 1 and core.primary.window.fill == 0
     monkeypatch.setattr(core, 'add_pose', add_pose)
     wiring.run(NEEDED + 1, NEEDED)  # refilled: output resumes
     ros.spin_until(lambda: len(wiring.compensations) == 3, what='resumed offset')

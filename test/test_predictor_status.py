@@ -8,11 +8,21 @@ import numpy as np
 import pytest
 from fake_clock import FakeClock
 from model_helpers import save_constant
+from test_online import stream
 
 from lompr_predictor.data.features import HISTORY
 from lompr_predictor.learning.model_file import load_model
-from lompr_predictor.monitoring import LatencySummary, Level, RateMeter
-from lompr_predictor.online.predictor import CompensationLimits, OnlinePredictor, StreamSettings
+from lompr_predictor.monitoring import LatencySummary, Level, RateMeter, Status
+from lompr_predictor.online.offset import CompensationLimits
+from lompr_predictor.online.predictor import OnlinePredictor
+from lompr_predictor.online.predictor_counts import (
+    INPUTS_STATUS,
+    PREDICTION_STATUS,
+    CountsMissingError,
+    PredictorCounts,
+    read_counts,
+    status_counts,
+)
 from lompr_predictor.online.predictor_status import (
     InputRates,
     Lifecycle,
@@ -20,14 +30,13 @@ from lompr_predictor.online.predictor_status import (
     PredictionLimits,
     input_status,
     model_status,
-    overruns,
     prediction_status,
 )
 
 PERIOD_NS = 40_000_000
 T0 = 1_700_000_000_000_000_000
 WINDOW = 4
-ACTIVE = Lifecycle('active', autostart=True, configure_error='')
+ACTIVE = Lifecycle('active', autostart=True, configure_error=None)
 LIMITS = PredictionLimits(compensation_enabled=True, inference_time_warn=10.0,
                           accuracy_warn=0.0)
 NO_LATENCY = LatencySummary(0, 0.0, 0.0, 0.0)
@@ -42,9 +51,8 @@ def clock() -> FakeClock:
 def core(tmp_path: Path, clock: FakeClock) -> OnlinePredictor:
     """A core whose model always predicts (-20, 5) um, limits loose enough to publish it."""
     model = load_model(save_constant(tmp_path / 'c.pt', (-20e-6, 5e-6), window=WINDOW))
-    stream = StreamSettings(0.04, gap_factor=2.5, min_interval_factor=0.5, stale_periods=5.0,
-                            accuracy_samples=100)
-    return OnlinePredictor(model, stream, CompensationLimits(1e-3, 1e-3, True), clock)
+    return OnlinePredictor(model, stream(), CompensationLimits(1e-3, 1e-3, True),
+                           clock=clock.ns)
 
 
 def feed(core: OnlinePredictor, clock: FakeClock, count: int, start: int = 0) -> None:
@@ -72,7 +80,7 @@ def test_model_status_without_a_model_says_why() -> None:
     assert status.message == 'unconfigured: configure failed: no such file'
     assert status.values == {'lifecycle_state': 'unconfigured', 'autostart': False,
                              'configure_error': 'no such file', 'path': 'm.pt'}
-    waiting = model_status(Lifecycle('unconfigured', False, ''), 'm.pt', None, ModelHistory())
+    waiting = model_status(Lifecycle('unconfigured', False, None), 'm.pt', None, ModelHistory())
     assert (waiting.level, waiting.message) == (
         Level.WARN, 'unconfigured: no model loaded (waiting for configure)')
 
@@ -88,7 +96,7 @@ def test_model_status_reports_the_model_and_its_history(core: OnlinePredictor) -
     assert (values['sha256_verified_by'], values['window'], values['horizon'],
             values['sample_period_s'], values['swaps'], values['warm_up_ms']) == (
         'sidecar', WINDOW, 3, 0.04, 2, 12.346)
-    inactive = model_status(Lifecycle('inactive', True, ''), '', core, history)
+    inactive = model_status(Lifecycle('inactive', True, None), '', core, history)
     assert inactive.level == Level.WARN and inactive.message.startswith(
         'inactive (not publishing): linear ')
     refused = model_status(ACTIVE, '', core, ModelHistory(reload_error='bad file'))
@@ -115,14 +123,14 @@ def test_input_status_from_waiting_to_filling_to_full(core: OnlinePredictor,
         '1 faults since the last report (last: non_finite); window 0/'
         f'{WINDOW + HISTORY}')
     assert faulty.values['faults.non_finite'] == 1 and faulty.values['rejected.non_finite'] == 1
-    dropped = input_status(Lifecycle('inactive', True, ''), core, rates(clock, 25), 0)
+    dropped = input_status(Lifecycle('inactive', True, None), core, rates(clock, 25), 0)
     assert (dropped.level, dropped.message) == (Level.WARN, 'inactive: input dropped')
 
 
 def test_input_status_unconfigured_keeps_only_the_clock() -> None:
     meters = InputRates(RateMeter(), RateMeter(), '/e', 5.0, {'clock_s': 0.0},
                         {'callback_failures': 3})
-    status = input_status(Lifecycle('unconfigured', True, ''), None, meters, 0)
+    status = input_status(Lifecycle('unconfigured', True, None), None, meters, 0)
     assert (status.level, status.message) == (Level.WARN, 'unconfigured')
     assert 'callback_failures' not in status.values and status.values['clock_s'] == 0.0
 
@@ -137,7 +145,7 @@ def test_prediction_status_counts_predictions_and_the_offset(core: OnlinePredict
     assert values['compensation_enabled'] is True
     # the offset in force is minus the prediction, grown by at most the step limit
     assert (values['offset_x_um'], values['offset_y_um']) == (20.0, -5.0)
-    assert overruns(core) == 0
+    assert core.counts().overruns == 0
     late = prediction_status(ACTIVE, core, LIMITS, NO_LATENCY, 25.0, new_overruns=2)
     assert late.level == Level.WARN and late.message.startswith(
         'compensating; 2 outputs late or skipped since the last report')
@@ -149,12 +157,51 @@ def test_prediction_status_counts_predictions_and_the_offset(core: OnlinePredict
 def test_prediction_status_warns_on_drift(core: OnlinePredictor, clock: FakeClock) -> None:
     """The model says -20 um where the plant error is +10 um: a live RMS far over 1 um."""
     feed(core, clock, WINDOW + HISTORY + 10)
-    rms, count = core.accuracy()
+    rms, count = core.accuracy.rms()
     assert count > 0 and float(np.nanmax(rms)) > 1e-6
     status = prediction_status(ACTIVE, core, PredictionLimits(True, 10.0, 1e-6), NO_LATENCY,
                                25.0, 0)
     assert status.level == Level.WARN and 'the machine has drifted from the model' in (
         status.message)
-    unconfigured = prediction_status(Lifecycle('finalized', False, ''), None, LIMITS,
+    unconfigured = prediction_status(Lifecycle('finalized', False, None), None, LIMITS,
                                      NO_LATENCY, 0.0, 0)
     assert (unconfigured.level, unconfigured.message) == (Level.WARN, 'finalized')
+
+
+def as_read_back(status: Status) -> dict[str, str]:
+    """A status's key-values as /diagnostics carries them (`ros.common.status_message`)."""
+    return {str(key): str(value) for key, value in status.values.items()}
+
+
+def test_the_counts_written_read_back_as_the_cores(core: OnlinePredictor,
+                                                   clock: FakeClock) -> None:
+    """What the inputs and prediction statuses write is what a reader of /diagnostics gets
+    back (the cross-process closed loop): every count, by reason too."""
+    feed(core, clock, WINDOW + HISTORY + 4)
+    core.add_pose(T0 + 40 * PERIOD_NS, float('nan'), 0.0)  # a fault and a drop
+    core.add_pose(T0 + 41 * PERIOD_NS, 0.0, 0.0)
+    core.add_pose(T0 + 41 * PERIOD_NS, 0.0, 0.0)  # a duplicate
+    counts = core.counts()
+    assert counts.faults['non_finite'] == 1 and counts.dropped['duplicate'] == 1
+    assert counts.predictions == 5 and sum(counts.faults.values()) == 1
+    statuses = {INPUTS_STATUS: as_read_back(input_status(ACTIVE, core, rates(clock, 10), 0)),
+                PREDICTION_STATUS: as_read_back(prediction_status(ACTIVE, core, LIMITS,
+                                                                  NO_LATENCY, 25.0, 0))}
+    assert read_counts(statuses) == counts
+
+
+def test_counts_missing_from_the_statuses_are_named() -> None:
+    counts = PredictorCounts(dropped={'duplicate': 1}, faults={'gap': 2}, predictions=3,
+                             clamped=4, step_limited=5, zeros_published=6, reclamped=7,
+                             inference_skipped_late=8, late_outputs_dropped=9)
+    written = {name: {key: str(value) for key, value in values.items()}
+               for name, values in status_counts(counts).items()}
+    assert read_counts(written) == counts and counts.overruns == 17
+    with pytest.raises(CountsMissingError, match="no predictor status 'prediction'"):
+        read_counts({INPUTS_STATUS: written[INPUTS_STATUS]})
+    renamed = {**written[PREDICTION_STATUS], 'clamped': '4'}
+    del renamed['clamped_total']
+    with pytest.raises(CountsMissingError, match="has no 'clamped_total'"):
+        read_counts({**written, PREDICTION_STATUS: renamed})
+    with pytest.raises(CountsMissingError, match=r'no faults\.<reason> counts'):
+        read_counts({**written, INPUTS_STATUS: {'rejected.duplicate': '1'}})

@@ -12,21 +12,17 @@ from lompr_predictor.cli.validation import (
     readable_file,
 )
 from lompr_predictor.data.bags import DEFAULT_JOINT_TOPIC, DEFAULT_REFERENCE_TOPIC
-from lompr_predictor.data.cleaning import (
-    GAP_FACTOR,
-    HAMPEL_HALF_WINDOW,
-    HAMPEL_THRESHOLD,
-    CleaningConfig,
-)
+from lompr_predictor.data.cleaning import HAMPEL_HALF_WINDOW, HAMPEL_THRESHOLD, CleaningConfig
 from lompr_predictor.data.loading import BagInputs
 from lompr_predictor.robot.description import MEASURED_JOINTS, joint_names_problem
+from lompr_predictor.stamps import GAP_FACTOR
 
 
 def joint_names(text: str) -> tuple[str, ...]:
     """--joint-names: five distinct names, the order rules of kinematics_node's joint_names."""
     names = comma_list(str)(text)
     problem = joint_names_problem(names)
-    if problem:
+    if problem is not None:
         msg = f'{problem}, got {text!r}'
         raise argparse.ArgumentTypeError(msg)
     return names

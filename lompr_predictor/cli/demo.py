@@ -164,17 +164,33 @@ def run(args: argparse.Namespace) -> int:
 
     metadata = load_model(model).metadata
     args.horizon, period_ms = metadata.horizon, metadata.sample_period * 1e3
+    runs, floor = _run_loops(args, budget, out, model, (description, params))
+
+    _stage(5, 'Scoring the true tool-tip error of each loop')
+    first = runs['model']
+    scored = first.scored
+    comparison = compare_loops({name: run.true_error[scored] for name, run in runs.items()},
+                               first.pass_index[scored])
+    document = _summary(args, budget, runs, comparison, floor, started)
+    write_json(out / 'closed_loop.json', document)
+    plot_loops(out / LOOP_PLOT, seconds_since(first.stamps[scored], first.stamps[0]),
+               {name: run.true_error[scored] for name, run in runs.items()}, comparison, LABELS,
+               title=f'True tool-tip error in closed loop, {args.path}, horizon {args.horizon}')
+    _print_result(args, budget, out, comparison, floor, document, period_ms)
+    return 0
+
+
+def _run_loops(args: argparse.Namespace, budget: dict[str, int], out: Path, model: Path,
+               robot: tuple[RobotDescription, TwinParameters],
+               ) -> tuple[dict[str, Any], dict[str, float]]:
+    """Stages 3 and 4: the persistence model file, then every closed loop (recorded unless
+    --no-record); the runs by variant and the irreducible level of their error."""
     _stage(3, 'Writing the persistence compensator as a model file (offset = minus the last '
               'measured plant error)')
-    from lompr_predictor.ros.closed_loop import (
-        LoopSettings,
-        persistence_model,
-        record_loop,
-        run_closed_loop,
-    )
+    from lompr_predictor.ros.closed_loop import persistence_model, record_loop, run_closed_loop
+    from lompr_predictor.ros.loop_settings import LoopSettings
 
     persistence = persistence_model(out / 'persistence.pt', like=model)
-
     loop_seed = args.seed + 1
     how = ("three processes on the twin's simulated time (/clock)" if args.processes
            else 'one process')
@@ -190,6 +206,7 @@ def run(args: argparse.Namespace) -> int:
     if args.preview:
         variants['preview'] = dataclasses.replace(
             settings, model_path=str(out / 'model_preview.pt'))
+    description, params = robot
     truth = simulate(description, params, passes=settings.lead_in_passes + budget['passes'],
                      seed=loop_seed, path=args.path)
     floor = true_error_floor(truth, args.horizon)
@@ -198,19 +215,7 @@ def run(args: argparse.Namespace) -> int:
         runs[name] = run_closed_loop(variants[name], label=LABELS[name])
         if not args.no_record:
             record_loop(out / 'loops' / name, runs[name], irreducible_um=floor)
-
-    _stage(5, 'Scoring the true tool-tip error of each loop')
-    first = runs['model']
-    scored = first.scored
-    comparison = compare_loops({name: run.true_error[scored] for name, run in runs.items()},
-                               first.pass_index[scored])
-    document = _summary(args, budget, runs, comparison, floor, started)
-    write_json(out / 'closed_loop.json', document)
-    plot_loops(out / LOOP_PLOT, seconds_since(first.stamps[scored], first.stamps[0]),
-               {name: run.true_error[scored] for name, run in runs.items()}, comparison, LABELS,
-               title=f'True tool-tip error in closed loop, {args.path}, horizon {args.horizon}')
-    _print_result(args, budget, out, comparison, floor, document, period_ms)
-    return 0
+    return runs, floor
 
 
 def _record_and_train(args: argparse.Namespace, budget: dict[str, int], out: Path,

@@ -220,17 +220,7 @@ def read_recording(
     ref_rows: list[tuple[float, ...]] = []
     try:
         with Reader(path) as reader:
-            # A writer may record one topic over several connections (publishers with
-            # different QoS, a restart): every one of them counts.
-            wanted = [c for c in reader.connections if c.topic in (joint_topic, reference_topic)]
-            for topic, msgtype in ((joint_topic, JOINT_STATE), (reference_topic, POSE_STAMPED)):
-                types = {c.msgtype for c in wanted if c.topic == topic}
-                if not types:
-                    topics = sorted({c.topic for c in reader.connections})
-                    raise BagError(path, f'no topic {topic}; it has {", ".join(topics) or "none"}')
-                if types != {msgtype}:
-                    raise BagError(path, f'topic {topic} is {", ".join(sorted(types))}, '
-                                         f'expected {msgtype}')
+            wanted = _connections(path, reader.connections, joint_topic, reference_topic)
             expected = sum(c.msgcount for c in wanted)
             read = 0
             for connection, _, raw in reader.messages(connections=wanted):
@@ -238,13 +228,9 @@ def read_recording(
                 stamp = stamp_to_ns(message.header.stamp)
                 if connection.topic == joint_topic:
                     seen.update(message.name)
-                    row = np.full(len(names), np.nan)
-                    for name, value in zip(message.name, message.position, strict=False):
-                        index = column.get(name)
-                        if index is not None:
-                            row[index] = value
                     joint_stamps.append(stamp)
-                    joint_rows.append(row)
+                    joint_rows.append(_joint_row(message.name, message.position, column,
+                                                  len(names)))
                 else:
                     p, q = message.pose.position, message.pose.orientation
                     ref_stamps.append(stamp)
@@ -261,15 +247,52 @@ def read_recording(
         raise BagError(path, f'no joint(s) {", ".join(missing)} on {joint_topic}; its joints are '
                              f'{", ".join(sorted(seen)) or "none"} (name yours with --joint-names '
                              f'in the order {",".join(MEASURED_JOINTS)})')
-    reference = np.array(ref_rows, dtype=float).reshape(-1, 7)
+    return _recording(path, names, (joint_stamps, joint_rows), (ref_stamps, ref_rows))
+
+
+def _connections(path: Path, connections: Sequence[Any], joint_topic: str,
+                 reference_topic: str) -> list[Any]:
+    """The connections of the two topics, checked: each there, of its message type. A
+    writer may record one topic over several connections (publishers with different QoS, a
+    restart): every one of them counts."""
+    wanted = [c for c in connections if c.topic in (joint_topic, reference_topic)]
+    for topic, msgtype in ((joint_topic, JOINT_STATE), (reference_topic, POSE_STAMPED)):
+        types = {c.msgtype for c in wanted if c.topic == topic}
+        if not types:
+            topics = sorted({c.topic for c in connections})
+            raise BagError(path, f'no topic {topic}; it has {", ".join(topics) or "none"}')
+        if types != {msgtype}:
+            raise BagError(path, f'topic {topic} is {", ".join(sorted(types))}, '
+                                 f'expected {msgtype}')
+    return wanted
+
+
+def _joint_row(names: Sequence[str], positions: Sequence[float], column: dict[str, int],
+               size: int) -> np.ndarray:
+    """(size,) the positions of the joints `column` places, NaN for those the message
+    lacks."""
+    row = np.full(size, np.nan)
+    for name, value in zip(names, positions, strict=False):
+        index = column.get(name)
+        if index is not None:
+            row[index] = value
+    return row
+
+
+def _recording(path: Path, names: tuple[str, ...],
+               joints: tuple[list[int], list[np.ndarray]],
+               reference: tuple[list[int], list[tuple[float, ...]]]) -> Recording:
+    """A `Recording` of the (stamps, rows) read from the two topics."""
+    ref_stamps, ref_rows = reference
+    rows = np.array(ref_rows, dtype=float).reshape(-1, 7)
     return Recording(
         joints=JointSamples(
-            stamps=np.array(joint_stamps, dtype=np.int64),
-            positions=np.array(joint_rows, dtype=float).reshape(-1, len(names)),
+            stamps=np.array(joints[0], dtype=np.int64),
+            positions=np.array(joints[1], dtype=float).reshape(-1, len(names)),
             names=names),
         reference=ReferenceSamples(
             stamps=np.array(ref_stamps, dtype=np.int64),
-            positions=reference[:, :3].copy(), orientations=reference[:, 3:].copy()),
+            positions=rows[:, :3].copy(), orientations=rows[:, 3:].copy()),
         source=str(path))
 
 

@@ -26,10 +26,9 @@ from lompr_predictor.data.bags import JointSamples, Recording, ReferenceSamples
 from lompr_predictor.data.features import feature_names, feature_rows, with_preview
 from lompr_predictor.robot.description import LomprGeometry
 from lompr_predictor.robot.kinematics import VerticalToolBranches, batch_forward_kinematics
-from lompr_predictor.stamps import seconds_since
+from lompr_predictor.stamps import GAP_FACTOR, seconds_since
 
 #: Defaults of the cleaning rules, in one place (the CLI and the report use these).
-GAP_FACTOR = 2.5  # a step longer than this many sample periods splits the data
 HAMPEL_HALF_WINDOW = 7  # samples each side of the Hampel median
 HAMPEL_THRESHOLD = 6.0  # spike when |e - median| > threshold * robust sigma
 MAD_TO_SIGMA = 1.4826  # MAD of a Gaussian times this is its standard deviation

@@ -36,6 +36,7 @@ import re
 import warnings
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -55,8 +56,14 @@ ExportedModule = torch.jit.ScriptModule
 #: Suffix of the sidecar holding a model file's sha256 (`sha256sum` format).
 SIDECAR_SUFFIX = '.sha256'
 _HEX64 = re.compile(r'[0-9a-f]{64}')
-#: How a loaded model's bytes were checked (`LoadedModel.verified_by`).
-VERIFIED_BY = ('pinned sha256', 'sidecar', 'not verified')
+
+
+class Verification(StrEnum):
+    """How a loaded model's bytes were checked (`LoadedModel.verified_by`)."""
+
+    PINNED = 'pinned sha256'  # against the sha256 the caller pinned
+    SIDECAR = 'sidecar'  # against the sidecar lompr train writes beside the file
+    NONE = 'not verified'  # not at all (development only)
 
 
 class ModelFileError(LomprError):
@@ -139,7 +146,7 @@ class LoadedModel:
     metadata: ModelMetadata
     path: str
     sha256: str  # of the bytes that were loaded (and checked, see verified_by)
-    verified_by: str = 'not verified'  # one of VERIFIED_BY
+    verified_by: Verification = Verification.NONE
 
     def predict(self, windows: torch.Tensor) -> torch.Tensor:
         """(B, window, features) float64 SI windows -> (B, 2) predicted error [m], in
@@ -250,11 +257,11 @@ def read_sidecar(path: str | Path) -> str | None:
     return digest
 
 
-def check_sha256_text(value: str) -> str:
-    """Why `value` is not a sha256 in hex ('' if it is, or if it is empty)."""
+def check_sha256_text(value: str) -> str | None:
+    """Why `value` is not a sha256 in hex (None if it is, or if it is empty)."""
     if value and not _HEX64.fullmatch(value.lower()):
         return f'must be 64 hexadecimal digits (a sha256), got {value!r}'
-    return ''
+    return None
 
 
 def save_checkpoint(path: str | Path, module: torch.nn.Module) -> Path:
@@ -336,8 +343,9 @@ def load_model(
     return loaded
 
 
-def _verify(path: Path, digest: str, pinned: str | None, verify: bool, hint: str) -> str:
-    """How `digest` (of the bytes read from `path`) was checked (`VERIFIED_BY`), or
+def _verify(path: Path, digest: str, pinned: str | None, verify: bool,
+            hint: str) -> Verification:
+    """How `digest` (of the bytes read from `path`) was checked, or
     `ModelTrustError`."""
     suffix = f'; {hint}' if hint else ''
     if pinned:
@@ -346,9 +354,9 @@ def _verify(path: Path, digest: str, pinned: str | None, verify: bool, hint: str
             msg = (f'model {path}: its sha256 is {digest}, the pinned sha256 is {pinned}: not '
                    f'the model that was trained, refused{suffix}')
             raise ModelTrustError(msg)
-        return VERIFIED_BY[0]
+        return Verification.PINNED
     if not verify:
-        return VERIFIED_BY[2]
+        return Verification.NONE
     expected = read_sidecar(path)
     if expected is None:
         msg = (f'model {path}: no hash to check it against (a TorchScript file is code): '
@@ -361,7 +369,7 @@ def _verify(path: Path, digest: str, pinned: str | None, verify: bool, hint: str
                f'{expected}: the file was changed or replaced after it was written, refused'
                f'{suffix}')
         raise ModelTrustError(msg)
-    return VERIFIED_BY[1]
+    return Verification.SIDECAR
 
 
 #: Relative difference of two sample periods that still counts as the same rate: a real

@@ -151,7 +151,7 @@ class _Pose(NamedTuple):
     stamp_ns: int
     x: float
     y: float
-    arrival: float  # clock() when it arrived
+    arrival_ns: int  # clock() when it arrived
 
 
 #: What an input made ready, in order: a sample to use, or the reason of a fault.
@@ -161,14 +161,15 @@ Event = AlignedSample | FaultReason
 class StampAlignment:
     """Poses waiting for their reference, and the reference track (module docstring).
 
-    `clock` (seconds) stamps each pose's arrival, so that a pose waiting too long for its
-    reference can be told from a stream that stopped (`oldest_waiting_arrival`).
+    `clock` (integer nanoseconds) stamps each pose's arrival, so that a pose waiting too
+    long for its reference can be told from a stream that stopped
+    (`oldest_waiting_arrival`).
     A non-finite pose is a fault, raised in its place among the waiting poses (the poses
     before it are still used first); a pose with a stamp going backwards is a fault at once
     (the waiting poses are dropped); a repeated stamp is dropped without a fault.
     """
 
-    def __init__(self, gap_factor: float, period_ns: int, clock: Callable[[], float]) -> None:
+    def __init__(self, gap_factor: float, period_ns: int, clock: Callable[[], int]) -> None:
         self.references = ReferenceTrack(gap_factor, period_ns)
         self._clock = clock
         self._pending: deque[_Pose | FaultReason] = deque()
@@ -181,11 +182,11 @@ class StampAlignment:
         """Whether any pose (or a fault in its place) waits for a reference."""
         return bool(self._pending)
 
-    def oldest_waiting_arrival(self) -> float | None:
+    def oldest_waiting_arrival(self) -> int | None:
         """clock() at the arrival of the oldest pose still waiting, None if none waits."""
         for item in self._pending:
             if isinstance(item, _Pose):
-                return item.arrival
+                return item.arrival_ns
         return None
 
     def add_reference(self, stamp_ns: int, x: float, y: float, z: float) -> list[Event]:
@@ -202,8 +203,8 @@ class StampAlignment:
         return []
 
     def add_pose(self, stamp_ns: int, x: float, y: float,
-                 arrival: float | None = None) -> list[Event]:
-        """Take one measured tool-tip sample arrived at `arrival` (the clock's reading of
+                 arrival_ns: int | None = None) -> list[Event]:
+        """Take one measured tool-tip sample arrived at `arrival_ns` (the clock's reading of
         the caller's callback; None: read it); returns what became ready."""
         if not (math.isfinite(x) and math.isfinite(y)):
             self.dropped.add(DropReason.NON_FINITE)
@@ -220,7 +221,7 @@ class StampAlignment:
             return [FaultReason.OUT_OF_ORDER]
         self.newest_pose_ns = stamp_ns
         self._pending.append(_Pose(stamp_ns, x, y,
-                                   self._clock() if arrival is None else arrival))
+                                   self._clock() if arrival_ns is None else arrival_ns))
         events: list[Event] = []
         if len(self._pending) > MAX_PENDING_POSES:
             self._pending.popleft()

@@ -8,8 +8,9 @@ stamps going backwards, poses the reference does not bracket) and a failing infe
 - `StreamRules`: the interval between two used samples must be near the model's sample
   period, as in the trainer: above `gap_factor` periods it is a gap (the trainer splits its
   data there), below `min_interval_factor` periods the input is not at the model's rate.
-- `StaleWatch`: no usable sample for `StreamSettings.stale_after` seconds of `clock`, found
-  by two checks in a row. The clock is the caller's: the predictor node gives its ROS clock,
+- `StaleWatch`: no usable sample for `StreamSettings.stale_after` seconds of `clock`
+  (integer nanoseconds), found by two checks in a row. The clock is the caller's: the
+  predictor node gives its ROS clock,
   so under simulated time a simulator slower than real time is not stale, and one that
   stands still (waiting for an answer in lockstep) never is.
 - `clock_jump`: the clock went backwards (a simulator reset); the caller reports it
@@ -22,6 +23,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import TypeGuard
+
+from lompr_predictor.stamps import period_ns
 
 
 class FaultReason(StrEnum):
@@ -50,27 +53,28 @@ def is_fault(reason: StrEnum | None) -> TypeGuard[FaultReason]:
     return reason in _FAULT_VALUES
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class StreamSettings:
-    """How the input stream must look for the model (SI units)."""
+    """How the input stream must look for the model (SI units). No defaults: the node
+    builds it by keyword from its declared parameters (`ros.predictor_settings`), the one
+    declaration of each; a test states the values it runs on."""
 
     sample_period: float  # [s] the model's; also the spacing the stamps must have
     gap_factor: float  # an interval above gap_factor * sample_period is a gap
     min_interval_factor: float  # one below min_interval_factor * sample_period is off-rate
     stale_periods: float  # no sample for this many periods (of the clock): input is stale
-    accuracy_samples: int  # residuals the live RMS is over
     # ... and for at least this long [s]: a process on a general-purpose OS can stall for
     # milliseconds (scheduler, garbage collector), which at kHz rates is many periods
-    stale_min_time: float = 0.0
-    #: A stamp more than this many seconds ahead of the node's clock is dropped (negative:
-    #: no check; only with the node's clock given to `OnlinePredictor`).
-    max_future_stamp: float = -1.0
+    stale_min_time: float
+    accuracy_samples: int  # residuals the live RMS is over
+    #: [s] A message stamp further than this ahead of the clock is dropped.
+    max_future_stamp: float
     #: [s] An output may come this much after its instant before it counts as late
     #: (`timing.OverrunGuard`).
-    late_tolerance: float = 0.005
+    late_tolerance: float
     #: [m] How far the commanded reference may lie from the preview's plan for the same
     #: instant before the plan counts as contradicted (`preview.PlannedPath.check`).
-    preview_tolerance: float = 1e-5
+    preview_tolerance: float
 
     @property
     def stale_after(self) -> float:
@@ -96,7 +100,8 @@ class StreamRules:
 
 
 class StaleWatch:
-    """Input gone stale: no usable sample for `stale_after` seconds of `clock`.
+    """Input gone stale: no usable sample for `stale_after` seconds of `clock` (which reads
+    integer nanoseconds).
 
     `used()` marks a sample used now. `check(oldest_waiting)` is called periodically, with
     the arrival time of the oldest pose still waiting for its reference (a pose waiting
@@ -105,16 +110,16 @@ class StaleWatch:
     was busy runs its timer before the samples that queued meanwhile.
     """
 
-    def __init__(self, stale_after: float, clock: Callable[[], float]) -> None:
-        self.stale_after = stale_after
+    def __init__(self, stale_after: float, clock: Callable[[], int]) -> None:
+        self.stale_after_ns = period_ns(stale_after)
         self._clock = clock
         self._last_used = clock()
         self._suspected = False
 
-    def used(self, now: float | None = None) -> None:
-        """A sample was used at `now` (the clock's reading of the caller's callback; None:
-        read it)."""
-        self._last_used = self._clock() if now is None else now
+    def used(self, now_ns: int | None = None) -> None:
+        """A sample was used at `now_ns` (the clock's reading of the caller's callback;
+        None: read it)."""
+        self._last_used = self._clock() if now_ns is None else now_ns
 
     def restart(self) -> None:
         """Count idle time from now on, and forget a suspicion: the clock jumped (it
@@ -123,10 +128,10 @@ class StaleWatch:
         self._last_used = self._clock()
         self._suspected = False
 
-    def check(self, oldest_waiting: float | None = None) -> bool:
+    def check(self, oldest_waiting_ns: int | None = None) -> bool:
         """True when this check and the previous one both found the input idle."""
-        since = self._last_used if oldest_waiting is None else max(self._last_used,
-                                                                   oldest_waiting)
-        idle = self._clock() - since >= self.stale_after
+        since = self._last_used if oldest_waiting_ns is None else max(self._last_used,
+                                                                      oldest_waiting_ns)
+        idle = self._clock() - since >= self.stale_after_ns
         confirmed, self._suspected = self._suspected and idle, idle
         return confirmed

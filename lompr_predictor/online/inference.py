@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import importlib
 from collections.abc import Callable
+from enum import StrEnum
 from typing import Any, Protocol
 
 import numpy as np
@@ -38,8 +39,15 @@ from lompr_predictor.learning.model_file import (
     export_onnx,
 )
 
-#: Values of the `inference_backend` choice.
-BACKENDS = ('auto', 'onnxruntime', 'torchscript')
+
+class Backend(StrEnum):
+    """What runs the network: the values of the `inference_backend` choice."""
+
+    AUTO = 'auto'  # ONNX Runtime, else TorchScript with the reason
+    ONNXRUNTIME = 'onnxruntime'
+    TORCHSCRIPT = 'torchscript'
+
+
 #: Largest |ONNX Runtime - TorchScript| accepted, relative to the largest |output| of the
 #: warm-up batch.
 RELATIVE_TOLERANCE = 1e-6
@@ -57,7 +65,7 @@ class InferenceBackendError(LomprError):
 class InferenceBackend(Protocol):
     """Runs a loaded model's network on one window (module docstring)."""
 
-    name: str
+    name: Backend
 
     def runner(self, window: np.ndarray) -> Runner:
         """A call running the network on `window` as it holds at each call."""
@@ -67,7 +75,7 @@ class InferenceBackend(Protocol):
 class TorchScriptBackend:
     """The verified TorchScript module itself, on a tensor sharing the window's memory."""
 
-    name = 'torchscript'
+    name = Backend.TORCHSCRIPT
 
     def __init__(self, model: LoadedModel) -> None:
         self.model = model
@@ -85,7 +93,7 @@ class TorchScriptBackend:
 class OnnxRuntimeBackend:
     """An ONNX graph of the model run by ONNX Runtime, bound to the window's buffer."""
 
-    name = 'onnxruntime'
+    name = Backend.ONNXRUNTIME
 
     def __init__(self, graph: bytes, onnxruntime: Any) -> None:
         options = onnxruntime.SessionOptions()
@@ -124,21 +132,23 @@ def warm_up_windows(model: LoadedModel, count: int = WARM_UP_WINDOWS) -> np.ndar
     return windows
 
 
-def select_backend(model: LoadedModel,
-                   requested: str = 'auto') -> tuple[InferenceBackend, str]:
-    """The backend to serve `model` with and why it is not the one preferred ('' when it
+def select_backend(model: LoadedModel, requested: Backend | str = Backend.AUTO,
+                   ) -> tuple[InferenceBackend, str | None]:
+    """The backend to serve `model` with and why it is not the one preferred (None when it
     is: ONNX Runtime for 'auto' and 'onnxruntime', TorchScript for 'torchscript'); see the
     module docstring."""
-    if requested not in BACKENDS:
-        msg = f'inference backend {requested!r} is none of {", ".join(BACKENDS)}'
-        raise InferenceBackendError(msg)
-    torchscript = TorchScriptBackend(model)
-    if requested == 'torchscript':
-        return torchscript, ''
     try:
-        return onnxruntime_backend(model, torchscript), ''
+        requested = Backend(requested)
+    except ValueError as err:
+        msg = f'inference backend {requested!r} is none of {", ".join(Backend)}'
+        raise InferenceBackendError(msg) from err
+    torchscript = TorchScriptBackend(model)
+    if requested == Backend.TORCHSCRIPT:
+        return torchscript, None
+    try:
+        return onnxruntime_backend(model, torchscript), None
     except InferenceBackendError as err:
-        if requested == 'onnxruntime':
+        if requested == Backend.ONNXRUNTIME:
             raise
         return torchscript, f'TorchScript serves: {err}'
 
@@ -162,17 +172,17 @@ def onnxruntime_backend(model: LoadedModel,
         raise InferenceBackendError(msg) from err
     disagreement = compare(backend, reference or TorchScriptBackend(model),
                            warm_up_windows(model))
-    if disagreement:
+    if disagreement is not None:
         msg = f'model {model.path}: {disagreement}'
         raise InferenceBackendError(msg)
     return backend
 
 
 def compare(candidate: InferenceBackend, reference: InferenceBackend,
-            windows: np.ndarray) -> str:
+            windows: np.ndarray) -> str | None:
     """Why `candidate` disagrees with `reference` on `windows` (beyond
     `RELATIVE_TOLERANCE` of the largest reference output, or not finite where the reference
-    is), '' if it agrees; a candidate that raises disagrees."""
+    is), None if it agrees; a candidate that raises disagrees."""
     window = np.zeros(windows.shape[1:])
     run_candidate, run_reference = candidate.runner(window), reference.runner(window)
     got, wanted = np.empty((len(windows), 2)), np.empty((len(windows), 2))
@@ -189,4 +199,4 @@ def compare(candidate: InferenceBackend, reference: InferenceBackend,
         return (f'{candidate.name} and {reference.name} disagree on the warm-up batch by '
                 f'{worst:.3g} m, over {RELATIVE_TOLERANCE:g} of the largest output '
                 f'{scale:.3g} m')
-    return ''
+    return None

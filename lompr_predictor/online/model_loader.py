@@ -19,7 +19,7 @@ from lompr_predictor.learning.model_file import (
     check_sample_period,
     load_model,
 )
-from lompr_predictor.online.inference import InferenceBackend, select_backend
+from lompr_predictor.online.inference import Backend, InferenceBackend, select_backend
 
 #: Inferences run on a loaded model before it may answer a sample (the first calls of a
 #: TorchScript module profile and optimise its graph); each must give a finite (1, 2)
@@ -45,7 +45,7 @@ class ModelRequest:
     sha256: str = ''  # if not empty, the sha256 the file must have (before the sidecar's)
     verify: bool = True  # False (development only): an unverified file is loaded
     hint: str = ''  # how to pin or skip the hash, for the refusal message
-    backend: str = 'auto'  # what should run the network (`inference.BACKENDS`)
+    backend: Backend = Backend.AUTO  # what should run the network
 
 
 def expected_metadata(description_sha256: str, window: int = -1,
@@ -69,7 +69,8 @@ class ReadyModel:
     warm_up_seconds: float
     request: ModelRequest
     backend: InferenceBackend
-    backend_why: str = ''  # why the backend is not the one the request prefers ('' if it is)
+    #: Why the backend is not the one the request prefers (None if it is).
+    backend_why: str | None = None
 
     def describe(self) -> str:
         """One line for the log: what model, from where, how it warmed up."""
@@ -105,9 +106,9 @@ class LoadOutcome:
     error: LomprError | None = None
 
     @property
-    def reason(self) -> str:
-        """Why the model was refused ('' if it is ready)."""
-        return '' if self.error is None else str(self.error)
+    def reason(self) -> str | None:
+        """Why the model was refused (None if it is ready)."""
+        return None if self.error is None else str(self.error)
 
 
 def load_ready_model(request: ModelRequest) -> LoadOutcome:

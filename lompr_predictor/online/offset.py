@@ -16,7 +16,8 @@ Safety rules (docs/safety.md, docs/nodes.md):
   from zero: the offset ramps back in.
 - What was published is kept by the instant it is for (`InstantSchedule`), offsets and
   predictions apart: the plant error of a sample subtracts the offset published for its
-  instant (CONTRACT section 3) and the live accuracy compares the prediction for it.
+  instant (CONTRACT section 3) and the live accuracy compares the prediction for it
+  (`sample_units.LiveAccuracy`).
 - Cancelling (a fault, or compensation switched off): if an offset is in force, a zero
   `Output` for every instant after the newest pose for which an offset was already
   published, or for the next instant if there is none; nothing if no offset was published
@@ -232,22 +233,3 @@ def _clamped(x: float, y: float, limit: float) -> XY:
         return x * scale, y * scale
     return x, y
 
-
-class LiveAccuracy:
-    """RMS per axis of truth - prediction over the last `samples` instants whose truth
-    arrived: a live figure to hold against the model's test RMSE."""
-
-    def __init__(self, samples: int) -> None:
-        self._x: deque[float] = deque(maxlen=samples)
-        self._y: deque[float] = deque(maxlen=samples)
-
-    def add(self, truth_x: float, truth_y: float, prediction: XY) -> None:
-        self._x.append(truth_x - prediction[0])
-        self._y.append(truth_y - prediction[1])
-
-    def rms(self) -> tuple[np.ndarray, int]:
-        """(2,) RMS [m] and how many residuals it is over; NaN before the first."""
-        if not self._x:
-            return np.full(2, np.nan), 0
-        residuals = np.column_stack((self._x, self._y))
-        return np.sqrt(np.mean(residuals ** 2, axis=0)), len(residuals)

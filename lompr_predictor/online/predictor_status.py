@@ -1,5 +1,8 @@
 """The predictor node's /diagnostics statuses (model, inputs, prediction) as pure functions
-of what the node holds, so that their levels and values are tested without ROS."""
+of what the node holds, so that their levels and values are tested without ROS. The core's
+counters go in as its snapshot (`predictor_counts.status_counts`), so that they read back
+as they were written. A text that is None ("nothing wrong") is written as an empty string,
+the only way a key-value says nothing."""
 
 from __future__ import annotations
 
@@ -7,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lompr_predictor.learning.model_file import VERIFIED_BY
+from lompr_predictor.learning.model_file import Verification
 from lompr_predictor.monitoring import (
     LatencySummary,
     Level,
@@ -17,6 +20,11 @@ from lompr_predictor.monitoring import (
     rejection_values,
 )
 from lompr_predictor.online.predictor import OnlinePredictor
+from lompr_predictor.online.predictor_counts import (
+    INPUTS_STATUS,
+    PREDICTION_STATUS,
+    status_counts,
+)
 
 
 @dataclass(frozen=True)
@@ -25,7 +33,7 @@ class Lifecycle:
 
     state: str  # rclpy's label: unconfigured, inactive, active, finalized
     autostart: bool
-    configure_error: str  # why the last configure failed ('' after a successful one)
+    configure_error: str | None  # why the last configure failed (None after a success)
 
     @property
     def active(self) -> bool:
@@ -33,7 +41,7 @@ class Lifecycle:
 
     def values(self) -> dict[str, object]:
         return {'lifecycle_state': self.state, 'autostart': self.autostart,
-                'configure_error': self.configure_error}
+                'configure_error': text(self.configure_error)}
 
 
 @dataclass(frozen=True)
@@ -42,8 +50,9 @@ class ModelHistory:
 
     swaps: int = 0
     warm_up_seconds: float = 0.0
-    reload_error: str = ''  # why the last swap was refused ('' if none was)
-    backend_why: str = ''  # why the network is not run by the preferred backend ('' if it is)
+    reload_error: str | None = None  # why the last swap was refused (None if none was)
+    #: Why the network is not run by the preferred backend (None if it is).
+    backend_why: str | None = None
 
 
 @dataclass(frozen=True)
@@ -67,13 +76,18 @@ class PredictionLimits:
     accuracy_warn: float  # [m] live RMS; 0: none
 
 
+def text(value: str | None) -> str:
+    """A text key-value: None (nothing to say) as the empty string."""
+    return '' if value is None else value
+
+
 def model_status(lifecycle: Lifecycle, model_path: str, core: OnlinePredictor | None,
                  history: ModelHistory) -> Status:
     """The model in use (or why there is none)."""
     values = lifecycle.values()
     if core is None:
         values['path'] = model_path
-        if lifecycle.configure_error:
+        if lifecycle.configure_error is not None:
             return Status(Level.ERROR, f'unconfigured: configure failed: '
                                        f'{lifecycle.configure_error}', values)
         return Status(Level.WARN, f'{lifecycle.state}: no model loaded (waiting for '
@@ -87,17 +101,17 @@ def model_status(lifecycle: Lifecycle, model_path: str, core: OnlinePredictor | 
         'sample_period_s': metadata.sample_period, 'swaps': history.swaps,
         'robot_description_sha256': metadata.robot_description_sha256,
         'warm_up_ms': round(history.warm_up_seconds * 1e3, 3),
-        'inference_backend': core.backend.name,
-        'inference_backend_why': history.backend_why,
+        'inference_backend': core.primary.backend.name,
+        'inference_backend_why': text(history.backend_why),
     })
-    if history.reload_error:
+    if history.reload_error is not None:
         return Status(Level.WARN, f'last reload refused: {history.reload_error}', values)
     summary = f'{metadata.model_type} {model.sha256[:12]}, horizon {metadata.horizon}'
     if not lifecycle.active:
         return Status(Level.WARN, f'{lifecycle.state} (not publishing): {summary}', values)
-    if history.backend_why:
+    if history.backend_why is not None:
         return Status(Level.WARN, f'{summary}; {history.backend_why}', values)
-    if model.verified_by == VERIFIED_BY[2]:
+    if model.verified_by == Verification.NONE:
         return Status(Level.WARN, f'{summary}; NOT verified (verify_model_hash is false)',
                       values)
     return Status(Level.OK, summary, values)
@@ -109,17 +123,16 @@ def input_status(lifecycle: Lifecycle, core: OnlinePredictor | None, rates: Inpu
     the last report)."""
     if core is None:
         return Status(Level.WARN, lifecycle.state, {**lifecycle.values(), **rates.clock_values})
+    window = core.primary.window
     values: dict[str, object] = {
         'end_pose_rate_hz': round(rates.end_pose.rate(), 3),
         'reference_rate_hz': round(rates.reference.rate(), 3),
         'end_poses_received': rates.end_pose.total,
         'references_received': rates.reference.total,
-        'window_fill': f'{core.window_fill}/{core.window_needed}',
-        **rejection_values(core.dropped),
-        'faults_total': core.faults.total,
-        **{f'faults.{reason}': n for reason, n in core.faults.counts().items()},
-        'last_fault': core.last_fault,
-        'last_bad_stamp': core.last_bad_stamp,
+        'window_fill': f'{window.fill}/{window.needed}',
+        **status_counts(core.counts())[INPUTS_STATUS],
+        'last_fault': text(core.last_fault),
+        'last_bad_stamp': text(core.last_bad_stamp),
         **rates.clock_values,
         **rates.callback_values,
     }
@@ -131,7 +144,7 @@ def input_status(lifecycle: Lifecycle, core: OnlinePredictor | None, rates: Inpu
                                   f'{core.last_fault}); window {values["window_fill"]}', values)
     if not lifecycle.active:
         return Status(Level.WARN, f'{lifecycle.state}: input dropped', values)
-    if core.window_fill < core.window_needed:
+    if window.fill < window.needed:
         return Status(Level.WARN, f'filling the window {values["window_fill"]}', values)
     return Status(Level.OK, f'{values["end_pose_rate_hz"]} Hz', values)
 
@@ -153,8 +166,8 @@ def preview_status(lifecycle: Lifecycle, core: OnlinePredictor | None, rate: Rat
         'previews_used': plan.previews_used,
         **rejection_values(plan.dropped),
         'planned_until_s': None if plan.horizon_ns is None else plan.horizon_ns * 1e-9,
-        'fallback_model': '' if core.fallback is None else core.fallback.path,
-        'fallback_answers': core.fallback_answers,
+        'fallback_model': '' if core.fallback is None else core.fallback.model.path,
+        'fallback_answers': 0 if core.fallback is None else core.fallback.answers,
     }
     fallback = ('; the fallback model answers' if core.fallback is not None else
                 ' (no offset for them)')
@@ -180,24 +193,19 @@ def prediction_status(lifecycle: Lifecycle, core: OnlinePredictor | None,
     if core is None:
         return Status(Level.WARN, lifecycle.state, lifecycle.values())
     inference = core.inference_time.summary()
-    rms, count = core.accuracy()
+    rms, count = core.accuracy.rms()
+    offset = core.gate.offset_in_force
     values: dict[str, object] = {
         **latency_values('inference', inference),
         **latency_values('input_to_output', input_to_output),
         'output_rate_hz': round(output_rate_hz, 3),
-        'predictions_total': core.predictions_made,
         'accuracy_rms_x_um': round(float(rms[0]) * 1e6, 3),
         'accuracy_rms_y_um': round(float(rms[1]) * 1e6, 3),
         'accuracy_samples': count,
         'compensation_enabled': limits.compensation_enabled,
-        'offset_x_um': round(float(core.gate.offset_in_force[0]) * 1e6, 3),
-        'offset_y_um': round(float(core.gate.offset_in_force[1]) * 1e6, 3),
-        'clamped_total': core.gate.clamped,
-        'step_limited_total': core.gate.step_limited,
-        'zeros_published': core.gate.zeros_published,
-        'reclamped_total': core.gate.reclamped,
-        'inference_skipped_late': core.overrun.inference_skipped_late,
-        'late_outputs_dropped': core.overrun.late_outputs_dropped,
+        'offset_x_um': round(float(offset[0]) * 1e6, 3),
+        'offset_y_um': round(float(offset[1]) * 1e6, 3),
+        **status_counts(core.counts())[PREDICTION_STATUS],
     }
     mode = 'compensating' if limits.compensation_enabled else 'shadow mode'
     if not lifecycle.active:
@@ -214,9 +222,4 @@ def prediction_status(lifecycle: Lifecycle, core: OnlinePredictor | None,
         return Status(Level.WARN, f'{mode}; live RMS error {np.nanmax(rms) * 1e6:.1f} um '
                                   f'over {warn * 1e6:.1f} um: the machine has drifted from '
                                   'the model', values)
-    return Status(Level.OK, f'{mode}; {core.predictions_made} predictions', values)
-
-
-def overruns(core: OnlinePredictor) -> int:
-    """Outputs late or skipped so far (what `new_overruns` is the increase of)."""
-    return core.overrun.inference_skipped_late + core.overrun.late_outputs_dropped
+    return Status(Level.OK, f'{mode}; {values["predictions_total"]} predictions', values)

@@ -132,27 +132,27 @@ class PlannedPath:
 class PlanReader:
     """What a preview model reads with each sample: the plan `lead_ns` after the sample's
     stamp (`at_sample`), counted missing where the plan does not reach it, and `stale` once
-    no sample had one for `stale_after` seconds of the caller's clock."""
+    no sample had one for `stale_after_ns` of the caller's clock [ns]."""
 
-    def __init__(self, plan: PlannedPath, lead_ns: int, stale_after: float) -> None:
+    def __init__(self, plan: PlannedPath, lead_ns: int, stale_after_ns: int) -> None:
         self.plan = plan
         self.lead_ns = lead_ns
-        self.stale_after = stale_after
+        self.stale_after_ns = stale_after_ns
         self.stale = False
-        self._planned_seconds: float | None = None  # when a sample last had a plan
+        self._planned_ns: int | None = None  # when a sample last had a plan
 
-    def at_sample(self, stamp_ns: int, seconds: float) -> tuple[int, float, float, float] | None:
+    def at_sample(self, stamp_ns: int, now_ns: int) -> tuple[int, float, float, float] | None:
         """(instant [ns], planned x, y, z [m]) `lead_ns` after the sample at `stamp_ns`,
-        used at `seconds`; None (counted) where the plan does not reach it."""
+        used at `now_ns`; None (counted) where the plan does not reach it."""
         instant_ns = stamp_ns + self.lead_ns
         position = self.plan.at(instant_ns)
         if position is not None:
-            self._planned_seconds = seconds
+            self._planned_ns = now_ns
             self.stale = False
             return (instant_ns, *position)
         self.plan.dropped.add(PreviewDrop.MISSING)
-        if self._planned_seconds is None:
-            self._planned_seconds = seconds
-        if seconds - self._planned_seconds >= self.stale_after:
+        if self._planned_ns is None:
+            self._planned_ns = now_ns
+        if now_ns - self._planned_ns >= self.stale_after_ns:
             self.stale = True
         return None

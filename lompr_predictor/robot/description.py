@@ -32,14 +32,14 @@ MEASURED_JOINTS: tuple[str, ...] = BRANCH_JOINTS + HEAD_JOINTS
 TOOL_FRAME = 'tool_tip'
 
 
-def joint_names_problem(names: tuple[str, ...] | list[str]) -> str:
-    """Why `names` cannot name the measured joints ('' if they can): a robot's own names of
+def joint_names_problem(names: tuple[str, ...] | list[str]) -> str | None:
+    """Why `names` cannot name the measured joints (None if they can): a robot's own names of
     ups1, ups2, ups3, head_primary, head_secondary, in that order, distinct and non-empty.
     The one rule of kinematics_node's `joint_names` and `lompr train --joint-names`."""
     if len(names) != len(MEASURED_JOINTS) or len(set(names)) != len(names) or '' in names:
         return (f'needs {len(MEASURED_JOINTS)} distinct names, for '
                 f'{", ".join(MEASURED_JOINTS)} in this order')
-    return ''
+    return None
 WORLD_FRAME = 'world'
 
 # Pinocchio joint model short names the closed-form kinematics is written for.

@@ -204,28 +204,48 @@ def run_node(
         formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('--executor', choices=EXECUTORS, default=EXECUTORS[0],
                         help='the executor that spins the node(s) (default: %(default)s)')
-    missing = missing_params_files(argv)
-    if missing:
-        print(f'{parser.prog}: error: --params-file {missing[0]}: no such file', file=sys.stderr)
-        return 2
-    try:
-        plain_args = remove_ros_args(argv)[1:]
-    except RuntimeError as err:  # rclpy's RCLInvalidROSArgsError: '-p model_path:=' and such
-        reason = str(err).split('. Error:', 1)[0]
-        print(f'{parser.prog}: error: {reason} (an empty string is written '
-              "-p NAME:=\"''\")", file=sys.stderr)
+    plain_args = _plain_arguments(parser.prog, argv)
+    if plain_args is None:
         return 2
     args = parser.parse_args(plain_args)
     events = args.executor == 'events'
     stop = StopRequest() if events else None
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO if events else None)
+    try:
+        _spin(node_factory, args.executor, stop)
+    except (LomprError, ParameterException, InvalidTopicNameException) as err:
+        print(f'{parser.prog}: error: {err}', file=sys.stderr)
+        return 2
+    return 0
+
+
+def _plain_arguments(prog: str, argv: list[str]) -> list[str] | None:
+    """The arguments of `argv` that are not ROS's; None, the error printed, for a params
+    file that is not there or ROS arguments rcl cannot parse."""
+    missing = missing_params_files(argv)
+    if missing:
+        print(f'{prog}: error: --params-file {missing[0]}: no such file', file=sys.stderr)
+        return None
+    try:
+        return remove_ros_args(argv)[1:]
+    except RuntimeError as err:  # rclpy's RCLInvalidROSArgsError: '-p model_path:=' and such
+        reason = str(err).split('. Error:', 1)[0]
+        print(f'{prog}: error: {reason} (an empty string is written '
+              "-p NAME:=\"''\")", file=sys.stderr)
+        return None
+
+
+def _spin(node_factory: Callable[[Context], Node | Sequence[Node]], executor_name: str,
+          stop: StopRequest | None) -> None:
+    """Build the node(s) on the default context and spin them until Ctrl-C, shutdown or a
+    `stop` request (`run_node`); then destroy them and shut the context down."""
     context = rclpy.get_default_context()
     nodes: Sequence[Node] = ()
     executor: Executor | None = None
     try:
         built = node_factory(context)
         nodes = [built] if isinstance(built, Node) else list(built)
-        executor = make_executor(args.executor, context)
+        executor = make_executor(executor_name, context)
         for node in nodes:
             executor.add_node(node)
         # out of the collector's sight: a full collection over every object torch and rclpy
@@ -235,9 +255,6 @@ def run_node(
             executor.spin_once(timeout_sec=SPIN_STEP)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (LomprError, ParameterException, InvalidTopicNameException) as err:
-        print(f'{parser.prog}: error: {err}', file=sys.stderr)
-        return 2
     finally:
         # The executor goes first, while the nodes and the context it serves still exist.
         if executor is not None:
@@ -245,4 +262,3 @@ def run_node(
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown(context=context)
-    return 0

@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from enum import StrEnum
 from typing import Any
 
 from geometry_msgs.msg import PoseStamped
@@ -59,21 +60,39 @@ from lompr_predictor.ros.node_base import (
 )
 from lompr_predictor.ros.parameters import parameter
 from lompr_predictor.ros.wire import PoseStampedWriter, WireError, read_joint_state
-from lompr_predictor.stamps import NS_PER_SECOND, period_ns, stamp_problem
+from lompr_predictor.stamps import NS_PER_SECOND, StampReason, period_ns, stamp_problem
 
 NODE_NAME = 'kinematics_node'
 
-#: Why a joint state got no end pose; each is a key `rejected.<reason>` in /diagnostics.
-KINEMATICS_REASONS: dict[type[KinematicsError], str] = {
-    NonFiniteJointError: 'non_finite',
-    StrokeLimitError: 'stroke_limit',
-    JointLimitError: 'joint_limit',
-    WorkspaceError: 'workspace',
-    ConvergenceError: 'no_convergence',
+
+class JointStateDrop(StrEnum):
+    """Why a joint state got no end pose; each is a key `rejected.<reason>` in
+    /diagnostics."""
+
+    # the message
+    MALFORMED = 'malformed'
+    UNSTAMPED = 'unstamped'
+    BAD_STAMP = StampReason.BAD_STAMP.value
+    FUTURE_STAMP = StampReason.FUTURE_STAMP.value
+    MISSING_JOINT = 'missing_joint'
+    DUPLICATE_JOINT = 'duplicate_joint'
+    # the kinematics
+    NON_FINITE = 'non_finite'
+    STROKE_LIMIT = 'stroke_limit'
+    JOINT_LIMIT = 'joint_limit'
+    WORKSPACE = 'workspace'
+    NO_CONVERGENCE = 'no_convergence'
+    KINEMATICS = 'kinematics'  # any other kinematics error
+
+
+#: The drop reason of each kinematics error.
+KINEMATICS_REASONS: Mapping[type[KinematicsError], JointStateDrop] = {
+    NonFiniteJointError: JointStateDrop.NON_FINITE,
+    StrokeLimitError: JointStateDrop.STROKE_LIMIT,
+    JointLimitError: JointStateDrop.JOINT_LIMIT,
+    WorkspaceError: JointStateDrop.WORKSPACE,
+    ConvergenceError: JointStateDrop.NO_CONVERGENCE,
 }
-MESSAGE_REASONS = ('malformed', 'unstamped', 'bad_stamp', 'future_stamp', 'missing_joint',
-                   'duplicate_joint')
-REJECTION_REASONS = (*MESSAGE_REASONS, *KINEMATICS_REASONS.values())
 
 
 @dataclass(frozen=True)
@@ -129,7 +148,7 @@ ENDPOINTS = (JOINT_STATES, END_POSE, FULL_JOINT_STATES)
 class JointStateError(LomprError):
     """A JointState message that cannot be turned into the five measured joints."""
 
-    def __init__(self, reason: str, message: str) -> None:
+    def __init__(self, reason: JointStateDrop, message: str) -> None:
         self.reason = reason
         super().__init__(message)
 
@@ -148,11 +167,12 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
         self._fk = ForwardKinematics(self.description)
         self._last_names: tuple[str, ...] | None = None
         self._indices: list[int] | None = None  # where the joints are in _last_names
-        self._missing = ('', '')  # (reason, why) _indices is None
+        #: Why `_indices` is None: (reason, explanation).
+        self._missing = (JointStateDrop.MISSING_JOINT, 'no joint state seen yet')
         self._last_stamp_ns: int | None = None
         self.warm_start_resets = 0
 
-        self.rejected = RejectionCounter(REJECTION_REASONS)
+        self.rejected = RejectionCounter(JointStateDrop)
         self.solve_time = LatencyRecorder(settings.latency_samples)
         self.input_rate = self.rate_meter(settings.rate_window)  # on the node's clock
         self.output_rate = self.rate_meter(settings.rate_window)
@@ -186,7 +206,7 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
             try:
                 sec, nanosec, names, positions = read_joint_state(data)
             except WireError as err:
-                raise JointStateError('malformed', str(err)) from err
+                raise JointStateError(JointStateDrop.MALFORMED, str(err)) from err
             stamp_ns = self._stamp_ns(sec, nanosec, now_ns)
             joints = self._measured_joints(names, positions)
             self._check_gap(stamp_ns)
@@ -200,7 +220,8 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
             self._reject(err.reason, sec, nanosec, err)
             return
         except KinematicsError as err:  # the FK has already dropped its warm start
-            self._reject(KINEMATICS_REASONS.get(type(err), 'kinematics'), sec, nanosec, err)
+            self._reject(KINEMATICS_REASONS.get(type(err), JointStateDrop.KINEMATICS), sec,
+                         nanosec, err)
             return
         self._publisher.publish(self._pose_writer.pack(
             sec, nanosec, pose.position.tolist(), pose.quaternion.tolist()))
@@ -219,12 +240,12 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
 
     def _stamp_ns(self, sec: int, nanosec: int, now_ns: int) -> int:
         if sec == 0 and nanosec == 0:
-            raise JointStateError('unstamped', 'header.stamp is zero: the sample instant is '
-                                  'unknown, so its pose could not be aligned with anything')
-        reason, why = stamp_problem(sec, nanosec, now_ns,
-                                    period_ns(self.settings.max_future_stamp))
-        if reason:
-            raise JointStateError(reason, why)
+            raise JointStateError(JointStateDrop.UNSTAMPED, 'header.stamp is zero: the '
+                                  'sample instant is unknown, so its pose could not be '
+                                  'aligned with anything')
+        problem = stamp_problem(sec, nanosec, now_ns, period_ns(self.settings.max_future_stamp))
+        if problem is not None:
+            raise JointStateError(JointStateDrop(problem.reason), problem.explanation)
         return sec * NS_PER_SECOND + nanosec
 
     def _measured_joints(self, names: tuple[str, ...],
@@ -232,7 +253,7 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
         """The five measured joints in `MEASURED_JOINTS` order, matched by name."""
         if len(positions) != len(names):
             raise JointStateError(
-                'malformed', f'{len(names)} names but {len(positions)} positions')
+                JointStateDrop.MALFORMED, f'{len(names)} names but {len(positions)} positions')
         if names != self._last_names:  # a robot sends the same names every time: match once
             self._match(names)
         if self._indices is None:
@@ -249,11 +270,13 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
         self._last_names = names
         self._indices = None if missing or twice else [index[n] for n in wanted]
         if twice:
-            self._missing = ('duplicate_joint', f'joint(s) {", ".join(twice)} named more than '
-                                                f'once (got {", ".join(names)})')
+            self._missing = (JointStateDrop.DUPLICATE_JOINT,
+                             f'joint(s) {", ".join(twice)} named more than once (got '
+                             f'{", ".join(names)})')
         else:
-            self._missing = ('missing_joint', f'missing joint(s) {", ".join(missing)} '
-                                              f'(got {", ".join(names) or "none"})')
+            self._missing = (JointStateDrop.MISSING_JOINT,
+                             f'missing joint(s) {", ".join(missing)} (got '
+                             f'{", ".join(names) or "none"})')
 
     def _check_gap(self, stamp_ns: int) -> None:
         """Drop the warm start after a gap or a stamp that does not move forward, measured
@@ -266,7 +289,7 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
             self._fk.reset()
             self.warm_start_resets += 1
 
-    def _reject(self, reason: str, sec: int, nanosec: int, err: Exception) -> None:
+    def _reject(self, reason: JointStateDrop, sec: int, nanosec: int, err: Exception) -> None:
         self.rejected.add(reason)
         self.warn_throttled(reason, f'no end pose for the joint state at '
                                     f'{sec}.{nanosec:09d} ({reason}): {err}')

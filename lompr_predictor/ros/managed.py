@@ -38,7 +38,7 @@ class ManagedNode(_LifecycleNodeType):
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        self.configure_error = ''  # why the last configure failed
+        self.configure_error: str | None = None  # why the last configure failed
         self._configure_exception: LomprError | None = None
         self._autostarting = False
         self._owned: list[Publisher | Subscription | Timer] = []
@@ -71,7 +71,8 @@ class ManagedNode(_LifecycleNodeType):
         finally:
             self._autostarting = False
         if not configured:
-            error = self._configure_exception or ConfigureError(self.configure_error)
+            error = self._configure_exception or ConfigureError(
+                self.configure_error or 'configure failed')
             self.destroy_node()
             raise error
         if self.trigger_activate() != TransitionCallbackReturn.SUCCESS:
@@ -82,7 +83,8 @@ class ManagedNode(_LifecycleNodeType):
     def configured_as(self, error: LomprError | None) -> TransitionCallbackReturn:
         """Record how a configure ended (`error`: why it failed, None: it succeeded); the
         transition's result. A failed configure is released."""
-        self._configure_exception, self.configure_error = error, str(error or '')
+        self._configure_exception = error
+        self.configure_error = None if error is None else str(error)
         if error is None:
             return TransitionCallbackReturn.SUCCESS
         self.release()

@@ -202,11 +202,11 @@ class NodeBase(_NodeType, Generic[S]):
 
     # -- hooks a node overrides ---------------------------------------------------------
 
-    def validate_settings(self, changes: dict[str, Any]) -> str:
-        """Why changed settings values are refused ('' to accept); runs after the generic
+    def validate_settings(self, changes: dict[str, Any]) -> str | None:
+        """Why changed settings values are refused (None to accept); runs after the generic
         checks, before anything is changed."""
         del changes
-        return ''
+        return None
 
     def apply_settings(self, previous: S, changed: frozenset[str]) -> None:
         """Act on accepted changes; `self.settings` is already the new snapshot."""
@@ -238,12 +238,12 @@ class NodeBase(_NodeType, Generic[S]):
         if not changes:
             return SetParametersResult(successful=True)
         reason = changes_problem(self._specs, changes)
-        if not reason:
+        if reason is None:
             try:
                 reason = self.validate_settings(changes)
             except Exception as err:  # noqa: BLE001 - a validation that fails refuses the change
                 reason = f'{type(err).__name__}: {err}'
-        return SetParametersResult(successful=not reason, reason=reason)
+        return SetParametersResult(successful=reason is None, reason=reason or '')
 
     def _apply_parameters(self, parameters: list[Parameter]) -> None:
         changes = self._settings_changes(parameters)

@@ -37,7 +37,7 @@ S = TypeVar('S')
 class ParameterSpec:
     """One ROS parameter: default (its type is the parameter's type; a tuple is an array),
     description, a numeric range [minimum, maximum] or string choices, read_only, and
-    `check(value)`, returning why a value is refused ('' if it is fine)."""
+    `check(value)`, returning why a value is refused (None if it is fine)."""
 
     default: Any
     description: str
@@ -45,7 +45,7 @@ class ParameterSpec:
     maximum: float | None = None
     choices: tuple[str, ...] = ()
     read_only: bool = False
-    check: Callable[[Any], str] | None = None
+    check: Callable[[Any], str | None] | None = None
 
     def __post_init__(self) -> None:
         if (self.minimum is None) != (self.maximum is None):
@@ -75,11 +75,11 @@ class ParameterSpec:
             descriptor.additional_constraints = f'one of: {", ".join(self.choices)}'
         return descriptor
 
-    def problem(self, value: Any) -> str:
-        """Why `value` is refused beyond what rclpy checks (choices, `check`); '' if fine."""
+    def problem(self, value: Any) -> str | None:
+        """Why `value` is refused beyond what rclpy checks (choices, `check`); None if fine."""
         if self.choices and value not in self.choices:
             return f'must be one of {", ".join(self.choices)}'
-        return self.check(value) if self.check is not None else ''
+        return self.check(value) if self.check is not None else None
 
     def settings_value(self, value: Any) -> Any:
         """A parameter value as the settings field holds it (an array as a tuple)."""
@@ -100,7 +100,7 @@ class ParameterSpec:
 def parameter(
     default: Any, description: str, *, minimum: float | None = None,
     maximum: float | None = None, choices: Iterable[str] = (), read_only: bool = False,
-    check: Callable[[Any], str] | None = None,
+    check: Callable[[Any], str | None] | None = None,
 ) -> Any:
     """A settings dataclass field that is also a ROS parameter (module docstring)."""
     spec = ParameterSpec(default, description, minimum, maximum, tuple(choices), read_only,
@@ -130,19 +130,20 @@ def declare_settings(node: Node, settings_type: type[S]) -> S:
     for name, spec in parameter_specs(settings_type).items():
         value = node.declare_parameter(name, spec.ros_default, spec.descriptor(name)).value
         problem = spec.problem(value)
-        if problem:
+        if problem is not None:
             raise InvalidParameterValueException(name, value, problem)
         values[name] = spec.settings_value(value)
     return settings_type(**values)
 
 
-def changes_problem(specs: Mapping[str, ParameterSpec], changes: Mapping[str, Any]) -> str:
-    """Why a set of changed values is refused ('' if it is fine), beyond rclpy's checks."""
+def changes_problem(specs: Mapping[str, ParameterSpec],
+                    changes: Mapping[str, Any]) -> str | None:
+    """Why a set of changed values is refused (None if it is fine), beyond rclpy's checks."""
     for name, value in changes.items():
         problem = specs[name].problem(value)
-        if problem:
+        if problem is not None:
             return f'{name} {problem}'
-    return ''
+    return None
 
 
 def settings_help(settings_type: type) -> list[str]:

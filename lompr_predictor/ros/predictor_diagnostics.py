@@ -1,88 +1,108 @@
 """The predictor node's /diagnostics statuses: the pure builders of
-`online.predictor_status` fed with what the node holds, and the counts since the last
-report that their warnings are about."""
+`online.predictor_status` fed with what the node hands over, and the counts since the last
+report that their warnings are about.
+
+The node hands its meters once (`PredictorMeters`) and, at each report, what it holds then
+(`PredictorReadings`, from the callable it gives): the statuses never reach into the node,
+and this module does not import it.
+"""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from dataclasses import dataclass
 
-from lompr_predictor.monitoring import Status
+from lompr_predictor.monitoring import RateMeter, Status
 from lompr_predictor.online import predictor_status
 from lompr_predictor.online.predictor import OnlinePredictor
-from lompr_predictor.online.predictor_status import InputRates, Lifecycle, PredictionLimits
+from lompr_predictor.online.predictor_counts import INPUTS_STATUS, PREDICTION_STATUS
+from lompr_predictor.online.predictor_status import (
+    InputRates,
+    Lifecycle,
+    ModelHistory,
+    PredictionLimits,
+)
 from lompr_predictor.online.preview import PreviewDrop
+from lompr_predictor.ros.common import DiagnosticsPublisher
+from lompr_predictor.ros.predictor_outputs import OutputPublisher
+from lompr_predictor.ros.predictor_settings import PredictorNodeSettings
 
-if TYPE_CHECKING:
-    from lompr_predictor.ros.common import DiagnosticsPublisher
-    from lompr_predictor.ros.predictor_node import PredictorNode
+
+@dataclass(frozen=True)
+class PredictorMeters:
+    """The node's rate meters and output publisher, made once with the node."""
+
+    end_pose: RateMeter
+    reference: RateMeter
+    preview: RateMeter
+    outputs: OutputPublisher  # its rate and input-to-output latency
 
 
-def _core_of(node: PredictorNode) -> OnlinePredictor | None:
-    return node.core if node.configured else None
+@dataclass(frozen=True)
+class PredictorReadings:
+    """What the node holds at a report."""
+
+    lifecycle: Lifecycle
+    settings: PredictorNodeSettings
+    core: OnlinePredictor | None  # None while unconfigured
+    history: ModelHistory
+    clock_values: dict[str, object]  # the node's clock and the input dropped while inactive
+    callback_values: dict[str, object]  # callback failures
 
 
 class PredictorDiagnostics:
     """The statuses 'model', 'inputs', 'reference preview' and 'prediction' of one
-    predictor node."""
+    predictor node, read from `read()` at each report."""
 
-    def __init__(self, node: PredictorNode, publisher: DiagnosticsPublisher) -> None:
-        self._node = node
+    def __init__(self, publisher: DiagnosticsPublisher, meters: PredictorMeters,
+                 read: Callable[[], PredictorReadings]) -> None:
+        self._meters = meters
+        self._read = read
         self._faults_at_last_report = 0
         self._overruns_at_last_report = 0
         self._missing_at_last_report = 0
         publisher.add('model', self.model_status)
-        publisher.add('inputs', self.input_status)
+        publisher.add(INPUTS_STATUS, self.input_status)
         publisher.add('reference preview', self.preview_status)
-        publisher.add('prediction', self.prediction_status)
-
-    def _lifecycle(self) -> Lifecycle:
-        node = self._node
-        return Lifecycle(node.lifecycle_state, node.settings.autostart, node.configure_error)
+        publisher.add(PREDICTION_STATUS, self.prediction_status)
 
     def model_status(self) -> Status:
-        node = self._node
-        return predictor_status.model_status(self._lifecycle(), node.settings.model_path,
-                                             _core_of(node), node.history)
+        now = self._read()
+        return predictor_status.model_status(now.lifecycle, now.settings.model_path, now.core,
+                                             now.history)
 
     def input_status(self) -> Status:
-        node = self._node
-        core = _core_of(node)
+        now, meters = self._read(), self._meters
         new_faults = 0
-        if core is not None:
-            new_faults = core.faults.total - self._faults_at_last_report
-            self._faults_at_last_report = core.faults.total
-        clock_values: dict[str, object] = {
-            'use_sim_time': bool(node.get_parameter('use_sim_time').value),
-            'clock_s': round(node.clock_seconds(), 6),
-            'clock_jumps_back': node.clock_jumps_back,
-            'dropped_inactive': node.dropped_inactive}
-        rates = InputRates(node.pose_rate, node.reference_rate, node.settings.end_pose_topic,
-                           node.settings.rate_window, clock_values, node.callback_values())
-        return predictor_status.input_status(self._lifecycle(), core, rates, new_faults)
+        if now.core is not None:
+            faults = now.core.faults.total
+            new_faults, self._faults_at_last_report = (
+                faults - self._faults_at_last_report, faults)
+        rates = InputRates(meters.end_pose, meters.reference, now.settings.end_pose_topic,
+                           now.settings.rate_window, now.clock_values, now.callback_values)
+        return predictor_status.input_status(now.lifecycle, now.core, rates, new_faults)
 
     def preview_status(self) -> Status:
-        node = self._node
-        core = _core_of(node)
+        now = self._read()
         new_missing = 0
-        if core is not None:
-            missing = core.plan.dropped.counts().get(PreviewDrop.MISSING, 0)
+        if now.core is not None:
+            missing = now.core.plan.dropped.counts().get(PreviewDrop.MISSING, 0)
             new_missing, self._missing_at_last_report = (
                 missing - self._missing_at_last_report, missing)
-        return predictor_status.preview_status(self._lifecycle(), core, node.preview_rate,
-                                               node.settings.reference_preview_topic,
+        return predictor_status.preview_status(now.lifecycle, now.core, self._meters.preview,
+                                               now.settings.reference_preview_topic,
                                                new_missing)
 
     def prediction_status(self) -> Status:
-        node = self._node
-        core = _core_of(node)
+        now, outputs = self._read(), self._meters.outputs
         new_overruns = 0
-        if core is not None:
-            overruns = predictor_status.overruns(core)
+        if now.core is not None:
+            overruns = now.core.counts().overruns
             new_overruns, self._overruns_at_last_report = (
                 overruns - self._overruns_at_last_report, overruns)
-        settings, outputs = node.settings, node.outputs
+        settings = now.settings
         limits = PredictionLimits(settings.compensation_enabled, settings.inference_time_warn,
                                   settings.accuracy_warn)
         return predictor_status.prediction_status(
-            self._lifecycle(), core, limits, outputs.latency.summary(), outputs.rate.rate(),
+            now.lifecycle, now.core, limits, outputs.latency.summary(), outputs.rate.rate(),
             new_overruns)

@@ -22,6 +22,7 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 
 from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import LatencyRecorder
+from lompr_predictor.online.inference import Backend
 from lompr_predictor.online.model_loader import (
     ModelRequest,
     ReadyModel,
@@ -30,13 +31,17 @@ from lompr_predictor.online.model_loader import (
     prepare_swap,
 )
 from lompr_predictor.online.predictor import OnlinePredictor
-from lompr_predictor.online.predictor_status import ModelHistory
+from lompr_predictor.online.predictor_status import Lifecycle, ModelHistory
 from lompr_predictor.online.preview import PreviewDrop
 from lompr_predictor.robot.description import load_robot_description, robot_name
 from lompr_predictor.ros.common import run_node
 from lompr_predictor.ros.managed import ManagedNode
 from lompr_predictor.ros.node_base import NodeBase, node_help
-from lompr_predictor.ros.predictor_diagnostics import PredictorDiagnostics
+from lompr_predictor.ros.predictor_diagnostics import (
+    PredictorDiagnostics,
+    PredictorMeters,
+    PredictorReadings,
+)
 from lompr_predictor.ros.predictor_outputs import OutputPublisher
 from lompr_predictor.ros.predictor_settings import (
     COMPENSATION,
@@ -82,9 +87,12 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self.outputs = OutputPublisher(settings.frame_id, self.rate_meter(settings.rate_window),
                                        LatencyRecorder(settings.latency_samples),
                                        self.warn_throttled)
-        self.diagnostics = PredictorDiagnostics(self, self.start_diagnostics(
-            settings.diagnostics_topic, settings.diagnostics_period,
-            hardware_id=robot_name(settings.robot_description_file or None)))
+        self.diagnostics = PredictorDiagnostics(
+            self.start_diagnostics(settings.diagnostics_topic, settings.diagnostics_period,
+                                   hardware_id=robot_name(settings.robot_description_file
+                                                          or None)),
+            PredictorMeters(self.pose_rate, self.reference_rate, self.preview_rate,
+                            self.outputs), self.readings)
         # Backward jumps (a simulator reset) and a change of time source; the clock's start
         # (its first /clock, a forward jump from 0) is handled by the staleness timer.
         self._jump_handle = self.get_clock().create_jump_callback(
@@ -148,7 +156,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             settings.model_path, expected_metadata(description.sha256, settings.window,
                                                    settings.horizon),
             settings.sample_period, settings.model_sha256, settings.verify_model_hash,
-            HASH_HINT, settings.inference_backend))
+            HASH_HINT, Backend(settings.inference_backend)))
         if outcome.ready is None:
             return outcome.error
         self._running = ready = outcome.ready
@@ -164,10 +172,9 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
                                backend_why=ready.backend_why)
         self._core = OnlinePredictor(
             ready.model, settings.stream(self.sample_period), settings.limits,
-            clock=self.clock_seconds, latency_samples=settings.latency_samples,
-            now_ns=self.clock_ns, description=description, backend=ready.backend,
-            fallback=fallback.model if fallback else None,
-            fallback_backend=fallback.backend if fallback else None)
+            clock=self.clock_ns, backend=ready.backend,
+            fallback=(fallback.model, fallback.backend) if fallback else None,
+            description=description, latency_samples=settings.latency_samples)
         self.outputs.attach(self.own(self.advertise(PREDICTED_ERROR)),
                             self.own(self.advertise(COMPENSATION)))
         self.own(self.subscribe(END_POSE, self.on_end_pose, raw=True))
@@ -273,12 +280,12 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
 
     # -- parameters (NodeBase hooks) -------------------------------------------------------
 
-    def validate_settings(self, changes: dict[str, Any]) -> str:
+    def validate_settings(self, changes: dict[str, Any]) -> str | None:
         """Configured: load, check and warm a new model beside the running one; refuse a
         bad one. Unconfigured: the next configure loads it."""
         self._candidate = None
         if self._running is None:
-            return ''
+            return None
         path = changes.get('model_path')
         sha256 = changes.get('model_sha256', '' if path is None else self.settings.model_sha256)
         outcome = prepare_swap(self._running, path, sha256)
@@ -302,9 +309,23 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             self._core.replace_model(candidate.model, candidate.backend)
             self._running, self._candidate = candidate, None
             self.history = replace(self.history, swaps=self.history.swaps + 1,
-                                   reload_error='', backend_why=candidate.backend_why)
+                                   reload_error=None, backend_why=candidate.backend_why)
             self.get_logger().info(f'model swapped: now {self._core.model.path} '
                                    f'(sha256 {self._core.model.sha256[:16]})')
+
+    # -- diagnostics ------------------------------------------------------------------------
+
+    def readings(self) -> PredictorReadings:
+        """What the node holds now, for its statuses (`PredictorDiagnostics`)."""
+        settings = self.settings
+        clock_values: dict[str, object] = {
+            'use_sim_time': bool(self.get_parameter('use_sim_time').value),
+            'clock_s': round(self.clock_seconds(), 6),
+            'clock_jumps_back': self.clock_jumps_back,
+            'dropped_inactive': self.dropped_inactive}
+        return PredictorReadings(
+            Lifecycle(self.lifecycle_state, settings.autostart, self.configure_error),
+            settings, self._core, self.history, clock_values, self.callback_values())
 
 
 def build_entry_point(context: Context, **node_kwargs: Any) -> PredictorNode:

@@ -3,15 +3,14 @@ and its endpoints, whose topics are parameters."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from nav_msgs.msg import Path
 
-from lompr_predictor.data.cleaning import GAP_FACTOR
 from lompr_predictor.learning.model_file import check_sha256_text
 from lompr_predictor.online.faults import StreamSettings
-from lompr_predictor.online.inference import BACKENDS
+from lompr_predictor.online.inference import Backend
 from lompr_predictor.online.offset import CompensationLimits
 from lompr_predictor.robot.description import WORLD_FRAME
 from lompr_predictor.ros.node_base import (
@@ -21,6 +20,7 @@ from lompr_predictor.ros.node_base import (
     StatusSettings,
 )
 from lompr_predictor.ros.parameters import parameter
+from lompr_predictor.stamps import GAP_FACTOR
 
 
 @dataclass(frozen=True)
@@ -108,7 +108,7 @@ class PredictorNodeSettings(StatusSettings):
         'model file at configure, used only if it agrees with TorchScript to 1e-6 relative on '
         'a warm-up batch; configure fails if it cannot serve), torchscript (the file as '
         'loaded), or auto (onnxruntime, else torchscript with the reason on /diagnostics)',
-        choices=BACKENDS, read_only=True)
+        choices=Backend, read_only=True)
     inference_threads: int = parameter(
         1, "torch threads, set by the executable's main() (process-wide); 1 keeps inference "
         'from contending with the executor', minimum=1, maximum=256, read_only=True)
@@ -136,11 +136,12 @@ class PredictorNodeSettings(StatusSettings):
         maximum=3600.0, read_only=True)
 
     def stream(self, sample_period: float) -> StreamSettings:
-        """The rules the input stream is held to, at `sample_period` [s]."""
-        return StreamSettings(sample_period, self.gap_factor, self.min_interval_factor,
-                              self.stale_periods, self.accuracy_samples, self.stale_min_time,
-                              self.max_future_stamp, self.late_tolerance,
-                              self.preview_tolerance)
+        """The rules the input stream is held to, at `sample_period` [s] (the model's, or
+        the parameter's): every other field the parameter of the same name, so each is
+        declared once, here."""
+        return StreamSettings(sample_period=sample_period, **{
+            item.name: getattr(self, item.name) for item in fields(StreamSettings)
+            if item.name != 'sample_period'})
 
     @property
     def limits(self) -> CompensationLimits:

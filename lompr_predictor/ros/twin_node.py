@@ -64,7 +64,7 @@ from lompr_predictor.ros.node_base import (
 )
 from lompr_predictor.ros.parameters import parameter
 from lompr_predictor.stamps import ns_to_sec_nanosec, stamp_to_ns
-from lompr_predictor.twin.compensation import CompensationSchedule
+from lompr_predictor.twin.compensation import CompensationSchedule, OffsetDrop
 from lompr_predictor.twin.digital_twin import DigitalTwin, TwinSamples
 from lompr_predictor.twin.parameters import load_twin_parameters
 from lompr_predictor.twin.run_log import RunLog, write_run_log
@@ -263,11 +263,11 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
         if self.finished or not self.audience_ready():
             return
         schedule = self.schedule
-        missing, stale = schedule.missing, schedule.rejected['stale']
+        missing, stale = schedule.missing, schedule.rejected[OffsetDrop.STALE]
         with self.step_time.measure():
             offset = schedule.take(self.twin.next_index)
             samples = self.twin.step(1, offset[None])
-        answered = schedule.missing == missing and schedule.rejected['stale'] == stale
+        answered = schedule.missing == missing and schedule.rejected[OffsetDrop.STALE] == stale
         self._last_answered = answered
         if self._logging:
             self.log.add(samples, answered)

@@ -191,6 +191,26 @@ def common_instants(stamps: Mapping[str, np.ndarray], tolerance_ns: float) -> di
     return {name: rows[keep] for name, rows in chosen.items()}
 
 
+def _scored_bag(bag: str | Path, geometry: Any, cleaning: Any, topics: tuple[str, str],
+                ) -> tuple[np.ndarray, np.ndarray, Any, float]:
+    """The measured error and stamps of one closed-loop bag, its truth (None without one)
+    and its sample period [s]: with a truth beside it, only the passes after the lead-in,
+    which the demo scores."""
+    from lompr_predictor.data.bags import read_bags
+    from lompr_predictor.data.cleaning import clean_recordings
+
+    recordings, _ = read_bags([bag], joint_topic=topics[0], reference_topic=topics[1])
+    data = clean_recordings(recordings, geometry, cleaning)
+    truth = read_loop_truth(bag)
+    keep = np.ones(len(data.stamps), dtype=bool)
+    if truth is not None:
+        arrays, info = truth
+        scored = arrays['pass_index'] >= info['settings']['lead_in_passes']
+        truth = ({key: value[scored] for key, value in arrays.items()}, info)
+        keep = data.stamps >= arrays['stamps'][scored][0]
+    return data.error[keep], data.stamps[keep], truth, data.sample_period
+
+
 def evaluate_loop_bags(bags: Sequence[str | Path], *, geometry: Any, cleaning: Any,
                        joint_topic: str, reference_topic: str,
                        report: str | Path) -> dict[str, Any]:
@@ -200,9 +220,6 @@ def evaluate_loop_bags(bags: Sequence[str | Path], *, geometry: Any, cleaning: A
     truth lies beside a bag, its true error too (the figures `lompr demo` prints). Writes
     `closed_loop.json`, `closed_loop.md` and the plot into `report`; returns the JSON
     document."""
-    from lompr_predictor.data.bags import read_bags
-    from lompr_predictor.data.cleaning import clean_recordings
-
     # A transient of the error is an error to score, not an outlier: no spike rejection.
     cleaning = dataclasses.replace(cleaning, hampel_threshold=np.inf)
     if len(bags) < 2:
@@ -216,19 +233,9 @@ def evaluate_loop_bags(bags: Sequence[str | Path], *, geometry: Any, cleaning: A
     truths = {}
     period = np.inf  # [s] the shortest sample period among the bags
     for name, bag in zip(names, bags, strict=False):
-        recordings, _ = read_bags([bag], joint_topic=joint_topic,
-                                  reference_topic=reference_topic)
-        data = clean_recordings(recordings, geometry, cleaning)
-        truth = read_loop_truth(bag)
-        keep = np.ones(len(data.stamps), dtype=bool)
-        if truth is not None:  # score what the demo scores: the passes after the lead-in
-            arrays, info = truth
-            scored = arrays['pass_index'] >= info['settings']['lead_in_passes']
-            truth = ({key: value[scored] for key, value in arrays.items()}, info)
-            keep = data.stamps >= arrays['stamps'][scored][0]
-        measured[name], stamps[name] = data.error[keep], data.stamps[keep]
-        truths[name] = truth
-        period = min(period, data.sample_period)
+        measured[name], stamps[name], truths[name], bag_period = _scored_bag(
+            bag, geometry, cleaning, (joint_topic, reference_topic))
+        period = min(period, bag_period)
     rows = common_instants(stamps, 0.5 * period * NS_PER_SECOND)
     measured = {name: error[rows[name]] for name, error in measured.items()}
     document: dict[str, Any] = {

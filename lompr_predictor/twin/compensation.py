@@ -17,12 +17,22 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from enum import StrEnum
 
 import numpy as np
 
 from lompr_predictor.monitoring import RejectionCounter
 
-REJECTION_REASONS = ('late', 'stale', 'off_grid', 'non_finite', 'too_large', 'superseded')
+
+class OffsetDrop(StrEnum):
+    """Why the controller dropped an offset (module docstring)."""
+
+    LATE = 'late'
+    STALE = 'stale'
+    OFF_GRID = 'off_grid'
+    NON_FINITE = 'non_finite'
+    TOO_LARGE = 'too_large'
+    SUPERSEDED = 'superseded'
 
 
 class CompensationSchedule:
@@ -34,29 +44,30 @@ class CompensationSchedule:
         self.period_ns = int(period_ns)
         self.timeout_samples = int(timeout_samples)
         self.max_offset = float(max_offset)
-        self.rejected = RejectionCounter(REJECTION_REASONS)
+        self.rejected = RejectionCounter(OffsetDrop)
         self.applied = 0
         self.missing = 0
         self._pending: dict[int, tuple[np.ndarray, int]] = {}
 
-    def offer(self, stamp_ns: int, offset: Sequence[float], next_index: int) -> str | None:
+    def offer(self, stamp_ns: int, offset: Sequence[float],
+              next_index: int) -> OffsetDrop | None:
         """Queue an offset received while `next_index` is the next sample to execute.
         Returns the rejection reason, or None when it was queued."""
         index = round((int(stamp_ns) - self.epoch_ns) / self.period_ns)
         reason = None
         if not all(math.isfinite(v) for v in offset):
-            reason = 'non_finite'
+            reason = OffsetDrop.NON_FINITE
         elif abs(int(stamp_ns) - self.epoch_ns - index * self.period_ns) > self.period_ns // 4:
-            reason = 'off_grid'
+            reason = OffsetDrop.OFF_GRID
         elif index < next_index:
-            reason = 'late'
+            reason = OffsetDrop.LATE
         elif max(abs(v) for v in offset) > self.max_offset:
-            reason = 'too_large'
+            reason = OffsetDrop.TOO_LARGE
         if reason is not None:
             self.rejected.add(reason)
             return reason
         if index in self._pending:
-            self.rejected.add('superseded')
+            self.rejected.add(OffsetDrop.SUPERSEDED)
         self._pending[index] = (np.array(offset, dtype=float), next_index)
         return None
 
@@ -68,14 +79,14 @@ class CompensationSchedule:
         """The offset to apply at sample `index` (zero if none or stale); forgets older ones."""
         for old in [i for i in self._pending if i < index]:
             del self._pending[old]
-            self.rejected.add('late')
+            self.rejected.add(OffsetDrop.LATE)
         entry = self._pending.pop(index, None)
         if entry is None:
             self.missing += 1
             return np.zeros(3)
         offset, received_at = entry
         if index - received_at > self.timeout_samples:
-            self.rejected.add('stale')
+            self.rejected.add(OffsetDrop.STALE)
             return np.zeros(3)
         self.applied += 1
         return offset

@@ -1,0 +1,94 @@
+"""A model slot: one model served on its own window of feature rows (ROS-free).
+
+The predictor core (`predictor.OnlinePredictor`) holds one slot for its model and, for a
+model that reads the reference preview, one more for the fallback model that answers where
+the plan is missing: the same part for both. As Pinocchio keeps the fixed model apart from
+the data of a run, a slot holds the model (its file, metadata and what runs its network,
+swapped in place by `use`) apart from what a run fills: the window of rows it reads
+(`window.FeatureWindow`, pushed by the core) and its counts.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+from lompr_predictor.data.features import feature_names
+from lompr_predictor.learning.model_file import LoadedModel, MetadataMismatchError
+from lompr_predictor.monitoring import LatencyRecorder
+from lompr_predictor.online.inference import InferenceBackend, TorchScriptBackend
+from lompr_predictor.online.offset import XY
+from lompr_predictor.online.window import FeatureWindow
+from lompr_predictor.robot.description import RobotDescription
+
+
+def check_model(model: LoadedModel, description: RobotDescription) -> None:
+    """Refuse a model that reads other features than its preview defines or was trained
+    for another robot than `description`."""
+    for field, needed in (('features', feature_names(model.metadata.preview)),
+                          ('robot_description_sha256', description.sha256)):
+        found = getattr(model.metadata, field)
+        if found != needed:
+            raise MetadataMismatchError(model.path, field, needed, found)
+
+
+def check_fallback(fallback: LoadedModel, description: RobotDescription,
+                   horizon: int) -> None:
+    """Refuse a fallback that `check_model` refuses, reads a preview, or predicts for
+    another instant than `horizon` samples ahead."""
+    check_model(fallback, description)
+    for field, needed in (('preview', 0), ('horizon', horizon)):
+        found = getattr(fallback.metadata, field)
+        if found != needed:
+            raise MetadataMismatchError(fallback.path, field, needed, found)
+
+
+def check_replacement(running: LoadedModel, model: LoadedModel,
+                      description: RobotDescription) -> None:
+    """Refuse a model to swap in for `running` that `check_model` refuses or that reads
+    another window or preview, or predicts for another horizon (`ValueError`)."""
+    check_model(model, description)
+    old, new = running.metadata, model.metadata
+    if (new.window, new.horizon, new.preview) != (old.window, old.horizon, old.preview):
+        msg = (f'model {model.path} has window {new.window}, horizon {new.horizon} and '
+               f'preview {new.preview}; the running one {old.window}, {old.horizon} and '
+               f'{old.preview}')
+        raise ValueError(msg)
+
+
+class ModelSlot:
+    """A model, what runs its network, the window it reads and its counts (module
+    docstring). `inference_time` records the duration of every network call."""
+
+    def __init__(self, model: LoadedModel, backend: InferenceBackend | None,
+                 description: RobotDescription, inference_time: LatencyRecorder) -> None:
+        metadata = model.metadata
+        #: The rows the model reads, pushed by the core sample by sample.
+        self.window = FeatureWindow(metadata.window, description.geometry, metadata.preview)
+        self.inference_time = inference_time
+        self.answers = 0  # windows this slot was asked to answer
+        self.predictions = 0  # finite predictions it gave
+        self.use(model, backend)
+
+    def use(self, model: LoadedModel, backend: InferenceBackend | None = None) -> None:
+        """Serve `model` with `backend` (default TorchScript) from the next window on, one
+        call bound per view of the window (`inference.InferenceBackend.runner`)."""
+        self.model = model
+        self.backend = backend or TorchScriptBackend(model)
+        self._runners = tuple(self.backend.runner(array) for array in self.window.arrays)
+
+    def predict(self) -> XY | None:
+        """The network on the window as it is now (full): the predicted X/Y plant error,
+        or None if the model raised or gave anything but one row of two finite numbers."""
+        runner = self._runners[self.window.start]
+        start = time.perf_counter()
+        try:
+            x, y = runner()
+            x, y = float(x), float(y)
+        except Exception:  # noqa: BLE001 - a model file is code: any failure is a fault
+            x = y = math.nan
+        self.inference_time.record(time.perf_counter() - start)
+        if math.isfinite(x) and math.isfinite(y):
+            self.predictions += 1
+            return x, y
+        return None

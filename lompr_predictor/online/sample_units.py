@@ -1,0 +1,73 @@
+"""Units the predictor core hands every aligned sample and every prediction (ROS-free).
+
+The core (`predictor.OnlinePredictor`) keeps a chain of `SampleUnit`s, the live accuracy
+first: each sees, in stamp order, every aligned sample with its plant error and the
+prediction published for its instant earlier (`observe`), and every prediction a model made,
+before the offset gate bounds it (`revise`), which it may replace or withhold. This is where
+a unit that judges predictions by the live residuals plugs in (a guard choosing between the
+model and persistence, a check of the window's rows against the model's ranges, a store of
+aligned samples for adaptation): a small class given to the core's `units`, no change to the
+core. A unit is cleared with the window (`clear`: after a fault or a reset the stream it
+observed does not continue).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Protocol
+
+import numpy as np
+
+from lompr_predictor.online.alignment import AlignedSample
+from lompr_predictor.online.model_slot import ModelSlot
+from lompr_predictor.online.offset import XY
+
+
+class SampleUnit(Protocol):
+    """One link of the core's chain (module docstring)."""
+
+    def observe(self, sample: AlignedSample, error: XY, published: XY | None) -> None:
+        """One aligned sample, in stamp order: its plant error [m] (measured - reference -
+        the offset applied at its instant) and the prediction published for its instant
+        earlier (None where none was)."""
+        ...
+
+    def revise(self, instant_ns: int, prediction: XY, slot: ModelSlot) -> XY | None:
+        """The prediction [m] `slot`'s model made for `instant_ns` from the rows in
+        `slot.window`: the prediction to hand on (this one or another), or None to publish
+        nothing for that instant (the controller then applies no offset there)."""
+        ...
+
+    def clear(self) -> None:
+        """The window was emptied: the samples that come next start a new stream."""
+        ...
+
+
+class LiveAccuracy:
+    """RMS per axis of truth - prediction over the last `samples` instants whose truth
+    arrived: a live figure to hold against the model's test RMSE. A `SampleUnit` that
+    changes nothing and outlives faults (it measures the model, not the stream)."""
+
+    def __init__(self, samples: int) -> None:
+        self._x: deque[float] = deque(maxlen=samples)
+        self._y: deque[float] = deque(maxlen=samples)
+
+    def observe(self, sample: AlignedSample, error: XY, published: XY | None) -> None:
+        del sample
+        if published is not None:
+            self._x.append(error[0] - published[0])
+            self._y.append(error[1] - published[1])
+
+    def revise(self, instant_ns: int, prediction: XY, slot: ModelSlot) -> XY | None:
+        del instant_ns, slot
+        return prediction
+
+    def clear(self) -> None:
+        """Residuals already measured stay: the model did not change."""
+
+    def rms(self) -> tuple[np.ndarray, int]:
+        """(2,) RMS [m] and how many residuals it is over; NaN before the first."""
+        if not self._x:
+            return np.full(2, np.nan), 0
+        residuals = np.column_stack((self._x, self._y))
+        return np.sqrt(np.mean(residuals ** 2, axis=0)), len(residuals)
