@@ -191,7 +191,8 @@ def test_clean_stitches_bags_and_counts_every_fault(description: RobotDescriptio
     assert counts['joint_out_of_order'] == 1
     assert counts['joint_duplicate'] == 1
     assert counts['spike'] == 1
-    assert counts['segments'] == 2
+    assert counts['segments'] == 3  # the gap, and where the second bag begins
+    np.testing.assert_array_equal(data.recordings[1:, 0], data.segments[1:2, 0])
     assert counts['no_reference'] == 1  # the last joint sample lies after the last reference
     assert counts['kept'] == 800 - 20 - 1 - 1 - 1
     expected = {int(s): e for s, e in zip(j.stamps, error, strict=False)}

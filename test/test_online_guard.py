@@ -9,11 +9,20 @@ import numpy as np
 import pytest
 
 from lompr_predictor.learning.envelope import InputEnvelope, fit_envelope
+from lompr_predictor.online.alignment import AlignedSample
 from lompr_predictor.online.guard import GuardReason, GuardSettings, GuardState, LiveGuard
 
 PERIOD = 40_000_000
 HORIZON = 2
 LEAD = HORIZON * PERIOD
+
+
+def _settings(**changes: object) -> GuardSettings:
+    """Rules of the guard (the predictor node's defaults, `test_predictor_node` checks the
+    node builds them from its parameters), with `changes`."""
+    rules: dict[str, object] = {'enabled': True, 'window': 250, 'margin': 0.05,
+                                'min_dwell': 50, 'min_scored': 50, 'envelope_fraction': 0.2}
+    return GuardSettings(**{**rules, **changes})  # type: ignore[arg-type]
 
 
 def _run(guard: LiveGuard, truth: np.ndarray, model_error: np.ndarray,
@@ -24,10 +33,11 @@ def _run(guard: LiveGuard, truth: np.ndarray, model_error: np.ndarray,
     published = np.full_like(truth, np.nan)
     for k in range(len(truth)):
         stamp = k * PERIOD
-        guard.observe(stamp, *truth[k])
+        error = (float(truth[k, 0]), float(truth[k, 1]))
+        guard.observe(AlignedSample(stamp, *error, 0.0, 0.0, 1.1), error, None)
         if k + HORIZON < len(truth):
             target = truth[k + HORIZON] + model_error[k + HORIZON]
-            published[k] = guard.choose(stamp, (float(target[0]), float(target[1])),
+            published[k] = guard.choose(stamp + LEAD, (float(target[0]), float(target[1])),
                                         (float(truth[k, 0]), float(truth[k, 1])),
                                         True if inside is None else bool(inside[k]))
     return published
@@ -40,7 +50,7 @@ def _walk(count: int, seed: int = 0) -> np.ndarray:
 
 
 def test_a_model_better_than_persistence_keeps_both_axes() -> None:
-    guard = LiveGuard(GuardSettings(), LEAD, PERIOD)
+    guard = LiveGuard(_settings(), LEAD, PERIOD)
     truth = _walk(600)
     model_error = np.random.default_rng(1).normal(0.0, 0.2e-6, truth.shape)
     published = _run(guard, truth, model_error)
@@ -56,7 +66,7 @@ def test_a_model_better_than_persistence_keeps_both_axes() -> None:
 def test_an_axis_where_the_model_is_worse_goes_to_persistence() -> None:
     """X of the model misses by 5 um, Y by 0.2 um: X is handed over after `min_scored`
     instants, Y stays; the published X is the last plant error (persistence's)."""
-    settings = GuardSettings(min_scored=50, min_dwell=50)
+    settings = _settings(min_scored=50, min_dwell=50)
     guard = LiveGuard(settings, LEAD, PERIOD)
     truth = _walk(400, seed=2)
     model_error = np.random.default_rng(3).normal(0.0, 0.2e-6, truth.shape)
@@ -78,7 +88,7 @@ def test_an_axis_where_the_model_is_worse_goes_to_persistence() -> None:
 def test_hand_back_needs_the_margin_and_the_dwell() -> None:
     """Worse, then better: the axis comes back once the model's weighted RMS is below
     (1 - margin) x persistence's and `min_dwell` instants have passed, not before."""
-    settings = GuardSettings(window=20, margin=0.1, min_scored=10, min_dwell=100)
+    settings = _settings(window=20, margin=0.1, min_scored=10, min_dwell=100)
     guard = LiveGuard(settings, LEAD, PERIOD)
     truth = _walk(700, seed=4)
     model_error = np.zeros_like(truth)
@@ -96,7 +106,7 @@ def test_hand_back_needs_the_margin_and_the_dwell() -> None:
 
 
 def test_rows_outside_the_envelope_hold_the_model_back() -> None:
-    settings = GuardSettings(window=10, envelope_fraction=0.5, min_dwell=0)
+    settings = _settings(window=10, envelope_fraction=0.5, min_dwell=0)
     guard = LiveGuard(settings, LEAD, PERIOD)
     truth = _walk(200, seed=5)
     inside = np.ones(len(truth), dtype=bool)
@@ -110,7 +120,7 @@ def test_rows_outside_the_envelope_hold_the_model_back() -> None:
 
 
 def test_disabled_guard_publishes_the_model_and_still_reports() -> None:
-    guard = LiveGuard(GuardSettings(enabled=False, min_scored=10, min_dwell=10), LEAD, PERIOD)
+    guard = LiveGuard(_settings(enabled=False, min_scored=10, min_dwell=10), LEAD, PERIOD)
     truth = _walk(200, seed=6)
     model_error = np.full_like(truth, 5e-6)
     published = _run(guard, truth, model_error)
@@ -121,9 +131,9 @@ def test_disabled_guard_publishes_the_model_and_still_reports() -> None:
 
 def test_settings_are_checked() -> None:
     with pytest.raises(ValueError, match='margin'):
-        GuardSettings(margin=1.0)
+        _settings(margin=1.0)
     with pytest.raises(ValueError, match='window'):
-        GuardSettings(window=0)
+        _settings(window=0)
 
 
 def test_envelope_is_the_widened_training_range_of_the_motion_columns() -> None:

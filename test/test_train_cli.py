@@ -61,8 +61,9 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
         assert (report / name).is_file()
     content = json.loads((report / 'report.json').read_text())
     assert content['counts']['bags'] == 2 and content['counts']['kept'] == 2400
-    assert set(content['models']) == {'persistence', 'bp', 'ridge', 'hgb', 'bo_lstm'}
-    for baseline in ('persistence', 'bp', 'ridge', 'hgb'):  # per axis and metric
+    assert set(content['models']) == {'persistence', 'bp', 'ridge', 'hgb', 'machine_map',
+                                      'bo_lstm'}
+    for baseline in ('persistence', 'bp', 'ridge', 'hgb', 'machine_map'):  # per axis, metric
         beaten = content['bo_lstm_beats'][baseline]
         assert set(beaten) == {'x', 'y'}
         assert all(isinstance(v, bool) and len(beaten[a]) == 10
@@ -82,10 +83,16 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
         report / 'report.md').read_text()
     assert len(loaded.metadata.training_bags) == 2
     assert loaded.metadata.hyperparameters['error_level'] is True
+    # the default network reads the machine map's residuals, relative and, with the
+    # error level, as they are
     columns = loaded.metadata.normalisation['input_columns']
-    assert columns == [*columns[:len(FEATURES)], 'error_x', 'error_y']
-    assert columns[:2] == ['error_x - last row', 'error_y - last row']
-    assert len(loaded.metadata.normalisation['feature_centre']) == len(FEATURES) + 2
+    assert columns == ['map_residual_x - last row', 'map_residual_y - last row',
+                       'map_residual_x', 'map_residual_y']
+    assert len(loaded.metadata.normalisation['feature_centre']) == 4
+    assert loaded.metadata.hyperparameters['network_inputs'] == 'machine'
+    assert set(loaded.metadata.machine_map['branch_coefficients']) >= {'velocity',
+                                                                       'acceleration'}
+    assert set(loaded.metadata.envelope['ranges']) == set(FEATURES) - {'error_x', 'error_y'}
     assert all(len(b['sha256']) == 64 for b in loaded.metadata.training_bags)
     assert loaded.metadata.test_metrics['x']['rmse_um'] == pytest.approx(
         content['models']['bo_lstm']['metrics']['x']['rmse_um'])
@@ -320,16 +327,21 @@ def test_a_preview_model_records_its_preview_and_the_report_shows_the_plain_base
         tmp_path: Path, bags: list[Path]) -> None:
     model, report = tmp_path / 'model.pt', tmp_path / 'report'
     assert run(['train', str(bags[0]), '--test-bags', str(bags[1]), '--out', str(model),
-                '--report', str(report), *FAST, '--preview', '4']) == 0
+                '--report', str(report), *FAST, '--preview', '4', '--network-inputs',
+                'all']) == 0
     loaded = load_model(model)
     assert loaded.metadata.preview == 4
+    # every feature and the map's residuals, the preview block's included
+    columns = loaded.metadata.normalisation['input_columns']
+    assert {'map_residual_x - last row', 'map_residual_y - last row', 'plan_dx'} <= set(columns)
+    assert 'plan_dx' in columns and loaded.metadata.hyperparameters['network_inputs'] == 'all'
     assert loaded.metadata.features == feature_names(4) != FEATURES
     content = json.loads((report / 'report.json').read_text())
     assert content['preview'] == 4 and content['features'] == list(feature_names(4))
     # every window also has its last row's 4 samples after it: 2 fewer than with horizon 2
     assert content['split']['test'] == 1200 - 2 - 8 + 1 - 4
     assert set(content['models']) == {'persistence', 'bp', 'ridge', 'hgb', 'ridge_no_preview',
-                                      'hgb_no_preview', 'bo_lstm'}
+                                      'hgb_no_preview', 'machine_map', 'bo_lstm'}
     assert set(content['bo_lstm_beats']) == set(content['models']) - {'bo_lstm'}
     text = (report / 'report.md').read_text()
     assert 'reference preview 4 samples' in text and '| HGB (no preview) |' in text

@@ -255,12 +255,25 @@ def clean_recordings(
     spikes = hampel_outliers(error, segments, config.hampel_half_window, config.hampel_threshold)
     counts['spike'] = int(spikes.sum())
     stamps, error, aligned = stamps[~spikes], error[~spikes], aligned[~spikes]
-    segments = segment_bounds(stamps, max_step)
+    recordings = recording_rows(stamps, ordered)
+    segments = split_at(segment_bounds(stamps, max_step), recordings[1:, 0])
     counts['kept'] = len(stamps)
     counts['segments'] = len(segments)
     return CleanData(stamps=stamps, error=error, reference=aligned, segments=segments,
                      sample_period=period * 1e-9, geometry=geometry, counts=counts,
-                     recording_rows=recording_rows(stamps, ordered))
+                     recording_rows=recordings)
+
+
+def split_at(segments: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(S', 2) the [start, end) `segments` split again at `rows`: where one recording ends
+    and the next begins (another program, another day), so that no feature difference or
+    window spans two recordings even when the second starts right after the first."""
+    bounds = [(start, end) for start, end in segments]
+    for row in rows:
+        bounds = [part for start, end in bounds
+                  for part in (((start, row), (row, end)) if start < row < end
+                               else ((start, end),))]
+    return np.array(bounds, dtype=np.int64).reshape(-1, 2)
 
 
 def recording_rows(stamps: np.ndarray, recordings: Sequence[Recording]) -> np.ndarray:

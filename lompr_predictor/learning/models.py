@@ -298,18 +298,21 @@ def normalisation_metadata(module: Any, error_low: np.ndarray, error_high: np.nd
     `scheme`: how training chose the affine maps ('standard': mean and standard deviation of
     the training windows, 'minmax': their range mapped to [-1, 1])."""
     mask = module.relative_mask.tolist()
+    columns = module.input_columns.tolist()
+    names = network_features(features, bool(module.use_map))
     how = ('standardised by their training mean and standard deviation' if scheme == 'standard'
            else 'mapped to [-1, 1] by their training min-max')
     target = 'e(t+h) - e(t)' if module.residual else 'e(t+h)'
+    if module.use_map:
+        target += " - (g(t+h) - g(t)) (the machine map's change)"
     errors = ("; error columns taken relative to the window's last row first"
               if any(mask) else '')
-    if len(mask) > len(features):
+    if len(set(columns)) < len(columns):
         errors += ', then appended again as they are (the level)'
     return {'scheme': scheme,
             'input': f'window rows {how}{errors}',
-            'input_columns': [features[column] + (' - last row' if relative_column else '')
-                              for column, relative_column in zip(module.input_columns.tolist(),
-                                                                 mask, strict=True)],
+            'input_columns': [names[column] + (' - last row' if relative_column else '')
+                              for column, relative_column in zip(columns, mask, strict=True)],
             'feature_centre': module.feature_centre.tolist(),
             'feature_scale': (1.0 / module.feature_inverse_half).tolist(),
             'target': f'{target}, {how}',

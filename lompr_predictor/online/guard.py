@@ -17,11 +17,15 @@ under compensation), per axis, and chooses, per axis, whose prediction is publis
 - a sample whose feature row lies outside the model's trained envelope (`envelope.py`) is
   counted; while more than `envelope_fraction` of the recent rows lie outside it, both axes
   are held back whatever the live scores (the model is extrapolating);
-- persistence's prediction is the last plant error, which the guard is handed with every
-  prediction, so holding back costs nothing but the choice.
+- persistence's prediction is the plant error of the sample the model's window ends at,
+  which the guard saw just before the prediction, so holding back costs nothing but the
+  choice.
 
-The guard is ROS-free and runs on Python floats: a few dozen operations per sample. A model
-file without an envelope is guarded by the live comparison alone.
+The guard is a unit of the predictor core's chain (`sample_units`): it sees every aligned
+sample's plant error and every prediction before the offset gate. ROS-free, on Python
+floats: a few dozen operations per sample. A model file without an envelope is guarded by
+the live comparison alone. With the guard off (`enabled` False) the scores and states go on,
+so diagnostics show what it would do.
 """
 
 from __future__ import annotations
@@ -29,7 +33,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import StrEnum
 
+from lompr_predictor.learning.envelope import InputEnvelope
+from lompr_predictor.online.alignment import AlignedSample
+from lompr_predictor.online.model_slot import ModelSlot
 from lompr_predictor.online.offset import XY, InstantSchedule
+from lompr_predictor.stamps import period_ns
 
 AXES = ('x', 'y')
 
@@ -48,17 +56,18 @@ class GuardReason(StrEnum):
     OUTSIDE_ENVELOPE = 'outside_envelope'  # the inputs left what training saw
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class GuardSettings:
-    """The guard's rules (module docstring); `enabled` False publishes the model always
-    (the scores and counts go on)."""
+    """The guard's rules (module docstring), each the predictor node's parameter `guard_`
+    + its name (declared there once, with its default); `enabled` False publishes the model
+    always (the scores and states go on)."""
 
-    enabled: bool = True
-    window: int = 250  # instants the live RMS is weighted over (time constant)
-    margin: float = 0.05  # relative: hand over above (1 + margin) x, back below (1 - margin) x
-    min_dwell: int = 50  # instants between two switches of an axis, at least
-    min_scored: int = 50  # instants scored before the first decision
-    envelope_fraction: float = 0.2  # recent rows outside the envelope that hold the model back
+    enabled: bool
+    window: int  # instants the live RMS is weighted over (time constant)
+    margin: float  # relative: hand over above (1 + margin) x, back below (1 - margin) x
+    min_dwell: int  # instants between two switches of an axis, at least
+    min_scored: int  # instants scored before the first decision
+    envelope_fraction: float  # recent rows outside the envelope that hold the model back
 
     def __post_init__(self) -> None:
         if self.window < 1 or self.min_dwell < 0 or self.min_scored < 0:
@@ -135,24 +144,41 @@ class _Axis:
 
 class LiveGuard:
     """Chooses per axis between the model's prediction and persistence's (module
-    docstring), on a grid of instants `period_ns` apart, predictions `lead_ns` ahead."""
+    docstring), on a grid of instants `period_ns` apart, predictions `lead_ns` ahead: a
+    `sample_units.SampleUnit` of the predictor core."""
 
     def __init__(self, settings: GuardSettings, lead_ns: int, period_ns: int) -> None:
         self.settings = settings
         self._lead_ns = lead_ns
-        tolerance = period_ns // 2
-        self._model = InstantSchedule(tolerance)
-        self._persistence = InstantSchedule(tolerance)
+        self._tolerance_ns = period_ns // 2
+        self._model = InstantSchedule(self._tolerance_ns)
+        self._persistence = InstantSchedule(self._tolerance_ns)
         self._weight = 1.0 / settings.window
         self._axes = (_Axis(), _Axis())
         self._outside = 0.0  # weighted fraction of recent rows outside the envelope
+        self._last: tuple[int, XY] | None = None  # the newest sample's stamp and plant error
+        self._envelopes: dict[int, InputEnvelope | None] = {}  # by id of the model's metadata
         self.scored = 0  # instants where both predictions met their truth
         self.outside_rows = 0  # rows outside the envelope, in all
+        self.last_outside = ''  # the column that left the envelope last
         self.published_persistence = 0  # predictions published with an axis held back
 
-    def observe(self, stamp_ns: int, error_x: float, error_y: float) -> None:
-        """The plant error of the sample at `stamp_ns`: the truth of the predictions made
-        for it, scored where both exist."""
+    @classmethod
+    def for_stream(cls, settings: GuardSettings, horizon: int,
+                   sample_period: float) -> LiveGuard:
+        """The guard of a model predicting `horizon` samples ahead of a stream sampled
+        every `sample_period` [s] (the core's)."""
+        period = period_ns(sample_period)
+        return cls(settings, horizon * period, period)
+
+    # -- the chain (`sample_units.SampleUnit`) ---------------------------------------------
+
+    def observe(self, sample: AlignedSample, error: XY, published: XY | None) -> None:
+        """The plant error of a sample: the truth of the predictions made for its instant,
+        scored where both exist, and persistence's prediction for `lead_ns` later."""
+        del published  # the guard keeps the model's own predictions, published or not
+        stamp_ns = sample.stamp_ns
+        self._last = (stamp_ns, error)
         model = self._model.take(stamp_ns)
         persistence = self._persistence.take(stamp_ns)
         if model is None or persistence is None:
@@ -160,16 +186,36 @@ class LiveGuard:
         weight = max(self._weight, 1.0 / (self.scored + 1))  # a plain mean until `window`
         self.scored += 1
         axis_x, axis_y = self._axes
-        axis_x.score(error_x - model[0], error_x - persistence[0], weight)
-        axis_y.score(error_y - model[1], error_y - persistence[1], weight)
+        axis_x.score(error[0] - model[0], error[0] - persistence[0], weight)
+        axis_y.score(error[1] - model[1], error[1] - persistence[1], weight)
 
-    def choose(self, stamp_ns: int, model: XY, last_error: XY, inside_envelope: bool) -> XY:
-        """The prediction to publish for the instant `lead_ns` after the sample at
-        `stamp_ns`, given the model's, the sample's plant error (persistence's prediction)
-        and whether the sample's feature row lies inside the trained envelope."""
-        instant = stamp_ns + self._lead_ns
-        self._model.add(instant, model)
-        self._persistence.add(instant, last_error)
+    def revise(self, instant_ns: int, prediction: XY, slot: ModelSlot) -> XY | None:
+        """The prediction to publish for `instant_ns`: the model's, or on an axis held back
+        persistence's (the plant error of the sample the window ends at)."""
+        last = self._last
+        if last is None or abs(last[0] + self._lead_ns - instant_ns) > self._tolerance_ns:
+            return prediction  # no sample `lead_ns` before: nothing to compare with
+        envelope = self._envelope(slot)
+        inside = envelope is None or envelope.contains(slot.window.newest)
+        if not inside and envelope is not None:
+            self.last_outside = envelope.first_outside(slot.window.newest) or ''
+        return self.choose(instant_ns, prediction, last[1], inside)
+
+    def clear(self) -> None:
+        """Forget the predictions awaiting their truth (the window was emptied: a fault, a
+        restart); the live scores and states are kept, being the machine's."""
+        self._model = InstantSchedule(self._tolerance_ns)
+        self._persistence = InstantSchedule(self._tolerance_ns)
+        self._last = None
+
+    # -- the decision ---------------------------------------------------------------------
+
+    def choose(self, instant_ns: int, model: XY, last_error: XY, inside_envelope: bool) -> XY:
+        """The prediction to publish for `instant_ns` given the model's, persistence's (the
+        plant error `lead_ns` before) and whether the model's newest row lies inside its
+        trained envelope; both are kept to be scored when the truth arrives."""
+        self._model.add(instant_ns, model)
+        self._persistence.add(instant_ns, last_error)
         if not inside_envelope:
             self.outside_rows += 1
         self._outside += self._weight * ((0.0 if inside_envelope else 1.0) - self._outside)
@@ -186,11 +232,25 @@ class LiveGuard:
         self.published_persistence += 1
         return (model[0] if use_x else last_error[0], model[1] if use_y else last_error[1])
 
-    def reset(self) -> None:
-        """Forget the predictions awaiting their truth (the window was emptied: a fault, a
-        restart); the live scores and states are kept, being the machine's."""
-        self._model = InstantSchedule(self._model.tolerance_ns)
-        self._persistence = InstantSchedule(self._persistence.tolerance_ns)
+    def restart(self) -> None:
+        """A new model: its live scores start from nothing, in control until the rules say
+        otherwise (the envelope is read from the new model's metadata)."""
+        self.clear()
+        self._axes = (_Axis(), _Axis())
+        self._outside = 0.0
+        self._envelopes.clear()
+        self.scored = 0
+
+    def _envelope(self, slot: ModelSlot) -> InputEnvelope | None:
+        """The trained envelope of the slot's model (None for a file without one)."""
+        metadata = slot.model.metadata
+        key = id(metadata)
+        if key not in self._envelopes:
+            self._envelopes[key] = InputEnvelope.from_metadata(metadata.envelope,
+                                                               metadata.features)
+        return self._envelopes[key]
+
+    # -- state for diagnostics ------------------------------------------------------------
 
     @property
     def holding(self) -> bool:

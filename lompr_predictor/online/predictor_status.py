@@ -1,4 +1,4 @@
-"""The predictor node's /diagnostics statuses (model, inputs, prediction) as pure functions
+"""The predictor node's /diagnostics statuses (model, inputs, prediction, guard) as pure functions
 of what the node holds, so that their levels and values are tested without ROS. The core's
 counters go in as its snapshot (`predictor_counts.status_counts`), so that they read back
 as they were written. A text that is None ("nothing wrong") is written as an empty string,
@@ -19,6 +19,7 @@ from lompr_predictor.monitoring import (
     latency_values,
     rejection_values,
 )
+from lompr_predictor.online.guard import AXES, GuardState, LiveGuard
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_counts import (
     INPUTS_STATUS,
@@ -223,3 +224,40 @@ def prediction_status(lifecycle: Lifecycle, core: OnlinePredictor | None,
                                   f'over {warn * 1e6:.1f} um: the machine has drifted from '
                                   'the model', values)
     return Status(Level.OK, f'{mode}; {values["predictions_total"]} predictions', values)
+
+
+def guard_status(lifecycle: Lifecycle, guard: LiveGuard | None, envelope: bool) -> Status:
+    """The live guard (`online.guard`): per axis whether the model or persistence answers
+    and why, the live RMS of both on the same instants, the hand-overs, the rows outside
+    the model's trained envelope (`envelope`: whether its file has one). WARN while an axis
+    is held back (or would be, with the guard off)."""
+    if guard is None:
+        return Status(Level.WARN, lifecycle.state, lifecycle.values())
+    enabled = guard.settings.enabled
+    values: dict[str, object] = {'enabled': enabled, 'scored': guard.scored,
+                                 'published_with_persistence': guard.published_persistence,
+                                 'envelope': envelope, 'outside_envelope_total':
+                                 guard.outside_rows,
+                                 'outside_envelope_fraction': round(guard.outside_fraction, 4),
+                                 'last_outside_column': guard.last_outside}
+    held = []
+    for axis, status in zip(AXES, guard.status(), strict=True):
+        ratio = (status.model_rms / status.persistence_rms if status.persistence_rms > 0
+                 else float('nan'))
+        values.update({f'state_{axis}': str(status.state), f'reason_{axis}': text(status.reason),
+                       f'model_rms_{axis}_um': round(status.model_rms * 1e6, 3),
+                       f'persistence_rms_{axis}_um': round(status.persistence_rms * 1e6, 3),
+                       f'model_to_persistence_{axis}': round(ratio, 3),
+                       f'hand_overs_{axis}': status.hand_overs,
+                       f'hand_backs_{axis}': status.hand_backs})
+        if status.state is GuardState.PERSISTENCE:
+            held.append(f'{axis.upper()} ({status.reason}, live RMS {status.model_rms * 1e6:.2f} '
+                        f'vs {status.persistence_rms * 1e6:.2f} um)')
+    if held:
+        what = ('persistence answers on ' if enabled else
+                'guard off: the model answers, though worse than persistence on ')
+        return Status(Level.WARN, what + ', '.join(held), values)
+    if not guard.scored:
+        return Status(Level.OK, 'the model answers (not yet scored)' if enabled else
+                      'guard off', values)
+    return Status(Level.OK, 'the model answers' + ('' if enabled else ' (guard off)'), values)

@@ -98,6 +98,9 @@ class FeatureWindow:
         self.arrays = tuple(self._buffer[start:start + window][np.newaxis]
                             for start in range(window))
         self._next = 0  # slot of the next row; the window starts there once full
+        #: The newest row written, as floats (read by checks of the rows, e.g. the trained
+        #: envelope's); meaningful once the window is full.
+        self.newest: tuple[float, ...] = ()
         self._filled = 0  # samples since the window was last emptied
 
     @property
@@ -131,6 +134,7 @@ class FeatureWindow:
         block = self._block(reference_x, reference_y, planned) if self.preview else ()
         if self._filled > HISTORY:
             row = newest_row(older, previous, newest) + block
+            self.newest = row
             slot = self._next
             offset = slot * self._row_bytes
             self._write_row(self._memory, offset, *row)

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 from lompr_predictor.monitoring import RateMeter, Status
 from lompr_predictor.online import predictor_status
+from lompr_predictor.online.guard import LiveGuard
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_counts import INPUTS_STATUS, PREDICTION_STATUS
 from lompr_predictor.online.predictor_status import (
@@ -45,14 +46,15 @@ class PredictorReadings:
     lifecycle: Lifecycle
     settings: PredictorNodeSettings
     core: OnlinePredictor | None  # None while unconfigured
+    guard: LiveGuard | None  # the core's live guard, None while unconfigured
     history: ModelHistory
     clock_values: dict[str, object]  # the node's clock and the input dropped while inactive
     callback_values: dict[str, object]  # callback failures
 
 
 class PredictorDiagnostics:
-    """The statuses 'model', 'inputs', 'reference preview' and 'prediction' of one
-    predictor node, read from `read()` at each report."""
+    """The statuses 'model', 'inputs', 'reference preview', 'prediction' and 'guard' of
+    one predictor node, read from `read()` at each report."""
 
     def __init__(self, publisher: DiagnosticsPublisher, meters: PredictorMeters,
                  read: Callable[[], PredictorReadings]) -> None:
@@ -65,6 +67,7 @@ class PredictorDiagnostics:
         publisher.add(INPUTS_STATUS, self.input_status)
         publisher.add('reference preview', self.preview_status)
         publisher.add(PREDICTION_STATUS, self.prediction_status)
+        publisher.add('guard', self.guard_status)
 
     def model_status(self) -> Status:
         now = self._read()
@@ -106,3 +109,8 @@ class PredictorDiagnostics:
         return predictor_status.prediction_status(
             now.lifecycle, now.core, limits, outputs.latency.summary(), outputs.rate.rate(),
             new_overruns)
+
+    def guard_status(self) -> Status:
+        now = self._read()
+        envelope = now.core is not None and bool(now.core.model.metadata.envelope)
+        return predictor_status.guard_status(now.lifecycle, now.guard, envelope)

@@ -22,6 +22,7 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 
 from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import LatencyRecorder
+from lompr_predictor.online.guard import LiveGuard
 from lompr_predictor.online.inference import Backend
 from lompr_predictor.online.model_loader import (
     ModelRequest,
@@ -74,6 +75,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         super().__init__(node_name, **node_kwargs)
         settings = self.declare_settings(PredictorNodeSettings)
         self._core: OnlinePredictor | None = None  # while configured (`core`)
+        self.model_guard: LiveGuard | None = None  # the core's live guard, while configured
         self.sample_period = 0.0  # [s] the parameter, else the first model's: later ones fit
         self._running: ReadyModel | None = None  # the model the core runs
         self._candidate: ReadyModel | None = None  # accepted, swapped in by apply_settings
@@ -170,11 +172,14 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self.sample_period = ready.sample_period
         self.history = replace(self.history, warm_up_seconds=ready.warm_up_seconds,
                                backend_why=ready.backend_why)
+        self.model_guard = LiveGuard.for_stream(settings.guard, ready.model.metadata.horizon,
+                                                self.sample_period)
         self._core = OnlinePredictor(
             ready.model, settings.stream(self.sample_period), settings.limits,
             clock=self.clock_ns, backend=ready.backend,
             fallback=(fallback.model, fallback.backend) if fallback else None,
-            description=description, latency_samples=settings.latency_samples)
+            description=description, latency_samples=settings.latency_samples,
+            units=(self.model_guard,))
         self.outputs.attach(self.own(self.advertise(PREDICTED_ERROR)),
                             self.own(self.advertise(COMPENSATION)))
         self.own(self.subscribe(END_POSE, self.on_end_pose, raw=True))
@@ -199,7 +204,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         """Destroy the endpoints and the timer, drop the core and the model."""
         self.destroy_owned()
         self.outputs.detach()
-        self._core = self._running = self._candidate = None
+        self._core = self._running = self._candidate = self.model_guard = None
 
     def destroy_node(self) -> None:
         self._jump_handle.unregister()
@@ -299,14 +304,16 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         """Take accepted changes: new limits, and the model validated in
         `validate_settings`."""
         del previous
-        if self._core is None:
+        if self._core is None or self.model_guard is None:
             return
+        self.model_guard.settings = self.settings.guard
         outputs = self._core.set_limits(self.settings.limits)
         if self.active:
             self.outputs.publish(outputs, time.perf_counter())
         candidate = self._candidate
         if 'model_path' in changed and candidate is not None:
             self._core.replace_model(candidate.model, candidate.backend)
+            self.model_guard.restart()  # the new model earns its place afresh
             self._running, self._candidate = candidate, None
             self.history = replace(self.history, swaps=self.history.swaps + 1,
                                    reload_error=None, backend_why=candidate.backend_why)
@@ -325,7 +332,8 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             'dropped_inactive': self.dropped_inactive}
         return PredictorReadings(
             Lifecycle(self.lifecycle_state, settings.autostart, self.configure_error),
-            settings, self._core, self.history, clock_values, self.callback_values())
+            settings, self._core, self.model_guard, self.history, clock_values,
+            self.callback_values())
 
 
 def build_entry_point(context: Context, **node_kwargs: Any) -> PredictorNode:

@@ -10,6 +10,7 @@ from nav_msgs.msg import Path
 
 from lompr_predictor.learning.model_file import check_sha256_text
 from lompr_predictor.online.faults import StreamSettings
+from lompr_predictor.online.guard import GuardSettings
 from lompr_predictor.online.inference import Backend
 from lompr_predictor.online.offset import CompensationLimits
 from lompr_predictor.robot.description import WORLD_FRAME
@@ -135,6 +136,29 @@ class PredictorNodeSettings(StatusSettings):
         'sample whose inference could only finish late gets none', minimum=0.0,
         maximum=3600.0, read_only=True)
 
+    guard_enabled: bool = parameter(
+        True, 'the live guard: per axis, the model publishes only while its live RMS beats '
+        "persistence's (the plant error measured horizon samples before) on the same instants "
+        'and its inputs lie in the envelope it was trained on; else persistence answers '
+        "there. false: the model always (the guard's status still says what it would do)")
+    guard_window: int = parameter(
+        250, 'instants the live RMS of the model and of persistence are weighted over '
+        '(exponentially)', minimum=1, maximum=10_000_000, read_only=True)
+    guard_margin: float = parameter(
+        0.05, 'relative margin: an axis goes to persistence when the model is worse by more '
+        'than it, and back when the model is better by more than it (hysteresis)',
+        minimum=0.0, maximum=0.9, read_only=True)
+    guard_min_dwell: int = parameter(
+        50, 'instants an axis stays with the model or persistence before it may switch again',
+        minimum=0, maximum=10_000_000, read_only=True)
+    guard_min_scored: int = parameter(
+        50, 'instants scored before the guard first judges the model', minimum=0,
+        maximum=10_000_000, read_only=True)
+    guard_envelope_fraction: float = parameter(
+        0.2, "share of the recent feature rows outside the model's trained envelope (its "
+        'metadata) above which the model is held back on both axes; 1: never for that',
+        minimum=0.0, maximum=1.0, read_only=True)
+
     def stream(self, sample_period: float) -> StreamSettings:
         """The rules the input stream is held to, at `sample_period` [s] (the model's, or
         the parameter's): every other field the parameter of the same name, so each is
@@ -142,6 +166,12 @@ class PredictorNodeSettings(StatusSettings):
         return StreamSettings(sample_period=sample_period, **{
             item.name: getattr(self, item.name) for item in fields(StreamSettings)
             if item.name != 'sample_period'})
+
+    @property
+    def guard(self) -> GuardSettings:
+        """The live guard's rules: each the parameter `guard_` + its name."""
+        return GuardSettings(**{item.name: getattr(self, f'guard_{item.name}')
+                                for item in fields(GuardSettings)})
 
     @property
     def limits(self) -> CompensationLimits:
