@@ -14,7 +14,7 @@ from typing import Any, cast
 import numpy as np
 import pytest
 import torch
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from model_helpers import save_constant, save_linear, write_sidecar
 from nav_msgs.msg import Path as NavPath
@@ -592,3 +592,36 @@ def test_without_a_preview_the_fallback_model_answers(ros: RosHarness, tmp_path:
         PredictorNode(context=ros.context, parameter_overrides=[
             Parameter('model_path', value=str(model)),
             Parameter('fallback_model_path', value=str(other))])
+
+
+def test_the_guard_holds_back_an_axis_where_the_model_is_worse_and_says_so(
+        ros: RosHarness, tmp_path: Path) -> None:
+    """The plant error holds at (10, -10) um: persistence is exact. A model that predicts
+    (50, -10) um misses X by 40 um: after `guard_min_scored` scored instants X is published
+    from persistence (10 um), Y stays the model's; the 'guard' status is WARN and names the
+    axis and the reason. The guard switched off at run time: the model's X again."""
+    model = save_constant(tmp_path / 'biased.pt', (5e-5, -1e-5), window=WINDOW,
+                          horizon=HORIZON)
+    wiring = Wiring(ros, model, compensation_enabled=False, guard_min_scored=10,
+                    guard_min_dwell=5, guard_window=10)
+    wiring.run(0, NEEDED + 30)
+    ros.spin_until(lambda: len(wiring.predictions) == 31, what='31 predictions')
+    published = xy(wiring.predictions)
+    # scored from the instant HORIZON after the first prediction on: the 10th score comes
+    # with prediction HORIZON + 9, whose decision holds X back from that prediction on
+    switch = HORIZON + 9
+    np.testing.assert_allclose(published[:switch, 0], 5e-5, rtol=1e-12)
+    np.testing.assert_allclose(published[switch:, 0], 1e-5, atol=1e-12)
+    np.testing.assert_allclose(published[:, 1], -1e-5, atol=1e-12)
+    ros.spin_until(lambda: (wiring.status('guard') or {}).get('state_x') == 'persistence',
+                   what='the guard status')
+    status = wiring.latest('guard')
+    assert status['_level'] == DiagnosticStatus.WARN
+    assert 'persistence answers on X' in status['_message']
+    assert status['reason_x'] == 'worse_than_persistence' and status['state_y'] == 'model'
+    assert float(status['model_rms_x_um']) == pytest.approx(40.0, rel=1e-6)
+    assert float(status['persistence_rms_x_um']) == 0.0 and status['hand_overs_x'] == '1'
+    wiring.node.set_parameters([Parameter('guard_enabled', value=False)])
+    wiring.run(NEEDED + 30, 3)
+    ros.spin_until(lambda: len(wiring.predictions) == 34, what='3 more predictions')
+    np.testing.assert_allclose(xy(wiring.predictions)[-3:, 0], 5e-5, rtol=1e-12)

@@ -40,6 +40,9 @@ from lompr_predictor.online.offset import XY, InstantSchedule
 from lompr_predictor.stamps import period_ns
 
 AXES = ('x', 'y')
+#: Mean squares closer than this [m^2] are taken as equal: (1 nm)^2, far below what any
+#: encoder resolves, so that rounding never decides between two predictions.
+NEGLIGIBLE_MS = 1e-18
 
 
 class GuardState(StrEnum):
@@ -134,10 +137,10 @@ class _Axis:
         # compare mean squares: (1 + margin)^2 is the RMS ratio's threshold squared
         model, reference = self.model_ms, self.persistence_ms
         if self.state is GuardState.MODEL:
-            if model > (1.0 + settings.margin) ** 2 * reference:
+            if model > (1.0 + settings.margin) ** 2 * reference + NEGLIGIBLE_MS:
                 return GuardState.PERSISTENCE, GuardReason.WORSE_THAN_PERSISTENCE
             return GuardState.MODEL, None
-        if model < (1.0 - settings.margin) ** 2 * reference:
+        if model < (1.0 - settings.margin) ** 2 * reference - NEGLIGIBLE_MS:
             return GuardState.MODEL, None
         return GuardState.PERSISTENCE, GuardReason.WORSE_THAN_PERSISTENCE
 
