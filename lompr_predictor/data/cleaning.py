@@ -255,13 +255,13 @@ def clean_recordings(
     spikes = hampel_outliers(error, segments, config.hampel_half_window, config.hampel_threshold)
     counts['spike'] = int(spikes.sum())
     stamps, error, aligned = stamps[~spikes], error[~spikes], aligned[~spikes]
-    recordings = recording_rows(stamps, ordered)
-    segments = split_at(segment_bounds(stamps, max_step), recordings[1:, 0])
+    bag_rows = recording_rows(stamps, ordered)
+    segments = split_at(segment_bounds(stamps, max_step), bag_rows[1:, 0])
     counts['kept'] = len(stamps)
     counts['segments'] = len(segments)
     return CleanData(stamps=stamps, error=error, reference=aligned, segments=segments,
                      sample_period=period * 1e-9, geometry=geometry, counts=counts,
-                     recording_rows=recordings)
+                     recording_rows=bag_rows)
 
 
 def split_at(segments: np.ndarray, rows: np.ndarray) -> np.ndarray:
