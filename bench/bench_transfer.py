@@ -60,7 +60,8 @@ def recording(out: Path, preset: str, program: str, seed: int, passes: int) -> P
     if not bag.exists():
         subprocess.run([lompr(), 'simulate', '--out', str(bag), '--passes', str(passes),
                         '--seed', str(seed), '--machine-seed', '1', '--preset', preset,
-                        '--path', program, '--no-plot'], check=True, stdout=subprocess.DEVNULL)
+                        '--path', program, '--no-plot'], check=True, stdout=subprocess.DEVNULL,
+                       stderr=subprocess.DEVNULL)
     return bag
 
 
@@ -154,7 +155,7 @@ def main() -> int:
                         choices=PATH_KINDS)
     parser.add_argument('--horizons', type=int, nargs='+', default=[1, 5])
     parser.add_argument('--previews', nargs='+', default=['0', 'h'],
-                        help="K per run: an integer, or h (= the horizon)")
+                        help='K per run: an integer, or h (= the horizon)')
     parser.add_argument('--modes', nargs='+', default=['lopo', 'single'], choices=MODES)
     parser.add_argument('--single', default='spiral', choices=PATH_KINDS,
                         help='the program the single mode trains on')

@@ -35,6 +35,7 @@ class LoopSettings:
     path: str = 'spiral'
     seed: int = 0
     compensation_enabled: bool = True  # False: the predictor in shadow mode throughout
+    guard_enabled: bool = True  # the predictor's live guard (`online.guard`)
     switch_off_at: int | None = None  # sample from which compensation is switched off
     twin_parameters_file: str = ''  # empty: the packaged config/twin.yaml
     robot_description_file: str = ''  # empty: the packaged LOMPR description
@@ -113,6 +114,7 @@ def loop_parameters(settings: LoopSettings, horizon: int,
         'predictor_node': {
             **description, 'model_path': settings.model_path,
             'compensation_enabled': settings.compensation_enabled,
+            'guard_enabled': settings.guard_enabled,
             'max_compensation': settings.max_compensation,
             'max_compensation_step': settings.max_compensation_step},
         'twin_node': {
