@@ -273,7 +273,8 @@ def test_demo_runs_every_stage_and_prints_the_table(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / 'demo'
     argv = ['demo', '--quick', '--out', str(out), '--train-passes', '3', '--trials', '1',
-            '--max-epochs', '1', '--passes', '1', '--threads', '1', '--preview', '2']
+            '--max-epochs', '1', '--passes', '1', '--threads', '1', '--preview', '2',
+            '--train-paths', 'radial,concentric', '--path', 'spiral']
     assert lompr_main(argv) == 0
     printed = capsys.readouterr().out
     for stage in range(1, 6):
@@ -288,6 +289,10 @@ def test_demo_runs_every_stage_and_prints_the_table(
         figure = (document['irreducible_um'][axis.lower()] if loop is None else
                   document['comparison']['loops'][loop][axis.lower()]['rms_um'])
         assert float(value) == pytest.approx(figure, abs=0.006)
+    assert document['train_paths'] == ['radial', 'concentric']
+    assert document['targets']['program_trained_on'] is False
+    assert document['targets']['model_rms_to_persistence_max_pct'] == 100.0
+    assert 'spiral (a program the model was not trained on (it was: radial, concentric))' in printed
     none = document['comparison']['loops']['none']
     assert none['x']['rms_um'] > 15.0 and none['y']['rms_um'] > 15.0
     preview = document['targets']['preview_rms_to_model_pct']
@@ -297,7 +302,8 @@ def test_demo_runs_every_stage_and_prints_the_table(
     for path in ('model.pt', 'persistence.pt', 'closed_loop_error.png', 'model_preview.pt',
                  'training_report/report.md', 'loops/model/lompr_closed_loop.npz',
                  'training_report_preview/report.md', 'loops/preview/lompr_closed_loop.npz',
-                 'training_bag/lompr_ground_truth.json'):
+                 'training_bags/radial/lompr_ground_truth.json',
+                 'training_bags/concentric/lompr_ground_truth.json'):
         assert (out / path).is_file(), path
     assert lompr_main(['demo', '--out', str(out)]) == 2  # an existing output is never overwritten
     assert 'exists and is not empty' in capsys.readouterr().err

@@ -89,6 +89,15 @@ def yes_no(text: str) -> bool:
         raise _fail('must be yes or no', text) from None
 
 
+def one_of(choices: tuple[str, ...]) -> Callable[[str], str]:
+    """A value that must be one of `choices` (argparse's `choices` for a list's items)."""
+    def parse(text: str) -> str:
+        if text not in choices:
+            raise _fail(f'must be one of {", ".join(choices)}', text)
+        return text
+    return parse
+
+
 def comma_list(item: Callable[[str], T]) -> Callable[[str], tuple[T, ...]]:
     """'a,b,c' -> a tuple of distinct values, each checked by `item`."""
     def parse(text: str) -> tuple[T, ...]:
