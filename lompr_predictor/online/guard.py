@@ -30,13 +30,14 @@ so diagnostics show what it would do.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 from enum import StrEnum
 
 from lompr_predictor.learning.envelope import InputEnvelope
 from lompr_predictor.online.alignment import AlignedSample
 from lompr_predictor.online.model_slot import ModelSlot
-from lompr_predictor.online.offset import XY, InstantSchedule
+from lompr_predictor.online.offset import XY
 from lompr_predictor.stamps import period_ns
 
 AXES = ('x', 'y')
@@ -154,8 +155,9 @@ class LiveGuard:
         self.settings = settings
         self._lead_ns = lead_ns
         self._tolerance_ns = period_ns // 2
-        self._model = InstantSchedule(self._tolerance_ns)
-        self._persistence = InstantSchedule(self._tolerance_ns)
+        #: (instant, model x, model y, persistence x, persistence y) awaiting their truth, in
+        #: increasing instants (a sample's truth arrives in stamp order)
+        self._pending: deque[tuple[int, float, float, float, float]] = deque()
         self._weight = 1.0 / settings.window
         self._axes = (_Axis(), _Axis())
         self._outside = 0.0  # weighted fraction of recent rows outside the envelope
@@ -182,15 +184,17 @@ class LiveGuard:
         del published  # the guard keeps the model's own predictions, published or not
         stamp_ns = sample.stamp_ns
         self._last = (stamp_ns, error)
-        model = self._model.take(stamp_ns)
-        persistence = self._persistence.take(stamp_ns)
-        if model is None or persistence is None:
+        pending, tolerance = self._pending, self._tolerance_ns
+        while pending and pending[0][0] < stamp_ns - tolerance:
+            pending.popleft()  # an instant whose truth never came (a dropped sample)
+        if not pending or pending[0][0] > stamp_ns + tolerance:
             return
+        _, model_x, model_y, persistence_x, persistence_y = pending.popleft()
         weight = max(self._weight, 1.0 / (self.scored + 1))  # a plain mean until `window`
         self.scored += 1
         axis_x, axis_y = self._axes
-        axis_x.score(error[0] - model[0], error[0] - persistence[0], weight)
-        axis_y.score(error[1] - model[1], error[1] - persistence[1], weight)
+        axis_x.score(error[0] - model_x, error[0] - persistence_x, weight)
+        axis_y.score(error[1] - model_y, error[1] - persistence_y, weight)
 
     def revise(self, instant_ns: int, prediction: XY, slot: ModelSlot) -> XY | None:
         """The prediction to publish for `instant_ns`: the model's, or on an axis held back
@@ -207,8 +211,7 @@ class LiveGuard:
     def clear(self) -> None:
         """Forget the predictions awaiting their truth (the window was emptied: a fault, a
         restart); the live scores and states are kept, being the machine's."""
-        self._model = InstantSchedule(self._tolerance_ns)
-        self._persistence = InstantSchedule(self._tolerance_ns)
+        self._pending.clear()
         self._last = None
 
     # -- the decision ---------------------------------------------------------------------
@@ -217,8 +220,10 @@ class LiveGuard:
         """The prediction to publish for `instant_ns` given the model's, persistence's (the
         plant error `lead_ns` before) and whether the model's newest row lies inside its
         trained envelope; both are kept to be scored when the truth arrives."""
-        self._model.add(instant_ns, model)
-        self._persistence.add(instant_ns, last_error)
+        pending = self._pending
+        while pending and pending[-1][0] >= instant_ns - self._tolerance_ns:
+            pending.pop()  # a newer prediction for the same instant replaces the older
+        pending.append((instant_ns, model[0], model[1], last_error[0], last_error[1]))
         if not inside_envelope:
             self.outside_rows += 1
         self._outside += self._weight * ((0.0 if inside_envelope else 1.0) - self._outside)

@@ -1,0 +1,114 @@
+"""Benchmark: what the live guard and its envelope check cost per sample.
+
+    python bench/bench_guard.py [--samples 20000] [--block 500] [--rate 1000]
+
+Two predictor cores (`online.OnlinePredictor`) on the same model, the default-size timing
+LSTM of `bench_predictor.py` with a trained envelope in its metadata (the ranges of the
+feature rows of the spiral it is driven along), one without units and one with the live
+guard (`online.guard.LiveGuard`, the node's default rules), are driven by the same stream of
+references and poses (the core's calls, as the node makes them; every sample answered once
+the window is full), in alternating blocks of `--block` samples. It prints the thread CPU
+time per sample of each [us] (median of the blocks) and the guard's share, against the
+target: the guard and the envelope check add <= 10 us per sample.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from bench_predictor import HIDDEN, WINDOW, core_stream, spiral_joints, timing_module
+
+from lompr_predictor.data.features import TARGETS, feature_names, feature_rows
+from lompr_predictor.learning.envelope import fit_envelope
+from lompr_predictor.learning.model_file import ModelMetadata, load_model, save_model
+from lompr_predictor.online.guard import GuardSettings, LiveGuard
+from lompr_predictor.online.inference import Backend, select_backend
+from lompr_predictor.online.offset import CompensationLimits
+from lompr_predictor.online.predictor import OnlinePredictor
+from lompr_predictor.robot.description import load_robot_description
+from lompr_predictor.robot.kinematics import VerticalToolBranches
+from lompr_predictor.threads import set_torch_threads
+
+TARGET_US = 10.0
+#: The predictor node's default guard rules (`ros/predictor_settings.py`, guard_*).
+RULES = GuardSettings(enabled=True, window=250, margin=0.05, min_dwell=50, min_scored=50,
+                      envelope_fraction=0.2)
+
+
+def guarded_model(path: Path, rate: int, tips: np.ndarray) -> Path:
+    """The timing model with the envelope of the feature rows along `tips` at `rate`."""
+    description = load_robot_description()
+    rows = feature_rows(np.arange(len(tips)) / rate, np.zeros((len(tips), 2)), tips,
+                        VerticalToolBranches(description.geometry))
+    metadata = ModelMetadata(
+        features=feature_names(0), window=WINDOW, horizon=5, sample_period=1.0 / rate,
+        targets=TARGETS, normalisation={}, model_type='lstm',
+        hyperparameters={'hidden': HIDDEN, 'note': 'untrained, for timing only'},
+        robot_description_sha256=description.sha256, training_bags=(), seed=0,
+        library_versions={'torch': torch.__version__},
+        envelope=fit_envelope(rows[2:], feature_names(0)).to_metadata())
+    return save_model(path, timing_module(), metadata)
+
+
+def core(model_path: Path, rate: int,
+         guard: LiveGuard | None) -> tuple[OnlinePredictor, list[int]]:
+    """A core on the model (ONNX Runtime, as the node's 'auto'), with `guard` if any; its
+    clock, whose reading the driver sets."""
+    model = load_model(model_path)
+    backend, _ = select_backend(model, Backend.AUTO)
+    now = [0]
+    limits = CompensationLimits(5e-4, 5e-5, enabled=True)
+    return OnlinePredictor(model, core_stream(rate), limits, clock=lambda: now[0],
+                           backend=backend, units=(guard,) if guard else ()), now
+
+
+def drive(predictor: OnlinePredictor, now: list[int], tips: np.ndarray, first: int,
+          count: int, period_ns: int) -> float:
+    """Thread CPU seconds of `count` samples from `first` (reference then pose each)."""
+    started = time.thread_time()
+    for k in range(first, first + count):
+        stamp = 10**12 + k * period_ns
+        now[0] = stamp
+        x, y, z = tips[k % len(tips)]
+        predictor.add_reference(stamp, x, y, z)
+        predictor.add_pose(stamp, x + 1e-5 * np.sin(k * 1e-2), y - 1e-5)
+    return time.thread_time() - started
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--samples', type=int, default=20_000)
+    parser.add_argument('--block', type=int, default=500)
+    parser.add_argument('--rate', type=int, default=1000)
+    args = parser.parse_args()
+    set_torch_threads(1)
+    tips, _ = spiral_joints(40 * args.rate, args.rate)
+    with tempfile.TemporaryDirectory() as folder:
+        model = guarded_model(Path(folder) / 'model.pt', args.rate, tips)
+        guard = LiveGuard.for_stream(RULES, 5, 1.0 / args.rate)
+        cores = {'plain': core(model, args.rate, None),
+                 'guarded': core(model, args.rate, guard)}
+    period_ns = round(1e9 / args.rate)
+    seconds: dict[str, list[float]] = {name: [] for name in cores}
+    for block in range(args.samples // args.block):
+        for name in (('plain', 'guarded') if block % 2 else ('guarded', 'plain')):
+            predictor, now = cores[name]
+            seconds[name].append(drive(predictor, now, tips, block * args.block, args.block,
+                                       period_ns) / args.block)
+    plain, guarded = (1e6 * float(np.median(seconds[n][1:])) for n in ('plain', 'guarded'))
+    print(f'{args.samples} samples at {args.rate} Hz, blocks of {args.block}, alternating; '
+          f'thread CPU time per sample (median of the blocks): core {plain:.1f} us, core with '
+          f'the guard {guarded:.1f} us: the guard adds {guarded - plain:.1f} us (target <= '
+          f'{TARGET_US:.0f}); guard scored {guard.scored} instants, rows outside the envelope '
+          f'{guard.outside_rows}')
+    return 0 if guarded - plain <= TARGET_US else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())
