@@ -6,7 +6,8 @@
 - `events_executor`: rclpy's `EventsExecutor` on a context; `make_executor` picks it or the
   `SingleThreadedExecutor` by name (`EXECUTORS`).
 - `run_node`: the `main()` of a node executable (ros2/demos style), with `--help` listing
-  the node's parameters and `--executor`.
+  the node's parameters and `--executor`; `report_on_rosout` puts a start-up error on
+  /rosout too.
 """
 
 from __future__ import annotations
@@ -23,19 +24,22 @@ from types import FrameType
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import Log
 from rclpy.context import Context
 from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.exceptions import InvalidTopicNameException, ParameterException
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
-from rclpy.qos import QoSProfile
+from rclpy.duration import Duration
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
 from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import Level, Status
+from lompr_predictor.ros.parameters import ParameterSpec
 
 
 def status_message(name: str, hardware_id: str, status: Status) -> DiagnosticStatus:
@@ -46,11 +50,20 @@ def status_message(name: str, hardware_id: str, status: Status) -> DiagnosticSta
         values=[KeyValue(key=str(k), value=str(v)) for k, v in status.values.items()])
 
 
-def status_prefix(node: Node) -> str:
-    """The node part of its diagnostic status names: the fully qualified name without the
-    leading slash, so 'kinematics_node' in the root namespace and 'cell1/kinematics_node'
-    in /cell1 (two robots on one /diagnostics stay apart)."""
-    return node.get_fully_qualified_name().lstrip('/')
+#: diagnostic_updater's parameter (its name, its default) choosing the status names' node part.
+USE_FQN_PARAMETER = 'diagnostic_updater.use_fqn'
+USE_FQN = ParameterSpec(
+    False, "diagnostic status names start with the node's fully qualified name "
+    '(/cell1/predictor_node: model), as with diagnostic_updater; false: with its name '
+    '(predictor_node: model)', read_only=True)
+
+
+def status_prefix(node: Node, fully_qualified: bool = False) -> str:
+    """The node part of its diagnostic status names, as diagnostic_updater writes it: the
+    node's name ('kinematics_node', in any namespace), or its fully qualified name
+    ('/cell1/kinematics_node') with `fully_qualified`, which keeps two robots on one
+    /diagnostics apart."""
+    return node.get_fully_qualified_name() if fully_qualified else node.get_name()
 
 
 class DiagnosticsPublisher:
@@ -60,7 +73,9 @@ class DiagnosticsPublisher:
     it may read the node's counters without locks. A provider that raises becomes an ERROR
     status naming the exception: diagnostics never take the node down.
     Status names are '<node>: <provider name>', as diagnostic_updater writes them, <node> being
-    the node's fully qualified name without its leading slash (`status_prefix`).
+    the node's name, or its fully qualified name if the node's `diagnostic_updater.use_fqn`
+    parameter is true (`status_prefix`); like diagnostic_updater's Updater, the publisher
+    declares that parameter on its node.
     """
 
     def __init__(
@@ -75,6 +90,11 @@ class DiagnosticsPublisher:
         `event_callbacks` of the publisher (a node base's QoS event counting)."""
         self._node = node
         self._hardware_id = hardware_id
+        if not node.has_parameter(USE_FQN_PARAMETER):
+            node.declare_parameter(USE_FQN_PARAMETER, USE_FQN.default,
+                                   USE_FQN.descriptor(USE_FQN_PARAMETER))
+        self._prefix = status_prefix(
+            node, bool(node.get_parameter(USE_FQN_PARAMETER).value))
         self._providers: list[tuple[str, Callable[[], Status]]] = []
         self.publisher = self._publisher = node.create_publisher(
             DiagnosticArray, topic, qos, qos_overriding_options=qos_overriding_options,
@@ -84,7 +104,7 @@ class DiagnosticsPublisher:
 
     def add(self, name: str, provider: Callable[[], Status]) -> None:
         """Register a status provider under `name`."""
-        self._providers.append((f'{status_prefix(self._node)}: {name}', provider))
+        self._providers.append((f'{self._prefix}: {name}', provider))
 
     def collect(self) -> DiagnosticArray:
         """Call every provider now and build the array (stamped with the node's clock)."""
@@ -157,6 +177,42 @@ class StopRequest:
     def _record(self, number: int, frame: FrameType | None) -> None:
         del number, frame
         self.requested = True
+
+
+#: /rosout as rcl publishes it (its rosout default profile): a log viewer that joins a little
+#: later still gets the message while its publisher lives.
+ROSOUT_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                        lifespan=Duration(seconds=10))
+#: Seconds a failed executable waits for /rosout's subscribers (a log viewer, a recorder)
+#: to match its error message before it exits.
+ROSOUT_LINGER = 1.0
+
+
+def report_on_rosout(context: Context, node_name: str, text: str,
+                     linger: float = ROSOUT_LINGER) -> bool:
+    """Publish `text` as an ERROR on /rosout under the name of the node that could not start
+    (`node_name`, with the process's remappings and namespace), so that a log viewer or a
+    recorder of the robot sees it as well as the terminal does; then wait up to `linger`
+    seconds for the subscribers to match and acknowledge it. True if one did. A plain
+    message, not the node's logger, which would print the line on stderr a second time."""
+    node = Node(node_name, context=context, enable_rosout=False,
+                start_parameter_services=False)
+    try:
+        publisher = node.create_publisher(Log, '/rosout', ROSOUT_QOS)
+        publisher.publish(Log(stamp=node.get_clock().now().to_msg(), level=Log.ERROR,
+                              name=node.get_logger().name, msg=text, file=__file__,
+                              function='run_node'))
+        deadline = time.monotonic() + linger
+        while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        matched = publisher.get_subscription_count() > 0
+        if matched:
+            publisher.wait_for_all_acked(Duration(seconds=max(deadline - time.monotonic(),
+                                                              0.1)))
+        return matched
+    finally:
+        node.destroy_node()
 
 
 def missing_params_files(argv: Sequence[str]) -> list[str]:
@@ -237,6 +293,10 @@ def run_node(
         pass
     except (LomprError, ParameterException, InvalidTopicNameException) as err:
         print(f'{parser.prog}: error: {err}', file=sys.stderr)
+        try:
+            report_on_rosout(context, parser.prog.removesuffix('.py'), str(err))
+        except Exception:  # noqa: BLE001 - the error is on stderr already; never hide it
+            pass
         return 2
     finally:
         # The executor goes first, while the nodes and the context it serves still exist.

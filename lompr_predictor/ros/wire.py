@@ -68,6 +68,18 @@ def read_pose_stamped(data: bytes) -> tuple[int, int, float, float, float]:
     return sec, nanosec, x, y, z
 
 
+def pose_frame_id(data: bytes) -> str:
+    """header.frame_id of a serialized geometry_msgs/PoseStamped."""
+    try:
+        if data[:4] != CDR_LE:
+            return str(deserialize_message(data, PoseStamped).header.frame_id)
+        _, _, end = _read_header(data)
+        return _string(data, 8, end)
+    except Exception as err:
+        msg = f'not a PoseStamped: {type(err).__name__}: {err}'
+        raise WireError(msg) from err
+
+
 def read_joint_state(data: bytes) -> tuple[int, int, tuple[str, ...], tuple[float, ...]]:
     """(stamp sec, nanosec, names, positions) of a serialized sensor_msgs/JointState."""
     try:

@@ -192,7 +192,7 @@ def common_instants(stamps: Mapping[str, np.ndarray], tolerance_ns: float) -> di
 
 
 def evaluate_loop_bags(bags: Sequence[str | Path], *, geometry: Any, cleaning: Any,
-                       joint_topic: str, reference_topic: str,
+                       joint_topic: str, reference_topic: str, frame: str,
                        report: str | Path) -> dict[str, Any]:
     """Score closed-loop recordings of the same passes, the first the baseline (no
     compensation): the measured error FK(recorded joints) - reference of each bag, read and
@@ -217,7 +217,7 @@ def evaluate_loop_bags(bags: Sequence[str | Path], *, geometry: Any, cleaning: A
     period = np.inf  # [s] the shortest sample period among the bags
     for name, bag in zip(names, bags, strict=False):
         recordings, _ = read_bags([bag], joint_topic=joint_topic,
-                                  reference_topic=reference_topic)
+                                  reference_topic=reference_topic, frame=frame)
         data = clean_recordings(recordings, geometry, cleaning)
         truth = read_loop_truth(bag)
         keep = np.ones(len(data.stamps), dtype=bool)
