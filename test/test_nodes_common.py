@@ -25,7 +25,6 @@ from ros_helpers import RosHarness
 from lompr_predictor.monitoring import Level, Status
 from lompr_predictor.ros.common import EXECUTORS, DiagnosticsPublisher, make_executor, run_node
 from lompr_predictor.ros.node_base import (
-    DIAGNOSTICS_QOS,
     OUTPUT_QOS,
     SENSOR_INPUT_QOS,
     Endpoint,

@@ -252,14 +252,8 @@ def read_recording(
                     joint_stamps.append(stamp)
                     joint_rows.append(row)
                 else:
-                    found = message.header.frame_id
-                    if found != frame:
-                        raise BagError(path, f'{reference_topic} is in frame {found!r}, expected '
-                                             f'{frame!r}; if {found!r} is the robot frame (Z '
-                                             f"down), give --frame {found or repr('')}")
-                    p, q = message.pose.position, message.pose.orientation
+                    ref_rows.append(_reference_row(message, frame, path, reference_topic))
                     ref_stamps.append(stamp)
-                    ref_rows.append((p.x, p.y, p.z, q.x, q.y, q.z, q.w))
                 read += 1
     except BagError:
         raise
@@ -282,6 +276,18 @@ def read_recording(
             stamps=np.array(ref_stamps, dtype=np.int64),
             positions=reference[:, :3].copy(), orientations=reference[:, 3:].copy()),
         source=str(path))
+
+
+def _reference_row(message: Any, frame: str, path: Path, topic: str) -> tuple[float, ...]:
+    """Position and orientation of a reference message; a `BagError` naming both frames if
+    it is in another frame than `frame`."""
+    found = message.header.frame_id
+    if found != frame:
+        raise BagError(path, f'{topic} is in frame {found!r}, expected {frame!r}; if '
+                             f"{found!r} is the robot frame (Z down), give --frame "
+                             f"{found or repr('')}")
+    p, q = message.pose.position, message.pose.orientation
+    return (p.x, p.y, p.z, q.x, q.y, q.z, q.w)
 
 
 @dataclass(frozen=True)

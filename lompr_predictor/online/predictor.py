@@ -1,7 +1,7 @@
 """Online error prediction and a bounded compensation offset, sample by sample (ROS-free).
 
 `OnlinePredictor` is the predictor node's core: it composes the alignment by stamp
-(`alignment`), the plant error (CONTRACT section 3), the feature window (`window`), the
+(`alignment`), the plant error (docs/interface.md, the error), the feature window (`window`), the
 model, the offset gate (`offset`), the fault rules (`faults`) and the overrun policy
 (`timing`), each testable alone, and for a model that reads the reference preview the plan
 (`preview`) and, optionally, a fallback model without one that answers where the plan is

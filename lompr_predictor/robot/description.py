@@ -1,6 +1,6 @@
 """The LOMPR robot description: load the URDF with Pinocchio and extract its geometry.
 
-The URDF is the only place the geometry lives (docs/interface.md, "The robot"). This module
+The URDF is the only place the geometry lives (docs/interface.md, the robot). This module
 loads it (from a file or an XML string), checks that it has the joints and frames the
 kinematics relies on, and exposes both the Pinocchio model and a `LomprGeometry` value: the
 anchor points, head offsets and joint limits read from that model, used by the vectorised
@@ -247,10 +247,10 @@ def robot_subtree(urdf_xml: str, source: str) -> tuple[str, str]:
     below = {base}
     stack = [base]
     while stack:
-        for child in children.get(stack.pop(), []):
-            if child not in below:
-                below.add(child)
-                stack.append(child)
+        for name in children.get(stack.pop(), []):
+            if name not in below:
+                below.add(name)
+                stack.append(name)
     for link in root.findall('link'):
         if link.get('name') not in below:
             root.remove(link)

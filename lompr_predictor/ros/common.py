@@ -26,12 +26,12 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import Log
 from rclpy.context import Context
+from rclpy.duration import Duration
 from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.exceptions import InvalidTopicNameException, ParameterException
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
-from rclpy.duration import Duration
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.signals import SignalHandlerOptions
@@ -195,9 +195,13 @@ def report_on_rosout(context: Context, node_name: str, text: str,
     (`node_name`, with the process's remappings and namespace), so that a log viewer or a
     recorder of the robot sees it as well as the terminal does; then wait up to `linger`
     seconds for the subscribers to match and acknowledge it. True if one did. A plain
-    message, not the node's logger, which would print the line on stderr a second time."""
-    node = Node(node_name, context=context, enable_rosout=False,
-                start_parameter_services=False)
+    message, not the node's logger, which would print the line on stderr a second time; a
+    report that fails is False, never an exception hiding the error it was to report."""
+    try:
+        node = Node(node_name, context=context, enable_rosout=False,
+                    start_parameter_services=False)
+    except Exception:  # noqa: BLE001 - e.g. a name rcl refuses: stderr has the error already
+        return False
     try:
         publisher = node.create_publisher(Log, '/rosout', ROSOUT_QOS)
         publisher.publish(Log(stamp=node.get_clock().now().to_msg(), level=Log.ERROR,
@@ -213,6 +217,15 @@ def report_on_rosout(context: Context, node_name: str, text: str,
         return matched
     finally:
         node.destroy_node()
+
+
+def start_failed(prog: str, context: Context, err: Exception) -> int:
+    """Why the node(s) of `prog` could not start, as one line on stderr and an ERROR on
+    /rosout (`report_on_rosout`); the exit code, 2. Arguments rcl cannot parse leave it no
+    context to publish with: those are said on stderr only."""
+    print(f'{prog}: error: {err}', file=sys.stderr)
+    report_on_rosout(context, prog.removesuffix('.py'), str(err))
+    return 2
 
 
 def missing_params_files(argv: Sequence[str]) -> list[str]:
@@ -237,7 +250,7 @@ def run_node(
     prints `description` and `parameters_help` (lines, see `node_base.node_help`). A
     `LomprError` (a bad model, a bad QoS override), a bad parameter or topic name while the
     node starts, or ROS arguments rcl cannot parse (`-p model_path:=`), is printed as one
-    line and exits with code 2.
+    line and exits with code 2 (`start_failed`: the node's errors on /rosout too).
     Uses the default context, whose SIGINT handler rclpy installs (a non-default context is
     not shut down by Ctrl-C), and by default an `events_executor` spun in `spin_once` steps
     of `SPIN_STEP` s: rclpy 7.1.6's `EventsExecutor.spin()` never returns to Python, so it
@@ -292,12 +305,7 @@ def run_node(
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (LomprError, ParameterException, InvalidTopicNameException) as err:
-        print(f'{parser.prog}: error: {err}', file=sys.stderr)
-        try:
-            report_on_rosout(context, parser.prog.removesuffix('.py'), str(err))
-        except Exception:  # noqa: BLE001 - the error is on stderr already; never hide it
-            pass
-        return 2
+        return start_failed(parser.prog, context, err)
     finally:
         # The executor goes first, while the nodes and the context it serves still exist.
         if executor is not None:

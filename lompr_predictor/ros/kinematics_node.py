@@ -1,11 +1,12 @@
 """kinematics_node: measured joints (/joint_states) -> tool-tip pose (/lompr/end_pose).
 
 A thin node: it matches joints by name, calls `kinematics.ForwardKinematics.solve`, and
-publishes the pose with the JointState's own stamp in the robot frame (`lompr_base`). A sample it cannot
-answer (malformed message, missing joint, NaN/inf, branch out of stroke, head angle out of
-range, pose out of workspace, no convergence) gets no output: the reason is counted for
-/diagnostics, a throttled warning says what was wrong, and the next good sample is
-answered. A bad sample or a gap in the stamps restarts the FK warm start.
+publishes the pose with the JointState's own stamp in the robot frame (`lompr_base`, after
+`frame_prefix`). A sample it cannot answer (malformed message, missing joint, NaN/inf,
+branch out of stroke, head angle out of range, pose out of workspace, no convergence) gets
+no output: the reason is counted for /diagnostics, a throttled warning says what was wrong,
+and the next good sample is answered. A bad sample or a gap in the stamps restarts the FK
+warm start.
 
 Time: each JointState is answered when it arrives, whatever the clock says; its rates,
 throttled warnings and /diagnostics run on the node's clock (simulated time, from /clock,
