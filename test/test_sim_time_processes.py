@@ -123,7 +123,8 @@ def test_an_external_lockstep_simulator_gets_every_sample_answered_after_the_fil
     plant = ExternalPlant(ros, description, qos)
     processes = [start_executable('kinematics_node', '-p', 'use_sim_time:=true'),
                  start_executable('predictor_node', '-p', 'use_sim_time:=true',
-                                  '-p', f'model_path:={model}', '-p', 'max_compensation:=0.001')]
+                                  '-p', f'model_path:={model}', '-p', 'max_compensation:=0.001',
+                                  '-p', 'compensation_enabled:=true')]
     try:
         plant.wait_for_nodes()
         answered, true_error = plant.run(samples, slowdown * plant.twin.params.sample_period)

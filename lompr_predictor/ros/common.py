@@ -186,7 +186,7 @@ ROSOUT_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
                         lifespan=Duration(seconds=10))
 #: Seconds a failed executable waits for /rosout's subscribers (a log viewer, a recorder)
 #: to match its error message before it exits.
-ROSOUT_LINGER = 1.0
+ROSOUT_LINGER = 3.0
 
 
 def report_on_rosout(context: Context, node_name: str, text: str,
@@ -197,12 +197,10 @@ def report_on_rosout(context: Context, node_name: str, text: str,
     seconds for the subscribers to match and acknowledge it. True if one did. A plain
     message, not the node's logger, which would print the line on stderr a second time; a
     report that fails is False, never an exception hiding the error it was to report."""
+    node: Node | None = None
     try:
         node = Node(node_name, context=context, enable_rosout=False,
                     start_parameter_services=False)
-    except Exception:  # noqa: BLE001 - e.g. a name rcl refuses: stderr has the error already
-        return False
-    try:
         publisher = node.create_publisher(Log, '/rosout', ROSOUT_QOS)
         publisher.publish(Log(stamp=node.get_clock().now().to_msg(), level=Log.ERROR,
                               name=node.get_logger().name, msg=text, file=__file__,
@@ -215,8 +213,11 @@ def report_on_rosout(context: Context, node_name: str, text: str,
             publisher.wait_for_all_acked(Duration(seconds=max(deadline - time.monotonic(),
                                                               0.1)))
         return matched
+    except Exception:  # noqa: BLE001 - e.g. a name rcl refuses: stderr has the error already
+        return False
     finally:
-        node.destroy_node()
+        if node is not None:
+            node.destroy_node()
 
 
 def start_failed(prog: str, context: Context, err: Exception) -> int:
