@@ -12,7 +12,7 @@ TORCH := $(shell sed -n 's/^\(torch==[^ ]*\).*/\1/p' requirements.txt)
 # skipped with the reason, except under LOMPR_REQUIRE_LAUNCH=1 (CI), where that is an error.
 # launch_ros imports composition_interfaces, a message package without a wheel: the shim
 # beside the wheels goes into the environment's site-packages.
-LAUNCH_WHEELS ?= $(shell .ci/launch_wheels)
+LAUNCH_WHEEL_DIR := $(shell LAUNCH_WHEELS='$(LAUNCH_WHEELS)' .ci/launch_wheels)
 LAUNCH_STAMP := $(VENV)/.launch-installed
 SITE_PACKAGES = $(shell $(VENV)/bin/python -c 'import sysconfig; print(sysconfig.get_path("purelib"))')
 
@@ -32,17 +32,18 @@ $(STAMP): requirements.txt setup.py package.xml
 
 launch-wheels: $(LAUNCH_STAMP)
 
-$(LAUNCH_STAMP): $(STAMP) $(wildcard $(LAUNCH_WHEELS)/*.whl)
-ifeq ($(strip $(LAUNCH_WHEELS)),)
+$(LAUNCH_STAMP): $(STAMP) $(wildcard $(LAUNCH_WHEEL_DIR)/*.whl)
+ifeq ($(LAUNCH_WHEEL_DIR),)
 	@if [ -n "$$LOMPR_REQUIRE_LAUNCH" ]; then \
 		echo 'error: no ROS 2 launch wheels found (.ci/launch_wheels; LAUNCH_WHEELS=DIR)' >&2; \
 		exit 1; fi
-	@echo 'no ROS 2 launch wheels found (.ci/launch_wheels): the launch-file tests are skipped'
+	@echo 'no ROS 2 launch wheels found (.ci/launch_wheels; LAUNCH_WHEELS=DIR): the' \
+		'launch-file tests are skipped'
 else
 	$(VENV)/bin/python -m pip install --quiet --no-deps --no-index \
-		--find-links '$(LAUNCH_WHEELS)' launch launch-xml launch-yaml launch-ros
+		--find-links '$(LAUNCH_WHEEL_DIR)' launch launch-xml launch-yaml launch-ros
 	rm -rf '$(SITE_PACKAGES)/composition_interfaces'
-	cp -r --no-preserve=mode '$(LAUNCH_WHEELS)/shims/composition_interfaces' '$(SITE_PACKAGES)'
+	cp -r --no-preserve=mode '$(LAUNCH_WHEEL_DIR)/shims/composition_interfaces' '$(SITE_PACKAGES)'
 	touch $(LAUNCH_STAMP)
 endif
 
