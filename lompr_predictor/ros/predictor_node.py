@@ -48,7 +48,14 @@ from lompr_predictor.ros.predictor_settings import (
     REFERENCE_PREVIEW,
     PredictorNodeSettings,
 )
-from lompr_predictor.ros.wire import WireError, pose_frame_id, read_path, read_pose_stamped
+from lompr_predictor.ros.wire import (
+    WireError,
+    frame_field,
+    pose_frame_id,
+    pose_in_frame,
+    read_path,
+    read_pose_stamped,
+)
 from lompr_predictor.stamps import Stamp
 from lompr_predictor.threads import set_torch_threads
 
@@ -79,6 +86,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self.pose_rate = self.rate_meter(settings.rate_window)
         self.reference_rate = self.rate_meter(settings.rate_window)
         self.preview_rate = self.rate_meter(settings.rate_window)
+        self._frame_field = frame_field(settings.frame)  # the inputs' frame (read-only)
         self.outputs = OutputPublisher(settings.frame, self.rate_meter(settings.rate_window),
                                        LatencyRecorder(settings.latency_samples),
                                        self.warn_throttled)
@@ -229,12 +237,11 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
     def _in_frame(self, msg: bytes, reason: DropReason, what: str) -> bool:
         """Whether a pose is in the node's frame; if not, counted under `reason` and said
         (throttled) with both frames."""
-        frame = pose_frame_id(msg)
-        if frame == self.settings.frame:
+        if pose_in_frame(msg, self._frame_field):
             return True
         self.core.dropped.add(reason)
-        self.warn_throttled(reason, f'{what} in frame {frame!r} dropped: this node works in '
-                                    f'{self.settings.frame!r} (frame_id, frame_prefix)')
+        self.warn_throttled(reason, f'{what} in frame {pose_frame_id(msg)!r} dropped: this node '
+                                    f'works in {self.settings.frame!r} (frame_id, frame_prefix)')
         return False
 
     def on_reference_preview(self, msg: bytes) -> None:
