@@ -18,6 +18,7 @@ setup(
         (f'share/{PACKAGE}/config', glob(f'{PACKAGE}/config/*.yaml')),
         (f'share/{PACKAGE}/launch', glob('launch/*.launch.xml')),
         (f'share/{PACKAGE}/config/presets', glob(f'{PACKAGE}/config/presets/*.yaml')),
+        (f'share/{PACKAGE}/rviz', glob('rviz/*.rviz')),
     ],
     python_requires='>=3.11',
     # What the nodes need: requirements.txt pins the exact versions for a pip install; a ROS

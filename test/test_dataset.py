@@ -15,7 +15,15 @@ from trainer_data import (
     write_synthetic_bag,
 )
 
-from lompr_predictor.data.bags import BagError, JointSamples, Recording, ReferenceSamples, read_bags
+from lompr_predictor.data.bags import (
+    BagError,
+    JointSamples,
+    Recording,
+    ReferenceSamples,
+    read_bags,
+    read_recording,
+    write_recording,
+)
 from lompr_predictor.data.cleaning import (
     CleanData,
     clean_recordings,
@@ -215,6 +223,28 @@ def test_truncated_bag_is_one_clear_error(tmp_path: Path, description: RobotDesc
     assert sources[1].path == str(bad) and sources[1].skipped_reason and not sources[1].sha256
 
 
+@pytest.mark.faults
+def test_a_recording_in_another_frame_is_refused_naming_both_unless_named(
+        tmp_path: Path, description: RobotDescription) -> None:
+    """The reference of an older recording (frame `world`, the Z-down frame before it was
+    named lompr_base) or another machine's is never read as the robot's by default."""
+    recording, _ = synthetic_recording(description.geometry, 50)
+    current = write_recording(tmp_path / 'current', recording)
+    older = write_recording(tmp_path / 'older', recording, frame_id='world')
+    np.testing.assert_array_equal(read_recording(current).reference.positions,
+                                  recording.reference.positions)
+    with pytest.raises(BagError, match=r"^bag .*older: /lompr/reference is in frame 'world', "
+                                       r"expected 'lompr_base'; .* give --frame world$"):
+        read_recording(older)
+    again = read_recording(older, frame='world')
+    np.testing.assert_array_equal(again.reference.positions, recording.reference.positions)
+    np.testing.assert_array_equal(again.joints.positions, recording.joints.positions)
+    with pytest.raises(BagError, match="in frame 'lompr_base', expected 'world'"):
+        read_bags([current], frame='world')
+    _, sources = read_bags([current, older], skip_bad=True)
+    assert "frame 'world'" in sources[1].skipped_reason
+
+
 def test_overlapping_bags_become_separate_segments(description: RobotDescription) -> None:
     """Two runs of a simulator that both start at its epoch: every sample of both is kept,
     each bag its own segment, none interleaved with the other's."""
@@ -231,7 +261,7 @@ def test_overlapping_bags_become_separate_segments(description: RobotDescription
 
 
 def test_a_slower_reference_is_interpolated_not_dropped(description: RobotDescription) -> None:
-    """Joint states at 100 Hz, the reference at 25 Hz (CONTRACT section 2 allows it)."""
+    """Joint states at 100 Hz, the reference at 25 Hz (docs/interface.md, topics, allows it)."""
     samples = 400
     fast = PERIOD_NS // 4
     recording, error = synthetic_recording(description.geometry, samples,

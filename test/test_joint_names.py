@@ -16,7 +16,7 @@ from trainer_data import lissajous_reference, synthetic_recording
 
 from lompr_predictor.cli import main
 from lompr_predictor.data.bags import Recording, write_recording
-from lompr_predictor.robot.description import RobotDescription
+from lompr_predictor.robot.description import ROBOT_FRAME, RobotDescription
 from lompr_predictor.ros.kinematics_node import KinematicsNode
 from lompr_predictor.ros.predictor_node import PredictorNode
 
@@ -83,6 +83,7 @@ def test_train_and_evaluate_with_joint_names_then_run_the_nodes_with_them(
     for k in range(20):
         stamp = int(recording.joints.stamps[k])
         reference = PoseStamped()
+        reference.header.frame_id = ROBOT_FRAME
         set_stamp(reference, stamp)
         x, y, z = map(float, recording.reference.positions[k])
         reference.pose.position.x, reference.pose.position.y, reference.pose.position.z = x, y, z

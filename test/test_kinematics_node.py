@@ -16,7 +16,7 @@ from rclpy.parameter import Parameter
 from ros_helpers import RosHarness, latest_status
 from sensor_msgs.msg import JointState
 
-from lompr_predictor.robot.description import MEASURED_JOINTS, RobotDescription
+from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME, RobotDescription
 from lompr_predictor.robot.kinematics import inverse_kinematics
 from lompr_predictor.ros.kinematics_node import JointStateDrop, KinematicsNode
 
@@ -79,7 +79,7 @@ def test_known_poses_round_trip_with_same_stamp(
     ros.spin_until(lambda: len(wiring.poses) == len(sent), what='an end pose per joint state')
     for msg, pose, tip in zip(sent, wiring.poses, KNOWN_TIPS, strict=False):
         assert stamp_of(pose) == stamp_of(msg)
-        assert pose.header.frame_id == 'world'
+        assert pose.header.frame_id == ROBOT_FRAME
         position = pose.pose.position
         np.testing.assert_allclose([position.x, position.y, position.z], tip, rtol=0, atol=1e-9)
         q = pose.pose.orientation
@@ -91,6 +91,17 @@ def test_known_poses_round_trip_with_same_stamp(
     assert kinematics is not None and kinematics['_level'] == DiagnosticStatus.OK
     assert 0.0 < float(kinematics['solve_time_p50_us']) <= float(kinematics['solve_time_p99_us'])
     assert kinematics['robot_description_sha256'] == description.sha256
+
+
+def test_a_frame_prefix_keeps_a_cells_frames_apart(
+        ros: RosHarness, description: RobotDescription) -> None:
+    """As robot_state_publisher's frame_prefix: the end pose is in <prefix>lompr_base."""
+    wiring = Wiring(ros, frame_prefix='cell1/')
+    joints = inverse_kinematics(description.geometry, KNOWN_TIPS[:1]).joints
+    wiring.publish([joint_state(3.0, joints[0])])
+    ros.spin_until(lambda: len(wiring.poses) == 1, what='the end pose')
+    assert wiring.poses[0].header.frame_id == f'cell1/{ROBOT_FRAME}'
+    assert wiring.node.settings.frame == f'cell1/{ROBOT_FRAME}'
 
 
 def test_bad_inputs_are_dropped_counted_and_next_good_answered(
@@ -182,7 +193,7 @@ def test_renamed_joints_and_bad_joint_names_parameter(
     assert node.set_parameters([Parameter('warm_start_max_gap', value=2.0)])[0].successful
     assert node.settings.warm_start_max_gap == 2.0
     assert not node.set_parameters([Parameter('frame_id', value='base')])[0].successful
-    assert node.settings.frame_id == 'world'
+    assert node.settings.frame_id == ROBOT_FRAME
     with pytest.raises(InvalidParameterValueException, match='5 distinct names'):
         KinematicsNode(node_name='bad_names', context=ros.context, parameter_overrides=[
             Parameter('joint_names', value=['a', 'a', 'b', 'c', 'd'])])

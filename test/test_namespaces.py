@@ -1,6 +1,8 @@
 """Two robots on one network: both nodes started in a namespace with a params file keyed
 /**/<node>: move their relative topics into it and take the file's parameters; their
-diagnostics carry the namespace and the robot's name."""
+diagnostics are named as diagnostic_updater names them (the node's name, or with
+diagnostic_updater.use_fqn its fully qualified name) and carry the robot's name or the
+hardware_id given."""
 
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ from model_helpers import save_constant
 from ros_helpers import RosHarness, latest_status, set_stamp
 from sensor_msgs.msg import JointState
 
-from lompr_predictor.robot.description import MEASURED_JOINTS
+from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME
 from lompr_predictor.ros.kinematics_node import KinematicsNode
 from lompr_predictor.ros.predictor_node import PredictorNode
 
@@ -30,6 +32,7 @@ def test_both_nodes_in_a_namespace_with_a_params_file(ros: RosHarness, tmp_path:
   ros__parameters:
     warm_start_max_gap: 0.25
     diagnostics_period: 0.1
+    hardware_id: cell1_lompr
 /**/predictor_node:
   ros__parameters:
     model_path: {model}
@@ -37,10 +40,11 @@ def test_both_nodes_in_a_namespace_with_a_params_file(ros: RosHarness, tmp_path:
     diagnostics_period: 0.1
     stale_periods: 1000.0
     late_tolerance: 60.0
+    diagnostic_updater.use_fqn: true
 """)
     def cli_args(node: str) -> list[str]:
-        """As the launch file passes them: packaged defaults, the launch file's, the site's."""
-        files = [CONFIG / f'{node}.yaml', CONFIG / 'lompr.yaml', params]
+        """As the launch file passes them: the packaged defaults, then the site's."""
+        files = [CONFIG / f'{node}.yaml', params]
         return ['--ros-args', *(part for path in files for part in ('--params-file', str(path)))]
 
     kinematics = ros.add(KinematicsNode(context=ros.context, namespace=NAMESPACE,
@@ -69,6 +73,7 @@ def test_both_nodes_in_a_namespace_with_a_params_file(ros: RosHarness, tmp_path:
                              position=[0.8, 0.8, 0.8, 0.0, 0.0])
         set_stamp(message, stamp)
         reference = PoseStamped()
+        reference.header.frame_id = ROBOT_FRAME
         set_stamp(reference, stamp)
         reference.pose.position.z = 1.0
         references.publish(reference)
@@ -77,8 +82,9 @@ def test_both_nodes_in_a_namespace_with_a_params_file(ros: RosHarness, tmp_path:
         ros.spin_until(lambda: len(end_poses) >= wanted, what=f'end pose {k}')  # noqa: B023
     ros.spin_until(lambda: len(compensations) > 0, what='a compensation in the namespace')
 
-    ros.spin_until(lambda: latest_status(diagnostics, 'cell1/predictor_node: model') is not None
-                   and latest_status(diagnostics, 'cell1/kinematics_node: joint states')
-                   is not None, what='namespaced status names')
-    hardware = {status.hardware_id for array in diagnostics for status in array.status}
-    assert hardware == {'lompr'}
+    ros.spin_until(lambda: latest_status(diagnostics, '/cell1/predictor_node: model') is not None
+                   and latest_status(diagnostics, 'kinematics_node: joint states')
+                   is not None, what='status names')
+    hardware = {status.name.split(':')[0]: status.hardware_id for array in diagnostics
+                for status in array.status}
+    assert hardware == {'/cell1/predictor_node': 'lompr', 'kinematics_node': 'cell1_lompr'}

@@ -151,7 +151,7 @@ def test_reference_is_interpolated_to_pose_stamps(linear_model: LoadedModel) -> 
 
 
 def test_a_slower_reference_still_brackets_every_pose(linear_model: LoadedModel) -> None:
-    """The reference at a quarter of the pose rate (CONTRACT section 2 allows any rates):
+    """The reference at a quarter of the pose rate (docs/interface.md, topics allows any rates):
     its steps of 4 periods exceed gap_factor (2.5) pose periods, yet no pose is faulted."""
     stamps, reference, tips = spiral(60)
     core = OnlinePredictor(linear_model, stream(), limits(enabled=False), clock=FakeClock().ns)

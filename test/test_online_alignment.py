@@ -114,7 +114,8 @@ def test_bad_references() -> None:
         'non_finite': 0, 'duplicate': 0, 'out_of_order': 0, 'no_reference': 0,
         'reference_duplicate': 1, 'reference_non_finite': 1, 'reference_out_of_order': 1,
         'stale': 0, 'clock_jump': 0, 'inactive': 0, 'internal': 0, 'bad_stamp': 0,
-        'future_stamp': 0, 'reference_bad_stamp': 0, 'reference_future_stamp': 0}
+        'future_stamp': 0, 'reference_bad_stamp': 0, 'reference_future_stamp': 0,
+        'wrong_frame': 0, 'reference_wrong_frame': 0}
 
 
 def test_too_many_waiting_poses_drop_the_oldest_as_a_fault() -> None:

@@ -20,6 +20,7 @@ from ros_helpers import RosHarness, latest_status, set_stamp, stamp_ns, xy
 from rosgraph_msgs.msg import Clock
 
 from lompr_predictor.data.features import HISTORY
+from lompr_predictor.robot.description import ROBOT_FRAME
 from lompr_predictor.ros.predictor_node import PredictorNode
 
 pytestmark = pytest.mark.ros
@@ -78,6 +79,7 @@ class Plant:
         received = self.node.pose_rate.total + self.node.reference_rate.total
         xy = (0.01 + 1e-3 * k, 0.02 + 1e-3 * k)
         reference, pose = PoseStamped(), PoseStamped()
+        reference.header.frame_id = pose.header.frame_id = ROBOT_FRAME
         set_stamp(reference, ns)
         set_stamp(pose, ns)
         reference.pose.position.x, reference.pose.position.y = xy
@@ -93,7 +95,7 @@ class Plant:
 
 
 def predictor(ros: RosHarness, **overrides: object) -> PredictorNode:
-    parameters = {'diagnostics_period': 0.1, **overrides}
+    parameters = {'diagnostics_period': 0.1, 'compensation_enabled': True, **overrides}
     node: PredictorNode = ros.add(PredictorNode(
         context=ros.context,
         parameter_overrides=[Parameter(k, value=v) for k, v in parameters.items()]))

@@ -49,6 +49,7 @@ from lompr_predictor.learning.models import predict_rows
 from lompr_predictor.monitoring import Level
 from lompr_predictor.robot.description import (
     MEASURED_JOINTS,
+    ROBOT_FRAME,
     RobotDescription,
     load_robot_description,
 )
@@ -97,7 +98,8 @@ class Wiring:
         # the loaded machine between two samples is no fault; for the same reason an output
         # is late (overrun, dropped) only after a minute, unless a test is about that
         parameters = {'model_path': str(model), 'diagnostics_period': 0.1,
-                      'stale_periods': 1000.0, 'late_tolerance': 60.0, **overrides}
+                      'stale_periods': 1000.0, 'late_tolerance': 60.0,
+                      'compensation_enabled': True, **overrides}
         self.ros = ros
         self.node: PredictorNode = ros.add(PredictorNode(
             context=ros.context,
@@ -120,12 +122,16 @@ class Wiring:
         ros.wait_for_publishers('/lompr/compensation')
         ros.wait_for_publishers('/lompr/predicted_error')
 
-    def publish_sample(self, ns: int, reference_xy: np.ndarray, tip_xy: np.ndarray) -> None:
+    def publish_sample(self, ns: int, reference_xy: np.ndarray, tip_xy: np.ndarray,
+                       frames: tuple[str, str] = (ROBOT_FRAME, ROBOT_FRAME)) -> None:
+        """A reference and an end pose at `ns`, in `frames` (reference's, pose's)."""
         reference = PoseStamped()
+        reference.header.frame_id = frames[0]
         set_stamp(reference, ns)
         reference.pose.position.x, reference.pose.position.y = map(float, reference_xy)
         self.reference.publish(reference)
         pose = PoseStamped()
+        pose.header.frame_id = frames[1]
         set_stamp(pose, ns)
         pose.pose.position.x, pose.pose.position.y = map(float, tip_xy)
         self.poses.publish(pose)
@@ -138,13 +144,14 @@ class Wiring:
         self.ros.spin_until(lambda: self.received() >= total, what=what)
 
     def run(self, first: int, count: int, reference_xy: tuple[float, float] = (0.01, 0.02),
-            error: tuple[float, float] = (1e-5, -1e-5)) -> None:
+            error: tuple[float, float] = (1e-5, -1e-5),
+            frames: tuple[str, str] = (ROBOT_FRAME, ROBOT_FRAME)) -> None:
         """Publish samples first..first+count-1 (stamps every period), each answered or not
         before the next, as a controller's cycle would."""
         for k in range(first, first + count):
             received = self.received()
             xy = np.asarray(reference_xy) + 1e-3 * k
-            self.publish_sample(T0 + k * PERIOD_NS, xy, xy + np.asarray(error))
+            self.publish_sample(T0 + k * PERIOD_NS, xy, xy + np.asarray(error), frames)
             self.wait_received(received + 2, f'sample {k}')
 
     def latest(self, name: str) -> dict[str, Any]:
@@ -177,6 +184,7 @@ def test_bag_replay_matches_offline_predictions(
         else:
             i = index - len(joints.stamps)
             msg = PoseStamped()
+            msg.header.frame_id = ROBOT_FRAME
             set_stamp(msg, reference.stamps[i])
             p = reference.positions[i]
             msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = map(float, p)
@@ -333,6 +341,38 @@ def test_bad_reload_keeps_the_old_model_and_good_reload_swaps_without_a_gap(
     assert wiring.latest('model')['sha256'] == load_model(new).sha256
 
 
+def test_a_pose_or_reference_in_another_frame_is_dropped_and_counted(
+        ros: RosHarness, tmp_path: Path) -> None:
+    """Never used as if it were in the robot frame, and no fault: the stream goes on as if
+    it had not come (the same instant in the robot frame is then used, no duplicate)."""
+    model = save_constant(tmp_path / 'c.pt', (-20e-6, 0.0), window=WINDOW, horizon=HORIZON)
+    wiring = Wiring(ros, model)
+    wiring.run(0, NEEDED)
+    wiring.run(NEEDED, 1, frames=('world', 'map'))  # an old recording's frame; another one
+    wiring.run(NEEDED, 2)
+    ros.spin_until(lambda: len(wiring.compensations) == 3, what='three offsets')
+    assert [stamp_ns(m) for m in wiring.compensations] == [
+        T0 + (k + HORIZON) * PERIOD_NS for k in range(NEEDED - 1, NEEDED + 2)]
+    assert xy(wiring.compensations)[:, 0].tolist() == [20e-6] * 3
+    ros.spin_until(lambda: (wiring.status('inputs') or {}).get('rejected.wrong_frame') == '1',
+                   what='the drops on /diagnostics')
+    inputs = wiring.latest('inputs')
+    assert (inputs['rejected.reference_wrong_frame'], inputs['rejected.duplicate'],
+            inputs['faults_total']) == ('1', '0', '0')
+
+
+def test_a_frame_prefix_is_the_frame_of_the_inputs_and_the_outputs(
+        ros: RosHarness, tmp_path: Path) -> None:
+    model = save_constant(tmp_path / 'c.pt', (-20e-6, 0.0), window=WINDOW, horizon=HORIZON)
+    wiring = Wiring(ros, model, frame_prefix='cell1/')
+    prefixed = f'cell1/{ROBOT_FRAME}'
+    wiring.run(0, NEEDED, frames=(prefixed, prefixed))
+    wiring.run(NEEDED, 1)  # the bare robot frame is another cell's
+    ros.spin_until(lambda: len(wiring.compensations) == 1, what='one offset')
+    assert {m.header.frame_id for m in wiring.compensations + wiring.predictions} == {prefixed}
+    assert wiring.node.core.dropped['wrong_frame'] == 1
+
+
 def test_bad_messages_never_stop_the_node_and_are_counted(ros: RosHarness, tmp_path: Path) -> None:
     model = save_constant(tmp_path / 'c.pt', (-20e-6, 0.0), window=WINDOW, horizon=HORIZON)
     wiring = Wiring(ros, model)
@@ -422,7 +462,8 @@ def test_executable_with_params_file_refuses_a_mismatched_model_in_one_line(tmp_
 def test_one_process_pipeline_answers_joint_states(
         ros: RosHarness, description: RobotDescription, tmp_path: Path) -> None:
     model = save_constant(tmp_path / 'c.pt', (-7e-6, 3e-6), window=WINDOW, horizon=HORIZON)
-    process = start_executable('pipeline', '-p', f'predictor_node:model_path:={model}')
+    process = start_executable('pipeline', '-p', f'predictor_node:model_path:={model}',
+                               '-p', 'predictor_node:compensation_enabled:=true')
     try:
         compensations = ros.collect('/lompr/compensation', Vector3Stamped, 100)
         joints = ros.node.create_publisher(JointState, '/joint_states', 100)
@@ -435,6 +476,7 @@ def test_one_process_pipeline_answers_joint_states(
         def publish_stream(shift_ns: int) -> None:
             for k in range(NEEDED + 1):
                 ref = PoseStamped()
+                ref.header.frame_id = ROBOT_FRAME
                 set_stamp(ref, recording.reference.stamps[k] + shift_ns)
                 ref.pose.position.x, ref.pose.position.y = map(
                     float, recording.reference.positions[k, :2])
@@ -544,7 +586,7 @@ def test_a_preview_model_reads_the_planned_path_and_counts_a_bad_one(
     plans = ros.node.create_publisher(NavPath, '/lompr/reference_preview', 100)
     ros.wait_for_subscribers(plans)
 
-    def plan(k: int, frame: str = 'world') -> None:
+    def plan(k: int, frame: str = ROBOT_FRAME) -> None:
         """The next preview + 2 samples of `Wiring.run`'s path, planned at sample k."""
         msg = NavPath()
         msg.header.frame_id = frame

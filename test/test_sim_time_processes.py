@@ -25,7 +25,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
 from lompr_predictor.data.features import FEATURES, HISTORY
-from lompr_predictor.robot.description import MEASURED_JOINTS, RobotDescription
+from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME, RobotDescription
 from lompr_predictor.twin.digital_twin import DigitalTwin
 from lompr_predictor.twin.parameters import load_twin_parameters
 
@@ -97,8 +97,8 @@ class ExternalPlant:
             joints.header.stamp = to_time(stamp)
             self.joints.publish(joints)
             reference = PoseStamped()
+            reference.header.frame_id = ROBOT_FRAME
             reference.header.stamp = to_time(stamp)
-            reference.header.frame_id = 'world'
             position = reference.pose.position
             position.x, position.y, position.z = (float(v) for v in step.reference[0])
             reference.pose.orientation.w = 1.0
@@ -123,7 +123,8 @@ def test_an_external_lockstep_simulator_gets_every_sample_answered_after_the_fil
     plant = ExternalPlant(ros, description, qos)
     processes = [start_executable('kinematics_node', '-p', 'use_sim_time:=true'),
                  start_executable('predictor_node', '-p', 'use_sim_time:=true',
-                                  '-p', f'model_path:={model}', '-p', 'max_compensation:=0.001')]
+                                  '-p', f'model_path:={model}', '-p', 'max_compensation:=0.001',
+                                  '-p', 'compensation_enabled:=true')]
     try:
         plant.wait_for_nodes()
         answered, true_error = plant.run(samples, slowdown * plant.twin.params.sample_period)
@@ -175,6 +176,7 @@ def test_the_predictor_executable_is_managed_through_its_lifecycle_services(
         while len(compensations) < 3 and time.monotonic() < deadline:
             for publisher, error in ((references, 0.0), (poses, 1e-5)):
                 msg = PoseStamped()
+                msg.header.frame_id = ROBOT_FRAME
                 msg.header.stamp = to_time(start_ns + k * 40_000_000)
                 msg.pose.position.x = 1e-3 * k + error
                 publisher.publish(msg)

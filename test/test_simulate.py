@@ -14,7 +14,7 @@ from lompr_predictor.cli import main as lompr_main
 from lompr_predictor.cli import simulate as simulate_cli
 from lompr_predictor.data.bags import JointSamples, Recording, read_recording, write_recording
 from lompr_predictor.data.loading import BagInputs, load_clean_data
-from lompr_predictor.robot.description import MEASURED_JOINTS, RobotDescription
+from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME, RobotDescription
 from lompr_predictor.robot.kinematics import ForwardKinematics
 from lompr_predictor.robot.paths import build_cycle
 from lompr_predictor.twin import Simulation, load_twin_parameters, simulate
@@ -104,7 +104,7 @@ def test_a_topic_recorded_over_two_connections_is_read_whole(tmp_path: Path) -> 
     quaternion = types['geometry_msgs/msg/Quaternion']
 
     def stamp(k: int) -> Any:
-        return header(stamp=time(sec=100 + k, nanosec=0), frame_id='world')
+        return header(stamp=time(sec=100 + k, nanosec=0), frame_id=ROBOT_FRAME)
 
     with Writer(tmp_path / 'two', version=9) as writer:
         joints = [writer.add_connection('/joint_states', 'sensor_msgs/msg/JointState',
@@ -254,7 +254,7 @@ def test_cli_records_the_reference_preview_a_path_generator_would_publish(
         return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
     for k, preview in enumerate(previews):
-        assert ns(preview.header.stamp) == stamps[k] and preview.header.frame_id == 'world'
+        assert ns(preview.header.stamp) == stamps[k] and preview.header.frame_id == ROBOT_FRAME
         assert [ns(p.header.stamp) for p in preview.poses] == stamps[k + 1:k + 4]
         for pose in preview.poses:
             p = pose.pose.position

@@ -8,12 +8,13 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from model_helpers import save_linear
 from trainer_data import lissajous_reference, synthetic_recording, truncate_bag, write_synthetic_bag
 
 from lompr_predictor.cli import evaluate, train
 from lompr_predictor.cli import main as lompr_main
 from lompr_predictor.data.bags import write_recording
-from lompr_predictor.data.features import FEATURES, feature_names
+from lompr_predictor.data.features import FEATURES, HISTORY, feature_names
 from lompr_predictor.errors import LomprError
 from lompr_predictor.files import file_sha256
 from lompr_predictor.learning.model_file import (
@@ -351,3 +352,27 @@ def test_a_preview_model_records_its_preview_and_the_report_shows_the_plain_base
     assert evaluation['split']['test'] == content['split']['test']
     assert evaluation['models']['model']['metrics']['x']['rmse_um'] == pytest.approx(
         content['models']['bo_lstm']['metrics']['x']['rmse_um'], rel=1e-9)
+
+
+@pytest.mark.faults
+def test_a_recording_in_another_frame_is_one_line_unless_its_frame_is_given(
+        tmp_path: Path, description: RobotDescription, capsys: pytest.CaptureFixture[str]) -> None:
+    """train and evaluate read the robot frame lompr_base by default; an older recording
+    (frame world, Z down as lompr_base) is read only when --frame names its frame."""
+    recording, _ = synthetic_recording(description.geometry, 300, noise=2e-7,
+                                       reference=lissajous_reference(300))
+    older = write_recording(tmp_path / 'older', recording, frame_id='world')
+    model = save_linear(tmp_path / 'model.pt', normalisation={
+        'error_low': [-1e-4, -1e-4], 'error_high': [1e-4, 1e-4]})
+    for command in (['train', str(older), '--out', str(tmp_path / 'm.pt'), '--report',
+                     str(tmp_path / 'r')],
+                    ['evaluate', str(model), str(older), '--report', str(tmp_path / 'e')]):
+        assert lompr_main(command) == 2
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and (f"bag {older}: /lompr/reference is in frame 'world', "
+                                    "expected 'lompr_base'") in lines[0]
+    assert not (tmp_path / 'm.pt').exists()
+    assert lompr_main(['evaluate', str(model), str(older), '--frame', 'world', '--report',
+                       str(tmp_path / 'e'), '--quiet']) == 0
+    evaluation = json.loads((tmp_path / 'e' / 'report.json').read_text())
+    assert evaluation['split']['test'] == 300 - HISTORY - 4 + 1 - 3

@@ -15,7 +15,7 @@ from ros_helpers import RosHarness
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
-from lompr_predictor.robot.description import MEASURED_JOINTS
+from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME
 from lompr_predictor.ros.twin_node import TwinNode
 from lompr_predictor.twin.compensation import CompensationSchedule
 from lompr_predictor.twin.run_log import read_run_log
@@ -90,7 +90,7 @@ def test_publishes_one_sample_per_period_of_its_clock(ros: RosHarness) -> None:
     assert ((stamps - EPOCH) % PERIOD == 0).all()
     message = joints[-1]
     assert tuple(message.name) == MEASURED_JOINTS and len(message.position) == 5
-    assert references[0].header.frame_id == 'world'
+    assert references[0].header.frame_id == ROBOT_FRAME
     assert [_stamp_ns(m) for m in references] == stamps.tolist()
 
 
@@ -194,7 +194,7 @@ def test_the_preview_is_the_reference_the_twin_then_commands(ros: RosHarness) ->
                  for m in references}
     for preview, reference in zip(previews, references, strict=True):
         now = _stamp_ns(reference)
-        assert _stamp_ns(preview) == now and preview.header.frame_id == 'world'
+        assert _stamp_ns(preview) == now and preview.header.frame_id == ROBOT_FRAME
         stamps = [_stamp_ns(pose) for pose in preview.poses]
         assert stamps == [now + j * PERIOD for j in (1, 2, 3)]
         for stamp, pose in zip(stamps, preview.poses, strict=True):

@@ -16,6 +16,9 @@ from lompr_predictor.ros.wire import (
     PoseStampedWriter,
     Vector3StampedWriter,
     WireError,
+    frame_field,
+    pose_frame_id,
+    pose_in_frame,
     read_joint_state,
     read_path,
     read_pose_stamped,
@@ -37,6 +40,9 @@ def test_pose_stamped_both_ways(frame_id: str) -> None:
     msg = pose_message(frame_id)
     assert read_pose_stamped(serialize_message(msg)) == (
         1_795_000_123, 999_999_999, 1e-3, -2.5, math.pi)
+    assert pose_frame_id(serialize_message(msg)) == frame_id
+    for other in ('', 'w', 'world', 'world_x', 'lompr_base', frame_id):
+        assert pose_in_frame(serialize_message(msg), frame_field(other)) == (other == frame_id)
     packed = PoseStampedWriter(frame_id).pack(1_795_000_123, 999_999_999,
                                               (1e-3, -2.5, math.pi), (0.1, -0.2, 0.3, 0.9))
     assert deserialize_message(packed, PoseStamped) == msg
@@ -76,12 +82,16 @@ def test_big_endian_goes_through_rclpy() -> None:
                       b'world\x00', 1e-3, -2.5, math.pi, 0.1, -0.2, 0.3, 0.9)
     assert deserialize_message(big, PoseStamped) == msg
     assert read_pose_stamped(big)[2:] == (1e-3, -2.5, math.pi)
+    assert pose_frame_id(big) == 'world'
+    assert pose_in_frame(big, frame_field('world')) and not pose_in_frame(big, frame_field('w'))
 
 
 @pytest.mark.parametrize('data', [b'', b'\x00\x01\x00\x00', b'\x00\x01\x00\x00' + b'\xff' * 20])
 def test_unreadable_bytes(data: bytes) -> None:
     with pytest.raises(WireError):
         read_pose_stamped(data)
+    with pytest.raises(WireError):
+        pose_frame_id(data)
     with pytest.raises(WireError):
         read_joint_state(data)
     with pytest.raises(WireError):

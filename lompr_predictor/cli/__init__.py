@@ -1,4 +1,4 @@
-"""`lompr`: the command line of lompr_predictor (CONTRACT section 7).
+"""`lompr`: the command line of lompr_predictor (docs/interface.md, executables).
 
 Each subcommand lives in its own module of this package and exposes
 `add_parser(subparsers)`, which registers its arguments and sets `run=function(args) -> int`.

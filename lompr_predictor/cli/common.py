@@ -7,6 +7,7 @@ import argparse
 from lompr_predictor.cli.validation import (
     comma_list,
     float_above,
+    non_empty,
     positive_float,
     positive_int,
     readable_file,
@@ -14,7 +15,7 @@ from lompr_predictor.cli.validation import (
 from lompr_predictor.data.bags import DEFAULT_JOINT_TOPIC, DEFAULT_REFERENCE_TOPIC
 from lompr_predictor.data.cleaning import HAMPEL_HALF_WINDOW, HAMPEL_THRESHOLD, CleaningConfig
 from lompr_predictor.data.loading import BagInputs
-from lompr_predictor.robot.description import MEASURED_JOINTS, joint_names_problem
+from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME, joint_names_problem
 from lompr_predictor.stamps import GAP_FACTOR
 
 
@@ -29,13 +30,17 @@ def joint_names(text: str) -> tuple[str, ...]:
 
 
 def add_data_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options shared by train and evaluate: topics, bad bags, cleaning, description."""
+    """Options shared by train and evaluate: topics, frame, bad bags, cleaning, description."""
     parser.add_argument('--joint-topic', default=DEFAULT_JOINT_TOPIC)
     parser.add_argument('--reference-topic', default=DEFAULT_REFERENCE_TOPIC)
     parser.add_argument('--joint-names', type=joint_names, default=MEASURED_JOINTS,
                         metavar='A,B,C,D,E',
                         help='your JointState names of ups1, ups2, ups3, head_primary, '
                              "head_secondary, in this order (as kinematics_node's joint_names)")
+    parser.add_argument('--frame', type=non_empty, default=ROBOT_FRAME,
+                        help='the robot frame (Z down) the recorded reference is in: its '
+                             'header.frame_id; a bag in another frame is refused (default '
+                             '%(default)s; recordings made before that name: --frame world)')
     parser.add_argument('--skip-bad', action='store_true',
                         help='skip a corrupt or truncated bag (listed in the report) '
                              'instead of stopping')
@@ -62,4 +67,5 @@ def bag_inputs(args: argparse.Namespace, bags: list[str]) -> BagInputs:
     """`bags` with the topics, bad-bag policy and cleaning rules of the options."""
     return BagInputs(bags=tuple(bags), joint_topic=args.joint_topic,
                      reference_topic=args.reference_topic, skip_bad=args.skip_bad,
-                     joint_names=args.joint_names, cleaning=cleaning_config(args))
+                     joint_names=args.joint_names, frame=args.frame,
+                     cleaning=cleaning_config(args))

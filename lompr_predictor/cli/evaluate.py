@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
             [args.model, *args.bags], geometry=load_robot_description(
                 args.robot_description).geometry, cleaning=cleaning_config(args),
             joint_topic=args.joint_topic, reference_topic=args.reference_topic,
-            report=args.report)
+            frame=args.frame, report=args.report)
         print(f"{document['text']}\nreport in {args.report}")
         return 0
     from lompr_predictor.learning.model_file import PERIOD_TOLERANCE, load_model

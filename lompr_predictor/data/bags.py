@@ -1,10 +1,13 @@
 """rosbag2 recordings of the LOMPR topics, read and written with `rosbags` (no ROS install).
 
-A `Recording` is what one bag holds of the two input topics of CONTRACT section 2, as plain
-arrays and exactly as recorded (unsorted, duplicates and NaNs kept): cleaning is the
+A `Recording` is what one bag holds of the two input topics (docs/interface.md, topics), as
+plain arrays and exactly as recorded (unsorted, duplicates and NaNs kept): cleaning is the
 trainer's job, and it has to see the faults to count them. Stamps are header stamps in
 integer nanoseconds. Joint values are matched by name; a joint missing from a message is
-NaN in that row.
+NaN in that row. The reference must be in the frame the reader is told (the robot frame
+`lompr_base` by default): a bag in another frame is refused whole, never read as if its
+poses were the robot's (recordings made before the robot frame was named carry `world`,
+with the same Z-down meaning, and are read when that frame is named).
 
 Any failure to read a bag, whatever the layer that raised it (rosbags, sqlite3, the MCAP
 parser, the CDR deserialiser), becomes one `BagError` naming the bag; a bag that yields
@@ -25,7 +28,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from lompr_predictor.errors import LomprError
 from lompr_predictor.files import atomic_directory, file_sha256
-from lompr_predictor.robot.description import MEASURED_JOINTS
+from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME
 from lompr_predictor.stamps import ns_to_sec_nanosec, stamp_to_ns
 
 JOINT_STATE = 'sensor_msgs/msg/JointState'
@@ -35,7 +38,8 @@ DEFAULT_JOINT_TOPIC = '/joint_states'
 DEFAULT_REFERENCE_TOPIC = '/lompr/reference'
 DEFAULT_PREVIEW_TOPIC = '/lompr/reference_preview'
 STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
-#: The orientation of a tool along world +Z (x, y, z, w): the reference's and the preview's.
+#: The orientation of a tool along the robot frame's +Z, vertically down (x, y, z, w): the
+#: reference's and the preview's.
 VERTICAL_TOOL = (0.0, 0.0, 0.0, 1.0)
 
 _TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
@@ -83,7 +87,7 @@ class PreviewSamples:
 @dataclass(frozen=True)
 class Recording:
     """The LOMPR input topics of one bag, as recorded; `preview` only when written (the
-    trainer takes the planned path from the reference itself, CONTRACT section 2)."""
+    trainer takes the planned path from the reference itself, docs/interface.md)."""
 
     joints: JointSamples
     reference: ReferenceSamples
@@ -108,7 +112,7 @@ def write_recording(
     joint_topic: str = DEFAULT_JOINT_TOPIC,
     reference_topic: str = DEFAULT_REFERENCE_TOPIC,
     preview_topic: str = DEFAULT_PREVIEW_TOPIC,
-    frame_id: str = 'world',
+    frame_id: str = ROBOT_FRAME,
 ) -> Path:
     """Write a recording as one rosbag2 directory at `path`, atomically.
 
@@ -202,11 +206,13 @@ def read_recording(
     joint_topic: str = DEFAULT_JOINT_TOPIC,
     reference_topic: str = DEFAULT_REFERENCE_TOPIC,
     joint_names: Sequence[str] = MEASURED_JOINTS,
+    frame: str = ROBOT_FRAME,
 ) -> Recording:
     """Read the joint-state and reference topics of one rosbag2 directory.
 
     Raises `BagError` naming the bag for a missing or corrupt bag, a topic that is absent or
-    of the wrong type, or a bag that ends before its metadata's message count.
+    of the wrong type, a reference in another frame than `frame` (its header.frame_id), or a
+    bag that ends before its metadata's message count.
     """
     path = Path(path)
     if not (path / 'metadata.yaml').is_file():
@@ -232,9 +238,8 @@ def read_recording(
                     joint_rows.append(_joint_row(message.name, message.position, column,
                                                   len(names)))
                 else:
-                    p, q = message.pose.position, message.pose.orientation
+                    ref_rows.append(_reference_row(message, frame, path, reference_topic))
                     ref_stamps.append(stamp)
-                    ref_rows.append((p.x, p.y, p.z, q.x, q.y, q.z, q.w))
                 read += 1
     except BagError:
         raise
@@ -296,6 +301,18 @@ def _recording(path: Path, names: tuple[str, ...],
         source=str(path))
 
 
+def _reference_row(message: Any, frame: str, path: Path, topic: str) -> tuple[float, ...]:
+    """Position and orientation of a reference message; a `BagError` naming both frames if
+    it is in another frame than `frame`."""
+    found = message.header.frame_id
+    if found != frame:
+        raise BagError(path, f'{topic} is in frame {found!r}, expected {frame!r}; if '
+                             f"{found!r} is the robot frame (Z down), give --frame "
+                             f"{found or repr('')}")
+    p, q = message.pose.position, message.pose.orientation
+    return (p.x, p.y, p.z, q.x, q.y, q.z, q.w)
+
+
 @dataclass(frozen=True)
 class BagSource:
     """A bag used (or skipped) by a run: path, content digest, or the reason it was skipped."""
@@ -321,6 +338,7 @@ def read_bags(
     reference_topic: str = DEFAULT_REFERENCE_TOPIC,
     skip_bad: bool = False,
     joint_names: Sequence[str] = MEASURED_JOINTS,
+    frame: str = ROBOT_FRAME,
 ) -> tuple[list[Recording], list[BagSource]]:
     """Read every bag whole. A bad bag raises its `BagError`, or with `skip_bad` is listed
     with its reason (and contributes nothing: never part of a bag)."""
@@ -329,7 +347,8 @@ def read_bags(
     for path in paths:
         try:
             recording = read_recording(path, joint_topic=joint_topic,
-                                       reference_topic=reference_topic, joint_names=joint_names)
+                                       reference_topic=reference_topic, joint_names=joint_names,
+                                       frame=frame)
         except BagError as err:
             if not skip_bad:
                 raise

@@ -7,11 +7,11 @@ The paper's pre-processing, done so that every dropped sample is counted by reas
    ones, e.g. two simulator runs from the same epoch, is moved after them, never
    interleaved); per stream (joint states, reference) non-finite rows are dropped,
    out-of-order messages sorted and duplicated stamps removed; the reference is interpolated
-   linearly to the joint stamps (never paired by arrival, CONTRACT section 2), and joint
+   linearly to the joint stamps (never paired by arrival, docs/interface.md, topics), and joint
    samples it does not bracket within `gap_factor` of its own period are dropped;
-   batch forward kinematics gives the tool tip, and the error is FK - reference (CONTRACT
-   section 3); a gap longer than `gap_factor` sample periods splits the data into segments;
-   a Hampel filter, per segment, rejects spikes of the error.
+   batch forward kinematics gives the tool tip, and the error is FK - reference
+   (docs/interface.md, the error); a gap longer than `gap_factor` sample periods splits the
+   data into segments; a Hampel filter, per segment, rejects spikes of the error.
 """
 
 from __future__ import annotations
@@ -239,7 +239,7 @@ def clean_recordings(
     ref_stamps, reference = sanitise_stream(ref_stamps, reference, 'reference', counts)
     period = _period_ns(joint_stamps)
     max_step = config.gap_factor * period
-    # The reference may come slower than the joint states (CONTRACT section 2): a bracket is
+    # The reference may come slower than the joint states (docs/interface.md, topics): a bracket is
     # judged by the reference's own period.
     reference_period = _period_ns(ref_stamps) if len(np.unique(ref_stamps)) > 1 else period
     aligned, bracketed = interpolate_reference(ref_stamps, reference, joint_stamps,

@@ -13,13 +13,13 @@ from lompr_predictor.data.bags import (
     read_bags,
 )
 from lompr_predictor.data.cleaning import CleanData, CleaningConfig, clean_recordings
-from lompr_predictor.robot.description import MEASURED_JOINTS, LomprGeometry
+from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME, LomprGeometry
 
 
 @dataclass(frozen=True)
 class BagInputs:
-    """rosbag2 directories, the topics to read, what to do with a bad bag, the cleaning
-    rules."""
+    """rosbag2 directories, the topics to read, the frame their reference must be in, what
+    to do with a bad bag, the cleaning rules."""
 
     bags: tuple[str, ...]
     joint_topic: str = DEFAULT_JOINT_TOPIC
@@ -27,6 +27,8 @@ class BagInputs:
     skip_bad: bool = False  # a bad bag is left out whole and listed, instead of stopping
     #: The bag's names of the measured joints, in `MEASURED_JOINTS` order.
     joint_names: tuple[str, ...] = MEASURED_JOINTS
+    #: The robot frame the reference is in (header.frame_id); a bag in another is refused.
+    frame: str = ROBOT_FRAME
     cleaning: CleaningConfig = field(default_factory=CleaningConfig)
 
 
@@ -36,5 +38,6 @@ def load_clean_data(inputs: BagInputs,
     the sources list every bag, used or skipped."""
     recordings, sources = read_bags(inputs.bags, joint_topic=inputs.joint_topic,
                                     reference_topic=inputs.reference_topic,
-                                    skip_bad=inputs.skip_bad, joint_names=inputs.joint_names)
+                                    skip_bad=inputs.skip_bad, joint_names=inputs.joint_names,
+                                    frame=inputs.frame)
     return clean_recordings(recordings, geometry, inputs.cleaning), sources

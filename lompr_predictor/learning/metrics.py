@@ -1,4 +1,4 @@
-"""The seed paper's Table 1 metrics (CONTRACT section 6), per axis.
+"""The seed paper's Table 1 metrics (docs/interface.md, metrics), per axis.
 
 For a prediction p and the actual error a on the test window, with the training range
 [low, high] of the error on that axis:

@@ -1,4 +1,4 @@
-"""The model file (CONTRACT section 5): one TorchScript file carrying `metadata.json`.
+"""The model file (docs/interface.md): one TorchScript file carrying `metadata.json`.
 
 Export and load live here and only here, so that the serialisation format (TorchScript
 today, deprecated upstream in favour of `torch.export`) can change in one place.
@@ -104,7 +104,7 @@ class ModelMetadata:
     seed: int
     library_versions: Mapping[str, str]
     test_metrics: Mapping[str, Any] = field(default_factory=dict)
-    #: samples of the planned reference after each row the model reads (CONTRACT section 2,
+    #: samples of the planned reference after each row the model reads (docs/interface.md, topics,
     #: reference preview; 0: none, as in files written before it existed)
     preview: int = 0
     #: the machine map the model builds on (`machine_map.MachineMap.metadata`; empty: none,

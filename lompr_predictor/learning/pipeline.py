@@ -345,7 +345,7 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
 def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tuned,
                     machine_map: MachineMap | None, description: RobotDescription,
                     trained_on: list[BagSource], test_metrics: dict[str, Any]) -> ModelMetadata:
-    """The metadata the model file carries (CONTRACT section 5)."""
+    """The metadata the model file carries (docs/interface.md, the model file)."""
     return ModelMetadata(
         features=problem.features, preview=problem.preview, window=problem.window,
         horizon=problem.horizon,

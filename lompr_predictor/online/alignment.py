@@ -1,8 +1,8 @@
 """Alignment by stamp: each pose gets the reference interpolated to its own stamp.
 
-CONTRACT section 2: the measured tool tip and the reference may come at different instants
-and rates, and in any arrival order; a consumer aligns them by time, never by arrival.
-`StampAlignment` keeps the poses that wait for a reference at or after their stamp, in
+The measured tool tip and the reference may come at different instants and rates, and in
+any arrival order (docs/interface.md, topics); a consumer aligns them by time, never by
+arrival. `StampAlignment` keeps the poses that wait for a reference at or after their stamp, in
 arrival order, and the reference track (`ReferenceTrack`) they are interpolated on. Each
 input returns what became ready, in order: an `AlignedSample` or the `FaultReason` of a
 fault the caller must handle there, between the samples. Every input not used is counted by
@@ -40,6 +40,8 @@ class DropReason(StrEnum):
     FUTURE_STAMP = 'future_stamp'
     REFERENCE_BAD_STAMP = 'reference_bad_stamp'
     REFERENCE_FUTURE_STAMP = 'reference_future_stamp'
+    WRONG_FRAME = 'wrong_frame'
+    REFERENCE_WRONG_FRAME = 'reference_wrong_frame'
 
 #: Poses kept waiting for a reference at or after their stamp; beyond, the oldest is dropped.
 MAX_PENDING_POSES = 1000
@@ -56,7 +58,7 @@ class ReferenceTrack:
 
     A bracket is short when it spans at most `gap_factor` periods of the poses or of the
     reference itself (its median step over the last `REFERENCE_STEPS`), whichever is
-    longer: the reference may come slower than the poses (CONTRACT section 2).
+    longer: the reference may come slower than the poses (docs/interface.md, topics).
     """
 
     def __init__(self, gap_factor: float, period_ns: int) -> None:

@@ -16,7 +16,7 @@ Safety rules (docs/safety.md, docs/nodes.md):
   from zero: the offset ramps back in.
 - What was published is kept by the instant it is for (`InstantSchedule`), offsets and
   predictions apart: the plant error of a sample subtracts the offset published for its
-  instant (CONTRACT section 3) and the live accuracy compares the prediction for it
+  instant (docs/interface.md, the error) and the live accuracy compares the prediction for it
   (`sample_units.LiveAccuracy`).
 - Cancelling (a fault, or compensation switched off): if an offset is in force, a zero
   `Output` for every instant after the newest pose for which an offset was already

@@ -1,4 +1,4 @@
-"""The planned reference of the coming instants (CONTRACT section 2, reference preview).
+"""The planned reference of the coming instants (docs/interface.md, topics, reference preview).
 
 `PlannedPath` keeps the newest planned tool-tip position per instant, aligned by stamp and
 linearly interpolated like the reference (`at`), never by arrival order: a newer preview

@@ -1,10 +1,16 @@
 """The LOMPR robot description: load the URDF with Pinocchio and extract its geometry.
 
-The URDF is the only place the geometry lives (CONTRACT section 1). This module loads it
-(from a file or an XML string), checks that it has the joints and frames the kinematics
-relies on, and exposes both the Pinocchio model and a `LomprGeometry` value: the anchor
-points, head offsets and joint limits read from that model, used by the vectorised batch
-kinematics. A calibrated machine ships its own URDF; nothing here is a geometric constant.
+The URDF is the only place the geometry lives (docs/interface.md, the robot). This module
+loads it (from a file or an XML string), checks that it has the joints and frames the
+kinematics relies on, and exposes both the Pinocchio model and a `LomprGeometry` value: the
+anchor points, head offsets and joint limits read from that model, used by the vectorised
+batch kinematics. A calibrated machine ships its own URDF; nothing here is a geometric
+constant.
+
+Frames: the robot frame (`ROBOT_FRAME`, Z down) is the parent link of the UP branch's first
+joint. A description may place it in a cell frame above it (the packaged one roots it in a
+Z-up `world` through a fixed joint, for TF and RViz); the Pinocchio model holds only the tree
+below the robot frame, so every placement it gives is in the robot frame, whatever the cell.
 """
 
 from __future__ import annotations
@@ -40,7 +46,16 @@ def joint_names_problem(names: tuple[str, ...] | list[str]) -> str | None:
         return (f'needs {len(MEASURED_JOINTS)} distinct names, for '
                 f'{", ".join(MEASURED_JOINTS)} in this order')
     return None
-WORLD_FRAME = 'world'
+
+
+#: The robot frame of the packaged description (Z down): the frame_id every pose, error and
+#: offset carries by default (a node parameter and a tool option, for a machine naming it
+#: otherwise).
+ROBOT_FRAME = 'lompr_base'
+#: The cell frame (REP 103, Z up) the packaged description places the robot in.
+CELL_FRAME = 'world'
+#: The joint whose parent link is the robot frame (the UP branch's U-joint at O).
+_BASE_JOINT = 'up_alpha'
 
 # Pinocchio joint model short names the closed-form kinematics is written for.
 _EXPECTED_JOINT_TYPES = {
@@ -69,7 +84,7 @@ def platform_anchor_frame(branch: str) -> str:
 class LomprGeometry:
     """Geometry and limits of the LOMPR, as read from its robot description (SI units)."""
 
-    base_anchors: np.ndarray  # (3, 3) A_i in world
+    base_anchors: np.ndarray  # (3, 3) A_i in the robot frame
     platform_anchors: np.ndarray  # (3, 3) B_i in the platform frame P
     head_offset: np.ndarray  # (3,) head_secondary axis origin in the head_primary frame (h1)
     tool_offset: np.ndarray  # (3,) tool tip in the head_secondary frame (h2)
@@ -93,8 +108,10 @@ class RobotDescription:
         self.urdf_xml = urdf_xml
         self.source = source
         self.sha256 = hashlib.sha256(urdf_xml.encode('utf-8')).hexdigest()
+        robot_xml, self.base_frame = robot_subtree(urdf_xml, source)
         try:
-            self.model: pin.Model = pin.buildModelFromXML(urdf_xml)
+            #: The robot below `base_frame`, its placements in that frame.
+            self.model: pin.Model = pin.buildModelFromXML(robot_xml)
         except (RuntimeError, ValueError) as err:
             msg = f'cannot parse robot description {source}: {err}'
             raise RobotDescriptionError(msg) from err
@@ -201,6 +218,47 @@ class RobotDescription:
             head_secondary_lower=sec_lower,
             head_secondary_upper=sec_upper,
         )
+
+
+def robot_subtree(urdf_xml: str, source: str) -> tuple[str, str]:
+    """(the URDF cut to the tree below its robot frame, the robot frame's name).
+
+    The robot frame is the parent link of `up_alpha`; links that are not below it (a cell
+    frame, other equipment) and the joints leading to them are left out, so that the model's
+    root is the robot frame. A URDF rooted at the robot frame (or without `up_alpha`, which
+    the joint checks then report) is returned as it is."""
+    try:
+        root = ElementTree.fromstring(urdf_xml)
+    except ElementTree.ParseError as err:
+        msg = f'cannot parse robot description {source}: {err}'
+        raise RobotDescriptionError(msg) from err
+    joints = root.findall('joint')
+    children: dict[str, list[str]] = {}
+    base = ''
+    for joint in joints:
+        parent, child = joint.find('parent'), joint.find('child')
+        if parent is None or child is None:
+            continue  # Pinocchio's parser reports a malformed joint
+        children.setdefault(parent.get('link', ''), []).append(child.get('link', ''))
+        if joint.get('name') == _BASE_JOINT:
+            base = parent.get('link', '')
+    if not base or not any(base in links for links in children.values()):
+        return urdf_xml, base or ROBOT_FRAME
+    below = {base}
+    stack = [base]
+    while stack:
+        for name in children.get(stack.pop(), []):
+            if name not in below:
+                below.add(name)
+                stack.append(name)
+    for link in root.findall('link'):
+        if link.get('name') not in below:
+            root.remove(link)
+    for joint in joints:
+        parent = joint.find('parent')
+        if parent is not None and parent.get('link') not in below:
+            root.remove(joint)
+    return ElementTree.tostring(root, encoding='unicode'), base
 
 
 def default_description_path() -> Path:

@@ -1,4 +1,4 @@
-"""Forward and inverse kinematics of the LOMPR (CONTRACT section 1).
+"""Forward and inverse kinematics of the LOMPR (docs/interface.md, the robot).
 
 Four entry points, one per use:
 
@@ -69,7 +69,7 @@ class NonFiniteJointError(KinematicsError):
 
 
 class ToolPose(NamedTuple):
-    """Tool-tip pose in the world frame."""
+    """Tool-tip pose in the robot frame (lompr_base, Z down)."""
 
     position: np.ndarray  # (3,) [m]
     quaternion: np.ndarray  # (4,) x, y, z, w
@@ -282,7 +282,7 @@ class AllJoints:
         self.names: tuple[str, ...] = tuple(model.names[1:])
         data = model.createData()
         pin.forwardKinematics(model, data, pin.neutral(model))
-        #: World -> U-joint frame rotation of each branch (constant: the joints sit at q = 0).
+        #: Robot frame -> U-joint frame rotation of each branch (constant: the joints sit at q = 0).
         self._u_frames = tuple(
             data.oMi[model.getJointId(f'{branch}_u1')].rotation.T.copy()
             for branch in BRANCH_JOINTS)
@@ -346,7 +346,7 @@ def _rotate(trig: tuple[np.ndarray, ...], x: Any, y: Any, z: Any) -> tuple[Any, 
 def _branch_vectors(
     geometry: LomprGeometry, d: np.ndarray, trig: tuple[np.ndarray, ...]
 ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Per branch i, B_i in world as three (N,) component arrays, for UP-branch length d
+    """Per branch i, B_i in the robot frame as three (N,) component arrays, for UP-branch length d
     and trig = (cos alpha, sin alpha, cos beta, sin beta)."""
     return [_rotate(trig, bx, by, bz + d) for bx, by, bz in geometry.platform_anchors]
 
@@ -468,7 +468,7 @@ def inverse_kinematics(
     beta = np.arcsin(wrist[:, 0] / reach)
     alpha = np.arctan2(-wrist[:, 1], wrist[:, 2])
     d = reach - h1
-    # The world vertical seen in the platform frame: (-ca sb, sa, ca cb) = Rz(t1) Ry(t2) e_z.
+    # The vertical seen in the platform frame: (-ca sb, sa, ca cb) = Rz(t1) Ry(t2) e_z.
     ca, sa, sb = np.cos(alpha), np.sin(alpha), np.sin(beta)
     horizontal = np.hypot(ca * sb, sa)
     theta2 = np.arctan2(horizontal, ca * np.cos(beta))
@@ -535,7 +535,7 @@ class VerticalToolBranches:
 
     def at(self, x: float, y: float, z: float) -> tuple[float, float, float]:
         """The three branch lengths [m] for one tool tip [m]; NaN where the wrist is on the
-        world X axis (no tool-vertical posture, as NumPy's 0/0 gives offline)."""
+        robot frame's X axis (no tool-vertical posture, as NumPy's 0/0 gives offline)."""
         wy, wz = y, z - self._h2
         if wy * wy + wz * wz == 0.0:
             return math.nan, math.nan, math.nan

@@ -1,4 +1,4 @@
-"""The LOMPR's processing paths (CONTRACT section 4), sampled every 40 ms.
+"""The LOMPR's processing paths (docs/interface.md, paths), sampled every 40 ms.
 
 Six programs run on the mirror (a disk of radius 0.200 m at z = 1.097 m):
 
@@ -24,7 +24,8 @@ their jerk bounded). Every cycle but random's repeats exactly. The feed may vary
 (`feed_variation`): then each pass runs its geometry at a feed that speeds up and slows down
 along it, drawn anew for each pass (as a feed override and a CAM program's feed changes
 do), so that what the tool does next is not a function of where it is. Every sample is a
-tool-tip position in `world` [m] with the tool axis vertical. Corners of the grid and
+tool-tip position in the robot frame `lompr_base` (Z down) [m] with the tool axis
+vertical. Corners of the grid and
 concentric paths are rounded once by that moving average, and those passes start and end
 at rest (speed ramps over `ramp_time`), so commanded accelerations stay finite.
 """
@@ -37,7 +38,7 @@ from functools import partial
 
 import numpy as np
 
-#: Sample period of the paths and of everything recorded [s] (25 Hz, CONTRACT section 4).
+#: Sample period of the paths and of everything recorded [s] (25 Hz; docs/interface.md).
 SAMPLE_PERIOD = 0.04
 PATH_KINDS: tuple[str, ...] = ('spiral', 'grid', 'concentric', 'lissajous', 'radial', 'random')
 

@@ -6,7 +6,8 @@
 - `events_executor`: rclpy's `EventsExecutor` on a context; `make_executor` picks it or the
   `SingleThreadedExecutor` by name (`EXECUTORS`).
 - `run_node`: the `main()` of a node executable (ros2/demos style), with `--help` listing
-  the node's parameters and `--executor`.
+  the node's parameters and `--executor`; `report_on_rosout` puts a start-up error on
+  /rosout too.
 """
 
 from __future__ import annotations
@@ -23,19 +24,22 @@ from types import FrameType
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import Log
 from rclpy.context import Context
+from rclpy.duration import Duration
 from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.exceptions import InvalidTopicNameException, ParameterException
 from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
-from rclpy.qos import QoSProfile
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
 from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import Level, Status
+from lompr_predictor.ros.parameters import ParameterSpec
 
 
 def status_message(name: str, hardware_id: str, status: Status) -> DiagnosticStatus:
@@ -46,11 +50,20 @@ def status_message(name: str, hardware_id: str, status: Status) -> DiagnosticSta
         values=[KeyValue(key=str(k), value=str(v)) for k, v in status.values.items()])
 
 
-def status_prefix(node: Node) -> str:
-    """The node part of its diagnostic status names: the fully qualified name without the
-    leading slash, so 'kinematics_node' in the root namespace and 'cell1/kinematics_node'
-    in /cell1 (two robots on one /diagnostics stay apart)."""
-    return node.get_fully_qualified_name().lstrip('/')
+#: diagnostic_updater's parameter (its name, its default) choosing the status names' node part.
+USE_FQN_PARAMETER = 'diagnostic_updater.use_fqn'
+USE_FQN = ParameterSpec(
+    False, "diagnostic status names start with the node's fully qualified name "
+    '(/cell1/predictor_node: model), as with diagnostic_updater; false: with its name '
+    '(predictor_node: model)', read_only=True)
+
+
+def status_prefix(node: Node, fully_qualified: bool = False) -> str:
+    """The node part of its diagnostic status names, as diagnostic_updater writes it: the
+    node's name ('kinematics_node', in any namespace), or its fully qualified name
+    ('/cell1/kinematics_node') with `fully_qualified`, which keeps two robots on one
+    /diagnostics apart."""
+    return node.get_fully_qualified_name() if fully_qualified else node.get_name()
 
 
 class DiagnosticsPublisher:
@@ -60,7 +73,9 @@ class DiagnosticsPublisher:
     it may read the node's counters without locks. A provider that raises becomes an ERROR
     status naming the exception: diagnostics never take the node down.
     Status names are '<node>: <provider name>', as diagnostic_updater writes them, <node> being
-    the node's fully qualified name without its leading slash (`status_prefix`).
+    the node's name, or its fully qualified name if the node's `diagnostic_updater.use_fqn`
+    parameter is true (`status_prefix`); like diagnostic_updater's Updater, the publisher
+    declares that parameter on its node.
     """
 
     def __init__(
@@ -75,6 +90,11 @@ class DiagnosticsPublisher:
         `event_callbacks` of the publisher (a node base's QoS event counting)."""
         self._node = node
         self._hardware_id = hardware_id
+        if not node.has_parameter(USE_FQN_PARAMETER):
+            node.declare_parameter(USE_FQN_PARAMETER, USE_FQN.default,
+                                   USE_FQN.descriptor(USE_FQN_PARAMETER))
+        self._prefix = status_prefix(
+            node, bool(node.get_parameter(USE_FQN_PARAMETER).value))
         self._providers: list[tuple[str, Callable[[], Status]]] = []
         self.publisher = self._publisher = node.create_publisher(
             DiagnosticArray, topic, qos, qos_overriding_options=qos_overriding_options,
@@ -84,7 +104,7 @@ class DiagnosticsPublisher:
 
     def add(self, name: str, provider: Callable[[], Status]) -> None:
         """Register a status provider under `name`."""
-        self._providers.append((f'{status_prefix(self._node)}: {name}', provider))
+        self._providers.append((f'{self._prefix}: {name}', provider))
 
     def collect(self) -> DiagnosticArray:
         """Call every provider now and build the array (stamped with the node's clock)."""
@@ -159,6 +179,56 @@ class StopRequest:
         self.requested = True
 
 
+#: /rosout as rcl publishes it (its rosout default profile): a log viewer that joins a little
+#: later still gets the message while its publisher lives.
+ROSOUT_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                        lifespan=Duration(seconds=10))
+#: Seconds a failed executable waits for /rosout's subscribers (a log viewer, a recorder)
+#: to match its error message before it exits.
+ROSOUT_LINGER = 3.0
+
+
+def report_on_rosout(context: Context, node_name: str, text: str,
+                     linger: float = ROSOUT_LINGER) -> bool:
+    """Publish `text` as an ERROR on /rosout under the name of the node that could not start
+    (`node_name`, with the process's remappings and namespace), so that a log viewer or a
+    recorder of the robot sees it as well as the terminal does; then wait up to `linger`
+    seconds for the subscribers to match and acknowledge it. True if one did. A plain
+    message, not the node's logger, which would print the line on stderr a second time; a
+    report that fails is False, never an exception hiding the error it was to report."""
+    node: Node | None = None
+    try:
+        node = Node(node_name, context=context, enable_rosout=False,
+                    start_parameter_services=False)
+        publisher = node.create_publisher(Log, '/rosout', ROSOUT_QOS)
+        publisher.publish(Log(stamp=node.get_clock().now().to_msg(), level=Log.ERROR,
+                              name=node.get_logger().name, msg=text, file=__file__,
+                              function='run_node'))
+        deadline = time.monotonic() + linger
+        while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        matched = publisher.get_subscription_count() > 0
+        if matched:
+            publisher.wait_for_all_acked(Duration(seconds=max(deadline - time.monotonic(),
+                                                              0.1)))
+        return matched
+    except Exception:  # noqa: BLE001 - e.g. a name rcl refuses: stderr has the error already
+        return False
+    finally:
+        if node is not None:
+            node.destroy_node()
+
+
+def start_failed(prog: str, context: Context, err: Exception) -> int:
+    """Why the node(s) of `prog` could not start, as one line on stderr and an ERROR on
+    /rosout (`report_on_rosout`); the exit code, 2. Arguments rcl cannot parse leave it no
+    context to publish with: those are said on stderr only."""
+    print(f'{prog}: error: {err}', file=sys.stderr)
+    report_on_rosout(context, prog.removesuffix('.py'), str(err))
+    return 2
+
+
 def missing_params_files(argv: Sequence[str]) -> list[str]:
     """The files named by `--params-file` in `argv` that do not exist (rcl's own error does
     not say which)."""
@@ -181,7 +251,7 @@ def run_node(
     prints `description` and `parameters_help` (lines, see `node_base.node_help`). A
     `LomprError` (a bad model, a bad QoS override), a bad parameter or topic name while the
     node starts, or ROS arguments rcl cannot parse (`-p model_path:=`), is printed as one
-    line and exits with code 2.
+    line and exits with code 2 (`start_failed`: the node's errors on /rosout too).
     Uses the default context, whose SIGINT handler rclpy installs (a non-default context is
     not shut down by Ctrl-C), and by default an `events_executor` spun in `spin_once` steps
     of `SPIN_STEP` s: rclpy 7.1.6's `EventsExecutor.spin()` never returns to Python, so it

@@ -1,11 +1,12 @@
 """kinematics_node: measured joints (/joint_states) -> tool-tip pose (/lompr/end_pose).
 
 A thin node: it matches joints by name, calls `kinematics.ForwardKinematics.solve`, and
-publishes the pose with the JointState's own stamp in frame `world`. A sample it cannot
-answer (malformed message, missing joint, NaN/inf, branch out of stroke, head angle out of
-range, pose out of workspace, no convergence) gets no output: the reason is counted for
-/diagnostics, a throttled warning says what was wrong, and the next good sample is
-answered. A bad sample or a gap in the stamps restarts the FK warm start.
+publishes the pose with the JointState's own stamp in the robot frame (`lompr_base`, after
+`frame_prefix`). A sample it cannot answer (malformed message, missing joint, NaN/inf,
+branch out of stroke, head angle out of range, pose out of workspace, no convergence) gets
+no output: the reason is counted for /diagnostics, a throttled warning says what was wrong,
+and the next good sample is answered. A bad sample or a gap in the stamps restarts the FK
+warm start.
 
 Time: each JointState is answered when it arrives, whatever the clock says; its rates,
 throttled warnings and /diagnostics run on the node's clock (simulated time, from /clock,
@@ -44,7 +45,6 @@ from lompr_predictor.monitoring import (
 )
 from lompr_predictor.robot.description import (
     MEASURED_JOINTS,
-    WORLD_FRAME,
     joint_names_problem,
     load_robot_description,
 )
@@ -54,8 +54,8 @@ from lompr_predictor.ros.node_base import (
     OUTPUT_QOS,
     SENSOR_INPUT_QOS,
     Endpoint,
+    FrameSettings,
     NodeBase,
-    StatusSettings,
     node_help,
 )
 from lompr_predictor.ros.parameters import parameter
@@ -96,8 +96,8 @@ KINEMATICS_REASONS: Mapping[type[KinematicsError], JointStateDrop] = {
 
 
 @dataclass(frozen=True)
-class KinematicsNodeSettings(StatusSettings):
-    """The node's parameters: one field each (after the shared `StatusSettings`),
+class KinematicsNodeSettings(FrameSettings):
+    """The node's parameters: one field each (after the shared `FrameSettings`),
     declared by `NodeBase.declare_settings`."""
 
     robot_description_file: str = parameter(
@@ -117,8 +117,6 @@ class KinematicsNodeSettings(StatusSettings):
     full_joint_state_topic: str = parameter(
         'lompr/full_joint_states', 'JointState output of every joint (publish_full_joint_state)',
         read_only=True)
-    frame_id: str = parameter(WORLD_FRAME, 'header.frame_id of the end poses (the frame the '
-                              'robot description calls world)', read_only=True)
     warm_start_max_gap: float = parameter(
         0.5, 'stamp gap [s] above which (or a stamp going backwards) forward kinematics '
         'restarts from the nominal posture instead of extrapolating the last two solutions',
@@ -179,7 +177,7 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
         self._rejected_at_last_report = 0
 
         self._publisher = self.advertise(END_POSE)
-        self._pose_writer = PoseStampedWriter(settings.frame_id)
+        self._pose_writer = PoseStampedWriter(settings.frame)
         self._all_joints = AllJoints(self.description)
         self._full_publisher = (self.advertise(FULL_JOINT_STATES)
                                 if settings.publish_full_joint_state else None)

@@ -25,7 +25,8 @@ managed one alike:
   the node's `on_callback_failure` hook (the predictor empties its window and cancels its
   offset). A callback never ends the spin.
 - Diagnostics: `start_diagnostics(topic, period, hardware_id)` -> `DiagnosticsPublisher`,
-  with a `qos` status of its own (below).
+  with a `qos` status of its own (below); the `hardware_id` parameter, if set, replaces the
+  node's default (the robot's name).
 - QoS events: every publisher and subscription made here (and the /diagnostics publisher)
   counts incompatible-QoS events (a peer on its topic whose QoS cannot match: e.g. a
   reliable subscriber of a best-effort publisher) instead of rclpy's default log line,
@@ -77,7 +78,8 @@ from rclpy.topic_endpoint_info import TopicEndpointInfo
 
 from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import Level, LogThrottle, RateMeter, RejectionCounter, Status
-from lompr_predictor.ros.common import DiagnosticsPublisher
+from lompr_predictor.robot.description import ROBOT_FRAME
+from lompr_predictor.ros.common import USE_FQN, USE_FQN_PARAMETER, DiagnosticsPublisher
 from lompr_predictor.ros.parameters import (
     ParameterSpec,
     changes_problem,
@@ -118,6 +120,29 @@ class StatusSettings:
                                           minimum=0.05, maximum=60.0, read_only=True)
     rate_window: float = parameter(5.0, 'seconds over which the rates on /diagnostics are '
                                    'averaged', minimum=0.1, maximum=600.0, read_only=True)
+    hardware_id: str = parameter(
+        '', "hardware_id of the node's diagnostic statuses (the device they are about); "
+        "empty: the name of the robot description's <robot>", read_only=True)
+
+
+@dataclass(frozen=True)
+class FrameSettings(StatusSettings):
+    """`StatusSettings` and the frame of a node whose messages carry poses or vectors: the
+    robot frame (Z down, docs/interface.md), optionally prefixed for a cell that shares its
+    TF tree with others, as robot_state_publisher's `frame_prefix` does."""
+
+    frame_id: str = parameter(
+        ROBOT_FRAME, 'the robot frame (Z down): header.frame_id (after frame_prefix) of every '
+        'pose and vector the node publishes and reads; an input in another frame is dropped',
+        read_only=True)
+    frame_prefix: str = parameter(
+        '', "prefix of frame_id, as robot_state_publisher's frame_prefix (e.g. cell1/): cells "
+        'on one TF tree keep their frames apart', read_only=True)
+
+    @property
+    def frame(self) -> str:
+        """The frame the node's messages carry: frame_prefix + frame_id."""
+        return f'{self.frame_prefix}{self.frame_id}'
 
 
 if TYPE_CHECKING:
@@ -433,9 +458,11 @@ class NodeBase(_NodeType, Generic[S]):
 
     def start_diagnostics(self, topic: str, period: float,
                           hardware_id: str = '') -> DiagnosticsPublisher:
-        """A `DiagnosticsPublisher` on `topic` (QoS overridable), every `period` seconds."""
+        """A `DiagnosticsPublisher` on `topic` (QoS overridable), every `period` seconds, its
+        statuses about the `hardware_id` parameter, else `hardware_id`."""
         diagnostics = DiagnosticsPublisher(
-            self, topic, period, hardware_id=hardware_id, qos=copy.copy(DIAGNOSTICS_QOS),
+            self, topic, period, hardware_id=getattr(self.settings, 'hardware_id', '')
+            or hardware_id, qos=copy.copy(DIAGNOSTICS_QOS),
             qos_overriding_options=QOS_OVERRIDING, guard=self.guard,
             event_callbacks=self.publisher_events(topic))
         self._endpoints.append(diagnostics.publisher)
@@ -458,4 +485,5 @@ def node_help(settings_type: type, endpoints: Sequence[Endpoint] = ()) -> list[s
         diagnostics = Endpoint('publisher', None, 'diagnostics_topic', DIAGNOSTICS_QOS,
                                'diagnostics')
         lines.append(diagnostics.help_line(settings_type))
+        lines.append(USE_FQN.help_line(USE_FQN_PARAMETER))
     return lines

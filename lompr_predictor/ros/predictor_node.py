@@ -22,6 +22,7 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 
 from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import LatencyRecorder
+from lompr_predictor.online.alignment import DropReason
 from lompr_predictor.online.guard import LiveGuard
 from lompr_predictor.online.inference import Backend
 from lompr_predictor.online.model_loader import (
@@ -54,7 +55,14 @@ from lompr_predictor.ros.predictor_settings import (
     REFERENCE_PREVIEW,
     PredictorNodeSettings,
 )
-from lompr_predictor.ros.wire import WireError, read_path, read_pose_stamped
+from lompr_predictor.ros.wire import (
+    WireError,
+    frame_field,
+    pose_frame_id,
+    pose_in_frame,
+    read_path,
+    read_pose_stamped,
+)
 from lompr_predictor.stamps import Stamp
 from lompr_predictor.threads import set_torch_threads
 
@@ -86,7 +94,8 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self.pose_rate = self.rate_meter(settings.rate_window)
         self.reference_rate = self.rate_meter(settings.rate_window)
         self.preview_rate = self.rate_meter(settings.rate_window)
-        self.outputs = OutputPublisher(settings.frame_id, self.rate_meter(settings.rate_window),
+        self._frame_field = frame_field(settings.frame)  # the inputs' frame (read-only)
+        self.outputs = OutputPublisher(settings.frame, self.rate_meter(settings.rate_window),
                                        LatencyRecorder(settings.latency_samples),
                                        self.warn_throttled)
         self.diagnostics = PredictorDiagnostics(
@@ -213,23 +222,40 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
     # -- callbacks (run through NodeBase.guard: a failure aborts the core) -----------------
 
     def on_end_pose(self, msg: bytes) -> None:
-        """One serialized PoseStamped (the subscriptions are raw: `wire`)."""
+        """One serialized PoseStamped (the subscriptions are raw: `wire`); one in another
+        frame than the node's is dropped and counted (`wrong_frame`)."""
         start = time.perf_counter()
         self.pose_rate.tick()
         if self._core is None or not self.active:
             self.dropped_inactive += 1
             return
+        if not self._in_frame(msg, DropReason.WRONG_FRAME, 'end pose'):
+            return
         sec, nanosec, x, y, _ = read_pose_stamped(msg)
         self.outputs.publish(self._core.add_pose(Stamp(sec, nanosec), x, y), start)
 
     def on_reference(self, msg: bytes) -> None:
+        """One serialized reference PoseStamped; in another frame: dropped and counted
+        (`reference_wrong_frame`), never used as if it were the robot's."""
         start = time.perf_counter()
         self.reference_rate.tick()
         if self._core is None or not self.active:
             self.dropped_inactive += 1
             return
+        if not self._in_frame(msg, DropReason.REFERENCE_WRONG_FRAME, 'reference'):
+            return
         sec, nanosec, x, y, z = read_pose_stamped(msg)
         self.outputs.publish(self._core.add_reference(Stamp(sec, nanosec), x, y, z), start)
+
+    def _in_frame(self, msg: bytes, reason: DropReason, what: str) -> bool:
+        """Whether a pose is in the node's frame; if not, counted under `reason` and said
+        (throttled) with both frames."""
+        if pose_in_frame(msg, self._frame_field):
+            return True
+        self.core.dropped.add(reason)
+        self.warn_throttled(reason, f'{what} in frame {pose_frame_id(msg)!r} dropped: this node '
+                                    f'works in {self.settings.frame!r} (frame_id, frame_prefix)')
+        return False
 
     def on_reference_preview(self, msg: bytes) -> None:
         """One serialized planned path: refused whole (counted) if unreadable, in another
@@ -240,7 +266,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             self.dropped_inactive += 1
             return
         try:
-            plan = read_path(msg, self.settings.frame_id)
+            plan = read_path(msg, self.settings.frame)
         except WireError:
             self._core.plan.dropped.add(PreviewDrop.UNREADABLE)
             return

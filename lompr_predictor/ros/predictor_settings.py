@@ -13,20 +13,19 @@ from lompr_predictor.online.faults import StreamSettings
 from lompr_predictor.online.guard import GuardSettings
 from lompr_predictor.online.inference import Backend
 from lompr_predictor.online.offset import CompensationLimits
-from lompr_predictor.robot.description import WORLD_FRAME
 from lompr_predictor.ros.node_base import (
     OUTPUT_QOS,
     SENSOR_INPUT_QOS,
     Endpoint,
-    StatusSettings,
+    FrameSettings,
 )
 from lompr_predictor.ros.parameters import parameter
 from lompr_predictor.stamps import GAP_FACTOR
 
 
 @dataclass(frozen=True)
-class PredictorNodeSettings(StatusSettings):
-    """The node's parameters: one field each (after the shared `StatusSettings`),
+class PredictorNodeSettings(FrameSettings):
+    """The node's parameters: one field each (after the shared `FrameSettings`),
     declared by `NodeBase.declare_settings`."""
 
     autostart: bool = parameter(
@@ -52,8 +51,8 @@ class PredictorNodeSettings(StatusSettings):
         'empty, the MODEL.sha256 file lompr train writes beside it; false (development '
         'only): load an unverified file', read_only=True)
     compensation_enabled: bool = parameter(
-        True, 'publish the offset; false: shadow mode, predictions go on and every offset is '
-        'zero')
+        False, 'publish the offset; false (the default: shadow mode first): predictions go '
+        'on and every offset is zero')
     max_compensation: float = parameter(
         5e-4, 'largest offset [m] (XY norm); the offset is clamped to it', minimum=0.0,
         maximum=0.01)
@@ -103,7 +102,6 @@ class PredictorNodeSettings(StatusSettings):
         'lompr/predicted_error', 'Vector3Stamped predicted X/Y error output', read_only=True)
     compensation_topic: str = parameter(
         'lompr/compensation', 'Vector3Stamped compensation offset output', read_only=True)
-    frame_id: str = parameter(WORLD_FRAME, 'header.frame_id of the outputs', read_only=True)
     inference_backend: str = parameter(
         'auto', 'what runs the network: onnxruntime (an ONNX graph exported from the verified '
         'model file at configure, used only if it agrees with TorchScript to 1e-6 relative on '

@@ -2,14 +2,14 @@
 
 Publishes the measured joints (/joint_states) and the nominal commanded tool tip
 (/lompr/reference) of each sample, stamped on the simulated clock, and applies the
-feedforward offsets of /lompr/compensation by stamp (CONTRACT section 3): an offset is
+feedforward offsets of /lompr/compensation by stamp (docs/interface.md, the error): an offset is
 used at the instant it names, and dropped like a real controller drops it when it arrives
 after that instant, waited longer than `compensation_timeout`, is off the sample grid,
 non-finite or larger than `max_compensation`. For scoring it publishes, per sample, its true
 error (tool tip - reference) and its plant error (tool tip - reference - offset applied).
 
 With `preview_samples` K > 0 it also publishes, with each sample, the path it will command
-for the next K samples (/lompr/reference_preview, CONTRACT section 2), as a path generator
+for the next K samples (/lompr/reference_preview, docs/interface.md), as a path generator
 with look-ahead does: each pose stamped with the instant it is commanded for.
 
 Modes: `realtime` runs a sample every sample period divided by `speed_factor` (faster or
@@ -51,15 +51,15 @@ from lompr_predictor.monitoring import (
     latency_values,
     rejection_values,
 )
-from lompr_predictor.robot.description import MEASURED_JOINTS, WORLD_FRAME, load_robot_description
+from lompr_predictor.robot.description import MEASURED_JOINTS, load_robot_description
 from lompr_predictor.robot.paths import PATH_KINDS
 from lompr_predictor.ros.common import run_node
 from lompr_predictor.ros.node_base import (
     COMMAND_INPUT_QOS,
     OUTPUT_QOS,
     Endpoint,
+    FrameSettings,
     NodeBase,
-    StatusSettings,
     node_help,
 )
 from lompr_predictor.ros.parameters import parameter
@@ -74,8 +74,8 @@ MODES = ('realtime', 'lockstep')
 
 
 @dataclass(frozen=True)
-class TwinNodeSettings(StatusSettings):
-    """The node's parameters: one field each (after the shared `StatusSettings`),
+class TwinNodeSettings(FrameSettings):
+    """The node's parameters: one field each (after the shared `FrameSettings`),
     declared by `NodeBase.declare_settings`."""
 
     robot_description_file: str = parameter(
@@ -148,8 +148,6 @@ class TwinNodeSettings(StatusSettings):
     reference_preview_topic: str = parameter(
         'lompr/reference_preview', 'nav_msgs/Path output: the planned reference of the next '
         'preview_samples samples, each pose stamped with its instant', read_only=True)
-    frame_id: str = parameter(WORLD_FRAME, 'header.frame_id of the reference and the errors',
-                              read_only=True)
 
 
 JOINT_STATES = Endpoint('publisher', JointState, 'joint_state_topic', OUTPUT_QOS,
@@ -311,10 +309,10 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
         self._joint_publisher.publish(joints)
         reference = PoseStamped()
         reference.header.stamp = stamp
-        reference.header.frame_id = self.settings.frame_id
+        reference.header.frame_id = self.settings.frame
         position = reference.pose.position
         position.x, position.y, position.z = (float(v) for v in samples.reference[0])
-        reference.pose.orientation.w = 1.0  # tool axis along world +Z
+        reference.pose.orientation.w = 1.0  # tool axis along the robot frame's +Z (down)
         self._reference_publisher.publish(reference)
         if self._preview_publisher is not None:
             self._preview_publisher.publish(self._preview(stamp))
@@ -322,7 +320,7 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
                                  (self._plant_error_publisher, samples.plant_error_true[0])):
             out = Vector3Stamped()
             out.header.stamp = stamp
-            out.header.frame_id = self.settings.frame_id
+            out.header.frame_id = self.settings.frame
             out.vector.x, out.vector.y, out.vector.z = (float(v) for v in error)
             publisher.publish(out)
 
@@ -332,11 +330,11 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
         stamps, positions = self.twin.planned(self.settings.preview_samples)
         preview = Path()
         preview.header.stamp = stamp
-        preview.header.frame_id = self.settings.frame_id
+        preview.header.frame_id = self.settings.frame
         for ns, xyz in zip(stamps.tolist(), positions.tolist(), strict=True):
             pose = PoseStamped()
             pose.header.stamp = self._stamp(ns)
-            pose.header.frame_id = self.settings.frame_id
+            pose.header.frame_id = self.settings.frame
             pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = xyz
             pose.pose.orientation.w = 1.0
             preview.poses.append(pose)

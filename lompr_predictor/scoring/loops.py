@@ -192,14 +192,15 @@ def common_instants(stamps: Mapping[str, np.ndarray], tolerance_ns: float) -> di
 
 
 def _scored_bag(bag: str | Path, geometry: Any, cleaning: Any, topics: tuple[str, str],
-                ) -> tuple[np.ndarray, np.ndarray, Any, float]:
+                frame: str) -> tuple[np.ndarray, np.ndarray, Any, float]:
     """The measured error and stamps of one closed-loop bag, its truth (None without one)
     and its sample period [s]: with a truth beside it, only the passes after the lead-in,
     which the demo scores."""
     from lompr_predictor.data.bags import read_bags
     from lompr_predictor.data.cleaning import clean_recordings
 
-    recordings, _ = read_bags([bag], joint_topic=topics[0], reference_topic=topics[1])
+    recordings, _ = read_bags([bag], joint_topic=topics[0], reference_topic=topics[1],
+                              frame=frame)
     data = clean_recordings(recordings, geometry, cleaning)
     truth = read_loop_truth(bag)
     keep = np.ones(len(data.stamps), dtype=bool)
@@ -212,7 +213,7 @@ def _scored_bag(bag: str | Path, geometry: Any, cleaning: Any, topics: tuple[str
 
 
 def evaluate_loop_bags(bags: Sequence[str | Path], *, geometry: Any, cleaning: Any,
-                       joint_topic: str, reference_topic: str,
+                       joint_topic: str, reference_topic: str, frame: str,
                        report: str | Path) -> dict[str, Any]:
     """Score closed-loop recordings of the same passes, the first the baseline (no
     compensation): the measured error FK(recorded joints) - reference of each bag, read and
@@ -234,7 +235,7 @@ def evaluate_loop_bags(bags: Sequence[str | Path], *, geometry: Any, cleaning: A
     period = np.inf  # [s] the shortest sample period among the bags
     for name, bag in zip(names, bags, strict=False):
         measured[name], stamps[name], truths[name], bag_period = _scored_bag(
-            bag, geometry, cleaning, (joint_topic, reference_topic))
+            bag, geometry, cleaning, (joint_topic, reference_topic), frame)
         period = min(period, bag_period)
     rows = common_instants(stamps, 0.5 * period * NS_PER_SECOND)
     measured = {name: error[rows[name]] for name, error in measured.items()}

@@ -1,7 +1,7 @@
 """Compensation offsets waiting for their instant, as a real controller keeps them.
 
-An offset is stamped with the sample instant it is for (CONTRACT section 3). The controller
-applies it when it executes that instant, and drops it, counting why, when it:
+An offset is stamped with the sample instant it is for (docs/interface.md, the error). The
+controller applies it when it executes that instant, and drops it, counting why, when it:
 
 - `late`: arrives for an instant already executed (or being executed);
 - `stale`: waited longer than the timeout between its arrival and its instant;

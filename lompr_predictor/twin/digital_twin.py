@@ -1,7 +1,7 @@
 """The digital twin as a sample stream: path, compensation, plant, true tool tip.
 
 `DigitalTwin.step(count, compensation)` runs the next `count` samples of the endless path:
-the commanded tool tip is reference + compensation (CONTRACT section 3), the plant moves
+the commanded tool tip is reference + compensation (docs/interface.md, the error), the plant moves
 the joints, and forward kinematics of the actual joints gives where the tool really was.
 The offline recorder calls it a pass at a time with no compensation; the live node calls it
 one sample at a time with the compensation that arrived for that sample.

@@ -129,12 +129,12 @@ def gravity_axial_forces(geometry: LomprGeometry, up: np.ndarray, weight: float,
 
     Equilibrium of the platform: the three branch forces along their axes, the passive UP
     branch's two forces through O perpendicular to its axis and its moment about its axis,
-    and the weight (world +Z is down) at the centre of mass on the UP axis.
+    and the weight (the robot frame's +Z is down) at the centre of mass on the UP axis.
     """
     rotation = rotation_matrices(up)
     axis = rotation[:, :, 2]
     anchors = geometry.platform_anchors @ rotation.transpose(0, 2, 1)  # (N, 3, 3) R b_i
-    points = up[:, None, 2:3] * axis[:, None, :] + anchors  # B_i in world
+    points = up[:, None, 2:3] * axis[:, None, :] + anchors  # B_i in the robot frame
     directions = points - geometry.base_anchors[None]
     directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
     count = len(up)

@@ -1,9 +1,9 @@
 """A twin run as a rosbag2 directory, with its ground truth inside the same directory.
 
 The bag holds `/joint_states` (the measured joints by name, `MEASURED_JOINTS`) and
-`/lompr/reference` (the nominal commanded tool tip in `world`, tool axis along +Z: identity
-orientation), one message each per sample, stamped on the simulated clock (CONTRACT
-section 2). Beside the bag's own files:
+`/lompr/reference` (the nominal commanded tool tip in the robot frame `lompr_base`, tool axis
+along its +Z, down: identity orientation), one message each per sample, stamped on the
+simulated clock (docs/interface.md, topics). Beside the bag's own files:
 
 - `lompr_ground_truth.npz`: per sample of the clean run (before faults), `stamps` (N,) int64
   ns; `reference`, `compensation`, `error_true`, `error_deterministic`, `error_measured`
