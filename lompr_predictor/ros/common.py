@@ -281,12 +281,7 @@ def run_node(
     events = args.executor == 'events'
     stop = StopRequest() if events else None
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO if events else None)
-    try:
-        _spin(node_factory, args.executor, stop)
-    except (LomprError, ParameterException, InvalidTopicNameException) as err:
-        print(f'{parser.prog}: error: {err}', file=sys.stderr)
-        return 2
-    return 0
+    return _spin(node_factory, args.executor, stop, parser.prog)
 
 
 def _plain_arguments(prog: str, argv: list[str]) -> list[str] | None:
@@ -306,9 +301,11 @@ def _plain_arguments(prog: str, argv: list[str]) -> list[str] | None:
 
 
 def _spin(node_factory: Callable[[Context], Node | Sequence[Node]], executor_name: str,
-          stop: StopRequest | None) -> None:
+          stop: StopRequest | None, prog: str) -> int:
     """Build the node(s) on the default context and spin them until Ctrl-C, shutdown or a
-    `stop` request (`run_node`); then destroy them and shut the context down."""
+    `stop` request (`run_node`); then destroy them and shut the context down. The exit code:
+    0, or 2 for a node that could not start (`start_failed`, while the context still lives,
+    so that its error reaches /rosout)."""
     context = rclpy.get_default_context()
     nodes: Sequence[Node] = ()
     executor: Executor | None = None
@@ -325,6 +322,8 @@ def _spin(node_factory: Callable[[Context], Node | Sequence[Node]], executor_nam
             executor.spin_once(timeout_sec=SPIN_STEP)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except (LomprError, ParameterException, InvalidTopicNameException) as err:
+        return start_failed(prog, context, err)
     finally:
         # The executor goes first, while the nodes and the context it serves still exist.
         if executor is not None:
@@ -332,3 +331,4 @@ def _spin(node_factory: Callable[[Context], Node | Sequence[Node]], executor_nam
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown(context=context)
+    return 0
