@@ -22,6 +22,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
 from bench_predictor import HIDDEN, WINDOW, core_stream, spiral_joints, timing_module
 
 from lompr_predictor.data.features import TARGETS, feature_names, feature_rows
