@@ -18,7 +18,7 @@ from lompr_predictor.monitoring import RateMeter
 from lompr_predictor.online.offset import CompensationLimits, Output
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_status import Lifecycle, preview_status
-from lompr_predictor.online.preview import PlannedPath, PreviewDrop
+from lompr_predictor.online.preview import PLAN_REACH, PlannedPath, PreviewDrop
 from lompr_predictor.robot.description import load_robot_description
 from lompr_predictor.robot.kinematics import VerticalToolBranches
 
@@ -211,3 +211,74 @@ def test_a_fallback_must_read_no_preview_and_predict_the_same_instant(
     with pytest.raises(MetadataMismatchError, match="'preview' is 3"):
         OnlinePredictor(preview_model, stream(), limits, clock=FakeClock().ns,
                         fallback=(preview_model, None))
+
+
+@pytest.mark.faults
+def test_a_reference_stream_going_back_starts_a_new_plan(preview_model: LoadedModel) -> None:
+    """The reference restarting from earlier stamps with no clock jump (a path generator on
+    wall time replaying its program): the plan starts again with it."""
+    n = 40
+    stamps, reference, tips = path(n + PLANNED_AHEAD)
+    clock = FakeClock()
+    core = core_of(preview_model, clock)
+    first = feed(core, clock, stamps, reference, tips, range(n))
+    again = feed(core, clock, stamps, reference, tips, range(n))
+    answered = [o for o in again if o.reason is None]
+    # the first preview of the replay is past the old run's references; the plan restarts
+    # with the replay's first reference and the window refills one sample later
+    assert [o.instant_ns for o in answered] == [o.instant_ns for o in first[1:]]
+    assert core.plan.dropped['past'] == 1
+
+
+@pytest.mark.faults
+def test_a_path_generator_whose_clock_runs_ahead_plans_nothing(
+        preview_model: LoadedModel) -> None:
+    """Previews planned an hour ahead of the reference are refused whole (counted 'ahead'),
+    so the plan stays empty and the status says the model cannot predict, instead of a plan
+    growing by one instant a sample that every preview copies."""
+    n = 200
+    stamps, reference, tips = path(n + PLANNED_AHEAD)
+    clock = FakeClock()
+    core = core_of(preview_model, clock)
+    hour = 3600 * 10 ** 9
+    outputs = []
+    for k in range(n):
+        clock.now += PERIOD
+        ahead = slice(k + 1, k + 1 + PLANNED_AHEAD)
+        core.add_preview(stamps[ahead] + hour, reference[ahead])
+        outputs += core.add_reference(int(stamps[k]), *reference[k])
+        outputs += core.add_pose(int(stamps[k]), *tips[k])
+    assert outputs == [] and core.plan.horizon_ns is None
+    # the first preview, before any reference, was taken; the first reference let it go
+    assert core.plan.dropped['ahead'] == n - 1
+    status = preview_status(ACTIVE, core, RateMeter(clock=clock), '/lompr/reference_preview',
+                            core.plan.dropped['missing'])
+    assert status.level.name == 'ERROR' and status.values['rejected.ahead'] == n - 1
+
+
+@pytest.mark.faults
+def test_the_plan_is_bounded_and_a_long_look_ahead_changes_no_prediction(
+        preview_model: LoadedModel) -> None:
+    """A look-ahead of 10 s with every sample: the plan holds at most `PLAN_REACH` beyond
+    what the model reads ahead of the newest reference, and the predictions are those of the
+    short preview. Previews without any reference: the plan holds the newest alone."""
+    n, ahead = 40, 250  # 250 samples at 25 Hz: 10 s
+    stamps, reference, tips = path(n + ahead + 1)
+    clock = FakeClock()
+    short = feed(core_of(preview_model, clock), clock, stamps, reference, tips, range(n))
+    core = core_of(preview_model, clock)
+    outputs = []
+    for k in range(n):
+        clock.now += PERIOD
+        planned = slice(k + 1, k + 1 + ahead)
+        assert core.add_preview(stamps[planned], reference[planned]) is None
+        outputs += core.add_reference(int(stamps[k]), *reference[k])
+        outputs += core.add_pose(int(stamps[k]), *tips[k])
+        reach = int(stamps[k]) + PREVIEW * PERIOD_NS + round(PLAN_REACH * 1e9)
+        assert 0 < core.plan.horizon_ns <= reach  # type: ignore[operator]
+    assert outputs == short
+    alone = core_of(preview_model, clock).plan
+    stamps, reference, _ = path(300 + PLANNED_AHEAD)
+    for k in range(300):
+        alone.add(stamps[k:k + PLANNED_AHEAD], reference[k:k + PLANNED_AHEAD])
+    assert alone.at(int(stamps[0])) is None and alone.at(int(stamps[299])) is not None
