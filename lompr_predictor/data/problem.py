@@ -58,11 +58,13 @@ class Split:
 
 def chronological_split(n_rows: int, ends: np.ndarray, horizon: int, *,
                         test_fraction: float = TEST_FRACTION,
-                        validation_fraction: float = VALIDATION_FRACTION) -> Split:
+                        validation_fraction: float = VALIDATION_FRACTION,
+                        preview: int = 0) -> Split:
     """Split by time: the last `test_fraction` of the rows is the test part; the last
     `validation_fraction` of the rest validates. A window belongs to the part of its
     predicted row, and a training or validation window's target row always precedes the
-    test part (its inputs, being earlier still, too)."""
+    test part (its inputs, being earlier still, too). `preview`: the windows' preview (for
+    the message when a part is empty)."""
     if not 0 < test_fraction < 1 or not 0 < validation_fraction < 1:
         msg = 'test and validation fractions must lie in (0, 1)'
         raise ValueError(msg)
@@ -75,11 +77,18 @@ def chronological_split(n_rows: int, ends: np.ndarray, horizon: int, *,
                   validation_start=validation_start, test_start=test_start)
     for name in ('train', 'validation', 'test'):
         if len(getattr(split, name)) == 0:
-            msg = (f'no {name} windows: {n_rows} clean samples are too few for this window '
-                   f'(--window) and horizon {horizon} (--horizon), or the gaps leave no '
-                   f'segment long enough')
-            raise ProblemError(msg)
+            raise ProblemError(f'no {name} windows: {n_rows} clean samples are too few '
+                               f'{_for_windows(horizon, preview)}')
     return split
+
+
+def _for_windows(horizon: int, preview: int) -> str:
+    """The end of a 'too few samples' message: the options that make a window this long,
+    naming --preview where it, not the horizon, reaches furthest past a window."""
+    reach = (f'horizon {horizon} (--horizon)' if preview <= horizon else
+             f'preview {preview} (--preview: every window also needs the {preview} samples '
+             'after it)')
+    return f'for this window (--window) and {reach}, or the gaps leave no segment long enough'
 
 
 def minmax_range(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -134,7 +143,7 @@ def build_problem(data: CleanData, window: int = DEFAULT_WINDOW,
     preview block of `preview` samples in the rows (0: none)."""
     ends = window_ends(data.regular_runs(), window, horizon, preview)
     split = chronological_split(len(data), ends, horizon, test_fraction=test_fraction,
-                                validation_fraction=validation_fraction)
+                                validation_fraction=validation_fraction, preview=preview)
     error_low, error_high = minmax_range(data.error[:split.test_start])
     return LearningProblem(rows=data.features(preview), error=data.error, stamps=data.stamps,
                            window=window, horizon=horizon, sample_period=data.sample_period,
@@ -159,9 +168,8 @@ def train_test_problem(train: CleanData, test: CleanData, window: int = DEFAULT_
                   validation_start=validation_start, test_start=n_train)
     for name in ('train', 'validation', 'test'):
         if len(getattr(split, name)) == 0:
-            msg = (f'no {name} windows: the recordings are too short for window {window} and '
-                   f'horizon {horizon} (or the gaps leave no segment long enough)')
-            raise ValueError(msg)
+            raise ProblemError(f'no {name} windows: the recordings are too short '
+                               f'{_for_windows(horizon, preview)}')
     error_low, error_high = minmax_range(train.error)
     return LearningProblem(rows=np.vstack([train.features(preview), test.features(preview)]),
                            error=np.vstack([train.error, test.error]),
