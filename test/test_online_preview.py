@@ -231,6 +231,31 @@ def test_a_reference_stream_going_back_starts_a_new_plan(preview_model: LoadedMo
 
 
 @pytest.mark.faults
+def test_poses_lagging_the_reference_beyond_the_lead_still_find_their_plan(
+        preview_model: LoadedModel) -> None:
+    """The poses come later than the reference and the previews (they go through the
+    kinematics node): the plan keeps what they still read, whatever the lag, and the
+    predictions are those of poses in step with the reference."""
+    n, lag = 40, 2 * PREVIEW + 1  # samples the poses lag: more than the model reads ahead
+    stamps, reference, tips = path(n + PLANNED_AHEAD)
+    clock = FakeClock()
+    in_step = feed(core_of(preview_model, clock), clock, stamps, reference, tips, range(n))
+    core = core_of(preview_model, clock)
+    outputs = []
+    for k in range(n + lag):
+        clock.now += PERIOD
+        if k < n:
+            core.add_preview(stamps[k + 1:k + 1 + PLANNED_AHEAD],
+                             reference[k + 1:k + 1 + PLANNED_AHEAD])
+            outputs += core.add_reference(int(stamps[k]), *reference[k])
+        if k >= lag:
+            outputs += core.add_pose(int(stamps[k - lag]), *tips[k - lag])
+    assert [(o.instant_ns, o.prediction) for o in outputs] == [
+        (o.instant_ns, o.prediction) for o in in_step]
+    assert core.plan.dropped['missing'] == 0
+
+
+@pytest.mark.faults
 def test_a_path_generator_whose_clock_runs_ahead_plans_nothing(
         preview_model: LoadedModel) -> None:
     """Previews planned an hour ahead of the reference are refused whole (counted 'ahead'),

@@ -9,9 +9,10 @@ after the newest reference. The reference actually commanded is checked against 
 dropped, since the instants it covered were predicted from a path that will not happen.
 
 The plan is bounded: it reaches at most `PLAN_REACH` beyond the instant the model reads
-ahead of the newest reference, and lets go of what lies before that reference. It starts
-again (`restart`) when the streams do: a clock gone back, a node reactivated, a reference
-going back.
+ahead of the newest reference, and `PLAN_REACH` before that reference, since the poses come
+later than the reference (through the kinematics node); what the samples have read and the
+references have checked is let go. It starts again (`restart`) when the streams do: a
+clock gone back, a node reactivated, a reference going back.
 """
 
 from __future__ import annotations
@@ -27,11 +28,11 @@ from lompr_predictor.stamps import period_ns
 XYZ = tuple[float, float, float]
 
 #: How far [s] the plan reaches beyond the instant a model reads ahead of the newest
-#: reference. A look-ahead plans the coming samples, a fraction of a second of motion:
-#: instants further out are planned again by a later preview before any sample reads them,
-#: and a preview that starts beyond comes from a path generator whose clock runs ahead of
-#: the reference's (refused, 'ahead'); either way the plan, which every preview copies,
-#: stays small.
+#: reference, and before that reference. A look-ahead plans the coming samples, a fraction
+#: of a second of motion: instants further out are planned again by a later preview before
+#: any sample reads them, and a preview that starts beyond comes from a path generator whose
+#: clock runs ahead of the reference's (refused, 'ahead'); a pose that lags the reference by
+#: more is stale. Either way the plan, which every preview copies, stays small.
 PLAN_REACH = 1.0
 
 
@@ -116,18 +117,14 @@ class PlannedPath:
     def check(self, stamp_ns: int, x: float, y: float, z: float) -> bool:
         """The reference commanded at `stamp_ns`: False (and the plan dropped, counted as
         contradicted) if the plan covers that instant elsewhere than `tolerance` allows;
-        the plan before it is let go, and the plan beyond its reach (`max_ahead_ns`). A
-        reference before the newest one starts the plan again (`restart`): the reference
-        stream restarted."""
+        the plan more than `PLAN_REACH` before it, and beyond its reach (`max_ahead_ns`), is
+        let go. A reference before the newest one starts the plan again (`restart`): the
+        reference stream restarted."""
         if stamp_ns < self._newest_reference_ns:
             self.restart()
         self._newest_reference_ns = stamp_ns
         planned = self.at(stamp_ns)
-        # keep the instant before: it brackets instants after the reference
-        cut = max(int(np.searchsorted(self._stamps, stamp_ns)) - 1, 0)
-        end = int(np.searchsorted(self._stamps, stamp_ns + self.max_ahead_ns, side='right'))
-        if cut > 0 or end < len(self._stamps):
-            self._stamps, self._positions = self._stamps[cut:end], self._positions[cut:end]
+        self._keep(stamp_ns - period_ns(PLAN_REACH), stamp_ns + self.max_ahead_ns)
         if planned is None:
             return True
         px, py, pz = planned
@@ -136,6 +133,20 @@ class PlannedPath:
         self.dropped.add(PreviewDrop.CONTRADICTED)
         self.clear()
         return False
+
+    def read(self, instant_ns: int) -> None:
+        """A sample read the plan at `instant_ns` (the samples come in stamp order): the plan
+        before it is let go, but not the instants the references still check it at."""
+        self._keep(min(instant_ns, self._newest_reference_ns))
+
+    def _keep(self, first_ns: int, last_ns: int | None = None) -> None:
+        """Let go of the plan before `first_ns` (but the instant before it, which brackets
+        it) and after `last_ns` (None: nothing after)."""
+        stamps = self._stamps
+        cut = max(int(np.searchsorted(stamps, first_ns)) - 1, 0)
+        end = len(stamps) if last_ns is None else int(np.searchsorted(stamps, last_ns, 'right'))
+        if cut > 0 or end < len(stamps):
+            self._stamps, self._positions = stamps[cut:end], self._positions[cut:end]
 
     def clear(self) -> None:
         """Forget the plan (the next preview starts a new one)."""
@@ -196,6 +207,7 @@ class PlanReader:
         used at `now_ns`; None (counted) where the plan does not reach it."""
         instant_ns = stamp_ns + self.lead_ns
         position = self.plan.at(instant_ns)
+        self.plan.read(instant_ns)
         if position is not None:
             self._planned_ns = now_ns
             self.stale = False
