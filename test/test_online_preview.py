@@ -169,8 +169,10 @@ def test_a_plan_the_reference_contradicts_is_dropped_and_the_window_refills(
     assert core.plan.dropped.counts()['contradicted'] == 1
     # sample 21's reference contradicts the plan: it is dropped (the newer preview with it)
     # and sample 22 starts a new run of planned rows; the rows built on the wrong plan are
-    # never read, answers resume once a window of new ones is full
-    assert outputs[0].instant_ns == stamps[22 + WINDOW + 1] + HORIZON * PERIOD_NS
+    # never read, answers resume once a window of new ones is full (after the zeros that
+    # cancel what was predicted from the plan)
+    assert {o.reason for o in outputs[:HORIZON]} == {PreviewDrop.CONTRADICTED}
+    assert outputs[HORIZON].instant_ns == stamps[22 + WINDOW + 1] + HORIZON * PERIOD_NS
 
 
 
@@ -307,3 +309,49 @@ def test_the_plan_is_bounded_and_a_long_look_ahead_changes_no_prediction(
     for k in range(300):
         alone.add(stamps[k:k + PLANNED_AHEAD], reference[k:k + PLANNED_AHEAD])
     assert alone.at(int(stamps[0])) is None and alone.at(int(stamps[299])) is not None
+
+
+@pytest.mark.faults
+@pytest.mark.parametrize('restart', ['clock_jump', 'reactivation'])
+def test_a_preview_model_answers_a_restarted_run_as_the_first(
+        preview_model: LoadedModel, restart: str) -> None:
+    """A simulator reset (the clock back to the start) or a deactivate/activate followed by a
+    replay from earlier stamps: the plan of the first run is forgotten, so the restarted
+    run's previews are taken and it is answered from its first full window, as the first."""
+    n = 40
+    stamps, reference, tips = path(n + PLANNED_AHEAD)
+    clock = FakeClock()
+    core = core_of(preview_model, clock)
+    first = feed(core, clock, stamps, reference, tips, range(n))
+    if restart == 'clock_jump':
+        clock.now -= n * PERIOD
+        core.clock_jumped_back(int(stamps[0]) - PERIOD_NS)
+    else:
+        core.reset()
+    again = feed(core, clock, stamps, reference, tips, range(n))
+    assert [o.reason for o in again] == [None] * (n - WINDOW - 1)
+    assert [(o.instant_ns, o.prediction) for o in again] == [
+        (o.instant_ns, o.prediction) for o in first]
+    assert core.plan.dropped.total == 0 and not core.preview_stale
+
+
+@pytest.mark.faults
+def test_a_contradicted_plan_cancels_the_offsets_made_from_it(
+        preview_model: LoadedModel) -> None:
+    """The offsets already published for the instants to come were predicted from the plan
+    the reference now contradicts: they are cancelled (zeros, reason 'contradicted'), as a
+    stale input's are."""
+    stamps, reference, tips = path(40)
+    clock = FakeClock()
+    core = core_of(preview_model, clock, enabled=True)
+    published = feed(core, clock, stamps, reference, tips, range(20))
+    assert published and all(o.reason is None for o in published)
+    ahead = slice(21, 21 + PLANNED_AHEAD)
+    core.add_preview(stamps[ahead], reference[ahead] + [1e-3, 0.0, 0.0])
+    clock.now += PERIOD
+    core.add_reference(int(stamps[20]), *reference[20])
+    core.add_pose(int(stamps[20]), *tips[20])
+    zeros = core.add_reference(int(stamps[21]), *reference[21])
+    assert [(o.reason, o.instant_ns) for o in zeros] == [
+        ('contradicted', int(stamps[20]) + k * PERIOD_NS) for k in range(1, HORIZON + 1)]
+    assert all(o.compensation == (0.0, 0.0) for o in zeros)
