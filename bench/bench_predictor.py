@@ -148,7 +148,7 @@ def default_model(path: Path, sample_period: float, horizon: int, preview: int =
         hyperparameters={'hidden': HIDDEN, 'note': 'untrained, for timing only'},
         robot_description_sha256=load_robot_description().sha256, training_bags=(), seed=0,
         library_versions={'torch': torch.__version__})
-    return save_model(path, timing_module(), metadata)
+    return save_model(path, timing_module(preview), metadata)
 
 
 def spiral_joints(samples: int, rate: float) -> tuple[np.ndarray, np.ndarray]:
@@ -190,10 +190,12 @@ PARTS = ('inference', 'profile', 'end-to-end')
 
 
 def paced_stream(client: Any, tips: np.ndarray, joints: np.ndarray, base_ns: int, count: int,
-                 period: float, sent: np.ndarray | None, step: Callable[[], None]) -> None:
+                 period: float, sent: np.ndarray | None, step: Callable[[], None],
+                 before: Callable[[int, int], None] | None = None) -> None:
     """Publish `count` samples `period` s apart from a thread (reference, then joint state,
     stamped base_ns + k period, row k modulo the rows given), `sent[k]` the wall time each
-    joint state left; `step` (a spin of the caller's executor) runs here until the last."""
+    joint state left; `step` (a spin of the caller's executor) runs here until the last;
+    `before(k, stamp_ns)`, if given, runs in the thread before sample k is published."""
     period_ns = round(period * 1e9)
 
     def publish() -> None:
@@ -202,6 +204,8 @@ def paced_stream(client: Any, tips: np.ndarray, joints: np.ndarray, base_ns: int
             delay = t0 + k * period - time.perf_counter()
             if delay > 0:
                 time.sleep(delay)
+            if before is not None:
+                before(k, base_ns + k * period_ns)
             reference, state = sample_messages(tips, joints, k % len(tips),
                                                base_ns + k * period_ns)
             client.reference.publish(reference)

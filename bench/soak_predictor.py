@@ -15,13 +15,24 @@ parameters, for `--minutes` (default 10), and prints:
   (`faults_total`), its dropped inputs, its overruns (inference skipped or output dropped as
   late), the kinematics node's rejected joint states.
 
-Targets: RSS growth < 5 MB over 10 minutes for each node, >= 99.9 % answered.
-Run: .venv/bin/python bench/soak_predictor.py [--minutes M]  (exit code 1 on a miss)
+With `--preview K` the model reads K samples of the planned reference, and the client
+publishes with every sample the plan of the next K + `LOOK_AHEAD_MARGIN` on
+/lompr/reference_preview (a path generator with look-ahead). With `--resets R` that path
+generator resets R times, evenly spaced: the nodes run on simulated time (`use_sim_time`, the
+client's /clock every `CLOCK_EVERY` samples) and a reset sends /clock back to the start of
+the timed stream and replays the samples from the same stamps, as a simulator reset does.
+The stream is then R + 1 runs, each answered on its own: all its samples but the first
+window + HISTORY - 1 (the documented refill after a reset).
+
+Targets: RSS growth < 5 MB over 10 minutes for each node, >= 99.9 % answered (in every run).
+Run: .venv/bin/python bench/soak_predictor.py [--minutes M] [--preview K] [--resets R]
+(exit code 1 on a miss)
 """
 
 from __future__ import annotations
 
 import argparse
+import struct
 import sys
 import tempfile
 import time
@@ -33,14 +44,20 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_predictor as bench
 import numpy as np
 import rclpy
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import Vector3Stamped
+from geometry_msgs.msg import PoseStamped, Vector3Stamped
+from nav_msgs.msg import Path as PathMessage
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.serialization import serialize_message
+from rosgraph_msgs.msg import Clock
 
 from lompr_predictor.data.features import HISTORY
 from lompr_predictor.processes import stop_processes
+from lompr_predictor.robot.description import ROBOT_FRAME
 from lompr_predictor.ros.domain import isolate_ros_domain
+from lompr_predictor.stamps import NS_PER_SECOND, ns_to_sec_nanosec
 from lompr_predictor.threads import set_torch_threads
 
 RATE = 1000
@@ -49,14 +66,24 @@ CYCLE = 40 * RATE  # one 40 s pass of the spiral, repeated
 RSS_TARGET_MB = 5.0
 ANSWERED_TARGET = bench.ANSWERED_TARGET
 RSS_EVERY = 5.0  # seconds between RSS readings
+#: Samples between two /clock messages of the simulated time (`--resets`): 100 Hz.
+CLOCK_EVERY = 10
+#: Samples a preview plans beyond the K the model reads: a path generator's look-ahead
+#: reaches further than the model needs, so that a preview that comes after its sample
+#: (another topic, another reader) still finds the sample covered by the one before.
+LOOK_AHEAD_MARGIN = 20
 #: Counters read from /diagnostics: (status name, key) -> label.
 COUNTERS = {
     ('predictor_node: inputs', 'faults_total'): 'predictor stream faults',
     ('predictor_node: inputs', 'rejected_total'): 'predictor dropped inputs',
+    ('predictor_node: reference preview', 'rejected_total'): 'predictor previews refused, '
+                                                             'samples without a plan',
     ('predictor_node: prediction', 'inference_skipped_late'): 'predictor inferences skipped late',
     ('predictor_node: prediction', 'late_outputs_dropped'): 'predictor late outputs dropped',
     ('kinematics_node: joint states', 'rejected_total'): 'kinematics rejected joint states',
 }
+#: The statuses whose counters are also listed by reason (`faults.*`, `rejected.*`).
+BY_REASON = ('predictor_node: inputs', 'predictor_node: reference preview')
 
 
 def rss_mb(pid: int) -> float:
@@ -67,17 +94,83 @@ def rss_mb(pid: int) -> float:
     return float('nan')
 
 
-class SoakClient(bench.Client):
-    """The bench's client, with arrivals kept by sample index (no dict growing for minutes)
-    and the nodes' counters from /diagnostics."""
+class PreviewWriter:
+    """Serialized nav_msgs/Path of `poses` planned tool tips in `frame_id` (the poses
+    without a frame: the path's), written into one buffer per message: building rclpy
+    messages of that many poses at 1 kHz would take more than the publishing thread has."""
 
-    def __init__(self, context: Context, samples: int) -> None:
+    def __init__(self, poses: int, frame_id: str) -> None:
+        msg = PathMessage()
+        msg.header.frame_id = frame_id
+        msg.poses = [PoseStamped() for _ in range(poses)]
+        self._data = bytearray(serialize_message(msg))
+        # CDR offsets after the 4-byte encapsulation header (see ros/wire.py): the path's
+        # stamp, its frame_id (length, bytes, NUL), the poses' count, then each pose's stamp,
+        # empty frame_id (length 1: its NUL) and position, 8-byte aligned
+        offset = _align(12 + len(frame_id) + 1, 4) + 4
+        fields = []  # the bytes of each pose's stamp (8) and position (24)
+        for _ in range(poses):
+            offset = _align(offset, 4)
+            stamp = offset
+            offset = _align(offset + 13, 8)
+            fields.append([*range(4 + stamp, 12 + stamp), *range(4 + offset, 28 + offset)])
+            offset += 7 * 8
+        if 4 + offset != len(self._data):
+            msg = f'a Path of {poses} poses is {len(self._data)} bytes, not {4 + offset}'
+            raise RuntimeError(msg)
+        self._fields = np.array(fields, dtype=np.intp).reshape(poses, 32)
+        self._bytes = np.frombuffer(self._data, dtype=np.uint8)  # a view: written in place
+        self._values = np.empty(poses, dtype=[('sec', '<i4'), ('nanosec', '<u4'),
+                                              ('position', '<f8', (3,))])
+
+    def pack(self, made_ns: int, stamps_ns: np.ndarray, positions: np.ndarray) -> bytes:
+        """The path made at `made_ns` planning `positions` (poses, 3) [m] at `stamps_ns`."""
+        values = self._values
+        values['sec'], values['nanosec'] = np.divmod(stamps_ns, NS_PER_SECOND)
+        values['position'] = positions
+        self._bytes[self._fields] = values.view(np.uint8).reshape(len(values), 32)
+        struct.pack_into('<iI', self._data, 4, *ns_to_sec_nanosec(made_ns))
+        return bytes(self._data)
+
+
+def _align(offset: int, size: int) -> int:
+    return offset + (-offset % size)
+
+
+class SoakClient(bench.Client):
+    """The bench's client, with arrivals kept by run and sample index (no dict growing for
+    minutes), the nodes' counters from /diagnostics, and, for `--preview` and `--resets`,
+    the plan of the coming samples and the simulated time."""
+
+    def __init__(self, context: Context, runs: int, samples: int, preview: int) -> None:
         super().__init__(context)
         self.base_ns = 0
+        self.run = 0  # the run the answers are for (a reset starts the next)
         self.period_ns = round(1e9 / RATE)
-        self.arrival = np.full(samples, np.nan)
+        self.sent = np.full((runs, samples), np.nan)
+        self.arrival = np.full((runs, samples), np.nan)
         self.counters: dict[str, int] = {}
+        self.preview = preview
+        self.plan = self.create_publisher(PathMessage, '/lompr/reference_preview', 100)
+        self.clock = self.create_publisher(Clock, '/clock', 10)
+        self._writer = PreviewWriter(preview + LOOK_AHEAD_MARGIN if preview else 0,
+                                     ROBOT_FRAME)  # the references' (`sample_messages`)
         self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 100)
+
+    def before_sample(self, tips: np.ndarray, simulated: bool) -> Any:
+        """What `paced_stream` runs before each sample: the simulated time every
+        `CLOCK_EVERY` samples (`simulated`), the plan of the next `preview` samples and
+        `LOOK_AHEAD_MARGIN` more."""
+        ahead = np.arange(1, self.preview + LOOK_AHEAD_MARGIN + 1)
+
+        def publish(k: int, stamp_ns: int) -> None:
+            if simulated and k % CLOCK_EVERY == 0:
+                sec, nanosec = ns_to_sec_nanosec(stamp_ns)
+                self.clock.publish(Clock(clock=Time(sec=sec, nanosec=nanosec)))
+            if self.preview:
+                self.plan.publish(self._writer.pack(stamp_ns, stamp_ns + ahead * self.period_ns,
+                                                    tips[(k + ahead) % len(tips)]))
+        return publish
 
     def _on_offset(self, msg: Vector3Stamped) -> None:
         stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
@@ -85,45 +178,61 @@ class SoakClient(bench.Client):
             self.arrivals.setdefault(stamp, time.perf_counter())
             return
         k = (stamp - self.base_ns) // self.period_ns - HORIZON
-        if 0 <= k < len(self.arrival) and np.isnan(self.arrival[k]):
-            self.arrival[k] = time.perf_counter()
+        run = self.run
+        # an answer comes after its sample left: zeros that cancel the offsets of the run
+        # before a reset, for instants the new run has not reached, are not its answers
+        if (0 <= k < self.arrival.shape[1] and np.isnan(self.arrival[run, k])
+                and np.isfinite(self.sent[run, k])):
+            self.arrival[run, k] = time.perf_counter()
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         for status in msg.status:
             for kv in status.values:
                 label = COUNTERS.get((status.name, kv.key))
-                if label is None and status.name == 'predictor_node: inputs' and (
+                if label is None and status.name in BY_REASON and (
                         kv.key.startswith(('faults.', 'rejected.'))):
-                    label = f'  by reason: {kv.key}'
+                    label = f'  by reason: {status.name.split(": ")[1]} {kv.key}'
                 if label is not None:
                     self.counters[label] = int(kv.value)
 
 
 def _order(label: str) -> tuple[int, str]:
-    """Counters in COUNTERS' order, the predictor's faults and dropped inputs each followed
-    by their reasons."""
-    kind = 'faults_total' if ': faults.' in label else 'rejected_total'
+    """Counters in COUNTERS' order, the predictor's faults, dropped inputs and refused
+    previews each followed by their reasons."""
+    kind = 'faults_total' if ' faults.' in label else 'rejected_total'
     for i, ((status, key), name) in enumerate(COUNTERS.items()):
         if label == name:
             return (2 * i, '')
-        if (label.startswith('  by reason') and key == kind
-                and status == 'predictor_node: inputs'):
+        if (label.startswith(f'  by reason: {status.split(": ")[1]} ') and key == kind
+                and status in BY_REASON):
             return (2 * i + 1, label)
     return (99, label)
 
 
-def soak(minutes: float, model: Path) -> dict[str, Any]:
-    samples = max(int(minutes * 60 * RATE), 10 * RATE)
+def node_commands(model: Path, period: float, simulated: bool) -> list[list[str]]:
+    """The two node executables (`bench_predictor.node_commands`), on simulated time if
+    `simulated`."""
+    commands = bench.node_commands('two processes', model, period)
+    if simulated:
+        for command in commands:
+            if '--ros-args' not in command:
+                command.append('--ros-args')
+            command += ['-p', 'use_sim_time:=true']
+    return commands
+
+
+def soak(minutes: float, model: Path, preview: int = 0, resets: int = 0) -> dict[str, Any]:
+    runs = resets + 1
+    samples = max(int(minutes * 60 * RATE) // runs, 10 * RATE)
     period = 1.0 / RATE
     tips, joints = bench.spiral_joints(CYCLE, RATE)
-    processes = [bench.start(command)
-                 for command in bench.node_commands('two processes', model, period)]
+    simulated = resets > 0
+    processes = [bench.start(command) for command in node_commands(model, period, simulated)]
     context = Context()
     rclpy.init(context=context)
-    client = SoakClient(context, samples)
+    client = SoakClient(context, runs, samples, preview)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(client)
-    sent = np.full(samples, np.nan)
     rss: list[tuple[float, list[float]]] = []
     try:
         deadline = time.monotonic() + bench.DISCOVERY_TIMEOUT
@@ -133,30 +242,33 @@ def soak(minutes: float, model: Path) -> dict[str, Any]:
                 raise RuntimeError(msg)
             executor.spin_once(timeout_sec=0.05)
 
-        def run(base_ns: int, count: int, record: bool) -> None:
-            next_rss = [time.monotonic()]
+        before = client.before_sample(tips, simulated)
+        next_rss = [time.monotonic()]
 
+        def run(base_ns: int, count: int, sent: np.ndarray | None) -> None:
             def step() -> None:
                 executor.spin_once(timeout_sec=0.01)
-                if record and time.monotonic() >= next_rss[0]:
+                if sent is not None and time.monotonic() >= next_rss[0]:
                     rss.append((time.monotonic(), [rss_mb(p.pid) for p in processes]))
                     next_rss[0] += RSS_EVERY
 
-            bench.paced_stream(client, tips, joints, base_ns, count, period,
-                               sent if record else None, step)
+            bench.paced_stream(client, tips, joints, base_ns, count, period, sent, step,
+                               before)
 
         while not client.arrivals:  # warm-up: until the whole chain answers
             if time.monotonic() > deadline:
                 msg = 'no compensation came back during the warm-up'
                 raise RuntimeError(msg)
-            run(time.time_ns() - 100 * 10**9, bench.WINDOW + HISTORY + 10, record=False)
+            run(time.time_ns() - 100 * 10**9, bench.WINDOW + HISTORY + 10, None)
         end = time.monotonic() + 2.0  # the diagnostics of the warm-up come in
         while time.monotonic() < end:
             executor.spin_once(timeout_sec=0.01)
         counters_before = dict(client.counters)
         client.base_ns = time.time_ns() + 200_000_000
         started = time.monotonic()
-        run(client.base_ns, samples, record=True)
+        for index in range(runs):  # each reset replays the stream from its start
+            client.run = index
+            run(client.base_ns, samples, client.sent[index])
         seconds = time.monotonic() - started
         end = time.monotonic() + 2.5  # last answers and one more diagnostics report
         while time.monotonic() < end:
@@ -168,19 +280,23 @@ def soak(minutes: float, model: Path) -> dict[str, Any]:
         context.try_shutdown()
         stop_processes(processes)
     first = bench.WINDOW + HISTORY - 1
-    latency = (client.arrival - sent)[first:] * 1e3
-    answered = latency[np.isfinite(latency)]
+    latency = (client.arrival - client.sent)[:, first:] * 1e3
+    answered = np.isfinite(latency)
     counts = {label: client.counters.get(label, 0) - counters_before.get(label, 0)
               for label in sorted(client.counters, key=_order)}
-    return {'samples': samples, 'seconds': seconds, 'answerable': samples - first,
-            'answered': len(answered), 'latency_ms': answered, 'rss': rss, 'counts': counts}
+    return {'samples': runs * samples, 'seconds': seconds, 'answerable': samples - first,
+            'answered': answered.sum(axis=1).tolist(), 'latency_ms': latency[answered],
+            'rss': rss, 'counts': counts, 'preview': preview, 'resets': resets}
 
 
 def report(result: dict[str, Any]) -> bool:
     """Print the figures; whether every target was met."""
     minutes = result['seconds'] / 60
+    preview, resets = result['preview'], result['resets']
     print(f'soak: {result["samples"]} samples at {RATE} Hz in {result["seconds"]:.1f} s '
-          f'({minutes:.2f} min), kinematics_node and predictor_node as two processes')
+          f'({minutes:.2f} min), kinematics_node and predictor_node as two processes, '
+          f'preview {preview} samples, {resets} reset(s)'
+          + (' (simulated time, /clock back to the start)' if resets else ''))
     ok = True
     rss = result['rss']
     (_, first), (_, last) = rss[0], rss[-1]
@@ -193,11 +309,15 @@ def report(result: dict[str, Any]) -> bool:
         print(f'  RSS {name}: {first[i]:.1f} -> {last[i]:.1f} MB, growth {growth:+.2f} MB '
               f'(second half {last[i] - middle[i]:+.2f} MB); target < {allowed:.2f} MB '
               f'({RSS_TARGET_MB:g} MB per 10 min): {"PASS" if passed else "FAIL"}')
-    fraction = result['answered'] / result['answerable']
-    passed = fraction >= ANSWERED_TARGET
-    ok &= passed
-    print(f'  answered: {result["answered"]} of {result["answerable"]} ({fraction:.4%}); '
-          f'target >= {ANSWERED_TARGET:.1%}: {"PASS" if passed else "FAIL"}')
+    answerable = result['answerable']
+    for run, answered in enumerate(result['answered']):
+        fraction = answered / answerable
+        passed = fraction >= ANSWERED_TARGET
+        ok &= passed
+        what = 'answered' if not resets else ('answered before the first reset' if not run
+                                              else f'answered after reset {run}')
+        print(f'  {what}: {answered} of {answerable} ({fraction:.4%}); target >= '
+              f'{ANSWERED_TARGET:.1%}: {"PASS" if passed else "FAIL"}')
     latency = result['latency_ms']
     if len(latency):
         p50, p99 = np.percentile(latency, [50, 99])
@@ -213,14 +333,23 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n', 1)[0])
     parser.add_argument('--minutes', type=float, default=10.0,
                         help='duration of the timed stream (default 10)')
+    parser.add_argument('--preview', type=int, default=0, metavar='K',
+                        help='a model reading K samples of the planned reference, published '
+                             'with every sample (default 0: none)')
+    parser.add_argument('--resets', type=int, default=0, metavar='R',
+                        help='the path generator resets R times, evenly spaced, on simulated '
+                             'time (default 0)')
     args = parser.parse_args()
     if not args.minutes > 0:
         parser.error(f'--minutes must be > 0, got {args.minutes}')
+    if args.preview < 0 or args.resets < 0:
+        parser.error(f'--preview and --resets must be >= 0, got {args.preview}, {args.resets}')
     set_torch_threads(1)
     isolate_ros_domain()  # this soak talks only to itself
     with tempfile.TemporaryDirectory() as temporary:
-        model = bench.default_model(Path(temporary) / 'lstm_1000.pt', 1.0 / RATE, HORIZON)
-        result = soak(args.minutes, model)
+        model = bench.default_model(Path(temporary) / 'lstm_1000.pt', 1.0 / RATE, HORIZON,
+                                    args.preview)
+        result = soak(args.minutes, model, args.preview, args.resets)
     return 0 if report(result) else 1
 
 

@@ -80,8 +80,7 @@ class RateMeter:
 
     def tick(self, now: float | None = None) -> None:
         """Record one event at `now` (the clock's reading of the caller; None: read it)."""
-        if now is None:
-            now = self._now()
+        now = self._now() if now is None else self._after_jumps(now)
         self._events.append(now)
         self.total += 1
         self._forget_before(now - self.window)
@@ -100,9 +99,12 @@ class RateMeter:
         return now - self._events[-1] if self._events else None
 
     def _now(self) -> float:
-        """The clock's time; a clock gone back before the start or the newest event (a
-        simulator reset) starts the meter afresh (the total is kept)."""
-        now = self._clock()
+        """The clock's time (`_after_jumps`)."""
+        return self._after_jumps(self._clock())
+
+    def _after_jumps(self, now: float) -> float:
+        """`now`, the meter started afresh (the total kept) if it lies before the start or
+        the newest event: the clock went back (a simulator reset)."""
         if now < self._started or (self._events and now < self._events[-1]):
             self._events.clear()
             self._started = now

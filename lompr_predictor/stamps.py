@@ -74,6 +74,21 @@ def stamp_problem(sec: int, nanosec: int, now_ns: int,
     return None
 
 
+#: The instant `instants_ns` gives a stamp that is no time: no sample instant is negative,
+#: so a user of instants refuses it as it refuses a negative second.
+NOT_A_TIME = -1
+
+
+def instants_ns(sec: np.ndarray, nanosec: np.ndarray) -> np.ndarray:
+    """int64 nanoseconds of message stamps given as arrays of seconds and nanoseconds;
+    `NOT_A_TIME` where `nanosec` is 1e9 or more, which would otherwise land on another
+    second's instant (a negative `sec` gives a negative instant by itself)."""
+    instants = np.asarray(sec, dtype=np.int64) * NS_PER_SECOND + nanosec
+    if len(nanosec) and nanosec.max() >= NS_PER_SECOND:
+        instants[nanosec >= NS_PER_SECOND] = NOT_A_TIME
+    return instants
+
+
 def stamp_to_ns(stamp: StampLike) -> int:
     """Nanoseconds of a message stamp."""
     return stamp.sec * NS_PER_SECOND + stamp.nanosec

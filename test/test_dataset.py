@@ -28,6 +28,7 @@ from lompr_predictor.data.cleaning import (
     CleanData,
     clean_recordings,
     hampel_outliers,
+    implausible_error,
     interpolate_reference,
     sanitise_stream,
     segment_bounds,
@@ -310,3 +311,32 @@ def test_a_bag_without_metadata_is_one_clear_error_or_skipped(
         read_bags([good, bare])
     _, sources = read_bags([good, bare], skip_bad=True)
     assert [bool(s.skipped_reason) for s in sources] == [False, True]
+
+
+def circle_data(radius: float, error: tuple[float, float]) -> CleanData:
+    """A full circle of `radius` [m] about (0.03, -0.02) sampled 400 times, with a constant
+    error: the path's extent (RMS distance from its mean) is `radius`."""
+    angle = np.linspace(0.0, 2 * np.pi, 400, endpoint=False)
+    reference = np.stack([0.03 + radius * np.cos(angle), -0.02 + radius * np.sin(angle),
+                          np.full(400, 1.097)], -1)
+    return CleanData(stamps=EPOCH_NS + np.arange(400) * PERIOD_NS,
+                     error=np.tile(error, (400, 1)), reference=reference,
+                     segments=np.array([[0, 400]]), sample_period=PERIOD_NS * 1e-9,
+                     geometry=load_robot_description().geometry)
+
+
+@pytest.mark.faults
+@pytest.mark.parametrize(('radius', 'error', 'plausible'), [
+    (0.1, (4e-3, 2.99e-3), True),  # just under 5 mm: 5 % of the 100 mm extent
+    (0.1, (4e-3, 3.01e-3), False),
+    (0.005, (0.6e-3, 0.79e-3), True),  # under 1 mm on a 5 mm path: the floor, not 5 %
+    (0.005, (0.6e-3, 0.81e-3), False),
+    (0.1, (30e-6, -20e-6), True),  # a machine's tens of micrometres
+])
+def test_an_error_no_machine_makes_is_implausible(radius: float, error: tuple[float, float],
+                                                   plausible: bool) -> None:
+    why = implausible_error(circle_data(radius, error))
+    assert (why == '') == plausible
+    if not plausible:
+        assert f'{np.hypot(*error) * 1e3:.3g} mm (RMS) from the reference' in why
+        assert f'commanded path ({radius * 1e3:.3g} mm RMS)' in why and '--joint-names' in why

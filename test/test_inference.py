@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from model_helpers import save_linear
+from model_helpers import metadata, save_linear
 from trainer_data import lissajous_reference, synthetic_recording
 
 from lompr_predictor.data.cleaning import clean_recordings
@@ -131,3 +131,61 @@ def test_the_onnx_runtime_input_must_be_the_buffer_itself(trained: LoadedModel) 
     assert isinstance(backend, OnnxRuntimeBackend)
     with pytest.raises(ValueError, match='C-contiguous float64'):
         backend.runner(np.zeros((1, WINDOW, len(FEATURES)), dtype=np.float32))
+
+
+class WindowIgnoringModel(torch.nn.Module):
+    """Predicts a constant without reading its window: the ONNX exporter drops the input."""
+
+    def __init__(self, value: tuple[float, float]) -> None:
+        super().__init__()
+        self.value = torch.tensor([value], dtype=torch.float64)
+
+    def forward(self, windows: torch.Tensor) -> torch.Tensor:
+        return self.value
+
+
+@pytest.mark.faults
+def test_a_broken_onnx_runtime_install_falls_back_with_the_reason(
+        trained: LoadedModel, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`import onnxruntime` raising anything (a missing shared library is an OSError), not
+    only ImportError: 'auto' serves with TorchScript and says why; asked for by name, one
+    line."""
+    package = tmp_path / 'onnxruntime'
+    package.mkdir()
+    (package / '__init__.py').write_text(
+        "raise OSError('libonnxruntime.so.1.32: cannot open shared object file')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, 'onnxruntime', raising=False)
+    backend, why = select_backend(trained, 'auto')
+    assert backend.name == 'torchscript' and why is not None
+    assert 'ONNX Runtime cannot be imported' in why and 'libonnxruntime.so' in why
+    with pytest.raises(InferenceBackendError, match=r'OSError: libonnxruntime\.so') as err:
+        select_backend(trained, 'onnxruntime')
+    assert '\n' not in str(err.value)
+
+
+@pytest.mark.faults
+def test_a_graph_without_the_window_input_is_served_as_torchscript_serves_it(
+        tmp_path: Path) -> None:
+    """A module that never reads its window: the exported graph has no input, which ONNX
+    Runtime is run without; its answers are TorchScript's."""
+    model = load_model(save_model(tmp_path / 'constant.pt', WindowIgnoringModel((7e-6, -3e-6)),
+                                  metadata(window=WINDOW, horizon=HORIZON)))
+    backend, why = select_backend(model, 'auto')
+    assert (backend.name, why) == ('onnxruntime', None)
+    window = np.random.default_rng(1).normal(size=(1, WINDOW, len(FEATURES)))
+    assert backend.runner(window)() == TorchScriptBackend(model).runner(window)() == (7e-6, -3e-6)
+
+
+@pytest.mark.faults
+def test_a_candidate_that_cannot_bind_the_window_falls_back_with_the_reason(
+        trained: LoadedModel, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Whatever fails while the candidate is compared (here binding its buffers) refuses it
+    with the reason, as a failing run does."""
+    def cannot_bind(self: OnnxRuntimeBackend, window: np.ndarray) -> None:
+        raise RuntimeError('Failed to find input name in the mapping: window')
+
+    monkeypatch.setattr(OnnxRuntimeBackend, 'runner', cannot_bind)
+    backend, why = select_backend(trained, 'auto')
+    assert backend.name == 'torchscript' and why is not None
+    assert 'Failed to find input name in the mapping' in why and trained.path in why

@@ -50,6 +50,23 @@ def test_a_bag_with_other_joint_names_is_one_line_listing_them(
     assert 'its joints are a_axis, b1, b2, b3, c_axis' in err and '--joint-names' in err
 
 
+@pytest.mark.faults
+def test_two_branches_swapped_are_refused_as_an_implausible_error(
+        renamed: tuple[Path, Recording], tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """--joint-names with the first two branches swapped: the forward kinematics of the
+    wrong joints lies far from the commanded path, which no machine's tracking error does;
+    one line naming the likely causes, exit 2, before any trial."""
+    bag, _ = renamed
+    swapped = ['--joint-names', ','.join((RENAMED[1], RENAMED[0], *RENAMED[2:]))]
+    code = main(['train', str(bag), '--out', str(tmp_path / 'm.pt'), '--report',
+                 str(tmp_path / 'r'), *FAST, *swapped])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1
+    assert 'of the extent of the commanded path' in err and '--joint-names' in err
+    assert not (tmp_path / 'm.pt').exists() and not list((tmp_path / 'r').glob('trials/*'))
+
+
 def test_joint_names_must_name_five_distinct_joints(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(['train', 'bag', '--out', 'm.pt', '--report', 'r', '--joint-names',
                  'b1,b2,b3,c_axis']) == 2

@@ -83,6 +83,25 @@ def test_rate_meter_starts_afresh_when_the_clock_goes_back() -> None:
     assert meter.total == 60
 
 
+@pytest.mark.faults
+def test_rate_meter_told_the_time_starts_afresh_when_it_goes_back() -> None:
+    """The caller passes its own clock reading (`tick(now)`, as kinematics_node does): a time
+    before the newest event starts the meter afresh too, instead of keeping every event of
+    the restarted run behind those of the abandoned one (a deque growing by one a sample
+    until the simulated time catches up)."""
+    clock = FakeClock()
+    meter = RateMeter(window=2.0, clock=clock)
+    for _ in range(50):
+        clock.now += 0.04
+        meter.tick(clock.now)
+    clock.now -= 10.0  # reset
+    for _ in range(100):
+        clock.now += 0.04
+        meter.tick(clock.now)
+    # the window's 2 s of events: 25 Hz, not the 150 events of both runs over 2 s
+    assert meter.rate() == pytest.approx(25.0) and meter.total == 150
+
+
 def test_latency_recorder_percentiles_over_last_samples() -> None:
     recorder = LatencyRecorder(capacity=100)
     summary = recorder.summary()

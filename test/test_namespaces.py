@@ -12,7 +12,7 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from model_helpers import save_constant
-from ros_helpers import RosHarness, latest_status, set_stamp
+from ros_helpers import RosHarness, latest_status, set_stamp, start_executable, stop_process
 from sensor_msgs.msg import JointState
 
 from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME
@@ -88,3 +88,34 @@ def test_both_nodes_in_a_namespace_with_a_params_file(ros: RosHarness, tmp_path:
     hardware = {status.name.split(':')[0]: status.hardware_id for array in diagnostics
                 for status in array.status}
     assert hardware == {'/cell1/predictor_node': 'lompr', 'kinematics_node': 'cell1_lompr'}
+
+
+@pytest.mark.faults
+def test_the_pipeline_takes_node_prefixed_parameters_in_a_namespace(
+        ros: RosHarness, tmp_path: Path) -> None:
+    """`lompr_pipeline --ros-args -r __ns:=/cell1 -p predictor_node:model_path:=M`, as
+    documented: each node takes its own prefixed parameters in a namespace too (rcl alone
+    matches a node prefix in the root namespace only)."""
+    model = save_constant(tmp_path / 'model.pt', (1e-5, -2e-5))
+    urdf = tmp_path / 'calibrated.urdf'
+    urdf.write_bytes((CONFIG.parent / 'description' / 'lompr.urdf').read_bytes())
+    diagnostics = ros.collect('/diagnostics', DiagnosticArray, 100)
+    process = start_executable(
+        'pipeline', '-r', f'__ns:={NAMESPACE}', '-p', f'predictor_node:model_path:={model}',
+        '-p', f'kinematics_node:robot_description_file:={urdf}',
+        '-p', 'predictor_node:diagnostics_period:=0.2')
+    names = ('predictor_node: model', 'kinematics_node: forward kinematics')
+
+    def both_or_exited() -> bool:
+        statuses = [latest_status(diagnostics, name) for name in names]
+        return None not in statuses or process.poll() is not None
+
+    try:
+        ros.spin_until(both_or_exited, timeout=60.0, what='the statuses of both nodes')
+        assert process.poll() is None
+        model_status, kinematics = (latest_status(diagnostics, name) for name in names)
+        assert model_status is not None and model_status['path'] == str(model)
+        assert kinematics is not None and kinematics['robot_description'] == str(urdf)
+    finally:
+        code, _ = stop_process(process)
+    assert code == 0

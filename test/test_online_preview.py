@@ -18,7 +18,7 @@ from lompr_predictor.monitoring import RateMeter
 from lompr_predictor.online.offset import CompensationLimits, Output
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_status import Lifecycle, preview_status
-from lompr_predictor.online.preview import PlannedPath, PreviewDrop
+from lompr_predictor.online.preview import PLAN_REACH, PlannedPath, PreviewDrop
 from lompr_predictor.robot.description import load_robot_description
 from lompr_predictor.robot.kinematics import VerticalToolBranches
 
@@ -169,8 +169,10 @@ def test_a_plan_the_reference_contradicts_is_dropped_and_the_window_refills(
     assert core.plan.dropped.counts()['contradicted'] == 1
     # sample 21's reference contradicts the plan: it is dropped (the newer preview with it)
     # and sample 22 starts a new run of planned rows; the rows built on the wrong plan are
-    # never read, answers resume once a window of new ones is full
-    assert outputs[0].instant_ns == stamps[22 + WINDOW + 1] + HORIZON * PERIOD_NS
+    # never read, answers resume once a window of new ones is full (after the zeros that
+    # cancel what was predicted from the plan)
+    assert {o.reason for o in outputs[:HORIZON]} == {PreviewDrop.CONTRADICTED}
+    assert outputs[HORIZON].instant_ns == stamps[22 + WINDOW + 1] + HORIZON * PERIOD_NS
 
 
 
@@ -211,3 +213,145 @@ def test_a_fallback_must_read_no_preview_and_predict_the_same_instant(
     with pytest.raises(MetadataMismatchError, match="'preview' is 3"):
         OnlinePredictor(preview_model, stream(), limits, clock=FakeClock().ns,
                         fallback=(preview_model, None))
+
+
+@pytest.mark.faults
+def test_a_reference_stream_going_back_starts_a_new_plan(preview_model: LoadedModel) -> None:
+    """The reference restarting from earlier stamps with no clock jump (a path generator on
+    wall time replaying its program): the plan starts again with it."""
+    n = 40
+    stamps, reference, tips = path(n + PLANNED_AHEAD)
+    clock = FakeClock()
+    core = core_of(preview_model, clock)
+    first = feed(core, clock, stamps, reference, tips, range(n))
+    again = feed(core, clock, stamps, reference, tips, range(n))
+    answered = [o for o in again if o.reason is None]
+    # the first preview of the replay is past the old run's references; the plan restarts
+    # with the replay's first reference and the window refills one sample later
+    assert [o.instant_ns for o in answered] == [o.instant_ns for o in first[1:]]
+    assert core.plan.dropped['past'] == 1
+
+
+@pytest.mark.faults
+def test_poses_lagging_the_reference_beyond_the_lead_still_find_their_plan(
+        preview_model: LoadedModel) -> None:
+    """The poses come later than the reference and the previews (they go through the
+    kinematics node): the plan keeps what they still read, whatever the lag, and the
+    predictions are those of poses in step with the reference."""
+    n, lag = 40, 2 * PREVIEW + 1  # samples the poses lag: more than the model reads ahead
+    stamps, reference, tips = path(n + PLANNED_AHEAD)
+    clock = FakeClock()
+    in_step = feed(core_of(preview_model, clock), clock, stamps, reference, tips, range(n))
+    core = core_of(preview_model, clock)
+    outputs = []
+    for k in range(n + lag):
+        clock.now += PERIOD
+        if k < n:
+            core.add_preview(stamps[k + 1:k + 1 + PLANNED_AHEAD],
+                             reference[k + 1:k + 1 + PLANNED_AHEAD])
+            outputs += core.add_reference(int(stamps[k]), *reference[k])
+        if k >= lag:
+            outputs += core.add_pose(int(stamps[k - lag]), *tips[k - lag])
+    assert [(o.instant_ns, o.prediction) for o in outputs] == [
+        (o.instant_ns, o.prediction) for o in in_step]
+    assert core.plan.dropped['missing'] == 0
+
+
+@pytest.mark.faults
+def test_a_path_generator_whose_clock_runs_ahead_plans_nothing(
+        preview_model: LoadedModel) -> None:
+    """Previews planned an hour ahead of the reference are refused whole (counted 'ahead'),
+    so the plan stays empty and the status says the model cannot predict, instead of a plan
+    growing by one instant a sample that every preview copies."""
+    n = 200
+    stamps, reference, tips = path(n + PLANNED_AHEAD)
+    clock = FakeClock()
+    core = core_of(preview_model, clock)
+    hour = 3600 * 10 ** 9
+    outputs = []
+    for k in range(n):
+        clock.now += PERIOD
+        ahead = slice(k + 1, k + 1 + PLANNED_AHEAD)
+        core.add_preview(stamps[ahead] + hour, reference[ahead])
+        outputs += core.add_reference(int(stamps[k]), *reference[k])
+        outputs += core.add_pose(int(stamps[k]), *tips[k])
+    assert outputs == [] and core.plan.horizon_ns is None
+    # the first preview, before any reference, was taken; the first reference let it go
+    assert core.plan.dropped['ahead'] == n - 1
+    status = preview_status(ACTIVE, core, RateMeter(clock=clock), '/lompr/reference_preview',
+                            core.plan.dropped['missing'])
+    assert status.level.name == 'ERROR' and status.values['rejected.ahead'] == n - 1
+
+
+@pytest.mark.faults
+def test_the_plan_is_bounded_and_a_long_look_ahead_changes_no_prediction(
+        preview_model: LoadedModel) -> None:
+    """A look-ahead of 10 s with every sample: the plan holds at most `PLAN_REACH` beyond
+    what the model reads ahead of the newest reference, and the predictions are those of the
+    short preview. Previews without any reference: the plan holds the newest alone."""
+    n, ahead = 40, 250  # 250 samples at 25 Hz: 10 s
+    stamps, reference, tips = path(n + ahead + 1)
+    clock = FakeClock()
+    short = feed(core_of(preview_model, clock), clock, stamps, reference, tips, range(n))
+    core = core_of(preview_model, clock)
+    outputs = []
+    for k in range(n):
+        clock.now += PERIOD
+        planned = slice(k + 1, k + 1 + ahead)
+        assert core.add_preview(stamps[planned], reference[planned]) is None
+        outputs += core.add_reference(int(stamps[k]), *reference[k])
+        outputs += core.add_pose(int(stamps[k]), *tips[k])
+        reach = int(stamps[k]) + PREVIEW * PERIOD_NS + round(PLAN_REACH * 1e9)
+        assert 0 < core.plan.horizon_ns <= reach  # type: ignore[operator]
+    assert outputs == short
+    alone = core_of(preview_model, clock).plan
+    stamps, reference, _ = path(300 + PLANNED_AHEAD)
+    for k in range(300):
+        alone.add(stamps[k:k + PLANNED_AHEAD], reference[k:k + PLANNED_AHEAD])
+    assert alone.at(int(stamps[0])) is None and alone.at(int(stamps[299])) is not None
+
+
+@pytest.mark.faults
+@pytest.mark.parametrize('restart', ['clock_jump', 'reactivation'])
+def test_a_preview_model_answers_a_restarted_run_as_the_first(
+        preview_model: LoadedModel, restart: str) -> None:
+    """A simulator reset (the clock back to the start) or a deactivate/activate followed by a
+    replay from earlier stamps: the plan of the first run is forgotten, so the restarted
+    run's previews are taken and it is answered from its first full window, as the first."""
+    n = 40
+    stamps, reference, tips = path(n + PLANNED_AHEAD)
+    clock = FakeClock()
+    core = core_of(preview_model, clock)
+    first = feed(core, clock, stamps, reference, tips, range(n))
+    if restart == 'clock_jump':
+        clock.now -= n * PERIOD
+        core.clock_jumped_back(int(stamps[0]) - PERIOD_NS)
+    else:
+        core.reset()
+    again = feed(core, clock, stamps, reference, tips, range(n))
+    assert [o.reason for o in again] == [None] * (n - WINDOW - 1)
+    assert [(o.instant_ns, o.prediction) for o in again] == [
+        (o.instant_ns, o.prediction) for o in first]
+    assert core.plan.dropped.total == 0 and not core.preview_stale
+
+
+@pytest.mark.faults
+def test_a_contradicted_plan_cancels_the_offsets_made_from_it(
+        preview_model: LoadedModel) -> None:
+    """The offsets already published for the instants to come were predicted from the plan
+    the reference now contradicts: they are cancelled (zeros, reason 'contradicted'), as a
+    stale input's are."""
+    stamps, reference, tips = path(40)
+    clock = FakeClock()
+    core = core_of(preview_model, clock, enabled=True)
+    published = feed(core, clock, stamps, reference, tips, range(20))
+    assert published and all(o.reason is None for o in published)
+    ahead = slice(21, 21 + PLANNED_AHEAD)
+    core.add_preview(stamps[ahead], reference[ahead] + [1e-3, 0.0, 0.0])
+    clock.now += PERIOD
+    core.add_reference(int(stamps[20]), *reference[20])
+    core.add_pose(int(stamps[20]), *tips[20])
+    zeros = core.add_reference(int(stamps[21]), *reference[21])
+    assert [(o.reason, o.instant_ns) for o in zeros] == [
+        ('contradicted', int(stamps[20]) + k * PERIOD_NS) for k in range(1, HORIZON + 1)]
+    assert all(o.compensation == (0.0, 0.0) for o in zeros)

@@ -4,6 +4,13 @@ goes back (a simulator reset)."""
 
 from __future__ import annotations
 
+import contextlib
+import math
+import select
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +23,7 @@ from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from model_helpers import save_constant
 from rclpy.parameter import Parameter
-from ros_helpers import RosHarness, latest_status, set_stamp, stamp_ns, xy
+from ros_helpers import RosHarness, latest_status, set_stamp, stamp_ns, stop_process, xy
 from rosgraph_msgs.msg import Clock
 
 from lompr_predictor.data.features import HISTORY
@@ -209,3 +216,47 @@ def test_a_clock_going_back_empties_the_window_zeroes_once_and_is_counted(
     inputs = plant.status('inputs')
     assert inputs is not None and inputs['clock_jumps_back'] == '1'
     assert inputs['last_fault'] == 'clock_jump'
+
+
+#: predictor_node with a configure that takes 30 s (the loading and warm-up of a model made
+#: slow, in steps of Python code as the real ones are): it says 'configuring' when it starts.
+SLOW_CONFIGURE = """
+import sys, time
+from lompr_predictor.ros import predictor_node
+load = predictor_node.load_ready_model
+def slow_load(request):
+    print('configuring', flush=True)
+    end = time.monotonic() + 30.0
+    while time.monotonic() < end:
+        time.sleep(0.01)
+    return load(request)
+predictor_node.load_ready_model = slow_load
+sys.exit(predictor_node.main(['predictor_node', *sys.argv[1:]]))
+"""
+
+
+@pytest.mark.faults
+@pytest.mark.parametrize('number', [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_request_during_configure_stops_the_node_within_two_seconds(
+        tmp_path: Path, number: signal.Signals) -> None:
+    """SIGINT or SIGTERM while the model loads and warms up (ros2 launch sends SIGTERM 5 s
+    after SIGINT and kills 5 s later): the process stops within 2 s, not once configured,
+    and it never says it is active."""
+    model = save_constant(tmp_path / 'model.pt', window=WINDOW, horizon=HORIZON)
+    process = subprocess.Popen(
+        [sys.executable, '-c', SLOW_CONFIGURE, '--ros-args', '-p', f'model_path:={model}'],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    stopped_after = math.inf
+    try:
+        assert process.stdout is not None
+        ready, _, _ = select.select([process.stdout], [], [], 60.0)
+        assert ready and process.stdout.readline() == 'configuring\n'
+        process.send_signal(number)
+        sent = time.monotonic()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            process.wait(timeout=10.0)
+            stopped_after = time.monotonic() - sent
+    finally:
+        code, stderr = stop_process(process)
+    assert stopped_after <= 2.0 and code == 0, stderr
+    assert 'active' not in stderr

@@ -667,3 +667,23 @@ def test_the_guard_holds_back_an_axis_where_the_model_is_worse_and_says_so(
     wiring.run(NEEDED + 30, 3)
     ros.spin_until(lambda: len(wiring.predictions) == 34, what='3 more predictions')
     np.testing.assert_allclose(xy(wiring.predictions)[-3:, 0], 5e-5, rtol=1e-12)
+
+
+@pytest.mark.faults
+def test_a_refused_fallback_names_how_to_verify_the_fallback(ros: Any, tmp_path: Path) -> None:
+    """The fallback model is checked against its own sidecar: a fallback without one is
+    refused with a hint naming that file, not `model_sha256`, which pins model_path."""
+    model = save_constant(tmp_path / 'p.pt', window=WINDOW, horizon=HORIZON,
+                          features=feature_names(2), preview=2)
+    digest = hashlib.sha256(model.read_bytes()).hexdigest()
+    fallback = tmp_path / 'f.pt'
+    fallback.write_bytes(save_constant(tmp_path / 'made.pt', window=2,
+                                       horizon=HORIZON).read_bytes())  # no f.pt.sha256
+    with pytest.raises(ModelTrustError, match='no hash to check it against') as refused:
+        PredictorNode(context=ros.context, parameter_overrides=[
+            Parameter('model_path', value=str(model)), Parameter('model_sha256', value=digest),
+            Parameter('fallback_model_path', value=str(fallback))])
+    message = str(refused.value)
+    assert message.startswith(f'model {fallback}: ') and 'f.pt.sha256' in message
+    assert 'model_sha256 pins model_path, not the fallback' in message
+    assert 'model_sha256:=' not in message and 'pin its sha256' not in message

@@ -316,6 +316,21 @@ def test_a_window_longer_than_the_data_is_one_line_before_tuning(
 
 
 @pytest.mark.faults
+def test_a_preview_longer_than_the_data_is_blamed_in_one_line(
+        tmp_path: Path, description: RobotDescription, capsys: pytest.CaptureFixture[str]) -> None:
+    """--preview K reaches K samples past every window: when it, not the horizon, leaves no
+    window, the line names --preview."""
+    bag = write_synthetic_bag(tmp_path / 'bag', description.geometry, 150)
+    code = lompr_main(['train', str(bag), '--out', str(tmp_path / 'm.pt'), '--report',
+                       str(tmp_path / 'r'), '--window', '8', '--preview', '500', '--quiet',
+                       '--workers', '1'])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(lines) == 1
+    assert 'preview 500 (--preview' in lines[0] and '--horizon' not in lines[0]
+    assert not list((tmp_path / 'r').glob('trials/*'))
+
+
+@pytest.mark.faults
 def test_debug_shows_the_traceback(tmp_path: Path) -> None:
     urdf = tmp_path / 'robot.urdf'
     urdf.write_bytes(b'\xff\xfe' * 10)

@@ -12,6 +12,7 @@ from nav_msgs.msg import Path
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import JointState
 
+from lompr_predictor.online.preview import PlannedPath, PreviewDrop
 from lompr_predictor.ros.wire import (
     PoseStampedWriter,
     Vector3StampedWriter,
@@ -23,6 +24,7 @@ from lompr_predictor.ros.wire import (
     read_path,
     read_pose_stamped,
 )
+from lompr_predictor.stamps import NOT_A_TIME
 
 
 def pose_message(frame_id: str) -> PoseStamped:
@@ -132,3 +134,28 @@ def test_path_poses_as_rclpy_reads_them(frames: list[str], frame_id: str) -> Non
     # truncated: an error, never a partial path
     with pytest.raises(WireError):
         read_path(serialize_message(msg)[:-9], 'world')
+
+
+@pytest.mark.faults
+@pytest.mark.parametrize('frames', [['world'] * 6, ['', 'world', '', 'world']])
+@pytest.mark.parametrize('bad', [0, -1])
+def test_a_preview_pose_stamped_with_nanosec_past_a_second_is_refused(
+        frames: list[str], bad: int) -> None:
+    """A preview pose whose nanosec is 1e9 or more would land on another second's instant:
+    it is no time, and the plan refuses the preview whole ('bad_stamp', as a pose's or a
+    reference's stamp is dropped)."""
+    msg = planned_path('world', frames, 0)
+    for k, pose in enumerate(msg.poses):
+        pose.header.stamp.sec, pose.header.stamp.nanosec = 1_700_000_000, 100_000_000 * k
+    msg.poses[bad].header.stamp.sec -= 1
+    msg.poses[bad].header.stamp.nanosec += 1_000_000_000  # the same instant, not normalised
+    read = read_path(serialize_message(msg), 'world')
+    assert read is not None
+    stamps, positions = read
+    assert stamps[bad] == NOT_A_TIME
+    assert np.delete(stamps, bad).tolist() == [
+        1_700_000_000 * 10 ** 9 + 100_000_000 * k for k in range(len(frames)) if
+        k != bad % len(frames)]
+    plan = PlannedPath(max_step_ns=1e9, tolerance=1e-6)
+    assert plan.add(stamps, positions) == PreviewDrop.BAD_STAMP
+    assert plan.horizon_ns is None and plan.dropped['bad_stamp'] == 1

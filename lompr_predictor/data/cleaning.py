@@ -24,7 +24,7 @@ from scipy import ndimage
 
 from lompr_predictor.data.bags import JointSamples, Recording, ReferenceSamples
 from lompr_predictor.data.features import feature_names, feature_rows, with_preview
-from lompr_predictor.robot.description import LomprGeometry
+from lompr_predictor.robot.description import MEASURED_JOINTS, LomprGeometry
 from lompr_predictor.robot.kinematics import VerticalToolBranches, batch_forward_kinematics
 from lompr_predictor.stamps import GAP_FACTOR, seconds_since
 
@@ -35,6 +35,17 @@ MAD_TO_SIGMA = 1.4826  # MAD of a Gaussian times this is its standard deviation
 NEIGHBOUR_AGREEMENT = 0.5  # a spike's neighbours differ by less than this times its excursion
 MISSING_SAMPLE_FACTOR = 1.5  # a step longer than this many periods means a sample is missing
 BAG_SEPARATION_PERIODS = 10  # a bag overlapping earlier ones starts this long after them
+#: The plausibility of a recorded error (`implausible_error`). A machine's tracking error is
+#: its path's speed times its servo lag plus deflections: a fraction of a percent of the
+#: commanded path's extent (a lag of 5 ms on a circle run at 1 rad/s is 0.5 % of its
+#: radius). Forward kinematics further from the reference than this fraction of the path's
+#: extent is not the machine's error but the wrong joints (names swapped, another order or
+#: unit) or another robot's description.
+IMPLAUSIBLE_FRACTION = 0.05
+#: ... and never below 1 mm [m], beyond the tracking error of any machine this predictor
+#: is for (micrometres to tenths of a millimetre), so that a path that hardly moves does
+#: not make a plausible error look wrong.
+IMPLAUSIBLE_FLOOR = 1e-3
 
 @dataclass(frozen=True)
 class CleaningConfig:
@@ -284,3 +295,22 @@ def recording_rows(stamps: np.ndarray, recordings: Sequence[Recording]) -> np.nd
               for r in recordings]
     return np.array([b for b in bounds if b[1] > b[0]] or [(0, len(stamps))],
                     dtype=np.int64).reshape(-1, 2)
+
+
+def implausible_error(data: CleanData) -> str:
+    """Why `data`'s error cannot be a machine's (its RMS over `IMPLAUSIBLE_FRACTION` of the
+    commanded path's extent, the RMS distance of the reference from its mean in X/Y, and
+    over `IMPLAUSIBLE_FLOOR`), '' if it can; one line naming what to check."""
+    if not len(data):
+        return ''
+    error = float(np.sqrt(np.mean(np.sum(data.error ** 2, axis=1))))
+    path = data.reference[:, :2]
+    extent = float(np.sqrt(np.mean(np.sum((path - path.mean(axis=0)) ** 2, axis=1))))
+    if error <= max(IMPLAUSIBLE_FRACTION * extent, IMPLAUSIBLE_FLOOR):
+        return ''
+    joints = ', '.join(MEASURED_JOINTS)
+    return (f'the forward kinematics of the measured joints lies {error * 1e3:.3g} mm (RMS) '
+            f'from the reference, {error / extent:.0%} of the extent of the commanded path '
+            f'({extent * 1e3:.3g} mm RMS), where the tracking error of a machine is a fraction '
+            f'of a percent: check --joint-names (the names in the bag of {joints}, in that '
+            'order), the units of the joints and --robot-description')

@@ -79,10 +79,11 @@ def recording_parts(recordings: np.ndarray, test_fraction: float,
     return np.stack([first, validation, test, end], -1)
 
 
-def split_by_parts(parts: np.ndarray, ends: np.ndarray, horizon: int) -> Split:
+def split_by_parts(parts: np.ndarray, ends: np.ndarray, horizon: int,
+                   preview: int = 0) -> Split:
     """The windows ending at `ends` by the part of their predicted row (`horizon` rows
     later), each recording split as `parts` says; a part without windows is a
-    `ProblemError` naming the options that make windows."""
+    `ProblemError` naming the options that make windows (`preview`: theirs)."""
     target = ends + horizon
     recording = np.searchsorted(parts[:, 0], target, side='right') - 1
     validation, test = parts[recording, 1], parts[recording, 2]
@@ -91,24 +92,33 @@ def split_by_parts(parts: np.ndarray, ends: np.ndarray, horizon: int) -> Split:
                   test=ends[target >= test], parts=parts)
     for name in ('train', 'validation', 'test'):
         if len(getattr(split, name)) == 0:
-            msg = (f'no {name} windows: {int(parts[:, 3].max())} clean samples are too few for '
-                   f'this window (--window) and horizon {horizon} (--horizon), or the gaps '
-                   f'leave no segment long enough')
-            raise ProblemError(msg)
+            raise ProblemError(f'no {name} windows: {int(parts[:, 3].max())} clean samples are '
+                               f'too few {_for_windows(horizon, preview)}')
     return split
+
+
+def _for_windows(horizon: int, preview: int) -> str:
+    """The end of a 'too few samples' message: the options that make a window this long,
+    naming --preview where it, not the horizon, reaches furthest past a window."""
+    reach = (f'horizon {horizon} (--horizon)' if preview <= horizon else
+             f'preview {preview} (--preview: every window also needs the {preview} samples '
+             'after it)')
+    return f'for this window (--window) and {reach}, or the gaps leave no segment long enough'
 
 
 def chronological_split(recordings: np.ndarray, ends: np.ndarray, horizon: int, *,
                         test_fraction: float = TEST_FRACTION,
-                        validation_fraction: float = VALIDATION_FRACTION) -> Split:
+                        validation_fraction: float = VALIDATION_FRACTION,
+                        preview: int = 0) -> Split:
     """Split each recording (rows [first, end), `CleanData.recordings`) by time: its last
     `test_fraction` of rows is the test part; the last `validation_fraction` of the rest
     validates. A window belongs to the part of its predicted row, and a training or
     validation window's target row always precedes its recording's test part (its inputs,
     being earlier still, too). With recordings of several programs every program is in
-    every part, so the test part scores each one."""
+    every part, so the test part scores each one. `preview`: the windows' preview (for the
+    message when a part is empty)."""
     return split_by_parts(recording_parts(recordings, test_fraction, validation_fraction),
-                          ends, horizon)
+                          ends, horizon, preview)
 
 
 def minmax_range(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -163,7 +173,7 @@ def build_problem(data: CleanData, window: int = DEFAULT_WINDOW,
     preview block of `preview` samples in the rows (0: none)."""
     ends = window_ends(data.regular_runs(), window, horizon, preview)
     split = chronological_split(data.recordings, ends, horizon, test_fraction=test_fraction,
-                                validation_fraction=validation_fraction)
+                                validation_fraction=validation_fraction, preview=preview)
     error_low, error_high = minmax_range(data.error[split.training_rows()])
     return LearningProblem(rows=data.features(preview), error=data.error, stamps=data.stamps,
                            window=window, horizon=horizon, sample_period=data.sample_period,
@@ -184,7 +194,7 @@ def train_test_problem(train: CleanData, test: CleanData, window: int = DEFAULT_
     trained = recording_parts(train.recordings, 0.0, validation_fraction)
     tested = np.repeat(test.recordings[:, :1], 3, axis=1)
     parts = np.concatenate([trained, np.column_stack([tested, test.recordings[:, 1:]]) + n_train])
-    split = split_by_parts(parts, ends, horizon)
+    split = split_by_parts(parts, ends, horizon, preview)
     error_low, error_high = minmax_range(train.error[split.training_rows()[:n_train]])
     return LearningProblem(rows=np.vstack([train.features(preview), test.features(preview)]),
                            error=np.vstack([train.error, test.error]),

@@ -293,7 +293,8 @@ def load_model(
     The file is read once; its bytes are checked before they are deserialised (a TorchScript
     file is code): against `sha256` if given (a pin), else, with `verify`, against its
     sidecar (`sidecar_path`); a mismatch, or `verify` with neither, raises `ModelTrustError`
-    (`hint`, the caller's own way to fix it, is added to the message). `verify=False`
+    (`hint`, the caller's own way to fix it, e.g. how it pins a hash, is added to the
+    message). `verify=False`
     without a pin loads unchecked bytes (development). `expected` maps metadata field names
     to the values the caller's configuration needs; the first disagreement raises
     `MetadataMismatchError` naming the field. A warm-up inference on a zero window checks
@@ -361,8 +362,7 @@ def _verify(path: Path, digest: str, pinned: str | None, verify: bool,
     if expected is None:
         msg = (f'model {path}: no hash to check it against (a TorchScript file is code): '
                f'copy {sidecar_path(path).name}, which lompr train writes beside the model, '
-               f'along with it, or pin its sha256 (model_sha256 in the training report)'
-               f'{suffix}')
+               f'along with it{suffix}')
         raise ModelTrustError(msg)
     if digest != expected:
         msg = (f'model {path}: its sha256 is {digest}, {sidecar_path(path).name} says '

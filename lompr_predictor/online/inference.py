@@ -11,8 +11,10 @@ the two floats it returns.
 'onnxruntime' and 'auto' build the ONNX Runtime backend and run both on a warm-up batch
 (`warm_up_windows`); ONNX Runtime serves only if its outputs agree with TorchScript's to
 `RELATIVE_TOLERANCE` of the largest output. 'auto' falls back to TorchScript on any failure
-and says why (never silently worse output); 'onnxruntime', asked for by name, raises
-`InferenceBackendError` with one line naming the cause.
+(an install whose import raises, a graph ONNX Runtime refuses or binds otherwise, outputs
+that disagree) and says why, never silently worse output; 'onnxruntime', asked for by name,
+raises `InferenceBackendError` with one line naming the cause. A module that never reads its
+window exports to a graph without an input (the exporter drops it): it runs without one.
 
 A backend gives `runner(window)`: a call without arguments that runs the network on
 `window` (a (1, window, features) float64 C-contiguous array, read afresh at every call,
@@ -102,6 +104,7 @@ class OnnxRuntimeBackend:
         options.execution_mode = onnxruntime.ExecutionMode.ORT_SEQUENTIAL
         self._session = onnxruntime.InferenceSession(
             graph, options, providers=['CPUExecutionProvider'])
+        self._reads_window = any(node.name == ONNX_INPUT for node in self._session.get_inputs())
 
     def runner(self, window: np.ndarray) -> Runner:
         if window.dtype != np.float64 or not window.flags.c_contiguous:
@@ -109,8 +112,9 @@ class OnnxRuntimeBackend:
             raise ValueError(msg)
         output = np.zeros((1, 2))
         binding = self._session.io_binding()
-        binding.bind_input(ONNX_INPUT, 'cpu', 0, np.float64, list(window.shape),
-                           window.ctypes.data)
+        if self._reads_window:
+            binding.bind_input(ONNX_INPUT, 'cpu', 0, np.float64, list(window.shape),
+                               window.ctypes.data)
         binding.bind_output(ONNX_OUTPUT, 'cpu', 0, np.float64, list(output.shape),
                             output.ctypes.data)
         run_bound = self._session.run_with_iobinding
@@ -159,16 +163,16 @@ def onnxruntime_backend(model: LoadedModel,
     TorchScript backend) on the warm-up batch; `InferenceBackendError` naming why not."""
     try:
         onnxruntime = importlib.import_module('onnxruntime')
-    except ImportError as err:
-        msg = f'ONNX Runtime cannot be imported ({err}); pip install -r requirements.txt'
+    except Exception as err:  # a broken install raises more than ImportError
+        msg = (f'ONNX Runtime cannot be imported ({_first_line(err)}); '
+               'pip install -r requirements.txt')
         raise InferenceBackendError(msg) from err
     try:
         backend = OnnxRuntimeBackend(export_onnx(model), onnxruntime)
     except ModelFileError as err:
         raise InferenceBackendError(str(err)) from err
     except Exception as err:  # ONNX Runtime raises its own types for a bad graph
-        first = str(err).splitlines()[0] if str(err) else type(err).__name__
-        msg = f'model {model.path}: ONNX Runtime cannot take its graph ({first})'
+        msg = f'model {model.path}: ONNX Runtime cannot take its graph ({_first_line(err)})'
         raise InferenceBackendError(msg) from err
     disagreement = compare(backend, reference or TorchScriptBackend(model),
                            warm_up_windows(model))
@@ -182,9 +186,14 @@ def compare(candidate: InferenceBackend, reference: InferenceBackend,
             windows: np.ndarray) -> str | None:
     """Why `candidate` disagrees with `reference` on `windows` (beyond
     `RELATIVE_TOLERANCE` of the largest reference output, or not finite where the reference
-    is), None if it agrees; a candidate that raises disagrees."""
+    is), None if it agrees; a candidate that raises, binding the window or running,
+    disagrees."""
     window = np.zeros(windows.shape[1:])
-    run_candidate, run_reference = candidate.runner(window), reference.runner(window)
+    run_reference = reference.runner(window)
+    try:
+        run_candidate = candidate.runner(window)
+    except Exception as err:  # noqa: BLE001 - any failure of the candidate refuses it
+        return f'{candidate.name} cannot bind a window ({_first_line(err)})'
     got, wanted = np.empty((len(windows), 2)), np.empty((len(windows), 2))
     for k, values in enumerate(windows):
         window[:] = values
@@ -192,7 +201,7 @@ def compare(candidate: InferenceBackend, reference: InferenceBackend,
         try:
             got[k] = run_candidate()
         except Exception as err:  # noqa: BLE001 - any failure of the candidate refuses it
-            return f'{candidate.name} failed on a warm-up window ({type(err).__name__}: {err})'
+            return f'{candidate.name} failed on a warm-up window ({_first_line(err)})'
     scale = float(np.max(np.abs(wanted)))
     worst = float(np.max(np.abs(got - wanted))) if np.isfinite(got).all() else np.inf
     if not worst <= RELATIVE_TOLERANCE * scale:
@@ -200,3 +209,9 @@ def compare(candidate: InferenceBackend, reference: InferenceBackend,
                 f'{worst:.3g} m, over {RELATIVE_TOLERANCE:g} of the largest output '
                 f'{scale:.3g} m')
     return None
+
+
+def _first_line(err: Exception) -> str:
+    """'Type: first line of the message' of an exception, for a one-line reason."""
+    text = str(err).splitlines()
+    return f'{type(err).__name__}: {text[0]}' if text else type(err).__name__

@@ -88,11 +88,12 @@ class ReadyModel:
                        expected={**self.request.expected, 'window': metadata.window,
                                  'horizon': metadata.horizon, 'preview': metadata.preview})
 
-    def fallback_request(self, path: str) -> ModelRequest:
+    def fallback_request(self, path: str, hint: str) -> ModelRequest:
         """The request a model must answer to stand in where this one's reference preview
         is missing: the same robot, horizon and sample period, no preview, its own window
-        (verified by its sidecar: the pin is this model's)."""
+        (verified by its sidecar: the pin is this model's; `hint` says so in a refusal)."""
         return replace(self.request, path=path, sha256='', sample_period=self.sample_period,
+                       hint=hint,
                        expected={'robot_description_sha256':
                                  self.request.expected['robot_description_sha256'],
                                  'horizon': self.model.metadata.horizon, 'preview': 0})

@@ -110,10 +110,12 @@ class OnlinePredictor:
         stamp_ns = self._stamps.reference_ns(stamp, now)
         if stamp_ns is None:
             return []
+        outputs: list[Output] = []
         if self.preview and not self.plan.check(stamp_ns, x, y, z):
-            self.primary.window.plan_lost()
+            self.primary.window.plan_lost()  # and what was predicted from the plan is cancelled
+            outputs = self.gate.cancel(PreviewDrop.CONTRADICTED, self._alignment.newest_pose_ns)
         events = self._alignment.add_reference(stamp_ns, x, y, z)
-        return self._handle(events) if events else []
+        return outputs + self._handle(events) if events else outputs
 
     def add_preview(self, stamps_ns: np.ndarray, positions: np.ndarray) -> PreviewDrop | None:
         """Take one reference preview: (n,) int64 instants [ns], (n, 3) planned tool tips
@@ -323,8 +325,9 @@ class OnlinePredictor:
 
     def _restart(self, stamp_ns: int | None, reason: DropReason) -> None:
         """Take the inputs as starting afresh at `stamp_ns` (None: anew), the waiting poses
-        dropped under `reason`; idle time and the overrun estimate start again."""
+        dropped under `reason`; the plan, idle time and the overrun estimate start again."""
         self._alignment.rewind(stamp_ns, reason)
+        self._reader.restart()
         self._stale.restart()
         self.overrun.restart()
 

@@ -7,6 +7,12 @@ reason counted, when a pose is not finite, its stamps do not increase or it plan
 after the newest reference. The reference actually commanded is checked against the plan
 (`check`): a plan that contradicts it (the path changed, e.g. the program was stopped) is
 dropped, since the instants it covered were predicted from a path that will not happen.
+
+The plan is bounded: it reaches at most `PLAN_REACH` beyond the instant the model reads
+ahead of the newest reference, and `PLAN_REACH` before that reference, since the poses come
+later than the reference (through the kinematics node); what the samples have read and the
+references have checked is let go. It starts again (`restart`) when the streams do: a
+clock gone back, a node reactivated, a reference going back.
 """
 
 from __future__ import annotations
@@ -17,8 +23,17 @@ from enum import StrEnum
 import numpy as np
 
 from lompr_predictor.monitoring import RejectionCounter
+from lompr_predictor.stamps import period_ns
 
 XYZ = tuple[float, float, float]
+
+#: How far [s] the plan reaches beyond the instant a model reads ahead of the newest
+#: reference, and before that reference. A look-ahead plans the coming samples, a fraction
+#: of a second of motion: instants further out are planned again by a later preview before
+#: any sample reads them, and a preview that starts beyond comes from a path generator whose
+#: clock runs ahead of the reference's (refused, 'ahead'); a pose that lags the reference by
+#: more is stale. Either way the plan, which every preview copies, stays small.
+PLAN_REACH = 1.0
 
 
 class PreviewDrop(StrEnum):
@@ -31,6 +46,10 @@ class PreviewDrop(StrEnum):
     NON_FINITE = 'non_finite'
     OUT_OF_ORDER = 'out_of_order'
     PAST = 'past'
+    #: a stamp that is no time (negative, or `nanosec` of 1e9 or more: `stamps.instants_ns`)
+    BAD_STAMP = 'bad_stamp'
+    #: planned to start beyond `PLAN_REACH` after the newest reference
+    AHEAD = 'ahead'
     CONTRADICTED = 'contradicted'
     #: a sample used while the plan did not cover the instant its model reads ahead
     MISSING = 'missing'
@@ -46,6 +65,8 @@ class PlannedPath:
     def __init__(self, max_step_ns: float, tolerance: float) -> None:
         self.max_step_ns = max_step_ns
         self.tolerance = tolerance
+        #: [ns] how far after the newest reference the plan reaches at most (`read_ahead`)
+        self.max_ahead_ns = period_ns(PLAN_REACH)
         self._stamps = np.zeros(0, dtype=np.int64)
         self._positions = np.zeros((0, 3))
         self._newest_reference_ns = -1
@@ -67,8 +88,10 @@ class PlannedPath:
         old = self._stamps  # sorted: what the new plan does not cover is before or after it
         before = int(np.searchsorted(old, stamps[0]))
         after = int(np.searchsorted(old, stamps[-1], side='right'))
-        self._stamps = np.concatenate([old[:before], stamps, old[after:]])
-        self._positions = np.concatenate([self._positions[:before], positions,
+        # before the first reference nothing lets go of the plan's past: the newest alone
+        keep = 0 if self._newest_reference_ns >= 0 else before
+        self._stamps = np.concatenate([old[keep:before], stamps, old[after:]])
+        self._positions = np.concatenate([self._positions[keep:before], positions,
                                           self._positions[after:]])
         self.previews_used += 1
         return None
@@ -94,13 +117,14 @@ class PlannedPath:
     def check(self, stamp_ns: int, x: float, y: float, z: float) -> bool:
         """The reference commanded at `stamp_ns`: False (and the plan dropped, counted as
         contradicted) if the plan covers that instant elsewhere than `tolerance` allows;
-        the plan before it is let go."""
-        self._newest_reference_ns = max(self._newest_reference_ns, stamp_ns)
+        the plan more than `PLAN_REACH` before it, and beyond its reach (`max_ahead_ns`), is
+        let go. A reference before the newest one starts the plan again (`restart`): the
+        reference stream restarted."""
+        if stamp_ns < self._newest_reference_ns:
+            self.restart()
+        self._newest_reference_ns = stamp_ns
         planned = self.at(stamp_ns)
-        # keep the instant before: it brackets instants after the reference
-        cut = int(np.searchsorted(self._stamps, stamp_ns)) - 1
-        if cut > 0:
-            self._stamps, self._positions = self._stamps[cut:], self._positions[cut:]
+        self._keep(stamp_ns - period_ns(PLAN_REACH), stamp_ns + self.max_ahead_ns)
         if planned is None:
             return True
         px, py, pz = planned
@@ -110,10 +134,35 @@ class PlannedPath:
         self.clear()
         return False
 
+    def read(self, instant_ns: int) -> None:
+        """A sample read the plan at `instant_ns` (the samples come in stamp order): the plan
+        before it is let go, but not the instants the references still check it at."""
+        self._keep(min(instant_ns, self._newest_reference_ns))
+
+    def _keep(self, first_ns: int, last_ns: int | None = None) -> None:
+        """Let go of the plan before `first_ns` (but the instant before it, which brackets
+        it) and after `last_ns` (None: nothing after)."""
+        stamps = self._stamps
+        cut = max(int(np.searchsorted(stamps, first_ns)) - 1, 0)
+        end = len(stamps) if last_ns is None else int(np.searchsorted(stamps, last_ns, 'right'))
+        if cut > 0 or end < len(stamps):
+            self._stamps, self._positions = stamps[cut:end], self._positions[cut:end]
+
     def clear(self) -> None:
         """Forget the plan (the next preview starts a new one)."""
         self._stamps = self._stamps[:0]
         self._positions = self._positions[:0]
+
+    def read_ahead(self, lead_ns: int) -> None:
+        """The plan is read `lead_ns` after each sample (`PlanReader`): it reaches
+        `PLAN_REACH` beyond that."""
+        self.max_ahead_ns = lead_ns + period_ns(PLAN_REACH)
+
+    def restart(self) -> None:
+        """Forget the plan and the newest reference: the streams start again, from any
+        stamps (a clock gone back, a node reactivated)."""
+        self.clear()
+        self._newest_reference_ns = -1
 
     def _problem(self, stamps: np.ndarray, positions: np.ndarray) -> PreviewDrop | None:
         if len(stamps) == 0:
@@ -122,10 +171,15 @@ class PlannedPath:
         # holds positions no robot has, refused alike)
         if not math.isfinite(float(positions.sum())):
             return PreviewDrop.NON_FINITE
+        if stamps.min() < 0:
+            return PreviewDrop.BAD_STAMP
         if not (stamps[1:] > stamps[:-1]).all():
             return PreviewDrop.OUT_OF_ORDER
-        if stamps[-1] <= self._newest_reference_ns:
+        newest = self._newest_reference_ns
+        if stamps[-1] <= newest:
             return PreviewDrop.PAST
+        if newest >= 0 and stamps[0] > newest + self.max_ahead_ns:
+            return PreviewDrop.AHEAD
         return None
 
 
@@ -136,16 +190,24 @@ class PlanReader:
 
     def __init__(self, plan: PlannedPath, lead_ns: int, stale_after_ns: int) -> None:
         self.plan = plan
+        plan.read_ahead(lead_ns)
         self.lead_ns = lead_ns
         self.stale_after_ns = stale_after_ns
         self.stale = False
         self._planned_ns: int | None = None  # when a sample last had a plan
+
+    def restart(self) -> None:
+        """The streams start again (`PlannedPath.restart`): no plan, not stale."""
+        self.plan.restart()
+        self.stale = False
+        self._planned_ns = None
 
     def at_sample(self, stamp_ns: int, now_ns: int) -> tuple[int, float, float, float] | None:
         """(instant [ns], planned x, y, z [m]) `lead_ns` after the sample at `stamp_ns`,
         used at `now_ns`; None (counted) where the plan does not reach it."""
         instant_ns = stamp_ns + self.lead_ns
         position = self.plan.at(instant_ns)
+        self.plan.read(instant_ns)
         if position is not None:
             self._planned_ns = now_ns
             self.stale = False

@@ -13,12 +13,13 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gc
 import itertools
 import signal
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from types import FrameType
 
@@ -167,16 +168,33 @@ def make_executor(name: str, context: Context) -> Executor:
 
 class StopRequest:
     """SIGINT and SIGTERM, while installed, set `requested` instead of raising
-    KeyboardInterrupt wherever the main thread happens to be (`run_node`)."""
+    KeyboardInterrupt wherever the main thread happens to be (`run_node`), except
+    `while_starting`."""
 
     def __init__(self) -> None:
         self.requested = False
+        self._interrupting = False
         for number in (signal.SIGINT, signal.SIGTERM):
             signal.signal(number, self._record)
+
+    @contextlib.contextmanager
+    def while_starting(self) -> Iterator[None]:
+        """Inside, a stop request raises KeyboardInterrupt at once (one that came before
+        too): the nodes are being made and configured (loading and warming up a model takes
+        seconds), so the process stops within moments, not once they are up."""
+        self._interrupting = True
+        try:
+            if self.requested:
+                raise KeyboardInterrupt
+            yield
+        finally:
+            self._interrupting = False
 
     def _record(self, number: int, frame: FrameType | None) -> None:
         del number, frame
         self.requested = True
+        if self._interrupting:
+            raise KeyboardInterrupt
 
 
 #: /rosout as rcl publishes it (its rosout default profile): a log viewer that joins a little
@@ -259,12 +277,13 @@ def run_node(
     shutdown within a step. `--executor single-threaded` spins rclpy's stable
     `SingleThreadedExecutor` instead (the events executor is experimental in Jazzy).
 
-    Signals with the events executor: it takes SIGINT and SIGTERM over when it is built
-    and stops at its next step. Before that, rclpy's handlers are not installed and a
-    `StopRequest` records the signal instead: a KeyboardInterrupt raised in the Python code
-    the executor calls while it registers the nodes' entities (which a signal that rclpy
-    passed on late did) leaves them half-registered, and rclpy 7.1.6 aborts (SIGABRT) when
-    that executor is destroyed.
+    Signals (`StopRequest`, installed first; rclpy's handlers pass them on): while the
+    factory makes and configures the nodes one raises KeyboardInterrupt, so a stop during a
+    long configure is acted on at once, a managed node destroying itself on the way out (a
+    library call that does not return to Python finishes first); then it is only recorded
+    and the loop stops at its next step: a KeyboardInterrupt while the events executor
+    registers the nodes' entities leaves them half-registered, and rclpy 7.1.6 aborts
+    (SIGABRT) destroying that executor.
     """
     argv = list(sys.argv if argv is None else argv)
     parser = argparse.ArgumentParser(
@@ -279,7 +298,7 @@ def run_node(
         return 2
     args = parser.parse_args(plain_args)
     events = args.executor == 'events'
-    stop = StopRequest() if events else None
+    stop = StopRequest()  # before rclpy.init: rclpy's own handlers pass signals on to it
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO if events else None)
     return _spin(node_factory, args.executor, stop, parser.prog)
 
@@ -301,7 +320,7 @@ def _plain_arguments(prog: str, argv: list[str]) -> list[str] | None:
 
 
 def _spin(node_factory: Callable[[Context], Node | Sequence[Node]], executor_name: str,
-          stop: StopRequest | None, prog: str) -> int:
+          stop: StopRequest, prog: str) -> int:
     """Build the node(s) on the default context and spin them until Ctrl-C, shutdown or a
     `stop` request (`run_node`); then destroy them and shut the context down. The exit code:
     0, or 2 for a node that could not start (`start_failed`, while the context still lives,
@@ -310,15 +329,16 @@ def _spin(node_factory: Callable[[Context], Node | Sequence[Node]], executor_nam
     nodes: Sequence[Node] = ()
     executor: Executor | None = None
     try:
-        built = node_factory(context)
-        nodes = [built] if isinstance(built, Node) else list(built)
+        with stop.while_starting():
+            built = node_factory(context)
+            nodes = [built] if isinstance(built, Node) else list(built)
         executor = make_executor(executor_name, context)
         for node in nodes:
             executor.add_node(node)
         # out of the collector's sight: a full collection over every object torch and rclpy
         # made at start-up stalls a callback for many sample periods
         gc.freeze()
-        while context.ok() and not (stop and stop.requested):
+        while context.ok() and not stop.requested:
             executor.spin_once(timeout_sec=SPIN_STEP)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

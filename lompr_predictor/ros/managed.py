@@ -63,20 +63,25 @@ class ManagedNode(_LifecycleNodeType):
         self._owned = []
 
     def autostart(self) -> None:
-        """Configure and activate; raise why not (a `LomprError`), after destroying the
-        node, so that an executable stops with one line."""
+        """Configure and activate; raise why not (a `LomprError`), or the KeyboardInterrupt
+        of a stop request that came meanwhile, after destroying the node, so that an
+        executable stops with one line."""
+        try:
+            self._configure_and_activate()
+        except BaseException:
+            self.destroy_node()
+            raise
+
+    def _configure_and_activate(self) -> None:
         self._autostarting = True  # the caller reports a failure: one line, not two
         try:
             configured = self.trigger_configure() == TransitionCallbackReturn.SUCCESS
         finally:
             self._autostarting = False
         if not configured:
-            error = self._configure_exception or ConfigureError(
+            raise self._configure_exception or ConfigureError(
                 self.configure_error or 'configure failed')
-            self.destroy_node()
-            raise error
         if self.trigger_activate() != TransitionCallbackReturn.SUCCESS:
-            self.destroy_node()
             msg = 'activate failed'
             raise ConfigureError(msg)
 

@@ -67,6 +67,11 @@ from lompr_predictor.stamps import Stamp
 from lompr_predictor.threads import set_torch_threads
 
 NODE_NAME = 'predictor_node'
+#: How the fallback model is verified, for a refusal message (its own sidecar: `HASH_HINT`'s
+#: model_sha256 pins model_path only).
+FALLBACK_HASH_HINT = ('predictor_node: the fallback model is verified by its own sidecar '
+                      '(model_sha256 pins model_path, not the fallback), or for development '
+                      'only -p verify_model_hash:=false')
 
 
 class NotConfiguredError(LomprError):
@@ -174,7 +179,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         fallback = None
         if settings.fallback_model_path and ready.model.metadata.preview:
             fallback_outcome = load_ready_model(
-                ready.fallback_request(settings.fallback_model_path))
+                ready.fallback_request(settings.fallback_model_path, FALLBACK_HASH_HINT))
             if fallback_outcome.ready is None:
                 return fallback_outcome.error
             fallback = fallback_outcome.ready

@@ -28,7 +28,7 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 
 from lompr_predictor.errors import LomprError
-from lompr_predictor.stamps import NS_PER_SECOND
+from lompr_predictor.stamps import instants_ns
 
 #: Encapsulation header of little-endian plain CDR.
 CDR_LE = b'\x00\x01\x00\x00'
@@ -166,7 +166,8 @@ class Vector3StampedWriter(_StampedWriter):
 def read_path(data: bytes, frame_id: str) -> tuple[np.ndarray, np.ndarray] | None:
     """(n,) int64 stamps [ns] and (n, 3) positions [m] of the poses of a serialized
     nav_msgs/Path; None if the path or one of its poses is in another frame than
-    `frame_id` (a pose without a frame is in the path's)."""
+    `frame_id` (a pose without a frame is in the path's). A stamp that is no time is
+    `stamps.NOT_A_TIME` (`stamps.instants_ns`), for the plan to refuse."""
     try:
         if data[:4] != CDR_LE:
             return _path_poses(deserialize_message(data, Path), frame_id)
@@ -175,23 +176,25 @@ def read_path(data: bytes, frame_id: str) -> tuple[np.ndarray, np.ndarray] | Non
             return None
         offset = _align(offset, 4)
         count, = _UINT32.unpack_from(data, 4 + offset)
-        stamps = np.empty(count, dtype=np.int64)
+        seconds = np.empty(count, dtype=np.int64)
+        nanoseconds = np.empty(count, dtype=np.int64)
         positions = np.empty((count, 3))
-        if not _read_poses(data, offset + 4, frame_id, stamps, positions):
+        if not _read_poses(data, offset + 4, frame_id, seconds, nanoseconds, positions):
             return None
     except Exception as err:
         msg = f'not a Path: {type(err).__name__}: {err}'
         raise WireError(msg) from err
-    return stamps, positions
+    return instants_ns(seconds, nanoseconds), positions
 
 
-def _read_poses(data: bytes, offset: int, frame_id: str, stamps: np.ndarray,
-                positions: np.ndarray) -> bool:
-    """Fill `stamps` and `positions` from the PoseStamped sequence at `offset`; False if a
-    pose is in another frame. A pose starting 8-byte aligned has the layout of every pose
-    after it with the same frame (the pose ends 8-byte aligned): those are read at once, as
-    strided arrays over the bytes, instead of one by one."""
-    count = len(stamps)
+def _read_poses(data: bytes, offset: int, frame_id: str, seconds: np.ndarray,
+                nanoseconds: np.ndarray, positions: np.ndarray) -> bool:
+    """Fill the stamps' `seconds` and `nanoseconds` and `positions` from the PoseStamped
+    sequence at `offset`; False if a pose is in another frame. A pose starting 8-byte
+    aligned has the layout of every pose after it with the same frame (the pose ends 8-byte
+    aligned): those are read at once, as strided arrays over the bytes, instead of one by
+    one."""
+    count = len(seconds)
     index = 0
     while index < count:
         offset = _align(offset, 4)
@@ -210,13 +213,12 @@ def _read_poses(data: bytes, offset: int, frame_id: str, stamps: np.ndarray,
             lengths = np.ndarray((rows,), '<u4', data, base + 8, (stride,))
             frames = np.ndarray((rows, length), 'u1', data, base + 12, (stride, 1))
             if (lengths == length).all() and (frames == frames[0]).all():
-                seconds = np.ndarray((rows,), '<i4', data, base, (stride,))
-                nanoseconds = np.ndarray((rows,), '<u4', data, base + 4, (stride,))
-                stamps[index:] = seconds.astype(np.int64) * NS_PER_SECOND + nanoseconds
+                seconds[index:] = np.ndarray((rows,), '<i4', data, base, (stride,))
+                nanoseconds[index:] = np.ndarray((rows,), '<u4', data, base + 4, (stride,))
                 positions[index:] = np.ndarray((rows, 3), '<f8', data,
                                                base + position - offset, (stride, 8))
                 return True
-        stamps[index] = sec * NS_PER_SECOND + nanosec
+        seconds[index], nanoseconds[index] = sec, nanosec
         positions[index] = _POINT.unpack_from(data, 4 + position)
         offset = position + 7 * 8
         index += 1
@@ -237,12 +239,10 @@ def _path_poses(msg: Path, frame_id: str) -> tuple[np.ndarray, np.ndarray] | Non
     if msg.header.frame_id != frame_id:
         return None
     poses = msg.poses
-    stamps = np.empty(len(poses), dtype=np.int64)
-    positions = np.empty((len(poses), 3))
-    for index, pose in enumerate(poses):
-        if pose.header.frame_id not in ('', frame_id):
-            return None
-        stamp, position = pose.header.stamp, pose.pose.position
-        stamps[index] = stamp.sec * NS_PER_SECOND + stamp.nanosec
-        positions[index] = (position.x, position.y, position.z)
+    if any(pose.header.frame_id not in ('', frame_id) for pose in poses):
+        return None
+    stamps = instants_ns(np.array([pose.header.stamp.sec for pose in poses], dtype=np.int64),
+                         np.array([pose.header.stamp.nanosec for pose in poses], dtype=np.int64))
+    positions = np.array([(p.x, p.y, p.z) for p in (pose.pose.position for pose in poses)],
+                         dtype=float).reshape(-1, 3)
     return stamps, positions
