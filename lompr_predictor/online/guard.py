@@ -33,6 +33,7 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 from enum import StrEnum
+from typing import NamedTuple
 
 from lompr_predictor.learning.envelope import InputEnvelope
 from lompr_predictor.online.alignment import AlignedSample
@@ -113,15 +114,25 @@ class _Axis:
         self.persistence_ms += weight * (persistence_residual * persistence_residual
                                          - self.persistence_ms)
 
-    def decide(self, settings: GuardSettings, scored: int, outside: bool) -> None:
-        """Switch if the rules say so (module docstring)."""
+    def decide(self, rules: _Thresholds, ready: bool, outside: bool) -> None:
+        """Switch if the rules say so (module docstring); `ready`: enough instants scored."""
         self.since_switch += 1
-        if self.since_switch < settings.min_dwell:
+        if self.since_switch < rules.min_dwell:
             return
-        wanted, reason = self._wanted(settings, scored, outside)
+        if outside:
+            wanted, reason = GuardState.PERSISTENCE, GuardReason.OUTSIDE_ENVELOPE
+        elif not ready:
+            return
+        elif self.state is GuardState.MODEL:
+            if self.model_ms <= rules.hand_over * self.persistence_ms + NEGLIGIBLE_MS:
+                return
+            wanted, reason = GuardState.PERSISTENCE, GuardReason.WORSE_THAN_PERSISTENCE
+        elif self.model_ms < rules.hand_back * self.persistence_ms - NEGLIGIBLE_MS:
+            wanted, reason = GuardState.MODEL, None
+        else:
+            wanted, reason = GuardState.PERSISTENCE, GuardReason.WORSE_THAN_PERSISTENCE
         if wanted is self.state:
-            if wanted is GuardState.PERSISTENCE:
-                self.reason = reason
+            self.reason = reason
             return
         self.state, self.reason, self.since_switch = wanted, reason, 0
         if wanted is GuardState.PERSISTENCE:
@@ -129,21 +140,18 @@ class _Axis:
         else:
             self.hand_backs += 1
 
-    def _wanted(self, settings: GuardSettings, scored: int,
-                outside: bool) -> tuple[GuardState, GuardReason | None]:
-        if outside:
-            return GuardState.PERSISTENCE, GuardReason.OUTSIDE_ENVELOPE
-        if scored < settings.min_scored:
-            return self.state, self.reason
-        # compare mean squares: (1 + margin)^2 is the RMS ratio's threshold squared
-        model, reference = self.model_ms, self.persistence_ms
-        if self.state is GuardState.MODEL:
-            if model > (1.0 + settings.margin) ** 2 * reference + NEGLIGIBLE_MS:
-                return GuardState.PERSISTENCE, GuardReason.WORSE_THAN_PERSISTENCE
-            return GuardState.MODEL, None
-        if model < (1.0 - settings.margin) ** 2 * reference - NEGLIGIBLE_MS:
-            return GuardState.MODEL, None
-        return GuardState.PERSISTENCE, GuardReason.WORSE_THAN_PERSISTENCE
+
+class _Thresholds(NamedTuple):
+    """The settings as `_Axis.decide` compares them, computed once: mean-square ratios."""
+
+    hand_over: float  # (1 + margin)^2: above it, persistence takes over
+    hand_back: float  # (1 - margin)^2: below it, the model takes back
+    min_dwell: int
+
+    @classmethod
+    def of(cls, settings: GuardSettings) -> _Thresholds:
+        return cls((1.0 + settings.margin) ** 2, (1.0 - settings.margin) ** 2,
+                   settings.min_dwell)
 
 
 class LiveGuard:
@@ -152,13 +160,12 @@ class LiveGuard:
     `sample_units.SampleUnit` of the predictor core."""
 
     def __init__(self, settings: GuardSettings, lead_ns: int, period_ns: int) -> None:
-        self.settings = settings
+        self.settings = settings  # also sets the thresholds
         self._lead_ns = lead_ns
         self._tolerance_ns = period_ns // 2
         #: (instant, model x, model y, persistence x, persistence y) awaiting their truth, in
         #: increasing instants (a sample's truth arrives in stamp order)
         self._pending: deque[tuple[int, float, float, float, float]] = deque()
-        self._weight = 1.0 / settings.window
         self._axes = (_Axis(), _Axis())
         self._outside = 0.0  # weighted fraction of recent rows outside the envelope
         self._last: tuple[int, XY] | None = None  # the newest sample's stamp and plant error
@@ -175,6 +182,18 @@ class LiveGuard:
         every `sample_period` [s] (the core's)."""
         period = period_ns(sample_period)
         return cls(settings, horizon * period, period)
+
+    @property
+    def settings(self) -> GuardSettings:
+        """The rules; changed at run time (the node's parameters), they apply from the next
+        sample on, the live scores kept."""
+        return self._settings
+
+    @settings.setter
+    def settings(self, settings: GuardSettings) -> None:
+        self._settings = settings
+        self._weight = 1.0 / settings.window
+        self._thresholds = _Thresholds.of(settings)
 
     # -- the chain (`sample_units.SampleUnit`) ---------------------------------------------
 
@@ -229,8 +248,9 @@ class LiveGuard:
         self._outside += self._weight * ((0.0 if inside_envelope else 1.0) - self._outside)
         outside = self._outside > self.settings.envelope_fraction
         axis_x, axis_y = self._axes
-        axis_x.decide(self.settings, self.scored, outside)
-        axis_y.decide(self.settings, self.scored, outside)
+        rules, ready = self._thresholds, self.scored >= self.settings.min_scored
+        axis_x.decide(rules, ready, outside)
+        axis_y.decide(rules, ready, outside)
         if not self.settings.enabled:
             return model
         use_x = axis_x.state is GuardState.MODEL
