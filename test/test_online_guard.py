@@ -85,6 +85,21 @@ def test_an_axis_where_the_model_is_worse_goes_to_persistence() -> None:
     assert math.isclose(x.model_rms, 5e-6, rel_tol=1e-9)
 
 
+def test_a_model_a_little_worse_than_persistence_is_handed_over() -> None:
+    """A model whose every residual is 1.03x persistence's, inside the margin: it is handed
+    over all the same (the margin is the way back only), after `min_scored` instants."""
+    settings = _settings(margin=0.05, min_scored=50, min_dwell=50)
+    guard = LiveGuard(settings, LEAD, PERIOD)
+    truth = _walk(300, seed=7)
+    model_error = np.zeros_like(truth)
+    model_error[HORIZON:] = -1.03 * (truth[HORIZON:] - truth[:-HORIZON])
+    _run(guard, truth, model_error)
+    x, y = guard.status()
+    assert x.state is y.state is GuardState.PERSISTENCE
+    assert x.hand_overs == y.hand_overs == 1
+    assert math.isclose(x.model_rms / x.persistence_rms, 1.03, rel_tol=1e-9)
+
+
 def test_hand_back_needs_the_margin_and_the_dwell() -> None:
     """Worse, then better: the axis comes back once the model's weighted RMS is below
     (1 - margin) x persistence's and `min_dwell` instants have passed, not before."""

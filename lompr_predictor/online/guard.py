@@ -10,10 +10,11 @@ under compensation), per axis, and chooses, per axis, whose prediction is publis
   model's (the prediction it made `horizon` samples earlier, kept by instant whether it was
   published or not) and persistence's (e(t - horizon)); where both exist, the squared
   residuals enter an exponentially weighted mean over about `window` instants;
-- an axis is handed over to persistence when the model's live RMS exceeds persistence's by
-  more than `margin` (relative), and handed back when it is below persistence's by
-  `margin`: the gap between the two thresholds is the hysteresis; no switch within
-  `min_dwell` instants of the last one, and none before `min_scored` instants were scored;
+- an axis is handed over to persistence as soon as the model's live RMS exceeds
+  persistence's (a model no better than the simplest compensator has no business
+  compensating), and handed back when it is below persistence's by `margin` (relative):
+  the gap between the two thresholds is the hysteresis; no switch within `min_dwell`
+  instants of the last one, and none before `min_scored` instants were scored;
 - a sample whose feature row lies outside the model's trained envelope (`envelope.py`) is
   counted; while more than `envelope_fraction` of the recent rows lie outside it, both axes
   are held back whatever the live scores (the model is extrapolating);
@@ -69,7 +70,7 @@ class GuardSettings:
 
     enabled: bool
     window: int  # instants the live RMS is weighted over (time constant)
-    margin: float  # relative: hand over above (1 + margin) x, back below (1 - margin) x
+    margin: float  # relative: hand over above 1 x persistence, back below (1 - margin) x
     min_dwell: int  # instants between two switches of an axis, at least
     min_scored: int  # instants scored before the first decision
     envelope_fraction: float  # recent rows outside the envelope that hold the model back
@@ -144,14 +145,13 @@ class _Axis:
 class _Thresholds(NamedTuple):
     """The settings as `_Axis.decide` compares them, computed once: mean-square ratios."""
 
-    hand_over: float  # (1 + margin)^2: above it, persistence takes over
+    hand_over: float  # above it, persistence takes over
     hand_back: float  # (1 - margin)^2: below it, the model takes back
     min_dwell: int
 
     @classmethod
     def of(cls, settings: GuardSettings) -> _Thresholds:
-        return cls((1.0 + settings.margin) ** 2, (1.0 - settings.margin) ** 2,
-                   settings.min_dwell)
+        return cls(1.0, (1.0 - settings.margin) ** 2, settings.min_dwell)
 
 
 class LiveGuard:

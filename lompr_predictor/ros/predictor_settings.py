@@ -143,8 +143,9 @@ class PredictorNodeSettings(FrameSettings):
         250, 'instants the live RMS of the model and of persistence are weighted over '
         '(exponentially)', minimum=1, maximum=10_000_000, read_only=True)
     guard_margin: float = parameter(
-        0.05, 'relative margin: an axis goes to persistence when the model is worse by more '
-        'than it, and back when the model is better by more than it (hysteresis)',
+        0.05, 'relative margin (hysteresis): an axis goes to persistence as soon as the '
+        "model's live RMS exceeds persistence's, and back when the model is better by more "
+        'than this fraction',
         minimum=0.0, maximum=0.9, read_only=True)
     guard_min_dwell: int = parameter(
         50, 'instants an axis stays with the model or persistence before it may switch again',
