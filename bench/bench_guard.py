@@ -18,6 +18,7 @@ import argparse
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +35,7 @@ from lompr_predictor.online.guard import GuardSettings, LiveGuard
 from lompr_predictor.online.inference import Backend, select_backend
 from lompr_predictor.online.offset import CompensationLimits
 from lompr_predictor.online.predictor import OnlinePredictor
+from lompr_predictor.online.sample_units import SampleUnit
 from lompr_predictor.robot.description import load_robot_description
 from lompr_predictor.robot.kinematics import VerticalToolBranches
 from lompr_predictor.threads import set_torch_threads
@@ -60,15 +62,15 @@ def guarded_model(path: Path, rate: int, tips: np.ndarray) -> Path:
 
 
 def core(model_path: Path, rate: int,
-         guard: LiveGuard | None) -> tuple[OnlinePredictor, list[int]]:
-    """A core on the model (ONNX Runtime, as the node's 'auto'), with `guard` if any; its
-    clock, whose reading the driver sets."""
+         units: Sequence[SampleUnit] = ()) -> tuple[OnlinePredictor, list[int]]:
+    """A core on the model (ONNX Runtime, as the node's 'auto') with `units` in its chain;
+    its clock, whose reading the driver sets."""
     model = load_model(model_path)
     backend, _ = select_backend(model, Backend.AUTO)
     now = [0]
     limits = CompensationLimits(5e-4, 5e-5, enabled=True)
     return OnlinePredictor(model, core_stream(rate), limits, clock=lambda: now[0],
-                           backend=backend, units=(guard,) if guard else ()), now
+                           backend=backend, units=units), now
 
 
 def drive(predictor: OnlinePredictor, now: list[int], tips: np.ndarray, first: int,
@@ -95,8 +97,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as folder:
         model = guarded_model(Path(folder) / 'model.pt', args.rate, tips)
         guard = LiveGuard.for_stream(RULES, 5, 1.0 / args.rate)
-        cores = {'plain': core(model, args.rate, None),
-                 'guarded': core(model, args.rate, guard)}
+        cores = {'plain': core(model, args.rate), 'guarded': core(model, args.rate, (guard,))}
     period_ns = round(1e9 / args.rate)
     seconds: dict[str, list[float]] = {name: [] for name in cores}
     for block in range(args.samples // args.block):
