@@ -86,11 +86,31 @@ def drive(predictor: OnlinePredictor, now: list[int], tips: np.ndarray, first: i
     return time.thread_time() - started
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+def add_block_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of a bench that drives cores in alternating blocks."""
     parser.add_argument('--samples', type=int, default=20_000)
     parser.add_argument('--block', type=int, default=500)
     parser.add_argument('--rate', type=int, default=1000)
+
+
+def alternating_cpu(cores: dict[str, tuple[OnlinePredictor, list[int]]], tips: np.ndarray,
+                    args: argparse.Namespace) -> dict[str, float]:
+    """Thread CPU per sample [us] of each core (median of its blocks but the first), the
+    cores driven by the same samples in blocks of `args.block`, in alternating order."""
+    period_ns = round(1e9 / args.rate)
+    seconds: dict[str, list[float]] = {name: [] for name in cores}
+    names = list(cores)
+    for block in range(args.samples // args.block):
+        for name in (names if block % 2 else names[::-1]):
+            predictor, now = cores[name]
+            seconds[name].append(drive(predictor, now, tips, block * args.block, args.block,
+                                       period_ns) / args.block)
+    return {name: 1e6 * float(np.median(values[1:])) for name, values in seconds.items()}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    add_block_arguments(parser)
     args = parser.parse_args()
     set_torch_threads(1)
     tips, _ = spiral_joints(40 * args.rate, args.rate)
@@ -98,14 +118,8 @@ def main() -> int:
         model = guarded_model(Path(folder) / 'model.pt', args.rate, tips)
         guard = LiveGuard.for_stream(RULES, 5, 1.0 / args.rate)
         cores = {'plain': core(model, args.rate), 'guarded': core(model, args.rate, (guard,))}
-    period_ns = round(1e9 / args.rate)
-    seconds: dict[str, list[float]] = {name: [] for name in cores}
-    for block in range(args.samples // args.block):
-        for name in (('plain', 'guarded') if block % 2 else ('guarded', 'plain')):
-            predictor, now = cores[name]
-            seconds[name].append(drive(predictor, now, tips, block * args.block, args.block,
-                                       period_ns) / args.block)
-    plain, guarded = (1e6 * float(np.median(seconds[n][1:])) for n in ('plain', 'guarded'))
+    cpu = alternating_cpu(cores, tips, args)
+    plain, guarded = cpu['plain'], cpu['guarded']
     print(f'{args.samples} samples at {args.rate} Hz, blocks of {args.block}, alternating; '
           f'thread CPU time per sample (median of the blocks): core {plain:.1f} us, core with '
           f'the guard {guarded:.1f} us: the guard adds {guarded - plain:.1f} us (target <= '

@@ -22,11 +22,9 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_guard import RULES, core, drive, guarded_model
+from bench_guard import RULES, add_block_arguments, alternating_cpu, core, guarded_model
 from bench_predictor import spiral_joints
 
 from lompr_predictor.online.alignment import AlignedSample
@@ -62,9 +60,7 @@ def export_times(minutes: float, rate: int, folder: Path) -> tuple[float, float,
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
-    parser.add_argument('--samples', type=int, default=20_000)
-    parser.add_argument('--block', type=int, default=500)
-    parser.add_argument('--rate', type=int, default=1000)
+    add_block_arguments(parser)
     parser.add_argument('--export-minutes', type=float, default=1.0)
     args = parser.parse_args()
     set_torch_threads(1)
@@ -75,14 +71,8 @@ def main() -> int:
         cores = {name: core(model, args.rate, (LiveGuard.for_stream(RULES, 5, 1.0 / args.rate),
                                                *extra))
                  for name, extra in (('plain', ()), ('store', (store,)))}
-        period_ns = round(1e9 / args.rate)
-        seconds: dict[str, list[float]] = {name: [] for name in cores}
-        for block in range(args.samples // args.block):
-            for name in (('plain', 'store') if block % 2 else ('store', 'plain')):
-                predictor, now = cores[name]
-                seconds[name].append(drive(predictor, now, tips, block * args.block,
-                                           args.block, period_ns) / args.block)
-        plain, stored = (1e6 * float(np.median(seconds[n][1:])) for n in ('plain', 'store'))
+        cpu = alternating_cpu(cores, tips, args)
+        plain, stored = cpu['plain'], cpu['store']
         size_mb = ring_bytes(capacity_for(STORE_MINUTES, 1e-3)) / 1e6
         on_thread, writer, written = export_times(args.export_minutes, args.rate, Path(folder))
     store.close()

@@ -87,15 +87,10 @@ def add_parser(subparsers: Any) -> None:
                              "from the bags' reference topic; the node then needs "
                              '/lompr/reference_preview. 0: no preview (default, or the --init '
                              "model's)")
-    parser.add_argument('--init', type=existing_path, default=None, metavar='MODEL',
-                        help='fine-tune this model file on the bags instead of training anew: '
-                             'same robot description, window, horizon and preview (the '
-                             "file's unless given; another is refused, naming it), its machine "
-                             'map, normalisation and hyperparameters kept, its weights the '
-                             'start, at most --max-epochs epochs (default '
-                             f'{FINE_TUNE_EPOCHS}), no tuning study (--trials and the space '
-                             'are not used); the report names it and its sha256, the new '
-                             "model's metadata its parent_sha256")
+    parser.add_argument('--init', type=existing_path, default=None, metavar='MODEL', help=(
+        'fine-tune this model file on the bags: its robot, window, horizon and preview, machine '
+        'map, normalisation and hyperparameters kept, at most --max-epochs (default '
+        f'{FINE_TUNE_EPOCHS}) epochs from its weights, no tuning study (docs/training.md)'))
     parser.add_argument('--no-machine-map', dest='machine_map', action='store_false',
                         help='the plain BO-LSTM of the paper: no machine map under it (the '
                              "map, fitted first, carries each actuator's error to the tool "
