@@ -296,6 +296,18 @@ def test_a_closed_loop_bag_trains_on_the_plant_error(
     assert np.all(rms(data.tool_error - run.plant_error[rows]) > 10e-6)
     np.testing.assert_allclose(rms(data.tool_error - run.true_error[rows]),
                                rms(data.error - run.plant_error[rows]), rtol=1e-6)
+    # and the uncompensated error of the same twin run (same seed, no compensation), read
+    # from its bag at the same instants, but for the plant's response to the offsets
+    # themselves (a fraction of a micrometre); the error the offsets left is tens away
+    none = loops['none']
+    plain, _ = load_clean_data(BagInputs((str(record_loop(tmp_path / 'none', none)),),
+                                         cleaning=CleaningConfig(hampel_threshold=1e12)),
+                               description.geometry)
+    np.testing.assert_array_equal(plain.stamps, data.stamps)
+    scored = run.scored[rows]
+    gap, left = (rms((data.error - plain.error)[scored]),
+                 rms((data.tool_error - plain.error)[scored]))
+    assert np.all(gap < 0.3e-6) and np.all(left > 10e-6), (gap, left)
 
 
 def test_demo_runs_every_stage_and_prints_the_table(

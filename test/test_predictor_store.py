@@ -1,6 +1,6 @@
 """The predictor node's sample store over ROS: off by default, the `~/write_samples` service
 writing what the node saw (with the offsets it had in force) as a bag, its status on
-/diagnostics, and the write when the node shuts down."""
+/diagnostics, the write when the node shuts down, and a store that cannot be allocated."""
 
 from __future__ import annotations
 
@@ -12,13 +12,17 @@ import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticStatus
 from model_helpers import save_constant
+from rclpy.parameter import Parameter
 from ros_helpers import RosHarness, stamp_ns, xy
 from std_srvs.srv import Trigger
 from test_predictor_node import HORIZON, PERIOD_NS, T0, WINDOW, Wiring
 
 from lompr_predictor.data.bags import read_recording
 from lompr_predictor.learning.model_file import load_model
+from lompr_predictor.online import sample_store
+from lompr_predictor.online.sample_store import SampleStoreError
 from lompr_predictor.online.store_bag import INFO_JSON
+from lompr_predictor.ros.predictor_node import PredictorNode
 
 pytestmark = pytest.mark.ros
 
@@ -92,3 +96,16 @@ def test_a_node_that_shuts_down_writes_its_store_when_asked(
     (bag,) = (p for p in folder.iterdir() if p.name.startswith('samples-'))
     recording = read_recording(bag)
     assert recording.end_pose is not None and len(recording.end_pose.stamps) == 12
+
+
+def test_a_store_that_cannot_be_allocated_refuses_the_configure_in_one_line(
+        ros: RosHarness, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    def no_memory(fd: int, offset: int, length: int) -> None:
+        raise OSError(12, 'Cannot allocate memory')
+
+    monkeypatch.setattr(sample_store.os, 'posix_fallocate', no_memory)
+    with pytest.raises(SampleStoreError, match=r'^a sample store of 1500 samples \(0.1 MB\) '
+                       'cannot be allocated: Cannot allocate memory$'):
+        PredictorNode(context=ros.context, parameter_overrides=[
+            Parameter('model_path', value=str(constant_model(tmp_path))),
+            Parameter('store_minutes', value=1.0)])

@@ -27,6 +27,7 @@ from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.sample_store import (
     COPY_MARGIN,
     SampleStore,
+    SampleStoreError,
     StoredSamples,
     capacity_for,
     ring_bytes,
@@ -83,6 +84,23 @@ def test_the_ring_keeps_the_newest_samples_exactly_and_in_stamp_order() -> None:
                                atol=1e-18)
     assert store.size_bytes == ring_bytes(50) == 64 + 50 * 64
     store.close()
+
+
+def test_its_memory_is_allocated_when_it_is_made(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every byte of the ring is allocated up front (not a sparse file whose pages a sample
+    first touches); memory that cannot be had is one clear error when the store is made."""
+    store = SampleStore.for_minutes(1.0, 1e-3)
+    assert store.capacity == 60_000 and store.size_bytes == 64 + 60_000 * 64
+    assert os.fstat(store.fd).st_blocks * 512 >= store.size_bytes
+    store.close()
+
+    def no_memory(fd: int, offset: int, length: int) -> None:
+        raise OSError(28, 'No space left on device')
+
+    monkeypatch.setattr(sample_store.os, 'posix_fallocate', no_memory)
+    with pytest.raises(SampleStoreError, match=r'^a sample store of 60000 samples \(3.8 MB\) '
+                       'cannot be allocated: No space left on device$'):
+        SampleStore.for_minutes(1.0, 1e-3)
 
 
 def test_the_default_window_at_1_khz_is_under_64_mb() -> None:

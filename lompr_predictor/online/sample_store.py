@@ -35,6 +35,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from lompr_predictor.errors import LomprError
+
 if TYPE_CHECKING:  # the child that writes the bag reads the ring without the core (torch)
     from lompr_predictor.online.alignment import AlignedSample
     from lompr_predictor.online.model_slot import ModelSlot
@@ -86,15 +88,27 @@ def ring_bytes(capacity: int) -> int:
 
 
 def _shared_file(size: int) -> int:
-    """A file descriptor of `size` zeroed bytes no other process sees unless handed it."""
+    """A file descriptor of `size` zeroed bytes no other process sees unless handed it,
+    allocated now: a store that does not fit in memory fails when it is made, never later
+    on the sample path (a shared page first written where memory has run out is a SIGBUS)."""
     if hasattr(os, 'memfd_create'):
         fd = os.memfd_create('lompr_sample_store')
     else:  # no memfd: a temporary file, deleted at once (its descriptor keeps it)
         handle = tempfile.TemporaryFile()  # noqa: SIM115 - the descriptor outlives it
         fd = os.dup(handle.fileno())
         handle.close()
-    os.ftruncate(fd, size)
+    try:
+        os.ftruncate(fd, size)
+        if hasattr(os, 'posix_fallocate'):
+            os.posix_fallocate(fd, 0, size)
+    except OSError:
+        os.close(fd)
+        raise
     return fd
+
+
+class SampleStoreError(LomprError):
+    """A sample store cannot be made (its memory cannot be allocated)."""
 
 
 class SampleStore:
@@ -109,7 +123,12 @@ class SampleStore:
         self.capacity = capacity
         self.window_ns = window_ns
         self.size_bytes = ring_bytes(capacity)
-        self.fd = _shared_file(self.size_bytes)
+        try:
+            self.fd = _shared_file(self.size_bytes)
+        except OSError as err:
+            msg = (f'a sample store of {capacity} samples ({self.size_bytes / 1e6:.1f} MB) '
+                   f'cannot be allocated: {err.strerror or err}')
+            raise SampleStoreError(msg) from err
         self._ring: mmap.mmap | None = mmap.mmap(self.fd, self.size_bytes)
         self._pack = RECORD.pack_into
         self._count = COUNT.pack_into

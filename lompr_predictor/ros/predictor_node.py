@@ -35,6 +35,7 @@ from lompr_predictor.online.model_loader import (
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_status import Lifecycle, ModelHistory
 from lompr_predictor.online.preview import PreviewDrop
+from lompr_predictor.online.sample_store import SampleStoreError
 from lompr_predictor.robot.description import load_robot_description, robot_name
 from lompr_predictor.ros.common import run_node
 from lompr_predictor.ros.managed import ManagedNode
@@ -190,7 +191,10 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
                                backend_why=ready.backend_why)
         self.model_guard = LiveGuard.for_stream(settings.guard, ready.model.metadata.horizon,
                                                 self.sample_period)
-        store = self.sample_store = NodeSampleStore.configured(self, self.sample_period)
+        try:
+            store = self.sample_store = NodeSampleStore.configured(self, self.sample_period)
+        except SampleStoreError as err:
+            return err
         self._core = OnlinePredictor(
             ready.model, settings.stream(self.sample_period), settings.limits,
             clock=self.clock_ns, backend=ready.backend,
