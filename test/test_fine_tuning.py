@@ -4,6 +4,7 @@ named (the report, `parent_sha256`)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -14,7 +15,7 @@ from test_train_cli import FAST
 from trainer_data import lissajous_reference, synthetic_recording
 
 from lompr_predictor.cli import main as lompr_main
-from lompr_predictor.data.bags import write_recording
+from lompr_predictor.data.bags import read_recording, write_recording
 from lompr_predictor.learning.fine_tuning import FineTuneError, check_rebuilt, editable_module
 from lompr_predictor.learning.model_file import load_model
 from lompr_predictor.learning.models import predict_rows
@@ -135,8 +136,31 @@ def test_another_robot_or_a_model_that_is_no_bo_lstm_is_refused(
     base = ['train', str(bag), '--out', str(tmp_path / 'm.pt'), '--report', str(tmp_path / 'r'),
             '--quiet']
     assert lompr_main([*base, '--init', str(model), '--robot-description', str(other)]) == 2
-    assert "metadata field 'robot_description_sha256'" in capsys.readouterr().err
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert "metadata field 'robot_description_sha256'" in line
     persistence = persistence_model(tmp_path / 'persistence.pt', like=model)
     assert lompr_main([*base, '--init', str(persistence), '--window', '1']) == 2
     assert "fine-tunes a BO-LSTM (model_type lstm), this one is 'persistence'" in (
         capsys.readouterr().err)
+
+
+@pytest.mark.faults
+def test_recordings_at_another_rate_are_refused(
+        parent: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The same bag with every stamp twice as far apart (80 ms, the parent's 40 ms)."""
+    model, bag = parent
+    recording = read_recording(bag)
+    start = int(recording.joints.stamps[0])
+    slow = dataclasses.replace(
+        recording,
+        joints=dataclasses.replace(recording.joints,
+                                   stamps=start + 2 * (recording.joints.stamps - start)),
+        reference=dataclasses.replace(recording.reference,
+                                      stamps=start + 2 * (recording.reference.stamps - start)))
+    code = lompr_main(['train', str(write_recording(tmp_path / 'slow', slow)), '--init',
+                       str(model), '--out', str(tmp_path / 'm.pt'), '--report',
+                       str(tmp_path / 'r'), '--quiet'])
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and ('the recordings are sampled every 80 ms, the model '
+                          f'{model} was trained at 40 ms: not fine-tuned') in line, line
+    assert not (tmp_path / 'm.pt').exists()

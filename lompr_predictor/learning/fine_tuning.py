@@ -3,9 +3,10 @@ of adaptation (a model trained on one machine, or on the machine as it was, lear
 machine as it is now from a few recordings of it).
 
 `fine_tune_predictor(config, init)` checks the model file against the run (the robot
-description, window, horizon and preview must be the run's: one line naming the field
-otherwise), rebuilds its BO-LSTM as a trainable module (`editable_module`: the file's
-network, machine map and normalisation, checked to predict as the file does), trains it on
+description, window, horizon and preview must be the run's, and the recordings sampled at
+its sample period: one line naming the field otherwise), rebuilds its BO-LSTM as a
+trainable module (`editable_module`: the file's network, machine map and normalisation,
+checked to predict as the file does), trains it on
 the new recordings' training part from its weights (`training.train_network` with `init`)
 for at most `config.max_epochs` epochs, with the hyperparameters the file records and no
 tuning study, the best validation epoch kept, the starting weights counting as epoch 0 (so
@@ -33,6 +34,7 @@ from lompr_predictor.learning.envelope import InputEnvelope, fit_envelope, joine
 from lompr_predictor.learning.machine_map import MachineMap, map_prior
 from lompr_predictor.learning.metrics import score_predictions
 from lompr_predictor.learning.model_file import (
+    PERIOD_TOLERANCE,
     LoadedModel,
     ModelMetadata,
     library_versions,
@@ -66,7 +68,8 @@ CHECK_TOLERANCE = 1e-9
 
 
 class FineTuneError(LomprError):
-    """A model file cannot be fine-tuned (not a BO-LSTM, or its network cannot be rebuilt)."""
+    """A model file cannot be fine-tuned (not a BO-LSTM, its network cannot be rebuilt, or
+    the recordings are sampled at another rate)."""
 
 
 def parent_settings(path: str | Path) -> tuple[int, int, int]:
@@ -144,6 +147,12 @@ def fine_tune_predictor(config: TrainingConfig, init: str | Path) -> TrainingRes
     description = load_robot_description(config.robot_description)
     parent = load_parent(init, config, description.sha256)
     data, problem, trained_on, sources = read_problem(config, description)
+    if abs(problem.sample_period - parent.metadata.sample_period) > (
+            PERIOD_TOLERANCE * parent.metadata.sample_period):
+        msg = (f'the recordings are sampled every {problem.sample_period * 1e3:.3g} ms, the '
+               f'model {init} was trained at {parent.metadata.sample_period * 1e3:.3g} ms: '
+               'not fine-tuned')
+        raise FineTuneError(msg)
     read_seconds = time.perf_counter() - started
     module = editable_module(parent)
     check_rebuilt(module, parent, problem.rows, problem.split.test)
