@@ -21,7 +21,7 @@ LAYERS = ('base', 'robot', 'data', 'twin', 'learning', 'online', 'scoring', 'ros
 #: Top-level modules of ROS client libraries and message packages.
 ROS_MODULES = {'rclpy', 'rcl_interfaces', 'builtin_interfaces', 'std_msgs', 'sensor_msgs',
                'geometry_msgs', 'nav_msgs', 'diagnostic_msgs', 'lifecycle_msgs',
-               'rosgraph_msgs', 'ament_index_python', 'rosidl_runtime_py'}
+               'rosgraph_msgs', 'ament_index_python', 'rosidl_runtime_py', 'std_srvs'}
 #: The rosdep key of each other third-party module the package imports; None: no key fits,
 #: installed with pip as package.xml's comments say.
 ROSDEP_KEYS: dict[str, str | None] = {

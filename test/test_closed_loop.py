@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lompr_predictor.data.cleaning import CleaningConfig
 from lompr_predictor.data.features import (
     FEATURES,
     HISTORY,
@@ -24,9 +25,10 @@ from lompr_predictor.data.features import (
     feature_rows,
     with_preview,
 )
+from lompr_predictor.data.loading import BagInputs, load_clean_data
 from lompr_predictor.learning.model_file import load_model
 from lompr_predictor.robot.description import RobotDescription
-from lompr_predictor.robot.kinematics import VerticalToolBranches
+from lompr_predictor.robot.kinematics import VerticalToolBranches, batch_forward_kinematics
 from lompr_predictor.scoring.loops import (
     LOOP_PLOT,
     common_instants,
@@ -267,6 +269,45 @@ def test_evaluate_closed_loop_gives_the_demo_figures_from_bags(
     assert (report / LOOP_PLOT).stat().st_size > 10_000
     out = capsys.readouterr().out
     assert 'True tool-tip error' in out and 'irreducible level' in out
+
+
+def test_a_closed_loop_bag_trains_on_the_plant_error(
+        loops: dict[str, LoopRun], tmp_path: Path, description: RobotDescription) -> None:
+    """A closed-loop bag (`record_loop`, as `lompr demo` writes them) records the offset the
+    twin applied on /lompr/compensation: what the trainer and `lompr evaluate` read is the
+    plant error FK(joints) - (reference + offset), the twin's own plant error to its
+    measurement noise, not the error the offsets left."""
+    run = loops['model']
+    bag = record_loop(tmp_path / 'model', run)
+    data, _ = load_clean_data(BagInputs((str(bag),), cleaning=CleaningConfig(
+        hampel_threshold=1e12)), description.geometry)
+    rows = np.searchsorted(run.stamps, data.stamps)
+    assert len(data) == len(run.stamps) and data.compensation is not None
+    np.testing.assert_array_equal(run.stamps[rows], data.stamps)
+    # the offsets read back are those the twin applied, each at its instant
+    np.testing.assert_allclose(data.compensation, run.compensation[rows], rtol=0, atol=1e-12)
+    tips = batch_forward_kinematics(description.geometry, run.joints[rows]).position[:, :2]
+    np.testing.assert_allclose(data.error, tips - run.reference[rows, :2] - run.compensation[rows],
+                               rtol=0, atol=1e-9)
+    # the twin's true plant error but for the noise of the measured joints; the error the
+    # offsets left is tens of micrometres away from it
+    assert np.all(rms(data.error - run.plant_error[rows]) < 1.5 * NOISE_UM * 1e-6)
+    assert np.all(rms(run.compensation[run.scored]) > 10e-6)
+    assert np.all(rms(data.tool_error - run.plant_error[rows]) > 10e-6)
+    np.testing.assert_allclose(rms(data.tool_error - run.true_error[rows]),
+                               rms(data.error - run.plant_error[rows]), rtol=1e-6)
+    # and the uncompensated error of the same twin run (same seed, no compensation), read
+    # from its bag at the same instants, but for the plant's response to the offsets
+    # themselves (a fraction of a micrometre); the error the offsets left is tens away
+    none = loops['none']
+    plain, _ = load_clean_data(BagInputs((str(record_loop(tmp_path / 'none', none)),),
+                                         cleaning=CleaningConfig(hampel_threshold=1e12)),
+                               description.geometry)
+    np.testing.assert_array_equal(plain.stamps, data.stamps)
+    scored = run.scored[rows]
+    gap, left = (rms((data.error - plain.error)[scored]),
+                 rms((data.tool_error - plain.error)[scored]))
+    assert np.all(gap < 0.3e-6) and np.all(left > 10e-6), (gap, left)
 
 
 def test_demo_runs_every_stage_and_prints_the_table(

@@ -47,13 +47,14 @@ def line_reference(samples: int, offset_s: float = 0.0, period_s: float = 0.04) 
 
 def synthetic_recording(geometry: LomprGeometry, samples: int, *, noise: float = 0.0,
                         seed: int = 0, reference: np.ndarray | None = None,
-                        ) -> tuple[Recording, np.ndarray]:
-    """(recording, error (N, 2)): joints = IK(reference + error), one reference per sample
-    (the spiral unless `reference` is given)."""
+                        offset: np.ndarray | None = None) -> tuple[Recording, np.ndarray]:
+    """(recording, plant error (N, 2)): joints = IK(reference + offset + error), one
+    reference per sample (the spiral unless `reference` is given; the offset, the
+    compensation commanded, (N, 2) [m], zero unless given: it is not in the recording)."""
     reference = spiral_reference(samples) if reference is None else reference
     error = synthetic_error(reference, noise=noise, seed=seed)
     tips = reference.copy()
-    tips[:, :2] += error
+    tips[:, :2] += error + (0.0 if offset is None else offset)
     joints = inverse_kinematics(geometry, tips).joints
     stamps = EPOCH_NS + PERIOD_NS * np.arange(samples, dtype=np.int64)
     recording = Recording(

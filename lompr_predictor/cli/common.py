@@ -12,7 +12,13 @@ from lompr_predictor.cli.validation import (
     positive_int,
     readable_file,
 )
-from lompr_predictor.data.bags import DEFAULT_JOINT_TOPIC, DEFAULT_REFERENCE_TOPIC
+from lompr_predictor.data.bags import (
+    DEFAULT_COMPENSATION_TOPIC,
+    DEFAULT_END_POSE_TOPIC,
+    DEFAULT_JOINT_TOPIC,
+    DEFAULT_REFERENCE_TOPIC,
+    BagTopics,
+)
 from lompr_predictor.data.cleaning import HAMPEL_HALF_WINDOW, HAMPEL_THRESHOLD, CleaningConfig
 from lompr_predictor.data.loading import BagInputs
 from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME, joint_names_problem
@@ -33,6 +39,15 @@ def add_data_arguments(parser: argparse.ArgumentParser) -> None:
     """Options shared by train and evaluate: topics, frame, bad bags, cleaning, description."""
     parser.add_argument('--joint-topic', default=DEFAULT_JOINT_TOPIC)
     parser.add_argument('--reference-topic', default=DEFAULT_REFERENCE_TOPIC)
+    parser.add_argument('--end-pose-topic', default=DEFAULT_END_POSE_TOPIC,
+                        help='the measured tool tip (PoseStamped) of a bag without the joint '
+                             "topic, e.g. one the predictor node's sample store wrote "
+                             '(default %(default)s)')
+    parser.add_argument('--compensation-topic', default=DEFAULT_COMPENSATION_TOPIC,
+                        help='the offsets (Vector3Stamped, each for the instant in its stamp) '
+                             'of a bag recorded with compensation on: the plant error is the '
+                             'tool tip - (reference + offset); a bag without it was recorded '
+                             'without compensation (default %(default)s)')
     parser.add_argument('--joint-names', type=joint_names, default=MEASURED_JOINTS,
                         metavar='A,B,C,D,E',
                         help='your JointState names of ups1, ups2, ups3, head_primary, '
@@ -63,9 +78,14 @@ def cleaning_config(args: argparse.Namespace) -> CleaningConfig:
                           hampel_threshold=args.hampel_threshold)
 
 
+def bag_topics(args: argparse.Namespace) -> BagTopics:
+    """The topics `add_data_arguments`' options name."""
+    return BagTopics(joints=args.joint_topic, reference=args.reference_topic,
+                     end_pose=args.end_pose_topic, compensation=args.compensation_topic)
+
+
 def bag_inputs(args: argparse.Namespace, bags: list[str]) -> BagInputs:
     """`bags` with the topics, bad-bag policy and cleaning rules of the options."""
-    return BagInputs(bags=tuple(bags), joint_topic=args.joint_topic,
-                     reference_topic=args.reference_topic, skip_bad=args.skip_bad,
+    return BagInputs(bags=tuple(bags), topics=bag_topics(args), skip_bad=args.skip_bad,
                      joint_names=args.joint_names, frame=args.frame,
                      cleaning=cleaning_config(args))

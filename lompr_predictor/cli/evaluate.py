@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from lompr_predictor.cli.common import add_data_arguments, bag_inputs, cleaning_config
+from lompr_predictor.cli.common import add_data_arguments, bag_inputs
 from lompr_predictor.cli.validation import existing_path, output_directory
 from lompr_predictor.data.features import TARGETS
 from lompr_predictor.data.loading import load_clean_data
@@ -56,10 +56,9 @@ def run(args: argparse.Namespace) -> int:
         from lompr_predictor.scoring.loops import evaluate_loop_bags
 
         document = evaluate_loop_bags(
-            [args.model, *args.bags], geometry=load_robot_description(
-                args.robot_description).geometry, cleaning=cleaning_config(args),
-            joint_topic=args.joint_topic, reference_topic=args.reference_topic,
-            frame=args.frame, report=args.report)
+            bag_inputs(args, [args.model, *args.bags]),
+            geometry=load_robot_description(args.robot_description).geometry,
+            report=args.report)
         print(f"{document['text']}\nreport in {args.report}")
         return 0
     from lompr_predictor.learning.model_file import PERIOD_TOLERANCE, load_model

@@ -38,6 +38,7 @@ from lompr_predictor.cli.validation import (
     yes_no,
 )
 from lompr_predictor.data.problem import DEFAULT_HORIZON, DEFAULT_WINDOW
+from lompr_predictor.errors import LomprError
 from lompr_predictor.learning.space import (
     DEFAULT_RESTARTS,
     DEFAULT_SPACE,
@@ -49,6 +50,10 @@ from lompr_predictor.learning.space import (
     SearchSpace,
 )
 from lompr_predictor.threads import MAX_DEFAULT_WORKERS, default_workers, set_torch_threads
+
+#: `--max-epochs` with `--init` unless given: a bounded fine-tuning, a quarter of a training's
+#: schedule
+FINE_TUNE_EPOCHS = 30
 
 
 def _listed(values: tuple[Any, ...]) -> str:
@@ -70,15 +75,22 @@ def add_parser(subparsers: Any) -> None:
                         metavar='BAG_DIR',
                         help='score on these recordings (e.g. another seed of the same machine) '
                              'instead of the last 10 %% of the training bags')
-    parser.add_argument('--horizon', type=positive_int, default=DEFAULT_HORIZON,
-                        help="samples between the window's last row and the predicted instant")
-    parser.add_argument('--window', type=positive_int, default=DEFAULT_WINDOW,
-                        help='samples per window')
-    parser.add_argument('--preview', type=non_negative_int, default=0, metavar='K',
+    parser.add_argument('--horizon', type=positive_int, default=None,
+                        help="samples between the window's last row and the predicted instant "
+                             f"(default {DEFAULT_HORIZON}, or the --init model's)")
+    parser.add_argument('--window', type=positive_int, default=None,
+                        help=f"samples per window (default {DEFAULT_WINDOW}, or the --init "
+                             "model's)")
+    parser.add_argument('--preview', type=non_negative_int, default=None, metavar='K',
                         help='also read the planned reference K samples after each row of '
                              'the window (K = --horizon reaches the predicted instant), taken '
                              "from the bags' reference topic; the node then needs "
-                             '/lompr/reference_preview. 0: no preview (default)')
+                             '/lompr/reference_preview. 0: no preview (default, or the --init '
+                             "model's)")
+    parser.add_argument('--init', type=existing_path, default=None, metavar='MODEL', help=(
+        'fine-tune this model file on the bags: its robot, window, horizon and preview, machine '
+        'map, normalisation and hyperparameters kept, at most --max-epochs (default '
+        f'{FINE_TUNE_EPOCHS}) epochs from its weights, no tuning study (docs/training.md)'))
     parser.add_argument('--no-machine-map', dest='machine_map', action='store_false',
                         help='the plain BO-LSTM of the paper: no machine map under it (the '
                              "map, fitted first, carries each actuator's error to the tool "
@@ -179,6 +191,19 @@ def _path(text: str | None) -> Path | None:
     return None if text is None else Path(text)
 
 
+def learning_shape(args: argparse.Namespace) -> tuple[int, int, int]:
+    """(window, horizon, preview): as given, else the --init model's, else the defaults."""
+    defaults = (DEFAULT_WINDOW, DEFAULT_HORIZON, 0)
+    if args.init:
+        from lompr_predictor.learning.fine_tuning import parent_settings
+
+        defaults = parent_settings(args.init)
+    given = (args.window, args.horizon, args.preview)
+    window, horizon, preview = (value if value is not None else default
+                                for value, default in zip(given, defaults, strict=True))
+    return window, horizon, preview
+
+
 def run(args: argparse.Namespace) -> int:
     from lompr_predictor.learning.pipeline import (
         TrainingConfig,
@@ -188,13 +213,17 @@ def run(args: argparse.Namespace) -> int:
     )
     from lompr_predictor.learning.training import EPOCH_WINDOWS, MAX_EPOCHS, PATIENCE
 
+    if args.init and args.workers_only:
+        raise LomprError('--init fine-tunes without a tuning study: no --workers-only')
     set_torch_threads(args.threads)
+    args.window, args.horizon, args.preview = learning_shape(args)
+    epochs = args.max_epochs or (FINE_TUNE_EPOCHS if args.init else MAX_EPOCHS)
     config = TrainingConfig(
         inputs=bag_inputs(args, args.bags), model_path=_path(args.out),
         report_dir=_path(args.report), robot_description=args.robot_description,
         window=args.window, horizon=args.horizon, preview=args.preview, trials=args.trials,
         restarts=args.restarts, seed=args.seed,
-        max_epochs=args.max_epochs or MAX_EPOCHS, patience=args.patience or PATIENCE,
+        max_epochs=epochs, patience=args.patience or PATIENCE,
         epoch_windows=args.epoch_windows or EPOCH_WINDOWS,
         space=search_space(args), storage=args.storage, study_name=args.study_name,
         workers=args.workers, checkpoints=_path(args.checkpoints), heartbeat=args.heartbeat,
@@ -209,6 +238,14 @@ def run(args: argparse.Namespace) -> int:
               f'({summary.complete} complete, {summary.pruned} pruned, {summary.failed} failed); '
               f'{run.trials_run} trials run here by {len(run.workers)} workers in '
               f'{run.seconds:.1f} s; finish it with the same command without --workers-only')
+        return 0
+    if args.init:
+        from lompr_predictor.learning.fine_tuning import fine_tune_predictor
+
+        result = fine_tune_predictor(config, args.init)
+        write_outputs(config, result)
+        print(fine_tuning_line(result.report))
+        print(f'model written to {args.out}; report in {args.report}')
         return 0
     result = train_predictor(config)
     write_outputs(config, result)
@@ -235,6 +272,18 @@ def summary_line(report: dict[str, Any]) -> str:
             f"{tuning.get('epochs_run', 0)} epochs in all, "
             f"{tuning['trials_failed']} failed), {tuning['trials_run_now']} run now by "
             f"{len(tuning['local_workers'])} workers here; {split}")
+
+
+def fine_tuning_line(report: dict[str, Any]) -> str:
+    """Where a fine-tuning started and how it went, from its report."""
+    part, models = report['fine_tuning'], report['models']
+    rmse = ', '.join(
+        f"{axis.upper()} {models['parent']['metrics'][axis]['rmse_um']:.3g} -> "
+        f"{models['bo_lstm']['metrics'][axis]['rmse_um']:.3g} um" for axis in ('x', 'y'))
+    return (f"fine-tuned from {part['parent_model']} (sha256 {part['parent_sha256'][:16]}): "
+            f"{part['epochs']} epochs, best {part['best_epoch']}"
+            + (" (the parent's weights kept)" if part['kept_the_parent_weights'] else '')
+            + f'; test RMSE parent -> fine-tuned: {rmse}')
 
 
 def ridge_warning(report: dict[str, Any]) -> str | None:

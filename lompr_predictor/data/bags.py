@@ -1,13 +1,19 @@
 """rosbag2 recordings of the LOMPR topics, read and written with `rosbags` (no ROS install).
 
-A `Recording` is what one bag holds of the two input topics (docs/interface.md, topics), as
+A `Recording` is what one bag holds of the interface's topics (docs/interface.md, topics), as
 plain arrays and exactly as recorded (unsorted, duplicates and NaNs kept): cleaning is the
 trainer's job, and it has to see the faults to count them. Stamps are header stamps in
-integer nanoseconds. Joint values are matched by name; a joint missing from a message is
-NaN in that row. The reference must be in the frame the reader is told (the robot frame
-`lompr_base` by default): a bag in another frame is refused whole, never read as if its
-poses were the robot's (recordings made before the robot frame was named carry `world`,
-with the same Z-down meaning, and are read when that frame is named).
+integer nanoseconds. The measured tool tip comes as the joints (`/joint_states`, whose
+forward kinematics the trainer computes) or, in a bag without them, as the kinematics
+node's end pose (`/lompr/end_pose`: what the predictor node's sample store writes). Joint
+values are matched by name; a joint missing from a message is NaN in that row. The
+compensation (`/lompr/compensation`), where recorded, is the offset commanded for each
+instant: the plant error is the measured tool tip minus the reference and that offset
+(docs/interface.md, the error); a bag without it was recorded without compensation. The
+reference (and the end pose and compensation) must be in the frame the reader is told (the
+robot frame `lompr_base` by default): a bag in another frame is refused whole, never read as
+if its poses were the robot's (recordings made before the robot frame was named carry
+`world`, with the same Z-down meaning, and are read when that frame is named).
 
 Any failure to read a bag, whatever the layer that raised it (rosbags, sqlite3, the MCAP
 parser, the CDR deserialiser), becomes one `BagError` naming the bag; a bag that yields
@@ -17,10 +23,10 @@ fewer messages than its metadata promises is truncated, never silently short.
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
@@ -33,10 +39,13 @@ from lompr_predictor.stamps import ns_to_sec_nanosec, stamp_to_ns
 
 JOINT_STATE = 'sensor_msgs/msg/JointState'
 POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
+VECTOR3_STAMPED = 'geometry_msgs/msg/Vector3Stamped'
 PATH = 'nav_msgs/msg/Path'
 DEFAULT_JOINT_TOPIC = '/joint_states'
 DEFAULT_REFERENCE_TOPIC = '/lompr/reference'
 DEFAULT_PREVIEW_TOPIC = '/lompr/reference_preview'
+DEFAULT_END_POSE_TOPIC = '/lompr/end_pose'
+DEFAULT_COMPENSATION_TOPIC = '/lompr/compensation'
 STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
 #: The orientation of a tool along the robot frame's +Z, vertically down (x, y, z, w): the
 #: reference's and the preview's.
@@ -73,6 +82,23 @@ class ReferenceSamples:
 
 
 @dataclass(frozen=True)
+class PoseSamples:
+    """PoseStamped messages of the measured tool tip (the kinematics node's end pose)."""
+
+    stamps: np.ndarray  # (N,) int64 [ns]
+    positions: np.ndarray  # (N, 3) [m]
+
+
+@dataclass(frozen=True)
+class CompensationSamples:
+    """Vector3Stamped compensation offsets in the order recorded, each stamped with the
+    instant it is for (the newest for an instant is the one applied)."""
+
+    stamps: np.ndarray  # (M,) int64 [ns]
+    offsets: np.ndarray  # (M, 2) X, Y [m] (Z is 0 by the contract)
+
+
+@dataclass(frozen=True)
 class PreviewSamples:
     """Path messages of the reference preview: message i, made at `stamps[i]`, plans the
     poses `starts[i]` to `starts[i + 1]` (exclusive) of `pose_stamps` and `positions`, tool
@@ -86,13 +112,46 @@ class PreviewSamples:
 
 @dataclass(frozen=True)
 class Recording:
-    """The LOMPR input topics of one bag, as recorded; `preview` only when written (the
-    trainer takes the planned path from the reference itself, docs/interface.md)."""
+    """The LOMPR topics of one bag, as recorded: the measured tool tip as `joints` or, in a
+    bag without joints (`joints` empty), as `end_pose`; `preview` only when written (the
+    trainer takes the planned path from the reference itself, docs/interface.md);
+    `compensation` only where recorded (None: none was applied)."""
 
     joints: JointSamples
     reference: ReferenceSamples
     source: str = ''
     preview: PreviewSamples | None = None
+    end_pose: PoseSamples | None = None
+    compensation: CompensationSamples | None = None
+
+    @property
+    def measured_stamps(self) -> np.ndarray:
+        """(N,) int64 stamps of the measured tool tip's stream: the joints', else the end
+        pose's."""
+        if len(self.joints.stamps) or self.end_pose is None:
+            return self.joints.stamps
+        return self.end_pose.stamps
+
+    def shifted(self, delta_ns: int) -> Recording:
+        """The same recording `delta_ns` later, every stream alike (a preview, which only
+        the node reads, is dropped)."""
+        joints, reference = self.joints, self.reference
+        end_pose, compensation = self.end_pose, self.compensation
+        return Recording(
+            joints=JointSamples(joints.stamps + delta_ns, joints.positions, joints.names),
+            reference=ReferenceSamples(reference.stamps + delta_ns, reference.positions,
+                                       reference.orientations),
+            source=self.source,
+            end_pose=None if end_pose is None else PoseSamples(end_pose.stamps + delta_ns,
+                                                               end_pose.positions),
+            compensation=None if compensation is None else CompensationSamples(
+                compensation.stamps + delta_ns, compensation.offsets))
+
+
+def no_joints(names: Sequence[str] = MEASURED_JOINTS) -> JointSamples:
+    """The joints of a recording that has none (its tool tip is its end pose)."""
+    return JointSamples(stamps=np.zeros(0, dtype=np.int64), positions=np.zeros((0, len(names))),
+                        names=tuple(names))
 
 
 def _stamp(ns: int) -> Any:
@@ -104,17 +163,36 @@ def _header(ns: int, frame_id: str) -> Any:
     return _TYPESTORE.types['std_msgs/msg/Header'](stamp=_stamp(ns), frame_id=frame_id)
 
 
+@dataclass(frozen=True)
+class BagTopics:
+    """The topic names of a bag's streams (the interface's defaults)."""
+
+    joints: str = DEFAULT_JOINT_TOPIC
+    reference: str = DEFAULT_REFERENCE_TOPIC
+    preview: str = DEFAULT_PREVIEW_TOPIC
+    end_pose: str = DEFAULT_END_POSE_TOPIC
+    compensation: str = DEFAULT_COMPENSATION_TOPIC
+
+
+class _Stream(NamedTuple):
+    """One topic to write: its messages' stamps and the message of each index."""
+
+    topic: str
+    msgtype: str
+    stamps: np.ndarray
+    message: Callable[[int], Any]
+
+
 def write_recording(
     path: str | Path,
     recording: Recording,
     *,
     storage: str = 'mcap',
-    joint_topic: str = DEFAULT_JOINT_TOPIC,
-    reference_topic: str = DEFAULT_REFERENCE_TOPIC,
-    preview_topic: str = DEFAULT_PREVIEW_TOPIC,
+    topics: BagTopics = BagTopics(),
     frame_id: str = ROBOT_FRAME,
 ) -> Path:
-    """Write a recording as one rosbag2 directory at `path`, atomically.
+    """Write a recording as one rosbag2 directory at `path`, atomically: the joints if it
+    has any, the reference, and the preview, end pose and compensation where it holds them.
 
     Messages go in the order of the arrays (so out-of-order stamps stay out of order); the
     bag's log time of each message is its header stamp. The bag is written beside `path`
@@ -127,36 +205,51 @@ def write_recording(
     if path.exists():
         msg = f'{path} already exists; rosbag2 writes a new directory'
         raise FileExistsError(msg)
-    joint_state = _TYPESTORE.types[JOINT_STATE]
-    joints, reference, preview = recording.joints, recording.reference, recording.preview
-    streams = [joints.stamps, reference.stamps]
-    if preview is not None:
-        streams.append(preview.stamps)
+    streams = _streams(recording, topics, frame_id)
     with atomic_directory(path) as bag_dir, \
             Writer(bag_dir, version=9, storage_plugin=STORAGES[storage]) as writer:
-        joint_conn = writer.add_connection(joint_topic, JOINT_STATE, typestore=_TYPESTORE)
-        ref_conn = writer.add_connection(reference_topic, POSE_STAMPED, typestore=_TYPESTORE)
-        preview_conn = (writer.add_connection(preview_topic, PATH, typestore=_TYPESTORE)
-                        if preview is not None else None)
-        for topic, index in _interleave(streams):
-            if topic == 2 and preview is not None and preview_conn is not None:
-                stamp = int(preview.stamps[index])
-                writer.write(preview_conn, stamp, _TYPESTORE.serialize_cdr(
-                    _preview_message(preview, index, frame_id), PATH))
-            elif topic == 0:
-                stamp = int(joints.stamps[index])
-                message = joint_state(
-                    header=_header(stamp, ''), name=list(joints.names),
-                    position=np.ascontiguousarray(joints.positions[index], dtype=np.float64),
-                    velocity=np.empty(0), effort=np.empty(0))
-                writer.write(joint_conn, stamp,
-                             _TYPESTORE.serialize_cdr(message, JOINT_STATE))
-            else:
-                stamp = int(reference.stamps[index])
-                message = _pose(stamp, frame_id, reference.positions[index],
-                                reference.orientations[index])
-                writer.write(ref_conn, stamp, _TYPESTORE.serialize_cdr(message, POSE_STAMPED))
+        connections = [writer.add_connection(stream.topic, stream.msgtype, typestore=_TYPESTORE)
+                       for stream in streams]
+        for k, index in _interleave([stream.stamps for stream in streams]):
+            stream = streams[k]
+            writer.write(connections[k], int(stream.stamps[index]),
+                         _TYPESTORE.serialize_cdr(stream.message(index), stream.msgtype))
     return path
+
+
+def _streams(recording: Recording, topics: BagTopics, frame_id: str) -> list[_Stream]:
+    """The topics `write_recording` writes, in the order they go on equal stamps."""
+    joints, reference = recording.joints, recording.reference
+    joint_state = _TYPESTORE.types[JOINT_STATE]
+    streams = []
+    if len(joints.stamps) or recording.end_pose is None:
+        streams.append(_Stream(topics.joints, JOINT_STATE, joints.stamps, lambda i: joint_state(
+            header=_header(int(joints.stamps[i]), ''), name=list(joints.names),
+            position=np.ascontiguousarray(joints.positions[i], dtype=np.float64),
+            velocity=np.empty(0), effort=np.empty(0))))
+    streams.append(_Stream(topics.reference, POSE_STAMPED, reference.stamps, lambda i: _pose(
+        int(reference.stamps[i]), frame_id, reference.positions[i], reference.orientations[i])))
+    preview, end_pose = recording.preview, recording.end_pose
+    if preview is not None:
+        streams.append(_Stream(topics.preview, PATH, preview.stamps,
+                               lambda i: _preview_message(preview, i, frame_id)))
+    if end_pose is not None:
+        streams.append(_Stream(topics.end_pose, POSE_STAMPED, end_pose.stamps, lambda i: _pose(
+            int(end_pose.stamps[i]), frame_id, end_pose.positions[i])))
+    compensation = recording.compensation
+    if compensation is not None:
+        streams.append(_Stream(topics.compensation, VECTOR3_STAMPED, compensation.stamps,
+                               lambda i: _vector(int(compensation.stamps[i]), frame_id,
+                                                 compensation.offsets[i])))
+    return streams
+
+
+def _vector(stamp_ns: int, frame_id: str, offset: np.ndarray) -> Any:
+    """A Vector3Stamped of the bag's typestore: X, Y of `offset`, Z 0."""
+    types = _TYPESTORE.types
+    return types[VECTOR3_STAMPED](header=_header(stamp_ns, frame_id),
+                                  vector=types['geometry_msgs/msg/Vector3'](
+                                      x=float(offset[0]), y=float(offset[1]), z=0.0))
 
 
 def _pose(stamp_ns: int, frame_id: str, position: np.ndarray,
@@ -203,43 +296,28 @@ def _interleave(streams: Sequence[np.ndarray]) -> list[tuple[int, int]]:
 def read_recording(
     path: str | Path,
     *,
-    joint_topic: str = DEFAULT_JOINT_TOPIC,
-    reference_topic: str = DEFAULT_REFERENCE_TOPIC,
+    topics: BagTopics = BagTopics(),
     joint_names: Sequence[str] = MEASURED_JOINTS,
     frame: str = ROBOT_FRAME,
 ) -> Recording:
-    """Read the joint-state and reference topics of one rosbag2 directory.
+    """Read the measured tool tip (the joint states, or in a bag without them the end
+    pose), the reference and, if recorded, the compensation of one rosbag2 directory.
 
     Raises `BagError` naming the bag for a missing or corrupt bag, a topic that is absent or
-    of the wrong type, a reference in another frame than `frame` (its header.frame_id), or a
-    bag that ends before its metadata's message count.
+    of the wrong type, a pose or offset in another frame than `frame` (its header.frame_id),
+    or a bag that ends before its metadata's message count.
     """
     path = Path(path)
     if not (path / 'metadata.yaml').is_file():
         raise BagError(path, 'no metadata.yaml: not a rosbag2 directory (or not one that finished)')
-    names = tuple(joint_names)
-    column = {name: i for i, name in enumerate(names)}
-    joint_stamps: list[int] = []
-    joint_rows: list[np.ndarray] = []
-    seen: set[str] = set()  # every joint name of the joint-state topic
-    ref_stamps: list[int] = []
-    ref_rows: list[tuple[float, ...]] = []
+    rows = _Rows(path, topics, tuple(joint_names), frame)
     try:
         with Reader(path) as reader:
-            wanted = _connections(path, reader.connections, joint_topic, reference_topic)
+            wanted = _connections(path, reader.connections, topics)
             expected = sum(c.msgcount for c in wanted)
             read = 0
             for connection, _, raw in reader.messages(connections=wanted):
-                message: Any = _TYPESTORE.deserialize_cdr(raw, connection.msgtype)
-                stamp = stamp_to_ns(message.header.stamp)
-                if connection.topic == joint_topic:
-                    seen.update(message.name)
-                    joint_stamps.append(stamp)
-                    joint_rows.append(_joint_row(message.name, message.position, column,
-                                                  len(names)))
-                else:
-                    ref_rows.append(_reference_row(message, frame, path, reference_topic))
-                    ref_stamps.append(stamp)
+                rows.add(connection.topic, _TYPESTORE.deserialize_cdr(raw, connection.msgtype))
                 read += 1
     except BagError:
         raise
@@ -247,29 +325,86 @@ def read_recording(
         raise BagError(path, f'cannot read ({type(err).__name__}: {err})') from err
     if read != expected:
         raise BagError(path, f'truncated: {read} messages read, metadata.yaml promises {expected}')
-    missing = [name for name in names if name not in seen]
-    if joint_stamps and missing:
-        raise BagError(path, f'no joint(s) {", ".join(missing)} on {joint_topic}; its joints are '
-                             f'{", ".join(sorted(seen)) or "none"} (name yours with --joint-names '
-                             f'in the order {",".join(MEASURED_JOINTS)})')
-    return _recording(path, names, (joint_stamps, joint_rows), (ref_stamps, ref_rows))
+    return rows.recording()
 
 
-def _connections(path: Path, connections: Sequence[Any], joint_topic: str,
-                 reference_topic: str) -> list[Any]:
-    """The connections of the two topics, checked: each there, of its message type. A
-    writer may record one topic over several connections (publishers with different QoS, a
-    restart): every one of them counts."""
-    wanted = [c for c in connections if c.topic in (joint_topic, reference_topic)]
-    for topic, msgtype in ((joint_topic, JOINT_STATE), (reference_topic, POSE_STAMPED)):
-        types = {c.msgtype for c in wanted if c.topic == topic}
+def _connections(path: Path, connections: Sequence[Any], topics: BagTopics) -> list[Any]:
+    """The connections of the topics read, checked: each there, of its message type (the
+    joint states, else the end pose; the reference; the compensation if there). A writer may
+    record one topic over several connections (publishers with different QoS, a restart):
+    every one of them counts."""
+    present = {c.topic for c in connections}
+    measured = (topics.joints, JOINT_STATE)
+    if topics.joints not in present and topics.end_pose in present:
+        measured = (topics.end_pose, POSE_STAMPED)
+    required = [measured, (topics.reference, POSE_STAMPED)]
+    optional = [(topics.compensation, VECTOR3_STAMPED)] if topics.compensation in present else []
+    for topic, msgtype in required + optional:
+        types = {c.msgtype for c in connections if c.topic == topic}
         if not types:
-            topics = sorted({c.topic for c in connections})
-            raise BagError(path, f'no topic {topic}; it has {", ".join(topics) or "none"}')
+            also = f' (nor {topics.end_pose})' if topic == topics.joints else ''
+            raise BagError(path, f'no topic {topic}{also}; it has '
+                                 f'{", ".join(sorted(present)) or "none"}')
         if types != {msgtype}:
             raise BagError(path, f'topic {topic} is {", ".join(sorted(types))}, '
                                  f'expected {msgtype}')
-    return wanted
+    read = {topic for topic, _ in required + optional}
+    return [c for c in connections if c.topic in read]
+
+
+class _Rows:
+    """What `read_recording` collects of each topic, message by message."""
+
+    def __init__(self, path: Path, topics: BagTopics, names: tuple[str, ...],
+                 frame: str) -> None:
+        self.path, self.topics, self.names, self.frame = path, topics, names, frame
+        self._column = {name: i for i, name in enumerate(names)}
+        self.seen: set[str] = set()  # every joint name of the joint-state topic
+        self.stamps: dict[str, list[int]] = {}
+        self.values: dict[str, list[Any]] = {}
+
+    def add(self, topic: str, message: Any) -> None:
+        if topic == self.topics.joints:
+            self.seen.update(message.name)
+            value: Any = _joint_row(message.name, message.position, self._column,
+                                    len(self.names))
+        elif topic == self.topics.compensation:
+            _check_frame(message, self.frame, self.path, topic)
+            value = (message.vector.x, message.vector.y)
+        else:  # the reference or the end pose
+            _check_frame(message, self.frame, self.path, topic)
+            p, q = message.pose.position, message.pose.orientation
+            value = (p.x, p.y, p.z, q.x, q.y, q.z, q.w)
+        self.stamps.setdefault(topic, []).append(stamp_to_ns(message.header.stamp))
+        self.values.setdefault(topic, []).append(value)
+
+    def _arrays(self, topic: str, width: int) -> tuple[np.ndarray, np.ndarray]:
+        return (np.array(self.stamps.get(topic, []), dtype=np.int64),
+                np.array(self.values.get(topic, []), dtype=float).reshape(-1, width))
+
+    def recording(self) -> Recording:
+        """The `Recording` of the messages added; `BagError` for joints the topic lacks."""
+        topics, names = self.topics, self.names
+        missing = [name for name in names if name not in self.seen]
+        if self.stamps.get(topics.joints) and missing:
+            raise BagError(self.path, (
+                f'no joint(s) {", ".join(missing)} on {topics.joints}; its joints are '
+                f'{", ".join(sorted(self.seen)) or "none"} (name yours with --joint-names in '
+                f'the order {",".join(MEASURED_JOINTS)})'))
+        joint_stamps, joints = self._arrays(topics.joints, len(names))
+        reference_stamps, reference = self._arrays(topics.reference, 7)
+        pose_stamps, poses = self._arrays(topics.end_pose, 7)
+        offset_stamps, offsets = self._arrays(topics.compensation, 2)
+        return Recording(
+            joints=JointSamples(stamps=joint_stamps, positions=joints, names=names),
+            reference=ReferenceSamples(stamps=reference_stamps,
+                                       positions=reference[:, :3].copy(),
+                                       orientations=reference[:, 3:].copy()),
+            source=str(self.path),
+            end_pose=(PoseSamples(pose_stamps, poses[:, :3].copy())
+                      if topics.end_pose in self.stamps else None),
+            compensation=(CompensationSamples(offset_stamps, offsets)
+                          if topics.compensation in self.stamps else None))
 
 
 def _joint_row(names: Sequence[str], positions: Sequence[float], column: dict[str, int],
@@ -284,33 +419,14 @@ def _joint_row(names: Sequence[str], positions: Sequence[float], column: dict[st
     return row
 
 
-def _recording(path: Path, names: tuple[str, ...],
-               joints: tuple[list[int], list[np.ndarray]],
-               reference: tuple[list[int], list[tuple[float, ...]]]) -> Recording:
-    """A `Recording` of the (stamps, rows) read from the two topics."""
-    ref_stamps, ref_rows = reference
-    rows = np.array(ref_rows, dtype=float).reshape(-1, 7)
-    return Recording(
-        joints=JointSamples(
-            stamps=np.array(joints[0], dtype=np.int64),
-            positions=np.array(joints[1], dtype=float).reshape(-1, len(names)),
-            names=names),
-        reference=ReferenceSamples(
-            stamps=np.array(ref_stamps, dtype=np.int64),
-            positions=rows[:, :3].copy(), orientations=rows[:, 3:].copy()),
-        source=str(path))
-
-
-def _reference_row(message: Any, frame: str, path: Path, topic: str) -> tuple[float, ...]:
-    """Position and orientation of a reference message; a `BagError` naming both frames if
-    it is in another frame than `frame`."""
+def _check_frame(message: Any, frame: str, path: Path, topic: str) -> None:
+    """A `BagError` naming both frames if a stamped message is in another frame than
+    `frame`."""
     found = message.header.frame_id
     if found != frame:
         raise BagError(path, f'{topic} is in frame {found!r}, expected {frame!r}; if '
                              f"{found!r} is the robot frame (Z down), give --frame "
                              f"{found or repr('')}")
-    p, q = message.pose.position, message.pose.orientation
-    return (p.x, p.y, p.z, q.x, q.y, q.z, q.w)
 
 
 @dataclass(frozen=True)
@@ -334,8 +450,7 @@ def bag_sha256(path: str | Path) -> str:
 def read_bags(
     paths: Sequence[str | Path],
     *,
-    joint_topic: str = DEFAULT_JOINT_TOPIC,
-    reference_topic: str = DEFAULT_REFERENCE_TOPIC,
+    topics: BagTopics = BagTopics(),
     skip_bad: bool = False,
     joint_names: Sequence[str] = MEASURED_JOINTS,
     frame: str = ROBOT_FRAME,
@@ -346,8 +461,7 @@ def read_bags(
     sources: list[BagSource] = []
     for path in paths:
         try:
-            recording = read_recording(path, joint_topic=joint_topic,
-                                       reference_topic=reference_topic, joint_names=joint_names,
+            recording = read_recording(path, topics=topics, joint_names=joint_names,
                                        frame=frame)
         except BagError as err:
             if not skip_bad:

@@ -5,13 +5,17 @@ The paper's pre-processing, done so that every dropped sample is counted by reas
 
 `clean_recordings`: the bags are stitched in time order (a bag overlapping the earlier
    ones, e.g. two simulator runs from the same epoch, is moved after them, never
-   interleaved); per stream (joint states, reference) non-finite rows are dropped,
-   out-of-order messages sorted and duplicated stamps removed; the reference is interpolated
-   linearly to the joint stamps (never paired by arrival, docs/interface.md, topics), and joint
-   samples it does not bracket within `gap_factor` of its own period are dropped;
-   batch forward kinematics gives the tool tip, and the error is FK - reference
-   (docs/interface.md, the error); a gap longer than `gap_factor` sample periods splits the
-   data into segments; a Hampel filter, per segment, rejects spikes of the error.
+   interleaved); per stream (joint states or end poses, reference) non-finite rows are
+   dropped, out-of-order messages sorted and duplicated stamps removed; the reference is
+   interpolated linearly to the measured stamps (never paired by arrival, docs/interface.md,
+   topics), and samples it does not bracket within `gap_factor` of its own period are
+   dropped; batch forward kinematics of the joints gives the tool tip (a bag without joints
+   has it as the end pose), the compensation recorded for each instant is the offset in
+   force there (`applied_compensation`), and the error is the plant's, tool tip -
+   (reference + compensation) (docs/interface.md, the error: a bag recorded with
+   compensation on trains on what the plant does, not on what the offsets left); a gap
+   longer than `gap_factor` sample periods splits the data into segments; a Hampel filter,
+   per segment, rejects spikes of the error.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from lompr_predictor.data.bags import JointSamples, Recording, ReferenceSamples
+from lompr_predictor.data.bags import Recording
 from lompr_predictor.data.features import feature_names, feature_rows, with_preview
 from lompr_predictor.robot.description import MEASURED_JOINTS, LomprGeometry
 from lompr_predictor.robot.kinematics import VerticalToolBranches, batch_forward_kinematics
@@ -34,6 +38,9 @@ HAMPEL_THRESHOLD = 6.0  # spike when |e - median| > threshold * robust sigma
 MAD_TO_SIGMA = 1.4826  # MAD of a Gaussian times this is its standard deviation
 NEIGHBOUR_AGREEMENT = 0.5  # a spike's neighbours differ by less than this times its excursion
 MISSING_SAMPLE_FACTOR = 1.5  # a step longer than this many periods means a sample is missing
+#: An offset applies to the sample within this many periods of its stamp (as a controller
+#: refuses one stamped between two sample instants, `twin.compensation`).
+OFFSET_TOLERANCE = 0.25
 BAG_SEPARATION_PERIODS = 10  # a bag overlapping earlier ones starts this long after them
 #: The plausibility of a recorded error (`implausible_error`). A machine's tracking error is
 #: its path's speed times its servo lag plus deflections: a fraction of a percent of the
@@ -69,9 +76,18 @@ class CleanData:
     counts: dict[str, int] = field(default_factory=dict)  # read / dropped by reason / segments
     #: (R, 2) [start, end) rows of each recording (bag), in time order; None: one recording
     recording_rows: np.ndarray | None = None
+    #: (N, 2) the compensation in force at each sample [m] (`applied_compensation`); None:
+    #: no recording held any, as with compensation off
+    compensation: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.stamps)
+
+    @property
+    def tool_error(self) -> np.ndarray:
+        """(N, 2) the error the compensation left, tool tip - reference [m]: the plant error
+        plus the offset in force (what a closed loop is scored on)."""
+        return self.error if self.compensation is None else self.error + self.compensation
 
     @property
     def recordings(self) -> np.ndarray:
@@ -107,8 +123,9 @@ def sanitise_stream(
     stamps: np.ndarray, values: np.ndarray, name: str, counts: dict[str, int]
 ) -> tuple[np.ndarray, np.ndarray]:
     """Drop non-finite rows, sort by stamp, drop repeated stamps (keeping the first
-    received); counts `{name}_nonfinite`, `{name}_out_of_order` (sorted, kept) and
-    `{name}_duplicate` (dropped)."""
+    received); counts `{name}_read`, `{name}_nonfinite`, `{name}_out_of_order` (sorted,
+    kept) and `{name}_duplicate` (dropped)."""
+    counts[f'{name}_read'] = len(stamps)
     finite = np.isfinite(values).all(axis=1)
     counts[f'{name}_nonfinite'] = int((~finite).sum())
     stamps, values = stamps[finite], values[finite]
@@ -204,27 +221,85 @@ def _period_ns(stamps: np.ndarray) -> float:
 
 def separate_overlapping(recordings: Sequence[Recording]) -> tuple[list[Recording], int]:
     """The recordings in time order, each one that overlaps the earlier ones (two runs of a
-    simulator that both start at its epoch, a bag recorded twice) moved in time, joints and
-    reference together, to start `BAG_SEPARATION_PERIODS` periods after them: a separate
+    simulator that both start at its epoch, a bag recorded twice) moved in time, every
+    stream together, to start `BAG_SEPARATION_PERIODS` periods after them: a separate
     segment, never interleaved with another bag's samples. Returns them and how many moved."""
-    ordered = sorted((r for r in recordings if len(r.joints.stamps)),
-                     key=lambda r: int(r.joints.stamps.min()))
+    ordered = sorted((r for r in recordings if len(r.measured_stamps)),
+                     key=lambda r: int(r.measured_stamps.min()))
     out: list[Recording] = []
     end, moved = None, 0
     for recording in ordered:
-        joints, reference = recording.joints, recording.reference
-        first, last = int(joints.stamps.min()), int(joints.stamps.max())
+        stamps = recording.measured_stamps
+        first, last = int(stamps.min()), int(stamps.max())
         if end is not None and first <= end:
-            shift = end - first + BAG_SEPARATION_PERIODS * int(_period_ns(np.unique(joints.stamps)))
-            recording = Recording(
-                joints=JointSamples(joints.stamps + shift, joints.positions, joints.names),
-                reference=ReferenceSamples(reference.stamps + shift, reference.positions,
-                                           reference.orientations),
-                source=recording.source)
+            shift = end - first + BAG_SEPARATION_PERIODS * int(_period_ns(np.unique(stamps)))
+            recording = recording.shifted(shift)
             first, last, moved = first + shift, last + shift, moved + 1
         out.append(recording)
         end = last if end is None else max(end, last)
     return out, moved
+
+
+def measured_tips(recordings: Sequence[Recording], geometry: LomprGeometry,
+                  counts: dict[str, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(stamps (N,) int64, X/Y tool tips (N, 2) [m], valid (N,) bool) of time-ordered,
+    separated recordings, in stamp order: the forward kinematics of the joints (valid where
+    it solved), or the end pose of a recording without joints; each stream sanitised
+    (`sanitise_stream`, counted under 'joint' and, when there are any, 'end_pose')."""
+    joint_stamps = [r.joints.stamps for r in recordings if len(r.joints.stamps)]
+    stamps, joints = sanitise_stream(
+        np.concatenate(joint_stamps or [np.zeros(0)]).astype(np.int64),
+        np.concatenate([r.joints.positions for r in recordings if len(r.joints.stamps)]
+                       or [np.zeros((0, len(MEASURED_JOINTS)))]), 'joint', counts)
+    poses = batch_forward_kinematics(geometry, joints)
+    parts = [(stamps, poses.position[:, :2], poses.valid)]
+    end_poses = [r.end_pose for r in recordings if not len(r.joints.stamps) and r.end_pose]
+    if end_poses:
+        stamps, tips = sanitise_stream(
+            np.concatenate([p.stamps for p in end_poses]).astype(np.int64),
+            np.concatenate([p.positions for p in end_poses]), 'end_pose', counts)
+        parts.append((stamps, tips[:, :2], np.ones(len(stamps), dtype=bool)))
+    stamps = np.concatenate([part[0] for part in parts])
+    order = np.argsort(stamps, kind='stable')
+    return (stamps[order], np.concatenate([part[1] for part in parts])[order],
+            np.concatenate([part[2] for part in parts])[order])
+
+
+def applied_compensation(stamps: np.ndarray, recordings: Sequence[Recording],
+                         tolerance_ns: float, counts: dict[str, int]) -> np.ndarray | None:
+    """(N, 2) the compensation in force at each of the sorted `stamps` [m]: the newest
+    finite offset the recordings hold for that instant (the last recorded, as a controller
+    takes the newest for an instant), stamped within `tolerance_ns` of it; zero where none
+    (docs/interface.md, the error). None if no recording holds a compensation. Counts
+    `compensation_read`, `compensation_nonfinite`, `compensation_no_sample` (for an instant
+    without a sample) and `compensated` (samples with an offset)."""
+    offered = [r.compensation for r in recordings if r.compensation is not None]
+    if not offered:
+        return None
+    offset_stamps = np.concatenate([c.stamps for c in offered]).astype(np.int64)
+    offsets = np.concatenate([c.offsets for c in offered]).reshape(-1, 2)
+    counts['compensation_read'] = len(offset_stamps)
+    finite = np.isfinite(offsets).all(axis=1)
+    counts['compensation_nonfinite'] = int((~finite).sum())
+    offset_stamps, offsets = offset_stamps[finite], offsets[finite]
+    applied = np.zeros((len(stamps), 2))
+    if len(stamps) == 0:
+        counts['compensation_no_sample'], counts['compensated'] = len(offset_stamps), 0
+        return applied
+    right = np.clip(np.searchsorted(stamps, offset_stamps), 0, len(stamps) - 1)
+    left = np.clip(right - 1, 0, len(stamps) - 1)
+    nearest = np.where(np.abs(stamps[left] - offset_stamps) <= np.abs(stamps[right]
+                                                                      - offset_stamps),
+                       left, right)
+    matched = np.abs(stamps[nearest] - offset_stamps) <= tolerance_ns
+    counts['compensation_no_sample'] = int((~matched).sum())
+    rows, offsets = nearest[matched], offsets[matched]
+    # the last of each row's offsets: the first in the reversed order
+    _, first_reversed = np.unique(rows[::-1], return_index=True)
+    newest = len(rows) - 1 - first_reversed
+    applied[rows[newest]] = offsets[newest]
+    counts['compensated'] = len(newest)
+    return applied
 
 
 def clean_recordings(
@@ -238,30 +313,28 @@ def clean_recordings(
     counts: dict[str, int] = {'bags': len(recordings)}
     ordered, counts['bags_moved_in_time'] = separate_overlapping(recordings)
     if not ordered:
-        msg = 'the recordings hold no joint state'
+        msg = 'the recordings hold no joint state (nor end pose)'
         raise ValueError(msg)
-    joint_stamps = np.concatenate([r.joints.stamps for r in ordered]).astype(np.int64)
-    joints = np.concatenate([r.joints.positions for r in ordered])
-    ref_stamps = np.concatenate([r.reference.stamps for r in ordered]).astype(np.int64)
-    reference = np.concatenate([r.reference.positions for r in ordered])
-    counts['joint_read'] = len(joint_stamps)
-    counts['reference_read'] = len(ref_stamps)
-    joint_stamps, joints = sanitise_stream(joint_stamps, joints, 'joint', counts)
-    ref_stamps, reference = sanitise_stream(ref_stamps, reference, 'reference', counts)
-    period = _period_ns(joint_stamps)
+    stamps, tips, solved = measured_tips(ordered, geometry, counts)
+    ref_stamps, reference = sanitise_stream(
+        np.concatenate([r.reference.stamps for r in ordered]).astype(np.int64),
+        np.concatenate([r.reference.positions for r in ordered]), 'reference', counts)
+    period = _period_ns(stamps)
     max_step = config.gap_factor * period
     # The reference may come slower than the joint states (docs/interface.md, topics): a bracket is
     # judged by the reference's own period.
     reference_period = _period_ns(ref_stamps) if len(np.unique(ref_stamps)) > 1 else period
-    aligned, bracketed = interpolate_reference(ref_stamps, reference, joint_stamps,
+    aligned, bracketed = interpolate_reference(ref_stamps, reference, stamps,
                                                config.gap_factor * max(period, reference_period))
     counts['no_reference'] = int((~bracketed).sum())
-    poses = batch_forward_kinematics(geometry, joints)
-    counts['fk_invalid'] = int((bracketed & ~poses.valid).sum())
-    keep = bracketed & poses.valid
-    stamps = joint_stamps[keep]
-    error = poses.position[keep, :2] - aligned[keep, :2]
-    aligned = aligned[keep]
+    counts['fk_invalid'] = int((bracketed & ~solved).sum())
+    keep = bracketed & solved
+    compensation = applied_compensation(stamps, ordered, OFFSET_TOLERANCE * period, counts)
+    stamps, aligned = stamps[keep], aligned[keep]
+    error = tips[keep] - aligned[:, :2]
+    if compensation is not None:
+        compensation = compensation[keep]
+        error -= compensation
     segments = segment_bounds(stamps, max_step)
     spikes = hampel_outliers(error, segments, config.hampel_half_window, config.hampel_threshold)
     counts['spike'] = int(spikes.sum())
@@ -272,7 +345,8 @@ def clean_recordings(
     counts['segments'] = len(segments)
     return CleanData(stamps=stamps, error=error, reference=aligned, segments=segments,
                      sample_period=period * 1e-9, geometry=geometry, counts=counts,
-                     recording_rows=bag_rows)
+                     recording_rows=bag_rows,
+                     compensation=None if compensation is None else compensation[~spikes])
 
 
 def split_at(segments: np.ndarray, rows: np.ndarray) -> np.ndarray:
@@ -290,8 +364,8 @@ def split_at(segments: np.ndarray, rows: np.ndarray) -> np.ndarray:
 def recording_rows(stamps: np.ndarray, recordings: Sequence[Recording]) -> np.ndarray:
     """(R, 2) [start, end) rows of clean `stamps` that each of the time-ordered, separated
     `recordings` holds (a recording that lost every sample is left out)."""
-    bounds = [(int(np.searchsorted(stamps, r.joints.stamps.min(), side='left')),
-               int(np.searchsorted(stamps, r.joints.stamps.max(), side='right')))
+    bounds = [(int(np.searchsorted(stamps, r.measured_stamps.min(), side='left')),
+               int(np.searchsorted(stamps, r.measured_stamps.max(), side='right')))
               for r in recordings]
     return np.array([b for b in bounds if b[1] > b[0]] or [(0, len(stamps))],
                     dtype=np.int64).reshape(-1, 2)

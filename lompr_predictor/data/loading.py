@@ -6,24 +6,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from lompr_predictor.data.bags import (
-    DEFAULT_JOINT_TOPIC,
-    DEFAULT_REFERENCE_TOPIC,
-    BagSource,
-    read_bags,
-)
+from lompr_predictor.data.bags import BagSource, BagTopics, read_bags
 from lompr_predictor.data.cleaning import CleanData, CleaningConfig, clean_recordings
 from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME, LomprGeometry
 
 
 @dataclass(frozen=True)
 class BagInputs:
-    """rosbag2 directories, the topics to read, the frame their reference must be in, what
-    to do with a bad bag, the cleaning rules."""
+    """rosbag2 directories, the topics to read, the frame their poses must be in, what to
+    do with a bad bag, the cleaning rules."""
 
     bags: tuple[str, ...]
-    joint_topic: str = DEFAULT_JOINT_TOPIC
-    reference_topic: str = DEFAULT_REFERENCE_TOPIC
+    topics: BagTopics = field(default_factory=BagTopics)
     skip_bad: bool = False  # a bad bag is left out whole and listed, instead of stopping
     #: The bag's names of the measured joints, in `MEASURED_JOINTS` order.
     joint_names: tuple[str, ...] = MEASURED_JOINTS
@@ -36,8 +30,7 @@ def load_clean_data(inputs: BagInputs,
                     geometry: LomprGeometry) -> tuple[CleanData, list[BagSource]]:
     """Read the bags whole (`bags.read_bags`) and clean them (`cleaning.clean_recordings`);
     the sources list every bag, used or skipped."""
-    recordings, sources = read_bags(inputs.bags, joint_topic=inputs.joint_topic,
-                                    reference_topic=inputs.reference_topic,
+    recordings, sources = read_bags(inputs.bags, topics=inputs.topics,
                                     skip_bad=inputs.skip_bad, joint_names=inputs.joint_names,
                                     frame=inputs.frame)
     return clean_recordings(recordings, geometry, inputs.cleaning), sources

@@ -105,3 +105,17 @@ def fit_envelope(rows: np.ndarray, features: Sequence[str],
     return InputEnvelope(columns=tuple(columns), names=tuple(features[i] for i in columns),
                          low=tuple((low - widen).tolist()), high=tuple((high + widen).tolist()),
                          margin=margin)
+
+
+def joined_envelope(envelope: InputEnvelope, earlier: InputEnvelope | None) -> InputEnvelope:
+    """`envelope` taking in an `earlier` one of the same features (None: none), column by
+    column the wider bounds: a model fine-tuned on new rows was trained on both."""
+    if earlier is None:
+        return envelope
+    before = dict(zip(earlier.names, zip(earlier.low, earlier.high, strict=True), strict=True))
+    low = [min(value, before.get(name, (value, value))[0])
+           for name, value in zip(envelope.names, envelope.low, strict=True)]
+    high = [max(value, before.get(name, (value, value))[1])
+            for name, value in zip(envelope.names, envelope.high, strict=True)]
+    return InputEnvelope(columns=envelope.columns, names=envelope.names, low=tuple(low),
+                         high=tuple(high), margin=envelope.margin)

@@ -113,6 +113,9 @@ class ModelMetadata:
     #: the inputs it was trained on (`envelope.InputEnvelope.to_metadata`; empty: unknown,
     #: as in files written before it existed)
     envelope: Mapping[str, Any] = field(default_factory=dict)
+    #: the sha256 of the model file it was fine-tuned from (`lompr train --init`; empty:
+    #: trained from scratch, as in files written before it existed)
+    parent_sha256: str = ''
     format_version: int = FORMAT_VERSION
 
     def to_json(self) -> str:

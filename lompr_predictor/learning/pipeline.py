@@ -35,7 +35,7 @@ import numpy as np
 import optuna
 import torch
 
-from lompr_predictor.data.bags import BagSource
+from lompr_predictor.data.bags import BagSource, BagTopics
 from lompr_predictor.data.cleaning import CleanData, implausible_error
 from lompr_predictor.data.features import TARGETS
 from lompr_predictor.data.loading import BagInputs, load_clean_data
@@ -275,14 +275,7 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     storage = open_storage(check_config(config))  # connects: fails before reading any bag
     started = time.perf_counter()
     description = load_robot_description(config.robot_description)
-    data, sources = load_clean_data(config.inputs, description.geometry)
-    trained_on = list(sources)
-    if config.test_inputs is None:
-        problem = _problem(data, None, config)
-    else:
-        test_data, test_sources = load_clean_data(config.test_inputs, description.geometry)
-        problem = _problem(data, test_data, config)
-        sources = sources + test_sources  # the irreducible level: the test bags' (last)
+    data, problem, trained_on, sources = read_problem(config, description)
     read_seconds = time.perf_counter() - started
     machine_map = _machine_map(config, problem, data, description)
     tuned = _tune(config, problem, machine_map, sources, description, storage)
@@ -400,6 +393,18 @@ class DataError(LomprError):
     preview or split, or an error no machine makes)."""
 
 
+def read_problem(config: TrainingConfig, description: RobotDescription
+                 ) -> tuple[CleanData, LearningProblem, list[BagSource], list[BagSource]]:
+    """Read and clean the config's bags (and test bags): the clean training data, the
+    learning problem (`_problem`), the training bags and every bag read (the test bags
+    last: the irreducible level is theirs)."""
+    data, sources = load_clean_data(config.inputs, description.geometry)
+    if config.test_inputs is None:
+        return data, _problem(data, None, config), list(sources), list(sources)
+    test_data, test_sources = load_clean_data(config.test_inputs, description.geometry)
+    return data, _problem(data, test_data, config), list(sources), sources + test_sources
+
+
 def _problem(data: CleanData, test: CleanData | None, config: TrainingConfig) -> LearningProblem:
     """The learning problem: `data` split chronologically, or trained (and validated) on
     `data` and tested on `test`; `DataError` (one line, before any training) when the
@@ -442,7 +447,7 @@ def study_definition(config: TrainingConfig, sources: list[BagSource],
     space, seed and training settings."""
     return {'bags': sorted(s.sha256 for s in sources if not s.skipped_reason),
             'robot_description': description.sha256,
-            'topics': [config.inputs.joint_topic, config.inputs.reference_topic],
+            'topics': _topics(config.inputs.topics),
             'cleaning': vars(config.inputs.cleaning), 'window': config.window,
             'horizon': config.horizon, 'space': config.space.as_dict(), 'seed': config.seed,
             # only when set: studies of models without a preview keep their names
@@ -450,6 +455,17 @@ def study_definition(config: TrainingConfig, sources: list[BagSource],
             **({'machine_map': True, 'network_inputs': config.network_inputs}
                if config.machine_map else {}),
             'settings': vars(config.settings), 'model_type': 'lstm'}
+
+
+def _topics(topics: BagTopics) -> list[str]:
+    """The topics read, as a study records them: the joints' and the reference's, then the
+    end pose's and the compensation's where not the defaults (studies of bags read with the
+    defaults keep their names)."""
+    defaults = BagTopics()
+    return [topics.joints, topics.reference, *(
+        name for name, default in ((topics.end_pose, defaults.end_pose),
+                                   (topics.compensation, defaults.compensation))
+        if name != default)]
 
 
 def _machine_map(config: TrainingConfig, problem: LearningProblem, data: CleanData,

@@ -36,7 +36,8 @@ PREDICTION_PLOT = 'prediction_test.png'
 TUNING_PLOT = 'tuning_history.png'
 MODEL_LABELS = {'persistence': 'Persistence', 'bp': 'BP', 'ridge': 'Ridge', 'hgb': 'HGB',
                 'ridge_no_preview': 'Ridge (no preview)', 'hgb_no_preview': 'HGB (no preview)',
-                'machine_map': 'Machine map (prior)', 'bo_lstm': 'BO-LSTM', 'model': 'Model'}
+                'machine_map': 'Machine map (prior)', 'parent': 'Parent (--init)',
+                'bo_lstm': 'BO-LSTM', 'model': 'Model'}
 METRIC_LABELS = {
     'mse_pct': 'MSE (%^2)', 'rmse_pct': 'RMSE (%)', 'mae_pct': 'MAE (%)',
     'mse_um2': 'MSE (um^2)', 'rmse_um': 'RMSE (um)', 'mae_um': 'MAE (um)',
@@ -146,6 +147,7 @@ def markdown(report: Mapping[str, Any]) -> str:
     for key, value in report.get('timings', {}).items():
         lines.append(f'- {key}: {value:.4g}')
     lines += _tuning_lines(report.get('tuning'))
+    lines += _fine_tuning_lines(report.get('fine_tuning'))
     if report.get('model_sha256'):
         lines += ['', f"Model file `{report.get('model_file')}`, sha256 "
                       f"`{report['model_sha256']}` (also in `{report.get('model_sha256_file')}`; "
@@ -184,6 +186,23 @@ def _tuning_lines(tuning: Mapping[str, Any] | None) -> list[str]:
         lines.append('')
     lines.append(f'![tuning history]({TUNING_PLOT})')
     return lines
+
+
+def _fine_tuning_lines(fine_tuning: Mapping[str, Any] | None) -> list[str]:
+    """report.md's section on a fine-tuning (`lompr train --init`; none without)."""
+    if not fine_tuning:
+        return []
+    kept = (" (no epoch bettered it: the parent's weights are kept)"
+            if fine_tuning['kept_the_parent_weights'] else '')
+    return ['', '## Fine-tuning', '',
+            f"Started from `{fine_tuning['parent_model']}`, sha256 "
+            f"`{fine_tuning['parent_sha256']}` ({fine_tuning['parent_verified_by']}): "
+            f"{fine_tuning['epochs']} of at most {fine_tuning['max_epochs']} epochs, best "
+            f"epoch {fine_tuning['best_epoch']}{kept}; validation MSE "
+            f"{fine_tuning['validation_loss_start']:.4g} at the start, "
+            f"{fine_tuning['validation_loss_best']:.4g} at the best epoch. The parent's "
+            'machine map, normalisation and hyperparameters are kept; "Parent" in the '
+            'tables is the model it started from, on the same test part.']
 
 
 def plot_predictions(path: Path, seconds: np.ndarray, actual: np.ndarray,

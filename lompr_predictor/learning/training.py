@@ -84,6 +84,7 @@ class TrainedModel:
     seconds: float  # wall time of the training loop
     history: list[float] = field(default_factory=list)  # validation loss per epoch
     pruned_epoch: int = 0  # epoch at which the tuning pruner stopped it (0: not stopped)
+    start_loss: float = math.nan  # validation loss of the weights it started from (`init`)
 
 
 RANGE_SAMPLE = 20000  # training windows that set the input normalisation
@@ -245,12 +246,17 @@ def train_network(
     label: str = '',
     machine_map: MachineMap | None = None,
     network_inputs: str = 'all',
+    init: PredictorModule | None = None,
 ) -> TrainedModel:
     """Train one network on `problem`; hyperparameters: batch_size, hidden, learning_rate,
     and optionally weight_decay (default 0), lstm_steps (default `LSTM_STEPS`) and
     error_level (default False: the window's error level as more input columns,
     `PredictorModule`). With a fitted `machine_map` the network builds on it and reads
-    `network_inputs` of its rows (`models.network_columns`).
+    `network_inputs` of its rows (`models.network_columns`). With `init` (a trained module,
+    `fine_tuning`), a copy of it is trained on from its weights, its machine map and
+    normalisation kept (`machine_map`, `network_inputs` and the structural hyperparameters
+    are its own), and its starting weights count as epoch 0's: the result is never worse
+    on validation than where it started.
 
     `trial` (an Optuna trial) gets the validation loss each epoch; when its pruner says
     so (and `prune`), training stops there (`pruned_epoch`) and the result is the best loss
@@ -262,13 +268,17 @@ def train_network(
     rng = np.random.default_rng(settings.seed)
     window, split = problem.window, problem.split
     batch = int(hyperparameters['batch_size'])
-    rows = network_rows(problem, machine_map)
-    module = build_module(problem, model_type, int(hyperparameters['hidden']), residual=residual,
-                          relative_errors=relative_errors,
-                          error_level=bool(hyperparameters.get('error_level', False)),
-                          steps=int(hyperparameters.get('lstm_steps', LSTM_STEPS)),
-                          machine_map=machine_map, network_inputs=network_inputs,
-                          inputs=rows)
+    if init is not None:
+        module = copy.deepcopy(init)
+        rows = network_rows(problem, module.machine_map if module.use_map else None)
+    else:
+        rows = network_rows(problem, machine_map)
+        module = build_module(problem, model_type, int(hyperparameters['hidden']),
+                              residual=residual, relative_errors=relative_errors,
+                              error_level=bool(hyperparameters.get('error_level', False)),
+                              steps=int(hyperparameters.get('lstm_steps', LSTM_STEPS)),
+                              machine_map=machine_map, network_inputs=network_inputs,
+                              inputs=rows)
     net = module.net
     inputs = ScaledRows(module, rows.rows)
     validation_ends = evenly_spaced(split.validation, settings.epoch_windows)
@@ -279,6 +289,11 @@ def train_network(
                          settings.max_epochs * math.ceil(epoch_size / batch))
     cosine = schedule.cosine
     best, best_state, best_epoch, history = math.inf, copy.deepcopy(net.state_dict()), 0, []
+    start_loss = math.nan
+    if init is not None:  # where fine-tuning starts is a candidate too
+        net.eval()
+        start_loss = validation_loss(net, inputs, validation_ends, validation_y, window)
+        best = start_loss if math.isfinite(start_loss) else math.inf
     pruned_epoch = 0
     started = time.perf_counter()
     epochs = tqdm(range(1, settings.max_epochs + 1), desc=label or model_type, unit='epoch',
@@ -314,4 +329,5 @@ def train_network(
                         hyperparameters=dict(hyperparameters), residual=residual,
                         relative_errors=relative_errors,
                         validation_loss=best, epochs=epoch, best_epoch=best_epoch,
-                        seconds=seconds, history=history, pruned_epoch=pruned_epoch)
+                        seconds=seconds, history=history, pruned_epoch=pruned_epoch,
+                        start_loss=start_loss)

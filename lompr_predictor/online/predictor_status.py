@@ -26,6 +26,8 @@ from lompr_predictor.online.predictor_counts import (
     PREDICTION_STATUS,
     status_counts,
 )
+from lompr_predictor.online.sample_store import SampleStore
+from lompr_predictor.online.store_export import StoreExport
 
 
 @dataclass(frozen=True)
@@ -261,3 +263,29 @@ def guard_status(lifecycle: Lifecycle, guard: LiveGuard | None, envelope: bool) 
         return Status(Level.OK, 'the model answers (not yet scored)' if enabled else
                       'guard off', values)
     return Status(Level.OK, 'the model answers' + ('' if enabled else ' (guard off)'), values)
+
+
+def store_status(lifecycle: Lifecycle, minutes: float, store: SampleStore | None,
+                 export: StoreExport | None) -> Status:
+    """The sample store (`online.sample_store`): its window, size and fill, and its writes
+    as bags (`online.store_export`). WARN while the last write failed."""
+    if minutes <= 0:
+        return Status(Level.OK, 'off (store_minutes 0)', {'store_minutes': minutes})
+    if store is None or export is None:
+        return Status(Level.OK, f'{lifecycle.state}: no store', lifecycle.values())
+    state = export.state
+    values: dict[str, object] = {
+        'store_minutes': minutes, 'capacity': store.capacity,
+        'size_mb': round(store.size_bytes / 1e6, 3), 'samples': store.held,
+        'fill_pct': round(100.0 * store.held / store.capacity, 2),
+        'held_seconds': round(store.held_seconds, 3), 'restarts': store.restarts,
+        'folder': str(export.folder), 'writing': state.writing, 'last_bag': state.last_bag,
+        'last_error': state.last_error, 'bags_written': state.written,
+        'write_failures': state.failed, 'last_write_seconds': round(state.last_seconds, 3)}
+    held = f'{store.held} samples ({store.held_seconds:.1f} s of {60 * minutes:.0f} s)'
+    if state.last_error:
+        return Status(Level.WARN, f'{held}; the last write failed: {state.last_error}', values)
+    if state.writing:
+        return Status(Level.OK, f'{held}; writing {state.writing}', values)
+    return Status(Level.OK, held + (f'; last written {state.last_bag}' if state.last_bag
+                                    else ''), values)

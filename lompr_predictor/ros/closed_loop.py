@@ -21,6 +21,7 @@ import numpy as np
 
 from lompr_predictor.data.bags import (
     VERTICAL_TOOL,
+    CompensationSamples,
     JointSamples,
     Recording,
     ReferenceSamples,
@@ -76,8 +77,10 @@ def persistence_model(path: str | Path, like: str | Path) -> Path:
 def record_loop(out: str | Path, run: LoopRun, *, storage: str = 'mcap',
                 irreducible_um: dict[str, float] | None = None) -> Path:
     """Write a run as one rosbag2 directory (`/joint_states`, `/lompr/reference`, as the
-    twin's recordings) with its truth files inside, assembled beside `out` and renamed.
-    `irreducible_um`, if known, goes into the truth document."""
+    twin's recordings, and `/lompr/compensation`: the offset the twin applied at each
+    sample, zero where it applied none, as its controller would log it) with its truth
+    files inside, assembled beside `out` and renamed. `irreducible_um`, if known, goes into
+    the truth document."""
     out = Path(out)
     if out.exists():
         msg = f'{out} already exists; choose a new directory'
@@ -85,7 +88,8 @@ def record_loop(out: str | Path, run: LoopRun, *, storage: str = 'mcap',
     recording = Recording(
         joints=JointSamples(stamps=run.stamps, positions=run.joints, names=MEASURED_JOINTS),
         reference=ReferenceSamples(stamps=run.stamps, positions=run.reference,
-                                   orientations=np.tile(VERTICAL_TOOL, (len(run.stamps), 1))))
+                                   orientations=np.tile(VERTICAL_TOOL, (len(run.stamps), 1))),
+        compensation=CompensationSamples(stamps=run.stamps, offsets=run.compensation))
     with atomic_directory(out) as staged:
         bag = write_recording(staged, recording, storage=storage)
         arrays, document = run.truth()

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 from lifecycle_msgs.srv import ChangeState
 from rclpy.lifecycle import LifecyclePublisher, LifecycleState, TransitionCallbackReturn
 from rclpy.publisher import Publisher
+from rclpy.service import Service
 from rclpy.subscription import Subscription
 from rclpy.timer import Timer
 
@@ -26,7 +27,7 @@ else:
 
 
 #: What configure makes and release destroys.
-Owned = TypeVar('Owned', Publisher, Subscription, Timer)
+Owned = TypeVar('Owned', Publisher, Subscription, Timer, Service)
 
 
 class ConfigureError(LomprError):
@@ -41,7 +42,7 @@ class ManagedNode(_LifecycleNodeType):
         self.configure_error: str | None = None  # why the last configure failed
         self._configure_exception: LomprError | None = None
         self._autostarting = False
-        self._owned: list[Publisher | Subscription | Timer] = []
+        self._owned: list[Publisher | Subscription | Timer | Service] = []
         self._refuse_unknown_transitions()
 
     def own(self, entity: Owned) -> Owned:
@@ -58,6 +59,8 @@ class ManagedNode(_LifecycleNodeType):
                 self.destroy_publisher(entity)
             elif isinstance(entity, Subscription):
                 self.destroy_subscription(entity)
+            elif isinstance(entity, Service):
+                self.destroy_service(entity)
             else:
                 self.destroy_timer(entity)
         self._owned = []

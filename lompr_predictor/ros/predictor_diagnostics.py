@@ -27,6 +27,7 @@ from lompr_predictor.online.preview import PreviewDrop
 from lompr_predictor.ros.common import DiagnosticsPublisher
 from lompr_predictor.ros.predictor_outputs import OutputPublisher
 from lompr_predictor.ros.predictor_settings import PredictorNodeSettings
+from lompr_predictor.ros.predictor_store import NodeSampleStore
 
 
 @dataclass(frozen=True)
@@ -50,11 +51,12 @@ class PredictorReadings:
     history: ModelHistory
     clock_values: dict[str, object]  # the node's clock and the input dropped while inactive
     callback_values: dict[str, object]  # callback failures
+    sample_store: NodeSampleStore | None = None  # while configured with a store
 
 
 class PredictorDiagnostics:
-    """The statuses 'model', 'inputs', 'reference preview', 'prediction' and 'guard' of
-    one predictor node, read from `read()` at each report."""
+    """The statuses 'model', 'inputs', 'reference preview', 'prediction', 'guard' and
+    'sample store' of one predictor node, read from `read()` at each report."""
 
     def __init__(self, publisher: DiagnosticsPublisher, meters: PredictorMeters,
                  read: Callable[[], PredictorReadings]) -> None:
@@ -68,6 +70,7 @@ class PredictorDiagnostics:
         publisher.add('reference preview', self.preview_status)
         publisher.add(PREDICTION_STATUS, self.prediction_status)
         publisher.add('guard', self.guard_status)
+        publisher.add('sample store', self.store_status)
 
     def model_status(self) -> Status:
         now = self._read()
@@ -114,3 +117,13 @@ class PredictorDiagnostics:
         now = self._read()
         envelope = now.core is not None and bool(now.core.model.metadata.envelope)
         return predictor_status.guard_status(now.lifecycle, now.guard, envelope)
+
+    def store_status(self) -> Status:
+        now = self._read()
+        node_store = now.sample_store
+        if node_store is None:
+            return predictor_status.store_status(now.lifecycle, now.settings.store_minutes,
+                                                 None, None)
+        node_store.export.poll()  # a write that has finished: its outcome
+        return predictor_status.store_status(now.lifecycle, node_store.minutes,
+                                             node_store.store, node_store.export)

@@ -35,6 +35,7 @@ from lompr_predictor.online.model_loader import (
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_status import Lifecycle, ModelHistory
 from lompr_predictor.online.preview import PreviewDrop
+from lompr_predictor.online.sample_store import SampleStoreError
 from lompr_predictor.robot.description import load_robot_description, robot_name
 from lompr_predictor.ros.common import run_node
 from lompr_predictor.ros.managed import ManagedNode
@@ -55,6 +56,7 @@ from lompr_predictor.ros.predictor_settings import (
     REFERENCE_PREVIEW,
     PredictorNodeSettings,
 )
+from lompr_predictor.ros.predictor_store import NodeSampleStore
 from lompr_predictor.ros.wire import (
     WireError,
     frame_field,
@@ -89,6 +91,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         settings = self.declare_settings(PredictorNodeSettings)
         self._core: OnlinePredictor | None = None  # while configured (`core`)
         self.model_guard: LiveGuard | None = None  # the core's live guard, while configured
+        self.sample_store: NodeSampleStore | None = None  # while configured, if one is kept
         self.sample_period = 0.0  # [s] the parameter, else the first model's: later ones fit
         self._running: ReadyModel | None = None  # the model the core runs
         self._candidate: ReadyModel | None = None  # accepted, swapped in by apply_settings
@@ -188,12 +191,16 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
                                backend_why=ready.backend_why)
         self.model_guard = LiveGuard.for_stream(settings.guard, ready.model.metadata.horizon,
                                                 self.sample_period)
+        try:
+            store = self.sample_store = NodeSampleStore.configured(self, self.sample_period)
+        except SampleStoreError as err:
+            return err
         self._core = OnlinePredictor(
             ready.model, settings.stream(self.sample_period), settings.limits,
             clock=self.clock_ns, backend=ready.backend,
             fallback=(fallback.model, fallback.backend) if fallback else None,
             description=description, latency_samples=settings.latency_samples,
-            units=(self.model_guard,))
+            units=(self.model_guard, *([store.store] if store else [])))
         self.outputs.attach(self.own(self.advertise(PREDICTED_ERROR)),
                             self.own(self.advertise(COMPENSATION)))
         self.own(self.subscribe(END_POSE, self.on_end_pose, raw=True))
@@ -218,11 +225,19 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         """Destroy the endpoints and the timer, drop the core and the model."""
         self.destroy_owned()
         self.outputs.detach()
+        self._let_go_store()
         self._core = self._running = self._candidate = self.model_guard = None
 
     def destroy_node(self) -> None:
         self._jump_handle.unregister()
+        self._let_go_store()
         super().destroy_node()
+
+    def _let_go_store(self) -> None:
+        """Write the sample store if `store_write_at_shutdown`, then free it."""
+        if self.sample_store is not None:
+            self.sample_store.let_go(self.settings.store_write_at_shutdown)
+            self.sample_store = None
 
     # -- callbacks (run through NodeBase.guard: a failure aborts the core) -----------------
 
@@ -364,7 +379,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         return PredictorReadings(
             Lifecycle(self.lifecycle_state, settings.autostart, self.configure_error),
             settings, self._core, self.model_guard, self.history, clock_values,
-            self.callback_values())
+            self.callback_values(), self.sample_store)
 
 
 def build_entry_point(context: Context, **node_kwargs: Any) -> PredictorNode:

@@ -158,6 +158,20 @@ class PredictorNodeSettings(FrameSettings):
         'metadata) above which the model is held back on both axes; 1: never for that',
         minimum=0.0, maximum=1.0, read_only=True)
 
+    store_minutes: float = parameter(
+        0.0, 'the sample store: the aligned samples of the last this many minutes of sample '
+        'time (stamp, measured tool tip, reference, plant error: hence the compensation in '
+        'force), in a ring preallocated at configure, 64 bytes a sample (3.84 MB a minute at '
+        '1 kHz), which the service ~/write_samples (or store_write_at_shutdown) writes as a '
+        'bag lompr train reads; 0: no store', minimum=0.0, maximum=60.0, read_only=True)
+    store_folder: str = parameter(
+        '', "where the sample store's bags are written, each a new directory "
+        'samples-<UTC time>; empty: lompr_samples in $ROS_HOME (default ~/.ros)',
+        read_only=True)
+    store_write_at_shutdown: bool = parameter(
+        False, 'write the sample store as a bag when the node lets it go (cleanup, shutdown, '
+        'the process ending), by a process that finishes after the node')
+
     def stream(self, sample_period: float) -> StreamSettings:
         """The rules the input stream is held to, at `sample_period` [s] (the model's, or
         the parameter's): every other field the parameter of the same name, so each is

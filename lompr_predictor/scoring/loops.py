@@ -18,7 +18,7 @@ import dataclasses
 import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -27,6 +27,9 @@ from lompr_predictor.files import write_atomic, write_json
 from lompr_predictor.plots import pyplot, save_figure
 from lompr_predictor.stamps import NS_PER_SECOND, seconds_since
 from lompr_predictor.twin.simulation import Simulation, error_summary, irreducible_rmse
+
+if TYPE_CHECKING:  # the bag reader (rosbags) is imported where bags are read
+    from lompr_predictor.data.loading import BagInputs
 
 #: Beside a closed-loop bag: per sample `stamps` (N,) int64 ns, `true_error`,
 #: `plant_error`, `compensation` (N, 2) m, `pass_index` (N,), `in_pass` (N,) bool; the JSON
@@ -191,17 +194,14 @@ def common_instants(stamps: Mapping[str, np.ndarray], tolerance_ns: float) -> di
     return {name: rows[keep] for name, rows in chosen.items()}
 
 
-def _scored_bag(bag: str | Path, geometry: Any, cleaning: Any, topics: tuple[str, str],
-                frame: str) -> tuple[np.ndarray, np.ndarray, Any, float]:
-    """The measured error and stamps of one closed-loop bag, its truth (None without one)
-    and its sample period [s]: with a truth beside it, only the passes after the lead-in,
-    which the demo scores."""
-    from lompr_predictor.data.bags import read_bags
-    from lompr_predictor.data.cleaning import clean_recordings
+def _scored_bag(bag: str | Path, geometry: Any,
+                inputs: BagInputs) -> tuple[np.ndarray, np.ndarray, Any, float]:
+    """The measured error (tool tip - reference: what the compensation left) and stamps of
+    one closed-loop bag, its truth (None without one) and its sample period [s]: with a
+    truth beside it, only the passes after the lead-in, which the demo scores."""
+    from lompr_predictor.data.loading import load_clean_data
 
-    recordings, _ = read_bags([bag], joint_topic=topics[0], reference_topic=topics[1],
-                              frame=frame)
-    data = clean_recordings(recordings, geometry, cleaning)
+    data, _ = load_clean_data(dataclasses.replace(inputs, bags=(str(bag),)), geometry)
     truth = read_loop_truth(bag)
     keep = np.ones(len(data.stamps), dtype=bool)
     if truth is not None:
@@ -209,20 +209,20 @@ def _scored_bag(bag: str | Path, geometry: Any, cleaning: Any, topics: tuple[str
         scored = arrays['pass_index'] >= info['settings']['lead_in_passes']
         truth = ({key: value[scored] for key, value in arrays.items()}, info)
         keep = data.stamps >= arrays['stamps'][scored][0]
-    return data.error[keep], data.stamps[keep], truth, data.sample_period
+    return data.tool_error[keep], data.stamps[keep], truth, data.sample_period
 
 
-def evaluate_loop_bags(bags: Sequence[str | Path], *, geometry: Any, cleaning: Any,
-                       joint_topic: str, reference_topic: str, frame: str,
+def evaluate_loop_bags(inputs: BagInputs, *, geometry: Any,
                        report: str | Path) -> dict[str, Any]:
-    """Score closed-loop recordings of the same passes, the first the baseline (no
-    compensation): the measured error FK(recorded joints) - reference of each bag, read and
-    cleaned as for training but without spike rejection, and, when the twin's closed-loop
-    truth lies beside a bag, its true error too (the figures `lompr demo` prints). Writes
-    `closed_loop.json`, `closed_loop.md` and the plot into `report`; returns the JSON
-    document."""
+    """Score closed-loop recordings of the same passes (`inputs.bags`), the first the
+    baseline (no compensation): each bag's measured error FK(joints) - reference (offsets
+    included: not the plant error), read as for training without spike rejection, and,
+    with the twin's closed-loop truth beside a bag, its true error too (the figures `lompr
+    demo` prints). Writes `closed_loop.json`, `.md` and the plot into `report`."""
     # A transient of the error is an error to score, not an outlier: no spike rejection.
-    cleaning = dataclasses.replace(cleaning, hampel_threshold=np.inf)
+    inputs = dataclasses.replace(inputs, cleaning=dataclasses.replace(inputs.cleaning,
+                                                                      hampel_threshold=np.inf))
+    bags = inputs.bags
     if len(bags) < 2:
         msg = 'closed-loop scoring needs the baseline bag and at least one compensated bag'
         raise ValueError(msg)
@@ -234,8 +234,8 @@ def evaluate_loop_bags(bags: Sequence[str | Path], *, geometry: Any, cleaning: A
     truths = {}
     period = np.inf  # [s] the shortest sample period among the bags
     for name, bag in zip(names, bags, strict=False):
-        measured[name], stamps[name], truths[name], bag_period = _scored_bag(
-            bag, geometry, cleaning, (joint_topic, reference_topic), frame)
+        measured[name], stamps[name], truths[name], bag_period = _scored_bag(bag, geometry,
+                                                                             inputs)
         period = min(period, bag_period)
     rows = common_instants(stamps, 0.5 * period * NS_PER_SECOND)
     measured = {name: error[rows[name]] for name, error in measured.items()}

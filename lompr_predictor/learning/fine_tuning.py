@@ -1,0 +1,225 @@
+"""Fine-tuning a trained model on new recordings: `lompr train --init MODEL`, the offline form
+of adaptation (a model trained on one machine, or on the machine as it was, learning the
+machine as it is now from a few recordings of it).
+
+`fine_tune_predictor(config, init)` checks the model file against the run (the robot
+description, window, horizon and preview must be the run's, and the recordings sampled at
+its sample period: one line naming the field otherwise), rebuilds its BO-LSTM as a
+trainable module (`editable_module`: the file's network, machine map and normalisation,
+checked to predict as the file does), trains it on
+the new recordings' training part from its weights (`training.train_network` with `init`)
+for at most `config.max_epochs` epochs, with the hyperparameters the file records and no
+tuning study, the best validation epoch kept, the starting weights counting as epoch 0 (so
+it is never worse on validation than where it started), and scores it on the test part
+against persistence, the machine map and the model it started from (`parent`). The machine
+map and the normalisation stay the parent's: what changes is what the network learned. The
+new model's metadata is the parent's with the new bags, test metrics, fine-tuning settings,
+an envelope that takes in both the parent's and the new rows, and `parent_sha256`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lompr_predictor.data.features import TARGETS
+from lompr_predictor.data.problem import LearningProblem
+from lompr_predictor.errors import LomprError
+from lompr_predictor.learning.baselines import beats
+from lompr_predictor.learning.envelope import InputEnvelope, fit_envelope, joined_envelope
+from lompr_predictor.learning.machine_map import MachineMap, map_prior
+from lompr_predictor.learning.metrics import score_predictions
+from lompr_predictor.learning.model_file import (
+    PERIOD_TOLERANCE,
+    LoadedModel,
+    ModelMetadata,
+    library_versions,
+    load_model,
+    script_module,
+)
+from lompr_predictor.learning.models import (
+    PredictorModule,
+    build_network,
+    network_columns,
+    network_features,
+    persistence,
+    predict_rows,
+)
+from lompr_predictor.learning.pipeline import (
+    ScoredPredictions,
+    TrainingConfig,
+    TrainingResult,
+    check_config,
+    read_problem,
+)
+from lompr_predictor.learning.report import base_report, irreducible_fields
+from lompr_predictor.learning.training import TrainedModel, TrainSettings, train_network
+from lompr_predictor.robot.description import load_robot_description
+from lompr_predictor.stamps import seconds_since
+
+#: Windows on which the rebuilt module must predict as the file does, at most.
+CHECK_WINDOWS = 256
+#: ... to this [m]: both run the same float32 network on the same inputs.
+CHECK_TOLERANCE = 1e-9
+
+
+class FineTuneError(LomprError):
+    """A model file cannot be fine-tuned (not a BO-LSTM, its network cannot be rebuilt, or
+    the recordings are sampled at another rate)."""
+
+
+def parent_settings(path: str | Path) -> tuple[int, int, int]:
+    """(window, horizon, preview) of the model file at `path`, which a fine-tuning of it
+    keeps (verified by its sidecar, as every model file is opened)."""
+    metadata = load_model(path).metadata
+    return metadata.window, metadata.horizon, metadata.preview
+
+
+def load_parent(path: str | Path, config: TrainingConfig, robot_sha256: str) -> LoadedModel:
+    """The model file to start from, checked against the run: `MetadataMismatchError` (one
+    line naming the field) for another robot description, window, horizon, preview or
+    targets, `FineTuneError` for a model that is not a BO-LSTM."""
+    parent = load_model(path, expected={
+        'robot_description_sha256': robot_sha256, 'window': config.window,
+        'horizon': config.horizon, 'preview': config.preview, 'targets': TARGETS})
+    if parent.metadata.model_type != 'lstm':
+        msg = (f'model {path}: --init fine-tunes a BO-LSTM (model_type lstm), this one is '
+               f'{parent.metadata.model_type!r}')
+        raise FineTuneError(msg)
+    return parent
+
+
+def editable_module(parent: LoadedModel) -> PredictorModule:
+    """The parent file's module as a trainable `PredictorModule`: the same network (its
+    shape read from the weights), machine map and normalisation, its weights and constants
+    loaded from the file; `FineTuneError` if they do not fit."""
+    scripted, metadata = parent.module, parent.metadata
+    state = scripted.state_dict()
+    hyperparameters = metadata.hyperparameters
+    use_map = bool(scripted.use_map)
+    inputs = str(hyperparameters.get('network_inputs', 'machine' if use_map else 'all'))
+    error_level = bool(hyperparameters.get('error_level', False))
+    try:
+        width = len(network_columns(network_features(metadata.features, use_map), True,
+                                    error_level, inputs)[0])
+        hidden = int(state['net.lstm.weight_hh_l0'].shape[1])
+        net = build_network('lstm', width, metadata.window, hidden, int(scripted.net.steps))
+        machine_map = (MachineMap(metadata.features, metadata.horizon, metadata.preview,
+                                  metadata.sample_period) if use_map else None)
+        module = PredictorModule(net, np.zeros(width), np.ones(width), np.zeros(len(TARGETS)),
+                                 np.ones(len(TARGETS)), residual=bool(scripted.residual),
+                                 relative_errors=True, error_level=error_level,
+                                 features=metadata.features, machine_map=machine_map,
+                                 inputs=inputs)
+        module.load_state_dict(state)
+    except (KeyError, AttributeError, RuntimeError, ValueError) as err:
+        msg = (f'model {parent.path}: its network cannot be rebuilt for training '
+               f'({str(err).splitlines()[0]})')
+        raise FineTuneError(msg) from err
+    module.eval()
+    return module
+
+
+def check_rebuilt(module: PredictorModule, parent: LoadedModel, rows: np.ndarray,
+                  ends: np.ndarray) -> None:
+    """`FineTuneError` unless the rebuilt module predicts the windows ending at `ends` as
+    the file does (to `CHECK_TOLERANCE`)."""
+    ends = ends[np.linspace(0, len(ends) - 1, min(len(ends), CHECK_WINDOWS)).astype(int)]
+    window = parent.metadata.window
+    rebuilt = predict_rows(module, rows, ends, window)
+    original = predict_rows(parent.module, rows, ends, window)
+    gap = float(np.max(np.abs(rebuilt - original))) if len(ends) else 0.0
+    if not gap <= CHECK_TOLERANCE:
+        msg = (f'model {parent.path}: rebuilt for training it predicts up to {gap:.3g} m '
+               'away from the file: not fine-tuned')
+        raise FineTuneError(msg)
+
+
+def fine_tune_predictor(config: TrainingConfig, init: str | Path) -> TrainingResult:
+    """Fine-tune the model file `init` on the config's bags (module docstring); nothing is
+    written (`pipeline.write_outputs` writes the result)."""
+    check_config(config)
+    started = time.perf_counter()
+    description = load_robot_description(config.robot_description)
+    parent = load_parent(init, config, description.sha256)
+    data, problem, trained_on, sources = read_problem(config, description)
+    if abs(problem.sample_period - parent.metadata.sample_period) > (
+            PERIOD_TOLERANCE * parent.metadata.sample_period):
+        msg = (f'the recordings are sampled every {problem.sample_period * 1e3:.3g} ms, the '
+               f'model {init} was trained at {parent.metadata.sample_period * 1e3:.3g} ms: '
+               'not fine-tuned')
+        raise FineTuneError(msg)
+    read_seconds = time.perf_counter() - started
+    module = editable_module(parent)
+    check_rebuilt(module, parent, problem.rows, problem.split.test)
+    hyperparameters = dict(parent.metadata.hyperparameters)
+    settings = TrainSettings(max_epochs=config.max_epochs, patience=config.patience,
+                             seed=config.seed, epoch_windows=config.epoch_windows)
+    trained = train_network(problem, 'lstm', hyperparameters, settings,
+                            residual=bool(module.residual), progress=config.progress,
+                            label='fine-tuning', init=module)
+    test = problem.split.test
+    targets = test + problem.horizon
+    actual, stamps = problem.error[targets], problem.stamps[targets]
+    machine_map = module.machine_map if module.use_map else None
+    predictions = {
+        'persistence': persistence(problem.error, test),
+        **({'machine_map': map_prior(machine_map, problem, test)} if machine_map else {}),
+        'parent': predict_rows(parent.module, problem.rows, test, problem.window),
+        'bo_lstm': predict_rows(trained.module, problem.rows, test, problem.window)}
+    models = score_predictions(predictions, actual, stamps, problem.error_low,
+                               problem.error_high,
+                               config.inputs.cleaning.gap_factor * problem.sample_period)
+    models['bo_lstm'].update(training_seconds=trained.seconds, hyperparameters=hyperparameters,
+                             target='residual (e(t+h) - e(t))', epochs=trained.epochs)
+    report = base_report('train', problem, data, sources, config.inputs.cleaning)
+    report.update(
+        models=models,
+        bo_lstm_beats={name: beats(models['bo_lstm']['metrics'], models[name]['metrics'])
+                       for name in models if name != 'bo_lstm'},
+        **irreducible_fields(models, sources, problem.horizon),
+        fine_tuning=_fine_tuning_part(parent, trained, settings),
+        model_file=str(Path(config.model_path or '').resolve()),
+        timings={'read_clean_fk_seconds': read_seconds, 'fine_tuning_seconds': trained.seconds,
+                 'total_seconds': time.perf_counter() - started})
+    metadata = _metadata(parent, problem, trained_on, trained, settings, config,
+                         models['bo_lstm']['metrics'])
+    return TrainingResult(module=script_module(trained.module), metadata=metadata,
+                          report=report,
+                          test_part=ScoredPredictions(seconds=seconds_since(stamps),
+                                                      actual=actual, predictions=predictions))
+
+
+def _fine_tuning_part(parent: LoadedModel, trained: TrainedModel,
+                      settings: TrainSettings) -> dict[str, Any]:
+    """What the report says of the fine-tuning: where it started and how it went."""
+    return {'parent_model': str(Path(parent.path).resolve()), 'parent_sha256': parent.sha256,
+            'parent_verified_by': str(parent.verified_by),
+            'parent_test_metrics': dict(parent.metadata.test_metrics),
+            'max_epochs': settings.max_epochs, 'epochs': trained.epochs,
+            'best_epoch': trained.best_epoch, 'validation_loss_start': trained.start_loss,
+            'validation_loss_best': trained.validation_loss,
+            'validation_loss_history': trained.history,
+            'kept_the_parent_weights': trained.best_epoch == 0}
+
+
+def _metadata(parent: LoadedModel, problem: LearningProblem, trained_on: list[Any],
+              trained: TrainedModel, settings: TrainSettings, config: TrainingConfig,
+              test_metrics: dict[str, Any]) -> ModelMetadata:
+    """The parent's metadata with what the fine-tuning changed (module docstring)."""
+    before = parent.metadata
+    envelope = joined_envelope(
+        fit_envelope(problem.rows[problem.split.training_rows()], problem.features),
+        InputEnvelope.from_metadata(before.envelope, before.features))
+    return dataclasses.replace(
+        before, training_bags=tuple({'path': str(Path(s.path).resolve()), 'sha256': s.sha256}
+                                    for s in trained_on if not s.skipped_reason),
+        seed=config.seed, library_versions=library_versions(), test_metrics=test_metrics,
+        hyperparameters={**before.hyperparameters, 'fine_tuning': {
+            **vars(settings), 'epochs': trained.epochs, 'best_epoch': trained.best_epoch,
+            'cleaning': vars(config.inputs.cleaning)}},
+        envelope=envelope.to_metadata(), parent_sha256=parent.sha256)
