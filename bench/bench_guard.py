@@ -8,10 +8,10 @@ feature rows of the spiral it is driven along), two without units and two with t
 guard (`online.guard.LiveGuard`, the node's default rules), are driven by the same stream of
 references and poses (the core's calls, as the node makes them, in shadow mode; every sample
 answered once the window is full), in blocks of `--block` samples, their order rotated
-every block. It prints the thread CPU time per sample of each [us] (median of the blocks)
-and the guard's share, against the target, judged on the guard's own calls timed inside its core (`TimedUnit`; the difference
-of the cores is printed as a cross-check, noisier): the guard and the envelope check add
-<= 10 us per sample.
+every block. It prints the thread CPU time per sample of each kind [us] (median of the
+blocks) and the guard's share against the target, judged on the guard's own calls timed
+inside its core (`TimedUnit`; the difference of the cores is printed as a cross-check,
+noisier): the guard and the envelope check add <= 10 us per sample.
 """
 
 from __future__ import annotations

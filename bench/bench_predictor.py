@@ -30,9 +30,10 @@ dropped by the predictor's overrun policy).
   Twice: the two node executables as two processes, and the one-process pipeline
   (`lompr_pipeline`), each with its default parameters and executor (`--executors
   events,single-threaded` compares rclpy's two), then once more beside a training job
-  (`lompr train --threads 1` on a small simulated bag; `--no-training` skips it). Each run
-  beside the same chain through `relay_chain.py` (the nodes' topics, QoS and executor, no
-  work): the transport floor of this machine, which no node can go below.
+  (`lompr train --threads 1` on a small simulated bag, at its default priority, nice +10;
+  `--no-training` skips it). Each run beside the same chain through `relay_chain.py` (the
+  nodes' topics, QoS and executor, raw bytes in and out, no work): the transport floor of
+  this machine, which no node can go below.
 
 Targets: at 1 kHz, with a training job beside and without, >= 99.9 % of the samples
 answered, p99 <= 2 ms across processes and <= 1 ms in one process; the core's inference
@@ -54,7 +55,6 @@ os.environ['OPENBLAS_NUM_THREADS'] = '1'
 
 import argparse
 import contextlib
-import signal
 import subprocess
 import sys
 import tempfile
@@ -654,9 +654,7 @@ def training_job(directory: Path) -> Iterator[subprocess.Popen]:
             raise RuntimeError(msg)
         yield process
     finally:
-        if process.poll() is None:
-            os.killpg(process.pid, signal.SIGINT)
-        stop_processes([process])
+        stop_processes([process])  # SIGINT to it alone: it stops its tuning workers itself
 
 
 # -- report ---------------------------------------------------------------------------------

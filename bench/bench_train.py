@@ -34,9 +34,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+from lompr_predictor.cli.common import add_nice_argument
 from lompr_predictor.data.loading import BagInputs
 from lompr_predictor.learning.baselines import NO_PREVIEW
 from lompr_predictor.learning.pipeline import TrainingConfig, train_predictor, write_outputs
+from lompr_predictor.scheduling import lower_priority
 from lompr_predictor.threads import default_workers, set_torch_threads
 
 PRESETS = ('nominal', 'sharp_friction', 'backlash', 'thermal', 'highrate', 'worn', 'varied')
@@ -103,11 +105,13 @@ def main() -> int:
                         help='reference preview of every model: h (K = the horizon) or K '
                              '(default 0: none)')
     parser.add_argument('--out', default='bench_train_out')
+    add_nice_argument(parser)
     args = parser.parse_args()
     shrink: dict[str, int | None] = dict(QUICK) if args.quick else {}
     shrink.update({k: v for k, v in (('trials', args.trials), ('max_epochs', args.max_epochs))
                    if v})
     set_torch_threads(1)  # lompr train's default (worker processes take it too)
+    lower_priority(args.nice)  # as lompr train does: a node beside it runs first
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     bags = Path(args.bags) if args.bags else out

@@ -34,9 +34,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+from lompr_predictor.cli.common import add_nice_argument
 from lompr_predictor.data.loading import BagInputs
 from lompr_predictor.learning.pipeline import TrainingConfig, train_predictor, write_outputs
 from lompr_predictor.robot.paths import PATH_KINDS
+from lompr_predictor.scheduling import lower_priority
 from lompr_predictor.threads import default_workers, set_torch_threads
 
 PRESETS = ('nominal', 'sharp_friction', 'backlash', 'thermal', 'worn', 'varied', 'highrate')
@@ -164,8 +166,10 @@ def main() -> int:
     parser.add_argument('--restarts', type=int, default=None, help="default: lompr train's")
     parser.add_argument('--workers', type=int, default=default_workers())
     parser.add_argument('--out', default='bench_transfer_out')
+    add_nice_argument(parser)
     args = parser.parse_args()
     set_torch_threads(1)  # lompr train's default (worker processes take it too)
+    lower_priority(args.nice)  # as lompr train does: a node beside it runs first
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     header = (f'{"preset":<15}{"mode":<7}{"trained on":<28}{"scored on":<12}{"h":>3}{"K":>3}'

@@ -1,59 +1,83 @@
-"""The transport floor of `bench_predictor.py`: the nodes' topics and QoS, no work.
+"""The transport floor of `bench_predictor.py`: the nodes' topics, QoS and executor, no work.
 
 `relay_chain.py kinematics` relays /joint_states to /lompr/end_pose, `relay_chain.py
-predictor` relays /lompr/end_pose to /lompr/compensation (stamp + `lead_ns`, as the predictor
-answers an instant ahead) and takes /lompr/reference like the predictor; `relay_chain.py
-both` runs the two in one process on one executor, as `lompr_pipeline` does. The same
-executor, signal handling and start-up (`run_node`) as the real nodes: what the bench's
-end-to-end figures cost above this chain is what the nodes' own work costs.
+predictor` relays /lompr/end_pose to /lompr/predicted_error and /lompr/compensation (stamp +
+`lead_ns`, as the predictor answers an instant ahead) and takes /lompr/reference like the
+predictor; `relay_chain.py both` runs the two in one process on one executor, as
+`lompr_pipeline` does. As cheap as an honest relay can be, and built as the nodes are: the
+same endpoints (their message types and QoS: the nodes' own `Endpoint`s), raw
+subscriptions and serialized messages published as bytes (`ros/wire.py`), of which a relay
+reads the stamp alone, and the same executor, signal handling and start-up (`run_node`).
+What the bench's end-to-end figures cost above this chain is what the nodes' own work costs.
 """
 
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
+from typing import Any
 
-from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from rclpy.context import Context
 from rclpy.node import Node
-from sensor_msgs.msg import JointState
+from rclpy.publisher import Publisher
 
+from lompr_predictor.robot.description import ROBOT_FRAME
+from lompr_predictor.ros import kinematics_node, predictor_settings
 from lompr_predictor.ros.common import run_node
-from lompr_predictor.ros.node_base import COMMAND_INPUT_QOS, OUTPUT_QOS, SENSOR_INPUT_QOS
+from lompr_predictor.ros.node_base import Endpoint
+from lompr_predictor.ros.wire import PoseStampedWriter, Vector3StampedWriter, read_stamp
+from lompr_predictor.stamps import NS_PER_SECOND
 
 ROLES = ('kinematics', 'predictor', 'both')
+ORIGIN, IDENTITY = (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)
+
+
+def publisher(node: Node, endpoint: Endpoint, topic: str) -> Publisher:
+    """A publisher of `endpoint`'s message type and QoS (the node's own) on `topic`."""
+    return node.create_publisher(endpoint.msg_type, topic, endpoint.qos)
+
+
+def subscribe(node: Node, endpoint: Endpoint, topic: str,
+              callback: Callable[[bytes], None]) -> None:
+    """A raw subscription (serialized bytes in) of `endpoint`'s type and QoS on `topic`."""
+    node.create_subscription(endpoint.msg_type, topic, callback, endpoint.qos, raw=True)
 
 
 class KinematicsRelay(Node):
     """A JointState in, a PoseStamped with its stamp out."""
 
-    def __init__(self, context: Context) -> None:
-        super().__init__('kinematics_relay', context=context)
-        self._out = self.create_publisher(PoseStamped, '/lompr/end_pose', OUTPUT_QOS)
-        self.create_subscription(JointState, '/joint_states', self._relay, SENSOR_INPUT_QOS)
+    def __init__(self, context: Context, **node_kwargs: Any) -> None:
+        super().__init__('kinematics_relay', context=context, **node_kwargs)
+        self._writer = PoseStampedWriter(ROBOT_FRAME)
+        self._out = publisher(self, kinematics_node.END_POSE, '/lompr/end_pose')
+        subscribe(self, kinematics_node.JOINT_STATES, '/joint_states', self._relay)
 
-    def _relay(self, msg: JointState) -> None:
-        out = PoseStamped()
-        out.header = msg.header
-        self._out.publish(out)
+    def _relay(self, data: bytes) -> None:
+        sec, nanosec = read_stamp(data)
+        self._out.publish(self._writer.pack(sec, nanosec, ORIGIN, IDENTITY))
 
 
 class PredictorRelay(Node):
-    """An end pose in, a Vector3Stamped stamped `lead_ns` later out; references taken."""
+    """An end pose in, a predicted error and a compensation stamped `lead_ns` later out;
+    references taken."""
 
-    def __init__(self, context: Context) -> None:
-        super().__init__('predictor_relay', context=context)
+    def __init__(self, context: Context, **node_kwargs: Any) -> None:
+        super().__init__('predictor_relay', context=context, **node_kwargs)
         self._lead_ns = self.declare_parameter('lead_ns', 0).value
-        self._out = self.create_publisher(Vector3Stamped, '/lompr/compensation', OUTPUT_QOS)
-        self.create_subscription(PoseStamped, '/lompr/end_pose', self._relay, SENSOR_INPUT_QOS)
-        self.create_subscription(PoseStamped, '/lompr/reference', lambda _msg: None,
-                                 COMMAND_INPUT_QOS)
+        self._writer = Vector3StampedWriter(ROBOT_FRAME)
+        self._predictions = publisher(self, predictor_settings.PREDICTED_ERROR,
+                                      '/lompr/predicted_error')
+        self._compensations = publisher(self, predictor_settings.COMPENSATION,
+                                        '/lompr/compensation')
+        subscribe(self, predictor_settings.END_POSE, '/lompr/end_pose', self._relay)
+        subscribe(self, predictor_settings.REFERENCE, '/lompr/reference', lambda _data: None)
 
-    def _relay(self, msg: PoseStamped) -> None:
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec + self._lead_ns
-        out = Vector3Stamped()
-        out.header.frame_id = msg.header.frame_id
-        out.header.stamp.sec, out.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
-        self._out.publish(out)
+    def _relay(self, data: bytes) -> None:
+        sec, nanosec = read_stamp(data)
+        sec, nanosec = divmod(sec * NS_PER_SECOND + nanosec + self._lead_ns, NS_PER_SECOND)
+        answer = self._writer.pack(sec, nanosec, 0.0, 0.0)
+        self._predictions.publish(answer)
+        self._compensations.publish(answer)
 
 
 def main() -> int:

@@ -1,4 +1,6 @@
-"""Child processes stopped the way `ros2 launch` stops them: SIGINT, then SIGTERM, then SIGKILL.
+"""Processes that stop when told: child processes stopped the way `ros2 launch` stops them
+(SIGINT, then SIGTERM, then SIGKILL: `stop_processes`), and a command that stops on SIGTERM
+as on Ctrl-C (`stop_on_signals`).
 
 Why three steps and not SIGINT then SIGKILL: a SIGINT can be lost. A process started by a job
 that runs in the background inherits SIGINT ignored, so one that arrives while a node is still
@@ -9,10 +11,13 @@ for a process that still hangs (a Fast DDS participant can hang at exit).
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import subprocess
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from types import FrameType
 from typing import Any, NamedTuple
 
 #: Seconds a process gets to exit after SIGINT before it is sent SIGTERM (`ros2 launch`'s
@@ -64,3 +69,47 @@ def stop_processes(
             break
     return [Stopped(out, err, process.returncode, number)
             for (out, err), process, number in zip(outputs, processes, sent, strict=True)]
+
+
+class StopSignal(KeyboardInterrupt):
+    """SIGINT or SIGTERM asked this process to stop (`stop_on_signals`). A KeyboardInterrupt,
+    so that whatever cleans up after Ctrl-C cleans up after a supervisor's SIGTERM too."""
+
+    def __init__(self, number: signal.Signals) -> None:
+        self.signal = number
+        super().__init__(number.name)
+
+    @property
+    def exit_code(self) -> int:
+        """The shell's code of a process ended by this signal: 128 + its number."""
+        return 128 + int(self.signal)
+
+
+@contextlib.contextmanager
+def stop_on_signals() -> Iterator[None]:
+    """Inside, the first SIGINT or SIGTERM raises `StopSignal` in the main thread and later
+    ones are ignored, so that the clean-up the first one starts (stopping child processes,
+    recording their work) is not itself cut short. A signal the process inherited ignored
+    (SIGINT in a job a shell script started in the background) stays ignored. The previous
+    handlers come back after the block; outside the main thread (no handlers there) this
+    does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    stopping = False
+
+    def stop(number: int, frame: FrameType | None) -> None:
+        del frame
+        nonlocal stopping
+        if not stopping:
+            stopping = True
+            raise StopSignal(signal.Signals(number))
+
+    wanted = [number for number in (signal.SIGINT, signal.SIGTERM)
+              if signal.getsignal(number) is not signal.SIG_IGN]
+    previous = {number: signal.signal(number, stop) for number in wanted}
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)

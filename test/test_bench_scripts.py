@@ -4,12 +4,17 @@ unnoticed until someone wants the figures."""
 
 from __future__ import annotations
 
+import importlib.util
 import re
 import subprocess
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
+
+if TYPE_CHECKING:
+    from ros_helpers import RosHarness
 
 BENCH = Path(__file__).resolve().parents[1] / 'bench'
 LOAD = ('import importlib.util, sys; '
@@ -62,3 +67,41 @@ def test_predictor_bench_profile_times_every_stage_of_the_path() -> None:
                       'kinematics node, rest', 'kinematics node, total',
                       'receive reference + end pose', *STAGES, 'publish outputs',
                       'predictor node, rest', 'predictor node, total', 'total']
+
+
+def test_the_relay_chain_relays_raw_bytes_on_the_nodes_endpoints(ros: RosHarness) -> None:
+    """The transport floor of bench_predictor: raw subscriptions with the nodes' QoS, and the
+    answer to a joint state stamped lead_ns later on both of the predictor's outputs."""
+    from geometry_msgs.msg import Vector3Stamped
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import JointState
+
+    from lompr_predictor.ros import kinematics_node, predictor_settings
+
+    spec = importlib.util.spec_from_file_location('relay_chain', BENCH / 'relay_chain.py')
+    assert spec is not None and spec.loader is not None
+    relay = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(relay)
+    nodes = [ros.add(relay.KinematicsRelay(ros.context)),
+             ros.add(relay.PredictorRelay(ros.context, parameter_overrides=[
+                 Parameter('lead_ns', value=5_000_000)]))]
+    subscriptions = {s.topic_name: s for node in nodes for s in node.subscriptions}
+    assert all(s.raw for s in subscriptions.values())
+    for topic, endpoint in (('/joint_states', kinematics_node.JOINT_STATES),
+                            ('/lompr/end_pose', predictor_settings.END_POSE),
+                            ('/lompr/reference', predictor_settings.REFERENCE)):
+        assert subscriptions[topic].qos_profile == endpoint.qos
+    answers = {topic: ros.collect(topic, Vector3Stamped)
+               for topic in ('/lompr/compensation', '/lompr/predicted_error')}
+    joints = ros.node.create_publisher(JointState, '/joint_states', 10)
+    ros.wait_for_subscribers(joints)
+    ros.wait_for_publishers('/lompr/compensation')
+    ros.spin_until(lambda: nodes[0].count_subscribers('/lompr/end_pose') >= 1)
+    message = JointState()
+    message.header.stamp.sec, message.header.stamp.nanosec = 12, 999_000_300
+    joints.publish(message)
+    ros.spin_until(lambda: all(answers.values()), what='both answers')
+    for received in answers.values():
+        (answer,) = received
+        assert (answer.header.stamp.sec, answer.header.stamp.nanosec,
+                answer.header.frame_id) == (13, 4_000_300, 'lompr_base')

@@ -1,10 +1,14 @@
-"""Stopping child processes: SIGINT, then SIGTERM, then SIGKILL, all processes at once."""
+"""Stopping child processes: SIGINT, then SIGTERM, then SIGKILL, all processes at once; and a
+command stopped by SIGINT or SIGTERM alike."""
 
 from __future__ import annotations
 
 import signal
 import subprocess
 import sys
+from collections.abc import Callable
+
+import pytest
 
 from lompr_predictor.processes import stop_processes
 
@@ -53,3 +57,49 @@ def test_a_process_that_has_exited_is_not_signalled() -> None:
     process.wait()
     (stopped,) = stop_processes([process])
     assert stopped == ('7\n', None, 0, None)
+
+
+#: A command under `stop_on_signals`: ready, then sleeping until stopped; its clean-up sends
+#: itself a second SIGTERM (ignored while it cleans up) and exits with the stop's code.
+STOPPABLE = """
+import os, signal, sys, time
+from lompr_predictor.processes import StopSignal, stop_on_signals
+with stop_on_signals():
+    try:
+        print('ready', flush=True)
+        time.sleep(60)
+    except StopSignal as stop:
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.2)
+        print('stopped by', stop.signal.name, flush=True)
+        sys.exit(stop.exit_code)
+"""
+
+
+def start_stoppable(preexec_fn: Callable[[], object] | None = None) -> subprocess.Popen[str]:
+    process = subprocess.Popen([sys.executable, '-c', STOPPABLE], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True, preexec_fn=preexec_fn)
+    assert process.stdout is not None and process.stdout.readline() == 'ready\n'
+    return process
+
+
+@pytest.mark.parametrize('number', [signal.SIGINT, signal.SIGTERM], ids=lambda n: n.name)
+def test_sigint_and_sigterm_stop_a_command_once(number: signal.Signals) -> None:
+    """Either signal raises `StopSignal` once: the clean-up it starts is not cut short by
+    another (a supervisor's SIGTERM after a Ctrl-C), and the code is 128 + the signal."""
+    process = start_stoppable()
+    process.send_signal(number)
+    out, _ = process.communicate(timeout=30)
+    assert (out, process.returncode) == (f'stopped by {number.name}\n', 128 + number)
+
+
+def test_a_sigint_inherited_ignored_stays_ignored() -> None:
+    """A command a shell script started in the background ignores SIGINT (the script's
+    Ctrl-C is not for it); SIGTERM still stops it."""
+    process = start_stoppable(preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    process.send_signal(signal.SIGINT)
+    with pytest.raises(subprocess.TimeoutExpired):
+        process.wait(timeout=1.0)
+    process.send_signal(signal.SIGTERM)
+    out, _ = process.communicate(timeout=30)
+    assert (out, process.returncode) == ('stopped by SIGTERM\n', 128 + signal.SIGTERM)

@@ -55,11 +55,15 @@ def test_a_small_budget_is_mostly_bayesian() -> None:
 
 @pytest.mark.faults
 def test_interrupted_study_resumes_with_its_finished_trials(storage: StudyStorage) -> None:
+    """Ctrl-C (or SIGTERM, which `lompr` turns into the same) during the third trial: that
+    trial is failed and its point queued, so the same command, run again, trains that
+    point first and then the rest of the budget, the finished trials kept as they were."""
     calls = []
 
     def interrupted(trial: optuna.Trial) -> float:
         calls.append(trial.number)
         if len(calls) == 3:
+            PAPER_SPACE.suggest(trial)
             raise KeyboardInterrupt  # Ctrl-C during the third trial
         return toy(trial)
 
@@ -70,10 +74,15 @@ def test_interrupted_study_resumes_with_its_finished_trials(storage: StudyStorag
               for t in spent_trials(open_study(storage, 'resume', budget=6))}
     assert len(before) == 2
     study = open_study(storage, 'resume', seed=2, budget=6)  # the same command, run again
+    stopped = study.trials[2]
+    assert stopped.state == optuna.trial.TrialState.FAIL
+    assert trial_counts(study).waiting == 1
     assert run_study(study, storage, toy, progress=False) == 4
     after = {t.number: (t.params, t.value) for t in spent_trials(study)}
     assert len(after) == 6
     assert all(after[number] == kept for number, kept in before.items())
+    assert study.trials[3].system_attrs['failed_trial'] == 2  # the stopped point, first
+    assert study.trials[3].params == stopped.params
     assert run_study(study, storage, toy, progress=False) == 0  # budget spent: nothing to do
     assert [t['state'] for t in history(study)] == ['COMPLETE'] * 6
 

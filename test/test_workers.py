@@ -42,6 +42,7 @@ from lompr_predictor.learning.tuning import (
 )
 from lompr_predictor.learning.workers import StudySpec, tune
 from lompr_predictor.robot.description import RobotDescription
+from lompr_predictor.scheduling import TRAINING_NICE
 
 State = optuna.trial.TrialState
 #: A small, fast training problem for the command line (a few seconds per trial).
@@ -254,15 +255,7 @@ def test_a_killed_local_worker_loses_only_its_trial(tmp_path: Path, bag: Path) -
          '5', '--max-epochs', '12', '--workers', '2', *SMALL],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        journal = report / 'study.journal'
-        deadline = time.monotonic() + 120
-        while not journal.exists() or not optuna.get_all_study_names(open_storage(
-                str(journal)).optuna):
-            assert time.monotonic() < deadline and command.poll() is None
-            time.sleep(0.2)
-        storage = open_storage(str(journal))
-        study = optuna.load_study(study_name=optuna.get_all_study_names(storage.optuna)[0],
-                                  storage=storage.optuna)
+        study = _journal_study(report, command)
         victim = _wait_for_running_trial(study, lambda pid: pid in _children(command.pid))
         os.kill(_pid(victim), signal.SIGKILL)
         _, errors = command.communicate(timeout=300)
@@ -277,18 +270,109 @@ def test_a_killed_local_worker_loses_only_its_trial(tmp_path: Path, bag: Path) -
     load_model(model, expected={'window': 8, 'horizon': 2})
 
 
-def _children(pid: int) -> set[int]:
-    """Process ids whose parent is `pid` (Linux /proc)."""
-    found = set()
+def _journal_study(report: Path, command: subprocess.Popen[str]) -> optuna.Study:
+    """The study of a `lompr train` command with the default storage (its report folder's
+    journal), once the command has made it."""
+    journal = report / 'study.journal'
+    deadline = time.monotonic() + 120
+    while not journal.exists() or not optuna.get_all_study_names(open_storage(
+            str(journal)).optuna):
+        assert time.monotonic() < deadline and command.poll() is None
+        time.sleep(0.2)
+    storage = open_storage(str(journal))
+    return optuna.load_study(study_name=optuna.get_all_study_names(storage.optuna)[0],
+                             storage=storage.optuna)
+
+
+def _processes() -> dict[int, list[str]]:
+    """Every live process (zombies, which have ended, left out): pid -> the fields of its
+    /proc stat after the command name (0: state, 1: parent, 2: process group, 16: nice)."""
+    found = {}
     for entry in Path('/proc').iterdir():
         if entry.name.isdigit():
             try:
-                stat = (entry / 'stat').read_text()
+                fields = (entry / 'stat').read_text().rsplit(')', 1)[1].split()
             except OSError:
                 continue
-            if int(stat.rsplit(')', 1)[1].split()[1]) == pid:
-                found.add(int(entry.name))
+            if fields[0] != 'Z':
+                found[int(entry.name)] = fields
     return found
+
+
+def _children(pid: int) -> set[int]:
+    """Process ids whose parent is `pid` (Linux /proc)."""
+    return {child for child, fields in _processes().items() if int(fields[1]) == pid}
+
+
+def _group(pgid: int) -> set[int]:
+    """The live processes of process group `pgid`."""
+    return {pid for pid, fields in _processes().items() if int(fields[2]) == pgid}
+
+
+def _stop_and_check(command: subprocess.Popen[str], number: signal.Signals,
+                    workers: set[int]) -> str:
+    """Send `number` to the command alone (not its group, as a supervisor does); its stderr
+    once it exited, after checking its exit code and that no process of its group, and none
+    of `workers`, is left."""
+    os.kill(command.pid, number)
+    try:
+        _, errors = command.communicate(timeout=120)
+    finally:
+        if command.poll() is None:
+            os.killpg(command.pid, signal.SIGKILL)
+            command.wait()
+    assert command.returncode == (-number if number == signal.SIGKILL else 128 + number), errors
+    deadline = time.monotonic() + 30  # a killed command's workers stop by themselves
+    while _group(command.pid) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert _group(command.pid) == set(), 'processes of the stopped command are left'
+    assert workers & set(_processes()) == set(), 'a tuning worker is left'
+    return errors
+
+
+@pytest.mark.slow
+@pytest.mark.faults
+@pytest.mark.parametrize('number', [signal.SIGTERM, signal.SIGINT, signal.SIGKILL],
+                         ids=lambda number: number.name)
+def test_a_stopped_training_leaves_no_process_and_resumes(tmp_path: Path,
+                                                          number: signal.Signals) -> None:
+    """SIGTERM or SIGINT to `lompr train --workers 2` mid-study: it stops its workers, says
+    so in one line and exits with 128 + the signal; SIGKILL: its workers stop by themselves.
+    Either way no process of it is left (by pid and by process group), the workers ran at
+    the default lower priority, the trial cut short is failed and its point queued, and the
+    same command afterwards resumes the study (that point run again) and finishes it."""
+    bag = tmp_path / 'bag'
+    subprocess.run([lompr(), 'simulate', '--out', str(bag), '--passes', '2', '--seed', '3',
+                    '--no-plot'], check=True, capture_output=True, timeout=300)
+    model, report = tmp_path / 'model.pt', tmp_path / 'report'
+    train = [lompr(), 'train', str(bag), '--out', str(model), '--report', str(report),
+             '--trials', '4', '--restarts', '0', '--max-epochs', '12', '--workers', '2', *SMALL]
+    command = subprocess.Popen(train, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, start_new_session=True)  # its own group, to check
+    try:
+        study = _journal_study(report, command)
+        victim = _wait_for_running_trial(study, lambda pid: pid in _children(command.pid))
+        workers = _children(command.pid)  # the tuning workers (and multiprocessing's tracker)
+        niceness = {int(fields[16]) for pid, fields in _processes().items()
+                    if pid in workers | {command.pid}}
+        assert niceness == {min(os.nice(0) + TRAINING_NICE, 19)}
+    except BaseException:
+        os.killpg(command.pid, signal.SIGKILL)
+        command.wait()
+        raise
+    errors = _stop_and_check(command, number, workers)
+    if number != signal.SIGKILL:
+        assert errors.strip().splitlines()[-1].startswith(
+            f'lompr train: stopped by {number.name}; the tuning study is kept'), errors
+    assert trial_counts(study).running == 0
+    assert study.trials[victim.number].state == State.FAIL
+    resumed = subprocess.run(train, capture_output=True, text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    counts = trial_counts(study)
+    assert (counts.spent, counts.running, counts.waiting) == (4, 0, 0)
+    retry = next(t for t in study.trials if t.system_attrs.get(RETRY_OF_ATTR) == victim.number)
+    assert retry.params == victim.params and retry.state in (State.COMPLETE, State.PRUNED)
+    load_model(model, expected={'window': 8, 'horizon': 2})
 
 
 @pytest.mark.slow

@@ -7,24 +7,28 @@ stays quick and a module's heavy imports (torch, optuna) load only when used.
 
 Errors are one line on stderr, never a traceback (`lompr --debug COMMAND ...` shows it):
 a bad argument (checked before any work, `validation.py`) or a `LomprError` (a bad bag,
-model, URDF, ...) exits with code 2; any other exception is an internal error, exit code 1;
-Ctrl-C exits with 130.
+model, URDF, ...) exits with code 2; any other exception is an internal error, exit code 1.
+SIGINT (Ctrl-C) and SIGTERM (a supervisor) stop a command alike (`processes.stop_on_signals`:
+its child processes stopped, its work recorded) with one line saying so, and the code of
+that signal (130, 143); a subcommand may add what the user can do next (`stop_hint`).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 from collections.abc import Sequence
 from typing import NoReturn
 
 from lompr_predictor.errors import LomprError
+from lompr_predictor.processes import StopSignal, stop_on_signals
 
 SUBCOMMANDS = ('simulate', 'train', 'evaluate', 'demo')
 #: Exit codes: a usage or input error; an internal error (a bug, or a failure nobody
-#: foresaw); interrupted.
-EXIT_USAGE, EXIT_INTERNAL, EXIT_INTERRUPTED = 2, 1, 130
+#: foresaw). A command stopped by a signal exits with 128 + its number.
+EXIT_USAGE, EXIT_INTERNAL = 2, 1
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -54,10 +58,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as stop:  # --help, or a bad argument (one line printed, code 2)
         return stop.code if isinstance(stop.code, int) else EXIT_USAGE
     try:
-        return int(args.run(args) or 0)
-    except KeyboardInterrupt:
-        print(f'lompr {args.command}: interrupted', file=sys.stderr)
-        return EXIT_INTERRUPTED
+        with stop_on_signals():
+            return int(args.run(args) or 0)
+    except KeyboardInterrupt as interrupt:  # a StopSignal, or Ctrl-C before it was set up
+        stopped = interrupt if isinstance(interrupt, StopSignal) else StopSignal(signal.SIGINT)
+        print(f'lompr {args.command}: stopped by {stopped.signal.name}'
+              f'{getattr(args, "stop_hint", "")}', file=sys.stderr)
+        return stopped.exit_code
     except Exception as err:
         if args.debug:
             raise

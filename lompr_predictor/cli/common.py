@@ -1,4 +1,5 @@
-"""Options and steps the subcommands share: which bags and how to clean them, threads."""
+"""Options and steps the subcommands share: which bags and how to clean them, threads, the
+priority of a training."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from lompr_predictor.cli.validation import (
     comma_list,
     float_above,
     non_empty,
+    non_negative_int,
     positive_float,
     positive_int,
     readable_file,
@@ -22,6 +24,7 @@ from lompr_predictor.data.bags import (
 from lompr_predictor.data.cleaning import HAMPEL_HALF_WINDOW, HAMPEL_THRESHOLD, CleaningConfig
 from lompr_predictor.data.loading import BagInputs
 from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME, joint_names_problem
+from lompr_predictor.scheduling import MAX_NICE, TRAINING_NICE
 from lompr_predictor.stamps import GAP_FACTOR
 
 
@@ -70,6 +73,16 @@ def add_data_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--threads', type=positive_int, default=1,
                         help='torch intra-op threads (default 1: faster on a loaded machine)')
     parser.add_argument('--quiet', action='store_true', help='no progress bars')
+
+
+def add_nice_argument(parser: argparse.ArgumentParser) -> None:
+    """--nice: how far below its caller's priority a training runs
+    (`scheduling.lower_priority`)."""
+    parser.add_argument('--nice', type=non_negative_int, default=TRAINING_NICE, metavar='N',
+                        help='train N nice levels below the priority this command started '
+                             f'with (at most {MAX_NICE}; its tuning workers too), so that a '
+                             'node on the same machine runs first; 0 keeps it (default '
+                             '%(default)s)')
 
 
 def cleaning_config(args: argparse.Namespace) -> CleaningConfig:

@@ -12,6 +12,9 @@
 4. prints per axis the RMS and peak of the twin's true tool-tip error for each loop, the
    reductions, the irreducible level, and writes the plot, the scores and the loop bags.
 
+From the training on, the demo runs `--nice` levels below the priority it started with
+(default 10, as `lompr train`), so that a node on the same machine runs first.
+
 The closed loops run in one process on one executor by default (about 3 s a pass,
 deterministic); --processes runs twin_node, kinematics_node and predictor_node as three
 processes on simulated time, the twin publishing /clock, as a simulator drives real nodes.
@@ -30,6 +33,7 @@ from typing import Any
 
 from tqdm import tqdm
 
+from lompr_predictor.cli.common import add_nice_argument
 from lompr_predictor.cli.validation import comma_list, non_negative_int, one_of, positive_int
 from lompr_predictor.data.loading import BagInputs
 from lompr_predictor.errors import LomprError
@@ -37,6 +41,7 @@ from lompr_predictor.files import write_json
 from lompr_predictor.learning.space import DEFAULT_RESTARTS, SearchSpace
 from lompr_predictor.robot.description import RobotDescription, load_robot_description
 from lompr_predictor.robot.paths import PATH_KINDS, build_cycle
+from lompr_predictor.scheduling import lower_priority
 from lompr_predictor.scoring.loops import (
     LOOP_PLOT,
     compare_loops,
@@ -123,6 +128,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument('--threads', type=positive_int, default=1,
                         help='torch threads of each tuning process and of the closed loops '
                              '(default 1: the tuning runs a process per core)')
+    add_nice_argument(parser)
     parser.add_argument('--processes', action='store_true',
                         help='run the closed loops as three processes (twin_node, '
                              'kinematics_node, predictor_node) on simulated time, the twin '
@@ -250,6 +256,7 @@ def _record_and_train(args: argparse.Namespace, budget: dict[str, int], out: Pat
                            seed=args.seed, path=path, progress=bar.update)
         write_simulation(bag, sim, params, description.sha256)
     model = out / 'model.pt'
+    lower_priority(args.nice)  # the training, and the closed loops after it
     _stage(2, f'Tuning and training the BO-LSTM ({budget["trials"]} trials of up to '
               f'{budget["max_epochs"]} epochs) -> {model}, report in '
               f'{out / "training_report"}'

@@ -5,6 +5,10 @@ Bayesian optimisation on a validation split carved from the training 90 %, train
 paper's BP baseline, scores persistence, BP and BO-LSTM on the chronologically last 10 %,
 writes the best model as one TorchScript file with its metadata and the report folder.
 
+The training runs `--nice` levels below the caller's priority (default 10), so that a node
+beside it runs first. SIGINT or SIGTERM stops it and its workers and keeps the study: the
+same command resumes it.
+
 The tuning runs on `--workers` local processes (default: the cores available). Several
 commands, on several machines, share one study through `--storage` and `--study-name`:
 extra workers run `--workers-only` (trials only), and the normal command finishes the study
@@ -23,7 +27,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from lompr_predictor.cli.common import add_data_arguments, bag_inputs
+from lompr_predictor.cli.common import add_data_arguments, add_nice_argument, bag_inputs
 from lompr_predictor.cli.validation import (
     comma_list,
     existing_path,
@@ -49,6 +53,7 @@ from lompr_predictor.learning.space import (
     SPACES,
     SearchSpace,
 )
+from lompr_predictor.scheduling import lower_priority
 from lompr_predictor.threads import MAX_DEFAULT_WORKERS, default_workers, set_torch_threads
 
 #: `--max-epochs` with `--init` unless given: a bounded fine-tuning, a quarter of a training's
@@ -142,7 +147,9 @@ def add_parser(subparsers: Any) -> None:
                              'for 3 of them (its worker died) is failed and its point queued '
                              f'again (default {HEARTBEAT_SECONDS})')
     add_data_arguments(parser)
-    parser.set_defaults(run=run)
+    add_nice_argument(parser)
+    parser.set_defaults(run=run, stop_hint='; the tuning study is kept (the trial it stopped '
+                        'queued again): the same command resumes it')
 
 
 def _add_space_arguments(parser: argparse.ArgumentParser) -> None:
@@ -216,6 +223,7 @@ def run(args: argparse.Namespace) -> int:
     if args.init and args.workers_only:
         raise LomprError('--init fine-tunes without a tuning study: no --workers-only')
     set_torch_threads(args.threads)
+    lower_priority(args.nice)  # before the tuning workers start: they inherit it
     args.window, args.horizon, args.preview = learning_shape(args)
     epochs = args.max_epochs or (FINE_TUNE_EPOCHS if args.init else MAX_EPOCHS)
     config = TrainingConfig(

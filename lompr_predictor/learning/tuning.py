@@ -6,8 +6,9 @@ number of workers run on one study.
 the settings that define a study and its budget; `run_trials` takes a trial only while
 complete + pruned + running trials stay within the budget, fails the trials of dead
 workers (heartbeats) and queues their points again, then trains the best point again with
-other seeds (restarts). An interrupted run resumes with the same command. What a trial does
-is the objective's business (`objective.py`); this module knows studies only.
+other seeds (restarts). An interrupted run resumes with the same command, the trial a stop
+cut short (Ctrl-C, SIGTERM) failed and its point queued again. What a trial does is the
+objective's business (`objective.py`); this module knows studies only.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from optuna.trial import FrozenTrial, TrialState
 from tqdm import tqdm
 
 from lompr_predictor.learning.space import DEFAULT_TRIALS
-from lompr_predictor.learning.storage import StudyError, StudyStorage
+from lompr_predictor.learning.storage import StudyError, StudyStorage, fail_and_retry
 
 #: Trial states that count toward the budget.
 SPENT = (TrialState.COMPLETE, TrialState.PRUNED)
@@ -244,7 +245,8 @@ def run_trials(study: optuna.Study, storage: StudyStorage,
                poll: float = POLL_SECONDS) -> int:
     """Take and run the study's trials until its budget is spent (module docstring); returns
     how many this process ran. A trial whose objective raises is recorded FAIL and the
-    exception stops this worker (Ctrl-C included); a pruned one counts."""
+    exception stops this worker; one stopped (KeyboardInterrupt: Ctrl-C, or SIGTERM under
+    `processes.stop_on_signals`) has its point queued again too; a pruned one counts."""
     worker = worker_name()
     ran = failed_in_a_row = 0
     while True:
@@ -288,13 +290,17 @@ def _next_trial(study: optuna.Study, storage: StudyStorage, worker: str) -> Any:
         with warnings.catch_warnings():  # ask/tell is our optimize loop, heartbeats included
             warnings.filterwarnings('ignore', message='Heartbeat of storage is supposed')
             trial = study.ask()
-        if not restart:
-            # Optuna samples the GP's point lazily, at the objective's first suggest; sample
-            # it here, under the lock, so the next worker's GP sees it as pending and goes
-            # elsewhere
-            trial.relative_params  # noqa: B018 - the property samples and records the point
-        trial.set_user_attr(WORKER, worker)
-        storage.beat(study, trial._trial_id)  # Optuna's storage API addresses trials by id
+        try:
+            if not restart:
+                # Optuna samples the GP's point lazily, at the objective's first suggest;
+                # sample it here, under the lock, so the next worker's GP sees it as pending
+                # and goes elsewhere (fitting the GP takes a while: a stop may come now)
+                trial.relative_params  # noqa: B018 - the property samples and records it
+            trial.set_user_attr(WORKER, worker)
+            storage.beat(study, trial._trial_id)  # Optuna's storage API addresses trials by id
+        except KeyboardInterrupt:  # stopped: the trial would hold a slot until found silent
+            _stopped(study, trial)
+            raise
         return trial
 
 
@@ -321,6 +327,10 @@ def _run_trial(study: optuna.Study, storage: StudyStorage, trial: optuna.Trial,
         except UpdateFinishedTrialError:
             _taken_as_dead(trial)
             return None
+        except KeyboardInterrupt:  # stopped (Ctrl-C, SIGTERM)
+            with storage.lock(study.study_name):
+                _stopped(study, trial)
+            raise
         except BaseException:
             study.tell(trial, state=TrialState.FAIL, skip_if_finished=True)
             raise
@@ -328,6 +338,12 @@ def _run_trial(study: optuna.Study, storage: StudyStorage, trial: optuna.Trial,
         _taken_as_dead(trial)
         return None
     return study.tell(trial, value, state=state, skip_if_finished=True).state
+
+
+def _stopped(study: optuna.Study, trial: optuna.Trial) -> None:
+    """A trial a stop cut short: failed, and its point queued again, so that the same
+    command, run again, trains it first (`storage.fail_and_retry`)."""
+    fail_and_retry(study, [study._storage.get_trial(trial._trial_id)])
 
 
 def _taken_as_dead(trial: optuna.Trial) -> None:

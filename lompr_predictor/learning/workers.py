@@ -14,17 +14,30 @@ command joined to the same study on other machines:
   the study's progress and watches them: a worker that dies (killed by a signal, or its
   machine's OOM killer) has its running trial failed and its point queued again at once,
   and the others go on; a worker whose trial raised stops the rest and its error is raised
-  here (`StudyError`); Ctrl-C stops them all. When they are done this process runs whatever
-  the budget still lacks itself (a queued point nobody took), or waits for other machines'
-  running trials to finish.
+  here (`StudyError`). When they are done this process runs whatever the budget still lacks
+  itself (a queued point nobody took), or waits for other machines' running trials to
+  finish.
+
+Stopping: SIGINT or SIGTERM to this process (its entry point under
+`processes.stop_on_signals`), or any error here, stops the workers explicitly (`_stop`:
+SIGTERM, SIGKILL after `STOP_TIMEOUT`), whatever process group they are in: a supervisor
+signals the command, not its group, and the command may not lead a group of its own (made
+its own group, it would leave the terminal's and miss Ctrl-C). A worker stops on SIGTERM or
+SIGINT as the command does, its running trial failed and its point queued again
+(`tuning.run_trials`), so the same command, run again, resumes the study where it stood.
+A worker also gets SIGTERM when the thread that started it ends (Linux), so that a command
+killed outright (SIGKILL) leaves no worker running the study on.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import logging
 import multiprocessing
 import multiprocessing.connection
+import os
+import signal
 import sys
 import threading
 import time
@@ -51,6 +64,7 @@ from lompr_predictor.learning.tuning import (
     trial_counts,
     worker_name,
 )
+from lompr_predictor.processes import stop_on_signals
 from lompr_predictor.threads import set_torch_threads
 
 if TYPE_CHECKING:
@@ -58,8 +72,10 @@ if TYPE_CHECKING:
 
 #: Seconds the worker processes wait for each other at the start (importing torch).
 START_TIMEOUT = 120.0
-#: Seconds the workers get to stop after Ctrl-C before they are terminated.
+#: Seconds the workers get to stop after SIGTERM before they are killed.
 STOP_TIMEOUT = 10.0
+#: prctl(2) option: the signal a process gets when the thread that started it ends.
+PR_SET_PDEATHSIG = 1
 
 _log = logging.getLogger(__name__)
 
@@ -129,14 +145,15 @@ def _run_processes(spec: StudySpec, study: optuna.Study, storage: StudyStorage,
     barrier = context.Barrier(count)
     processes = [context.Process(target=_worker_main, name=f'lompr-tuning-{i}',
                                  args=(spec, make_objective, torch.get_num_threads(), barrier,
-                                       messages))
+                                       messages, os.getpid()))
                  for i in range(count)]
-    for process in processes:
-        process.start()
     done: dict[str, int] = {}
     errors: dict[str, str] = {}
-    running = list(processes)
+    running: list[multiprocessing.process.BaseProcess] = []
     try:
+        for worker in processes:
+            worker.start()
+            running.append(worker)
         while running:
             multiprocessing.connection.wait([p.sentinel for p in running], timeout=1.0)
             _drain(messages, done, errors)
@@ -151,7 +168,7 @@ def _run_processes(spec: StudySpec, study: optuna.Study, storage: StudyStorage,
                 msg = f'tuning worker {name} failed: {message}'
                 raise StudyError(msg)
     finally:
-        if running:  # an error, or Ctrl-C here: stop the others
+        if running:  # an error, or a stop signal here: stop the others
             _stop(running)
             for process in running:
                 _bury(study, storage, process)
@@ -184,28 +201,49 @@ def _bury(study: optuna.Study, storage: StudyStorage,
 
 
 def _stop(processes: Sequence[multiprocessing.process.BaseProcess]) -> None:
+    """SIGTERM to each worker still running (one stopping already ignores it), SIGKILL to
+    any still running `STOP_TIMEOUT` seconds later; returns once all have ended."""
+    for process in processes:
+        if process.is_alive():
+            process.terminate()
     deadline = time.monotonic() + STOP_TIMEOUT
     for process in processes:
         process.join(max(0.0, deadline - time.monotonic()))
     for process in processes:
         if process.is_alive():
-            process.terminate()
+            process.kill()
             process.join()
 
 
+def _stop_with_parent(parent: int) -> None:
+    """Ask the kernel for SIGTERM when the thread that started this process ends (Linux's
+    prctl; elsewhere nothing), and stop at once if `parent` has ended already."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0) != 0:
+            return
+    except (OSError, AttributeError):  # no prctl: not Linux
+        return
+    if os.getppid() != parent:
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
 def _worker_main(spec: StudySpec, make_objective: ObjectiveFactory, threads: int,
-                 barrier: Any, messages: Any) -> None:
-    """A worker process: open the study, wait for the others, run trials, report."""
+                 barrier: Any, messages: Any, parent: int) -> None:
+    """A worker process: open the study, wait for the others, run trials, report; stopped
+    by SIGINT or SIGTERM (`processes.stop_on_signals`), also when `parent` ends."""
     name = worker_name()
     try:
-        set_torch_threads(threads)  # this process is an entry point: its parent's count
-        storage = open_storage(spec.storage)
-        study = open_study(storage, spec.name, seed=spec.seed, budget=spec.budget,
-                           restarts=spec.restarts)
-        objective = make_objective(study, progress=False)
-        with contextlib.suppress(threading.BrokenBarrierError):
-            barrier.wait(START_TIMEOUT)
-        ran = run_trials(study, storage, objective)
+        with stop_on_signals():
+            _stop_with_parent(parent)
+            set_torch_threads(threads)  # this process is an entry point: its parent's count
+            storage = open_storage(spec.storage)
+            study = open_study(storage, spec.name, seed=spec.seed, budget=spec.budget,
+                               restarts=spec.restarts)
+            objective = make_objective(study, progress=False)
+            with contextlib.suppress(threading.BrokenBarrierError):
+                barrier.wait(START_TIMEOUT)
+            ran = run_trials(study, storage, objective)
     except KeyboardInterrupt:
         sys.exit(130)
     except LomprError as err:  # a message for the user: the parent prints it, one line

@@ -41,6 +41,7 @@ from rclpy.utilities import remove_ros_args
 from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import Level, Status
 from lompr_predictor.ros.parameters import ParameterSpec
+from lompr_predictor.scheduling import Scheduling, apply_scheduling, shared_scheduling
 
 
 def status_message(name: str, hardware_id: str, status: Status) -> DiagnosticStatus:
@@ -277,6 +278,10 @@ def run_node(
     shutdown within a step. `--executor single-threaded` spins rclpy's stable
     `SingleThreadedExecutor` instead (the events executor is experimental in Jazzy).
 
+    Scheduling: once the node(s) are built, the process's priority and CPUs are set as
+    their settings ask (`node_base.SchedulingSettings`; nodes sharing the process must agree),
+    a refusal being a start failure like those above.
+
     Signals (`StopRequest`, installed first; rclpy's handlers pass them on): while the
     factory makes and configures the nodes one raises KeyboardInterrupt, so a stop during a
     long configure is acted on at once, a managed node destroying itself on the way out (a
@@ -319,6 +324,17 @@ def _plain_arguments(prog: str, argv: list[str]) -> list[str] | None:
         return None
 
 
+def process_scheduling(nodes: Sequence[Node]) -> Scheduling:
+    """The scheduling the lompr nodes among `nodes` ask for their process (their settings'
+    `scheduling`: `node_base.SchedulingSettings`), which must agree (`shared_scheduling`)."""
+    asked = {}
+    for node in nodes:
+        scheduling = getattr(getattr(node, 'settings', None), 'scheduling', None)
+        if isinstance(scheduling, Scheduling):
+            asked[node.get_name()] = scheduling
+    return shared_scheduling(asked)
+
+
 def _spin(node_factory: Callable[[Context], Node | Sequence[Node]], executor_name: str,
           stop: StopRequest, prog: str) -> int:
     """Build the node(s) on the default context and spin them until Ctrl-C, shutdown or a
@@ -332,6 +348,7 @@ def _spin(node_factory: Callable[[Context], Node | Sequence[Node]], executor_nam
         with stop.while_starting():
             built = node_factory(context)
             nodes = [built] if isinstance(built, Node) else list(built)
+            apply_scheduling(process_scheduling(nodes))
         executor = make_executor(executor_name, context)
         for node in nodes:
             executor.add_node(node)

@@ -11,7 +11,9 @@ managed one alike:
   dataclass as a parameter (`parameters.parameter`), sets `self.settings`, and from then on
   validates each change (ranges and read_only by rclpy; choices, checks and the node's
   `validate_settings` hook here) and applies an accepted one as a new frozen snapshot
-  (`apply_settings` hook, after `self.settings` is replaced).
+  (`apply_settings` hook, after `self.settings` is replaced). Every node's settings share
+  `StatusSettings` (its diagnostics), `SchedulingSettings` (its process's priority and
+  CPUs, applied by `common.run_node`) and `FrameSettings` (its frame).
 - Endpoints: an `Endpoint` names a publisher or subscription: kind, message type, the
   settings field holding its topic, and its default QoS, chosen on purpose
   (`SENSOR_INPUT_QOS`, `COMMAND_INPUT_QOS`, `OUTPUT_QOS`). `advertise` and `subscribe`
@@ -48,7 +50,7 @@ from __future__ import annotations
 import copy
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar
 
 from rcl_interfaces.msg import SetParametersResult
@@ -88,6 +90,7 @@ from lompr_predictor.ros.parameters import (
     settings_help,
 )
 from lompr_predictor.ros.parameters import declare_settings as declare_parameters
+from lompr_predictor.scheduling import MAX_NICE, MIN_NICE, Scheduling, cpu_list_problem
 
 if TYPE_CHECKING:
     from _typeshed import DataclassInstance
@@ -126,7 +129,32 @@ class StatusSettings:
 
 
 @dataclass(frozen=True)
-class FrameSettings(StatusSettings):
+class SchedulingSettings(StatusSettings):
+    """`StatusSettings` and how the node's process is scheduled (`scheduling.py`), applied
+    once its node(s) are built (`common.run_node`); a setting the platform or the process's
+    privileges refuse stops the executable with one line naming it (exit code 2)."""
+
+    nice: int = parameter(
+        0, "added at start to the nice value of the node's process (as nice -n): negative "
+        'raises its priority (needs CAP_SYS_NICE, e.g. root, or an RLIMIT_NICE allowing it), '
+        'positive lowers it; 0 keeps it', minimum=MIN_NICE, maximum=MAX_NICE, read_only=True)
+    sched_fifo_priority: int = parameter(
+        0, 'if > 0, the process runs under SCHED_FIFO at this real-time priority, ahead of '
+        'every normal process (needs CAP_SYS_NICE or an RLIMIT_RTPRIO of at least it); 0: '
+        'the normal policy', minimum=0, maximum=99, read_only=True)
+    cpu_affinity: tuple[int, ...] = parameter(
+        (), 'CPUs the process runs on, e.g. [1] (a core kept free of other work); empty: '
+        'those it may use at start', read_only=True, check=cpu_list_problem, items=int)
+
+    @property
+    def scheduling(self) -> Scheduling:
+        """What these settings ask for the process: the parameters of the same names."""
+        return Scheduling(**{item.name: getattr(self, item.name)
+                             for item in fields(Scheduling)})
+
+
+@dataclass(frozen=True)
+class FrameSettings(SchedulingSettings):
     """`StatusSettings` and the frame of a node whose messages carry poses or vectors: the
     robot frame (Z down, docs/interface.md), optionally prefixed for a cell that shares its
     TF tree with others, as robot_state_publisher's `frame_prefix` does."""

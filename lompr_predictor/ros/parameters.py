@@ -26,9 +26,13 @@ from typing import Any, TypeVar
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 
 #: Key of the `ParameterSpec` in a settings field's metadata.
 SPEC_KEY = 'lompr_parameter'
+#: The parameter type of an array by the type of its items.
+ARRAY_TYPES = {bool: Parameter.Type.BOOL_ARRAY, int: Parameter.Type.INTEGER_ARRAY,
+               float: Parameter.Type.DOUBLE_ARRAY, str: Parameter.Type.STRING_ARRAY}
 
 S = TypeVar('S')
 
@@ -36,8 +40,9 @@ S = TypeVar('S')
 @dataclass(frozen=True)
 class ParameterSpec:
     """One ROS parameter: default (its type is the parameter's type; a tuple is an array),
-    description, a numeric range [minimum, maximum] or string choices, read_only, and
-    `check(value)`, returning why a value is refused (None if it is fine)."""
+    description, a numeric range [minimum, maximum] or string choices, read_only,
+    `check(value)`, returning why a value is refused (None if it is fine), and for an array
+    whose default is empty the type of its items (`items`: rclpy cannot tell it from [])."""
 
     default: Any
     description: str
@@ -46,10 +51,15 @@ class ParameterSpec:
     choices: tuple[str, ...] = ()
     read_only: bool = False
     check: Callable[[Any], str | None] | None = None
+    items: type | None = None
 
     def __post_init__(self) -> None:
         if (self.minimum is None) != (self.maximum is None):
             msg = f'{self.description!r}: give both minimum and maximum, or neither'
+            raise ValueError(msg)
+        if (self.default == ()) != (self.items in ARRAY_TYPES):
+            msg = (f'{self.description!r}: an empty array default needs the type of its items '
+                   f'(one of {", ".join(t.__name__ for t in ARRAY_TYPES)}), and only it')
             raise ValueError(msg)
         numeric = isinstance(self.default, (int, float)) and not isinstance(self.default, bool)
         if self.minimum is not None and not numeric:
@@ -60,6 +70,12 @@ class ParameterSpec:
     def ros_default(self) -> Any:
         """The default as rclpy declares it (a tuple becomes a list: an array parameter)."""
         return list(self.default) if isinstance(self.default, tuple) else self.default
+
+    @property
+    def declared(self) -> Any:
+        """What `declare_parameter` is given: the default, or for an empty array its type
+        (the parameter is then unset, its value None, until a value is given)."""
+        return ARRAY_TYPES[self.items] if self.items is not None else self.ros_default
 
     def descriptor(self, name: str) -> ParameterDescriptor:
         descriptor = ParameterDescriptor(
@@ -82,8 +98,11 @@ class ParameterSpec:
         return self.check(value) if self.check is not None else None
 
     def settings_value(self, value: Any) -> Any:
-        """A parameter value as the settings field holds it (an array as a tuple)."""
-        return tuple(value) if isinstance(self.default, tuple) else value
+        """A parameter value as the settings field holds it (an array as a tuple; an unset
+        array, `declared`, as its empty default)."""
+        if isinstance(self.default, tuple):
+            return self.default if value is None else tuple(value)
+        return value
 
     def help_line(self, name: str) -> str:
         """One line for `--help`: name, default, range or choices, description."""
@@ -100,11 +119,11 @@ class ParameterSpec:
 def parameter(
     default: Any, description: str, *, minimum: float | None = None,
     maximum: float | None = None, choices: Iterable[str] = (), read_only: bool = False,
-    check: Callable[[Any], str | None] | None = None,
+    check: Callable[[Any], str | None] | None = None, items: type | None = None,
 ) -> Any:
     """A settings dataclass field that is also a ROS parameter (module docstring)."""
     spec = ParameterSpec(default, description, minimum, maximum, tuple(choices), read_only,
-                         check)
+                         check, items)
     return field(default=default, metadata={SPEC_KEY: spec})
 
 
@@ -128,11 +147,12 @@ def declare_settings(node: Node, settings_type: type[S]) -> S:
     `InvalidParameterTypeException` naming the parameter."""
     values: dict[str, Any] = {}
     for name, spec in parameter_specs(settings_type).items():
-        value = node.declare_parameter(name, spec.ros_default, spec.descriptor(name)).value
+        value = spec.settings_value(
+            node.declare_parameter(name, spec.declared, spec.descriptor(name)).value)
         problem = spec.problem(value)
         if problem is not None:
             raise InvalidParameterValueException(name, value, problem)
-        values[name] = spec.settings_value(value)
+        values[name] = value
     return settings_type(**values)
 
 

@@ -33,6 +33,7 @@ from lompr_predictor.stamps import instants_ns
 #: Encapsulation header of little-endian plain CDR.
 CDR_LE = b'\x00\x01\x00\x00'
 _HEADER = struct.Struct('<iiI')  # stamp sec, nanosec, frame_id length (with its NUL)
+_STAMP = struct.Struct('<iI')  # stamp sec, nanosec
 _UINT32 = struct.Struct('<I')
 _POINT = struct.Struct('<3d')
 
@@ -51,6 +52,17 @@ def _read_header(data: bytes) -> tuple[int, int, int]:
     start of the data."""
     sec, nanosec, length = _HEADER.unpack_from(data, 4)
     return sec, nanosec, 12 + length
+
+
+def read_stamp(data: bytes) -> tuple[int, int]:
+    """(sec, nanosec) of the header stamp a serialized message starts with (a JointState, a
+    PoseStamped, ...: any whose first field is a std_msgs/Header), read alone: what a relay
+    that does no other work needs. Little-endian CDR only (`WireError` otherwise)."""
+    if data[:4] != CDR_LE or len(data) < 4 + _STAMP.size:
+        msg = f'not a little-endian CDR message with a header: {bytes(data[:16])!r}'
+        raise WireError(msg)
+    sec, nanosec = _STAMP.unpack_from(data, 4)
+    return sec, nanosec
 
 
 def read_pose_stamped(data: bytes) -> tuple[int, int, float, float, float]:
