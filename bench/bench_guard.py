@@ -47,7 +47,7 @@ from lompr_predictor.threads import set_torch_threads
 
 TARGET_US = 10.0
 #: The predictor node's default guard rules (`ros/predictor_settings.py`, guard_*).
-RULES = GuardSettings(enabled=True, window=250, margin=0.05, min_dwell=50, min_scored=50,
+RULES = GuardSettings(enabled=True, window=60.0, margin=0.05, min_dwell=2.0, min_scored=50,
                       envelope_fraction=0.2)
 
 

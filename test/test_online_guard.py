@@ -15,13 +15,16 @@ from lompr_predictor.online.guard import GuardReason, GuardSettings, GuardState,
 PERIOD = 40_000_000
 HORIZON = 2
 LEAD = HORIZON * PERIOD
+PERIOD_S = PERIOD * 1e-9
 
 
-def _settings(**changes: object) -> GuardSettings:
-    """Rules of the guard (the predictor node's defaults, `test_predictor_node` checks the
-    node builds them from its parameters), with `changes`."""
-    rules: dict[str, object] = {'enabled': True, 'window': 250, 'margin': 0.05,
-                                'min_dwell': 50, 'min_scored': 50, 'envelope_fraction': 0.2}
+def _settings(window_instants: float = 250, dwell_instants: float = 50,
+              **changes: object) -> GuardSettings:
+    """Rules of the guard with `changes`, its window and dwell given in instants of the
+    tests' stream (`PERIOD`)."""
+    rules: dict[str, object] = {'enabled': True, 'window': window_instants * PERIOD_S,
+                                'margin': 0.05, 'min_dwell': dwell_instants * PERIOD_S,
+                                'min_scored': 50, 'envelope_fraction': 0.2}
     return GuardSettings(**{**rules, **changes})  # type: ignore[arg-type]
 
 
@@ -66,7 +69,7 @@ def test_a_model_better_than_persistence_keeps_both_axes() -> None:
 def test_an_axis_where_the_model_is_worse_goes_to_persistence() -> None:
     """X of the model misses by 5 um, Y by 0.2 um: X is handed over after `min_scored`
     instants, Y stays; the published X is the last plant error (persistence's)."""
-    settings = _settings(min_scored=50, min_dwell=50)
+    settings = _settings(min_scored=50, dwell_instants=50)
     guard = LiveGuard(settings, LEAD, PERIOD)
     truth = _walk(400, seed=2)
     model_error = np.random.default_rng(3).normal(0.0, 0.2e-6, truth.shape)
@@ -88,7 +91,7 @@ def test_an_axis_where_the_model_is_worse_goes_to_persistence() -> None:
 def test_a_model_a_little_worse_than_persistence_is_handed_over() -> None:
     """A model whose every residual is 1.03x persistence's, inside the margin: it is handed
     over all the same (the margin is the way back only), after `min_scored` instants."""
-    settings = _settings(margin=0.05, min_scored=50, min_dwell=50)
+    settings = _settings(margin=0.05, min_scored=50, dwell_instants=50)
     guard = LiveGuard(settings, LEAD, PERIOD)
     truth = _walk(300, seed=7)
     model_error = np.zeros_like(truth)
@@ -102,8 +105,8 @@ def test_a_model_a_little_worse_than_persistence_is_handed_over() -> None:
 
 def test_hand_back_needs_the_margin_and_the_dwell() -> None:
     """Worse, then better: the axis comes back once the model's weighted RMS is below
-    (1 - margin) x persistence's and `min_dwell` instants have passed, not before."""
-    settings = _settings(window=20, margin=0.1, min_scored=10, min_dwell=100)
+    (1 - margin) x persistence's and `min_dwell` has passed, not before."""
+    settings = _settings(window_instants=20, margin=0.1, min_scored=10, dwell_instants=100)
     guard = LiveGuard(settings, LEAD, PERIOD)
     truth = _walk(700, seed=4)
     model_error = np.zeros_like(truth)
@@ -116,12 +119,12 @@ def test_hand_back_needs_the_margin_and_the_dwell() -> None:
     back = first_persistence + int(np.argmax(from_model[first_persistence:]))
     # held at least the dwell, and only after the model's misses stopped (instant 300,
     # scored HORIZON samples later) and the weighted mean forgot them
-    assert back - first_persistence >= settings.min_dwell
+    assert back - first_persistence >= 100
     assert back > 300
 
 
 def test_rows_outside_the_envelope_hold_the_model_back() -> None:
-    settings = _settings(window=10, envelope_fraction=0.5, min_dwell=0)
+    settings = _settings(window_instants=10, envelope_fraction=0.5, dwell_instants=0)
     guard = LiveGuard(settings, LEAD, PERIOD)
     truth = _walk(200, seed=5)
     inside = np.ones(len(truth), dtype=bool)
@@ -135,7 +138,7 @@ def test_rows_outside_the_envelope_hold_the_model_back() -> None:
 
 
 def test_disabled_guard_publishes_the_model_and_still_reports() -> None:
-    guard = LiveGuard(_settings(enabled=False, min_scored=10, min_dwell=10), LEAD, PERIOD)
+    guard = LiveGuard(_settings(enabled=False, min_scored=10, dwell_instants=10), LEAD, PERIOD)
     truth = _walk(200, seed=6)
     model_error = np.full_like(truth, 5e-6)
     published = _run(guard, truth, model_error)
@@ -148,7 +151,7 @@ def test_settings_are_checked() -> None:
     with pytest.raises(ValueError, match='margin'):
         _settings(margin=1.0)
     with pytest.raises(ValueError, match='window'):
-        _settings(window=0)
+        _settings(window_instants=0)
 
 
 def test_envelope_is_the_widened_training_range_of_the_motion_columns() -> None:

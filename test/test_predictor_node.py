@@ -645,7 +645,7 @@ def test_the_guard_holds_back_an_axis_where_the_model_is_worse_and_says_so(
     model = save_constant(tmp_path / 'biased.pt', (5e-5, -1e-5), window=WINDOW,
                           horizon=HORIZON)
     wiring = Wiring(ros, model, compensation_enabled=False, guard_min_scored=10,
-                    guard_min_dwell=5, guard_window=10)
+                    guard_min_dwell=5 * PERIOD_NS * 1e-9, guard_window=10 * PERIOD_NS * 1e-9)
     wiring.run(0, NEEDED + 30)
     ros.spin_until(lambda: len(wiring.predictions) == 31, what='31 predictions')
     published = xy(wiring.predictions)

@@ -9,12 +9,14 @@ under compensation), per axis, and chooses, per axis, whose prediction is publis
 - each aligned sample's plant error e(t) is the truth of the predictions made for t: the
   model's (the prediction it made `horizon` samples earlier, kept by instant whether it was
   published or not) and persistence's (e(t - horizon)); where both exist, the squared
-  residuals enter an exponentially weighted mean over about `window` instants;
+  residuals enter an exponentially weighted mean over about `window` seconds of sample
+  time (long enough to span what a program repeats: a model better on the straights and
+  worse at the corners is judged on both, not handed back and forth between them);
 - an axis is handed over to persistence as soon as the model's live RMS exceeds
   persistence's (a model no better than the simplest compensator has no business
   compensating), and handed back when it is below persistence's by `margin` (relative):
   the gap between the two thresholds is the hysteresis; no switch within `min_dwell`
-  instants of the last one, and none before `min_scored` instants were scored;
+  seconds of the last one, and none before `min_scored` instants were scored;
 - a sample whose feature row lies outside the model's trained envelope (`envelope.py`) is
   counted; while more than `envelope_fraction` of the recent rows lie outside it, both axes
   are held back whatever the live scores (the model is extrapolating);
@@ -69,15 +71,15 @@ class GuardSettings:
     always (the scores and states go on)."""
 
     enabled: bool
-    window: int  # instants the live RMS is weighted over (time constant)
+    window: float  # seconds of sample time the live RMS is weighted over (time constant)
     margin: float  # relative: hand over above 1 x persistence, back below (1 - margin) x
-    min_dwell: int  # instants between two switches of an axis, at least
+    min_dwell: float  # seconds of sample time between two switches of an axis, at least
     min_scored: int  # instants scored before the first decision
     envelope_fraction: float  # recent rows outside the envelope that hold the model back
 
     def __post_init__(self) -> None:
-        if self.window < 1 or self.min_dwell < 0 or self.min_scored < 0:
-            msg = (f'guard window must be >= 1, min_dwell and min_scored >= 0, got '
+        if not self.window > 0 or not self.min_dwell >= 0 or self.min_scored < 0:
+            msg = (f'guard window must be > 0, min_dwell and min_scored >= 0, got '
                    f'{self.window}, {self.min_dwell}, {self.min_scored}')
             raise ValueError(msg)
         if not 0.0 <= self.margin < 1.0 or not 0.0 <= self.envelope_fraction <= 1.0:
@@ -147,11 +149,12 @@ class _Thresholds(NamedTuple):
 
     hand_over: float  # above it, persistence takes over
     hand_back: float  # (1 - margin)^2: below it, the model takes back
-    min_dwell: int
+    min_dwell: int  # instants
 
     @classmethod
-    def of(cls, settings: GuardSettings) -> _Thresholds:
-        return cls(1.0, (1.0 - settings.margin) ** 2, settings.min_dwell)
+    def of(cls, settings: GuardSettings, period: float) -> _Thresholds:
+        """The thresholds of `settings` on a stream sampled every `period` [s]."""
+        return cls(1.0, (1.0 - settings.margin) ** 2, round(settings.min_dwell / period))
 
 
 class LiveGuard:
@@ -160,7 +163,8 @@ class LiveGuard:
     `sample_units.SampleUnit` of the predictor core."""
 
     def __init__(self, settings: GuardSettings, lead_ns: int, period_ns: int) -> None:
-        self.settings = settings  # also sets the thresholds
+        self._period_ns = period_ns
+        self.settings = settings  # also sets the weight and thresholds, in instants
         self._lead_ns = lead_ns
         self._tolerance_ns = period_ns // 2
         #: (instant, model x, model y, persistence x, persistence y) awaiting their truth, in
@@ -192,8 +196,9 @@ class LiveGuard:
     @settings.setter
     def settings(self, settings: GuardSettings) -> None:
         self._settings = settings
-        self._weight = 1.0 / settings.window
-        self._thresholds = _Thresholds.of(settings)
+        period = self._period_ns * 1e-9
+        self._weight = min(1.0, period / settings.window)
+        self._thresholds = _Thresholds.of(settings, period)
 
     # -- the chain (`sample_units.SampleUnit`) ---------------------------------------------
 
@@ -209,7 +214,7 @@ class LiveGuard:
         if not pending or pending[0][0] > stamp_ns + tolerance:
             return
         _, model_x, model_y, persistence_x, persistence_y = pending.popleft()
-        weight = max(self._weight, 1.0 / (self.scored + 1))  # a plain mean until `window`
+        weight = max(self._weight, 1.0 / (self.scored + 1))  # a plain mean at first
         self.scored += 1
         axis_x, axis_y = self._axes
         axis_x.score(error[0] - model_x, error[0] - persistence_x, weight)

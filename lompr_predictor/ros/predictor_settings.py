@@ -139,17 +139,19 @@ class PredictorNodeSettings(FrameSettings):
         "persistence's (the plant error measured horizon samples before) on the same instants "
         'and its inputs lie in the envelope it was trained on; else persistence answers '
         "there. false: the model always (the guard's status still says what it would do)")
-    guard_window: int = parameter(
-        250, 'instants the live RMS of the model and of persistence are weighted over '
-        '(exponentially)', minimum=1, maximum=10_000_000, read_only=True)
+    guard_window: float = parameter(
+        60.0, 'seconds of sample time the live RMS of the model and of persistence are '
+        'weighted over (exponentially): long enough to span what a program repeats (a '
+        'model better on straights and worse at corners is judged on both)',
+        minimum=0.001, maximum=86_400.0, read_only=True)
     guard_margin: float = parameter(
         0.05, 'relative margin (hysteresis): an axis goes to persistence as soon as the '
         "model's live RMS exceeds persistence's, and back when the model is better by more "
         'than this fraction',
         minimum=0.0, maximum=0.9, read_only=True)
-    guard_min_dwell: int = parameter(
-        50, 'instants an axis stays with the model or persistence before it may switch again',
-        minimum=0, maximum=10_000_000, read_only=True)
+    guard_min_dwell: float = parameter(
+        2.0, 'seconds of sample time an axis stays with the model or persistence before it '
+        'may switch again', minimum=0.0, maximum=86_400.0, read_only=True)
     guard_min_scored: int = parameter(
         50, 'instants scored before the guard first judges the model', minimum=0,
         maximum=10_000_000, read_only=True)
