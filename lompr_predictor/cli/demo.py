@@ -1,7 +1,8 @@
 """`lompr demo`: the whole system on the digital twin, from recording to a cancelled error.
 
 1. records training passes of the twin without compensation on each of the training
-   programs (as `lompr simulate` does; default: the spiral and concentric circles);
+   programs (as `lompr simulate` does; default: the spiral, concentric circles and
+   random tool paths: three programs that move differently);
 2. tunes and trains the BO-LSTM on them (as `lompr train` does: model file + report);
 3. runs passes of a new run of the twin on the loop's program (default: the grid, a program
    the model was not trained on, as a shop's next program is) three times in closed loop
@@ -67,7 +68,7 @@ LABELS = {'none': 'no compensation', 'persistence': 'persistence', 'model': 'mod
 FULL = {'train_passes': 10, 'trials': 6, 'max_epochs': 120, 'passes': 3}
 QUICK = {'train_passes': 6, 'trials': 1, 'max_epochs': 120, 'passes': 2}
 #: The programs the demo trains on, unless told otherwise, and the one its loops machine.
-TRAIN_PATHS = ('spiral', 'concentric')
+TRAIN_PATHS = ('spiral', 'concentric', 'random')
 LOOP_PATH = 'grid'
 
 #: The part of the default search space (`learning.space.DEFAULT_SPACE`) the demo tunes in
