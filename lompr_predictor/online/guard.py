@@ -173,7 +173,8 @@ class LiveGuard:
         self._axes = (_Axis(), _Axis())
         self._outside = 0.0  # weighted fraction of recent rows outside the envelope
         self._last: tuple[int, XY] | None = None  # the newest sample's stamp and plant error
-        self._envelopes: dict[int, InputEnvelope | None] = {}  # by id of the model's metadata
+        self._enveloped: object = None  # the metadata whose envelope `_envelope` is
+        self._envelope: InputEnvelope | None = None  # None: the model file has none
         self.scored = 0  # instants where both predictions met their truth
         self.outside_rows = 0  # rows outside the envelope, in all
         self.last_outside = ''  # the column that left the envelope last
@@ -216,9 +217,10 @@ class LiveGuard:
         _, model_x, model_y, persistence_x, persistence_y = pending.popleft()
         weight = max(self._weight, 1.0 / (self.scored + 1))  # a plain mean at first
         self.scored += 1
+        error_x, error_y = error
         axis_x, axis_y = self._axes
-        axis_x.score(error[0] - model_x, error[0] - persistence_x, weight)
-        axis_y.score(error[1] - model_y, error[1] - persistence_y, weight)
+        axis_x.score(error_x - model_x, error_x - persistence_x, weight)
+        axis_y.score(error_y - model_y, error_y - persistence_y, weight)
 
     def revise(self, instant_ns: int, prediction: XY, slot: ModelSlot) -> XY | None:
         """The prediction to publish for `instant_ns`: the model's, or on an axis held back
@@ -226,7 +228,11 @@ class LiveGuard:
         last = self._last
         if last is None or abs(last[0] + self._lead_ns - instant_ns) > self._tolerance_ns:
             return prediction  # no sample `lead_ns` before: nothing to compare with
-        envelope = self._envelope(slot)
+        metadata = slot.model.metadata
+        if metadata is not self._enveloped:  # a model swapped in: its own envelope
+            self._enveloped = metadata
+            self._envelope = InputEnvelope.from_metadata(metadata.envelope, metadata.features)
+        envelope = self._envelope
         inside = envelope is None or envelope.contains(slot.window.newest)
         if not inside and envelope is not None:
             self.last_outside = envelope.first_outside(slot.window.newest) or ''
@@ -251,12 +257,13 @@ class LiveGuard:
         if not inside_envelope:
             self.outside_rows += 1
         self._outside += self._weight * ((0.0 if inside_envelope else 1.0) - self._outside)
-        outside = self._outside > self.settings.envelope_fraction
+        settings = self._settings
+        outside = self._outside > settings.envelope_fraction
         axis_x, axis_y = self._axes
-        rules, ready = self._thresholds, self.scored >= self.settings.min_scored
+        rules, ready = self._thresholds, self.scored >= settings.min_scored
         axis_x.decide(rules, ready, outside)
         axis_y.decide(rules, ready, outside)
-        if not self.settings.enabled:
+        if not settings.enabled:
             return model
         use_x = axis_x.state is GuardState.MODEL
         use_y = axis_y.state is GuardState.MODEL
@@ -271,17 +278,8 @@ class LiveGuard:
         self.clear()
         self._axes = (_Axis(), _Axis())
         self._outside = 0.0
-        self._envelopes.clear()
+        self._enveloped = self._envelope = None
         self.scored = 0
-
-    def _envelope(self, slot: ModelSlot) -> InputEnvelope | None:
-        """The trained envelope of the slot's model (None for a file without one)."""
-        metadata = slot.model.metadata
-        key = id(metadata)
-        if key not in self._envelopes:
-            self._envelopes[key] = InputEnvelope.from_metadata(metadata.envelope,
-                                                               metadata.features)
-        return self._envelopes[key]
 
     # -- state for diagnostics ------------------------------------------------------------
 
