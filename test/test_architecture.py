@@ -1,4 +1,4 @@
-"""The layering the README draws, enforced: who may import whom, and what stays light.
+"""The layering of docs/architecture.md, enforced: who may import whom, and what stays light.
 
 Layers, lowest first: the base modules at the package top (errors, files, plots, stamps,
 monitoring, threads), then robot, data, twin, learning, online, scoring, ros, cli. A module
