@@ -95,11 +95,13 @@ def add_parser(subparsers: Any) -> None:
                         'queued again): the same command resumes it')
 
 
-def add_option_arguments(parser: argparse.ArgumentParser) -> None:
-    """A flag per training option (`learning.options`), checked by argparse; each defaults
-    to None (not given: the option's own default, or one the command derives)."""
-    for name, spec in option_specs().items():
-        flag, text = flag_of(name), spec.help_text.replace('%', '%%')
+def add_option_arguments(parser: argparse.ArgumentParser,
+                         config_type: type = TrainingConfig) -> None:
+    """A flag per training option of `config_type` (`learning.options`), checked by argparse;
+    each defaults to None (not given: the option's own default, or one the command
+    derives)."""
+    for name, spec in option_specs(config_type).items():
+        flag, text = flag_of(name, config_type), spec.help_text.replace('%', '%%')
         if isinstance(spec.default, bool):
             parser.add_argument(flag, dest=name, default=None, help=text,
                                 action='store_false' if spec.default else 'store_true')

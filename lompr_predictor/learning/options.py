@@ -233,15 +233,16 @@ class TrainingConfig:
         return Path(self.report_dir) / CHECKPOINT_FOLDER
 
 
-def option_specs() -> dict[str, OptionSpec]:
-    """{field name: spec} of the training options, in field order."""
-    return {item.name: item.metadata[SPEC_KEY] for item in dataclasses.fields(TrainingConfig)
+def option_specs(config_type: type = TrainingConfig) -> dict[str, OptionSpec]:
+    """{field name: spec} of the training options of `config_type` (`TrainingConfig` or a
+    subclass), in field order."""
+    return {item.name: item.metadata[SPEC_KEY] for item in dataclasses.fields(config_type)
             if SPEC_KEY in item.metadata}
 
 
-def flag_of(name: str) -> str:
+def flag_of(name: str, config_type: type = TrainingConfig) -> str:
     """The command-line flag of option `name`."""
-    spec = option_specs()[name]
+    spec = option_specs(config_type)[name]
     if spec.flag:
         return spec.flag
     return ('--no-' if spec.default is True else '--') + name.replace('_', '-')
@@ -251,7 +252,7 @@ def check_options(config: TrainingConfig, *, finishing: bool = True) -> None:
     """Refuse (`OptionError`, one line) an option out of range or options that cannot run
     together; `finishing`: a run that writes the model, else an extra worker of a shared
     study."""
-    for name, spec in option_specs().items():
+    for name, spec in option_specs(type(config)).items():
         problem = spec.problem(getattr(config, name))
         if problem:
             raise OptionError(f'{name} {problem}', (name,))
@@ -275,13 +276,13 @@ def check_options(config: TrainingConfig, *, finishing: bool = True) -> None:
 
 def recorded_options(config: TrainingConfig) -> dict[str, Any]:
     """The options the model file's metadata records (`recorded`), by name."""
-    return {name: getattr(config, name) for name, spec in option_specs().items()
+    return {name: getattr(config, name) for name, spec in option_specs(type(config)).items()
             if spec.recorded}
 
 
 def study_options(config: TrainingConfig) -> dict[str, Any]:
     """The options that define the tuning study (`study`): those declared 'always', and
     those declared 'changed' when they differ from their default."""
-    return {name: getattr(config, name) for name, spec in option_specs().items()
+    return {name: getattr(config, name) for name, spec in option_specs(type(config)).items()
             if spec.study == 'always'
             or (spec.study == 'changed' and getattr(config, name) != spec.default)}

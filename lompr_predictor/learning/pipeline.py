@@ -3,9 +3,11 @@
 `train_predictor(config)` reads and cleans the bags (`data.loading`), cuts the learning
 problem (windows, chronological split: `data.problem`), tunes the LSTM's batch size, hidden
 units and learning rate by Bayesian optimisation on the validation part (`tuning.py`, with
-the objective of `objective.py`), trains the paper's BP baseline, scores persistence, BP and
-BO-LSTM on the chronologically last 10 % (Table 1 metrics, `metrics.py`) and returns the
-BO-LSTM module, its metadata, the report document and the test predictions.
+the objective of `objective.py`), fits the baselines (`baselines.BASELINES`: persistence, the
+paper's BP, ridge, boosted trees, the machine map's prior), scores them and the BO-LSTM on the
+chronologically last 10 % (Table 1 metrics, `metrics.py`) and returns the BO-LSTM module, its
+metadata, the report document and the test predictions. The run's options are
+`options.TrainingConfig`'s, each declared once there.
 `write_outputs(config, result)` writes the model file (`model_file.py`) and the report
 folder (`report.py`), each file atomically.
 
@@ -314,8 +316,9 @@ def study_definition(config: TrainingConfig, sources: list[BagSource],
                      description: RobotDescription) -> dict[str, Any]:
     """What defines the tuning problem, recorded in the study (a command with other settings
     is refused) and naming it unless the config does: the bags by content (their paths
-    differ between machines), the robot description, topics, cleaning, window, horizon,
-    space, the options that define it (`options.study_options`) and training settings."""
+    differ between machines), the robot description, topics, cleaning, space, the options
+    declared to define it (`options.study_options`: window, horizon, seed, preview), the
+    machine map's and the training loop's settings."""
     return {'bags': sorted(s.sha256 for s in sources if not s.skipped_reason),
             'robot_description': description.sha256,
             'topics': _topics(config.inputs.topics),
