@@ -10,7 +10,8 @@ the same `--machine-seed`), with the pipeline `lompr train --test-bags` runs and
 defaults (the default space and budget, one torch thread per process, `--workers` tuning
 processes: default the cores available). The recordings are `DIR/{preset}_seed{1,2}`
 (recorded with `lompr simulate` when missing). It prints per preset and horizon the test
-RMSE per axis of persistence, ridge, boosted trees (HGB), BP and BO-LSTM as multiples of the
+RMSE per axis of every baseline of the report (`learning.baselines.BASELINES`: persistence,
+BP, ridge, boosted trees (HGB), the machine map's prior) and BO-LSTM as multiples of the
 twin's irreducible level (from the test recording's ground truth), the irreducible level
 in um, the tuning wall time and the trials run and stopped by the pruner, and checks
 the targets: BO-LSTM <= 1.25x irreducible at horizon 1 and <= 1.5x at horizon 25,
@@ -36,8 +37,9 @@ from typing import Any
 
 from lompr_predictor.cli.common import add_nice_argument
 from lompr_predictor.data.loading import BagInputs
-from lompr_predictor.learning.baselines import NO_PREVIEW
-from lompr_predictor.learning.pipeline import TrainingConfig, train_predictor, write_outputs
+from lompr_predictor.learning.baselines import BASELINES, HGB, RIDGE, WithoutPreview
+from lompr_predictor.learning.options import TrainingConfig
+from lompr_predictor.learning.pipeline import train_predictor, write_outputs
 from lompr_predictor.scheduling import lower_priority
 from lompr_predictor.threads import default_workers, set_torch_threads
 
@@ -50,8 +52,13 @@ TARGET_RUN_SECONDS = 300.0
 TRAIN_SEED, TEST_SEED = 1, 2
 PASSES = 20
 QUICK = {'trials': 6, 'max_epochs': 12}
-ROWS = (('persistence', 'persistence'), ('ridge', 'ridge'), ('hgb', 'HGB'), ('bp', 'BP'),
+#: The summary's columns: every baseline of the report (those fitted without the preview
+#: apart: `PREVIEW_PAIRS`), then the BO-LSTM.
+ROWS = (*((b.name, b.label) for b in BASELINES if not isinstance(b, WithoutPreview)),
         ('bo_lstm', 'BO-LSTM'))
+COLUMN = 2 + max(len(label) for _, label in ROWS)
+#: Baselines also fitted without the preview beside a preview model: (with, without).
+PREVIEW_PAIRS = tuple((b.base, b) for b in BASELINES if isinstance(b, WithoutPreview))
 
 
 def lompr() -> str:
@@ -131,9 +138,10 @@ def main() -> int:
     print('\n=== summary: RMSE / irreducible, X / Y (train seed 1, test seed 2, machine seed '
           f'{args.machine_seed}' + (', --quick' if args.quick else '')
           + (f', --preview {args.preview}' if args.preview != '0' else '') + ')')
-    print(f'{"preset":<16}{"h":>3}' + ''.join(f'{label:>14}' for _, label in ROWS)
+    print(f'{"preset":<16}{"h":>3}' + ''.join(f'{label:>{COLUMN}}' for _, label in ROWS)
           + f'{"irr. um":>14}{"wall s":>8}'
-          + (f'{"ridge K>0/0":>14}{"HGB K>0/0":>14}' if args.preview != '0' else ''))
+          + (''.join(f'{base.label + " K>0/0":>14}' for base, _ in PREVIEW_PAIRS)
+             if args.preview != '0' else ''))
     for line in table:
         print(line)
     return 1 if failures else 0
@@ -149,18 +157,19 @@ def print_run(preset: str, horizon: int, wall: float, report: dict[str, Any],
                f'--max-epochs {config.max_epochs} --workers {config.workers} --quiet')
     print(f'\n=== {preset}, horizon {horizon} ({horizon * report["sample_period"]:.3g} s); '
           f'as {command}')
-    print(f'{"axis":<5}{"model":<13}{"RMSE um":>9}{"/ irreducible":>15}')
+    print(f'{"axis":<5}{"model":<{COLUMN}}{"RMSE um":>9}{"/ irreducible":>15}')
     failures = 0
-    cells: dict[str, list[str]] = {name: [] for name, _ in ROWS}
+    rows = [(name, label) for name, label in ROWS if name in models]
+    cells: dict[str, list[str]] = {name: [] for name, _ in rows}
     for axis in ('x', 'y'):
-        rmse = {name: models[name]['metrics'][axis]['rmse_um'] for name, _ in ROWS}
-        for name, label in ROWS:
+        rmse = {name: models[name]['metrics'][axis]['rmse_um'] for name, _ in rows}
+        for name, label in rows:
             level = rmse[name] / irreducible[axis] if irreducible else float('nan')
             cells[name].append(f'{level:.2f}')
-            print(f'{axis:<5}{label:<13}{rmse[name]:>9.3f}{level:>15.2f}')
+            print(f'{axis:<5}{label:<{COLUMN}}{rmse[name]:>9.3f}{level:>15.2f}')
         lstm = rmse['bo_lstm']
-        checks = {f'<= {TARGET_TO_RIDGE} x ridge': lstm <= TARGET_TO_RIDGE * rmse['ridge'],
-                  '<= HGB': lstm <= rmse['hgb']}
+        checks = {f'<= {TARGET_TO_RIDGE} x {RIDGE.label}': lstm <= TARGET_TO_RIDGE
+                  * rmse[RIDGE.name], f'<= {HGB.label}': lstm <= rmse[HGB.name]}
         bound = TARGET_TO_IRREDUCIBLE.get(horizon)
         if irreducible and bound:
             checks[f'<= {bound} x irreducible'] = lstm / irreducible[axis] <= bound
@@ -187,20 +196,21 @@ def print_run(preset: str, horizon: int, wall: float, report: dict[str, Any],
     level = ('-' if not irreducible else
              f"{irreducible['x']:.3g}/{irreducible['y']:.3g}")
     line = (f'{preset:<16}{horizon:>3}'
-            + ''.join(f'{"/".join(cells[name]):>14}' for name, _ in ROWS)
+            + ''.join(f'{"/".join(cells.get(name, ["-"])):>{COLUMN}}' for name, _ in ROWS)
             + f'{level:>14}{wall:>8.0f}')
     if config.preview:
-        line += ''.join(f'{preview_gain(models, name):>14}' for name in ('ridge', 'hgb'))
+        line += ''.join(f'{preview_gain(models, base.name, plain.name):>14}'
+                        for base, plain in PREVIEW_PAIRS)
     return failures, line
 
 
-def preview_gain(models: dict[str, Any], name: str) -> str:
-    """'X/Y' test RMSE of baseline `name` with the preview over the same without it."""
+def preview_gain(models: dict[str, Any], name: str, plain: str) -> str:
+    """'X/Y' test RMSE of baseline `name` with the preview over `plain`, the same without
+    it."""
     def rmse(key: str, axis: str) -> float:
         return float(models[key]['metrics'][axis]['rmse_um'])
 
-    return '/'.join(f'{rmse(name, axis) / rmse(name + NO_PREVIEW, axis):.2f}'
-                    for axis in ('x', 'y'))
+    return '/'.join(f'{rmse(name, axis) / rmse(plain, axis):.2f}' for axis in ('x', 'y'))
 
 
 if __name__ == '__main__':

@@ -17,8 +17,9 @@ pipeline, default space and budget unless --trials / --restarts) per horizon and
 - same: trained on a program's recording, scored on another recording of the same program
   and machine (`--seed 2`): the in-distribution figure.
 
-It prints per run the test RMSE per axis of ridge, boosted trees (HGB), the machine map's
-prior alone and the BO-LSTM as multiples of persistence's on the same windows, and checks
+It prints per run the test RMSE per axis of every baseline of the report
+(`learning.baselines.BASELINES`: BP, ridge, boosted trees (HGB), the machine map's prior
+alone) and the BO-LSTM as multiples of persistence's on the same windows, and checks
 the targets: with the preview (K = h) the BO-LSTM <= 0.5x persistence in lopo and <= 0.7x in
 single, and no worse than HGB with the same inputs; without it <= 1.0x persistence; a lopo
 run on three programs within 300 s. The reports stay in --out.
@@ -36,7 +37,9 @@ from typing import Any
 
 from lompr_predictor.cli.common import add_nice_argument
 from lompr_predictor.data.loading import BagInputs
-from lompr_predictor.learning.pipeline import TrainingConfig, train_predictor, write_outputs
+from lompr_predictor.learning.baselines import BASELINES, HGB, PERSISTENCE, WithoutPreview
+from lompr_predictor.learning.options import TrainingConfig
+from lompr_predictor.learning.pipeline import train_predictor, write_outputs
 from lompr_predictor.robot.paths import PATH_KINDS
 from lompr_predictor.scheduling import lower_priority
 from lompr_predictor.threads import default_workers, set_torch_threads
@@ -48,8 +51,11 @@ TARGET_WITH_PREVIEW = {'lopo': 0.5, 'single': 0.7}
 TARGET_WITHOUT_PREVIEW = 1.0
 #: The default `lompr train` on three programs' 20-pass recordings on 2 cores.
 TARGET_THREE_PROGRAMS_SECONDS = 300.0
-ROWS = (('ridge', 'ridge'), ('hgb', 'HGB'), ('machine_map', 'map prior'),
-        ('bo_lstm', 'BO-LSTM'))
+#: The columns: every baseline of the report but persistence (the denominator) and those
+#: fitted without the preview, then the BO-LSTM.
+ROWS = (*((b.name, b.label) for b in BASELINES
+          if b is not PERSISTENCE and not isinstance(b, WithoutPreview)), ('bo_lstm', 'BO-LSTM'))
+COLUMN = 2 + max(len(label) for _, label in ROWS)
 
 
 def lompr() -> str:
@@ -129,21 +135,22 @@ def judge(run: Run, wall: float, report: dict[str, Any]) -> tuple[list[str], str
     """The targets the run missed, and its summary line (ratios to persistence, X/Y)."""
     models = report['models']
     ratio = {name: [models[name]['metrics'][axis]['rmse_um']
-                    / models['persistence']['metrics'][axis]['rmse_um'] for axis in 'xy']
+                    / models[PERSISTENCE.name]['metrics'][axis]['rmse_um'] for axis in 'xy']
              for name, _ in ROWS if name in models}
     lstm, missed = ratio['bo_lstm'], []
     bound = (TARGET_WITH_PREVIEW.get(run.mode) if run.preview >= run.horizon
              else TARGET_WITHOUT_PREVIEW if run.mode != 'same' else None)
     if bound is not None and max(lstm) > bound:
         missed.append(f'BO-LSTM {max(lstm):.2f} > {bound} x persistence')
-    if run.preview and any(a > b for a, b in zip(lstm, ratio['hgb'], strict=True)):
-        missed.append('BO-LSTM worse than HGB')
+    if run.preview and any(a > b for a, b in zip(lstm, ratio[HGB.name], strict=True)):
+        missed.append(f'BO-LSTM worse than {HGB.label}')
     if run.mode == 'lopo' and len(run.trained_on) == 3 and wall > TARGET_THREE_PROGRAMS_SECONDS:
         missed.append(f'{wall:.0f} s > {TARGET_THREE_PROGRAMS_SECONDS:.0f} s')
-    persistence = '/'.join(f"{models['persistence']['metrics'][a]['rmse_um']:.2f}" for a in 'xy')
+    persistence = '/'.join(f"{models[PERSISTENCE.name]['metrics'][a]['rmse_um']:.2f}"
+                           for a in 'xy')
     line = (f'{run.preset:<15}{run.mode:<7}{"+".join(run.trained_on):<28}{run.scored_on:<12}'
             f'{run.horizon:>3}{run.preview:>3}'
-            + ''.join(f'{"/".join(f"{v:.2f}" for v in ratio[name]) if name in ratio else "-":>12}'
+            + ''.join(f'{"/".join(f"{v:.2f}" for v in ratio.get(name, [])) or "-":>{COLUMN}}'
                       for name, _ in ROWS)
             + f'{persistence:>12}{wall:>7.0f}  ' + ('ok' if not missed else '; '.join(missed)))
     return missed, line
@@ -173,7 +180,7 @@ def main() -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     header = (f'{"preset":<15}{"mode":<7}{"trained on":<28}{"scored on":<12}{"h":>3}{"K":>3}'
-              + ''.join(f'{label:>12}' for _, label in ROWS) + f'{"pers. um":>12}{"s":>7}')
+              + ''.join(f'{label:>{COLUMN}}' for _, label in ROWS) + f'{"pers. um":>12}{"s":>7}')
     print('RMSE / persistence on the same windows, X/Y; ' + ' '.join(sys.argv[1:]))
     print(header, flush=True)
     lines, failures = [], 0

@@ -3,7 +3,7 @@
     python bench/error_concentration.py MODEL --train-bags DIR --test-bags DIR [--top N]
 
 Rebuilds `lompr train --test-bags`'s problem for the model's window and horizon, fits the
-boosted-tree baseline (`baselines.hgb_baseline`, as the report does) and scores both on every
+boosted-tree baseline (`baselines.HGB`, as the report does) and scores both on every
 test window. It prints per axis the test RMSE of each, the mean squared error the model's
 `--top` worst samples (by squared error above the trees') contribute, and the RMSE of both
 without them; then those samples, each with the measured error's step into the predicted
@@ -22,7 +22,7 @@ import numpy as np
 from lompr_predictor.data.features import FEATURES, TARGETS
 from lompr_predictor.data.loading import BagInputs, load_clean_data
 from lompr_predictor.data.problem import train_test_problem
-from lompr_predictor.learning.baselines import hgb_baseline
+from lompr_predictor.learning.baselines import HGB, FitContext
 from lompr_predictor.learning.model_file import load_model
 from lompr_predictor.learning.models import predict_rows
 from lompr_predictor.robot.description import load_robot_description
@@ -51,7 +51,7 @@ def main() -> int:
     ends = problem.split.test
     actual = problem.error[ends + horizon]
     residuals = {'model': predict_rows(model.module, problem.rows, ends, window) - actual,
-                 'trees': hgb_baseline(problem).predicted - actual}
+                 'trees': HGB.fit(problem, FitContext()).predict(ends) - actual}
     velocity = problem.rows[:, [FEATURES.index('ref_vx'), FEATURES.index('ref_vy')]]
     seconds = (problem.stamps[ends] - problem.stamps[ends[0]]) * 1e-9
     print(f'{args.model.name}: window {window}, horizon {horizon}, preview '

@@ -4,7 +4,7 @@
 
 For each twin preset and horizon h, on the recordings `bench_train.py` uses (train `--seed 1`,
 test `--seed 2`, `--machine-seed 1`, recorded into --bags when missing), ridge and boosted
-trees (HGB) exactly as `lompr train --preview h` fits them (`learning.baselines.fit_baselines`:
+trees (HGB) exactly as `lompr train --preview h` fits them (`learning.baselines.WithoutPreview`:
 the flattened window, the change of the error over the horizon, ridge's penalty chosen on
 validation), with the preview block of K = h samples in every row (`features.with_preview`)
 and without it, on the same test windows. Prints the test RMSE per axis [um] and the ratio
@@ -25,15 +25,21 @@ from bench_train import PRESETS, TEST_SEED, TRAIN_SEED, recording
 
 from lompr_predictor.data.loading import BagInputs, load_clean_data
 from lompr_predictor.data.problem import LearningProblem, train_test_problem
-from lompr_predictor.learning.baselines import NO_PREVIEW, fit_baselines
+from lompr_predictor.learning.baselines import BASELINES, FitContext, WithoutPreview, fit_baselines
 from lompr_predictor.robot.description import load_robot_description
+
+#: The baselines `lompr train --preview` also fits without the preview: (with, without).
+PAIRS = tuple((b.base, b) for b in BASELINES if isinstance(b, WithoutPreview))
 
 
 def test_rmse(problem: LearningProblem) -> dict[str, np.ndarray]:
-    """Test RMSE per axis [um] of every baseline `lompr train` fits for `problem`."""
-    truth = problem.error[problem.split.test + problem.horizon]
-    return {name: np.sqrt(np.mean((fitted.predicted - truth) ** 2, axis=0)) * 1e6
-            for name, fitted in fit_baselines(problem).items()}
+    """Test RMSE per axis [um] of each baseline of `PAIRS`, with and without the preview,
+    as `lompr train` fits them for `problem`."""
+    test = problem.split.test
+    truth = problem.error[test + problem.horizon]
+    fitted = fit_baselines(problem, FitContext(), [b for pair in PAIRS for b in pair])
+    return {name: np.sqrt(np.mean((f.fitted.predict(test) - truth) ** 2, axis=0)) * 1e6
+            for name, f in fitted.items()}
 
 
 def main() -> int:
@@ -55,9 +61,9 @@ def main() -> int:
         for horizon in args.horizons:
             rmse = test_rmse(train_test_problem(data[0], data[1], horizon=horizon,
                                                 preview=horizon))
-            for name in ('ridge', 'hgb'):
-                a, b = rmse[name + NO_PREVIEW], rmse[name]
-                print(f'{preset:<16}{horizon:>3}  {name:<6}{a[0]:7.2f}/{a[1]:<6.2f}'
+            for base, plain in PAIRS:
+                a, b = rmse[plain.name], rmse[base.name]
+                print(f'{preset:<16}{horizon:>3}  {base.label:<6}{a[0]:7.2f}/{a[1]:<6.2f}'
                       f'{b[0]:7.2f}/{b[1]:<6.2f}{b[0] / a[0]:7.2f}/{b[1] / a[1]:<6.2f}',
                       flush=True)
     return 0

@@ -348,11 +348,3 @@ def test_demo_runs_every_stage_and_prints_the_table(
         assert (out / path).is_file(), path
     assert lompr_main(['demo', '--out', str(out)]) == 2  # an existing output is never overwritten
     assert 'exists and is not empty' in capsys.readouterr().err
-
-
-def test_demo_budgets_train_over_the_recipes_whole_schedule() -> None:
-    from lompr_predictor.cli import demo
-    from lompr_predictor.learning.training import MAX_EPOCHS
-
-    # the demo writes the number out (importing training would load torch for `lompr --help`)
-    assert demo.FULL['max_epochs'] == demo.QUICK['max_epochs'] == MAX_EPOCHS

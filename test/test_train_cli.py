@@ -213,7 +213,7 @@ def test_test_bags_are_the_test_part(tmp_path: Path, bags: list[Path]) -> None:
 
 def test_the_epoch_windows_help_names_the_training_default() -> None:
     """`lompr train --help` writes the default out (importing training would load torch)."""
-    from lompr_predictor.learning.training import EPOCH_WINDOWS
+    from lompr_predictor.learning.options import EPOCH_WINDOWS
 
     subparsers = argparse.ArgumentParser().add_subparsers()
     train.add_parser(subparsers)

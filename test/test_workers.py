@@ -195,8 +195,9 @@ def test_two_local_workers_share_the_default_study(tmp_path: Path, bag: Path) ->
      'argument --storage: storage redis://... is not supported'),
     (['--storage', 'postgresql://nobody@127.0.0.1:1/lompr'],
      'cannot reach the study storage postgresql+psycopg://nobody@127.0.0.1:1/lompr: '),
-    (['--workers-only'], '--workers-only joins a study: give its --storage URL'),
-    (['--workers-only', '--storage', 'x.journal'], '--workers-only joins a study: give its'),
+    (['--workers-only'], 'an extra worker joins a study: give its storage and its study_name '
+                         '(the same as every other run of the study) (--storage, --study-name)'),
+    (['--workers-only', '--storage', 'x.journal'], 'an extra worker joins a study: give its'),
 ])
 def test_bad_options_stop_in_one_line_before_any_bag_is_read(
         tmp_path: Path, capsys: pytest.CaptureFixture[str], options: list[str],

@@ -39,6 +39,7 @@ from lompr_predictor.cli.validation import comma_list, non_negative_int, one_of,
 from lompr_predictor.data.loading import BagInputs
 from lompr_predictor.errors import LomprError
 from lompr_predictor.files import write_json
+from lompr_predictor.learning.options import MAX_EPOCHS, TrainingConfig
 from lompr_predictor.learning.space import DEFAULT_RESTARTS, SearchSpace
 from lompr_predictor.robot.description import RobotDescription, load_robot_description
 from lompr_predictor.robot.paths import PATH_KINDS, build_cycle
@@ -62,11 +63,9 @@ from lompr_predictor.twin.simulation import simulate
 LABELS = {'none': 'no compensation', 'persistence': 'persistence', 'model': 'model (BO-LSTM)',
           'preview': 'model with preview'}
 #: Budgets: training passes, tuning trials, epochs per trial, closed-loop passes. The demo
-#: spends its minutes on epochs rather than on trials: 120 epochs is the length of the
-#: recipe's cosine schedule (`learning.training.MAX_EPOCHS`, not imported here: it would load
-#: torch for `lompr --help`; a test keeps the two equal).
-FULL = {'train_passes': 10, 'trials': 6, 'max_epochs': 120, 'passes': 3}
-QUICK = {'train_passes': 6, 'trials': 1, 'max_epochs': 120, 'passes': 2}
+#: spends its minutes on epochs rather than on trials: the recipe's whole cosine schedule.
+FULL = {'train_passes': 10, 'trials': 6, 'max_epochs': MAX_EPOCHS, 'passes': 3}
+QUICK = {'train_passes': 6, 'trials': 1, 'max_epochs': MAX_EPOCHS, 'passes': 2}
 #: The programs the demo trains on, unless told otherwise, and the one its loops machine.
 TRAIN_PATHS = ('spiral', 'concentric', 'random')
 LOOP_PATH = 'grid'
@@ -288,7 +287,7 @@ def _train(args: argparse.Namespace, budget: dict[str, int], bags: tuple[Path, .
            model: Path, report: Path, preview: int = 0) -> None:
     """What `lompr train` does (with `--preview preview`), on the recordings, with the
     demo's budget and space."""
-    from lompr_predictor.learning.pipeline import TrainingConfig, train_predictor, write_outputs
+    from lompr_predictor.learning.pipeline import train_predictor, write_outputs
 
     tuned = budget['trials'] > 1  # else --quick: the first point once, no restarts
     space = SPACE if tuned else dataclasses.replace(

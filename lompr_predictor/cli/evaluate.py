@@ -21,10 +21,8 @@ from lompr_predictor.data.features import TARGETS
 from lompr_predictor.data.loading import load_clean_data
 from lompr_predictor.data.problem import LearningProblem, Split
 from lompr_predictor.errors import LomprError
-from lompr_predictor.learning.metrics import score_predictions
 from lompr_predictor.learning.report import base_report, irreducible_fields, write_report
 from lompr_predictor.robot.description import load_robot_description
-from lompr_predictor.stamps import seconds_since
 from lompr_predictor.threads import set_torch_threads
 
 
@@ -61,8 +59,14 @@ def run(args: argparse.Namespace) -> int:
             report=args.report)
         print(f"{document['text']}\nreport in {args.report}")
         return 0
+    from lompr_predictor.learning.baselines import (
+        PERSISTENCE,
+        FitContext,
+        fit_baselines,
+        score_test_part,
+    )
     from lompr_predictor.learning.model_file import PERIOD_TOLERANCE, load_model
-    from lompr_predictor.learning.models import offline_predictions, persistence
+    from lompr_predictor.learning.models import offline_predictions
 
     started = time.perf_counter()
     set_torch_threads(args.threads)
@@ -89,15 +93,15 @@ def run(args: argparse.Namespace) -> int:
                     parts=np.array([[0, 0, 0, len(data)]])),
         error_low=np.array(norm['error_low']), error_high=np.array(norm['error_high']),
         preview=meta.preview)
-    predictions = {'persistence': persistence(data.error, ends), 'model': offline.predicted}
-    models = score_predictions(predictions, offline.actual, offline.stamps, problem.error_low,
-                               problem.error_high, inputs.cleaning.gap_factor * data.sample_period)
+    baselines = fit_baselines(problem, FitContext(), (PERSISTENCE,))
+    scored, models = score_test_part(problem, baselines, {'model': offline.predicted},
+                                     inputs.cleaning.gap_factor)
     report = base_report('evaluate', problem, data, sources, inputs.cleaning)
     report.update(
         models=models, model_file=str(Path(args.model).resolve()), model_sha256=model.sha256,
         model_test_metrics=meta.test_metrics, **irreducible_fields(models, sources, meta.horizon),
         timings={'total_seconds': time.perf_counter() - started})
-    write_report(args.report, report, seconds=seconds_since(offline.stamps),
-                 actual=offline.actual, predictions=predictions)
+    write_report(args.report, report, seconds=scored.seconds, actual=scored.actual,
+                 predictions=scored.predictions)
     print(f'report in {args.report}')
     return 0

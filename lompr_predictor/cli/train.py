@@ -32,8 +32,8 @@ from lompr_predictor.cli.validation import (
     comma_list,
     existing_path,
     finite_float,
+    int_at_least,
     non_empty,
-    non_negative_int,
     output_directory,
     output_file,
     positive_float,
@@ -41,24 +41,28 @@ from lompr_predictor.cli.validation import (
     storage_url,
     yes_no,
 )
-from lompr_predictor.data.problem import DEFAULT_HORIZON, DEFAULT_WINDOW
 from lompr_predictor.errors import LomprError
+from lompr_predictor.learning.options import (
+    FINE_TUNE_EPOCHS,
+    OptionError,
+    TrainingConfig,
+    flag_of,
+    option_specs,
+)
 from lompr_predictor.learning.space import (
-    DEFAULT_RESTARTS,
     DEFAULT_SPACE,
-    DEFAULT_TRIALS,
-    HEARTBEAT_SECONDS,
-    NETWORK_INPUTS,
     PAPER_SPACE,
     SPACES,
     SearchSpace,
 )
 from lompr_predictor.scheduling import lower_priority
-from lompr_predictor.threads import MAX_DEFAULT_WORKERS, default_workers, set_torch_threads
+from lompr_predictor.threads import set_torch_threads
 
-#: `--max-epochs` with `--init` unless given: a bounded fine-tuning, a quarter of a training's
-#: schedule
-FINE_TUNE_EPOCHS = 30
+#: The command-line type of each kind of string option (`options.TEXT_KINDS`).
+TEXT_TYPES = {'text': non_empty, 'output_file': output_file,
+              'output_folder': output_directory, 'storage': storage_url}
+#: String options that are paths.
+PATH_KINDS = ('output_file', 'output_folder')
 
 
 def _listed(values: tuple[Any, ...]) -> str:
@@ -71,85 +75,42 @@ def add_parser(subparsers: Any) -> None:
         'train', help='train a BO-LSTM error predictor from rosbag2 recordings',
         description=__doc__.split('\n\n')[0])
     parser.add_argument('bags', nargs='+', metavar='BAG_DIR', help='rosbag2 directories')
-    parser.add_argument('--out', type=output_file,
-                        help='model file to write (TorchScript), its sha256 beside it in '
-                             'OUT.sha256 and in the report; required unless --workers-only')
-    parser.add_argument('--report', type=output_directory,
-                        help='report folder; required unless --workers-only')
+    add_option_arguments(parser)
     parser.add_argument('--test-bags', nargs='+', type=existing_path, default=None,
                         metavar='BAG_DIR',
                         help='score on these recordings (e.g. another seed of the same machine) '
                              'instead of the last 10 %% of the training bags')
-    parser.add_argument('--horizon', type=positive_int, default=None,
-                        help="samples between the window's last row and the predicted instant "
-                             f"(default {DEFAULT_HORIZON}, or the --init model's)")
-    parser.add_argument('--window', type=positive_int, default=None,
-                        help=f"samples per window (default {DEFAULT_WINDOW}, or the --init "
-                             "model's)")
-    parser.add_argument('--preview', type=non_negative_int, default=None, metavar='K',
-                        help='also read the planned reference K samples after each row of '
-                             'the window (K = --horizon reaches the predicted instant), taken '
-                             "from the bags' reference topic; the node then needs "
-                             '/lompr/reference_preview. 0: no preview (default, or the --init '
-                             "model's)")
     parser.add_argument('--init', type=existing_path, default=None, metavar='MODEL', help=(
         'fine-tune this model file on the bags: its robot, window, horizon and preview, machine '
         'map, normalisation and hyperparameters kept, at most --max-epochs (default '
         f'{FINE_TUNE_EPOCHS}) epochs from its weights, no tuning study (docs/training.md)'))
-    parser.add_argument('--no-machine-map', dest='machine_map', action='store_false',
-                        help='the plain BO-LSTM of the paper: no machine map under it (the '
-                             "map, fitted first, carries each actuator's error to the tool "
-                             'through the kinematics: what makes a model hold on programs '
-                             'it was not trained on; docs/training.md)')
-    parser.add_argument('--network-inputs', choices=NETWORK_INPUTS, default=None,
-                        help="what the LSTM reads: 'machine' (the machine map's residuals: "
-                             "what holds on programs it was not trained on; the default with "
-                             "the map) or 'all' (every feature, the path's too: best on the "
-                             "program it was trained on, worse on others; the default "
-                             'with --no-machine-map)')
-    parser.add_argument('--trials', type=positive_int, default=DEFAULT_TRIALS,
-                        help='tuning budget')
-    parser.add_argument('--restarts', type=non_negative_int, default=DEFAULT_RESTARTS,
-                        help='after the tuning trials, train the best point again with this '
-                             'many other seeds; the lowest validation loss becomes the model '
-                             f'(default {DEFAULT_RESTARTS})')
-    parser.add_argument('--seed', type=non_negative_int, default=0)
-    parser.add_argument('--max-epochs', type=positive_int, default=None)
-    parser.add_argument('--patience', type=positive_int, default=None)
-    parser.add_argument('--epoch-windows', type=positive_int, default=None, metavar='N',
-                        help='training windows drawn per epoch, at most (validation windows '
-                             'scored per epoch likewise): the cost of an epoch is bounded at '
-                             'any sample rate (default 20000: every window of 20 passes at '
-                             '25 Hz, an eighth of them at 250 Hz)')
-    _add_space_arguments(parser)
-    parser.add_argument('--storage', type=storage_url, default=None,
-                        help='where the tuning study lives: postgresql://USER@HOST/DB (shared by '
-                             'several machines), sqlite:///FILE, or a journal file path '
-                             '(default: study.journal in the report folder); rerunning the '
-                             'same command resumes the study')
-    parser.add_argument('--study-name', type=non_empty, default=None,
-                        help='default: derived from the bags (by content) and settings')
-    parser.add_argument('--workers', type=positive_int, default=default_workers(),
-                        help='tuning processes on this machine, each with --threads torch '
-                             'threads (default: the cores available, at most '
-                             f'{MAX_DEFAULT_WORKERS}: here {default_workers()})')
     parser.add_argument('--workers-only', action='store_true',
                         help='join the study given by --storage and --study-name and run its '
                              'trials until the budget is spent; no model, no report (an extra '
                              'worker; the command without this flag finishes the study)')
-    parser.add_argument('--checkpoints', type=output_directory, default=None, metavar='DIR',
-                        help="trials' models (default: trials/ in the report folder); on "
-                             'several machines a folder they all share, else the finishing '
-                             'command trains the best trial again')
-    parser.add_argument('--heartbeat', type=positive_int, default=HEARTBEAT_SECONDS,
-                        metavar='SECONDS',
-                        help="seconds between a running trial's heartbeats; a trial silent "
-                             'for 3 of them (its worker died) is failed and its point queued '
-                             f'again (default {HEARTBEAT_SECONDS})')
+    _add_space_arguments(parser)
     add_data_arguments(parser)
     add_nice_argument(parser)
     parser.set_defaults(run=run, stop_hint='; the tuning study is kept (the trial it stopped '
                         'queued again): the same command resumes it')
+
+
+def add_option_arguments(parser: argparse.ArgumentParser,
+                         config_type: type = TrainingConfig) -> None:
+    """A flag per training option of `config_type` (`learning.options`), checked by argparse;
+    each defaults to None (not given: the option's own default, or one the command
+    derives)."""
+    for name, spec in option_specs(config_type).items():
+        flag, text = flag_of(name, config_type), spec.help_text.replace('%', '%%')
+        if isinstance(spec.default, bool):
+            parser.add_argument(flag, dest=name, default=None, help=text,
+                                action='store_false' if spec.default else 'store_true')
+        elif spec.choices:
+            parser.add_argument(flag, dest=name, default=None, help=text, choices=spec.choices)
+        else:
+            kind = TEXT_TYPES[spec.kind] if spec.kind else int_at_least(spec.minimum or 0)
+            parser.add_argument(flag, dest=name, default=None, help=text, type=kind,
+                                metavar=spec.metavar)
 
 
 def _add_space_arguments(parser: argparse.ArgumentParser) -> None:
@@ -181,7 +142,7 @@ def _add_space_arguments(parser: argparse.ArgumentParser) -> None:
                              'row)')
 
 
-def search_space(args: argparse.Namespace) -> SearchSpace:
+def search_space(args: argparse.Namespace, window: int) -> SearchSpace:
     """The named space (`--space`) with the lists given on the command line (each value
     checked by argparse) instead, checked against the window (`SpaceError`, exit 2, before
     any bag is read)."""
@@ -190,17 +151,14 @@ def search_space(args: argparse.Namespace) -> SearchSpace:
               'error_levels')}
     space = dataclasses.replace(SPACES[args.space],
                                 **{name: values for name, values in given.items() if values})
-    space.check(args.window)
+    space.check(window)
     return space
-
-
-def _path(text: str | None) -> Path | None:
-    return None if text is None else Path(text)
 
 
 def learning_shape(args: argparse.Namespace) -> tuple[int, int, int]:
     """(window, horizon, preview): as given, else the --init model's, else the defaults."""
-    defaults = (DEFAULT_WINDOW, DEFAULT_HORIZON, 0)
+    specs = option_specs()
+    defaults = (specs['window'].default, specs['horizon'].default, specs['preview'].default)
     if args.init:
         from lompr_predictor.learning.fine_tuning import parent_settings
 
@@ -211,33 +169,42 @@ def learning_shape(args: argparse.Namespace) -> tuple[int, int, int]:
     return window, horizon, preview
 
 
+def training_config(args: argparse.Namespace) -> TrainingConfig:
+    """The run's config: the options given, the learning shape (`learning_shape`), and what
+    the command derives: the fine-tuning's epochs with --init, 'all' network inputs without
+    the machine map."""
+    specs = option_specs()
+    given: dict[str, Any] = {name: Path(value) if specs[name].kind in PATH_KINDS else value
+             for name in specs if (value := getattr(args, name)) is not None}
+    window, horizon, preview = learning_shape(args)
+    given.update(window=window, horizon=horizon, preview=preview)
+    if args.init:
+        given.setdefault('max_epochs', FINE_TUNE_EPOCHS)
+    if given.get('machine_map') is False:
+        given.setdefault('network_inputs', 'all')
+    return TrainingConfig(
+        inputs=bag_inputs(args, args.bags), robot_description=args.robot_description,
+        space=search_space(args, window), progress=not args.quiet,
+        test_inputs=bag_inputs(args, args.test_bags) if args.test_bags else None, **given)
+
+
 def run(args: argparse.Namespace) -> int:
-    from lompr_predictor.learning.pipeline import (
-        TrainingConfig,
-        run_workers,
-        train_predictor,
-        write_outputs,
-    )
-    from lompr_predictor.learning.training import EPOCH_WINDOWS, MAX_EPOCHS, PATIENCE
+    """`lompr train`; an option the library refuses is named by its flag."""
+    try:
+        return _run(args)
+    except OptionError as err:
+        flags = ', '.join(flag_of(name) for name in err.names)
+        raise LomprError(f'{err} ({flags})') from err
+
+
+def _run(args: argparse.Namespace) -> int:
+    from lompr_predictor.learning.pipeline import run_workers, train_predictor, write_outputs
 
     if args.init and args.workers_only:
         raise LomprError('--init fine-tunes without a tuning study: no --workers-only')
     set_torch_threads(args.threads)
     lower_priority(args.nice)  # before the tuning workers start: they inherit it
-    args.window, args.horizon, args.preview = learning_shape(args)
-    epochs = args.max_epochs or (FINE_TUNE_EPOCHS if args.init else MAX_EPOCHS)
-    config = TrainingConfig(
-        inputs=bag_inputs(args, args.bags), model_path=_path(args.out),
-        report_dir=_path(args.report), robot_description=args.robot_description,
-        window=args.window, horizon=args.horizon, preview=args.preview, trials=args.trials,
-        restarts=args.restarts, seed=args.seed,
-        max_epochs=epochs, patience=args.patience or PATIENCE,
-        epoch_windows=args.epoch_windows or EPOCH_WINDOWS,
-        space=search_space(args), storage=args.storage, study_name=args.study_name,
-        workers=args.workers, checkpoints=_path(args.checkpoints), heartbeat=args.heartbeat,
-        progress=not args.quiet, machine_map=args.machine_map,
-        network_inputs=args.network_inputs or ('machine' if args.machine_map else 'all'),
-        test_inputs=bag_inputs(args, args.test_bags) if args.test_bags else None)
+    config = training_config(args)
     if args.workers_only:
         summary = run_workers(config)
         run = summary.run
@@ -253,15 +220,14 @@ def run(args: argparse.Namespace) -> int:
         result = fine_tune_predictor(config, args.init)
         write_outputs(config, result)
         print(fine_tuning_line(result.report))
-        print(f'model written to {args.out}; report in {args.report}')
-        return 0
-    result = train_predictor(config)
-    write_outputs(config, result)
-    print(summary_line(result.report))
-    warning = ridge_warning(result.report)
-    if warning:
-        print(warning, file=sys.stderr)
-    print(f'model written to {args.out}; report in {args.report}')
+    else:
+        result = train_predictor(config)
+        write_outputs(config, result)
+        print(summary_line(result.report))
+        warning = ridge_warning(result.report)
+        if warning:
+            print(warning, file=sys.stderr)
+    print(f'model written to {config.model_path}; report in {config.report_dir}')
     return 0
 
 

@@ -1,48 +1,106 @@
-"""Reference baselines on the BO-LSTM's own windows: ridge and boosted trees.
+"""The baselines a trained model is scored against, behind one seam: a `Baseline` has a
+`name` (its key in the report), a `label` (its name in report.md and the plots) and
+`fit(problem, context)`, which returns something that predicts any window ends (`Fitted`),
+or None where it does not apply. The pipeline, the fine-tuning, the report and the benches
+iterate `BASELINES`; a new baseline is one class and its place in that tuple.
 
-Both see exactly what the networks see, the learning problem's windows of feature rows, as
-one flattened vector per window (error columns relative to the window's last row, as the
-networks take them, plus the last error itself), and predict the change of the error over
-the horizon, e(t+h) - e(t); the prediction is e(t) plus that change:
-
-- ridge: a linear map of the standardised vector; its penalty is chosen on the validation
-  part from a fixed grid, then it is fitted again on train + validation. It is what a
-  linear filter can learn from the window: a network that does not beat it learns nothing
-  non-linear.
-- boosted trees: scikit-learn's `HistGradientBoostingRegressor` with its default settings
-  (one model per axis, seeded), fitted on train + validation. A strong non-linear reference
-  that needs no tuning.
+- persistence: e(t+h) = e(t), the floor.
+- BP: the paper's baseline, an MLP on the flattened window predicting e(t+h), with the
+  paper's budget (`training.BP_MAX_EPOCHS`, a budget shrunk below the default shrinks it).
+- ridge and boosted trees see exactly what the networks see, the learning problem's windows
+  of feature rows, as one flattened vector per window (error columns relative to the
+  window's last row, as the networks take them, plus the last error itself), and predict
+  the change of the error over the horizon, e(t+h) - e(t); the prediction is e(t) plus that
+  change. Ridge is a linear map of the standardised vector, its penalty chosen on the
+  validation part from a fixed grid, then fitted again on train + validation: what a linear
+  filter can learn from the window (a network that does not beat it learns nothing
+  non-linear). Boosted trees are scikit-learn's `HistGradientBoostingRegressor` with its
+  default settings (one model per axis, seeded), fitted on train + validation: a strong
+  non-linear reference that needs no tuning.
+- with a reference preview, ridge and the trees again on the same windows without it (keys
+  ending in `NO_PREVIEW`): what the preview gives.
+- the machine map's prior alone, e(t) + g(t+h) - g(t), where the run fitted a map.
 
 They are reference points in the report, not models the node loads. scikit-learn is
-imported inside the functions: the command line's help and the node never load it.
+imported inside the fits: the command line's help and the node never load it.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 import numpy as np
 
 from lompr_predictor.data.features import TARGETS
 from lompr_predictor.data.problem import LearningProblem, without_preview
-from lompr_predictor.learning.models import error_columns, gather_windows
+from lompr_predictor.learning.machine_map import MachineMap, map_prior
+from lompr_predictor.learning.metrics import score_predictions
+from lompr_predictor.learning.models import (
+    BP_HYPERPARAMETERS,
+    error_columns,
+    gather_windows,
+    persistence,
+    predict_rows,
+)
+from lompr_predictor.learning.options import MAX_EPOCHS, TrainSettings
+from lompr_predictor.learning.training import BP_MAX_EPOCHS, BP_PATIENCE, train_network
+from lompr_predictor.stamps import seconds_since
 
 #: Ridge penalties tried on the validation part (on standardised inputs, targets in um).
 RIDGE_ALPHAS = tuple(10.0 ** k for k in range(-3, 5))
-#: Baselines in the report, by key; the BO-LSTM is compared with each.
-BASELINES = ('ridge', 'hgb')
 #: Suffix of a baseline's key fitted without the reference preview, beside a preview model.
 NO_PREVIEW = '_no_preview'
+#: What the baselines that predict the change of the error predict.
+RESIDUAL_TARGET = 'residual (e(t+h) - e(t))'
 
 
 @dataclass(frozen=True)
-class BaselinePrediction:
-    """One baseline's prediction of the test part and what fitting it took."""
+class FitContext:
+    """What a baseline may need beyond the problem: the run's training settings (seed,
+    budget), progress bars, the machine map the run fitted (None: none)."""
 
-    predicted: np.ndarray  # (B, 2) plant error [m] at the test windows' predicted instants
-    seconds: float  # fitting and predicting
-    settings: dict[str, object]
+    settings: TrainSettings = TrainSettings()
+    progress: bool = False
+    machine_map: MachineMap | None = None
+
+
+@dataclass(frozen=True)
+class Fitted:
+    """A fitted baseline: `predict(ends)` is its (B, 2) plant error [m] at the predicted
+    instants of the windows ending at `ends`; `details` what the report says of it
+    (training_seconds, hyperparameters, target, ...)."""
+
+    predict: Callable[[np.ndarray], np.ndarray]
+    details: dict[str, Any] = field(default_factory=dict)
+
+
+class Baseline(Protocol):
+    """A reference the model is scored against (module docstring)."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def label(self) -> str: ...
+
+    def fit(self, problem: LearningProblem, context: FitContext) -> Fitted | None: ...
+
+
+@dataclass(frozen=True)
+class FittedBaseline:
+    """A baseline as a run fitted it: its label, its `Fitted`, and the wall time fitting
+    it took."""
+
+    label: str
+    fitted: Fitted
+    seconds: float
+
+    def report(self) -> dict[str, Any]:
+        """Its fields in the report's entry of it (beside the metrics)."""
+        return {'label': self.label, **self.fitted.details}
 
 
 def flat_windows(problem: LearningProblem, ends: np.ndarray) -> np.ndarray:
@@ -55,68 +113,200 @@ def flat_windows(problem: LearningProblem, ends: np.ndarray) -> np.ndarray:
     return np.concatenate([windows.reshape(len(ends), -1), last], axis=1)
 
 
-def _fit_parts(problem: LearningProblem) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _fit_parts(problem: LearningProblem) -> tuple[np.ndarray, np.ndarray]:
+    """The flattened windows of train + validation and their targets."""
     split = problem.split
     fit = np.concatenate([split.train, split.validation])
-    return fit, flat_windows(problem, fit), problem.targets(fit, True)
+    return flat_windows(problem, fit), problem.targets(fit, True)
 
 
-def ridge_baseline(problem: LearningProblem) -> BaselinePrediction:
+@dataclass(frozen=True)
+class Persistence:
+    """e(t+h) = e(t)."""
+
+    name: str = 'persistence'
+    label: str = 'Persistence'
+
+    def fit(self, problem: LearningProblem, context: FitContext) -> Fitted:
+        return Fitted(predict=lambda ends: persistence(problem.error, ends))
+
+
+@dataclass(frozen=True)
+class BackPropagation:
+    """The paper's BP: an MLP on the flattened window, min-max inputs, its own budget."""
+
+    name: str = 'bp'
+    label: str = 'BP'
+
+    def fit(self, problem: LearningProblem, context: FitContext) -> Fitted:
+        run = context.settings
+        settings = TrainSettings(
+            max_epochs=BP_MAX_EPOCHS if run.max_epochs >= MAX_EPOCHS else run.max_epochs,
+            patience=BP_PATIENCE, seed=run.seed, epoch_windows=run.epoch_windows)
+        trained = train_network(problem, 'mlp', BP_HYPERPARAMETERS, settings, residual=False,
+                                progress=context.progress, label=self.label)
+        return Fitted(
+            predict=lambda ends: predict_rows(trained.module, problem.rows, ends,
+                                              problem.window),
+            details={'training_seconds': trained.seconds,
+                     'hyperparameters': dict(BP_HYPERPARAMETERS), 'target': 'error',
+                     'epochs': trained.epochs})
+
+
+@dataclass(frozen=True)
+class Ridge:
     """Ridge on the standardised flattened window, penalty chosen on validation."""
-    from sklearn.linear_model import Ridge
 
-    started = time.perf_counter()
-    split = problem.split
-    train_x, validation_x = (flat_windows(problem, e) for e in (split.train, split.validation))
-    train_y, validation_y = (problem.targets(e, True) * 1e6
-                             for e in (split.train, split.validation))
-    centre, scale = train_x.mean(axis=0), train_x.std(axis=0)
-    scale[scale == 0] = 1.0
+    name: str = 'ridge'
+    label: str = 'Ridge'
 
-    def standard(x: np.ndarray) -> np.ndarray:
-        return (x - centre) / scale
+    def fit(self, problem: LearningProblem, context: FitContext) -> Fitted:
+        from sklearn.linear_model import Ridge as RidgeRegression
 
-    scores = {}
-    for alpha in RIDGE_ALPHAS:
-        fitted = Ridge(alpha=alpha).fit(standard(train_x), train_y)
-        scores[alpha] = float(np.mean((fitted.predict(standard(validation_x)) - validation_y)
-                                      ** 2))
-    alpha = min(scores, key=lambda a: scores[a])
-    _, fit_x, fit_y = _fit_parts(problem)
-    model = Ridge(alpha=alpha).fit(standard(fit_x), fit_y * 1e6)
-    test = split.test
-    change = model.predict(standard(flat_windows(problem, test))) * 1e-6
-    return BaselinePrediction(predicted=problem.error[test] + change,
-                              seconds=time.perf_counter() - started,
-                              settings={'alpha': alpha, 'alphas_tried': list(RIDGE_ALPHAS)})
+        started = time.perf_counter()
+        split = problem.split
+        train_x, validation_x = (flat_windows(problem, e)
+                                 for e in (split.train, split.validation))
+        train_y, validation_y = (problem.targets(e, True) * 1e6
+                                 for e in (split.train, split.validation))
+        centre, scale = train_x.mean(axis=0), train_x.std(axis=0)
+        scale[scale == 0] = 1.0
 
+        def standard(x: np.ndarray) -> np.ndarray:
+            return (x - centre) / scale
 
-def hgb_baseline(problem: LearningProblem, seed: int = 0) -> BaselinePrediction:
-    """scikit-learn's `HistGradientBoostingRegressor`, default settings, one per axis."""
-    from sklearn.ensemble import HistGradientBoostingRegressor
+        scores = {}
+        for alpha in RIDGE_ALPHAS:
+            fitted = RidgeRegression(alpha=alpha).fit(standard(train_x), train_y)
+            scores[alpha] = float(np.mean((fitted.predict(standard(validation_x))
+                                           - validation_y) ** 2))
+        alpha = min(scores, key=lambda a: scores[a])
+        fit_x, fit_y = _fit_parts(problem)
+        model = RidgeRegression(alpha=alpha).fit(standard(fit_x), fit_y * 1e6)
 
-    started = time.perf_counter()
-    _, fit_x, fit_y = _fit_parts(problem)
-    test_x = flat_windows(problem, problem.split.test)
-    change = np.stack([HistGradientBoostingRegressor(random_state=seed)
-                       .fit(fit_x, fit_y[:, i] * 1e6).predict(test_x) * 1e-6
-                       for i in range(len(TARGETS))], axis=-1)
-    return BaselinePrediction(predicted=problem.error[problem.split.test] + change,
-                              seconds=time.perf_counter() - started,
-                              settings={'model': 'HistGradientBoostingRegressor (defaults)',
-                                        'random_state': seed})
+        def predict(ends: np.ndarray) -> np.ndarray:
+            change = model.predict(standard(flat_windows(problem, ends))) * 1e-6
+            return problem.error[ends] + change
+
+        return Fitted(predict=predict, details={
+            'training_seconds': time.perf_counter() - started,
+            'hyperparameters': {'alpha': alpha, 'alphas_tried': list(RIDGE_ALPHAS)},
+            'target': RESIDUAL_TARGET})
 
 
-def fit_baselines(problem: LearningProblem, seed: int = 0) -> dict[str, BaselinePrediction]:
-    """The report's baselines (`BASELINES`) on the problem's windows; with a reference preview
-    also on the same windows without it (keys ending in `NO_PREVIEW`), so that the report
-    says what the preview gives."""
-    fitted = {'ridge': ridge_baseline(problem), 'hgb': hgb_baseline(problem, seed)}
-    if problem.preview:
-        plain = without_preview(problem)
-        fitted |= {'ridge' + NO_PREVIEW: ridge_baseline(plain),
-                   'hgb' + NO_PREVIEW: hgb_baseline(plain, seed)}
+@dataclass(frozen=True)
+class BoostedTrees:
+    """scikit-learn's `HistGradientBoostingRegressor`, default settings, one per axis,
+    seeded with the run's seed."""
+
+    name: str = 'hgb'
+    label: str = 'HGB'
+
+    def fit(self, problem: LearningProblem, context: FitContext) -> Fitted:
+        from sklearn.ensemble import HistGradientBoostingRegressor
+
+        started = time.perf_counter()
+        seed = context.settings.seed
+        fit_x, fit_y = _fit_parts(problem)
+        models = [HistGradientBoostingRegressor(random_state=seed).fit(fit_x, fit_y[:, i] * 1e6)
+                  for i in range(len(TARGETS))]
+
+        def predict(ends: np.ndarray) -> np.ndarray:
+            inputs = flat_windows(problem, ends)
+            change = np.stack([m.predict(inputs) * 1e-6 for m in models], axis=-1)
+            return problem.error[ends] + change
+
+        return Fitted(predict=predict, details={
+            'training_seconds': time.perf_counter() - started,
+            'hyperparameters': {'model': 'HistGradientBoostingRegressor (defaults)',
+                                'random_state': seed},
+            'target': RESIDUAL_TARGET})
+
+
+@dataclass(frozen=True)
+class WithoutPreview:
+    """`base` fitted on the same windows without the reference preview; only beside a
+    problem that has one."""
+
+    base: Baseline
+
+    @property
+    def name(self) -> str:
+        return self.base.name + NO_PREVIEW
+
+    @property
+    def label(self) -> str:
+        return f'{self.base.label} (no preview)'
+
+    def fit(self, problem: LearningProblem, context: FitContext) -> Fitted | None:
+        if not problem.preview:
+            return None
+        return self.base.fit(without_preview(problem), context)
+
+
+@dataclass(frozen=True)
+class MapPrior:
+    """The machine map's prior alone, e(t) + g(t+h) - g(t); only where the run fitted a
+    map (`FitContext.machine_map`)."""
+
+    name: str = 'machine_map'
+    label: str = 'Machine map (prior)'
+
+    def fit(self, problem: LearningProblem, context: FitContext) -> Fitted | None:
+        machine_map = context.machine_map
+        if machine_map is None:
+            return None
+        return Fitted(predict=lambda ends: map_prior(machine_map, problem, ends),
+                      details={'target': 'e(t) + g(t+h) - g(t)',
+                               'map_fit_rms_um': machine_map.fit_rms * 1e6})
+
+
+PERSISTENCE, BP, RIDGE, HGB, MAP_PRIOR = (Persistence(), BackPropagation(), Ridge(),
+                                          BoostedTrees(), MapPrior())
+#: Every baseline of a training's report, in the report's order.
+BASELINES: tuple[Baseline, ...] = (PERSISTENCE, BP, RIDGE, HGB, WithoutPreview(RIDGE),
+                                   WithoutPreview(HGB), MAP_PRIOR)
+
+
+def fit_baselines(problem: LearningProblem, context: FitContext,
+                  baselines: Sequence[Baseline] = BASELINES) -> dict[str, FittedBaseline]:
+    """Each of `baselines` that applies to the problem, fitted, by name, in order."""
+    fitted = {}
+    for baseline in baselines:
+        started = time.perf_counter()
+        result = baseline.fit(problem, context)
+        if result is not None:
+            fitted[baseline.name] = FittedBaseline(baseline.label, result,
+                                                   time.perf_counter() - started)
     return fitted
+
+
+@dataclass(frozen=True)
+class ScoredPredictions:
+    """Each model's prediction of the test part and the actual error, for the plots."""
+
+    seconds: np.ndarray  # (B,) predicted instants [s] from the first one
+    actual: np.ndarray  # (B, 2) plant error [m]
+    predictions: dict[str, np.ndarray]  # model name -> (B, 2) [m]
+
+
+def score_test_part(problem: LearningProblem, baselines: Mapping[str, FittedBaseline],
+                    predicted: Mapping[str, np.ndarray], gap_factor: float
+                    ) -> tuple[ScoredPredictions, dict[str, dict[str, Any]]]:
+    """The fitted baselines' predictions of the problem's test part, then the models'
+    (`predicted`), and the report's entry of each: its metrics (a step over `gap_factor`
+    sample periods ends a run of the integral metrics) and what a baseline says of itself."""
+    test = problem.split.test
+    targets = test + problem.horizon
+    actual, stamps = problem.error[targets], problem.stamps[targets]
+    predictions = {**{name: fitted.fitted.predict(test) for name, fitted in baselines.items()},
+                   **predicted}
+    models = score_predictions(predictions, actual, stamps, problem.error_low,
+                               problem.error_high, gap_factor * problem.sample_period)
+    for name, fitted in baselines.items():
+        models[name].update(fitted.report())
+    return ScoredPredictions(seconds=seconds_since(stamps), actual=actual,
+                             predictions=predictions), models
 
 
 def beats(metrics: dict[str, dict[str, float]],

@@ -29,10 +29,17 @@ import numpy as np
 from lompr_predictor.data.features import TARGETS
 from lompr_predictor.data.problem import LearningProblem
 from lompr_predictor.errors import LomprError
-from lompr_predictor.learning.baselines import beats
+from lompr_predictor.learning.baselines import (
+    MAP_PRIOR,
+    PERSISTENCE,
+    RESIDUAL_TARGET,
+    FitContext,
+    beats,
+    fit_baselines,
+    score_test_part,
+)
 from lompr_predictor.learning.envelope import InputEnvelope, fit_envelope, joined_envelope
-from lompr_predictor.learning.machine_map import MachineMap, map_prior
-from lompr_predictor.learning.metrics import score_predictions
+from lompr_predictor.learning.machine_map import MachineMap
 from lompr_predictor.learning.model_file import (
     PERIOD_TOLERANCE,
     LoadedModel,
@@ -46,20 +53,17 @@ from lompr_predictor.learning.models import (
     build_network,
     network_columns,
     network_features,
-    persistence,
     predict_rows,
 )
+from lompr_predictor.learning.options import TrainingConfig, TrainSettings
 from lompr_predictor.learning.pipeline import (
-    ScoredPredictions,
-    TrainingConfig,
     TrainingResult,
     check_config,
     read_problem,
 )
 from lompr_predictor.learning.report import base_report, irreducible_fields
-from lompr_predictor.learning.training import TrainedModel, TrainSettings, train_network
+from lompr_predictor.learning.training import TrainedModel, train_network
 from lompr_predictor.robot.description import load_robot_description
-from lompr_predictor.stamps import seconds_since
 
 #: Windows on which the rebuilt module must predict as the file does, at most.
 CHECK_WINDOWS = 256
@@ -157,25 +161,20 @@ def fine_tune_predictor(config: TrainingConfig, init: str | Path) -> TrainingRes
     module = editable_module(parent)
     check_rebuilt(module, parent, problem.rows, problem.split.test)
     hyperparameters = dict(parent.metadata.hyperparameters)
-    settings = TrainSettings(max_epochs=config.max_epochs, patience=config.patience,
-                             seed=config.seed, epoch_windows=config.epoch_windows)
+    settings = config.settings
     trained = train_network(problem, 'lstm', hyperparameters, settings,
                             residual=bool(module.residual), progress=config.progress,
                             label='fine-tuning', init=module)
-    test = problem.split.test
-    targets = test + problem.horizon
-    actual, stamps = problem.error[targets], problem.stamps[targets]
     machine_map = module.machine_map if module.use_map else None
-    predictions = {
-        'persistence': persistence(problem.error, test),
-        **({'machine_map': map_prior(machine_map, problem, test)} if machine_map else {}),
-        'parent': predict_rows(parent.module, problem.rows, test, problem.window),
-        'bo_lstm': predict_rows(trained.module, problem.rows, test, problem.window)}
-    models = score_predictions(predictions, actual, stamps, problem.error_low,
-                               problem.error_high,
-                               config.inputs.cleaning.gap_factor * problem.sample_period)
+    baselines = fit_baselines(problem, FitContext(settings, machine_map=machine_map),
+                              (PERSISTENCE, MAP_PRIOR))
+    test = problem.split.test
+    scored, models = score_test_part(problem, baselines, {
+        name: predict_rows(network, problem.rows, test, problem.window)
+        for name, network in (('parent', parent.module), ('bo_lstm', trained.module))},
+        config.inputs.cleaning.gap_factor)
     models['bo_lstm'].update(training_seconds=trained.seconds, hyperparameters=hyperparameters,
-                             target='residual (e(t+h) - e(t))', epochs=trained.epochs)
+                             target=RESIDUAL_TARGET, epochs=trained.epochs)
     report = base_report('train', problem, data, sources, config.inputs.cleaning)
     report.update(
         models=models,
@@ -189,9 +188,7 @@ def fine_tune_predictor(config: TrainingConfig, init: str | Path) -> TrainingRes
     metadata = _metadata(parent, problem, trained_on, trained, settings, config,
                          models['bo_lstm']['metrics'])
     return TrainingResult(module=script_module(trained.module), metadata=metadata,
-                          report=report,
-                          test_part=ScoredPredictions(seconds=seconds_since(stamps),
-                                                      actual=actual, predictions=predictions))
+                          report=report, test_part=scored)
 
 
 def _fine_tuning_part(parent: LoadedModel, trained: TrainedModel,

@@ -37,12 +37,10 @@ from lompr_predictor.learning.model_file import (
     save_checkpoint,
     script_module,
 )
+from lompr_predictor.learning.options import TrainSettings
 from lompr_predictor.learning.space import SearchSpace
-from lompr_predictor.learning.training import TrainedModel, TrainSettings, train_network
+from lompr_predictor.learning.training import TrainedModel, train_network
 from lompr_predictor.learning.tuning import DUPLICATE_OF, finished_twin, restart_index
-
-#: Folder of the trials' checkpoints inside a report folder.
-CHECKPOINT_FOLDER = 'trials'
 
 
 def checkpoint_path(folder: str | Path, study_name: str, trial_number: int) -> Path:

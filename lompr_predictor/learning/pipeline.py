@@ -3,9 +3,11 @@
 `train_predictor(config)` reads and cleans the bags (`data.loading`), cuts the learning
 problem (windows, chronological split: `data.problem`), tunes the LSTM's batch size, hidden
 units and learning rate by Bayesian optimisation on the validation part (`tuning.py`, with
-the objective of `objective.py`), trains the paper's BP baseline, scores persistence, BP and
-BO-LSTM on the chronologically last 10 % (Table 1 metrics, `metrics.py`) and returns the
-BO-LSTM module, its metadata, the report document and the test predictions.
+the objective of `objective.py`), fits the baselines (`baselines.BASELINES`: persistence, the
+paper's BP, ridge, boosted trees, the machine map's prior), scores them and the BO-LSTM on the
+chronologically last 10 % (Table 1 metrics, `metrics.py`) and returns the BO-LSTM module, its
+metadata, the report document and the test predictions. The run's options are
+`options.TrainingConfig`'s, each declared once there.
 `write_outputs(config, result)` writes the model file (`model_file.py`) and the report
 folder (`report.py`), each file atomically.
 
@@ -31,17 +33,14 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import optuna
 import torch
 
 from lompr_predictor.data.bags import BagSource, BagTopics
 from lompr_predictor.data.cleaning import CleanData, implausible_error
 from lompr_predictor.data.features import TARGETS
-from lompr_predictor.data.loading import BagInputs, load_clean_data
+from lompr_predictor.data.loading import load_clean_data
 from lompr_predictor.data.problem import (
-    DEFAULT_HORIZON,
-    DEFAULT_WINDOW,
     TEST_FRACTION,
     VALIDATION_FRACTION,
     LearningProblem,
@@ -49,10 +48,18 @@ from lompr_predictor.data.problem import (
     train_test_problem,
 )
 from lompr_predictor.errors import LomprError
-from lompr_predictor.learning.baselines import beats, fit_baselines
+from lompr_predictor.learning.baselines import (
+    BP,
+    RESIDUAL_TARGET,
+    FitContext,
+    ScoredPredictions,
+    beats,
+    fit_baselines,
+    score_test_part,
+)
 from lompr_predictor.learning.envelope import fit_envelope
-from lompr_predictor.learning.machine_map import MachineMap, fit_machine_map, map_prior
-from lompr_predictor.learning.metrics import ratios, score_predictions
+from lompr_predictor.learning.machine_map import MachineMap, fit_machine_map
+from lompr_predictor.learning.metrics import ratios
 from lompr_predictor.learning.model_file import (
     ExportedModule,
     ModelMetadata,
@@ -60,43 +67,28 @@ from lompr_predictor.learning.model_file import (
     sidecar_path,
     write_model,
 )
-from lompr_predictor.learning.models import (
-    BP_HYPERPARAMETERS,
-    normalisation_metadata,
-    persistence,
-    predict_rows,
+from lompr_predictor.learning.models import normalisation_metadata, predict_rows
+from lompr_predictor.learning.objective import NetworkObjective
+from lompr_predictor.learning.options import (
+    OptionError,
+    TrainingConfig,
+    check_options,
+    recorded_options,
+    study_options,
 )
-from lompr_predictor.learning.objective import CHECKPOINT_FOLDER, NetworkObjective
 from lompr_predictor.learning.report import (
     base_report,
     irreducible_fields,
     write_report,
 )
-from lompr_predictor.learning.space import (
-    DEFAULT_RESTARTS,
-    DEFAULT_SPACE,
-    DEFAULT_TRIALS,
-    HEARTBEAT_SECONDS,
-    SearchSpace,
-)
 from lompr_predictor.learning.storage import (
     StorageSpec,
-    StudyError,
     StudyStorage,
     default_storage,
     open_storage,
     parse_storage,
 )
-from lompr_predictor.learning.training import (
-    BP_MAX_EPOCHS,
-    BP_PATIENCE,
-    EPOCH_WINDOWS,
-    MAX_EPOCHS,
-    NORMALISATION,
-    PATIENCE,
-    TrainSettings,
-    train_network,
-)
+from lompr_predictor.learning.training import NORMALISATION
 from lompr_predictor.learning.tuning import (
     best_trial,
     history,
@@ -110,67 +102,7 @@ from lompr_predictor.learning.tuning import (
 )
 from lompr_predictor.learning.workers import StudySpec, TuningRun, tune
 from lompr_predictor.robot.description import RobotDescription, load_robot_description
-from lompr_predictor.stamps import seconds_since
 from lompr_predictor.threads import default_workers
-
-
-@dataclass(frozen=True)
-class TrainingConfig:
-    """Everything a training run decides; the defaults are `lompr train`'s."""
-
-    inputs: BagInputs  # bags, topics, bad-bag policy, cleaning rules
-    model_path: Path | None = None  # model file to write (not needed by `run_workers`)
-    report_dir: Path | None = None  # report folder (also holds the default study storage
-    # and checkpoints; not needed by `run_workers`)
-    robot_description: str | None = None  # URDF file; None: the packaged LOMPR description
-    window: int = DEFAULT_WINDOW
-    horizon: int = DEFAULT_HORIZON
-    preview: int = 0  # samples of the planned reference after each row (0: no preview)
-    trials: int = DEFAULT_TRIALS  # tuning budget (finished and pruned trials count)
-    restarts: int = DEFAULT_RESTARTS  # trainings of the best point with other seeds
-    seed: int = 0
-    max_epochs: int = MAX_EPOCHS
-    patience: int = PATIENCE
-    epoch_windows: int = EPOCH_WINDOWS  # training windows per epoch, at most
-    space: SearchSpace = DEFAULT_SPACE
-    storage: str | None = None  # study storage (`storage.py`); None: a journal file in
-    # report_dir
-    study_name: str | None = None  # None: derived from the bags and the settings
-    workers: int | None = None  # local tuning processes; None: the cores available (capped)
-    checkpoints: Path | None = None  # trials' checkpoints (shared by the machines of a
-    # study); None: report_dir / CHECKPOINT_FOLDER
-    heartbeat: int = HEARTBEAT_SECONDS  # seconds between a running trial's heartbeats
-    progress: bool = True  # progress bars
-    test_inputs: BagInputs | None = None  # other recordings as the test part (e.g. another
-    # seed of the same machine); None: the chronologically last 10 % of `inputs`
-    machine_map: bool = True  # the BO-LSTM builds on a fitted machine map (`machine_map.py`)
-    #: what its network reads (`models.network_columns`): 'machine' (the map's residuals;
-    #: needs the map) or 'all' (every feature)
-    network_inputs: str = 'machine'
-
-    @property
-    def settings(self) -> TrainSettings:
-        """The training loop's settings (every trial's, and BP's)."""
-        return TrainSettings(max_epochs=self.max_epochs, patience=self.patience, seed=self.seed,
-                             epoch_windows=self.epoch_windows)
-
-    @property
-    def checkpoint_dir(self) -> Path:
-        if self.checkpoints is not None:
-            return Path(self.checkpoints)
-        if self.report_dir is None:
-            msg = "no folder for the trials' checkpoints: give --checkpoints DIR or --report DIR"
-            raise StudyError(msg)
-        return Path(self.report_dir) / CHECKPOINT_FOLDER
-
-
-@dataclass(frozen=True)
-class ScoredPredictions:
-    """Each model's prediction of the test part and the actual error, for the plots."""
-
-    seconds: np.ndarray  # (B,) predicted instants [s] from the first one
-    actual: np.ndarray  # (B, 2) plant error [m]
-    predictions: dict[str, np.ndarray]  # model name -> (B, 2) [m]
 
 
 @dataclass(frozen=True)
@@ -211,41 +143,12 @@ class WorkerSummary:
 
 
 def check_config(config: TrainingConfig, *, finishing: bool = True) -> StorageSpec:
-    """Refuse, with one message, a config that cannot run, before any bag is read: workers,
-    budget, output paths, and the storage's spelling (`storage.parse_storage`); the storage
-    it names. `finishing`: `train_predictor`'s needs, else `run_workers`'."""
-    if config.workers is not None and config.workers < 1:
-        msg = f'--workers must be >= 1, got {config.workers}'
-        raise StudyError(msg)
-    if config.trials < 1 or config.restarts < 0:
-        msg = (f'--trials must be >= 1 and --restarts >= 0, got {config.trials} and '
-               f'{config.restarts}')
-        raise StudyError(msg)
-    if config.window < 1 or config.horizon < 1 or config.preview < 0:
-        msg = (f'--window and --horizon must be >= 1 and --preview >= 0, got {config.window}, '
-               f'{config.horizon} and {config.preview}')
-        raise StudyError(msg)
-    if config.network_inputs == 'machine' and not config.machine_map:
-        msg = ("--network-inputs machine reads the machine map's residuals: keep the map "
-               '(no --no-machine-map) or give --network-inputs all')
-        raise StudyError(msg)
-    if config.max_epochs < 1 or config.patience < 1 or config.epoch_windows < 1:
-        msg = (f'--max-epochs, --patience and --epoch-windows must be >= 1, got '
-               f'{config.max_epochs}, {config.patience} and {config.epoch_windows}')
-        raise StudyError(msg)
+    """Refuse, with one message, a config that cannot run, before any bag is read: its
+    options (`options.check_options`), the space for its window and the storage's spelling
+    (`storage.parse_storage`); the storage it names. `finishing`: `train_predictor`'s
+    needs, else `run_workers`'."""
+    check_options(config, finishing=finishing)
     config.space.check(config.window)
-    if finishing and (config.model_path is None or config.report_dir is None):
-        msg = '--out MODEL.pt and --report DIR are needed (unless --workers-only)'
-        raise StudyError(msg)
-    if not finishing:
-        if not config.storage or not config.study_name:
-            msg = ('--workers-only joins a study: give its --storage URL and its --study-name '
-                   '(the same as every other command of the study)')
-            raise StudyError(msg)
-        if config.checkpoints is None and config.report_dir is None:
-            msg = ('--workers-only needs --checkpoints DIR: where the finishing command reads '
-                   "the trials' models (a folder every machine shares)")
-            raise StudyError(msg)
     text = config.storage or default_storage(_report_dir(config))
     return parse_storage(text, heartbeat=config.heartbeat)
 
@@ -279,42 +182,15 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     read_seconds = time.perf_counter() - started
     machine_map = _machine_map(config, problem, data, description)
     tuned = _tune(config, problem, machine_map, sources, description, storage)
-    bp_started = time.perf_counter()
-    # BP keeps the paper's longer budget; a budget shrunk below the default shrinks it too
-    bp_settings = TrainSettings(
-        max_epochs=BP_MAX_EPOCHS if config.max_epochs >= MAX_EPOCHS else config.max_epochs,
-        patience=BP_PATIENCE, seed=config.seed, epoch_windows=config.epoch_windows)
-    bp = train_network(problem, 'mlp', BP_HYPERPARAMETERS, bp_settings, residual=False,
-                       progress=config.progress, label='BP')
-    bp_seconds = time.perf_counter() - bp_started
-    baselines_started = time.perf_counter()
-    baselines = fit_baselines(problem, config.seed)
-    baselines_seconds = time.perf_counter() - baselines_started
-
+    baselines = fit_baselines(problem, FitContext(config.settings, config.progress,
+                                                  machine_map))
     scoring_started = time.perf_counter()
-    test = problem.split.test
-    targets = test + problem.horizon
-    actual, stamps = problem.error[targets], problem.stamps[targets]
-    predictions = {
-        'persistence': persistence(problem.error, test),
-        'bp': predict_rows(bp.module, problem.rows, test, problem.window),
-        **{name: baseline.predicted for name, baseline in baselines.items()},
-        **({'machine_map': map_prior(machine_map, problem, test)} if machine_map else {}),
-        'bo_lstm': predict_rows(tuned.module, problem.rows, test, problem.window)}
-    max_step = config.inputs.cleaning.gap_factor * problem.sample_period
-    models = score_predictions(predictions, actual, stamps, problem.error_low,
-                               problem.error_high, max_step)
-    models['bp'].update(training_seconds=bp.seconds, hyperparameters=dict(BP_HYPERPARAMETERS),
-                        target='error', epochs=bp.epochs)
+    scored, models = score_test_part(problem, baselines, {'bo_lstm': predict_rows(
+        tuned.module, problem.rows, problem.split.test, problem.window)},
+        config.inputs.cleaning.gap_factor)
     models['bo_lstm'].update(training_seconds=tuned.training_seconds,
-                             hyperparameters=tuned.params, target='residual (e(t+h) - e(t))')
-    for name, baseline in baselines.items():
-        models[name].update(training_seconds=baseline.seconds,
-                            hyperparameters=baseline.settings, target='residual (e(t+h) - e(t))')
-    if machine_map is not None:
-        models['machine_map'].update(target='e(t) + g(t+h) - g(t)',
-                                     map_fit_rms_um=machine_map.fit_rms * 1e6)
-    report = _report(config, problem, data, sources, models, tuned, bp.seconds)
+                             hyperparameters=tuned.params, target=RESIDUAL_TARGET)
+    report = _report(config, problem, data, sources, models, tuned)
     scoring_seconds = time.perf_counter() - scoring_started
     metadata = _model_metadata(config, problem, tuned, machine_map, description, trained_on,
                                models['bo_lstm']['metrics'])
@@ -323,7 +199,9 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     report['timings'] = {'read_clean_fk_seconds': read_seconds,
                          'tuning_seconds': tuned.tuning_seconds,
                          'best_model_seconds': tuned.best_model_seconds,
-                         'bp_seconds': bp_seconds, 'baselines_seconds': baselines_seconds,
+                         'bp_seconds': baselines[BP.name].seconds,
+                         'baselines_seconds': sum(fitted.seconds for name, fitted
+                                                  in baselines.items() if name != BP.name),
                          'scoring_seconds': scoring_seconds,
                          'total_seconds': total, 'read_fraction_of_total': read_seconds / total}
     report['model_file'] = str(Path(_model_path(config)).resolve())
@@ -331,8 +209,7 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
         report['test_part'] = 'every window of the test bags: ' + ', '.join(
             config.test_inputs.bags)
     return TrainingResult(module=tuned.module, metadata=metadata, report=report,
-                          test_part=ScoredPredictions(seconds=seconds_since(stamps),
-                                                      actual=actual, predictions=predictions))
+                          test_part=scored)
 
 
 def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tuned,
@@ -351,10 +228,8 @@ def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tu
                          'architecture': 'LSTM over the last lstm_steps rows, last state -> '
                                          'MLP head (2 GELU layers) + linear highway on the window'
                                          + (', on the machine map' if machine_map else ''),
-                         'network_inputs': config.network_inputs if machine_map else 'all',
                          'optimiser': 'AdamW, cosine learning-rate decay over max_epochs',
-                         'max_epochs': config.max_epochs, 'patience': config.patience,
-                         'epoch_windows': config.epoch_windows,
+                         **recorded_options(config),
                          'cleaning': vars(config.inputs.cleaning)},
         robot_description_sha256=description.sha256,
         training_bags=tuple({'path': str(Path(s.path).resolve()), 'sha256': s.sha256}
@@ -427,15 +302,13 @@ def _problem(data: CleanData, test: CleanData | None, config: TrainingConfig) ->
 
 def _model_path(config: TrainingConfig) -> Path:
     if config.model_path is None:
-        msg = 'no model file to write: give --out MODEL.pt'
-        raise LomprError(msg)
+        raise OptionError('no model file to write: give a model_path', ('model_path',))
     return Path(config.model_path)
 
 
 def _report_dir(config: TrainingConfig) -> Path:
     if config.report_dir is None:
-        msg = 'no report folder: give --report DIR'
-        raise LomprError(msg)
+        raise OptionError('no report folder: give a report_dir', ('report_dir',))
     return Path(config.report_dir)
 
 
@@ -443,15 +316,15 @@ def study_definition(config: TrainingConfig, sources: list[BagSource],
                      description: RobotDescription) -> dict[str, Any]:
     """What defines the tuning problem, recorded in the study (a command with other settings
     is refused) and naming it unless the config does: the bags by content (their paths
-    differ between machines), the robot description, topics, cleaning, window, horizon,
-    space, seed and training settings."""
+    differ between machines), the robot description, topics, cleaning, space, the options
+    declared to define it (`options.study_options`: window, horizon, seed, preview), the
+    machine map's and the training loop's settings."""
     return {'bags': sorted(s.sha256 for s in sources if not s.skipped_reason),
             'robot_description': description.sha256,
             'topics': _topics(config.inputs.topics),
-            'cleaning': vars(config.inputs.cleaning), 'window': config.window,
-            'horizon': config.horizon, 'space': config.space.as_dict(), 'seed': config.seed,
-            # only when set: studies of models without a preview keep their names
-            **({'preview': config.preview} if config.preview else {}),
+            'cleaning': vars(config.inputs.cleaning), 'space': config.space.as_dict(),
+            **study_options(config),
+            # only with the map, which came later: studies without it keep their names
             **({'machine_map': True, 'network_inputs': config.network_inputs}
                if config.machine_map else {}),
             'settings': vars(config.settings), 'model_type': 'lstm'}
@@ -535,9 +408,10 @@ def _tune(config: TrainingConfig, problem: LearningProblem, machine_map: Machine
 
 
 def _report(config: TrainingConfig, problem: LearningProblem, data: CleanData,
-            sources: list[BagSource], models: dict[str, dict[str, Any]], tuned: _Tuned,
-            bp_seconds: float) -> dict[str, Any]:
+            sources: list[BagSource], models: dict[str, dict[str, Any]],
+            tuned: _Tuned) -> dict[str, Any]:
     report = base_report('train', problem, data, sources, config.inputs.cleaning)
+    bp_seconds = models[BP.name]['training_seconds']
     report.update(
         models=models,
         ratios_to_bp=ratios(models['bo_lstm']['metrics'], models['bp']['metrics']),

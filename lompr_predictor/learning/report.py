@@ -34,10 +34,9 @@ from lompr_predictor.plots import pyplot, save_figure
 GROUND_TRUTH_JSON = 'lompr_ground_truth.json'
 PREDICTION_PLOT = 'prediction_test.png'
 TUNING_PLOT = 'tuning_history.png'
-MODEL_LABELS = {'persistence': 'Persistence', 'bp': 'BP', 'ridge': 'Ridge', 'hgb': 'HGB',
-                'ridge_no_preview': 'Ridge (no preview)', 'hgb_no_preview': 'HGB (no preview)',
-                'machine_map': 'Machine map (prior)', 'parent': 'Parent (--init)',
-                'bo_lstm': 'BO-LSTM', 'model': 'Model'}
+#: Labels of the models that are not baselines (a baseline's entry carries its own label,
+#: `baselines.Baseline.label`); any other model is shown by its key.
+MODEL_LABELS = {'parent': 'Parent (--init)', 'bo_lstm': 'BO-LSTM', 'model': 'Model'}
 METRIC_LABELS = {
     'mse_pct': 'MSE (%^2)', 'rmse_pct': 'RMSE (%)', 'mae_pct': 'MAE (%)',
     'mse_um2': 'MSE (um^2)', 'rmse_um': 'RMSE (um)', 'mae_um': 'MAE (um)',
@@ -92,12 +91,14 @@ def irreducible_fields(models: Mapping[str, Any], sources: Sequence[BagSource],
                 for name, m in models.items()}}
 
 
+def model_label(name: str, entry: Mapping[str, Any]) -> str:
+    """A model's name in report.md and the plots: its entry's label, else `MODEL_LABELS`',
+    else its key (never left out)."""
+    return str(entry.get('label') or MODEL_LABELS.get(name, name))
+
+
 def markdown(report: Mapping[str, Any]) -> str:
     """report.md: the Table 1 layout per axis, then data counts, times and tuning."""
-    models = report['models']
-    names = [n for n in MODEL_LABELS if n in models]
-    with_bp = 'bp' in models and 'bo_lstm' in models
-    beaten = report.get('bo_lstm_beats') or {}
     horizon, period = report['horizon'], report['sample_period']
     lines = [f"# lompr {report['command']} report", '',
              f"Horizon {horizon} samples ({horizon * period:.3g} s), "
@@ -110,42 +111,8 @@ def markdown(report: Mapping[str, Any]) -> str:
                                           'each recording')
                 + ').' if report['command'] == 'train' else
                 f"scored on all {report['split']['test']} windows of the recordings."), '']
-    irreducible = report.get('irreducible_rmse_um')
-    for axis in TARGETS:
-        header = ['metric', *[MODEL_LABELS[n] for n in names],
-                  *(['BO-LSTM / BP'] if with_bp else []),
-                  *[f'BO-LSTM beats {MODEL_LABELS[n]}' for n in beaten]]
-        lines += [f'## Axis {axis.upper()}', '', '| ' + ' | '.join(header) + ' |',
-                  '|' + '---|' * len(header)]
-        for metric in METRIC_NAMES:
-            row = [METRIC_LABELS[metric],
-                   *[f"{models[n]['metrics'][axis][metric]:.4g}" for n in names]]
-            if with_bp:
-                ratio = report['ratios_to_bp'][axis][metric]
-                row.append('-' if ratio is None else f'{100 * ratio:.1f} %')
-            row += ['yes' if beaten[n][axis][metric] else '**no**' for n in beaten]
-            lines.append('| ' + ' | '.join(row) + ' |')
-        if irreducible:
-            row = ['RMSE / irreducible'] + [
-                f"{models[n]['metrics'][axis]['rmse_um'] / irreducible[axis]:.3g}" for n in names]
-            lines.append('| ' + ' | '.join(row + ([''] if with_bp else []) + [''] * len(beaten))
-                         + ' |')
-        lines.append('')
-    if irreducible:
-        lines += ['Irreducible RMSE at this horizon (twin ground truth): '
-                  f"X {irreducible['x']:.3g} um, Y {irreducible['y']:.3g} um.", '']
-    lines += ['## Training and timing', '']
-    for name in names:
-        seconds = models[name].get('training_seconds')
-        if seconds is not None:
-            lines.append(f'- {MODEL_LABELS[name]} training: {seconds:.1f} s, hyperparameters '
-                         f"{models[name].get('hyperparameters')}")
-    if report.get('training_time_ratio_lstm_to_bp') is not None:
-        lines.append(f"- BO-LSTM (best trial) / BP training time: "
-                     f"{100 * report['training_time_ratio_lstm_to_bp']:.1f} %; whole Bayesian "
-                     f"tuning / BP: {100 * report['tuning_time_ratio_to_bp']:.0f} %")
-    for key, value in report.get('timings', {}).items():
-        lines.append(f'- {key}: {value:.4g}')
+    lines += _metric_tables(report)
+    lines += _training_lines(report)
     lines += _tuning_lines(report.get('tuning'))
     lines += _fine_tuning_lines(report.get('fine_tuning'))
     if report.get('model_sha256'):
@@ -158,6 +125,57 @@ def markdown(report: Mapping[str, Any]) -> str:
     lines += [f"- skipped bag {b['path']}: {b['skipped_reason']}" for b in skipped]
     lines += ['', f'![prediction vs actual on the test window]({PREDICTION_PLOT})', '']
     return '\n'.join(lines)
+
+
+def _metric_tables(report: Mapping[str, Any]) -> list[str]:
+    """report.md's table per axis: every model's metrics, BO-LSTM / BP, whether the BO-LSTM
+    beats each other model; the irreducible level below it."""
+    models = report['models']
+    labels = {name: model_label(name, entry) for name, entry in models.items()}
+    with_bp = 'bp' in models and 'bo_lstm' in models
+    beaten = report.get('bo_lstm_beats') or {}
+    irreducible = report.get('irreducible_rmse_um')
+    lines = []
+    for axis in TARGETS:
+        header = ['metric', *labels.values(), *(['BO-LSTM / BP'] if with_bp else []),
+                  *[f'BO-LSTM beats {labels[n]}' for n in beaten]]
+        lines += [f'## Axis {axis.upper()}', '', '| ' + ' | '.join(header) + ' |',
+                  '|' + '---|' * len(header)]
+        for metric in METRIC_NAMES:
+            row = [METRIC_LABELS[metric],
+                   *[f"{models[n]['metrics'][axis][metric]:.4g}" for n in labels]]
+            if with_bp:
+                ratio = report['ratios_to_bp'][axis][metric]
+                row.append('-' if ratio is None else f'{100 * ratio:.1f} %')
+            row += ['yes' if beaten[n][axis][metric] else '**no**' for n in beaten]
+            lines.append('| ' + ' | '.join(row) + ' |')
+        if irreducible:
+            row = ['RMSE / irreducible'] + [
+                f"{models[n]['metrics'][axis]['rmse_um'] / irreducible[axis]:.3g}"
+                for n in labels]
+            lines.append('| ' + ' | '.join(row + ([''] if with_bp else []) + [''] * len(beaten))
+                         + ' |')
+        lines.append('')
+    if irreducible:
+        lines += ['Irreducible RMSE at this horizon (twin ground truth): '
+                  f"X {irreducible['x']:.3g} um, Y {irreducible['y']:.3g} um.", '']
+    return lines
+
+
+def _training_lines(report: Mapping[str, Any]) -> list[str]:
+    """report.md's section on training times and hyperparameters, and where the time went."""
+    lines = ['## Training and timing', '']
+    for name, entry in report['models'].items():
+        seconds = entry.get('training_seconds')
+        if seconds is not None:
+            lines.append(f'- {model_label(name, entry)} training: {seconds:.1f} s, '
+                         f"hyperparameters {entry.get('hyperparameters')}")
+    if report.get('training_time_ratio_lstm_to_bp') is not None:
+        lines.append(f"- BO-LSTM (best trial) / BP training time: "
+                     f"{100 * report['training_time_ratio_lstm_to_bp']:.1f} %; whole Bayesian "
+                     f"tuning / BP: {100 * report['tuning_time_ratio_to_bp']:.0f} %")
+    lines += [f'- {key}: {value:.4g}' for key, value in report.get('timings', {}).items()]
+    return lines
 
 
 def _tuning_lines(tuning: Mapping[str, Any] | None) -> list[str]:
@@ -206,16 +224,18 @@ def _fine_tuning_lines(fine_tuning: Mapping[str, Any] | None) -> list[str]:
 
 
 def plot_predictions(path: Path, seconds: np.ndarray, actual: np.ndarray,
-                     predictions: Mapping[str, np.ndarray], horizon: int) -> None:
+                     predictions: Mapping[str, np.ndarray], horizon: int,
+                     labels: Mapping[str, str] | None = None) -> None:
     """Prediction vs actual error on the test window per axis (the paper's Fig. 5), each
-    with a panel below of the prediction errors, where the models differ visibly."""
+    with a panel below of the prediction errors, where the models differ visibly; each
+    model named by `labels` (else its key)."""
     figure, axes = pyplot().subplots(2 * len(TARGETS), 1, figsize=(11, 9), sharex=True,
                                 gridspec_kw={'height_ratios': [2, 1] * len(TARGETS)})
     for i, axis in enumerate(TARGETS):
         value, miss = axes[2 * i], axes[2 * i + 1]
         value.plot(seconds, actual[:, i] * 1e6, color='black', linewidth=1.2, label='actual')
         for name, predicted in predictions.items():
-            label = MODEL_LABELS.get(name, name)
+            label = (labels or {}).get(name, name)
             value.plot(seconds, predicted[:, i] * 1e6, linewidth=0.8, label=label)
             miss.plot(seconds, (predicted[:, i] - actual[:, i]) * 1e6, linewidth=0.6, label=label)
         value.set_ylabel(f'{axis.upper()} error (um)')
@@ -260,7 +280,9 @@ def write_report(folder: str | Path, report: Mapping[str, Any], *, seconds: np.n
     `before_documents` is called between the two (the caller may add what writing took)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    plot_predictions(folder / PREDICTION_PLOT, seconds, actual, predictions, report['horizon'])
+    labels = {name: model_label(name, entry) for name, entry in report['models'].items()}
+    plot_predictions(folder / PREDICTION_PLOT, seconds, actual, predictions, report['horizon'],
+                     labels)
     if report.get('tuning'):
         plot_tuning(folder / TUNING_PLOT, report['tuning']['trials'])
     if before_documents is not None:

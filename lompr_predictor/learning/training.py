@@ -37,19 +37,8 @@ from lompr_predictor.learning.models import (
     network_features,
     with_map_residuals,
 )
+from lompr_predictor.learning.options import TrainSettings
 
-#: Defaults of the training loop, in one place.
-MAX_EPOCHS = 120  # the cosine schedule's length: the LSTM's best epoch is near its end
-PATIENCE = 8
-#: Training windows drawn (afresh, at random) per epoch, and validation windows scored per
-#: epoch (evenly spaced), at most: the cost of an epoch is bounded whatever the sample rate.
-#: At 25 Hz, 20 passes give ~16 000 training windows, all of them every epoch. At 250 Hz
-#: (165 000) neighbouring windows are nearly alike, but not redundant: on the highrate preset
-#: at horizon 1 (2 seeds, batch 512, hidden 32, rate 0.02, 120 epochs) 20 000 per epoch gave
-#: 1.06/1.12x the irreducible level (X/Y), 40 000 1.03/1.10 at 1.8x the time (a 430 s
-#: default study, over its 300 s budget, and still behind boosted trees on Y), 60 000
-#: 1.03/1.09 at 2.8x.
-EPOCH_WINDOWS = 20_000
 #: The paper's BP trains with its own budget (min-max inputs, plateau schedule).
 BP_MAX_EPOCHS = 100
 BP_PATIENCE = 10
@@ -57,16 +46,6 @@ GRADIENT_CLIP = 1.0  # max gradient norm: a too-high learning rate stalls instea
 LR_DECAY = 0.3  # learning-rate factor after `LR_DECAY_PATIENCE` epochs without improvement
 LR_DECAY_PATIENCE = 3
 EVAL_BATCH = 8192
-
-
-@dataclass(frozen=True)
-class TrainSettings:
-    """What a training run decides beyond the hyperparameters (the same for every trial)."""
-
-    max_epochs: int = MAX_EPOCHS
-    patience: int = PATIENCE
-    seed: int = 0
-    epoch_windows: int = EPOCH_WINDOWS  # training (and validation) windows per epoch, at most
 
 
 @dataclass

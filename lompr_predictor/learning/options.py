@@ -1,0 +1,288 @@
+"""The trainer's options, each declared once: `TrainingConfig`, whose fields are at once the
+library's settings, `lompr train`'s flags, their checks and what the model file records.
+
+    horizon: int = option(DEFAULT_HORIZON, 'samples ahead (default {default})', minimum=1,
+                          study='always')
+
+A field declared with `option` carries its `OptionSpec` (default, help, range or choices,
+its command-line flag, whether the model file records it, whether it defines the tuning
+study) in its metadata, as `ros/parameters.py` declares a node's parameters. From it:
+
+- `cli/train.py` makes the argparse flag (the type and range checked by argparse before any
+  work, the help with the default written out);
+- `check_options` refuses a config that cannot run, in the library's words, naming the
+  options at fault (`OptionError.names`; the command line adds their flags);
+- `recorded_options` is what the model file's metadata records of the run;
+- `study_options` is what, beside the bags and the space, defines the tuning study.
+
+A new option is one `option(...)` field here plus its use. Kept light (no torch, no Optuna):
+the command line's help reads it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from lompr_predictor.data.loading import BagInputs
+from lompr_predictor.data.problem import DEFAULT_HORIZON, DEFAULT_WINDOW
+from lompr_predictor.errors import LomprError
+from lompr_predictor.learning.space import (
+    DEFAULT_RESTARTS,
+    DEFAULT_SPACE,
+    DEFAULT_TRIALS,
+    HEARTBEAT_SECONDS,
+    NETWORK_INPUTS,
+    SearchSpace,
+)
+from lompr_predictor.threads import MAX_DEFAULT_WORKERS, default_workers
+
+#: Defaults of the training loop (`training.train_network`).
+MAX_EPOCHS = 120  # the cosine schedule's length: the LSTM's best epoch is near its end
+PATIENCE = 8
+#: Training windows drawn (afresh, at random) per epoch, and validation windows scored per
+#: epoch (evenly spaced), at most: the cost of an epoch is bounded whatever the sample rate.
+#: At 25 Hz, 20 passes give ~16 000 training windows, all of them every epoch. At 250 Hz
+#: (165 000) neighbouring windows are nearly alike, but not redundant: on the highrate preset
+#: at horizon 1 (2 seeds, batch 512, hidden 32, rate 0.02, 120 epochs) 20 000 per epoch gave
+#: 1.06/1.12x the irreducible level (X/Y), 40 000 1.03/1.10 at 1.8x the time (a 430 s
+#: default study, over its 300 s budget, and still behind boosted trees on Y), 60 000
+#: 1.03/1.09 at 2.8x.
+EPOCH_WINDOWS = 20_000
+#: `max_epochs` of a fine-tuning (`lompr train --init`) unless given: a bounded fine-tuning,
+#: a quarter of a training's schedule.
+FINE_TUNE_EPOCHS = 30
+#: The trials' checkpoints in the report folder unless `checkpoints` names another.
+CHECKPOINT_FOLDER = 'trials'
+#: Key of the `OptionSpec` in a `TrainingConfig` field's metadata.
+SPEC_KEY = 'lompr_option'
+#: What a string option holds, for its check and its command-line type.
+TEXT_KINDS = ('text', 'output_file', 'output_folder', 'storage')
+#: How an option enters the study's definition: always, or only when it differs from its
+#: default (an option added later leaves the names of the studies made before it as they
+#: were).
+STUDY_RULES = ('', 'always', 'changed')
+
+
+class OptionError(LomprError, ValueError):
+    """Training options that cannot run together or a value out of range; `names` are the
+    options at fault (`TrainingConfig` fields)."""
+
+    def __init__(self, message: str, names: Iterable[str]) -> None:
+        super().__init__(message)
+        self.names = tuple(names)
+
+
+@dataclass(frozen=True)
+class OptionSpec:
+    """One training option: its default, help (`{default}` in it is the default written
+    out), an integer's `minimum` or a string's `choices`, the `kind` of a string that is
+    neither (one of `TEXT_KINDS`), its command-line `flag` ('--' and the name with dashes
+    unless given; a switch that is on by default is `--no-...`) and `metavar`, whether the
+    model file records it (`recorded`) and how it defines the tuning study (`study`, one of
+    `STUDY_RULES`)."""
+
+    default: Any
+    help: str
+    minimum: int | None = None
+    choices: tuple[str, ...] = ()
+    kind: str = ''
+    flag: str = ''
+    metavar: str | None = None
+    recorded: bool = False
+    study: str = ''
+
+    def __post_init__(self) -> None:
+        if self.kind and self.kind not in TEXT_KINDS:
+            msg = f'{self.help!r}: kind must be one of {", ".join(TEXT_KINDS)}'
+            raise ValueError(msg)
+        if self.study not in STUDY_RULES:
+            msg = f'{self.help!r}: study must be one of {STUDY_RULES}'
+            raise ValueError(msg)
+
+    @property
+    def help_text(self) -> str:
+        """The help with the default written out."""
+        return self.help.format(default=self.default)
+
+    def problem(self, value: Any) -> str | None:
+        """Why `value` is refused (after the option's name), None if fine; None is fine for
+        an option whose default is None (not given)."""
+        if value is None and self.default is None:
+            return None
+        if self.minimum is not None and (isinstance(value, bool) or not isinstance(value, int)
+                                         or value < self.minimum):
+            return f'must be an integer >= {self.minimum}, got {value!r}'
+        if self.choices and value not in self.choices:
+            return f'must be one of {", ".join(self.choices)}, got {value!r}'
+        if self.kind and not str(value).strip():
+            return 'must not be empty'
+        return None
+
+
+def option(default: Any, help: str, *, minimum: int | None = None,
+           choices: Iterable[str] = (), kind: str = '', flag: str = '',
+           metavar: str | None = None, recorded: bool = False, study: str = '') -> Any:
+    """A `TrainingConfig` field that is a training option (module docstring)."""
+    spec = OptionSpec(default, help, minimum, tuple(choices), kind, flag, metavar, recorded,
+                      study)
+    return field(default=default, metadata={SPEC_KEY: spec})
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """What a training run decides beyond the hyperparameters (the same for every trial)."""
+
+    max_epochs: int = MAX_EPOCHS
+    patience: int = PATIENCE
+    seed: int = 0
+    epoch_windows: int = EPOCH_WINDOWS  # training (and validation) windows per epoch, at most
+
+
+@dataclass(frozen=True)
+class TrainingConfig:
+    """Everything a training run decides; the options' defaults are `lompr train`'s."""
+
+    inputs: BagInputs  # bags, topics, bad-bag policy, cleaning rules
+    model_path: Path | None = option(
+        None, 'model file to write (TorchScript), its sha256 beside it in OUT.sha256 and in '
+        'the report; required unless --workers-only', kind='output_file', flag='--out',
+        metavar='OUT')
+    report_dir: Path | None = option(
+        None, 'report folder (also holds the default study storage and the checkpoints); '
+        'required unless --workers-only', kind='output_folder', flag='--report',
+        metavar='REPORT')
+    horizon: int = option(
+        DEFAULT_HORIZON, "samples between the window's last row and the predicted instant "
+        "(default {default}, or the --init model's)", minimum=1, study='always')
+    window: int = option(DEFAULT_WINDOW, "samples per window (default {default}, or the "
+                         "--init model's)", minimum=1, study='always')
+    preview: int = option(
+        0, 'also read the planned reference K samples after each row of the window '
+        "(K = --horizon reaches the predicted instant), taken from the bags' reference "
+        'topic; the node then needs /lompr/reference_preview. 0: no preview (default, or the '
+        "--init model's)", minimum=0, metavar='K', study='changed')
+    machine_map: bool = option(
+        True, 'the plain BO-LSTM of the paper: no machine map under it (the map, fitted '
+        "first, carries each actuator's error to the tool through the kinematics: what "
+        'makes a model hold on programs it was not trained on; docs/training.md)')
+    network_inputs: str = option(
+        'machine', "what the LSTM reads: 'machine' (the machine map's residuals: what holds "
+        "on programs it was not trained on; the default with the map) or 'all' (every "
+        "feature, the path's too: best on the program it was trained on, worse on others; "
+        'the default with --no-machine-map)', choices=NETWORK_INPUTS, recorded=True)
+    trials: int = option(DEFAULT_TRIALS, 'tuning budget: trials of the study, finished and '
+                         'pruned ones counting (default {default})', minimum=1)
+    restarts: int = option(
+        DEFAULT_RESTARTS, 'after the tuning trials, train the best point again with this '
+        'many other seeds; the lowest validation loss becomes the model (default {default})',
+        minimum=0)
+    seed: int = option(0, 'seed of the study and of every training (default {default})',
+                       minimum=0, study='always')
+    max_epochs: int = option(
+        MAX_EPOCHS, "epochs of a training, at most: the cosine schedule's length (default "
+        f'{{default}}; with --init {FINE_TUNE_EPOCHS})', minimum=1, recorded=True)
+    patience: int = option(PATIENCE, 'epochs without validation improvement, late in the '
+                           'schedule, that stop a training (default {default})', minimum=1,
+                           recorded=True)
+    epoch_windows: int = option(
+        EPOCH_WINDOWS, 'training windows drawn per epoch, at most (validation windows '
+        'scored per epoch likewise): the cost of an epoch is bounded at any sample rate '
+        '(default {default}: every window of 20 passes at 25 Hz, an eighth of them at '
+        '250 Hz)', minimum=1, metavar='N', recorded=True)
+    storage: str | None = option(
+        None, 'where the tuning study lives: postgresql://USER@HOST/DB (shared by several '
+        'machines), sqlite:///FILE, or a journal file path (default: study.journal in the '
+        'report folder); rerunning the same command resumes the study', kind='storage')
+    study_name: str | None = option(
+        None, 'default: derived from the bags (by content) and settings', kind='text')
+    workers: int | None = option(
+        None, 'tuning processes on this machine, each with --threads torch threads '
+        f'(default: the cores available, at most {MAX_DEFAULT_WORKERS}: here '
+        f'{default_workers()})', minimum=1)
+    checkpoints: Path | None = option(
+        None, "trials' models (default: trials/ in the report folder); on several machines a "
+        'folder they all share, else the finishing command trains the best trial again',
+        kind='output_folder', metavar='DIR')
+    heartbeat: int = option(
+        HEARTBEAT_SECONDS, "seconds between a running trial's heartbeats; a trial silent for "
+        '3 of them (its worker died) is failed and its point queued again (default '
+        '{default})', minimum=1, metavar='SECONDS')
+    robot_description: str | None = None  # URDF file; None: the packaged LOMPR description
+    space: SearchSpace = DEFAULT_SPACE
+    progress: bool = True  # progress bars
+    test_inputs: BagInputs | None = None  # other recordings as the test part (e.g. another
+    # seed of the same machine); None: the chronologically last 10 % of `inputs`
+
+    @property
+    def settings(self) -> TrainSettings:
+        """The training loop's settings (every trial's, and BP's)."""
+        return TrainSettings(**{name: getattr(self, name)
+                                for name in (f.name for f in dataclasses.fields(TrainSettings))})
+
+    @property
+    def checkpoint_dir(self) -> Path:
+        if self.checkpoints is not None:
+            return Path(self.checkpoints)
+        if self.report_dir is None:
+            msg = "no folder for the trials' checkpoints: give checkpoints or report_dir"
+            raise OptionError(msg, ('checkpoints', 'report_dir'))
+        return Path(self.report_dir) / CHECKPOINT_FOLDER
+
+
+def option_specs(config_type: type = TrainingConfig) -> dict[str, OptionSpec]:
+    """{field name: spec} of the training options of `config_type` (`TrainingConfig` or a
+    subclass), in field order."""
+    return {item.name: item.metadata[SPEC_KEY] for item in dataclasses.fields(config_type)
+            if SPEC_KEY in item.metadata}
+
+
+def flag_of(name: str, config_type: type = TrainingConfig) -> str:
+    """The command-line flag of option `name`."""
+    spec = option_specs(config_type)[name]
+    if spec.flag:
+        return spec.flag
+    return ('--no-' if spec.default is True else '--') + name.replace('_', '-')
+
+
+def check_options(config: TrainingConfig, *, finishing: bool = True) -> None:
+    """Refuse (`OptionError`, one line) an option out of range or options that cannot run
+    together; `finishing`: a run that writes the model, else an extra worker of a shared
+    study."""
+    for name, spec in option_specs(type(config)).items():
+        problem = spec.problem(getattr(config, name))
+        if problem:
+            raise OptionError(f'{name} {problem}', (name,))
+    if config.network_inputs == 'machine' and not config.machine_map:
+        msg = ("network_inputs 'machine' reads the machine map's residuals: keep the "
+               "machine_map or read 'all'")
+        raise OptionError(msg, ('network_inputs', 'machine_map'))
+    if finishing and (config.model_path is None or config.report_dir is None):
+        msg = 'the model_path and the report_dir are needed to finish the study'
+        raise OptionError(msg, ('model_path', 'report_dir'))
+    if not finishing:
+        if not config.storage or not config.study_name:
+            msg = ('an extra worker joins a study: give its storage and its study_name (the '
+                   'same as every other run of the study)')
+            raise OptionError(msg, ('storage', 'study_name'))
+        if config.checkpoints is None and config.report_dir is None:
+            msg = ("an extra worker needs checkpoints: where the finishing run reads the "
+                   "trials' models (a folder every machine shares)")
+            raise OptionError(msg, ('checkpoints',))
+
+
+def recorded_options(config: TrainingConfig) -> dict[str, Any]:
+    """The options the model file's metadata records (`recorded`), by name."""
+    return {name: getattr(config, name) for name, spec in option_specs(type(config)).items()
+            if spec.recorded}
+
+
+def study_options(config: TrainingConfig) -> dict[str, Any]:
+    """The options that define the tuning study (`study`): those declared 'always', and
+    those declared 'changed' when they differ from their default."""
+    return {name: getattr(config, name) for name, spec in option_specs(type(config)).items()
+            if spec.study == 'always'
+            or (spec.study == 'changed' and getattr(config, name) != spec.default)}
