@@ -180,7 +180,7 @@ class Adaptation:
         decision = outcome.decision
         if decision == ACCEPTED and swap_error is not None:
             decision = FAILED
-            outcome.document['reason'] = f'the swap refused the model: {swap_error}'
+            outcome.document['reason'] = f'not swapped in: {swap_error}'
         state = self.state
         counter = {ACCEPTED: 'accepted', REFUSED: 'refused'}.get(decision, 'failed')
         setattr(state, counter, getattr(state, counter) + 1)
@@ -214,7 +214,8 @@ class Adaptation:
         if process is not None:
             process.kill()
             process.wait()
-            self._process = None
+        self._process = self._work = None
+        self.state.running_pid = 0
         self._remove_work_folders()
 
     def status(self, clock_ns: int) -> Status:
@@ -233,13 +234,13 @@ class Adaptation:
         if self._started_ns is not None and self._process is None:
             wait = self.settings.period - (clock_ns - self._started_ns) * 1e-9
             values['next_attempt_in_s'] = round(max(0.0, wait), 3)
-        if state.running_pid:
-            return Status(Level.OK, f'attempt {state.attempts} running (pid '
-                                    f'{state.running_pid})', values)
+        running = (f'attempt {state.attempts} running (pid {state.running_pid})'
+                   if state.running_pid else '')
         if not last:
-            return Status(Level.OK, 'waiting for the first attempt', values)
+            return Status(Level.OK, running or 'waiting for the first attempt', values)
         summary = f'attempt {last["attempt"]} {last["decision"]}: {last.get("reason", "")}'
-        return Status(Level.WARN if last['decision'] == FAILED else Level.OK, summary, values)
+        return Status(Level.WARN if last['decision'] == FAILED else Level.OK,
+                      f'{running}; last: {summary}' if running else summary, values)
 
     def _remove_work_folders(self) -> None:
         """Delete the work folders of attempts that no longer run: this node's but the

@@ -167,7 +167,7 @@ def attempt(samples: StoredSamples, request: AttemptRequest) -> dict[str, Any]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """The child process: one attempt on the ring behind `--fd`; its document in the work
-    folder (`RESULT_JSON`), or one line on stderr and exit code 1 if it cannot run."""
+    folder (`RESULT_JSON`), or why not as the last line on stderr and exit code 1."""
     parser = argparse.ArgumentParser(description=__doc__.split('\n', 1)[0])
     parser.add_argument('--fd', type=int, required=True, help="the store ring's descriptor")
     parser.add_argument('--window-ns', type=int, required=True,
@@ -182,7 +182,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         document = attempt(read_ring(args.fd, args.window_ns), request)
         write_json(Path(request.work_folder) / RESULT_JSON, document)
     except (LomprError, OSError, ValueError, TypeError) as err:
-        print(f'adaptation attempt failed: {err}', file=sys.stderr)
+        print(err, file=sys.stderr)
         return 1
     return 0
 

@@ -121,8 +121,10 @@ class NodeAdaptation:
         self.adaptation.settle(outcome, swap_error, node.core.model.path)
         entry = self.adaptation.state.last
         text = f'adaptation attempt {entry["attempt"]} {entry["decision"]}: {entry["reason"]}'
-        (node.get_logger().warning if entry['decision'] == FAILED
-         else node.get_logger().info)(text)
+        if entry['decision'] == FAILED:
+            node.get_logger().warning(text)
+        else:
+            node.get_logger().info(text)
 
     def status(self) -> Status:
         """The 'adaptation' diagnostic status."""
