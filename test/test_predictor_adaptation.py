@@ -128,6 +128,21 @@ def test_a_model_that_fails_verification_or_has_another_parent_is_never_swapped_
     assert status['failed'] == '2' and status['last_model'] == str(candidate)
 
 
+def test_a_folder_it_cannot_write_is_a_warning_never_a_callback_failure(
+        ros: RosHarness, tmp_path: Path) -> None:
+    (tmp_path / 'a_file').write_text('not a folder')
+    wiring = adapting(ros, constant(tmp_path / 'c.pt'), tmp_path / 'a_file' / 'models',
+                      adaptation_period=1.0)
+    wiring.run(0, 160)  # more than the 6 s data window
+    status = wait_status(wiring, lambda s: s.get('_message', '').startswith(
+        'cannot run an attempt: NotADirectoryError'), 'the warning')
+    assert status['_level'] == DiagnosticStatus.WARN and status['attempts'] == '0'
+    before = len(wiring.compensations)
+    wiring.run(160, 10)
+    wiring.ros.spin_until(lambda: len(wiring.compensations) >= before + 10, what='outputs')
+    assert wiring.node.callback_failures == 0
+
+
 @pytest.mark.slow
 def test_an_attempt_that_fails_leaves_the_model_in_force(
         ros: RosHarness, tmp_path: Path) -> None:

@@ -105,6 +105,7 @@ class AdaptationState:
     failed: int = 0
     swaps: int = 0
     running_pid: int = 0  # 0: none
+    error: str = ''  # why the node could not start or record an attempt ('' : it could)
     last: dict[str, Any] = field(default_factory=dict)  # the last attempt's log entry
 
 
@@ -157,7 +158,7 @@ class Adaptation:
                                              stdout=subprocess.DEVNULL, stderr=stderr,
                                              start_new_session=True)
         self._work, self._started_ns = work, now_ns
-        self.state.running_pid = self._process.pid
+        self.state.running_pid, self.state.error = self._process.pid, ''
 
     def poll(self) -> AttemptOutcome | None:
         """The outcome of an attempt that has ended (None while one runs, or none ran); its
@@ -234,6 +235,8 @@ class Adaptation:
         if self._started_ns is not None and self._process is None:
             wait = self.settings.period - (clock_ns - self._started_ns) * 1e-9
             values['next_attempt_in_s'] = round(max(0.0, wait), 3)
+        if state.error:
+            return Status(Level.WARN, f'cannot run an attempt: {state.error}', values)
         running = (f'attempt {state.attempts} running (pid {state.running_pid})'
                    if state.running_pid else '')
         if not last:

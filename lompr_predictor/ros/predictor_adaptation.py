@@ -55,6 +55,8 @@ class AdaptationHost(Protocol):
 
     def get_logger(self) -> Any: ...
 
+    def warn_throttled(self, key: str, text: str) -> None: ...
+
     def set_parameters_atomically(self, parameter_list: list[Parameter]
                                   ) -> SetParametersResult: ...
 
@@ -87,7 +89,16 @@ class NodeAdaptation:
         return cls(node, store)
 
     def on_timer(self) -> None:
-        """Collect an attempt that has ended; start one if due (while active)."""
+        """Collect an attempt that has ended; start one if due (while active). A file the
+        adaptation cannot write (its folder, the log) is said on its status and logged,
+        never a failure of the node's callbacks (which would cancel the offset in force)."""
+        try:
+            self._step()
+        except OSError as err:
+            self.adaptation.state.error = f'{type(err).__name__}: {err}'
+            self._node.warn_throttled('adaptation', f'adaptation: {self.adaptation.state.error}')
+
+    def _step(self) -> None:
         outcome = self.adaptation.poll()
         if outcome is not None:
             self._settle(outcome)
