@@ -61,6 +61,10 @@ class LoopSettings:
     #: Samples of its planned path the twin publishes with each sample (the reference
     #: preview); `run_closed_loop` sets it for a model that reads one (its K + 2).
     preview_samples: int = 0
+    #: Further parameters of the predictor and of the twin, by name (over the loop's own:
+    #: adaptation, or the twin in real time at a speed factor).
+    predictor_parameters: Mapping[str, Any] = field(default_factory=dict)
+    twin_parameters: Mapping[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -116,7 +120,8 @@ def loop_parameters(settings: LoopSettings, horizon: int,
             'compensation_enabled': settings.compensation_enabled,
             'guard_enabled': settings.guard_enabled,
             'max_compensation': settings.max_compensation,
-            'max_compensation_step': settings.max_compensation_step},
+            'max_compensation_step': settings.max_compensation_step,
+            **settings.predictor_parameters},
         'twin_node': {
             **description, 'twin_parameters_file': settings.twin_parameters_file,
             'path': settings.path, 'seed': settings.seed,
@@ -125,7 +130,8 @@ def loop_parameters(settings: LoopSettings, horizon: int,
             'answer_timeout': settings.answer_timeout,
             'preview_samples': settings.preview_samples,
             # an offset is sent `horizon` samples ahead of its instant: let it wait that long
-            'compensation_timeout': max(1.0, (horizon + 2) * period)},
+            'compensation_timeout': max(1.0, (horizon + 2) * period),
+            **settings.twin_parameters},
     }
     return {node: {name: value for name, value in values.items() if value != ''}
             for node, values in parameters.items()}

@@ -25,6 +25,7 @@ from lompr_predictor.online.predictor_status import (
 )
 from lompr_predictor.online.preview import PreviewDrop
 from lompr_predictor.ros.common import DiagnosticsPublisher
+from lompr_predictor.ros.predictor_adaptation import NodeAdaptation, off_status
 from lompr_predictor.ros.predictor_outputs import OutputPublisher
 from lompr_predictor.ros.predictor_settings import PredictorNodeSettings
 from lompr_predictor.ros.predictor_store import NodeSampleStore
@@ -52,11 +53,13 @@ class PredictorReadings:
     clock_values: dict[str, object]  # the node's clock and the input dropped while inactive
     callback_values: dict[str, object]  # callback failures
     sample_store: NodeSampleStore | None = None  # while configured with a store
+    adaptation: NodeAdaptation | None = None  # while configured with adaptation_enabled
 
 
 class PredictorDiagnostics:
-    """The statuses 'model', 'inputs', 'reference preview', 'prediction', 'guard' and
-    'sample store' of one predictor node, read from `read()` at each report."""
+    """The statuses 'model', 'inputs', 'reference preview', 'prediction', 'guard',
+    'sample store' and 'adaptation' of one predictor node, read from `read()` at each
+    report."""
 
     def __init__(self, publisher: DiagnosticsPublisher, meters: PredictorMeters,
                  read: Callable[[], PredictorReadings]) -> None:
@@ -71,6 +74,7 @@ class PredictorDiagnostics:
         publisher.add(PREDICTION_STATUS, self.prediction_status)
         publisher.add('guard', self.guard_status)
         publisher.add('sample store', self.store_status)
+        publisher.add('adaptation', self.adaptation_status)
 
     def model_status(self) -> Status:
         now = self._read()
@@ -122,8 +126,14 @@ class PredictorDiagnostics:
         now = self._read()
         node_store = now.sample_store
         if node_store is None:
-            return predictor_status.store_status(now.lifecycle, now.settings.store_minutes,
+            return predictor_status.store_status(now.lifecycle, now.settings.kept_minutes,
                                                  None, None)
         node_store.export.poll()  # a write that has finished: its outcome
         return predictor_status.store_status(now.lifecycle, node_store.minutes,
                                              node_store.store, node_store.export)
+
+    def adaptation_status(self) -> Status:
+        now = self._read()
+        if now.adaptation is None:
+            return off_status(now.settings.adaptation_enabled, now.lifecycle.state)
+        return now.adaptation.status()

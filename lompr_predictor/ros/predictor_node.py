@@ -40,6 +40,7 @@ from lompr_predictor.robot.description import load_robot_description, robot_name
 from lompr_predictor.ros.common import run_node
 from lompr_predictor.ros.managed import ManagedNode
 from lompr_predictor.ros.node_base import NodeBase, node_help
+from lompr_predictor.ros.predictor_adaptation import NodeAdaptation
 from lompr_predictor.ros.predictor_diagnostics import (
     PredictorDiagnostics,
     PredictorMeters,
@@ -92,6 +93,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self._core: OnlinePredictor | None = None  # while configured (`core`)
         self.model_guard: LiveGuard | None = None  # the core's live guard, while configured
         self.sample_store: NodeSampleStore | None = None  # while configured, if one is kept
+        self.adaptation: NodeAdaptation | None = None  # while configured, if enabled
         self.sample_period = 0.0  # [s] the parameter, else the first model's: later ones fit
         self._running: ReadyModel | None = None  # the model the core runs
         self._candidate: ReadyModel | None = None  # accepted, swapped in by apply_settings
@@ -164,8 +166,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         return super().on_activate(state)
 
     def _configure(self) -> LomprError | None:
-        """Load the description and the model, build the core and the endpoints; the
-        reason if not."""
+        """Load the description and the model, build the core and the endpoints (or why not)."""
         settings = self.settings
         try:
             description = load_robot_description(settings.robot_description_file or None)
@@ -195,6 +196,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             store = self.sample_store = NodeSampleStore.configured(self, self.sample_period)
         except SampleStoreError as err:
             return err
+        self.adaptation = NodeAdaptation.configured(self, store)
         self._core = OnlinePredictor(
             ready.model, settings.stream(self.sample_period), settings.limits,
             clock=self.clock_ns, backend=ready.backend,
@@ -234,7 +236,10 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         super().destroy_node()
 
     def _let_go_store(self) -> None:
-        """Write the sample store if `store_write_at_shutdown`, then free it."""
+        """Stop the adaptation, write the store if `store_write_at_shutdown`, free it."""
+        if self.adaptation is not None:
+            self.adaptation.close()
+            self.adaptation = None
         if self.sample_store is not None:
             self.sample_store.let_go(self.settings.store_write_at_shutdown)
             self.sample_store = None
@@ -242,8 +247,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
     # -- callbacks (run through NodeBase.guard: a failure aborts the core) -----------------
 
     def on_end_pose(self, msg: bytes) -> None:
-        """One serialized PoseStamped (the subscriptions are raw: `wire`); one in another
-        frame than the node's is dropped and counted (`wrong_frame`)."""
+        """One serialized PoseStamped (raw: `wire`); in another frame: dropped, counted."""
         start = time.perf_counter()
         self.pose_rate.tick()
         if self._core is None or not self.active:
@@ -255,8 +259,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self.outputs.publish(self._core.add_pose(Stamp(sec, nanosec), x, y), start)
 
     def on_reference(self, msg: bytes) -> None:
-        """One serialized reference PoseStamped; in another frame: dropped and counted
-        (`reference_wrong_frame`), never used as if it were the robot's."""
+        """One serialized reference PoseStamped; in another frame: dropped, counted."""
         start = time.perf_counter()
         self.reference_rate.tick()
         if self._core is None or not self.active:
@@ -268,8 +271,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self.outputs.publish(self._core.add_reference(Stamp(sec, nanosec), x, y, z), start)
 
     def _in_frame(self, msg: bytes, reason: DropReason, what: str) -> bool:
-        """Whether a pose is in the node's frame; if not, counted under `reason` and said
-        (throttled) with both frames."""
+        """Whether a pose is in the node's frame; if not, counted and said (throttled)."""
         if pose_in_frame(msg, self._frame_field):
             return True
         self.core.dropped.add(reason)
@@ -278,9 +280,8 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         return False
 
     def on_reference_preview(self, msg: bytes) -> None:
-        """One serialized planned path: refused whole (counted) if unreadable, in another
-        frame than the outputs' or, by the core, with a non-finite pose or stamps that do not
-        increase; never a fault (the samples it would have served get no offset)."""
+        """One serialized planned path: refused whole (counted, never a fault) if unreadable,
+        in another frame or, by the core, with a non-finite pose or stamps not increasing."""
         self.preview_rate.tick()
         if self._core is None or not self.active:
             self.dropped_inactive += 1
@@ -347,8 +348,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         return outcome.reason
 
     def apply_settings(self, previous: PredictorNodeSettings, changed: frozenset[str]) -> None:
-        """Take accepted changes: new limits, and the model validated in
-        `validate_settings`."""
+        """Take accepted changes: new limits, the model validated in `validate_settings`."""
         del previous
         if self._core is None or self.model_guard is None:
             return
@@ -379,7 +379,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         return PredictorReadings(
             Lifecycle(self.lifecycle_state, settings.autostart, self.configure_error),
             settings, self._core, self.model_guard, self.history, clock_values,
-            self.callback_values(), self.sample_store)
+            self.callback_values(), self.sample_store, self.adaptation)
 
 
 def build_entry_point(context: Context, **node_kwargs: Any) -> PredictorNode:

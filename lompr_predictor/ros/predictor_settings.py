@@ -9,6 +9,7 @@ from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from nav_msgs.msg import Path
 
 from lompr_predictor.learning.model_file import check_sha256_text
+from lompr_predictor.online.adaptation import AdaptationSettings
 from lompr_predictor.online.faults import StreamSettings
 from lompr_predictor.online.guard import GuardSettings
 from lompr_predictor.online.inference import Backend
@@ -20,6 +21,7 @@ from lompr_predictor.ros.node_base import (
     FrameSettings,
 )
 from lompr_predictor.ros.parameters import parameter
+from lompr_predictor.scheduling import TRAINING_NICE
 from lompr_predictor.stamps import GAP_FACTOR
 
 
@@ -165,7 +167,8 @@ class PredictorNodeSettings(FrameSettings):
         'time (stamp, measured tool tip, reference, plant error: hence the compensation in '
         'force), in a ring preallocated at configure, 64 bytes a sample (3.84 MB a minute at '
         '1 kHz), which the service ~/write_samples (or store_write_at_shutdown) writes as a '
-        'bag lompr train reads; 0: no store', minimum=0.0, maximum=60.0, read_only=True)
+        'bag lompr train reads; 0: no store (unless adaptation_enabled: then the store holds '
+        'adaptation_minutes, or this if longer)', minimum=0.0, maximum=60.0, read_only=True)
     store_folder: str = parameter(
         '', "where the sample store's bags are written, each a new directory "
         'samples-<UTC time>; empty: lompr_samples in $ROS_HOME (default ~/.ros)',
@@ -173,6 +176,41 @@ class PredictorNodeSettings(FrameSettings):
     store_write_at_shutdown: bool = parameter(
         False, 'write the sample store as a bag when the node lets it go (cleanup, shutdown, '
         'the process ending), by a process that finishes after the node')
+
+    adaptation_enabled: bool = parameter(
+        False, "online adaptation: every adaptation_period, a process below the node's "
+        "priority (one torch thread) fine-tunes the model in force on the sample store's "
+        'last adaptation_minutes, scores it on the newest held-out part against the model in '
+        'force and persistence and, only if better than both by adaptation_margin, writes it '
+        'into adaptation_folder and swaps it in as a change of model_path would (verified by '
+        'its pinned sha256); every attempt on /diagnostics and in adaptation.jsonl there. '
+        'The store is sized for it (store_minutes)', read_only=True)
+    adaptation_minutes: float = parameter(
+        10.0, 'the data window: minutes of sample time an attempt learns from (its newest part, '
+        "the trainer's test fraction, held out to score it); the first attempt waits until "
+        'the store holds them',
+        minimum=0.1, maximum=60.0, read_only=True)
+    adaptation_period: float = parameter(
+        600.0, "seconds of sample time (the node's clock: /clock under use_sim_time) between "
+        'the starts of two attempts; an attempt still running delays the next',
+        minimum=1.0, maximum=1e7, read_only=True)
+    adaptation_margin: float = parameter(
+        0.05, "relative: a candidate's held-out RMS must be at most (1 - margin) times the "
+        "model in force's and persistence's", minimum=0.0, maximum=0.9, read_only=True)
+    adaptation_folder: str = parameter(
+        '', 'where adapted models (adapted-<UTC time>-<n>.pt, sha256 beside) and the log '
+        'adaptation.jsonl are written, one folder per node; empty: lompr_models in $ROS_HOME '
+        '(default ~/.ros)', read_only=True)
+    adaptation_keep: int = parameter(
+        5, 'adapted models kept in adaptation_folder for a rollback (set model_path to one), '
+        'the newest; older ones are deleted (never the one in force)', minimum=1,
+        maximum=1000, read_only=True)
+    adaptation_max_epochs: int = parameter(
+        30, 'epochs of each fine-tuning at most (the validation-best kept)', minimum=1,
+        maximum=10_000, read_only=True)
+    adaptation_nice: int = parameter(
+        TRAINING_NICE, "added to the attempt process's nice value: it leaves the cores to "
+        'the node first', minimum=0, maximum=19, read_only=True)
 
     def stream(self, sample_period: float) -> StreamSettings:
         """The rules the input stream is held to, at `sample_period` [s] (the model's, or
@@ -187,6 +225,20 @@ class PredictorNodeSettings(FrameSettings):
         """The live guard's rules: each the parameter `guard_` + its name."""
         return GuardSettings(**{item.name: getattr(self, f'guard_{item.name}')
                                 for item in fields(GuardSettings)})
+
+    @property
+    def adaptation(self) -> AdaptationSettings:
+        """The adaptation's settings: each the parameter `adaptation_` + its name."""
+        return AdaptationSettings(**{item.name: getattr(self, f'adaptation_{item.name}')
+                                     for item in fields(AdaptationSettings)})
+
+    @property
+    def kept_minutes(self) -> float:
+        """The sample store's window [min]: store_minutes, at least the data window when
+        adaptation is on (0: no store)."""
+        if self.adaptation_enabled:
+            return max(self.store_minutes, self.adaptation_minutes)
+        return self.store_minutes
 
     @property
     def limits(self) -> CompensationLimits:

@@ -55,15 +55,15 @@ class NodeSampleStore:
     def __init__(self, node: StoreHost, sample_period: float) -> None:
         settings = node.settings
         self._node = node
-        self.minutes = settings.store_minutes
-        self.store = SampleStore.for_minutes(settings.store_minutes, sample_period)
+        self.minutes = settings.kept_minutes
+        self.store = SampleStore.for_minutes(self.minutes, sample_period)
         self.export = StoreExport(settings.store_folder, settings.frame)
         node.own(node.create_service(Trigger, WRITE_SERVICE, self.on_write))
 
     @classmethod
     def configured(cls, node: StoreHost, sample_period: float) -> NodeSampleStore | None:
-        """The store of a node being configured, None if its `store_minutes` is 0."""
-        if node.settings.store_minutes <= 0:
+        """The store of a node being configured, None if it keeps none (`kept_minutes`)."""
+        if node.settings.kept_minutes <= 0:
             return None
         return cls(node, sample_period)
 

@@ -1,0 +1,191 @@
+"""One adaptation attempt, the child process the predictor node starts (`adaptation`).
+
+`python -m lompr_predictor.online.adaptation_attempt --fd N --request JSON` runs below the
+node's priority (`scheduling.lower_priority`) on one torch thread: it reads the newest data
+window of the node's sample store through the ring's inherited descriptor
+(`sample_store.read_ring`), writes it as a bag as the store's own export does (`store_bag`),
+fine-tunes the model in force on it (`fine_tuning.fine_tune_predictor`: warm start, bounded
+epochs, the validation-best epoch kept) and scores the result on the newest held-out part of
+the window (the chronological split's test part, which the fine-tuning never saw) against
+the model in force and persistence. Only a candidate better than both by the margin
+(`decide`) is written, atomically with its sha256 beside it, into the models folder; its
+metadata names the model it came from (`parent_sha256`) and the data it learned
+(`hyperparameters.fine_tuning.data`: the node, the samples and the sample time they span).
+
+The outcome is one JSON document (`result.json` in the attempt's work folder, written
+atomically last), which the node reads once the process has ended: the decision, the scores
+and the new file. Nothing else of the attempt outlives it: the bag and the work folder are
+the node's to delete. The node never imports this module (nor the trainer it loads).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from lompr_predictor.errors import LomprError
+from lompr_predictor.files import file_sha256, write_json
+from lompr_predictor.online.sample_store import StoredSamples, read_ring
+from lompr_predictor.scheduling import lower_priority
+from lompr_predictor.threads import set_torch_threads
+
+if TYPE_CHECKING:  # imported by `attempt`, once the process runs at its lower priority
+    from lompr_predictor.learning.model_file import ModelMetadata
+    from lompr_predictor.learning.pipeline import TrainingResult
+
+#: The attempt's document, in its work folder.
+RESULT_JSON = 'result.json'
+#: New model files are named this, then the UTC time and a number.
+MODEL_PREFIX = 'adapted-'
+#: The decisions an attempt ends with (the node adds 'failed' for one that did not end).
+ACCEPTED, REFUSED = 'accepted', 'refused'
+#: The predictions scored against each other (`fine_tune_predictor`'s names).
+CANDIDATE, IN_FORCE, PERSISTENCE = 'bo_lstm', 'parent', 'persistence'
+
+
+@dataclass(frozen=True)
+class AttemptRequest:
+    """What the node asks of one attempt (its JSON on the command line)."""
+
+    parent: str  # the model file in force
+    parent_sha256: str  # its sha256 as the node loaded it: the file must still be it
+    models_folder: str  # where an accepted model is written
+    work_folder: str  # the attempt's own folder (the bag, the result)
+    margin: float  # relative: the candidate's RMS <= (1 - margin) x the others'
+    max_epochs: int
+    robot_description: str | None = None  # URDF file; None: the packaged one
+    frame: str = 'lompr_base'  # the poses' frame_id
+    seed: int = 0
+    info: Mapping[str, Any] = dataclasses.field(default_factory=dict)  # the samples' origin
+
+
+def xy_rms(predicted: np.ndarray, actual: np.ndarray) -> float:
+    """RMS of the XY distance between a (B, 2) prediction and the actual error [m]."""
+    return float(np.sqrt(np.mean(np.sum((predicted - actual) ** 2, axis=1))))
+
+
+def held_out_scores(result: TrainingResult) -> dict[str, float]:
+    """The XY RMS [m] of the candidate, the model in force and persistence on the held-out
+    part (the newest of the window)."""
+    scored = result.test_part
+    return {name: xy_rms(scored.predictions[name], scored.actual)
+            for name in (CANDIDATE, IN_FORCE, PERSISTENCE)}
+
+
+def decide(scores: Mapping[str, float], margin: float) -> tuple[str, str]:
+    """(decision, why): accepted only if the candidate's RMS is at most (1 - margin) times
+    the model in force's and persistence's, each."""
+    candidate = scores[CANDIDATE]
+    for name, what in ((IN_FORCE, 'the model in force'), (PERSISTENCE, 'persistence')):
+        bar = (1.0 - margin) * scores[name]
+        if not candidate <= bar:
+            return REFUSED, (f'{candidate * 1e6:.3f} um RMS, not below {1.0 - margin:g} x '
+                             f"{what}'s {scores[name] * 1e6:.3f} um")
+    return ACCEPTED, (f'{candidate * 1e6:.3f} um RMS against {scores[IN_FORCE] * 1e6:.3f} '
+                      f'(in force) and {scores[PERSISTENCE] * 1e6:.3f} (persistence)')
+
+
+def new_model_path(folder: Path) -> Path:
+    """A model file in `folder` named by the UTC time that does not exist yet (names sort
+    in the order they were made)."""
+    stem = MODEL_PREFIX + time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())
+    number = 1
+    while (path := folder / f'{stem}-{number:03d}.pt').exists():
+        number += 1
+    return path
+
+
+def data_span(samples: StoredSamples, bag_sha256: str,
+              info: Mapping[str, Any]) -> dict[str, Any]:
+    """What an adapted model learned from, for its metadata and the log."""
+    return {'source': 'sample store', **info, 'samples': len(samples),
+            'first_stamp_ns': int(samples.stamps[0]), 'last_stamp_ns': int(samples.stamps[-1]),
+            'span_seconds': samples.seconds, 'bag_sha256': bag_sha256}
+
+
+def adapted_metadata(metadata: ModelMetadata, data: Mapping[str, Any]) -> ModelMetadata:
+    """The fine-tuned model's metadata with the data it learned in place of a bag path
+    (the attempt's bag is not kept)."""
+    tuning = dict(metadata.hyperparameters.get('fine_tuning', {}))
+    return dataclasses.replace(
+        metadata, training_bags=({'path': f'sample store of {data.get("node", "a node")}',
+                                  'sha256': str(data['bag_sha256'])},),
+        hyperparameters={**metadata.hyperparameters, 'fine_tuning': {**tuning, 'data': data}})
+
+
+def attempt(samples: StoredSamples, request: AttemptRequest) -> dict[str, Any]:
+    """Fine-tune, score, decide, and write the model if accepted (module docstring); the
+    result document. `LomprError` (one line) when the samples cannot make a fine-tuning."""
+    from lompr_predictor.data.loading import BagInputs
+    from lompr_predictor.learning.fine_tuning import fine_tune_predictor, parent_settings
+    from lompr_predictor.learning.model_file import write_model
+    from lompr_predictor.learning.pipeline import TrainingConfig
+    from lompr_predictor.online.store_bag import write_store_bag
+
+    started = time.perf_counter()
+    work = Path(request.work_folder)
+    bag = write_store_bag(work / 'samples', samples, dict(request.info), frame_id=request.frame)
+    data = data_span(samples, file_sha256(next(bag.glob('*.mcap'))), request.info)
+    window, horizon, preview = parent_settings(request.parent)
+    config = TrainingConfig(
+        inputs=BagInputs((str(bag),), frame=request.frame), model_path=work / 'candidate.pt',
+        report_dir=work / 'report', robot_description=request.robot_description,
+        window=window, horizon=horizon, preview=preview, seed=request.seed,
+        max_epochs=request.max_epochs, progress=False)
+    result = fine_tune_predictor(config, request.parent)
+    tuning = result.report['fine_tuning']
+    if tuning['parent_sha256'] != request.parent_sha256:
+        msg = (f'the model file {request.parent} is no longer the model in force (sha256 '
+               f'{tuning["parent_sha256"][:16]}, in force {request.parent_sha256[:16]})')
+        raise LomprError(msg)
+    scores = held_out_scores(result)
+    decision, why = decide(scores, request.margin)
+    document: dict[str, Any] = {
+        'decision': decision, 'reason': why, 'parent': request.parent,
+        'parent_sha256': request.parent_sha256,
+        'scores_um': {name: value * 1e6 for name, value in scores.items()},
+        'held_out_seconds': float(result.test_part.seconds[-1]) if len(
+            result.test_part.seconds) else 0.0,
+        'epochs': tuning['epochs'], 'best_epoch': tuning['best_epoch'], 'data': data,
+        'model_path': '', 'model_sha256': ''}
+    if decision == ACCEPTED:
+        path = new_model_path(Path(request.models_folder))
+        digest = write_model(path, result.module, adapted_metadata(result.metadata, data))
+        document.update(model_path=str(path), model_sha256=digest)
+    document['seconds'] = time.perf_counter() - started
+    return document
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """The child process: one attempt on the ring behind `--fd`; its document in the work
+    folder (`RESULT_JSON`), or why not as the last line on stderr and exit code 1."""
+    parser = argparse.ArgumentParser(description=__doc__.split('\n', 1)[0])
+    parser.add_argument('--fd', type=int, required=True, help="the store ring's descriptor")
+    parser.add_argument('--window-ns', type=int, required=True,
+                        help='the sample time to learn from, back from the newest [ns]')
+    parser.add_argument('--nice', type=int, default=0, help='added to the nice value')
+    parser.add_argument('--request', required=True, help='the AttemptRequest as JSON')
+    args = parser.parse_args(argv)
+    try:
+        lower_priority(args.nice)  # first: the trainer's imports take seconds of CPU
+        set_torch_threads(1)
+        request = AttemptRequest(**json.loads(args.request))
+        document = attempt(read_ring(args.fd, args.window_ns), request)
+        write_json(Path(request.work_folder) / RESULT_JSON, document)
+    except (LomprError, OSError, ValueError, TypeError) as err:
+        print(err, file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,181 @@
+"""Online adaptation without ROS: the decision, when an attempt is due, the log, the models
+kept, an attempt process that dies, and one attempt fine-tuning a model on another plant's
+samples (accepted and written, or refused and nothing written)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from adaptation_data import other_plant, train_parent
+
+from lompr_predictor.learning.model_file import load_model, sidecar_path
+from lompr_predictor.online import adaptation
+from lompr_predictor.online.adaptation import (
+    WORK_PREFIX,
+    Adaptation,
+    AdaptationSettings,
+    AttemptOutcome,
+    ModelInForce,
+)
+from lompr_predictor.online.adaptation_attempt import (
+    ACCEPTED,
+    REFUSED,
+    AttemptRequest,
+    attempt,
+    decide,
+)
+from lompr_predictor.online.alignment import AlignedSample
+from lompr_predictor.online.sample_store import SampleStore
+from lompr_predictor.robot.description import RobotDescription
+
+SETTINGS = AdaptationSettings(minutes=0.1, period=30.0, margin=0.1, folder='', keep=2,
+                              max_epochs=4, nice=10)
+
+
+def settings(folder: Path, **changes: object) -> AdaptationSettings:
+    return AdaptationSettings(**{**vars(SETTINGS), 'folder': str(folder), **changes})
+
+
+def test_a_candidate_must_beat_the_model_in_force_and_persistence_by_the_margin() -> None:
+    scores = {'bo_lstm': 8e-6, 'parent': 10e-6, 'persistence': 20e-6}
+    assert decide(scores, 0.2)[0] == ACCEPTED
+    decision, why = decide(scores, 0.25)  # 8 > 0.75 x 10
+    assert decision == REFUSED
+    assert why == "8.000 um RMS, not below 0.75 x the model in force's 10.000 um"
+    decision, why = decide({**scores, 'persistence': 8.2e-6}, 0.05)  # 8 > 0.95 x 8.2
+    assert decision == REFUSED and why.endswith("persistence's 8.200 um")
+    assert decide({**scores, 'bo_lstm': float('nan')}, 0.0)[0] == REFUSED
+
+
+def test_an_attempt_is_due_after_a_period_of_the_clock_and_a_whole_data_window(
+        tmp_path: Path) -> None:
+    runs = Adaptation(settings(tmp_path, minutes=0.1, period=30.0))
+    store = SampleStore.for_minutes(1.0, 0.04)  # holds more than the 6 s data window
+    second = 10**9
+    try:
+        for k in range(100):  # 4 s of samples: not a whole data window
+            store.observe(_sample(k), (0.0, 0.0), None)
+        assert not runs.due(20 * second, store, 0.04)  # the period starts at the first look
+        assert not runs.due(51 * second, store, 0.04)  # the store is not full enough
+        for k in range(100, 150):  # 6 s
+            store.observe(_sample(k), (0.0, 0.0), None)
+        assert not runs.due(49 * second, store, 0.04)
+        assert runs.due(50 * second, store, 0.04)
+        assert not runs.due(10 * second, store, 0.04)  # the clock went back: afresh
+        assert not runs.due(39 * second, store, 0.04)
+        assert runs.due(40 * second, store, 0.04)
+    finally:
+        store.close()
+
+
+def test_old_models_are_deleted_beyond_the_number_kept_never_the_one_in_force(
+        tmp_path: Path) -> None:
+    runs = Adaptation(settings(tmp_path, keep=2))
+    names = [f'adapted-20250101T00000{i}Z-001.pt' for i in range(5)]
+    for name in names:
+        (tmp_path / name).write_bytes(b'model')
+        sidecar_path(tmp_path / name).write_text('digest')
+    (tmp_path / 'mine.pt').write_bytes(b'not adapted')
+    deleted = runs.prune(str(tmp_path / names[0]))
+    assert [p.name for p in deleted] == [names[2], names[1]]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        ['mine.pt', *[n + s for n in (names[0], names[3], names[4]) for s in ('', '.sha256')]])
+
+
+def test_each_attempt_is_logged_and_a_refused_swap_is_a_failure(tmp_path: Path) -> None:
+    runs = Adaptation(settings(tmp_path))
+    tmp_path.mkdir(exist_ok=True)
+    accepted = {'decision': 'accepted', 'reason': 'better', 'model_path': 'x.pt',
+                'model_sha256': 'ab', 'scores_um': {'bo_lstm': 1.0, 'parent': 2.0,
+                                                    'persistence': 3.0}}
+    runs.settle(AttemptOutcome(1, 5 * 10**9, dict(accepted)), None, 'x.pt')
+    runs.settle(AttemptOutcome(2, 9 * 10**9, dict(accepted)), 'sha256 mismatch', 'x.pt')
+    runs.settle(AttemptOutcome(3, 12 * 10**9, {'decision': 'refused', 'reason': 'no'}), None,
+                'x.pt')
+    lines = [json.loads(line) for line in (tmp_path / 'adaptation.jsonl').read_text()
+             .splitlines()]
+    assert [(e['attempt'], e['decision'], e['swapped']) for e in lines] == [
+        (1, 'accepted', True), (2, 'failed', False), (3, 'refused', False)]
+    assert lines[1]['reason'] == 'not swapped in: sha256 mismatch'
+    assert lines[0]['clock_started_s'] == 5.0 and lines[0]['scores_um']['parent'] == 2.0
+    state = runs.state
+    assert (state.accepted, state.failed, state.refused, state.swaps) == (1, 1, 1, 1)
+    status = runs.status(20 * 10**9)
+    assert status.message == 'attempt 3 refused: no'
+    assert status.values['last_decision'] == 'refused' and status.values['swaps'] == 1
+
+
+def test_a_killed_attempt_is_a_failure_and_leaves_no_work_folder(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(adaptation, 'ATTEMPT_MODULE', 'this_module_sleeps')
+    (tmp_path / 'this_module_sleeps.py').write_text('import time\ntime.sleep(60)\n')
+    monkeypatch.setenv('PYTHONPATH', str(tmp_path))
+    left_behind = tmp_path / 'models' / f'{WORK_PREFIX}999999999-1'  # a node gone
+    left_behind.mkdir(parents=True)
+    runs = Adaptation(settings(tmp_path / 'models'))
+    store = SampleStore.for_minutes(0.1, 0.04)
+    try:
+        runs.start(store, ModelInForce('m.pt', 'ab', None, 'lompr_base'), {}, 0)
+        assert not left_behind.exists()
+        pid = runs.state.running_pid
+        assert pid and runs.poll() is None
+        os.kill(pid, signal.SIGKILL)
+        deadline = time.monotonic() + 30
+        while (outcome := runs.poll()) is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert outcome is not None and outcome.decision == 'failed'
+        assert outcome.document['reason'] == 'the attempt process was killed by signal 9'
+        assert runs.state.running_pid == 0
+        assert not list((tmp_path / 'models').glob(WORK_PREFIX + '*'))
+    finally:
+        runs.close()
+        store.close()
+
+
+def _sample(k: int) -> AlignedSample:
+    return AlignedSample(stamp_ns=10**12 + k * 40_000_000, x=0.0, y=0.0, reference_x=0.0,
+                         reference_y=0.0, reference_z=1.0)
+
+
+@pytest.fixture(scope='module')
+def parent(tmp_path_factory: pytest.TempPathFactory, description: RobotDescription) -> Path:
+    return train_parent(tmp_path_factory.mktemp('adaptation'), description)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(('margin', 'decision'), [(0.05, ACCEPTED), (0.9, REFUSED)])
+def test_an_attempt_writes_a_better_model_and_only_a_better_one(
+        parent: Path, tmp_path: Path, margin: float, decision: str) -> None:
+    loaded = load_model(parent)
+    samples = other_plant(900)
+    models, work = tmp_path / 'models', tmp_path / 'work'
+    work.mkdir()
+    document = attempt(samples, AttemptRequest(
+        parent=str(parent), parent_sha256=loaded.sha256, models_folder=str(models),
+        work_folder=str(work), margin=margin, max_epochs=6, info={'node': '/predictor_node'}))
+    scores = document['scores_um']
+    assert document['decision'] == decision, document
+    # the parent does not know the new lag; the fine-tuned model learned it
+    assert scores['bo_lstm'] < 0.5 * scores['parent'], scores
+    assert document['data']['samples'] == 900 and document['data']['span_seconds'] == (
+        pytest.approx(899 * 0.04))
+    if decision == REFUSED:
+        assert not models.exists() and document['model_path'] == ''
+        assert document['reason'].startswith(f'{scores["bo_lstm"]:.3f} um RMS, not below 0.1 x')
+        return
+    written = load_model(document['model_path'])  # verified by its sidecar
+    assert written.sha256 == document['model_sha256']
+    meta = written.metadata
+    assert meta.parent_sha256 == loaded.sha256
+    data = meta.hyperparameters['fine_tuning']['data']
+    assert data['node'] == '/predictor_node' and data['samples'] == 900
+    assert data['first_stamp_ns'] == int(samples.stamps[0])
+    assert data['last_stamp_ns'] == int(samples.stamps[-1])
+    assert meta.training_bags[0]['path'] == 'sample store of /predictor_node'
+    assert np.isfinite(document['seconds'])
