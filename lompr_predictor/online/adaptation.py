@@ -52,7 +52,7 @@ class AdaptationSettings:
 
     minutes: float  # the data window: minutes of sample time an attempt learns from
     period: float  # [s] of sample time between the starts of two attempts
-    margin: float  # relative: a candidate must beat the model in force and persistence by it
+    margin: float  # relative: a candidate must beat the model in force by it
     folder: str  # where models and the log are written ('': $ROS_HOME/lompr_models)
     keep: int  # adapted models kept (the newest; the one in force always)
     max_epochs: int  # of each fine-tuning

@@ -181,7 +181,8 @@ class PredictorNodeSettings(FrameSettings):
         False, "online adaptation: every adaptation_period, a process below the node's "
         "priority (one torch thread) fine-tunes the model in force on the sample store's "
         'last adaptation_minutes, scores it on the newest held-out part against the model in '
-        'force and persistence and, only if better than both by adaptation_margin, writes it '
+        'force and persistence and, only if better than the model in force by '
+        'adaptation_margin, writes it '
         'into adaptation_folder and swaps it in as a change of model_path would (verified by '
         'its pinned sha256); every attempt on /diagnostics and in adaptation.jsonl there. '
         'The store is sized for it (store_minutes)', read_only=True)
@@ -196,7 +197,8 @@ class PredictorNodeSettings(FrameSettings):
         minimum=1.0, maximum=1e7, read_only=True)
     adaptation_margin: float = parameter(
         0.05, "relative: a candidate's held-out RMS must be at most (1 - margin) times the "
-        "model in force's and persistence's", minimum=0.0, maximum=0.9, read_only=True)
+        "model in force's (persistence's is logged; the live guard covers a model worse "
+        'than it)', minimum=0.0, maximum=0.9, read_only=True)
     adaptation_folder: str = parameter(
         '', 'where adapted models (adapted-<UTC time>-<n>.pt, sha256 beside) and the log '
         'adaptation.jsonl are written, one folder per node; empty: lompr_models in $ROS_HOME '
