@@ -190,11 +190,6 @@ def test_the_row_check_sees_a_missing_module() -> None:
 #: docstrings included): past that, a reader loses the thread.
 MAX_FUNCTION_LINES = 60
 MAX_CLASS_LINES = 300
-#: Functions still over the limit, by module: each entry goes when its function is reworked.
-OVERSIZED_UNTIL_REWORKED = {
-    'lompr_predictor.learning.training': {'train_network'},
-    'lompr_predictor.learning.model_file': {'load_model'},
-}
 
 
 def oversized(path: Path) -> list[str]:
@@ -213,10 +208,7 @@ def oversized(path: Path) -> list[str]:
 
 @pytest.mark.parametrize('path', SOURCES, ids=lambda p: module_name(p))
 def test_functions_and_classes_stay_short(path: Path) -> None:
-    allowed = OVERSIZED_UNTIL_REWORKED.get(module_name(path), set())
-    found = oversized(path)
-    assert [entry for entry in found if entry.split(':')[0] not in allowed] == []
-    assert {entry.split(':')[0] for entry in found} == allowed, 'reworked: drop the entry'
+    assert oversized(path) == []
 
 
 def test_the_size_check_sees_a_long_function(tmp_path: Path) -> None:

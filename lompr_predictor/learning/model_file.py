@@ -304,14 +304,7 @@ def load_model(
     the output shape before anyone relies on it.
     """
     path = Path(path)
-    if not path.is_file():
-        msg = f'model {path}: no such file'
-        raise ModelFileError(msg)
-    try:
-        data = path.read_bytes()
-    except OSError as err:
-        msg = f'model {path}: cannot read it ({err.strerror or err})'
-        raise ModelFileError(msg) from err
+    data = _read_model_bytes(path)
     digest = hashlib.sha256(data).hexdigest()
     verified_by = _verify(path, digest, sha256, verify, hint)
     extra = {METADATA_NAME: ''}
@@ -334,17 +327,37 @@ def load_model(
     module.eval()
     loaded = LoadedModel(module=module, metadata=metadata, path=str(path), sha256=digest,
                          verified_by=verified_by)
+    _warm_up(loaded)
+    return loaded
+
+
+def _read_model_bytes(path: Path) -> bytes:
+    """The file's bytes, read once (they are hashed, then deserialised), or
+    `ModelFileError`."""
+    if not path.is_file():
+        msg = f'model {path}: no such file'
+        raise ModelFileError(msg)
+    try:
+        return path.read_bytes()
+    except OSError as err:
+        msg = f'model {path}: cannot read it ({err.strerror or err})'
+        raise ModelFileError(msg) from err
+
+
+def _warm_up(loaded: LoadedModel) -> None:
+    """One inference on a zero window: `ModelFileError` unless it runs and gives one
+    prediction per target, before anyone relies on the model."""
+    metadata = loaded.metadata
     warm = torch.zeros((1, metadata.window, len(metadata.features)), dtype=torch.float64)
     try:
         output = loaded.predict(warm)
     except RuntimeError as err:
-        msg = f'model {path}: warm-up inference failed ({str(err).splitlines()[0]})'
+        msg = f'model {loaded.path}: warm-up inference failed ({str(err).splitlines()[0]})'
         raise ModelFileError(msg) from err
     if tuple(output.shape) != (1, len(metadata.targets)):
-        msg = (f'model {path}: warm-up output has shape {tuple(output.shape)}, '
+        msg = (f'model {loaded.path}: warm-up output has shape {tuple(output.shape)}, '
                f'expected (1, {len(metadata.targets)})')
         raise ModelFileError(msg)
-    return loaded
 
 
 def _verify(path: Path, digest: str, pinned: str | None, verify: bool,

@@ -235,78 +235,128 @@ def train_network(
     `fine_tuning`), a copy of it is trained on from its weights, its machine map and
     normalisation kept (`machine_map`, `network_inputs` and the structural hyperparameters
     are its own), and its starting weights count as epoch 0's: the result is never worse
-    on validation than where it started.
-
-    `trial` (an Optuna trial) gets the validation loss each epoch; when its pruner says
-    so (and `prune`), training stops there (`pruned_epoch`) and the result is the best loss
-    so far. The caller returns that as the trial's value rather than raising
-    `TrialPruned`: Optuna's GP sampler learns nothing from a pruned trial and would propose
-    the same point again, whereas a stopped trial's (poor) loss steers it away.
+    on validation than where it started. `trial`, `prune`: an Optuna trial that may stop
+    it (`_fit`).
     """
     torch.manual_seed(settings.seed)
-    rng = np.random.default_rng(settings.seed)
-    window, split = problem.window, problem.split
-    batch = int(hyperparameters['batch_size'])
-    if init is not None:
-        module = copy.deepcopy(init)
-        rows = network_rows(problem, module.machine_map if module.use_map else None)
-    else:
-        rows = network_rows(problem, machine_map)
-        module = build_module(problem, model_type, int(hyperparameters['hidden']),
-                              residual=residual, relative_errors=relative_errors,
-                              error_level=bool(hyperparameters.get('error_level', False)),
-                              steps=int(hyperparameters.get('lstm_steps', LSTM_STEPS)),
-                              machine_map=machine_map, network_inputs=network_inputs,
-                              inputs=rows)
-    net = module.net
-    inputs = ScaledRows(module, rows.rows)
+    split = problem.split
+    module, rows = _starting_module(problem, model_type, hyperparameters, residual=residual,
+                                    relative_errors=relative_errors, machine_map=machine_map,
+                                    network_inputs=network_inputs, init=init)
     validation_ends = evenly_spaced(split.validation, settings.epoch_windows)
     train_y, validation_y = (module.normalise_targets(rows.targets(problem, ends, residual))
                              for ends in (split.train, validation_ends))
-    epoch_size = min(len(split.train), settings.epoch_windows)
-    schedule = _Schedule(net, model_type, hyperparameters,
-                         settings.max_epochs * math.ceil(epoch_size / batch))
-    cosine = schedule.cosine
-    best, best_state, best_epoch, history = math.inf, copy.deepcopy(net.state_dict()), 0, []
-    start_loss = math.nan
+    data = _FitData(ScaledRows(module, rows.rows), split.train, validation_ends, train_y,
+                    validation_y, problem.window, int(hyperparameters['batch_size']),
+                    min(len(split.train), settings.epoch_windows))
+    schedule = _Schedule(module.net, model_type, hyperparameters,
+                         settings.max_epochs * math.ceil(data.epoch_size / data.batch))
+    record = _Record(math.inf, copy.deepcopy(module.net.state_dict()))
     if init is not None:  # where fine-tuning starts is a candidate too
-        net.eval()
-        start_loss = validation_loss(net, inputs, validation_ends, validation_y, window)
-        best = start_loss if math.isfinite(start_loss) else math.inf
-    pruned_epoch = 0
+        module.net.eval()
+        record.start_loss = data.validation_loss(module.net)
+        record.best = record.start_loss if math.isfinite(record.start_loss) else math.inf
     started = time.perf_counter()
     epochs = tqdm(range(1, settings.max_epochs + 1), desc=label or model_type, unit='epoch',
                   leave=False, disable=not progress)
-    epoch = 0
-    for epoch in epochs:
-        order = rng.permutation(len(split.train))[:epoch_size]
-        _train_epoch(net, schedule, inputs.windows, split.train[order], train_y[order], batch,
-                     window)
-        net.eval()
-        loss_value = validation_loss(module.net, inputs, validation_ends, validation_y, window)
-        if not math.isfinite(loss_value):
-            loss_value = math.inf
-        history.append(loss_value)
-        schedule.epoch_done(loss_value)
-        epochs.set_postfix(validation=f'{loss_value:.3g}')
-        if loss_value < best:
-            best, best_state, best_epoch = loss_value, copy.deepcopy(net.state_dict()), epoch
-        if trial is not None:
-            trial.report(loss_value, epoch)
-            if prune and trial.should_prune():
-                pruned_epoch = epoch
-                break
-        # with the cosine decay the validation loss is noisy while the rate is high and
-        # improves most as it decays: no early stop before the schedule's last quarter
-        settled = not cosine or 4 * epoch >= 3 * settings.max_epochs
-        if (settled and epoch - best_epoch >= settings.patience) or loss_value == math.inf:
-            break
+    _fit(module.net, schedule, data, record, epochs, settings,
+         np.random.default_rng(settings.seed), trial if prune else None, trial)
     seconds = time.perf_counter() - started
-    net.load_state_dict(best_state)
+    module.net.load_state_dict(record.best_state)
     module.eval()
     return TrainedModel(module=module, model_type=model_type,
                         hyperparameters=dict(hyperparameters), residual=residual,
                         relative_errors=relative_errors,
-                        validation_loss=best, epochs=epoch, best_epoch=best_epoch,
-                        seconds=seconds, history=history, pruned_epoch=pruned_epoch,
-                        start_loss=start_loss)
+                        validation_loss=record.best, epochs=record.epoch,
+                        best_epoch=record.best_epoch, seconds=seconds, history=record.history,
+                        pruned_epoch=record.pruned_epoch, start_loss=record.start_loss)
+
+
+def _starting_module(problem: LearningProblem, model_type: str,
+                     hyperparameters: Mapping[str, Any], *, residual: bool,
+                     relative_errors: bool, machine_map: MachineMap | None,
+                     network_inputs: str, init: PredictorModule | None
+                     ) -> tuple[PredictorModule, NetworkRows]:
+    """The module training starts from (a copy of `init`, or a new one of the
+    hyperparameters' shape) and the rows its network learns from."""
+    if init is not None:
+        module = copy.deepcopy(init)
+        return module, network_rows(problem, module.machine_map if module.use_map else None)
+    rows = network_rows(problem, machine_map)
+    return build_module(problem, model_type, int(hyperparameters['hidden']),
+                        residual=residual, relative_errors=relative_errors,
+                        error_level=bool(hyperparameters.get('error_level', False)),
+                        steps=int(hyperparameters.get('lstm_steps', LSTM_STEPS)),
+                        machine_map=machine_map, network_inputs=network_inputs,
+                        inputs=rows), rows
+
+
+@dataclass(frozen=True)
+class _FitData:
+    """What the epochs train and validate on: scaled rows, window ends, normalised targets."""
+
+    inputs: ScaledRows
+    train_ends: np.ndarray
+    validation_ends: np.ndarray
+    train_y: torch.Tensor
+    validation_y: torch.Tensor
+    window: int
+    batch: int
+    epoch_size: int  # training windows per epoch
+
+    def validation_loss(self, net: nn.Module) -> float:
+        return validation_loss(net, self.inputs, self.validation_ends, self.validation_y,
+                               self.window)
+
+
+@dataclass
+class _Record:
+    """The best epoch so far and the course of one training."""
+
+    best: float  # validation loss
+    best_state: dict[str, Any]
+    best_epoch: int = 0
+    epoch: int = 0  # epochs run
+    history: list[float] = field(default_factory=list)
+    pruned_epoch: int = 0
+    start_loss: float = math.nan
+
+
+def _fit(net: nn.Module, schedule: _Schedule, data: _FitData, record: _Record,
+         epochs: Any, settings: TrainSettings, rng: np.random.Generator, pruner: Any,
+         trial: Any) -> None:
+    """Train epoch by epoch into `record` until the patience, the pruner or a non-finite
+    loss stops it.
+
+    `trial` (an Optuna trial) gets the validation loss each epoch; when its pruner says so
+    (`pruner`: the trial, when it may stop the training), training stops there
+    (`pruned_epoch`) and the result is the best loss so far. The caller returns that as the
+    trial's value rather than raising `TrialPruned`: Optuna's GP sampler learns nothing
+    from a pruned trial and would propose the same point again, whereas a stopped trial's
+    (poor) loss steers it away.
+    """
+    for epoch in epochs:
+        record.epoch = epoch
+        order = rng.permutation(len(data.train_ends))[:data.epoch_size]
+        _train_epoch(net, schedule, data.inputs.windows, data.train_ends[order],
+                     data.train_y[order], data.batch, data.window)
+        net.eval()
+        loss_value = data.validation_loss(net)
+        if not math.isfinite(loss_value):
+            loss_value = math.inf
+        record.history.append(loss_value)
+        schedule.epoch_done(loss_value)
+        epochs.set_postfix(validation=f'{loss_value:.3g}')
+        if loss_value < record.best:
+            record.best, record.best_epoch = loss_value, epoch
+            record.best_state = copy.deepcopy(net.state_dict())
+        if trial is not None:
+            trial.report(loss_value, epoch)
+            if pruner is not None and trial.should_prune():
+                record.pruned_epoch = epoch
+                return
+        # with the cosine decay the validation loss is noisy while the rate is high and
+        # improves most as it decays: no early stop before the schedule's last quarter
+        settled = not schedule.cosine or 4 * epoch >= 3 * settings.max_epochs
+        if (settled and epoch - record.best_epoch >= settings.patience) or loss_value == math.inf:
+            return
