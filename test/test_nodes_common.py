@@ -168,6 +168,11 @@ def test_a_failing_callback_is_counted_logged_and_handed_to_the_hook(ros: RosHar
     # a parameter change whose application fails goes the same way
     assert node.set_parameters([Parameter('period', value=7.0)])[0].successful
     assert node.failures[-1] == 'parameter change' and node.callback_failures == 4
+    # every run is timed by kind, the failing ones too, and the warnings' log calls
+    rows = node.callback_times.rows
+    assert rows['toy input'].total == 5 and rows['parameter change'].total >= 1
+    assert rows['logging'].total >= 1
+    assert node.callback_times.status().values['toy input.runs'] == 5
 
 
 def test_qos_overrides_take_effect_on_the_endpoints(ros: RosHarness) -> None:
@@ -398,3 +403,37 @@ def test_the_stream_settings_are_the_predictors_declared_parameters() -> None:
     assert set(changed) == {item.name for item in fields} - {'sample_period'}
     stream = dataclasses.replace(PredictorNodeSettings(), **changed).stream(0.004)
     assert dataclasses.asdict(stream) == {**changed, 'sample_period': 0.004}
+
+
+EXECUTOR_TIMING_PROBE = """
+from dataclasses import dataclass
+from rclpy.node import Node
+from lompr_predictor.ros.common import EXECUTOR_ROW, run_node
+from lompr_predictor.ros.node_base import NodeBase
+
+class Probe(NodeBase, Node):
+    pass
+
+def build(context):
+    node = Probe('timing_probe', context=context)
+    def tick():
+        if node.callback_times.rows['tick'].total >= 20:
+            rows = node.callback_times.rows
+            print(rows['tick'].total, rows[EXECUTOR_ROW].total, rows[EXECUTOR_ROW].max_ns)
+            context.try_shutdown()
+    node.start_timer(0.005, 'tick', tick)
+    return node
+
+run_node(build, description='probe', argv=['probe'])
+"""
+
+
+def test_run_node_times_the_executors_own_work_per_wake_up() -> None:
+    """Beside the callbacks, each wake-up of the executor is recorded with its own CPU time
+    (the spin's minus the callbacks')."""
+    result = subprocess.run([sys.executable, '-c', EXECUTOR_TIMING_PROBE], capture_output=True,
+                            text=True, timeout=60, check=False)
+    ticks, wake_ups, longest_ns = (int(field) for field in result.stdout.split())
+    assert ticks == 20
+    assert wake_ups >= 19  # one per tick at least (the last one is still running)
+    assert 0 < longest_ns < 1_000_000_000

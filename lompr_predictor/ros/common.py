@@ -39,7 +39,7 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
 from lompr_predictor.errors import LomprError
-from lompr_predictor.monitoring import Level, Status
+from lompr_predictor.monitoring import CallbackTimes, Level, Status
 from lompr_predictor.ros.parameters import ParameterSpec
 from lompr_predictor.scheduling import Scheduling, apply_scheduling, shared_scheduling
 
@@ -335,6 +335,26 @@ def process_scheduling(nodes: Sequence[Node]) -> Scheduling:
     return shared_scheduling(asked)
 
 
+#: The `CallbackTimes` row of the executor's own work: the thread's CPU time per wake-up
+#: (`spin_once`) beyond the callbacks it ran (waiting for work takes no CPU).
+EXECUTOR_ROW = 'executor (CPU per wake-up)'
+
+
+def _spin_timed(executor: Executor, context: Context, stop: StopRequest,
+                nodes: Sequence[Node]) -> None:
+    """Spin until shutdown or a stop request, recording into each lompr node's
+    `callback_times` the executor's own CPU time per wake-up (`EXECUTOR_ROW`)."""
+    times = [found for found in (getattr(node, 'callback_times', None) for node in nodes)
+             if isinstance(found, CallbackTimes)]
+    cpu = time.thread_time_ns
+    while context.ok() and not stop.requested:
+        started, measured = cpu(), sum(t.measured_cpu_ns for t in times)
+        executor.spin_once(timeout_sec=SPIN_STEP)
+        own = cpu() - started - (sum(t.measured_cpu_ns for t in times) - measured)
+        for node_times in times:
+            node_times.record(EXECUTOR_ROW, max(own, 0), max(own, 0))
+
+
 def _spin(node_factory: Callable[[Context], Node | Sequence[Node]], executor_name: str,
           stop: StopRequest, prog: str) -> int:
     """Build the node(s) on the default context and spin them until Ctrl-C, shutdown or a
@@ -355,8 +375,7 @@ def _spin(node_factory: Callable[[Context], Node | Sequence[Node]], executor_nam
         # out of the collector's sight: a full collection over every object torch and rclpy
         # made at start-up stalls a callback for many sample periods
         gc.freeze()
-        while context.ok() and not stop.requested:
-            executor.spin_once(timeout_sec=SPIN_STEP)
+        _spin_timed(executor, context, stop, nodes)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (LomprError, ParameterException, InvalidTopicNameException) as err:
