@@ -244,6 +244,7 @@ def soak(minutes: float, model: Path, preview: int = 0, resets: int = 0) -> dict
             executor.spin_once(timeout_sec=0.05)
 
         before = client.before_sample(tips, simulated)
+        wire = bench.SerializedSamples(tips, joints)
         next_rss = [time.monotonic()]
 
         def run(base_ns: int, count: int, sent: np.ndarray | None) -> None:
@@ -253,7 +254,7 @@ def soak(minutes: float, model: Path, preview: int = 0, resets: int = 0) -> dict
                     rss.append((time.monotonic(), [rss_mb(p.pid) for p in processes]))
                     next_rss[0] += RSS_EVERY
 
-            bench.paced_stream(client, tips, joints, base_ns, count, period, sent, step,
+            bench.paced_stream(client, wire, base_ns, count, period, sent, step,
                                before)
 
         while not client.arrivals:  # warm-up: until the whole chain answers

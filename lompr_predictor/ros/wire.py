@@ -18,6 +18,7 @@ A message that cannot be read raises `WireError`.
 
 from __future__ import annotations
 
+import functools
 import struct
 from collections.abc import Sequence
 from typing import Any
@@ -257,20 +258,28 @@ def _read_poses(data: bytes, offset: int, frame_id: str, seconds: np.ndarray,
             raise ValueError(msg)
         rows = count - index
         if offset % 8 == 0 and rows > 1 and 4 + offset + rows * stride <= len(data):
-            base = 4 + offset
-            lengths = np.ndarray((rows,), '<u4', data, base + 8, (stride,))
-            frames = np.ndarray((rows, length), 'u1', data, base + 12, (stride, 1))
-            if (lengths == length).all() and (frames == frames[0]).all():
-                seconds[index:] = np.ndarray((rows,), '<i4', data, base, (stride,))
-                nanoseconds[index:] = np.ndarray((rows,), '<u4', data, base + 4, (stride,))
-                positions[index:] = np.ndarray((rows, 3), '<f8', data,
-                                               base + position - offset, (stride, 8))
+            fields = _poses_struct(rows, length, position - end).unpack_from(data, 4 + offset)
+            if (fields[2::7].count(length) == rows
+                    and fields[3::7].count(fields[3]) == rows):
+                seconds[index:] = fields[0::7]
+                nanoseconds[index:] = fields[1::7]
+                for axis in range(3):
+                    positions[index:, axis] = fields[4 + axis::7]
                 return True
         seconds[index], nanoseconds[index] = sec, nanosec
         positions[index] = _POINT.unpack_from(data, 4 + position)
         offset = position + 7 * 8
         index += 1
     return True
+
+
+@functools.lru_cache(maxsize=64)
+def _poses_struct(rows: int, length: int, padding: int) -> struct.Struct:
+    """`rows` serialized PoseStamped in a row whose frame_id fields hold `length` bytes
+    (with the NUL) and are followed by `padding` bytes up to the position: one `unpack`
+    gives each pose's stamp, frame_id length and bytes, and position (7 values a pose),
+    cheaper than the NumPy calls of as many strided views on a path of a few dozen poses."""
+    return struct.Struct('<' + f'iII{length}s{padding}x3d32x' * rows)
 
 
 def _string(data: bytes, start: int, end: int) -> str:
