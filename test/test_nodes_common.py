@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import subprocess
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -437,3 +438,21 @@ def test_run_node_times_the_executors_own_work_per_wake_up() -> None:
     assert ticks == 20
     assert wake_ups >= 19  # one per tick at least (the last one is still running)
     assert 0 < longest_ns < 1_000_000_000
+
+
+def test_the_node_clock_under_simulated_time_is_the_ros_clock(ros: RosHarness) -> None:
+    """`clock_ns` reads the clock's handle, not `Clock.now()`: the same nanoseconds, as
+    /clock sets them, and the system time once simulated time is switched off."""
+    from rclpy.clock import ROSClock
+    from rclpy.time import Time
+
+    node: ToyNode = ros.add(ToyNode(context=ros.context,
+                                    parameter_overrides=overrides(use_sim_time=True)))
+    clock = node.get_clock()
+    assert isinstance(clock, ROSClock)
+    assert node.clock_ns() == clock.now().nanoseconds == 0  # before the first /clock
+    clock.set_ros_time_override(Time(nanoseconds=1_234_567_890_123))
+    assert node.clock_ns() == clock.now().nanoseconds == 1_234_567_890_123
+    assert node.clock_seconds() == pytest.approx(1234.567890123)
+    node.set_parameters([Parameter('use_sim_time', value=False)])
+    assert abs(node.clock_ns() - time.time_ns()) < 5_000_000_000
