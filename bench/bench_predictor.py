@@ -33,7 +33,10 @@ dropped by the predictor's overrun policy).
   (`lompr train --threads 1` on a small simulated bag, at its default priority, nice +10;
   `--no-training` skips it). Each run beside the same chain through `relay_chain.py` (the
   nodes' topics, QoS and executor, raw bytes in and out, no work): the transport floor of
-  this machine, which no node can go below.
+  this machine, which no node can go below. After each run through the nodes, each node's
+  'callback timing' status (`monitoring.CallbackTimes`, on /diagnostics) over the timed
+  stream: per kind of work (each callback, logging, garbage collection by generation, the
+  executor's own CPU per wake-up) runs, mean wall and CPU time, p50 / p99 / p99.9 / max.
 
 Targets: at 1 kHz, with a training job beside and without, >= 99.9 % of the samples
 answered, p99 <= 2 ms across processes and <= 1 ms in one process; the core's inference
@@ -55,6 +58,7 @@ os.environ['OPENBLAS_NUM_THREADS'] = '1'
 
 import argparse
 import contextlib
+import struct
 import subprocess
 import sys
 import tempfile
@@ -68,6 +72,7 @@ from typing import Any
 import numpy as np
 import rclpy
 import torch
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
@@ -84,6 +89,7 @@ from lompr_predictor.learning.model_file import (
     save_model,
 )
 from lompr_predictor.learning.models import PredictorModule, build_network, network_columns
+from lompr_predictor.monitoring import bin_index, bin_lower_ns, parse_histogram
 from lompr_predictor.online.faults import StreamSettings
 from lompr_predictor.online.stage_timing import STAGES, time_stages
 from lompr_predictor.processes import stop_processes
@@ -189,7 +195,32 @@ def core_stream(rate: int) -> StreamSettings:
 PARTS = ('inference', 'profile', 'end-to-end')
 
 
-def paced_stream(client: Any, tips: np.ndarray, joints: np.ndarray, base_ns: int, count: int,
+class SerializedSamples:
+    """The reference and joint state of each row of `tips` and `joints`, serialized once
+    (`sample_messages`), published as bytes with the stamp written in: a client that
+    built and converted two message objects per sample would take, on a machine of two
+    cores, CPU the nodes it measures need."""
+
+    def __init__(self, tips: np.ndarray, joints: np.ndarray) -> None:
+        pairs = [sample_messages(tips, joints, k, 0) for k in range(len(tips))]
+        self._references = [serialize_message(reference) for reference, _ in pairs]
+        self._states = [serialize_message(state) for _, state in pairs]
+
+    def __len__(self) -> int:
+        return len(self._states)
+
+    def at(self, k: int, stamp_ns: int) -> tuple[bytes, bytes]:
+        """(reference, joint state) of row `k` stamped `stamp_ns`: both begin with a
+        header, whose stamp follows the 4-byte encapsulation header (`ros.wire`)."""
+        stamp = STAMP.pack(*divmod(stamp_ns, 1_000_000_000))
+        reference, state = self._references[k], self._states[k]
+        return reference[:4] + stamp + reference[12:], state[:4] + stamp + state[12:]
+
+
+STAMP = struct.Struct('<iI')
+
+
+def paced_stream(client: Any, samples: SerializedSamples, base_ns: int, count: int,
                  period: float, sent: np.ndarray | None, step: Callable[[], None],
                  before: Callable[[int, int], None] | None = None) -> None:
     """Publish `count` samples `period` s apart from a thread (reference, then joint state,
@@ -206,8 +237,7 @@ def paced_stream(client: Any, tips: np.ndarray, joints: np.ndarray, base_ns: int
                 time.sleep(delay)
             if before is not None:
                 before(k, base_ns + k * period_ns)
-            reference, state = sample_messages(tips, joints, k % len(tips),
-                                               base_ns + k * period_ns)
+            reference, state = samples.at(k % len(samples), base_ns + k * period_ns)
             client.reference.publish(reference)
             if sent is not None:
                 sent[k] = time.perf_counter()
@@ -506,14 +536,23 @@ def _stage_table(samples: list[dict[str, int]]) -> list[tuple[str, float, float]
 # -- end to end -----------------------------------------------------------------------------
 
 class Client(Node):
-    """Publishes joint states and references at a rate, times compensations coming back."""
+    """Publishes joint states and references at a rate, times compensations coming back,
+    keeps the nodes' latest 'callback timing' statuses (`timing`: node -> key-values)."""
 
     def __init__(self, context: Context) -> None:
         super().__init__('bench_predictor_client', context=context)
         self.joints = self.create_publisher(JointState, '/joint_states', 100)
         self.reference = self.create_publisher(PoseStamped, '/lompr/reference', 100)
         self.arrivals: dict[int, float] = {}
+        self.timing: dict[str, dict[str, str]] = {}
         self.create_subscription(Vector3Stamped, '/lompr/compensation', self._on_offset, 1000)
+        self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 100)
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            node, _, name = status.name.partition(': ')
+            if name == TIMING_STATUS:
+                self.timing[node] = {kv.key: kv.value for kv in status.values}
 
     def _on_offset(self, msg: Vector3Stamped) -> None:
         stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
@@ -526,6 +565,65 @@ class Client(Node):
                 and self.count_publishers('/lompr/end_pose') >= 1
                 and self.count_subscribers('/lompr/end_pose') >= 1
                 and self.count_publishers('/lompr/compensation') >= 1)
+
+
+#: The nodes' status of their callbacks' times (`monitoring.CallbackTimes`).
+TIMING_STATUS = 'callback timing'
+#: Seconds for a status that the nodes made after the last sample to arrive.
+DIAGNOSTICS_WAIT = 1.3
+
+
+def timing_rows(before: dict[str, str], after: dict[str, str]) -> list[tuple[str, ...]]:
+    """Per row of a node's 'callback timing' status, what ran between two of its reports:
+    runs, mean wall and CPU [us], p50 / p99 / p99.9 (upper bin edges) [us] and the longest
+    run's bin edge, from the histograms' difference."""
+    rows = []
+    for key in sorted(after):
+        if key.endswith('.histogram_ns'):
+            row = _timing_row(key.removesuffix('.histogram_ns'), before, after)
+            if row is not None:
+                rows.append(row)
+    return rows
+
+
+def _timing_row(row: str, before: dict[str, str],
+                after: dict[str, str]) -> tuple[str, ...] | None:
+    """`timing_rows`' line of `row`, None if it did not run in between."""
+    counts = parse_histogram(after[f'{row}.histogram_ns'])
+    for lower, count in parse_histogram(before.get(f'{row}.histogram_ns', '')).items():
+        counts[lower] -= count
+    edges = sorted(lower for lower, count in counts.items() if count > 0)
+    runs = sum(counts[lower] for lower in edges)
+    if not runs:
+        return None
+
+    def total(name: str) -> float:
+        return float(after.get(f'{row}.{name}', 0)) * int(after[f'{row}.runs']) - (
+            float(before.get(f'{row}.{name}', 0)) * int(before.get(f'{row}.runs', 0)))
+
+    def upper_us(q: float) -> str:
+        seen = 0
+        for lower in edges:
+            seen += counts[lower]
+            if seen >= q / 100 * runs:
+                break
+        return f'{bin_lower_ns(bin_index(lower) + 1) * 1e-3:.0f}'
+
+    cpu = f'{total("cpu_mean_us") / runs:.1f}' if f'{row}.cpu_mean_us' in after else '-'
+    return (row, str(runs), f'{total("mean_us") / runs:.1f}', cpu,
+            *(upper_us(q) for q in (50, 99, 99.9, 100)))
+
+
+def print_timing(nodes: dict[str, dict[str, str]], before: dict[str, dict[str, str]]) -> None:
+    """The callback timing of each node between two snapshots of `Client.timing`."""
+    for node, after in sorted(nodes.items()):
+        print(f'  {node}: callback timing over the run (wall us; p = upper bin edge, '
+              '4 bins per octave; cpu = thread CPU):')
+        print(f'    {"what ran":40s} {"runs":>7s} {"mean":>7s} {"cpu":>7s} {"p50":>6s} '
+              f'{"p99":>6s} {"p99.9":>6s} {"max":>7s}')
+        for row, runs, mean, cpu, *edges in timing_rows(before.get(node, {}), after):
+            print(f'    {row:40s} {runs:>7s} {mean:>7s} {cpu:>7s} {edges[0]:>6s} '
+                  f'{edges[1]:>6s} {edges[2]:>6s} {edges[3]:>7s}')
 
 
 def start(command: list[str], **kwargs: Any) -> subprocess.Popen:
@@ -591,8 +689,10 @@ def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path | None,
         period_ns = round(period * 1e9)
         sent = np.full(samples, np.nan)
 
+        wire = SerializedSamples(tips, joints)
+
         def run(base_ns: int, count: int, record: bool) -> None:
-            paced_stream(client, tips, joints, base_ns, count, period,
+            paced_stream(client, wire, base_ns, count, period,
                          sent if record else None, lambda: spinner.spin_once(timeout_sec=0.01))
 
         # Warm-up until the whole chain answers (the graph shows every link before the last
@@ -604,14 +704,18 @@ def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path | None,
                 msg = f'{mode} at {rate} Hz: no compensation came back during the warm-up'
                 raise RuntimeError(msg)
             run(time.time_ns() - 100 * 10**9, warm_up, record=False)
+        end = time.monotonic() + DIAGNOSTICS_WAIT  # reports made after the warm-up
+        while time.monotonic() < end:
+            spinner.spin_once(timeout_sec=0.01)
         client.arrivals.clear()
+        timing_before = dict(client.timing)
         cpu_before = [cpu_seconds(p.pid) for p in processes]
         base_ns = time.time_ns()
         run(base_ns, samples, record=True)
-        end = time.monotonic() + 1.0
+        cpu_used = [cpu_seconds(p.pid) - c for p, c in zip(processes, cpu_before, strict=True)]
+        end = time.monotonic() + DIAGNOSTICS_WAIT
         while time.monotonic() < end:
             spinner.spin_once(timeout_sec=0.01)
-        cpu_used = [cpu_seconds(p.pid) - c for p, c in zip(processes, cpu_before, strict=True)]
     finally:
         spinner.shutdown()
         client.destroy_node()
@@ -629,7 +733,8 @@ def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path | None,
             'p50': float(np.percentile(lat, 50)) if len(lat) else float('nan'),
             'p99': float(np.percentile(lat, 99)) if len(lat) else float('nan'),
             'max': float(lat.max()) if len(lat) else float('nan'),
-            'cpu_us': [c / samples * 1e6 for c in cpu_used]}
+            'cpu_us': [c / samples * 1e6 for c in cpu_used],
+            'timing': (timing_before, dict(client.timing))}
 
 
 @contextlib.contextmanager
@@ -800,6 +905,8 @@ def report_end_to_end(load: str, job: contextlib.AbstractContextManager[Any],
                               f'{result["answered"]:7d}/{result["answerable"]:<7d} '
                               f'{share:7.4f} {result["p50"]:7.2f} {result["p99"]:7.2f} '
                               f'{result["max"]:7.2f} {result["late"]:5d}  {cpu}')
+                    before, after = results['nodes']['timing']
+                    print_timing(after, before)
                     suffix = load if executor == EXECUTORS[0] else f'{load}, {executor}'
                     rows += end_to_end_rows(mode, rate, suffix, results['nodes'],
                                             results['relays'])

@@ -13,7 +13,8 @@ parameters, for `--minutes` (default 10), and prints:
   its instant arriving back;
 - faults per minute, from the nodes' own /diagnostics: the predictor's stream faults
   (`faults_total`), its dropped inputs, its overruns (inference skipped or output dropped as
-  late), the kinematics node's rejected joint states.
+  late), the kinematics node's rejected joint states;
+- each node's callback timing over the timed stream (as `bench_predictor.py` prints it).
 
 With `--preview K` the model reads K samples of the planned reference, and the client
 publishes with every sample the plan of the next K + `LOOK_AHEAD_MARGIN` on
@@ -155,7 +156,6 @@ class SoakClient(bench.Client):
         self.clock = self.create_publisher(Clock, '/clock', 10)
         self._writer = PreviewWriter(preview + LOOK_AHEAD_MARGIN if preview else 0,
                                      ROBOT_FRAME)  # the references' (`sample_messages`)
-        self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 100)
 
     def before_sample(self, tips: np.ndarray, simulated: bool) -> Any:
         """What `paced_stream` runs before each sample: the simulated time every
@@ -186,6 +186,7 @@ class SoakClient(bench.Client):
             self.arrival[run, k] = time.perf_counter()
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        super()._on_diagnostics(msg)
         for status in msg.status:
             for kv in status.values:
                 label = COUNTERS.get((status.name, kv.key))
@@ -243,6 +244,7 @@ def soak(minutes: float, model: Path, preview: int = 0, resets: int = 0) -> dict
             executor.spin_once(timeout_sec=0.05)
 
         before = client.before_sample(tips, simulated)
+        wire = bench.SerializedSamples(tips, joints)
         next_rss = [time.monotonic()]
 
         def run(base_ns: int, count: int, sent: np.ndarray | None) -> None:
@@ -252,7 +254,7 @@ def soak(minutes: float, model: Path, preview: int = 0, resets: int = 0) -> dict
                     rss.append((time.monotonic(), [rss_mb(p.pid) for p in processes]))
                     next_rss[0] += RSS_EVERY
 
-            bench.paced_stream(client, tips, joints, base_ns, count, period, sent, step,
+            bench.paced_stream(client, wire, base_ns, count, period, sent, step,
                                before)
 
         while not client.arrivals:  # warm-up: until the whole chain answers
@@ -264,6 +266,7 @@ def soak(minutes: float, model: Path, preview: int = 0, resets: int = 0) -> dict
         while time.monotonic() < end:
             executor.spin_once(timeout_sec=0.01)
         counters_before = dict(client.counters)
+        timing_before = dict(client.timing)
         client.base_ns = time.time_ns() + 200_000_000
         started = time.monotonic()
         for index in range(runs):  # each reset replays the stream from its start
@@ -286,7 +289,8 @@ def soak(minutes: float, model: Path, preview: int = 0, resets: int = 0) -> dict
               for label in sorted(client.counters, key=_order)}
     return {'samples': runs * samples, 'seconds': seconds, 'answerable': samples - first,
             'answered': answered.sum(axis=1).tolist(), 'latency_ms': latency[answered],
-            'rss': rss, 'counts': counts, 'preview': preview, 'resets': resets}
+            'rss': rss, 'counts': counts, 'preview': preview, 'resets': resets,
+            'timing': (timing_before, dict(client.timing))}
 
 
 def report(result: dict[str, Any]) -> bool:
@@ -326,6 +330,8 @@ def report(result: dict[str, Any]) -> bool:
     for label, count in result['counts'].items():
         if count or not label.startswith('  by reason'):
             print(f'  {label}: {count} ({count / minutes:.2f} per minute)')
+    before, after = result['timing']
+    bench.print_timing(after, before)
     return ok
 
 

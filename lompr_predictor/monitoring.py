@@ -16,6 +16,9 @@ the next message through. Durations (`LatencyRecorder.measure`) are wall time.
 
 from __future__ import annotations
 
+import bisect
+import itertools
+import math
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping
@@ -133,6 +136,7 @@ class LatencyRecorder:
             msg = f'latency capacity must be at least 1, got {capacity}'
             raise ValueError(msg)
         self._samples = np.empty(capacity)
+        self._sorted = np.empty(capacity)  # `summary`'s working copy, made once
         self._next = 0
         self._count = 0
         self.total = 0
@@ -154,12 +158,29 @@ class LatencyRecorder:
             self.record(time.perf_counter() - start)
 
     def summary(self) -> LatencySummary:
-        """p50, p99 (linear interpolation) and max of the durations held."""
-        if self._count == 0:
+        """p50, p99 and max of the durations held: `np.percentile`'s linear interpolation,
+        to the bit, on a working copy sorted in place (a report per second must not cost
+        the node's thread what `np.percentile`'s copies and checks do)."""
+        count = self._count
+        if count == 0:
             return LatencySummary(0, float('nan'), float('nan'), float('nan'))
-        held = self._samples[:self._count]
-        p50, p99 = np.percentile(held, [50.0, 99.0])
-        return LatencySummary(self._count, float(p50), float(p99), float(held.max()))
+        ordered = self._sorted[:count]
+        ordered[:] = self._samples[:count]
+        ordered.sort()
+        return LatencySummary(count, _linear(ordered, 0.5), _linear(ordered, 0.99),
+                              float(ordered[-1]))
+
+
+def _linear(ordered: np.ndarray, q: float) -> float:
+    """The `q` quantile (0..1) of sorted values as `np.percentile` interpolates it
+    (method 'linear', its lerp from the nearer end)."""
+    position = q * (len(ordered) - 1)
+    below = math.floor(position)
+    weight = position - below
+    low = float(ordered[below])
+    high = float(ordered[min(below + 1, len(ordered) - 1)])
+    step = high - low
+    return high - step * (1 - weight) if weight >= 0.5 else low + step * weight
 
 
 class LogThrottle:
@@ -221,3 +242,147 @@ def rejection_values(counter: RejectionCounter) -> dict[str, object]:
     values: dict[str, object] = {'rejected_total': counter.total}
     values.update({f'rejected.{reason}': n for reason, n in counter.counts().items()})
     return values
+
+
+#: `DurationHistogram`'s bins: below `_FIRST_NS` one bin, then 4 per octave (the top two
+#: bits after the leading one), up to `_OCTAVES` octaves; longer durations in the last bin.
+_FIRST_NS = 256
+_OCTAVES = 27  # 256 ns .. 34 s
+_BINS = 1 + 4 * _OCTAVES + 1
+#: The percentiles of a `CallbackTimes` row on /diagnostics.
+_PERCENTILES = (50.0, 99.0, 99.9)
+
+
+def bin_index(ns: int) -> int:
+    """The `DurationHistogram` bin of a duration of `ns` nanoseconds (integer operations
+    only: cheap enough for every sample)."""
+    if ns < _FIRST_NS:
+        return 0
+    bits = ns.bit_length()
+    return min((bits - 9) * 4 + ((ns >> (bits - 3)) & 3) + 1, _BINS - 1)
+
+
+def bin_lower_ns(index: int) -> int:
+    """The shortest duration [ns] that falls in bin `index`."""
+    if index == 0:
+        return 0
+    octave, quarter = divmod(index - 1, 4)
+    return (_FIRST_NS << octave) * (4 + quarter) // 4
+
+
+class DurationHistogram:
+    """Durations [ns] counted in fixed bins, 4 per octave (a quarter octave is 19 % wide at
+    most), from 256 ns to 34 s: recording is a few integer operations on a list made once,
+    so it can run for every sample; percentiles are read from the bins (their upper edge,
+    conservative), the maximum exactly."""
+
+    def __init__(self) -> None:
+        self.counts = [0] * _BINS
+        self.total = 0
+        self.sum_ns = 0
+        self.max_ns = 0
+
+    def record(self, ns: int) -> None:
+        self.counts[bin_index(ns)] += 1
+        self.total += 1
+        self.sum_ns += ns
+        if ns > self.max_ns:
+            self.max_ns = ns
+
+    def percentiles_ns(self, *qs: float) -> list[int]:
+        """For each `q` (0 < q <= 100) the upper edge of the bin that holds the `q` % point,
+        or the max where that is smaller; 0 when empty."""
+        if not self.total:
+            return [0] * len(qs)
+        cumulative = list(itertools.accumulate(self.counts))
+        edges = []
+        for q in qs:
+            index = bisect.bisect_left(cumulative, q / 100.0 * self.total)
+            upper = bin_lower_ns(index + 1) if index + 1 < _BINS else self.max_ns
+            edges.append(min(upper, self.max_ns))
+        return edges
+
+    def text(self) -> str:
+        """The non-empty bins as 'lower_ns:count' pairs, space separated
+        (`parse_histogram` reads it back)."""
+        return ' '.join(f'{bin_lower_ns(i)}:{n}' for i, n in enumerate(self.counts) if n)
+
+
+def parse_histogram(text: str) -> dict[int, int]:
+    """{bin's lower edge [ns]: count} of a `DurationHistogram.text`."""
+    pairs = (item.split(':') for item in text.split())
+    return {int(lower): int(count) for lower, count in pairs}
+
+
+class CallbackTimes:
+    """Where a node's thread spends its time: per kind of work (a named row: a callback,
+    'logging', 'garbage collection', 'executor'), a `DurationHistogram` of the wall time of
+    each run and the thread CPU time they used. Wall time well above CPU time is time the
+    thread waited for the processor (other processes or threads ran); a sample that queued
+    behind a row's long run waited as long. Rows are made on first use; recording one is
+    cheap enough for every sample (`measure`: four clock readings)."""
+
+    def __init__(self) -> None:
+        self.rows: dict[str, DurationHistogram] = {}
+        self.cpu_ns: dict[str, int] = {}
+        #: CPU time of the outermost `measure`d runs [ns] (the executor's is the rest).
+        self.measured_cpu_ns = 0
+        self._depth = 0  # `measure` calls running (a log call inside a callback: 2)
+        self._gc_started = 0
+
+    def record(self, row: str, wall_ns: int, cpu_ns: int | None = None) -> None:
+        """One run of `row` that took `wall_ns` (and `cpu_ns` of the thread's CPU, if
+        measured)."""
+        histogram = self.rows.get(row)
+        if histogram is None:
+            histogram = self.rows[row] = DurationHistogram()
+        histogram.record(wall_ns)
+        if cpu_ns is not None:
+            self.cpu_ns[row] = self.cpu_ns.get(row, 0) + cpu_ns
+
+    def measure(self, row: str, function: Callable[..., object], *args: object) -> None:
+        """Run `function(*args)` and record it under `row`, also when it raises."""
+        wall, cpu = time.perf_counter_ns(), time.thread_time_ns()
+        self._depth += 1
+        try:
+            function(*args)
+        finally:
+            used = time.thread_time_ns() - cpu
+            self.record(row, time.perf_counter_ns() - wall, used)
+            self._depth -= 1
+            if not self._depth:
+                self.measured_cpu_ns += used
+
+    def on_gc(self, phase: str, info: dict[str, int]) -> None:
+        """A `gc.callbacks` hook: each collection recorded by generation."""
+        if phase == 'start':
+            self._gc_started = time.perf_counter_ns()
+        elif self._gc_started:
+            self.record(f'garbage collection {info["generation"]}',
+                        time.perf_counter_ns() - self._gc_started)
+            self._gc_started = 0
+
+    def values(self) -> dict[str, object]:
+        """Key-values of every row for a status: runs, mean wall and CPU, p50 / p99 / p99.9
+        / max [us], and the histogram (`DurationHistogram.text`)."""
+        values: dict[str, object] = {}
+        for row, histogram in sorted(self.rows.items()):
+            runs = histogram.total
+            values[f'{row}.runs'] = runs
+            values[f'{row}.mean_us'] = round(histogram.sum_ns / runs * 1e-3, 2)
+            if row in self.cpu_ns:
+                values[f'{row}.cpu_mean_us'] = round(self.cpu_ns[row] / runs * 1e-3, 2)
+            for q, ns in zip(_PERCENTILES, histogram.percentiles_ns(*_PERCENTILES),
+                             strict=True):
+                values[f'{row}.p{q:g}_us'] = round(ns * 1e-3, 2)
+            values[f'{row}.max_us'] = round(histogram.max_ns * 1e-3, 2)
+            values[f'{row}.histogram_ns'] = histogram.text()
+        return values
+
+    def status(self) -> Status:
+        """The 'callback timing' status: always OK, for reading (docs/speed.md)."""
+        slowest = max(self.rows.items(), key=lambda item: item[1].max_ns, default=None)
+        message = ('nothing timed yet' if slowest is None else
+                   f'{len(self.rows)} kinds of work timed; longest run: {slowest[0]}, '
+                   f'{slowest[1].max_ns * 1e-3:.0f} us')
+        return Status(Level.OK, message, self.values())

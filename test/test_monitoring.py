@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import gc
 import math
+import time
+from typing import Any
 
 import numpy as np
 import pytest
 from fake_clock import FakeClock
 
 from lompr_predictor.monitoring import (
+    CallbackTimes,
+    DurationHistogram,
     LatencyRecorder,
     LatencySummary,
     Level,
@@ -16,7 +21,9 @@ from lompr_predictor.monitoring import (
     RateMeter,
     RejectionCounter,
     Status,
+    bin_lower_ns,
     latency_values,
+    parse_histogram,
     rejection_values,
 )
 
@@ -172,3 +179,83 @@ def test_status_defaults_and_levels_match_diagnostic_msgs() -> None:
     status = Status(Level.WARN, 'slow')
     assert dict(status.values) == {}
     assert [int(level) for level in Level] == [0, 1, 2, 3]
+
+
+def test_duration_histogram_bins_are_quarter_octaves_and_percentiles_bound_the_data() -> None:
+    # the bin edges: 0, then 256, 320, 384, 448, 512, 640, ... (4 per octave)
+    assert [bin_lower_ns(i) for i in range(7)] == [0, 256, 320, 384, 448, 512, 640]
+    histogram = DurationHistogram()
+    durations = [100, 300, 1000, 1000, 1000, 5000, 70_000, 2_000_000]
+    for ns in durations * 100:
+        histogram.record(ns)
+    assert histogram.total == 800 and histogram.max_ns == 2_000_000
+    assert histogram.sum_ns == 100 * sum(durations)
+    # 1000 ns falls in [896, 1024): p50 (rank 400, inside the 1000s) reads its upper edge
+    assert histogram.percentiles_ns(50) == [1024]
+    assert histogram.percentiles_ns(70) == [5120]  # 5000 in [4608, 5120)
+    assert histogram.percentiles_ns(80) == [81920]  # 70 us in [65536, 81920)
+    assert histogram.percentiles_ns(99, 100) == [2_000_000] * 2  # the max, below its bin's edge
+    for q, exact in ((50, 1000), (70, 5000), (80, 70_000)):
+        assert exact <= histogram.percentiles_ns(q)[0] <= exact * 1.25
+    assert DurationHistogram().percentiles_ns(50, 99) == [0, 0]
+    # a duration beyond the last bin is counted there, the max exact
+    histogram.record(10**12)
+    assert histogram.counts[-1] == 1 and histogram.max_ns == 10**12
+    assert parse_histogram(histogram.text())[256] == 100  # 300 ns in [256, 320)
+
+
+def test_callback_times_rows_measure_wall_and_cpu_and_nested_runs_count_once() -> None:
+    times = CallbackTimes()
+
+    def busy(seconds: float) -> None:
+        end = time.perf_counter() + seconds
+        while time.perf_counter() < end:
+            pass
+
+    times.measure('work', busy, 0.002)
+    times.measure('idle', time.sleep, 0.002)
+    times.measure('outer', lambda: times.measure('logging', busy, 0.001))
+    with pytest.raises(ZeroDivisionError):
+        times.measure('failing', lambda: 1 / 0)
+    values: dict[str, Any] = times.values()
+    assert values['work.runs'] == 1 and values['failing.runs'] == 1
+    assert 2000 <= values['work.mean_us'] < 50_000
+    assert values['work.cpu_mean_us'] > 1000  # busy: CPU
+    assert values['idle.mean_us'] >= 2000 and values['idle.cpu_mean_us'] < 1000  # asleep
+    # the log call inside 'outer' is its own row, and the CPU of outermost runs counts once
+    assert values['logging.runs'] == 1
+    assert times.measured_cpu_ns == sum(times.cpu_ns[row]
+                                        for row in ('work', 'idle', 'outer', 'failing'))
+    assert values['outer.cpu_mean_us'] >= values['logging.cpu_mean_us']
+    assert parse_histogram(str(values['work.histogram_ns'])) != {}
+
+
+def test_callback_times_records_garbage_collections_by_generation() -> None:
+    times = CallbackTimes()
+    gc.callbacks.append(times.on_gc)
+    try:
+        gc.collect(0)
+        gc.collect(2)
+    finally:
+        gc.callbacks.remove(times.on_gc)
+    assert times.rows['garbage collection 0'].total >= 1
+    assert times.rows['garbage collection 2'].total >= 1
+    status = times.status()
+    assert status.level == Level.OK
+    assert int(str(status.values['garbage collection 2.runs'])) >= 1
+
+
+def test_latency_percentiles_are_numpys_to_the_bit() -> None:
+    """The summary sorts a working copy in place instead of calling `np.percentile`; the
+    figures are the same floats, full buffer or not, ties and all."""
+    rng = np.random.default_rng(7)
+    for trial in range(400):
+        capacity = int(rng.integers(1, 200))
+        recorder = LatencyRecorder(capacity)
+        values = (rng.lognormal(-9.0, 1.5, int(rng.integers(1, 2 * capacity + 1)))
+                  if trial % 2 else np.round(rng.random(int(rng.integers(1, 50))) * 9) * 1e-6)
+        for value in values:
+            recorder.record(float(value))
+        held = values[-capacity:]
+        p50, p99 = np.percentile(held, [50.0, 99.0])
+        assert recorder.summary() == (len(held), float(p50), float(p99), float(held.max()))

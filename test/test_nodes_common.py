@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import subprocess
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -168,6 +169,11 @@ def test_a_failing_callback_is_counted_logged_and_handed_to_the_hook(ros: RosHar
     # a parameter change whose application fails goes the same way
     assert node.set_parameters([Parameter('period', value=7.0)])[0].successful
     assert node.failures[-1] == 'parameter change' and node.callback_failures == 4
+    # every run is timed by kind, the failing ones too, and the warnings' log calls
+    rows = node.callback_times.rows
+    assert rows['toy input'].total == 5 and rows['parameter change'].total >= 1
+    assert rows['logging'].total >= 1
+    assert node.callback_times.status().values['toy input.runs'] == 5
 
 
 def test_qos_overrides_take_effect_on_the_endpoints(ros: RosHarness) -> None:
@@ -398,3 +404,55 @@ def test_the_stream_settings_are_the_predictors_declared_parameters() -> None:
     assert set(changed) == {item.name for item in fields} - {'sample_period'}
     stream = dataclasses.replace(PredictorNodeSettings(), **changed).stream(0.004)
     assert dataclasses.asdict(stream) == {**changed, 'sample_period': 0.004}
+
+
+EXECUTOR_TIMING_PROBE = """
+from dataclasses import dataclass
+from rclpy.node import Node
+from lompr_predictor.ros.common import EXECUTOR_ROW, run_node
+from lompr_predictor.ros.node_base import NodeBase
+
+class Probe(NodeBase, Node):
+    pass
+
+def build(context):
+    node = Probe('timing_probe', context=context)
+    def tick():
+        if node.callback_times.rows['tick'].total >= 20:
+            rows = node.callback_times.rows
+            print(rows['tick'].total, rows[EXECUTOR_ROW].total, rows[EXECUTOR_ROW].max_ns)
+            context.try_shutdown()
+    node.start_timer(0.005, 'tick', tick)
+    return node
+
+run_node(build, description='probe', argv=['probe'])
+"""
+
+
+def test_run_node_times_the_executors_own_work_per_wake_up() -> None:
+    """Beside the callbacks, each wake-up of the executor is recorded with its own CPU time
+    (the spin's minus the callbacks')."""
+    result = subprocess.run([sys.executable, '-c', EXECUTOR_TIMING_PROBE], capture_output=True,
+                            text=True, timeout=60, check=False)
+    ticks, wake_ups, longest_ns = (int(field) for field in result.stdout.split())
+    assert ticks == 20
+    assert wake_ups >= 19  # one per tick at least (the last one is still running)
+    assert 0 < longest_ns < 1_000_000_000
+
+
+def test_the_node_clock_under_simulated_time_is_the_ros_clock(ros: RosHarness) -> None:
+    """`clock_ns` reads the clock's handle, not `Clock.now()`: the same nanoseconds, as
+    /clock sets them, and the system time once simulated time is switched off."""
+    from rclpy.clock import ROSClock
+    from rclpy.time import Time
+
+    node: ToyNode = ros.add(ToyNode(context=ros.context,
+                                    parameter_overrides=overrides(use_sim_time=True)))
+    clock = node.get_clock()
+    assert isinstance(clock, ROSClock)
+    assert node.clock_ns() == clock.now().nanoseconds == 0  # before the first /clock
+    clock.set_ros_time_override(Time(nanoseconds=1_234_567_890_123))
+    assert node.clock_ns() == clock.now().nanoseconds == 1_234_567_890_123
+    assert node.clock_seconds() == pytest.approx(1234.567890123)
+    node.set_parameters([Parameter('use_sim_time', value=False)])
+    assert abs(node.clock_ns() - time.time_ns()) < 5_000_000_000

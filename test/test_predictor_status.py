@@ -169,7 +169,7 @@ def test_prediction_status_warns_on_drift(core: OnlinePredictor, clock: FakeCloc
 
 
 def as_read_back(status: Status) -> dict[str, str]:
-    """A status's key-values as /diagnostics carries them (`ros.common.status_message`)."""
+    """A status's key-values as /diagnostics carries them (`ros.common.status_fields`)."""
     return {str(key): str(value) for key, value in status.values.items()}
 
 

@@ -86,8 +86,8 @@ class PlannedPath:
             self.dropped.add(reason)
             return reason
         old = self._stamps  # sorted: what the new plan does not cover is before or after it
-        before = int(np.searchsorted(old, stamps[0]))
-        after = int(np.searchsorted(old, stamps[-1], side='right'))
+        before = int(old.searchsorted(stamps[0]))
+        after = int(old.searchsorted(stamps[-1], 'right'))
         # before the first reference nothing lets go of the plan's past: the newest alone
         keep = 0 if self._newest_reference_ns >= 0 else before
         self._stamps = np.concatenate([old[keep:before], stamps, old[after:]])
@@ -100,7 +100,7 @@ class PlannedPath:
         """The planned position at `stamp_ns`, interpolated between the planned instants
         around it (at most `max_step_ns` apart), or None where the plan does not cover it."""
         stamps = self._stamps
-        index = int(np.searchsorted(stamps, stamp_ns))
+        index = int(stamps.searchsorted(stamp_ns))
         if index < len(stamps) and stamps[index] == stamp_ns:
             x, y, z = self._positions[index].tolist()
             return x, y, z
@@ -143,8 +143,8 @@ class PlannedPath:
         """Let go of the plan before `first_ns` (but the instant before it, which brackets
         it) and after `last_ns` (None: nothing after)."""
         stamps = self._stamps
-        cut = max(int(np.searchsorted(stamps, first_ns)) - 1, 0)
-        end = len(stamps) if last_ns is None else int(np.searchsorted(stamps, last_ns, 'right'))
+        cut = max(int(stamps.searchsorted(first_ns)) - 1, 0)
+        end = len(stamps) if last_ns is None else int(stamps.searchsorted(last_ns, 'right'))
         if cut > 0 or end < len(stamps):
             self._stamps, self._positions = stamps[cut:end], self._positions[cut:end]
 
@@ -171,10 +171,12 @@ class PlannedPath:
         # holds positions no robot has, refused alike)
         if not math.isfinite(float(positions.sum())):
             return PreviewDrop.NON_FINITE
-        if stamps.min() < 0:
-            return PreviewDrop.BAD_STAMP
+        # increasing stamps are all valid if the first is; a bad stamp (negative, and
+        # `NOT_A_TIME`) is named as such wherever it is
         if not (stamps[1:] > stamps[:-1]).all():
-            return PreviewDrop.OUT_OF_ORDER
+            return PreviewDrop.BAD_STAMP if stamps.min() < 0 else PreviewDrop.OUT_OF_ORDER
+        if stamps[0] < 0:
+            return PreviewDrop.BAD_STAMP
         newest = self._newest_reference_ns
         if stamps[-1] <= newest:
             return PreviewDrop.PAST

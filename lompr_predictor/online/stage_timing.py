@@ -4,14 +4,18 @@
 and the call each stage ends with (`end(stage)`), as the core lists them
 (`OnlinePredictor.stage_steps`): the core holds no hook for a profiler and pays nothing
 when none listens. A stage runs from the input call's beginning or the previous stage's
-end, so the stages of an input call add up to the call.
+end, so the stages of an input call add up to the call. `StageHistograms` is the timer a
+node uses: each stage's wall time into a row 'stage <name>' of its `CallbackTimes`.
 """
 
 from __future__ import annotations
 
 import functools
+import time
 from collections.abc import Callable, Iterable
 from typing import Any, Protocol
+
+from lompr_predictor.monitoring import CallbackTimes
 
 #: The stages of an input call a `StageTimer` hears the end of, in the order they run:
 #: checking and converting the stamp, aligning pose and reference, the plant error (the
@@ -31,6 +35,24 @@ class StageTimer(Protocol):
     def end(self, stage: str) -> None:
         """The stage `stage` (one of `STAGES`) ended."""
         ...
+
+
+class StageHistograms:
+    """A `StageTimer` recording each stage's wall time into `times`, row 'stage <name>'
+    (a perf_counter_ns reading per stage, no CPU time: the callback's row has that)."""
+
+    def __init__(self, times: CallbackTimes) -> None:
+        self._times = times
+        self._rows = {stage: f'stage {stage}' for stage in STAGES}
+        self._last = 0
+
+    def begin(self) -> None:
+        self._last = time.perf_counter_ns()
+
+    def end(self, stage: str) -> None:
+        now = time.perf_counter_ns()
+        self._times.record(self._rows[stage], now - self._last)
+        self._last = now
 
 
 class StagedCore(Protocol):

@@ -1,7 +1,8 @@
 """Thin ROS helpers the lompr nodes share (the node base itself is `node_base.NodeBase`).
 
 - `DiagnosticsPublisher`: a DiagnosticArray on /diagnostics about once a second, one status
-  per registered provider (the model of ros/diagnostics' diagnostic_updater).
+  per registered provider (the model of ros/diagnostics' diagnostic_updater), assembled a
+  status per timer tick.
 - `spin_until`: spin an executor until a condition holds or a deadline passes.
 - `events_executor`: rclpy's `EventsExecutor` on a context; `make_executor` picks it or the
   `SingleThreadedExecutor` by name (`EXECUTORS`).
@@ -24,7 +25,7 @@ from pathlib import Path
 from types import FrameType
 
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import Log
 from rclpy.context import Context
 from rclpy.duration import Duration
@@ -39,17 +40,16 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
 from lompr_predictor.errors import LomprError
-from lompr_predictor.monitoring import Level, Status
+from lompr_predictor.monitoring import CallbackTimes, Level, Status
 from lompr_predictor.ros.parameters import ParameterSpec
+from lompr_predictor.ros.wire import StatusFields, diagnostic_array
 from lompr_predictor.scheduling import Scheduling, apply_scheduling, shared_scheduling
 
 
-def status_message(name: str, hardware_id: str, status: Status) -> DiagnosticStatus:
-    """The diagnostic_msgs form of a `Status`."""
-    return DiagnosticStatus(
-        level=bytes([int(status.level)]), name=name, message=status.message,
-        hardware_id=hardware_id,
-        values=[KeyValue(key=str(k), value=str(v)) for k, v in status.values.items()])
+def status_fields(name: str, hardware_id: str, status: Status) -> StatusFields:
+    """A `Status` as the fields of a diagnostic_msgs/DiagnosticStatus (`wire`)."""
+    return (int(status.level), name, status.message, hardware_id,
+            [(str(k), str(v)) for k, v in status.values.items()])
 
 
 #: diagnostic_updater's parameter (its name, its default) choosing the status names' node part.
@@ -78,6 +78,11 @@ class DiagnosticsPublisher:
     the node's name, or its fully qualified name if the node's `diagnostic_updater.use_fqn`
     parameter is true (`status_prefix`); like diagnostic_updater's Updater, the publisher
     declares that parameter on its node.
+
+    The report is assembled a status at a time, one per tick of a timer that ticks once
+    per provider and once more to publish the array (serialized directly, `wire`): a report
+    of many key-values built in one callback would hold the samples queued behind it for
+    milliseconds. Its statuses are read within one period, and it is stamped when sent.
     """
 
     def __init__(
@@ -98,31 +103,36 @@ class DiagnosticsPublisher:
         self._prefix = status_prefix(
             node, bool(node.get_parameter(USE_FQN_PARAMETER).value))
         self._providers: list[tuple[str, Callable[[], Status]]] = []
+        self._pending: list[StatusFields] = []  # the statuses of the report under way
+        self.period = period
         self.publisher = self._publisher = node.create_publisher(
             DiagnosticArray, topic, qos, qos_overriding_options=qos_overriding_options,
             event_callbacks=event_callbacks)
-        callback = self.publish if guard is None else guard('diagnostics', self.publish)
+        callback = self.step if guard is None else guard('diagnostics', self.step)
         self._timer = node.create_timer(period, callback)
 
     def add(self, name: str, provider: Callable[[], Status]) -> None:
         """Register a status provider under `name`."""
         self._providers.append((f'{self._prefix}: {name}', provider))
+        self._timer.timer_period_ns = round(self.period * 1e9 / (len(self._providers) + 1))
 
-    def collect(self) -> DiagnosticArray:
-        """Call every provider now and build the array (stamped with the node's clock)."""
-        array = DiagnosticArray()
-        array.header.stamp = self._node.get_clock().now().to_msg()
-        for name, provider in self._providers:
-            try:
-                status = provider()
-            except Exception as err:  # noqa: BLE001 - a failing provider is an ERROR status
-                status = Status(Level.ERROR, f'status provider failed: {type(err).__name__}: {err}')
-            array.status.append(status_message(name, self._hardware_id, status))
-        return array
+    def step(self) -> None:
+        """One tick: the next provider's status, or, once every provider has given one,
+        the report sent."""
+        index = len(self._pending)
+        if index < len(self._providers):
+            self._pending.append(self._status(*self._providers[index]))
+            return
+        sec, nanosec = divmod(self._node.get_clock().now().nanoseconds, 1_000_000_000)
+        self._publisher.publish(diagnostic_array(sec, nanosec, self._pending))
+        self._pending = []
 
-    def publish(self) -> None:
-        """Publish the current statuses (the timer calls this every period)."""
-        self._publisher.publish(self.collect())
+    def _status(self, name: str, provider: Callable[[], Status]) -> StatusFields:
+        try:
+            status = provider()
+        except Exception as err:  # noqa: BLE001 - a failing provider is an ERROR status
+            status = Status(Level.ERROR, f'status provider failed: {type(err).__name__}: {err}')
+        return status_fields(name, self._hardware_id, status)
 
 
 def spin_until(executor: Executor, condition: Callable[[], bool], timeout: float) -> bool:
@@ -335,6 +345,26 @@ def process_scheduling(nodes: Sequence[Node]) -> Scheduling:
     return shared_scheduling(asked)
 
 
+#: The `CallbackTimes` row of the executor's own work: the thread's CPU time per wake-up
+#: (`spin_once`) beyond the callbacks it ran (waiting for work takes no CPU).
+EXECUTOR_ROW = 'executor (CPU per wake-up)'
+
+
+def _spin_timed(executor: Executor, context: Context, stop: StopRequest,
+                nodes: Sequence[Node]) -> None:
+    """Spin until shutdown or a stop request, recording into each lompr node's
+    `callback_times` the executor's own CPU time per wake-up (`EXECUTOR_ROW`)."""
+    times = [found for found in (getattr(node, 'callback_times', None) for node in nodes)
+             if isinstance(found, CallbackTimes)]
+    cpu = time.thread_time_ns
+    while context.ok() and not stop.requested:
+        started, measured = cpu(), sum(t.measured_cpu_ns for t in times)
+        executor.spin_once(timeout_sec=SPIN_STEP)
+        own = cpu() - started - (sum(t.measured_cpu_ns for t in times) - measured)
+        for node_times in times:
+            node_times.record(EXECUTOR_ROW, max(own, 0), max(own, 0))
+
+
 def _spin(node_factory: Callable[[Context], Node | Sequence[Node]], executor_name: str,
           stop: StopRequest, prog: str) -> int:
     """Build the node(s) on the default context and spin them until Ctrl-C, shutdown or a
@@ -355,8 +385,7 @@ def _spin(node_factory: Callable[[Context], Node | Sequence[Node]], executor_nam
         # out of the collector's sight: a full collection over every object torch and rclpy
         # made at start-up stalls a callback for many sample periods
         gc.freeze()
-        while context.ok() and not stop.requested:
-            executor.spin_once(timeout_sec=SPIN_STEP)
+        _spin_timed(executor, context, stop, nodes)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (LomprError, ParameterException, InvalidTopicNameException) as err:

@@ -36,6 +36,7 @@ from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_status import Lifecycle, ModelHistory
 from lompr_predictor.online.preview import PreviewDrop
 from lompr_predictor.online.sample_store import SampleStoreError
+from lompr_predictor.online.stage_timing import StageHistograms, time_stages
 from lompr_predictor.robot.description import load_robot_description, robot_name
 from lompr_predictor.ros.common import run_node
 from lompr_predictor.ros.managed import ManagedNode
@@ -125,8 +126,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
 
     @property
     def core(self) -> OnlinePredictor:
-        """The ROS-free predictor, which exists while the node is configured (inactive or
-        active); `NotConfiguredError` otherwise."""
+        """The ROS-free predictor while the node is configured; else `NotConfiguredError`."""
         if self._core is None:
             msg = f'{self.get_name()} is {self.lifecycle_state}: no model, no core'
             raise NotConfiguredError(msg)
@@ -203,6 +203,8 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             fallback=(fallback.model, fallback.backend) if fallback else None,
             description=description, latency_samples=settings.latency_samples,
             units=(self.model_guard, *([store.store] if store else [])))
+        if settings.time_stages:
+            time_stages(self._core, StageHistograms(self.callback_times))
         self.outputs.attach(self.own(self.advertise(PREDICTED_ERROR)),
                             self.own(self.advertise(COMPENSATION)))
         self.own(self.subscribe(END_POSE, self.on_end_pose, raw=True))

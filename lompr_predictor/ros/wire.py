@@ -18,7 +18,9 @@ A message that cannot be read raises `WireError`.
 
 from __future__ import annotations
 
+import functools
 import struct
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -175,6 +177,41 @@ class Vector3StampedWriter(_StampedWriter):
         return self._pack(sec, nanosec, x, y, z)
 
 
+#: One diagnostic_msgs/DiagnosticStatus: level, name, message, hardware_id, (key, value)s.
+StatusFields = tuple[int, str, str, str, Sequence[tuple[str, str]]]
+
+
+def diagnostic_array(sec: int, nanosec: int, statuses: Sequence[StatusFields]) -> bytes:
+    """A serialized diagnostic_msgs/DiagnosticArray stamped (sec, nanosec), no frame: a
+    report of a few hundred key-values, which as message objects costs the node's thread a
+    millisecond or more to build and convert."""
+    out = bytearray(CDR_LE)
+    out += _STAMP.pack(sec, nanosec)
+    _put_string(out, '')
+    out += bytes(-len(out) % 4)
+    out += _UINT32.pack(len(statuses))
+    for level, name, message, hardware_id, values in statuses:
+        out.append(level)
+        for text in (name, message, hardware_id):
+            _put_string(out, text)
+        out += bytes(-len(out) % 4)
+        out += _UINT32.pack(len(values))
+        for key, value in values:
+            _put_string(out, key)
+            _put_string(out, value)
+    return bytes(out)
+
+
+def _put_string(out: bytearray, text: str) -> None:
+    """Append a CDR string (4-byte aligned uint32 length with the NUL, bytes, NUL); the
+    encapsulation header's 4 bytes keep `len(out)`'s alignment that of the offsets."""
+    out += bytes(-len(out) % 4)
+    encoded = text.encode()
+    out += _UINT32.pack(len(encoded) + 1)
+    out += encoded
+    out.append(0)
+
+
 def read_path(data: bytes, frame_id: str) -> tuple[np.ndarray, np.ndarray] | None:
     """(n,) int64 stamps [ns] and (n, 3) positions [m] of the poses of a serialized
     nav_msgs/Path; None if the path or one of its poses is in another frame than
@@ -221,20 +258,28 @@ def _read_poses(data: bytes, offset: int, frame_id: str, seconds: np.ndarray,
             raise ValueError(msg)
         rows = count - index
         if offset % 8 == 0 and rows > 1 and 4 + offset + rows * stride <= len(data):
-            base = 4 + offset
-            lengths = np.ndarray((rows,), '<u4', data, base + 8, (stride,))
-            frames = np.ndarray((rows, length), 'u1', data, base + 12, (stride, 1))
-            if (lengths == length).all() and (frames == frames[0]).all():
-                seconds[index:] = np.ndarray((rows,), '<i4', data, base, (stride,))
-                nanoseconds[index:] = np.ndarray((rows,), '<u4', data, base + 4, (stride,))
-                positions[index:] = np.ndarray((rows, 3), '<f8', data,
-                                               base + position - offset, (stride, 8))
+            fields = _poses_struct(rows, length, position - end).unpack_from(data, 4 + offset)
+            if (fields[2::7].count(length) == rows
+                    and fields[3::7].count(fields[3]) == rows):
+                seconds[index:] = fields[0::7]
+                nanoseconds[index:] = fields[1::7]
+                for axis in range(3):
+                    positions[index:, axis] = fields[4 + axis::7]
                 return True
         seconds[index], nanoseconds[index] = sec, nanosec
         positions[index] = _POINT.unpack_from(data, 4 + position)
         offset = position + 7 * 8
         index += 1
     return True
+
+
+@functools.lru_cache(maxsize=64)
+def _poses_struct(rows: int, length: int, padding: int) -> struct.Struct:
+    """`rows` serialized PoseStamped in a row whose frame_id fields hold `length` bytes
+    (with the NUL) and are followed by `padding` bytes up to the position: one `unpack`
+    gives each pose's stamp, frame_id length and bytes, and position (7 values a pose),
+    cheaper than the NumPy calls of as many strided views on a path of a few dozen poses."""
+    return struct.Struct('<' + f'iII{length}s{padding}x3d32x' * rows)
 
 
 def _string(data: bytes, start: int, end: int) -> str:
