@@ -104,6 +104,7 @@ class DiagnosticsPublisher:
             node, bool(node.get_parameter(USE_FQN_PARAMETER).value))
         self._providers: list[tuple[str, Callable[[], Status]]] = []
         self._pending: list[StatusFields] = []  # the statuses of the report under way
+        self._last_tick_ns = node.get_clock().now().nanoseconds
         self.period = period
         self.publisher = self._publisher = node.create_publisher(
             DiagnosticArray, topic, qos, qos_overriding_options=qos_overriding_options,
@@ -118,14 +119,21 @@ class DiagnosticsPublisher:
 
     def step(self) -> None:
         """One tick: the next provider's status, or, once every provider has given one,
-        the report sent."""
-        index = len(self._pending)
-        if index < len(self._providers):
-            self._pending.append(self._status(*self._providers[index]))
+        the report sent. A tick that comes late takes the ticks it missed too (up to the
+        report): on simulated time a timer fires at most once per /clock step, and a
+        /clock coarser than the tick would otherwise stretch the report."""
+        now = self._node.get_clock().now().nanoseconds
+        missed = (now - self._last_tick_ns) // max(self._timer.timer_period_ns, 1)
+        self._last_tick_ns = now
+        for _ in range(int(min(max(missed, 1), len(self._providers) + 1))):
+            index = len(self._pending)
+            if index < len(self._providers):
+                self._pending.append(self._status(*self._providers[index]))
+                continue
+            sec, nanosec = divmod(now, 1_000_000_000)
+            self._publisher.publish(diagnostic_array(sec, nanosec, self._pending))
+            self._pending = []
             return
-        sec, nanosec = divmod(self._node.get_clock().now().nanoseconds, 1_000_000_000)
-        self._publisher.publish(diagnostic_array(sec, nanosec, self._pending))
-        self._pending = []
 
     def _status(self, name: str, provider: Callable[[], Status]) -> StatusFields:
         try:
