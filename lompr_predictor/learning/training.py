@@ -260,7 +260,7 @@ def train_network(
     epochs = tqdm(range(1, settings.max_epochs + 1), desc=label or model_type, unit='epoch',
                   leave=False, disable=not progress)
     _fit(module.net, schedule, data, record, epochs, settings,
-         np.random.default_rng(settings.seed), trial if prune else None, trial)
+         np.random.default_rng(settings.seed), trial, prune=prune)
     seconds = time.perf_counter() - started
     module.net.load_state_dict(record.best_state)
     module.eval()
@@ -323,13 +323,13 @@ class _Record:
 
 
 def _fit(net: nn.Module, schedule: _Schedule, data: _FitData, record: _Record,
-         epochs: Any, settings: TrainSettings, rng: np.random.Generator, pruner: Any,
-         trial: Any) -> None:
+         epochs: Any, settings: TrainSettings, rng: np.random.Generator, trial: Any, *,
+         prune: bool) -> None:
     """Train epoch by epoch into `record` until the patience, the pruner or a non-finite
     loss stops it.
 
     `trial` (an Optuna trial) gets the validation loss each epoch; when its pruner says so
-    (`pruner`: the trial, when it may stop the training), training stops there
+    (and `prune`), training stops there
     (`pruned_epoch`) and the result is the best loss so far. The caller returns that as the
     trial's value rather than raising `TrialPruned`: Optuna's GP sampler learns nothing
     from a pruned trial and would propose the same point again, whereas a stopped trial's
@@ -352,7 +352,7 @@ def _fit(net: nn.Module, schedule: _Schedule, data: _FitData, record: _Record,
             record.best_state = copy.deepcopy(net.state_dict())
         if trial is not None:
             trial.report(loss_value, epoch)
-            if pruner is not None and trial.should_prune():
+            if prune and trial.should_prune():
                 record.pruned_epoch = epoch
                 return
         # with the cosine decay the validation loss is noisy while the rate is high and
