@@ -19,7 +19,9 @@ pipeline, default space and budget unless --trials / --restarts) per horizon and
 
 It prints per run the test RMSE per axis of every baseline of the report
 (`learning.baselines.BASELINES`: BP, ridge, boosted trees (HGB), the machine map's prior
-alone) and the BO-LSTM as multiples of persistence's on the same windows, and checks
+alone), the BO-LSTM and the BO-LSTM under the predictor node's default live guard (`lompr
+evaluate MODEL SCORED`: what the node would publish) as multiples of persistence's on the
+same windows, and checks
 the targets: with the preview (K = h) the BO-LSTM <= 0.5x persistence in lopo and <= 0.7x in
 single, and no worse than HGB with the same inputs; without it <= 1.0x persistence; a lopo
 run on three programs within 300 s. The reports stay in --out.
@@ -29,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import subprocess
 import sys
 import time
@@ -54,7 +57,8 @@ TARGET_THREE_PROGRAMS_SECONDS = 300.0
 #: The columns: every baseline of the report but persistence (the denominator) and those
 #: fitted without the preview, then the BO-LSTM.
 ROWS = (*((b.name, b.label) for b in BASELINES
-          if b is not PERSISTENCE and not isinstance(b, WithoutPreview)), ('bo_lstm', 'BO-LSTM'))
+          if b is not PERSISTENCE and not isinstance(b, WithoutPreview)), ('bo_lstm', 'BO-LSTM'),
+        ('guarded', '+ guard'))
 COLUMN = 2 + max(len(label) for _, label in ROWS)
 
 
@@ -128,7 +132,21 @@ def train_and_score(run: Run, args: argparse.Namespace, out: Path) -> tuple[floa
     started = time.perf_counter()
     result = train_predictor(config)
     write_outputs(config, result)
-    return time.perf_counter() - started, result.report
+    wall = time.perf_counter() - started
+    report = result.report
+    if run.mode != 'same':
+        report['models']['guarded'] = guarded(config.model_path, scored,
+                                              out / 'reports' / f'{run.label}-evaluate')
+    return wall, report
+
+
+def guarded(model: Path, scored: Path, report: Path) -> dict[str, Any]:
+    """The model under the node's default live guard on every window of `scored`: the
+    entry `model_guarded` of `lompr evaluate`'s report (scored on the same windows)."""
+    subprocess.run([lompr(), 'evaluate', str(model), str(scored), '--report', str(report),
+                    '--quiet'], check=True, stdout=subprocess.DEVNULL)
+    evaluation = json.loads((report / 'report.json').read_text())
+    return evaluation['models']['model_guarded']
 
 
 def judge(run: Run, wall: float, report: dict[str, Any]) -> tuple[list[str], str]:

@@ -67,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
     )
     from lompr_predictor.learning.model_file import PERIOD_TOLERANCE, load_model
     from lompr_predictor.learning.models import offline_predictions
+    from lompr_predictor.scoring.guard_replay import replay_model_guard
 
     started = time.perf_counter()
     set_torch_threads(args.threads)
@@ -94,12 +95,16 @@ def run(args: argparse.Namespace) -> int:
         error_low=np.array(norm['error_low']), error_high=np.array(norm['error_high']),
         preview=meta.preview)
     baselines = fit_baselines(problem, FitContext(), (PERSISTENCE,))
-    scored, models = score_test_part(problem, baselines, {'model': offline.predicted},
-                                     inputs.cleaning.gap_factor)
+    guarded = replay_model_guard(meta, offline.stamps, offline.actual, offline.predicted,
+                                 offline.last_error, offline.newest_rows)
+    scored, models = score_test_part(
+        problem, baselines, {'model': offline.predicted, 'model_guarded': guarded.published},
+        inputs.cleaning.gap_factor)
     report = base_report('evaluate', problem, data, sources, inputs.cleaning)
     report.update(
         models=models, model_file=str(Path(args.model).resolve()), model_sha256=model.sha256,
-        model_test_metrics=meta.test_metrics, **irreducible_fields(models, sources, meta.horizon),
+        model_test_metrics=meta.test_metrics, guard=guarded.summary(),
+        **irreducible_fields(models, sources, meta.horizon),
         timings={'total_seconds': time.perf_counter() - started})
     write_report(args.report, report, seconds=scored.seconds, actual=scored.actual,
                  predictions=scored.predictions)

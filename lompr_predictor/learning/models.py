@@ -380,6 +380,8 @@ class OfflinePredictions:
     stamps: np.ndarray  # (B,) int64 [ns] of the predicted instants (ends + horizon)
     predicted: np.ndarray  # (B, 2) predicted plant X/Y error [m]
     actual: np.ndarray  # (B, 2) measured plant error at those instants [m]
+    newest_rows: np.ndarray  # (B, features) each window's last feature row
+    last_error: np.ndarray  # (B, 2) plant error at each window's last row: persistence's [m]
 
 
 def offline_predictions(module: nn.Module, data: CleanData, window: int, horizon: int,
@@ -389,7 +391,8 @@ def offline_predictions(module: nn.Module, data: CleanData, window: int, horizon
     after each row: what the predictor node would have published for these recordings,
     sample for sample, given a preview that matched the path."""
     ends = window_ends(data.regular_runs(), window, horizon, preview)
+    rows = data.features(preview)
     return OfflinePredictions(ends=ends, stamps=data.stamps[ends + horizon],
-                              predicted=predict_rows(module, data.features(preview), ends,
-                                                     window),
-                              actual=data.error[ends + horizon])
+                              predicted=predict_rows(module, rows, ends, window),
+                              actual=data.error[ends + horizon], newest_rows=rows[ends],
+                              last_error=data.error[ends])

@@ -36,7 +36,8 @@ PREDICTION_PLOT = 'prediction_test.png'
 TUNING_PLOT = 'tuning_history.png'
 #: Labels of the models that are not baselines (a baseline's entry carries its own label,
 #: `baselines.Baseline.label`); any other model is shown by its key.
-MODEL_LABELS = {'parent': 'Parent (--init)', 'bo_lstm': 'BO-LSTM', 'model': 'Model'}
+MODEL_LABELS = {'parent': 'Parent (--init)', 'bo_lstm': 'BO-LSTM', 'model': 'Model',
+                'model_guarded': 'Model + live guard'}
 METRIC_LABELS = {
     'mse_pct': 'MSE (%^2)', 'rmse_pct': 'RMSE (%)', 'mae_pct': 'MAE (%)',
     'mse_um2': 'MSE (um^2)', 'rmse_um': 'RMSE (um)', 'mae_um': 'MAE (um)',
@@ -115,6 +116,7 @@ def markdown(report: Mapping[str, Any]) -> str:
     lines += _training_lines(report)
     lines += _tuning_lines(report.get('tuning'))
     lines += _fine_tuning_lines(report.get('fine_tuning'))
+    lines += _guard_lines(report.get('guard'))
     if report.get('model_sha256'):
         lines += ['', f"Model file `{report.get('model_file')}`, sha256 "
                       f"`{report['model_sha256']}` (also in `{report.get('model_sha256_file')}`; "
@@ -176,6 +178,22 @@ def _training_lines(report: Mapping[str, Any]) -> list[str]:
                      f"tuning / BP: {100 * report['tuning_time_ratio_to_bp']:.0f} %")
     lines += [f'- {key}: {value:.4g}' for key, value in report.get('timings', {}).items()]
     return lines
+
+
+def _guard_lines(guard: Mapping[str, Any] | None) -> list[str]:
+    """report.md's section on the live guard replayed over the recordings (`lompr evaluate`):
+    how much of the time the node would have answered with persistence."""
+    if not guard:
+        return []
+    held = ', '.join(f"{axis.upper()} {100 * guard[axis]['held_back_fraction']:.1f} % "
+                     f"({guard[axis]['hand_overs']} hand-overs, {guard[axis]['hand_backs']} "
+                     'back)' for axis in TARGETS)
+    return ['', '## Live guard', '',
+            "`Model + live guard` is what the predictor node publishes with its default guard "
+            "(guard_* parameters): per axis persistence's prediction while the model's live "
+            f"RMS is worse. Held back: {held}; rows outside the trained envelope: "
+            f"{guard['rows_outside_envelope']}. An axis held back most of the time says the "
+            'model does not know this program or machine: record it and train on it.']
 
 
 def _tuning_lines(tuning: Mapping[str, Any] | None) -> list[str]:

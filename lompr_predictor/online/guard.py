@@ -88,6 +88,12 @@ class GuardSettings:
             raise ValueError(msg)
 
 
+#: The predictor node's rules unless its parameters say otherwise (declared there with these
+#: defaults), and those of the offline replay (`scoring.guard_replay`).
+DEFAULT_GUARD = GuardSettings(enabled=True, window=60.0, margin=0.05, min_dwell=2.0,
+                              min_scored=50, envelope_fraction=0.2)
+
+
 @dataclass(frozen=True)
 class AxisStatus:
     """One axis of the guard, for diagnostics."""
@@ -189,6 +195,16 @@ class LiveGuard:
         return cls(settings, horizon * period, period)
 
     @property
+    def lead_ns(self) -> int:
+        """How far ahead of the newest sample the guarded predictions are [ns]."""
+        return self._lead_ns
+
+    @property
+    def period_ns(self) -> int:
+        """The stream's sample period [ns]."""
+        return self._period_ns
+
+    @property
     def settings(self) -> GuardSettings:
         """The rules; changed at run time (the node's parameters), they apply from the next
         sample on, the live scores kept."""
@@ -287,6 +303,14 @@ class LiveGuard:
     def holding(self) -> bool:
         """Whether the model is held back on an axis (or would be, with the guard off)."""
         return any(axis.state is GuardState.PERSISTENCE for axis in self._axes)
+
+    @property
+    def held_back(self) -> tuple[bool, bool]:
+        """Per axis (X, Y), whether persistence answers there now (never with the guard
+        off)."""
+        enabled = self._settings.enabled
+        return (enabled and self._axes[0].state is GuardState.PERSISTENCE,
+                enabled and self._axes[1].state is GuardState.PERSISTENCE)
 
     @property
     def outside_fraction(self) -> float:

@@ -11,7 +11,7 @@ from nav_msgs.msg import Path
 from lompr_predictor.learning.model_file import check_sha256_text
 from lompr_predictor.online.adaptation import AdaptationSettings
 from lompr_predictor.online.faults import StreamSettings
-from lompr_predictor.online.guard import GuardSettings
+from lompr_predictor.online.guard import DEFAULT_GUARD, GuardSettings
 from lompr_predictor.online.inference import Backend
 from lompr_predictor.online.offset import CompensationLimits
 from lompr_predictor.ros.node_base import (
@@ -141,28 +141,34 @@ class PredictorNodeSettings(FrameSettings):
         maximum=3600.0, read_only=True)
 
     guard_enabled: bool = parameter(
-        True, 'the live guard: per axis, the model publishes only while its live RMS beats '
+        DEFAULT_GUARD.enabled,
+        'the live guard: per axis, the model publishes only while its live RMS beats '
         "persistence's (the plant error measured horizon samples before) on the same instants "
         'and its inputs lie in the envelope it was trained on; else persistence answers '
         "there. false: the model always (the guard's status still says what it would do)")
     guard_window: float = parameter(
-        60.0, 'seconds of sample time the live RMS of the model and of persistence are '
+        DEFAULT_GUARD.window,
+        'seconds of sample time the live RMS of the model and of persistence are '
         'weighted over (exponentially): long enough to span what a program repeats (a '
         'model better on straights and worse at corners is judged on both)',
         minimum=0.001, maximum=86_400.0, read_only=True)
     guard_margin: float = parameter(
-        0.05, 'relative margin (hysteresis): an axis goes to persistence as soon as the '
+        DEFAULT_GUARD.margin,
+        'relative margin (hysteresis): an axis goes to persistence as soon as the '
         "model's live RMS exceeds persistence's, and back when the model is better by more "
         'than this fraction',
         minimum=0.0, maximum=0.9, read_only=True)
     guard_min_dwell: float = parameter(
-        2.0, 'seconds of sample time an axis stays with the model or persistence before it '
+        DEFAULT_GUARD.min_dwell,
+        'seconds of sample time an axis stays with the model or persistence before it '
         'may switch again', minimum=0.0, maximum=86_400.0, read_only=True)
     guard_min_scored: int = parameter(
-        50, 'instants scored before the guard first judges the model', minimum=0,
+        DEFAULT_GUARD.min_scored,
+        'instants scored before the guard first judges the model', minimum=0,
         maximum=10_000_000, read_only=True)
     guard_envelope_fraction: float = parameter(
-        0.2, "share of the recent feature rows outside the model's trained envelope (its "
+        DEFAULT_GUARD.envelope_fraction,
+        "share of the recent feature rows outside the model's trained envelope (its "
         'metadata) above which the model is held back on both axes; 1: never for that',
         minimum=0.0, maximum=1.0, read_only=True)
 

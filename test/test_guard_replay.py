@@ -1,0 +1,69 @@
+"""The guard replayed offline publishes what the predictor node's guard publishes online."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lompr_predictor.online.guard import GuardState, LiveGuard
+from lompr_predictor.scoring.guard_replay import replay_guard
+from test_online_guard import HORIZON, LEAD, PERIOD, _run, _settings, _walk
+
+
+def _instants(truth: np.ndarray, model_error: np.ndarray, start_ns: int = 0
+              ) -> tuple[np.ndarray, ...]:
+    """The predicted instants of `_run`'s stream: stamps, truth, model's and persistence's
+    predictions."""
+    stamps = start_ns + np.arange(HORIZON, len(truth)) * PERIOD
+    return (stamps, truth[HORIZON:], (truth + model_error)[HORIZON:], truth[:-HORIZON])
+
+
+def test_replay_publishes_what_the_guard_publishes_sample_by_sample() -> None:
+    """A model worse than persistence on X for a while, then better: the replay hands over
+    and back at the same instants as the guard fed in the node's order (a sample's truth,
+    then the prediction from its window)."""
+    truth = _walk(900, seed=11)
+    model_error = np.random.default_rng(12).normal(0.0, 0.3e-6, truth.shape)
+    model_error[100:400, 0] = 4e-6
+    settings = _settings(window_instants=40, min_scored=20, dwell_instants=30)
+    online = _run(LiveGuard(settings, LEAD, PERIOD), truth, model_error)[:-HORIZON]
+    replay = replay_guard(LiveGuard(settings, LEAD, PERIOD), *_instants(truth, model_error))
+    np.testing.assert_array_equal(replay.published, online)
+    assert replay.hand_overs == (1, 0) and replay.hand_backs == (1, 0)
+    held_x = replay.held_back[:, 0]
+    np.testing.assert_array_equal(held_x, online[:, 0] == truth[:-HORIZON, 0])
+    assert 0.2 < held_x.mean() < 0.5 and not replay.held_back[:, 1].any()
+
+
+def test_a_gap_forgets_the_predictions_awaiting_their_truth() -> None:
+    """Two runs 10 s apart: the predictions of the first run's last instants never meet a
+    truth, the second run's are scored from its own truths on, and the live scores carry
+    over (a model worse on X is still held back right after the gap)."""
+    truth = _walk(600, seed=13)
+    model_error = np.zeros_like(truth)
+    model_error[:, 0] = 5e-6
+    settings = _settings(min_scored=20, dwell_instants=10)
+    first = _instants(truth[:300], model_error[:300])
+    second = _instants(truth[300:], model_error[300:], start_ns=310 * PERIOD + 10**10)
+    guard = LiveGuard(settings, LEAD, PERIOD)
+    replay = replay_guard(guard, *(np.concatenate(pair) for pair in zip(first, second,
+                                                                          strict=True)))
+    count = len(first[0])
+    assert replay.held_back[count:, 0].all()  # held back from the second run's first instant
+    np.testing.assert_array_equal(replay.published[count:, 0], second[3][:, 0])
+    assert guard.scored == 2 * (count - HORIZON)  # each run's last HORIZON instants: none
+    assert guard.status()[0].state is GuardState.PERSISTENCE
+
+
+def test_rows_outside_the_envelope_are_counted_and_held_back() -> None:
+    truth = _walk(300, seed=14)
+    inside = np.ones(len(truth) - HORIZON, dtype=bool)
+    inside[100:160] = False
+    settings = _settings(window_instants=10, envelope_fraction=0.5, dwell_instants=0)
+    replay = replay_guard(LiveGuard(settings, LEAD, PERIOD),
+                          *_instants(truth, np.zeros_like(truth)), inside)
+    assert replay.outside_envelope == 60
+    assert replay.held_back[110:160].all() and not replay.held_back[:100].any()
+    summary = replay.summary()
+    assert summary['rows_outside_envelope'] == 60
+    assert summary['x'] == {'held_back_fraction': float(replay.held_back[:, 0].mean()),
+                            'hand_overs': 1, 'hand_backs': 1}
