@@ -91,7 +91,7 @@ class GuardSettings:
 #: The predictor node's rules unless its parameters say otherwise (declared there with these
 #: defaults), and those of the offline replay (`scoring.guard_replay`).
 DEFAULT_GUARD = GuardSettings(enabled=True, window=60.0, margin=0.05, min_dwell=2.0,
-                              min_scored=50, envelope_fraction=0.2)
+                              min_scored=50, envelope_fraction=0.5)
 
 
 @dataclass(frozen=True)
