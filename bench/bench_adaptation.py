@@ -149,9 +149,10 @@ def check_attempts(runs: dict[str, LoopRun], attempts: list[dict[str, Any]], rat
     else:
         answered, samples = answered_share(runs['on'], during_attempts(runs['on'], ended))
         off, _ = answered_share(runs['off'], during_attempts(runs['off'], ended))
-        print(f'answered while an attempt ran ({samples / rate:.0f} s of sample time at '
-              f'{rate:g} samples/s): adaptation on {answered}/{samples}, off on the same '
-              f'instants {off}/{samples}; whole runs after the first answer, unanswered: '
+        print(f'answered while an attempt ran ({samples * runs["on"].sample_period:.0f} s of '
+              f'sample time, at {rate:g} samples/s): adaptation on {answered}/{samples}, off '
+              f'on the same instants {off}/{samples}; whole runs after the first answer, '
+              'unanswered: '
               + ', '.join(f'{n} {r.counts["unanswered_after_first"]}' for n, r in runs.items()))
         share = answered / samples
         targets.check(f'(c) answered while an attempt ran, {rate:g}/s',

@@ -179,10 +179,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--request', required=True, help='the AttemptRequest as JSON')
     args = parser.parse_args(argv)
     try:
-        lower_priority(args.nice)  # first: the trainer's imports take seconds of CPU
-        set_torch_threads(1)
-        request = AttemptRequest(**json.loads(args.request))
-        with CoreUse() as use:
+        with CoreUse() as use:  # its thread is lowered with the others
+            lower_priority(args.nice)  # first: the trainer's imports take seconds of CPU
+            set_torch_threads(1)
+            request = AttemptRequest(**json.loads(args.request))
             document = attempt(read_ring(args.fd, args.window_ns), request)
         write_json(Path(request.work_folder) / RESULT_JSON, {**document, 'cpu': use.summary()})
     except (LomprError, OSError, ValueError, TypeError) as err:
