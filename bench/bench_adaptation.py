@@ -9,12 +9,13 @@ Runs the twin (`--path`, `--preset`'s physics over the defaults, run and machine
 `--seed`) in closed loop through the nodes as three processes on simulated time, the twin in
 real time at `--speed` times the sample rate (lockstep would run the samples far ahead of an
 attempt's wall time, which a machine does not), three times: with the persistence
-compensator, with the model and adaptation off, and with the model and adaptation on
-(`--minutes` of data window, an attempt every `--period` seconds of sample time, at most
-`--max-epochs` each; the live guard on in every loop, as deployed). It prints each scored
-pass's RMS of the true tool-tip error (the larger axis) as a multiple of persistence's on the
-same pass, every attempt of the adapting loop (from its `adaptation.jsonl`), and checks the
-targets of the adapting loop:
+compensator (not with --trained), with the model and adaptation off, and with the model and
+adaptation on (`--minutes` of data window, an attempt every `--period` seconds of sample
+time, at most `--max-epochs` each; the live guard on in every loop, as deployed). It prints
+each scored pass's RMS of the true tool-tip error (the larger axis) as a multiple of
+persistence's on the same pass (of the loop without adaptation with --trained), every
+attempt of the adapting loop (from its `adaptation.jsonl`), and checks the targets of the
+adapting loop:
 
 - transfer (the default: a model of another plant): its last 3 passes <= 0.6x persistence
   and <= 0.5x the loop without adaptation, and no pass worse than without adaptation by
