@@ -97,16 +97,18 @@ def test_each_attempt_is_logged_and_a_refused_swap_is_a_failure(tmp_path: Path) 
     accepted = {'decision': 'accepted', 'reason': 'better', 'model_path': 'x.pt',
                 'model_sha256': 'ab', 'scores_um': {'bo_lstm': 1.0, 'parent': 2.0,
                                                     'persistence': 3.0}}
-    runs.settle(AttemptOutcome(1, 5 * 10**9, dict(accepted)), None, 'x.pt')
-    runs.settle(AttemptOutcome(2, 9 * 10**9, dict(accepted)), 'sha256 mismatch', 'x.pt')
-    runs.settle(AttemptOutcome(3, 12 * 10**9, {'decision': 'refused', 'reason': 'no'}), None,
+    runs.settle(AttemptOutcome(1, 5 * 10**9, 8 * 10**9, dict(accepted)), None, 'x.pt')
+    runs.settle(AttemptOutcome(2, 9 * 10**9, 11 * 10**9, dict(accepted)), 'sha256 mismatch',
                 'x.pt')
+    refused = {'decision': 'refused', 'reason': 'no'}
+    runs.settle(AttemptOutcome(3, 12 * 10**9, 15 * 10**9, refused), None, 'x.pt')
     lines = [json.loads(line) for line in (tmp_path / 'adaptation.jsonl').read_text()
              .splitlines()]
     assert [(e['attempt'], e['decision'], e['swapped']) for e in lines] == [
         (1, 'accepted', True), (2, 'failed', False), (3, 'refused', False)]
     assert lines[1]['reason'] == 'not swapped in: sha256 mismatch'
     assert lines[0]['clock_started_s'] == 5.0 and lines[0]['scores_um']['parent'] == 2.0
+    assert [e['clock_ended_s'] for e in lines] == pytest.approx([8.0, 11.0, 15.0])
     state = runs.state
     assert (state.accepted, state.failed, state.refused, state.swaps) == (1, 1, 1, 1)
     status = runs.status(20 * 10**9)
@@ -127,12 +129,13 @@ def test_a_killed_attempt_is_a_failure_and_leaves_no_work_folder(
         runs.start(store, ModelInForce('m.pt', 'ab', None, 'lompr_base'), {}, 0)
         assert not left_behind.exists()
         pid = runs.state.running_pid
-        assert pid and runs.poll() is None
+        assert pid and runs.poll(1) is None
         os.kill(pid, signal.SIGKILL)
         deadline = time.monotonic() + 30
-        while (outcome := runs.poll()) is None and time.monotonic() < deadline:
+        while (outcome := runs.poll(7 * 10**9)) is None and time.monotonic() < deadline:
             time.sleep(0.05)
         assert outcome is not None and outcome.decision == 'failed'
+        assert (outcome.started_clock_ns, outcome.ended_clock_ns) == (0, 7 * 10**9)
         assert outcome.document['reason'] == 'the attempt process was killed by signal 9'
         assert runs.state.running_pid == 0
         assert not list((tmp_path / 'models').glob(WORK_PREFIX + '*'))

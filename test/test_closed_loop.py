@@ -214,6 +214,10 @@ def test_the_loop_across_processes_on_simulated_time(
         assert run.counts['first_answered'] < 60, run.counts
         assert run.counts['unanswered_after_first'] == 0, run.counts
         assert sum(run.counts['offsets_dropped'].values()) == 0, run.counts
+        # sample by sample: none answered before the first, every one after it
+        first = run.counts['first_answered']
+        assert run.answered is not None and len(run.answered) == 400
+        assert np.flatnonzero(run.answered)[0] == first and run.answered[first:].all()
     after = slice(150, None)
     none, model_rms = (rms(runs[name].true_error[after]) for name in ('none', 'model'))
     assert np.all(none > 5e-6), none

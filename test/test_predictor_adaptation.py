@@ -104,7 +104,7 @@ def test_a_model_that_fails_verification_or_has_another_parent_is_never_swapped_
     candidate.write_bytes(written[:-1] + bytes([written[-1] ^ 1]))  # changed after writing
 
     def accepted(number: int, parent_sha256: str) -> AttemptOutcome:
-        return AttemptOutcome(number, 0, {
+        return AttemptOutcome(number, 0, 0, {
             'decision': 'accepted', 'reason': 'better', 'parent_sha256': parent_sha256,
             'model_path': str(candidate), 'model_sha256': digest})
 
@@ -197,6 +197,10 @@ def test_a_killed_attempt_leaves_the_node_compensating_and_the_next_one_swaps_in
     assert float(status['last_bo_lstm_um']) < (1 - 0.05) * float(status['last_parent_um'])
     log = [json.loads(line) for line in (folder / LOG_NAME).read_text().splitlines()]
     assert [e['decision'] for e in log][:1] == ['failed'] and log[-1]['swapped']
+    # when it ran on the node's clock, and the cores it took: one torch thread, one core
+    assert log[-1]['clock_started_s'] < log[-1]['clock_ended_s']
+    cpu = log[-1]['cpu']
+    assert cpu['cpu_seconds'] > 0 and 0 < cpu['mean_cores'] <= cpu['peak_cores'] <= 1.02, cpu
     node.trigger_shutdown()  # a running attempt is killed, its work folder deleted
     assert node.adaptation is None and not list(folder.glob(WORK_PREFIX + '*'))
 

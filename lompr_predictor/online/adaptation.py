@@ -81,7 +81,8 @@ class AttemptOutcome:
     `failed` and why."""
 
     number: int
-    started_clock_ns: int  # the node's clock when it started
+    started_clock_ns: int  # the node's clock when it started...
+    ended_clock_ns: int  # ... and when its end was seen
     document: dict[str, Any]
 
     @property
@@ -160,9 +161,9 @@ class Adaptation:
         self._work, self._started_ns = work, now_ns
         self.state.running_pid, self.state.error = self._process.pid, ''
 
-    def poll(self) -> AttemptOutcome | None:
-        """The outcome of an attempt that has ended (None while one runs, or none ran); its
-        work folder is deleted."""
+    def poll(self, now_ns: int) -> AttemptOutcome | None:
+        """The outcome of an attempt that has ended (None while one runs, or none ran), seen
+        at the node's clock `now_ns`; its work folder is deleted."""
         process, work = self._process, self._work
         if process is None or work is None or process.poll() is None:
             return None
@@ -172,7 +173,7 @@ class Adaptation:
         self._process = self._work = None
         self.state.running_pid = 0
         shutil.rmtree(work, ignore_errors=True)
-        return AttemptOutcome(self.state.attempts, self._started_ns or 0, document)
+        return AttemptOutcome(self.state.attempts, self._started_ns or 0, now_ns, document)
 
     def settle(self, outcome: AttemptOutcome, swap_error: str | None, in_force: str) -> None:
         """Record an attempt the node has acted on: `swap_error` why an accepted model was not
@@ -189,6 +190,7 @@ class Adaptation:
         entry = {'attempt': outcome.number,
                  'time_utc': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
                  'clock_started_s': outcome.started_clock_ns * 1e-9,
+                 'clock_ended_s': outcome.ended_clock_ns * 1e-9,
                  **outcome.document, 'decision': decision, 'swapped': decision == ACCEPTED}
         state.last = entry
         with self.log_path.open('a', encoding='utf-8') as log:

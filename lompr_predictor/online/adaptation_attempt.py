@@ -16,9 +16,11 @@ beside it, into the models folder; its metadata names the model it came from
 the samples and the sample time they span).
 
 The outcome is one JSON document (`result.json` in the attempt's work folder, written
-atomically last), which the node reads once the process has ended: the decision, the scores
-and the new file. Nothing else of the attempt outlives it: the bag and the work folder are
-the node's to delete. The node never imports this module (nor the trainer it loads).
+atomically last), which the node reads once the process has ended: the decision, the scores,
+the new file and the cores the attempt used (`threads.CoreUse`: in all, and the most of any
+second; a process beside the nodes must never take more than one). Nothing else of the
+attempt outlives it: the bag and the work folder are the node's to delete. The node never
+imports this module (nor the trainer it loads).
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ from lompr_predictor.errors import LomprError
 from lompr_predictor.files import file_sha256, write_json
 from lompr_predictor.online.sample_store import StoredSamples, read_ring
 from lompr_predictor.scheduling import lower_priority
-from lompr_predictor.threads import set_torch_threads
+from lompr_predictor.threads import CoreUse, set_torch_threads
 
 if TYPE_CHECKING:  # imported by `attempt`, once the process runs at its lower priority
     from lompr_predictor.learning.model_file import ModelMetadata
@@ -177,11 +179,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--request', required=True, help='the AttemptRequest as JSON')
     args = parser.parse_args(argv)
     try:
-        lower_priority(args.nice)  # first: the trainer's imports take seconds of CPU
-        set_torch_threads(1)
-        request = AttemptRequest(**json.loads(args.request))
-        document = attempt(read_ring(args.fd, args.window_ns), request)
-        write_json(Path(request.work_folder) / RESULT_JSON, document)
+        with CoreUse() as use:  # its thread is lowered with the others
+            lower_priority(args.nice)  # first: the trainer's imports take seconds of CPU
+            set_torch_threads(1)
+            request = AttemptRequest(**json.loads(args.request))
+            document = attempt(read_ring(args.fd, args.window_ns), request)
+        write_json(Path(request.work_folder) / RESULT_JSON, {**document, 'cpu': use.summary()})
     except (LomprError, OSError, ValueError, TypeError) as err:
         print(err, file=sys.stderr)
         return 1

@@ -4,7 +4,8 @@ simulated time (/clock), as a simulator drives real nodes.
 
 The parent watches the twin's /clock for progress and the predictor's /diagnostics for its
 counters (`predictor_counts.read_counts`, the inverse of what the node writes); the twin
-writes every sample into a run log, read once the run is done.
+writes every sample into a run log, read once the run is done (with, per sample, whether
+its offset had come: `LoopRun.answered`).
 """
 
 from __future__ import annotations
@@ -83,7 +84,8 @@ def run_processes(settings: LoopSettings, horizon: int, progress: bool,
         stamps=arrays['stamps'], reference=arrays['reference'], joints=arrays['joints'],
         true_error=arrays['true_error'], plant_error=arrays['plant_error'],
         pass_index=cycle.pass_index(0, count), in_pass=cycle.in_pass(0, count),
-        switched_off_at=None, wall_seconds=watched.wall_seconds, counts=counts)
+        switched_off_at=None, wall_seconds=watched.wall_seconds, counts=counts,
+        answered=arrays['answered'])
 
 
 @functools.cache

@@ -84,6 +84,10 @@ class LoopRun:
     switched_off_at: int | None  # sample at which compensation_enabled was set false
     wall_seconds: float
     counts: dict[str, Any] = field(default_factory=dict)  # twin and predictor counters
+    #: (N,) bool: the sample's offset had come when the twin ran it (across processes, from
+    #: the twin's run log: which samples a slow predictor left uncompensated; None in one
+    #: process, where the twin keeps no run log)
+    answered: np.ndarray | None = None
 
     @property
     def scored(self) -> np.ndarray:

@@ -99,10 +99,10 @@ class NodeAdaptation:
             self._node.warn_throttled('adaptation', f'adaptation: {self.adaptation.state.error}')
 
     def _step(self) -> None:
-        outcome = self.adaptation.poll()
+        node = self._node
+        outcome = self.adaptation.poll(node.clock_ns())
         if outcome is not None:
             self._settle(outcome)
-        node = self._node
         now = node.clock_ns()
         store = self._store.store
         if node.active and self.adaptation.due(now, store, node.sample_period):
