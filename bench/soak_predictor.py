@@ -8,7 +8,9 @@ parameters, for `--minutes` (default 10), and prints:
   growth over the second half (what is left once allocators and caches have settled);
 - the answered fraction: compensations that came back for the samples that can be answered
   (all but the first window + HISTORY - 1; a late offset is dropped by the node's overrun
-  policy and so counts as unanswered);
+  policy and so counts as unanswered), and where the unanswered ones lie (`missed_instants`:
+  before the first answer, after the last, single instants, short holes, holes of a refill
+  or longer, which a fault leaves);
 - p50/p99/max latency [ms] from a JointState leaving this process to the compensation for
   its instant arriving back;
 - faults per minute, from the nodes' own /diagnostics: the predictor's stream faults
@@ -23,7 +25,10 @@ generator resets R times, evenly spaced: the nodes run on simulated time (`use_s
 client's /clock every `CLOCK_EVERY` samples) and a reset sends /clock back to the start of
 the timed stream and replays the samples from the same stamps, as a simulator reset does.
 The stream is then R + 1 runs, each answered on its own: all its samples but the first
-window + HISTORY - 1 (the documented refill after a reset).
+window + HISTORY - 1 (the documented refill after a reset); an answer that comes after the
+reset for an instant the new run has not reached is the run's before (it was on its way), and
+the nodes' counters are also shown per run (read from reports that come once a second, so a
+count near a reset may fall in either run).
 
 Targets: RSS growth < 5 MB over 10 minutes for each node, >= 99.9 % answered (in every run).
 Run: .venv/bin/python bench/soak_predictor.py [--minutes M] [--preview K] [--resets R]
@@ -33,6 +38,7 @@ Run: .venv/bin/python bench/soak_predictor.py [--minutes M] [--preview K] [--res
 from __future__ import annotations
 
 import argparse
+import itertools
 import struct
 import sys
 import tempfile
@@ -85,6 +91,10 @@ COUNTERS = {
 }
 #: The statuses whose counters are also listed by reason (`faults.*`, `rejected.*`).
 BY_REASON = ('predictor_node: inputs', 'predictor_node: reference preview')
+#: How the report names the places of the unanswered instants (`missed_instants`).
+WHERE = {'start': 'at the start (after the refill)', 'end': 'at the end',
+         'single': 'single', 'short': 'in short holes',
+         'refill': 'in holes of a refill or longer (a fault)'}
 
 
 def rss_mb(pid: int) -> float:
@@ -178,11 +188,15 @@ class SoakClient(bench.Client):
             self.arrivals.setdefault(stamp, time.perf_counter())
             return
         k = (stamp - self.base_ns) // self.period_ns - HORIZON
+        if not 0 <= k < self.arrival.shape[1]:
+            return
         run = self.run
-        # an answer comes after its sample left: zeros that cancel the offsets of the run
-        # before a reset, for instants the new run has not reached, are not its answers
-        if (0 <= k < self.arrival.shape[1] and np.isnan(self.arrival[run, k])
-                and np.isfinite(self.sent[run, k])):
+        # an answer comes after its sample left: one for an instant the new run has not
+        # reached is the run's before the reset (its last samples' answers were on their
+        # way when the reset came)
+        if run and np.isnan(self.sent[run, k]):
+            run -= 1
+        if np.isnan(self.arrival[run, k]) and np.isfinite(self.sent[run, k]):
             self.arrival[run, k] = time.perf_counter()
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
@@ -195,6 +209,27 @@ class SoakClient(bench.Client):
                     label = f'  by reason: {status.name.split(": ")[1]} {kv.key}'
                 if label is not None:
                     self.counters[label] = int(kv.value)
+
+
+def missed_instants(answered: np.ndarray, refill: int) -> dict[str, tuple[int, int]]:
+    """Where the unanswered instants of one run lie, as {where: (holes, instants)}: `start`,
+    before its first answer (longer than the refill the caller already left out: the reset
+    handled late); `end`, after its last answer (not back by the end); between two answers,
+    `single` instants (an inference skipped or an output dropped as late, an offset lost on
+    the way), `short` holes, and holes of `refill` instants or more (`refill`: a fault
+    emptied the window, which refilled)."""
+    found = np.flatnonzero(answered)
+    if not len(found):
+        return {'start': (1, len(answered))} if len(answered) else {}
+    first, last = int(found[0]), int(found[-1])
+    out = {'start': (int(first > 0), first), 'end': (int(last < len(answered) - 1),
+                                                      len(answered) - 1 - last)}
+    lengths = np.diff(found) - 1
+    lengths = lengths[lengths > 0]
+    for name, chosen in (('single', lengths == 1), ('short', (lengths > 1) & (lengths < refill)),
+                         ('refill', lengths >= refill)):
+        out[name] = (int(chosen.sum()), int(lengths[chosen].sum()))
+    return out
 
 
 def _order(label: str) -> tuple[int, str]:
@@ -265,17 +300,19 @@ def soak(minutes: float, model: Path, preview: int = 0, resets: int = 0) -> dict
         end = time.monotonic() + 2.0  # the diagnostics of the warm-up come in
         while time.monotonic() < end:
             executor.spin_once(timeout_sec=0.01)
-        counters_before = dict(client.counters)
+        counters = [dict(client.counters)]  # at the start of each run, and at the end
         timing_before = dict(client.timing)
         client.base_ns = time.time_ns() + 200_000_000
         started = time.monotonic()
         for index in range(runs):  # each reset replays the stream from its start
             client.run = index
             run(client.base_ns, samples, client.sent[index])
+            counters.append(dict(client.counters))
         seconds = time.monotonic() - started
         end = time.monotonic() + 2.5  # last answers and one more diagnostics report
         while time.monotonic() < end:
             executor.spin_once(timeout_sec=0.01)
+        counters[-1] = dict(client.counters)
         rss.append((time.monotonic(), [rss_mb(p.pid) for p in processes]))
     finally:
         executor.shutdown()
@@ -285,12 +322,18 @@ def soak(minutes: float, model: Path, preview: int = 0, resets: int = 0) -> dict
     first = bench.WINDOW + HISTORY - 1
     latency = (client.arrival - client.sent)[:, first:] * 1e3
     answered = np.isfinite(latency)
-    counts = {label: client.counters.get(label, 0) - counters_before.get(label, 0)
-              for label in sorted(client.counters, key=_order)}
+    labels = sorted(client.counters, key=_order)
+
+    def counted(before: dict[str, int], after: dict[str, int]) -> dict[str, int]:
+        return {label: after.get(label, 0) - before.get(label, 0) for label in labels}
+
     return {'samples': runs * samples, 'seconds': seconds, 'answerable': samples - first,
             'answered': answered.sum(axis=1).tolist(), 'latency_ms': latency[answered],
-            'rss': rss, 'counts': counts, 'preview': preview, 'resets': resets,
-            'timing': (timing_before, dict(client.timing))}
+            'missed': [missed_instants(row, first) for row in answered],
+            'rss': rss, 'counts': counted(counters[0], counters[-1]),
+            'counts_by_run': [counted(*pair) for pair in itertools.pairwise(counters)],
+            'preview': preview,
+            'resets': resets, 'timing': (timing_before, dict(client.timing))}
 
 
 def report(result: dict[str, Any]) -> bool:
@@ -322,6 +365,13 @@ def report(result: dict[str, Any]) -> bool:
                                               else f'answered after reset {run}')
         print(f'  {what}: {answered} of {answerable} ({fraction:.4%}); target >= '
               f'{ANSWERED_TARGET:.1%}: {"PASS" if passed else "FAIL"}')
+        print(f'    missed {answerable - answered}: ' + ', '.join(
+            f'{WHERE[name]} {instants} ({holes} hole(s))'
+            for name, (holes, instants) in result['missed'][run].items() if instants))
+        counted = [f'{label.strip().removeprefix("by reason: ")} {count}'
+                   for label, count in result['counts_by_run'][run].items() if count]
+        if counted and resets:  # the reports come once a second: near a reset, either run
+            print(f'    counted in this run: {"; ".join(counted)}')
     latency = result['latency_ms']
     if len(latency):
         p50, p99 = np.percentile(latency, [50, 99])

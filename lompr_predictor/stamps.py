@@ -7,6 +7,7 @@ Differences are taken in integers first and only then turned into seconds.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from enum import StrEnum
 from typing import Any, NamedTuple, Protocol
 
@@ -79,14 +80,12 @@ def stamp_problem(sec: int, nanosec: int, now_ns: int,
 NOT_A_TIME = -1
 
 
-def instants_ns(sec: np.ndarray, nanosec: np.ndarray) -> np.ndarray:
-    """int64 nanoseconds of message stamps given as arrays of seconds and nanoseconds;
-    `NOT_A_TIME` where `nanosec` is 1e9 or more, which would otherwise land on another
-    second's instant (a negative `sec` gives a negative instant by itself)."""
-    instants = np.asarray(sec, dtype=np.int64) * NS_PER_SECOND + nanosec
-    if len(nanosec) and nanosec.max() >= NS_PER_SECOND:
-        instants[nanosec >= NS_PER_SECOND] = NOT_A_TIME
-    return instants
+def instants_ns(sec: Sequence[int], nanosec: Sequence[int]) -> list[int]:
+    """Nanoseconds of message stamps given as seconds and nanoseconds; `NOT_A_TIME` where
+    `nanosec` is 1e9 or more, which would otherwise land on another second's instant (a
+    negative `sec` gives a negative instant by itself)."""
+    return [s * NS_PER_SECOND + n if n < NS_PER_SECOND else NOT_A_TIME
+            for s, n in zip(sec, nanosec, strict=True)]
 
 
 def stamp_to_ns(stamp: StampLike) -> int:

@@ -105,3 +105,24 @@ def test_the_relay_chain_relays_raw_bytes_on_the_nodes_endpoints(ros: RosHarness
         (answer,) = received
         assert (answer.header.stamp.sec, answer.header.stamp.nanosec,
                 answer.header.frame_id) == (13, 4_000_300, 'lompr_base')
+
+
+def test_the_soak_tells_where_the_unanswered_instants_lie() -> None:
+    """The soak's account of a run's unanswered instants: before its first answer, after its
+    last, and the holes between by length (a fault's refill is `refill` long or longer)."""
+    script = (
+        'import sys; sys.path.insert(0, sys.argv[1]); import numpy as np\n'
+        'from soak_predictor import missed_instants\n'
+        'answered = np.ones(200, bool)\n'
+        'for hole in (slice(0, 3), slice(10, 11), slice(20, 24), slice(50, 80), '
+        'slice(120, 146), slice(195, 200)):\n'
+        '    answered[hole] = False\n'
+        'print(missed_instants(answered, 26))\n'
+        'print(missed_instants(np.zeros(4, bool), 26))')
+    result = subprocess.run([sys.executable, '-c', script, str(BENCH)], capture_output=True,
+                            text=True, timeout=120, check=False)
+    assert result.returncode == 0, result.stderr[-2000:]
+    holes, nothing = result.stdout.splitlines()[-2:]
+    assert holes == ("{'start': (1, 3), 'end': (1, 5), 'single': (1, 1), 'short': (1, 4), "
+                     "'refill': (2, 56)}")
+    assert nothing == "{'start': (1, 4)}"

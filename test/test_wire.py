@@ -129,10 +129,10 @@ def test_path_poses_as_rclpy_reads_them(frames: list[str], frame_id: str) -> Non
         return
     assert read is not None
     stamps, positions = read
-    assert stamps.tolist() == [p.header.stamp.sec * 10 ** 9 + p.header.stamp.nanosec
-                               for p in msg.poses]
-    assert positions.tolist() == [[p.pose.position.x, p.pose.position.y, p.pose.position.z]
-                                  for p in msg.poses]
+    assert stamps == [p.header.stamp.sec * 10 ** 9 + p.header.stamp.nanosec
+                      for p in msg.poses]
+    assert positions == [(p.pose.position.x, p.pose.position.y, p.pose.position.z)
+                         for p in msg.poses]
     # truncated: an error, never a partial path
     with pytest.raises(WireError):
         read_path(serialize_message(msg)[:-9], 'world')

@@ -23,8 +23,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-import numpy as np
-
 from lompr_predictor.learning.model_file import LoadedModel
 from lompr_predictor.monitoring import LatencyRecorder, RejectionCounter
 from lompr_predictor.online.alignment import AlignedSample, DropReason, Event, StampAlignment
@@ -39,7 +37,7 @@ from lompr_predictor.online.model_slot import (
 )
 from lompr_predictor.online.offset import XY, ZERO, CompensationLimits, OffsetGate, Output
 from lompr_predictor.online.predictor_counts import PredictorCounts
-from lompr_predictor.online.preview import PlannedPath, PlanReader, PreviewDrop
+from lompr_predictor.online.preview import Planned, PlannedPath, PlanReader, PreviewDrop
 from lompr_predictor.online.sample_units import LiveAccuracy, SampleUnit
 from lompr_predictor.online.timing import OverrunGuard
 from lompr_predictor.robot.description import RobotDescription, load_robot_description
@@ -117,9 +115,10 @@ class OnlinePredictor:
         events = self._alignment.add_reference(stamp_ns, x, y, z)
         return outputs + self._handle(events) if events else outputs
 
-    def add_preview(self, stamps_ns: np.ndarray, positions: np.ndarray) -> PreviewDrop | None:
-        """Take one reference preview: (n,) int64 instants [ns], (n, 3) planned tool tips
-        [m]; the reason it was refused (counted in `plan.dropped`), or None."""
+    def add_preview(self, stamps_ns: Planned, positions: Planned) -> PreviewDrop | None:
+        """Take one reference preview: n instants [ns] and n planned tool tips (x, y, z)
+        [m], lists or arrays; the reason it was refused (counted in `plan.dropped`), or
+        None."""
         return self.plan.add(stamps_ns, positions)
 
     def add_pose(self, stamp: int | StampLike, x: float, y: float) -> list[Output]:

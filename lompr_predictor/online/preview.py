@@ -13,12 +13,20 @@ ahead of the newest reference, and `PLAN_REACH` before that reference, since the
 later than the reference (through the kinematics node); what the samples have read and the
 references have checked is let go. It starts again (`restart`) when the streams do: a
 clock gone back, a node reactivated, a reference going back.
+
+The plan is a few dozen instants, merged with every preview and searched several times a
+sample: it is kept in Python lists searched by `bisect`, since NumPy's per-call overhead on
+arrays that small is many times the work (a preview given as arrays is taken as lists).
 """
 
 from __future__ import annotations
 
 import math
+import operator
+from bisect import bisect_left, bisect_right
+from collections.abc import Sequence
 from enum import StrEnum
+from typing import Any
 
 import numpy as np
 
@@ -26,6 +34,8 @@ from lompr_predictor.monitoring import RejectionCounter
 from lompr_predictor.stamps import period_ns
 
 XYZ = tuple[float, float, float]
+#: Planned instants [ns], or their positions [m] (rows of x, y, z): lists or arrays.
+Planned = Sequence[Any] | np.ndarray
 
 #: How far [s] the plan reaches beyond the instant a model reads ahead of the newest
 #: reference, and before that reference. A look-ahead plans the coming samples, a fraction
@@ -67,8 +77,8 @@ class PlannedPath:
         self.tolerance = tolerance
         #: [ns] how far after the newest reference the plan reaches at most (`read_ahead`)
         self.max_ahead_ns = period_ns(PLAN_REACH)
-        self._stamps = np.zeros(0, dtype=np.int64)
-        self._positions = np.zeros((0, 3))
+        self._stamps: list[int] = []  # increasing
+        self._positions: list[Sequence[float]] = []  # (x, y, z) at each of `_stamps`
         self._newest_reference_ns = -1
         self.dropped = RejectionCounter(PreviewDrop)
         self.previews_used = 0
@@ -76,23 +86,23 @@ class PlannedPath:
     @property
     def horizon_ns(self) -> int | None:
         """The last planned instant [ns], None without a plan."""
-        return int(self._stamps[-1]) if len(self._stamps) else None
+        return self._stamps[-1] if self._stamps else None
 
-    def add(self, stamps: np.ndarray, positions: np.ndarray) -> PreviewDrop | None:
-        """Take one preview: (n,) int64 instants [ns] and (n, 3) planned positions [m]; the
+    def add(self, stamps: Planned, positions: Planned) -> PreviewDrop | None:
+        """Take one preview: n instants [ns] and n planned positions (x, y, z) [m]; the
         reason it was refused (counted), or None."""
+        stamps, positions = _listed(stamps), _listed(positions)
         reason = self._problem(stamps, positions)
         if reason is not None:
             self.dropped.add(reason)
             return reason
         old = self._stamps  # sorted: what the new plan does not cover is before or after it
-        before = int(old.searchsorted(stamps[0]))
-        after = int(old.searchsorted(stamps[-1], 'right'))
+        before = bisect_left(old, stamps[0])
+        after = bisect_right(old, stamps[-1])
         # before the first reference nothing lets go of the plan's past: the newest alone
         keep = 0 if self._newest_reference_ns >= 0 else before
-        self._stamps = np.concatenate([old[keep:before], stamps, old[after:]])
-        self._positions = np.concatenate([self._positions[keep:before], positions,
-                                          self._positions[after:]])
+        self._stamps = old[keep:before] + stamps + old[after:]
+        self._positions = self._positions[keep:before] + positions + self._positions[after:]
         self.previews_used += 1
         return None
 
@@ -100,18 +110,18 @@ class PlannedPath:
         """The planned position at `stamp_ns`, interpolated between the planned instants
         around it (at most `max_step_ns` apart), or None where the plan does not cover it."""
         stamps = self._stamps
-        index = int(stamps.searchsorted(stamp_ns))
+        index = bisect_left(stamps, stamp_ns)
         if index < len(stamps) and stamps[index] == stamp_ns:
-            x, y, z = self._positions[index].tolist()
+            x, y, z = self._positions[index]
             return x, y, z
         if index == 0 or index == len(stamps):
             return None
-        before, after = int(stamps[index - 1]), int(stamps[index])
+        before, after = stamps[index - 1], stamps[index]
         if after - before > self.max_step_ns:
             return None
         weight = (stamp_ns - before) / (after - before)
-        x0, y0, z0 = self._positions[index - 1].tolist()
-        x1, y1, z1 = self._positions[index].tolist()
+        x0, y0, z0 = self._positions[index - 1]
+        x1, y1, z1 = self._positions[index]
         return (x0 + weight * (x1 - x0), y0 + weight * (y1 - y0), z0 + weight * (z1 - z0))
 
     def check(self, stamp_ns: int, x: float, y: float, z: float) -> bool:
@@ -143,15 +153,15 @@ class PlannedPath:
         """Let go of the plan before `first_ns` (but the instant before it, which brackets
         it) and after `last_ns` (None: nothing after)."""
         stamps = self._stamps
-        cut = max(int(stamps.searchsorted(first_ns)) - 1, 0)
-        end = len(stamps) if last_ns is None else int(stamps.searchsorted(last_ns, 'right'))
+        cut = max(bisect_left(stamps, first_ns) - 1, 0)
+        end = len(stamps) if last_ns is None else bisect_right(stamps, last_ns)
         if cut > 0 or end < len(stamps):
             self._stamps, self._positions = stamps[cut:end], self._positions[cut:end]
 
     def clear(self) -> None:
         """Forget the plan (the next preview starts a new one)."""
-        self._stamps = self._stamps[:0]
-        self._positions = self._positions[:0]
+        self._stamps = []
+        self._positions = []
 
     def read_ahead(self, lead_ns: int) -> None:
         """The plan is read `lead_ns` after each sample (`PlanReader`): it reaches
@@ -164,17 +174,18 @@ class PlannedPath:
         self.clear()
         self._newest_reference_ns = -1
 
-    def _problem(self, stamps: np.ndarray, positions: np.ndarray) -> PreviewDrop | None:
-        if len(stamps) == 0:
+    def _problem(self, stamps: list[int],
+                 positions: list[Sequence[float]]) -> PreviewDrop | None:
+        if not stamps:
             return PreviewDrop.EMPTY
-        # one sum instead of a mask: NaN and infinity carry through it (a sum that overflows
-        # holds positions no robot has, refused alike)
-        if not math.isfinite(float(positions.sum())):
+        # sums instead of a test per value: NaN and infinity carry through them (a sum that
+        # overflows holds positions no robot has, refused alike)
+        if not math.isfinite(sum(map(sum, positions))):
             return PreviewDrop.NON_FINITE
         # increasing stamps are all valid if the first is; a bad stamp (negative, and
         # `NOT_A_TIME`) is named as such wherever it is
-        if not (stamps[1:] > stamps[:-1]).all():
-            return PreviewDrop.BAD_STAMP if stamps.min() < 0 else PreviewDrop.OUT_OF_ORDER
+        if not all(map(operator.lt, stamps, stamps[1:])):
+            return PreviewDrop.BAD_STAMP if min(stamps) < 0 else PreviewDrop.OUT_OF_ORDER
         if stamps[0] < 0:
             return PreviewDrop.BAD_STAMP
         newest = self._newest_reference_ns
@@ -183,6 +194,11 @@ class PlannedPath:
         if newest >= 0 and stamps[0] > newest + self.max_ahead_ns:
             return PreviewDrop.AHEAD
         return None
+
+
+def _listed(values: Planned) -> list[Any]:
+    """`values` as a list: an array's `tolist` (Python numbers, rows as lists)."""
+    return values.tolist() if isinstance(values, np.ndarray) else list(values)
 
 
 class PlanReader:

@@ -23,13 +23,13 @@ import struct
 from collections.abc import Sequence
 from typing import Any
 
-import numpy as np
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 
 from lompr_predictor.errors import LomprError
+from lompr_predictor.online.preview import XYZ
 from lompr_predictor.stamps import instants_ns
 
 #: Encapsulation header of little-endian plain CDR.
@@ -212,11 +212,12 @@ def _put_string(out: bytearray, text: str) -> None:
     out.append(0)
 
 
-def read_path(data: bytes, frame_id: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """(n,) int64 stamps [ns] and (n, 3) positions [m] of the poses of a serialized
-    nav_msgs/Path; None if the path or one of its poses is in another frame than
-    `frame_id` (a pose without a frame is in the path's). A stamp that is no time is
-    `stamps.NOT_A_TIME` (`stamps.instants_ns`), for the plan to refuse."""
+def read_path(data: bytes, frame_id: str) -> tuple[list[int], list[XYZ]] | None:
+    """The stamps [ns] and positions (x, y, z) [m] of the poses of a serialized
+    nav_msgs/Path, as lists (the plan keeps lists: `online.preview`); None if the path or
+    one of its poses is in another frame than `frame_id` (a pose without a frame is in the
+    path's). A stamp that is no time is `stamps.NOT_A_TIME` (`stamps.instants_ns`), for the
+    plan to refuse."""
     try:
         if data[:4] != CDR_LE:
             return _path_poses(deserialize_message(data, Path), frame_id)
@@ -225,25 +226,23 @@ def read_path(data: bytes, frame_id: str) -> tuple[np.ndarray, np.ndarray] | Non
             return None
         offset = _align(offset, 4)
         count, = _UINT32.unpack_from(data, 4 + offset)
-        seconds = np.empty(count, dtype=np.int64)
-        nanoseconds = np.empty(count, dtype=np.int64)
-        positions = np.empty((count, 3))
-        if not _read_poses(data, offset + 4, frame_id, seconds, nanoseconds, positions):
+        stamps: list[int] = []
+        positions: list[XYZ] = []
+        if not _read_poses(data, offset + 4, count, frame_id, stamps, positions):
             return None
     except Exception as err:
         msg = f'not a Path: {type(err).__name__}: {err}'
         raise WireError(msg) from err
-    return instants_ns(seconds, nanoseconds), positions
+    return stamps, positions
 
 
-def _read_poses(data: bytes, offset: int, frame_id: str, seconds: np.ndarray,
-                nanoseconds: np.ndarray, positions: np.ndarray) -> bool:
-    """Fill the stamps' `seconds` and `nanoseconds` and `positions` from the PoseStamped
-    sequence at `offset`; False if a pose is in another frame. A pose starting 8-byte
-    aligned has the layout of every pose after it with the same frame (the pose ends 8-byte
-    aligned): those are read at once, as strided arrays over the bytes, instead of one by
+def _read_poses(data: bytes, offset: int, count: int, frame_id: str, stamps: list[int],
+                positions: list[XYZ]) -> bool:
+    """Append `count` poses' stamps and positions to `stamps` and `positions` from the
+    PoseStamped sequence at `offset`; False if a pose is in another frame. A pose starting
+    8-byte aligned has the layout of every pose after it with the same frame (the pose ends
+    8-byte aligned): those are read at once, by one cached `struct`, instead of one by
     one."""
-    count = len(seconds)
     index = 0
     while index < count:
         offset = _align(offset, 4)
@@ -261,13 +260,11 @@ def _read_poses(data: bytes, offset: int, frame_id: str, seconds: np.ndarray,
             fields = _poses_struct(rows, length, position - end).unpack_from(data, 4 + offset)
             if (fields[2::7].count(length) == rows
                     and fields[3::7].count(fields[3]) == rows):
-                seconds[index:] = fields[0::7]
-                nanoseconds[index:] = fields[1::7]
-                for axis in range(3):
-                    positions[index:, axis] = fields[4 + axis::7]
+                stamps += instants_ns(fields[0::7], fields[1::7])
+                positions += zip(fields[4::7], fields[5::7], fields[6::7], strict=True)
                 return True
-        seconds[index], nanoseconds[index] = sec, nanosec
-        positions[index] = _POINT.unpack_from(data, 4 + position)
+        stamps += instants_ns((sec,), (nanosec,))
+        positions.append(_POINT.unpack_from(data, 4 + position))
         offset = position + 7 * 8
         index += 1
     return True
@@ -291,15 +288,13 @@ def _string(data: bytes, start: int, end: int) -> str:
     return data[4 + start + 4:4 + end - 1].decode()
 
 
-def _path_poses(msg: Path, frame_id: str) -> tuple[np.ndarray, np.ndarray] | None:
+def _path_poses(msg: Path, frame_id: str) -> tuple[list[int], list[XYZ]] | None:
     """`read_path` of a message object (bytes in another encapsulation)."""
     if msg.header.frame_id != frame_id:
         return None
     poses = msg.poses
     if any(pose.header.frame_id not in ('', frame_id) for pose in poses):
         return None
-    stamps = instants_ns(np.array([pose.header.stamp.sec for pose in poses], dtype=np.int64),
-                         np.array([pose.header.stamp.nanosec for pose in poses], dtype=np.int64))
-    positions = np.array([(p.x, p.y, p.z) for p in (pose.pose.position for pose in poses)],
-                         dtype=float).reshape(-1, 3)
-    return stamps, positions
+    stamps = instants_ns([pose.header.stamp.sec for pose in poses],
+                         [pose.header.stamp.nanosec for pose in poses])
+    return stamps, [(p.x, p.y, p.z) for p in (pose.pose.position for pose in poses)]
