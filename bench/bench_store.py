@@ -30,11 +30,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_guard import RULES, add_block_arguments, alternating_cpu, core, guarded_model
+from bench_guard import add_block_arguments, alternating_cpu, core, guarded_model
 from bench_predictor import spiral_joints
 
 from lompr_predictor.online.alignment import AlignedSample
-from lompr_predictor.online.guard import LiveGuard
+from lompr_predictor.online.guard import DEFAULT_GUARD, LiveGuard
 from lompr_predictor.online.sample_store import (
     SampleStore,
     StoredSamples,
@@ -106,8 +106,8 @@ def main() -> int:
     store = SampleStore.for_minutes(STORE_MINUTES, 1.0 / args.rate)
     with tempfile.TemporaryDirectory() as folder:
         model = guarded_model(Path(folder) / 'model.pt', args.rate, tips)
-        cores = [(name, core(model, args.rate, (LiveGuard.for_stream(RULES, 5, 1.0 / args.rate),
-                                                *extra)))
+        cores = [(name, core(model, args.rate, (
+            LiveGuard.for_stream(DEFAULT_GUARD, 5, 1.0 / args.rate), *extra)))
                  for name, extra in (('plain', ()), ('store', (store,)))]
         cpu = alternating_cpu(cores, tips, args)
         plain, stored = cpu['plain'], cpu['store']
