@@ -119,8 +119,8 @@ class _Axis:
                outside: bool) -> tuple[GuardState, GuardReason | None] | None:
         """The state the rules want (module docstring) and why, given the mean-square ratios
         `hand_over` and `hand_back` and whether the rows lie outside the envelope; None
-        where the axis stays as it is whatever the dwell (the model in control, no worse
-        than persistence)."""
+        where the axis stays as it is whatever the dwell (the model in control and no worse
+        than persistence, or held back for being worse and still not better by the margin)."""
         if outside:
             return GuardState.PERSISTENCE, GuardReason.OUTSIDE_ENVELOPE
         if self.state is GuardState.MODEL:
@@ -129,6 +129,8 @@ class _Axis:
             return GuardState.PERSISTENCE, GuardReason.WORSE_THAN_PERSISTENCE
         if self.model_ms < hand_back * self.persistence_ms - NEGLIGIBLE_MS:
             return GuardState.MODEL, None
+        if self.reason is GuardReason.WORSE_THAN_PERSISTENCE:
+            return None
         return GuardState.PERSISTENCE, GuardReason.WORSE_THAN_PERSISTENCE
 
 
@@ -289,7 +291,9 @@ class LiveGuard:
                 axis.hand_overs += 1
             else:
                 axis.hand_backs += 1
-        self._holding = any(axis.state is GuardState.PERSISTENCE for axis in self._axes)
+            axis_x, axis_y = self._axes
+            self._holding = (axis_x.state is GuardState.PERSISTENCE
+                             or axis_y.state is GuardState.PERSISTENCE)
 
     def restart(self) -> None:
         """A new model: its live scores start from nothing, in control until the rules say
