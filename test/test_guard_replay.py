@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+from test_online_guard import HORIZON, LEAD, PERIOD, _run, _settings, _walk
 
 from lompr_predictor.online.guard import GuardState, LiveGuard
 from lompr_predictor.scoring.guard_replay import replay_guard
-from test_online_guard import HORIZON, LEAD, PERIOD, _run, _settings, _walk
 
 
 def _instants(truth: np.ndarray, model_error: np.ndarray, start_ns: int = 0

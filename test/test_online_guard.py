@@ -3,7 +3,11 @@ not while its inputs lie outside what it was trained on."""
 
 from __future__ import annotations
 
+import hashlib
 import math
+import random
+from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -168,3 +172,65 @@ def test_envelope_is_the_widened_training_range_of_the_motion_columns() -> None:
     again = InputEnvelope.from_metadata(envelope.to_metadata(), features)
     assert again == envelope
     assert InputEnvelope.from_metadata({}, features) is None
+
+
+def _mixed_run(guard: LiveGuard) -> list[Any]:
+    """A long stream through the core's calls (`observe`, `revise` on a slot): the model
+    better then worse per axis in stretches, bursts of rows outside the envelope, dropped
+    samples, a cleared window, a new model, the guard off for a while and its rules
+    changed. Returns the guard's status and counters before the new model, every published
+    prediction, then its status and counters at the end."""
+    rng = random.Random(30)
+    features = ('error_x', 'error_y', 'ref_x', 'ref_y', 'ups1_v')
+    model = SimpleNamespace(metadata=SimpleNamespace(
+        features=features, envelope={'margin': 0.1, 'ranges': {
+            'ref_x': [-1.0, 1.0], 'ref_y': [-1.0, 1.0], 'ups1_v': [-0.5, 0.5]}}))
+    errors, published = [(0.0, 0.0)], []
+    while len(errors) < 8000 + HORIZON:
+        step = 1e-6 * (rng.random() - 0.5)
+        errors.append((errors[-1][0] + step, errors[-1][1] + 1e-6 * (rng.random() - 0.5)))
+    for k in range(1, 8000):
+        if k == 4000:
+            before = [*guard.status(), guard.scored, guard.published_persistence]
+            guard.restart()
+            model = SimpleNamespace(metadata=SimpleNamespace(features=features, envelope={}))
+        if k in {2500, 6000}:
+            guard.clear()
+        if k == 3000:
+            guard.settings = _settings(enabled=False, window_instants=40, dwell_instants=15)
+        if k == 3500:
+            guard.settings = _settings(window_instants=80, margin=0.2, dwell_instants=30)
+        if rng.random() < 0.02:
+            continue  # a dropped sample: its instant never meets its truth
+        stamp = k * PERIOD
+        guard.observe(AlignedSample(stamp, *errors[k], 0.0, 0.0, 1.1), errors[k], None)
+        worse_x, worse_y = (k // 700) % 2, (k // 1100) % 3 == 1
+        miss = (3e-6 * worse_x + 0.3e-6 * rng.random(), 3e-6 * worse_y + 0.3e-6 * rng.random())
+        burst = 1.7 if (k // 300) % 5 == 3 else 0.0
+        row = (*errors[k], rng.random() - 0.5, rng.random() - 0.5 + burst, 0.4 * rng.random())
+        slot = SimpleNamespace(model=model, window=SimpleNamespace(newest=row))
+        truth = errors[k + HORIZON]
+        prediction = (truth[0] + miss[0], truth[1] + miss[1])
+        published.append(guard.revise(stamp + LEAD, prediction, slot))  # type: ignore[arg-type]
+    return [*before, *published, *guard.status(), guard.scored, guard.outside_rows,
+            guard.last_outside, guard.published_persistence, guard.outside_fraction,
+            guard.holding]
+
+
+def test_decisions_on_a_long_mixed_stream_are_those_pinned() -> None:
+    """Every prediction published, the switches and counters over 8000 samples of
+    `_mixed_run`, bit for bit those of the guard as first written (one method call per axis
+    and sample, the envelope compared through `operator.le`): the faster guard decides
+    alike."""
+    outcome = _mixed_run(LiveGuard(_settings(window_instants=60, dwell_instants=20), LEAD,
+                                   PERIOD))
+    held_x, held_y, scored, persisted = outcome[:4]  # before the new model
+    assert held_x.state is held_y.state is GuardState.PERSISTENCE
+    assert held_x.reason is held_y.reason is GuardReason.OUTSIDE_ENVELOPE
+    assert (held_x.hand_overs, held_x.hand_backs, held_y.hand_overs, held_y.hand_backs,
+            scored, persisted) == (3, 2, 2, 1, 3777, 2725)
+    x, y = outcome[-8], outcome[-7]
+    assert (x.hand_overs, x.hand_backs, y.hand_overs, y.hand_backs) == (4, 3, 2, 1)
+    assert outcome[-6:] == [3827, 684, 'ref_y', 6016, 0.0, True]
+    assert hashlib.sha256(repr(outcome).encode()).hexdigest() == (
+        '3e02665f2eee6e55fa70a265c819b524915289676e72bbe9cb47f68d1a812cf4')

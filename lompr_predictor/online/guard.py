@@ -36,7 +36,6 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import NamedTuple
 
 from lompr_predictor.learning.envelope import InputEnvelope
 from lompr_predictor.online.alignment import AlignedSample
@@ -107,66 +106,46 @@ class AxisStatus:
 
 
 class _Axis:
-    """The live scores and state of one axis."""
+    """The live scores and state of one axis; the guard updates them (`LiveGuard.observe`,
+    `LiveGuard.choose`) inline, a method call per axis and sample being most of its cost."""
 
-    def __init__(self) -> None:
+    __slots__ = ('hand_backs', 'hand_overs', 'model_ms', 'persistence_ms', 'reason', 'state',
+                 'switched_at')
+
+    def __init__(self, instant: int) -> None:
         self.model_ms = 0.0
         self.persistence_ms = 0.0
         self.state = GuardState.MODEL
         self.reason: GuardReason | None = None
-        self.since_switch = 0
+        self.switched_at = instant  # the guard's count of decisions at the last switch
         self.hand_overs = 0
         self.hand_backs = 0
 
-    def score(self, model_residual: float, persistence_residual: float, weight: float) -> None:
-        self.model_ms += weight * (model_residual * model_residual - self.model_ms)
-        self.persistence_ms += weight * (persistence_residual * persistence_residual
-                                         - self.persistence_ms)
-
-    def decide(self, rules: _Thresholds, ready: bool, outside: bool) -> None:
-        """Switch if the rules say so (module docstring); `ready`: enough instants scored."""
-        self.since_switch += 1
-        if self.since_switch < rules.min_dwell:
-            return
+    def wanted(self, hand_over: float, hand_back: float,
+               outside: bool) -> tuple[GuardState, GuardReason | None] | None:
+        """The state the rules want (module docstring) and why, given the mean-square ratios
+        `hand_over` and `hand_back` and whether the rows lie outside the envelope; None
+        where the axis stays as it is whatever the dwell (the model in control and no worse
+        than persistence, or held back for being worse and still not better by the margin)."""
         if outside:
-            wanted, reason = GuardState.PERSISTENCE, GuardReason.OUTSIDE_ENVELOPE
-        elif not ready:
-            return
-        elif self.state is GuardState.MODEL:
-            if self.model_ms <= rules.hand_over * self.persistence_ms + NEGLIGIBLE_MS:
-                return
-            wanted, reason = GuardState.PERSISTENCE, GuardReason.WORSE_THAN_PERSISTENCE
-        elif self.model_ms < rules.hand_back * self.persistence_ms - NEGLIGIBLE_MS:
-            wanted, reason = GuardState.MODEL, None
-        else:
-            wanted, reason = GuardState.PERSISTENCE, GuardReason.WORSE_THAN_PERSISTENCE
-        if wanted is self.state:
-            self.reason = reason
-            return
-        self.state, self.reason, self.since_switch = wanted, reason, 0
-        if wanted is GuardState.PERSISTENCE:
-            self.hand_overs += 1
-        else:
-            self.hand_backs += 1
-
-
-class _Thresholds(NamedTuple):
-    """The settings as `_Axis.decide` compares them, computed once: mean-square ratios."""
-
-    hand_over: float  # above it, persistence takes over
-    hand_back: float  # (1 - margin)^2: below it, the model takes back
-    min_dwell: int  # instants
-
-    @classmethod
-    def of(cls, settings: GuardSettings, period: float) -> _Thresholds:
-        """The thresholds of `settings` on a stream sampled every `period` [s]."""
-        return cls(1.0, (1.0 - settings.margin) ** 2, round(settings.min_dwell / period))
+            return GuardState.PERSISTENCE, GuardReason.OUTSIDE_ENVELOPE
+        if self.state is GuardState.MODEL:
+            if self.model_ms <= hand_over * self.persistence_ms + NEGLIGIBLE_MS:
+                return None
+            return GuardState.PERSISTENCE, GuardReason.WORSE_THAN_PERSISTENCE
+        if self.model_ms < hand_back * self.persistence_ms - NEGLIGIBLE_MS:
+            return GuardState.MODEL, None
+        if self.reason is GuardReason.WORSE_THAN_PERSISTENCE:
+            return None
+        return GuardState.PERSISTENCE, GuardReason.WORSE_THAN_PERSISTENCE
 
 
 class LiveGuard:
     """Chooses per axis between the model's prediction and persistence's (module
     docstring), on a grid of instants `period_ns` apart, predictions `lead_ns` ahead: a
-    `sample_units.SampleUnit` of the predictor core."""
+    `sample_units.SampleUnit` of the predictor core. It runs at the sample rate: the rules
+    are read once per change of the settings, the scores and the common decision (both axes
+    kept, the model in control and no worse) are written out inline."""
 
     def __init__(self, settings: GuardSettings, lead_ns: int, period_ns: int) -> None:
         self._period_ns = period_ns
@@ -176,7 +155,9 @@ class LiveGuard:
         #: (instant, model x, model y, persistence x, persistence y) awaiting their truth, in
         #: increasing instants (a sample's truth arrives in stamp order)
         self._pending: deque[tuple[int, float, float, float, float]] = deque()
-        self._axes = (_Axis(), _Axis())
+        self._decisions = 0  # predictions chosen: an axis's dwell counts them
+        self._axes = (_Axis(0), _Axis(0))
+        self._holding = False  # an axis is in persistence's hands
         self._outside = 0.0  # weighted fraction of recent rows outside the envelope
         self._last: tuple[int, XY] | None = None  # the newest sample's stamp and plant error
         self._enveloped: object = None  # the metadata whose envelope `_envelope` is
@@ -215,7 +196,13 @@ class LiveGuard:
         self._settings = settings
         period = self._period_ns * 1e-9
         self._weight = min(1.0, period / settings.window)
-        self._thresholds = _Thresholds.of(settings, period)
+        # the rules as the decision compares them: mean-square ratios, dwell in instants
+        self._hand_over = 1.0  # above it, persistence takes over
+        self._hand_back = (1.0 - settings.margin) ** 2  # below it, the model takes back
+        self._min_dwell = round(settings.min_dwell / period)
+        self._min_scored = settings.min_scored
+        self._envelope_fraction = settings.envelope_fraction
+        self._enabled = settings.enabled
 
     # -- the chain (`sample_units.SampleUnit`) ---------------------------------------------
 
@@ -231,27 +218,38 @@ class LiveGuard:
         if not pending or pending[0][0] > stamp_ns + tolerance:
             return
         _, model_x, model_y, persistence_x, persistence_y = pending.popleft()
-        weight = max(self._weight, 1.0 / (self.scored + 1))  # a plain mean at first
-        self.scored += 1
+        scored = self.scored = self.scored + 1
+        weight = 1.0 / scored  # a plain mean at first
+        if weight < self._weight:
+            weight = self._weight
         error_x, error_y = error
         axis_x, axis_y = self._axes
-        axis_x.score(error_x - model_x, error_x - persistence_x, weight)
-        axis_y.score(error_y - model_y, error_y - persistence_y, weight)
+        # each mean square moves by weight x (its new square - itself)
+        residual = error_x - model_x
+        axis_x.model_ms += weight * (residual * residual - axis_x.model_ms)
+        residual = error_x - persistence_x
+        axis_x.persistence_ms += weight * (residual * residual - axis_x.persistence_ms)
+        residual = error_y - model_y
+        axis_y.model_ms += weight * (residual * residual - axis_y.model_ms)
+        residual = error_y - persistence_y
+        axis_y.persistence_ms += weight * (residual * residual - axis_y.persistence_ms)
 
     def revise(self, instant_ns: int, prediction: XY, slot: ModelSlot) -> XY | None:
         """The prediction to publish for `instant_ns`: the model's, or on an axis held back
         persistence's (the plant error of the sample the window ends at)."""
-        last = self._last
-        if last is None or abs(last[0] + self._lead_ns - instant_ns) > self._tolerance_ns:
+        last, tolerance = self._last, self._tolerance_ns
+        if last is None or not -tolerance <= last[0] + self._lead_ns - instant_ns <= tolerance:
             return prediction  # no sample `lead_ns` before: nothing to compare with
         metadata = slot.model.metadata
         if metadata is not self._enveloped:  # a model swapped in: its own envelope
             self._enveloped = metadata
             self._envelope = InputEnvelope.from_metadata(metadata.envelope, metadata.features)
-        envelope = self._envelope
-        inside = envelope is None or envelope.contains(slot.window.newest)
-        if not inside and envelope is not None:
-            self.last_outside = envelope.first_outside(slot.window.newest) or ''
+        envelope, inside = self._envelope, True
+        if envelope is not None:
+            row = slot.window.newest  # the older rows were checked as they arrived
+            inside = envelope.contains(row)
+            if not inside:
+                self.last_outside = envelope.first_outside(row) or ''
         return self.choose(instant_ns, prediction, last[1], inside)
 
     def clear(self) -> None:
@@ -269,30 +267,56 @@ class LiveGuard:
         pending = self._pending
         while pending and pending[-1][0] >= instant_ns - self._tolerance_ns:
             pending.pop()  # a newer prediction for the same instant replaces the older
-        pending.append((instant_ns, model[0], model[1], last_error[0], last_error[1]))
+        model_x, model_y = model
+        last_x, last_y = last_error
+        pending.append((instant_ns, model_x, model_y, last_x, last_y))
         if not inside_envelope:
             self.outside_rows += 1
         self._outside += self._weight * ((0.0 if inside_envelope else 1.0) - self._outside)
-        settings = self._settings
-        outside = self._outside > settings.envelope_fraction
-        axis_x, axis_y = self._axes
-        rules, ready = self._thresholds, self.scored >= settings.min_scored
-        axis_x.decide(rules, ready, outside)
-        axis_y.decide(rules, ready, outside)
-        if not settings.enabled:
-            return model
-        use_x = axis_x.state is GuardState.MODEL
-        use_y = axis_y.state is GuardState.MODEL
-        if use_x and use_y:
+        self._decisions += 1
+        outside = self._outside > self._envelope_fraction
+        if outside or self.scored >= self._min_scored:
+            axis_x, axis_y = self._axes
+            hand_over = self._hand_over
+            # the common case, the model in control on both axes and no worse, changes nothing
+            if outside or self._holding or not (
+                    axis_x.model_ms <= hand_over * axis_x.persistence_ms + NEGLIGIBLE_MS
+                    and axis_y.model_ms <= hand_over * axis_y.persistence_ms + NEGLIGIBLE_MS):
+                self._decide(outside)
+        if not self._holding or not self._enabled:
             return model
         self.published_persistence += 1
-        return (model[0] if use_x else last_error[0], model[1] if use_y else last_error[1])
+        axis_x, axis_y = self._axes
+        return (last_x if axis_x.state is GuardState.PERSISTENCE else model_x,
+                last_y if axis_y.state is GuardState.PERSISTENCE else model_y)
+
+    def _decide(self, outside: bool) -> None:
+        """Switch the axes the rules say to switch (module docstring), none within
+        `min_dwell` instants of its last switch; `outside`: too many recent rows outside the
+        envelope."""
+        for axis in self._axes:
+            wanted = axis.wanted(self._hand_over, self._hand_back, outside)
+            if wanted is None or self._decisions - axis.switched_at < self._min_dwell:
+                continue
+            state, reason = wanted
+            if state is axis.state:
+                axis.reason = reason
+                continue
+            axis.state, axis.reason, axis.switched_at = state, reason, self._decisions
+            if state is GuardState.PERSISTENCE:
+                axis.hand_overs += 1
+            else:
+                axis.hand_backs += 1
+            axis_x, axis_y = self._axes
+            self._holding = (axis_x.state is GuardState.PERSISTENCE
+                             or axis_y.state is GuardState.PERSISTENCE)
 
     def restart(self) -> None:
         """A new model: its live scores start from nothing, in control until the rules say
         otherwise (the envelope is read from the new model's metadata)."""
         self.clear()
-        self._axes = (_Axis(), _Axis())
+        self._axes = (_Axis(self._decisions), _Axis(self._decisions))
+        self._holding = False
         self._outside = 0.0
         self._enveloped = self._envelope = None
         self.scored = 0
@@ -302,7 +326,7 @@ class LiveGuard:
     @property
     def holding(self) -> bool:
         """Whether the model is held back on an axis (or would be, with the guard off)."""
-        return any(axis.state is GuardState.PERSISTENCE for axis in self._axes)
+        return self._holding
 
     @property
     def held_back(self) -> tuple[bool, bool]:
