@@ -120,9 +120,10 @@ def train_and_score(run: Run, args: argparse.Namespace, out: Path) -> tuple[floa
     bags = tuple(str(recording(out, run.preset, p, 1, args.passes)) for p in run.trained_on)
     scored = recording(out, run.preset, run.scored_on, 2 if run.mode == 'same' else 1,
                        args.passes)
+    model_path = out / 'models' / f'{run.label}.pt'
     config = TrainingConfig(
         inputs=BagInputs(bags=bags), test_inputs=BagInputs(bags=(str(scored),)),
-        model_path=out / 'models' / f'{run.label}.pt', report_dir=out / 'reports' / run.label,
+        model_path=model_path, report_dir=out / 'reports' / run.label,
         horizon=run.horizon, preview=run.preview, progress=False, workers=args.workers,
         study_name=f'transfer-{run.label}-{time.time_ns()}')
     if args.trials:
@@ -135,7 +136,7 @@ def train_and_score(run: Run, args: argparse.Namespace, out: Path) -> tuple[floa
     wall = time.perf_counter() - started
     report = result.report
     if run.mode != 'same':
-        report['models']['guarded'] = guarded(config.model_path, scored,
+        report['models']['guarded'] = guarded(model_path, scored,
                                               out / 'reports' / f'{run.label}-evaluate')
     return wall, report
 

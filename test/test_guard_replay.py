@@ -10,7 +10,7 @@ from lompr_predictor.scoring.guard_replay import replay_guard
 
 
 def _instants(truth: np.ndarray, model_error: np.ndarray, start_ns: int = 0
-              ) -> tuple[np.ndarray, ...]:
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The predicted instants of `_run`'s stream: stamps, truth, model's and persistence's
     predictions."""
     stamps = start_ns + np.arange(HORIZON, len(truth)) * PERIOD
