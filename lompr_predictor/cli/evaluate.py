@@ -49,16 +49,21 @@ def add_parser(subparsers: Any) -> None:
     parser.set_defaults(run=run)
 
 
+def _evaluate_loops(args: argparse.Namespace) -> int:
+    """--closed-loop: the loop bags' RMS and peak per axis and the reductions."""
+    from lompr_predictor.scoring.loops import evaluate_loop_bags
+
+    document = evaluate_loop_bags(
+        bag_inputs(args, [args.model, *args.bags]),
+        geometry=load_robot_description(args.robot_description).geometry,
+        report=args.report)
+    print(f"{document['text']}\nreport in {args.report}")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     if args.closed_loop:
-        from lompr_predictor.scoring.loops import evaluate_loop_bags
-
-        document = evaluate_loop_bags(
-            bag_inputs(args, [args.model, *args.bags]),
-            geometry=load_robot_description(args.robot_description).geometry,
-            report=args.report)
-        print(f"{document['text']}\nreport in {args.report}")
-        return 0
+        return _evaluate_loops(args)
     from lompr_predictor.learning.baselines import (
         PERSISTENCE,
         FitContext,
