@@ -3,8 +3,9 @@
     python bench/bench_guard.py [--samples 20000] [--block 500] [--rate 1000]
 
 Four predictor cores (`online.OnlinePredictor`) on the same model, the default-size timing
-LSTM of `bench_predictor.py` with a trained envelope in its metadata (the ranges of the
-feature rows of the spiral it is driven along), two without units and two with the live
+LSTM of `bench_predictor.py` (on a machine map: the guard scores its prior too) with a
+trained envelope in its metadata (the ranges of the feature rows of the spiral it is driven
+along), two without units and two with the live
 guard (`online.guard.LiveGuard`, the node's default rules), are driven by the same stream of
 references and poses (the core's calls, as the node makes them, in shadow mode; every sample
 answered once the window is full), in blocks of `--block` samples, their order rotated
@@ -60,14 +61,16 @@ def guarded_model(path: Path, rate: int, tips: np.ndarray) -> Path:
     description = load_robot_description()
     rows = feature_rows(np.arange(len(tips)) / rate, np.zeros((len(tips), 2)), tips,
                         VerticalToolBranches(description.geometry))
+    module = timing_module(1.0 / rate, 5)
     metadata = ModelMetadata(
         features=feature_names(0), window=WINDOW, horizon=5, sample_period=1.0 / rate,
         targets=TARGETS, normalisation={}, model_type='lstm',
         hyperparameters={'hidden': HIDDEN, 'note': 'untrained, for timing only'},
         robot_description_sha256=description.sha256, training_bags=(), seed=0,
         library_versions={'torch': torch.__version__},
-        envelope=fit_envelope(rows[2:], feature_names(0)).to_metadata())
-    return save_model(path, timing_module(), metadata)
+        envelope=fit_envelope(rows[2:], feature_names(0)).to_metadata(),
+        machine_map=module.machine_map.metadata())
+    return save_model(path, module, metadata)
 
 
 def core(model_path: Path, rate: int,
@@ -124,10 +127,12 @@ def alternating_cpu(cores: Sequence[tuple[str, tuple[OnlinePredictor, list[int]]
 
 
 class _Frozen(NamedTuple):
-    """What a guard reads of a slot at a revise call: the model's metadata, the newest row."""
+    """What a guard reads of a slot at a revise call: the model's metadata, the newest row,
+    the map prior of the prediction."""
 
     model: Any
     window: Any
+    prior: Any
 
 
 class RecordingUnit:
@@ -143,7 +148,7 @@ class RecordingUnit:
         self.unit.observe(sample, error, published)
 
     def revise(self, instant_ns: int, prediction: XY, slot: ModelSlot) -> XY | None:
-        frozen = _Frozen(slot.model, SimpleNamespace(newest=slot.window.newest))
+        frozen = _Frozen(slot.model, SimpleNamespace(newest=slot.window.newest), slot.prior)
         self.calls.append((True, (instant_ns, prediction, frozen)))
         return self.unit.revise(instant_ns, prediction, slot)
 

@@ -1,8 +1,10 @@
 """Predictor speed against its targets; prints figures, a profile and a PASS/FAIL table.
 
-The model is the trainer's exported form at its default size: `models.PredictorModule`
-around the BO-LSTM (`build_network('lstm')`, window 25, the largest hidden size of the
-paper's search space, 50 units; weights untrained, timing only), one torch thread, horizon
+The model is the trainer's exported form at its default size and in its default form:
+`models.PredictorModule` around the BO-LSTM (`build_network('lstm')`, window 25, the largest
+hidden size of the paper's search space, 50 units; weights untrained, timing only) on a
+machine map whose residuals it reads, served with its map prior beside the prediction (the
+live guard's third candidate, `learning.map_prior`), one torch thread, horizon
 1 at 25 and 250 Hz and horizon 5 at 1 kHz: the lead time (horizon x period, 5 ms) must cover
 the latency budget, since an offset that arrives after its instant is useless (and is
 dropped by the predictor's overrun policy).
@@ -82,19 +84,25 @@ from rclpy.serialization import serialize_message
 from sensor_msgs.msg import JointState
 
 from lompr_predictor.data.features import HISTORY, TARGETS, feature_names
+from lompr_predictor.learning.machine_map import FRICTION_SCALES, MachineMap
 from lompr_predictor.learning.model_file import (
     ModelMetadata,
     load_checkpoint,
     load_model,
     save_model,
 )
-from lompr_predictor.learning.models import PredictorModule, build_network, network_columns
+from lompr_predictor.learning.models import (
+    PredictorModule,
+    build_network,
+    network_columns,
+    network_features,
+)
 from lompr_predictor.monitoring import bin_index, bin_lower_ns, parse_histogram
 from lompr_predictor.online.faults import StreamSettings
 from lompr_predictor.online.stage_timing import STAGES, time_stages
 from lompr_predictor.processes import stop_processes
 from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME, load_robot_description
-from lompr_predictor.robot.kinematics import inverse_kinematics
+from lompr_predictor.robot.kinematics import inverse_kinematics, tool_branch_jacobian
 from lompr_predictor.ros.common import EXECUTORS
 from lompr_predictor.ros.domain import isolate_ros_domain
 from lompr_predictor.threads import set_torch_threads
@@ -120,41 +128,39 @@ BAG = Path(__file__).resolve().parents[1] / 'bags' / 'twin_spiral_seed1_3passes'
 RELAY = Path(__file__).resolve().parent / 'relay_chain.py'
 
 
-def feature_span(name: str) -> float:
-    """A plausible SI half-range of a feature column (`features.feature_names`): errors
-    ~0.1 mm, positions and displacements ~0.2 m, velocities ~0.05 m/s, accelerations
-    ~0.5 m/s^2."""
-    if name.startswith('error_'):
-        return 1e-4
-    if name.endswith(('_v', '_vx', '_vy')):
-        return 0.05
-    if name.endswith(('_a', '_ax', '_ay')):
-        return 0.5
-    return 0.2
-
-
-def timing_module(preview: int = 0) -> PredictorModule:
-    """The trainer's exported module at the default size, with plausible SI ranges (its
-    rows with the preview block of `preview` samples)."""
+def timing_module(sample_period: float, horizon: int, preview: int = 0) -> PredictorModule:
+    """The trainer's exported module at the default size and in its default form: the LSTM
+    on a machine map, reading the map's residuals (`lompr train`'s defaults), with plausible
+    SI ranges (its rows with the preview block of `preview` samples). The map's
+    coefficients are zero (timing only: the same operations as a fitted map's)."""
     torch.manual_seed(0)
     features = feature_names(preview)
-    columns, _ = network_columns(features, relative_errors=True, error_level=True)
-    span = np.array([feature_span(features[column]) for column in columns])
+    geometry = load_robot_description().geometry
+    jacobian = tool_branch_jacobian(geometry, np.array([[0.0, 0.0, 1.097]]))[0]
+    machine_map = MachineMap(features, horizon, preview, sample_period, jacobian,
+                             np.full(len(FRICTION_SCALES), 0.01))
+    columns, _ = network_columns(network_features(features, machine_map=True),
+                                 relative_errors=True, error_level=True, inputs='machine')
+    span = np.full(len(columns), 2e-5)
     return PredictorModule(build_network('lstm', len(columns), WINDOW, HIDDEN), -span, span,
                            np.full(2, -2e-5), np.full(2, 2e-5), residual=True,
-                           relative_errors=True, error_level=True, features=features)
+                           relative_errors=True, error_level=True, features=features,
+                           machine_map=machine_map, inputs='machine')
 
 
 def default_model(path: Path, sample_period: float, horizon: int, preview: int = 0) -> Path:
-    """A default-size LSTM predictor saved as a model file."""
+    """A default-size LSTM predictor on a machine map (`timing_module`) saved as a model
+    file: the node serves its map prior beside the prediction, as for `lompr train`'s."""
+    module = timing_module(sample_period, horizon, preview)
     metadata = ModelMetadata(
         features=feature_names(preview), preview=preview, window=WINDOW, horizon=horizon,
         sample_period=sample_period,
         targets=TARGETS, normalisation={}, model_type='lstm',
         hyperparameters={'hidden': HIDDEN, 'note': 'untrained, for timing only'},
         robot_description_sha256=load_robot_description().sha256, training_bags=(), seed=0,
-        library_versions={'torch': torch.__version__})
-    return save_model(path, timing_module(preview), metadata)
+        library_versions={'torch': torch.__version__},
+        machine_map=module.machine_map.metadata())
+    return save_model(path, module, metadata)
 
 
 def spiral_joints(samples: int, rate: float) -> tuple[np.ndarray, np.ndarray]:

@@ -6,7 +6,7 @@ import numpy as np
 from test_online_guard import HORIZON, LEAD, PERIOD, _run, _settings, _walk
 
 from lompr_predictor.online.guard import GuardState, LiveGuard
-from lompr_predictor.scoring.guard_replay import replay_guard
+from lompr_predictor.scoring.guard_replay import ANSWERING, replay_guard
 
 
 def _instants(truth: np.ndarray, model_error: np.ndarray, start_ns: int = 0
@@ -66,4 +66,29 @@ def test_rows_outside_the_envelope_are_counted_and_held_back() -> None:
     summary = replay.summary()
     assert summary['rows_outside_envelope'] == 60
     assert summary['x'] == {'held_back_fraction': float(replay.held_back[:, 0].mean()),
-                            'hand_overs': 1, 'hand_backs': 1}
+                            'prior_fraction': 0.0, 'hand_overs': 1, 'hand_backs': 1}
+
+
+def test_replay_with_a_prior_publishes_what_the_guard_publishes() -> None:
+    """The model worse on X for a while, its prior better than persistence throughout: the
+    replay hands X to the prior and back at the node's instants, and counts the prior's
+    share."""
+    truth = _walk(900, seed=15)
+    rng = np.random.default_rng(16)
+    model_error = rng.normal(0.0, 0.2e-6, truth.shape)
+    model_error[100:400, 0] = 4e-6
+    prior_error = rng.normal(0.0, 0.5e-6, truth.shape)
+    settings = _settings(window_instants=40, min_scored=20, dwell_instants=30)
+    online = _run(LiveGuard(settings, LEAD, PERIOD), truth, model_error,
+                  prior_error=prior_error)[:-HORIZON]
+    replay = replay_guard(LiveGuard(settings, LEAD, PERIOD), *_instants(truth, model_error),
+                          prior=(truth + prior_error)[HORIZON:])
+    np.testing.assert_array_equal(replay.published, online)
+    on_prior = replay.answering[:, 0] == ANSWERING[GuardState.PRIOR]
+    np.testing.assert_array_equal(on_prior, replay.held_back[:, 0])
+    np.testing.assert_array_equal(replay.published[on_prior, 0],
+                                  (truth + prior_error)[HORIZON:][on_prior, 0])
+    x = replay.summary()['x']
+    assert isinstance(x, dict)
+    assert 0.3 < x['prior_fraction'] == x['held_back_fraction'] < 0.6
+    assert replay.hand_overs == (1, 0) and replay.hand_backs == (1, 0)

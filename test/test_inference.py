@@ -16,6 +16,7 @@ from trainer_data import lissajous_reference, synthetic_recording
 from lompr_predictor.data.cleaning import clean_recordings
 from lompr_predictor.data.features import FEATURES, TARGETS
 from lompr_predictor.data.problem import LearningProblem, build_problem
+from lompr_predictor.learning.machine_map import fit_machine_map, map_prior
 from lompr_predictor.learning.model_file import (
     LoadedModel,
     ModelMetadata,
@@ -73,8 +74,8 @@ def test_onnxruntime_serves_a_trained_lstm_and_agrees_with_torchscript(
     got, wanted = [], []
     for values in windows:
         window[0] = values  # the runners read the bound buffer afresh
-        got.append(run_ort())
-        wanted.append(run_torch())
+        got.append(run_ort()[:2])
+        wanted.append(run_torch()[:2])
     scale = np.max(np.abs(wanted))
     assert scale > 0
     np.testing.assert_allclose(got, wanted, rtol=0, atol=RELATIVE_TOLERANCE * scale)
@@ -103,7 +104,7 @@ def test_disagreeing_outputs_fall_back_with_the_reason(
         trained: LoadedModel, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A graph of another network (as a mismatched graph would be) is refused."""
     other = load_model(save_linear(tmp_path / 'other.pt', window=WINDOW, horizon=HORIZON))
-    monkeypatch.setattr(inference, 'export_onnx', lambda model: export_onnx(other))
+    monkeypatch.setattr(inference, 'export_onnx', lambda model, module: export_onnx(other))
     backend, why = select_backend(trained, 'auto')
     assert backend.name == 'torchscript' and why is not None
     assert 'onnxruntime and torchscript disagree on the warm-up batch' in why
@@ -164,6 +165,67 @@ def test_a_broken_onnx_runtime_install_falls_back_with_the_reason(
     assert '\n' not in str(err.value)
 
 
+@pytest.fixture(scope='module')
+def mapped(description: RobotDescription,
+           tmp_path_factory: pytest.TempPathFactory) -> tuple[LoadedModel, np.ndarray]:
+    """A small LSTM on a machine map, its file's metadata naming the map as `lompr train`
+    writes it, and the trainer's own prior (`machine_map.map_prior`) of its first test
+    windows."""
+    recording, _ = synthetic_recording(description.geometry, 2000, noise=2e-7,
+                                       reference=lissajous_reference(2000))
+    data = clean_recordings([recording], description.geometry)
+    problem = build_problem(data, window=WINDOW, horizon=HORIZON)
+    machine_map = fit_machine_map(
+        problem, data.reference[problem.split.training_rows()[:len(data)]],
+        description.geometry)
+    hyper = {'batch_size': 200, 'hidden': 8, 'learning_rate': 0.01}
+    network = train_network(problem, 'lstm', hyper, TrainSettings(max_epochs=2, patience=2, seed=4),
+                            progress=False, machine_map=machine_map)
+    metadata = ModelMetadata(
+        features=FEATURES, window=WINDOW, horizon=HORIZON, sample_period=problem.sample_period,
+        targets=TARGETS, normalisation={}, model_type='lstm', hyperparameters=hyper,
+        robot_description_sha256=description.sha256,
+        training_bags=({'path': 'synthetic', 'sha256': '0' * 64},), seed=4,
+        library_versions={'torch': torch.__version__}, machine_map=machine_map.metadata())
+    path = tmp_path_factory.mktemp('mapped') / 'lstm.pt'
+    model = load_model(save_model(path, network.module, metadata))
+    ends = problem.split.test[:100]
+    windows = np.asarray(gather_windows(problem.rows, ends, WINDOW))
+    return model, np.concatenate([windows.reshape(len(ends), -1),
+                                  map_prior(machine_map, problem, ends)], axis=1)
+
+
+def test_both_backends_give_the_map_prior_of_the_trainer_beside_the_prediction(
+        mapped: tuple[LoadedModel, np.ndarray]) -> None:
+    """The node's prior (`learning.map_prior`, in the same call as the network) is the
+    trainer's map prior of the same windows, to float64 rounding, from either backend; the
+    prediction beside it is the model file's own."""
+    model, table = mapped
+    features = len(FEATURES)
+    windows = table[:, :-2].reshape(len(table), WINDOW, features)
+    offline = table[:, -2:]
+    backend, why = select_backend(model, 'auto')
+    assert (backend.name, why) == ('onnxruntime', None)
+    window = np.zeros((1, WINDOW, features))
+    run_ort, run_torch = backend.runner(window), TorchScriptBackend(model).runner(window)
+    for values, prior in zip(windows, offline, strict=True):
+        window[0] = values
+        served, torchscript = run_ort(), run_torch()
+        assert len(served) == len(torchscript) == 4
+        np.testing.assert_allclose(torchscript[2:], prior, rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(served[2:], prior, rtol=1e-9, atol=1e-15)
+        wanted = model.predict(torch.from_numpy(window)).numpy()[0]
+        np.testing.assert_array_equal(torchscript[:2], wanted)
+    assert np.abs(offline).max() > 1e-7  # a prior of real size, not zeros
+
+
+def test_a_model_without_a_map_has_no_prior(trained: LoadedModel) -> None:
+    window = np.zeros((1, WINDOW, len(FEATURES)))
+    for backend in (select_backend(trained, 'auto')[0], TorchScriptBackend(trained)):
+        x, y, prior_x, prior_y = backend.runner(window)()
+        assert np.isfinite([x, y]).all() and np.isnan([prior_x, prior_y]).all()
+
+
 @pytest.mark.faults
 def test_a_graph_without_the_window_input_is_served_as_torchscript_serves_it(
         tmp_path: Path) -> None:
@@ -174,7 +236,9 @@ def test_a_graph_without_the_window_input_is_served_as_torchscript_serves_it(
     backend, why = select_backend(model, 'auto')
     assert (backend.name, why) == ('onnxruntime', None)
     window = np.random.default_rng(1).normal(size=(1, WINDOW, len(FEATURES)))
-    assert backend.runner(window)() == TorchScriptBackend(model).runner(window)() == (7e-6, -3e-6)
+    served, torchscript = backend.runner(window)(), TorchScriptBackend(model).runner(window)()
+    assert served[:2] == torchscript[:2] == (7e-6, -3e-6)
+    assert np.isnan([*served[2:], *torchscript[2:]]).all()  # no map: no prior
 
 
 @pytest.mark.faults

@@ -1,8 +1,9 @@
-"""The live guard: the model compensates an axis only while it beats persistence there, and
-not while its inputs lie outside what it was trained on."""
+"""The live guard: the model compensates an axis only while it beats its fallbacks there (its
+map prior, persistence), and not while its inputs lie outside what it was trained on."""
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 import random
@@ -14,7 +15,13 @@ import pytest
 
 from lompr_predictor.learning.envelope import InputEnvelope, fit_envelope
 from lompr_predictor.online.alignment import AlignedSample
-from lompr_predictor.online.guard import GuardReason, GuardSettings, GuardState, LiveGuard
+from lompr_predictor.online.guard import (
+    AxisStatus,
+    GuardReason,
+    GuardSettings,
+    GuardState,
+    LiveGuard,
+)
 
 PERIOD = 40_000_000
 HORIZON = 2
@@ -33,10 +40,11 @@ def _settings(window_instants: float = 250, dwell_instants: float = 50,
 
 
 def _run(guard: LiveGuard, truth: np.ndarray, model_error: np.ndarray,
-         inside: np.ndarray | None = None) -> np.ndarray:
+         inside: np.ndarray | None = None, prior_error: np.ndarray | None = None) -> np.ndarray:
     """Feed a plant error series `truth` (N, 2); the model predicts each instant's truth plus
-    `model_error` (N, 2), persistence the truth HORIZON samples before. Returns the
-    published predictions (N, 2), NaN until the first."""
+    `model_error` (N, 2), its map prior the truth plus `prior_error` (None: the model has
+    no prior), persistence the truth HORIZON samples before. Returns the published
+    predictions (N, 2), NaN until the first."""
     published = np.full_like(truth, np.nan)
     for k in range(len(truth)):
         stamp = k * PERIOD
@@ -44,9 +52,12 @@ def _run(guard: LiveGuard, truth: np.ndarray, model_error: np.ndarray,
         guard.observe(AlignedSample(stamp, *error, 0.0, 0.0, 1.1), error, None)
         if k + HORIZON < len(truth):
             target = truth[k + HORIZON] + model_error[k + HORIZON]
+            prior = (None if prior_error is None else
+                     tuple(map(float, truth[k + HORIZON] + prior_error[k + HORIZON])))
             published[k] = guard.choose(stamp + LEAD, (float(target[0]), float(target[1])),
                                         (float(truth[k, 0]), float(truth[k, 1])),
-                                        True if inside is None else bool(inside[k]))
+                                        True if inside is None else bool(inside[k]),
+                                        prior)  # type: ignore[arg-type]
     return published
 
 
@@ -64,7 +75,8 @@ def test_a_model_better_than_persistence_keeps_both_axes() -> None:
     np.testing.assert_array_equal(published[:-HORIZON], (truth + model_error)[HORIZON:])
     x, y = guard.status()
     assert x.state is y.state is GuardState.MODEL and x.hand_overs == y.hand_overs == 0
-    assert not guard.holding and guard.published_persistence == 0
+    assert not guard.holding and guard.published_fallback == 0
+    assert math.isnan(x.prior_rms)  # a model without a map has no prior
     # both scored on the same instants: the model's live RMS near its 0.2 um, persistence's
     # near the walk's sqrt(2) um
     assert 0.15e-6 < x.model_rms < 0.25e-6 and 1.2e-6 < x.persistence_rms < 1.6e-6
@@ -127,6 +139,75 @@ def test_hand_back_needs_the_margin_and_the_dwell() -> None:
     assert back > 300
 
 
+def test_the_prior_answers_where_the_model_is_worse_and_it_is_better_than_persistence() -> None:
+    """X of the model misses by 5 um, its prior by 0.3 um, persistence by ~1.4 um: X goes to
+    the prior (its value published, the reason naming it); Y, where the model beats both,
+    stays with the model."""
+    settings = _settings(min_scored=50, dwell_instants=50)
+    guard = LiveGuard(settings, LEAD, PERIOD)
+    truth = _walk(400, seed=8)
+    rng = np.random.default_rng(9)
+    model_error = rng.normal(0.0, 0.1e-6, truth.shape)
+    model_error[:, 0] = 5e-6
+    prior_error = rng.normal(0.0, 0.3e-6, truth.shape)
+    published = _run(guard, truth, model_error, prior_error=prior_error)
+    x, y = guard.status()
+    assert x.state is GuardState.PRIOR and x.reason is GuardReason.WORSE_THAN_PRIOR
+    assert y.state is GuardState.MODEL and x.hand_overs == 1 and y.hand_overs == 0
+    assert guard.answering == (GuardState.PRIOR, GuardState.MODEL)
+    np.testing.assert_array_equal(published[-100:-HORIZON, 0],
+                                  (truth + prior_error)[-100 + HORIZON:, 0])
+    np.testing.assert_array_equal(published[:-HORIZON, 1], (truth + model_error)[HORIZON:, 1])
+    assert 0.2e-6 < x.prior_rms < 0.4e-6 < 1.2e-6 < x.persistence_rms
+
+
+def test_a_model_better_than_persistence_but_worse_than_its_prior_is_handed_to_it() -> None:
+    """The model's network adds 0.6 um of misses to a prior that misses by 0.2 um, both far
+    better than persistence: the prior takes both axes (what the network learned does not
+    hold here)."""
+    guard = LiveGuard(_settings(min_scored=50, dwell_instants=50), LEAD, PERIOD)
+    truth = _walk(400, seed=10)
+    rng = np.random.default_rng(11)
+    prior_error = rng.normal(0.0, 0.2e-6, truth.shape)
+    model_error = prior_error + rng.normal(0.0, 0.6e-6, truth.shape)
+    _run(guard, truth, model_error, prior_error=prior_error)
+    x, y = guard.status()
+    assert x.state is y.state is GuardState.PRIOR
+    assert x.model_rms < x.persistence_rms and x.prior_rms < x.model_rms
+
+
+def test_a_prior_no_better_than_persistence_is_passed_over_and_left_when_worse() -> None:
+    """The model misses by 5 um throughout. First its prior misses by 1.4 um, about as
+    persistence does (~1.4 um), so persistence answers (the prior must be better by the
+    margin); then the prior misses by 0.2 um and takes over; then by 4 um and persistence
+    takes back. Switches between the fallbacks are no hand-backs to the model."""
+    settings = _settings(window_instants=20, min_scored=10, dwell_instants=20)
+    guard = LiveGuard(settings, LEAD, PERIOD)
+    truth = _walk(900, seed=12)
+    rng = np.random.default_rng(13)
+    model_error = np.full_like(truth, 5e-6)
+    prior_error = np.empty_like(truth)
+    prior_error[:300] = (np.roll(truth, HORIZON, axis=0) - truth)[:300]  # persistence itself
+    prior_error[300:600] = rng.normal(0.0, 0.2e-6, (300, 2))
+    prior_error[600:] = 4e-6
+    answering = []
+    for k in range(len(truth) - HORIZON):
+        stamp = k * PERIOD
+        error = (float(truth[k, 0]), float(truth[k, 1]))
+        guard.observe(AlignedSample(stamp, *error, 0.0, 0.0, 1.1), error, None)
+        target = truth[k + HORIZON] + model_error[k + HORIZON]
+        prior = truth[k + HORIZON] + prior_error[k + HORIZON]
+        guard.choose(stamp + LEAD, (float(target[0]), float(target[1])), error, True,
+                     (float(prior[0]), float(prior[1])))
+        answering.append(guard.answering[0])
+    assert set(answering[100:300]) == {GuardState.PERSISTENCE}
+    assert set(answering[400:600]) == {GuardState.PRIOR}
+    assert set(answering[700:]) == {GuardState.PERSISTENCE}
+    x, _ = guard.status()
+    assert x.hand_overs == 1 and x.hand_backs == 0
+    assert x.reason is GuardReason.WORSE_THAN_PERSISTENCE
+
+
 def test_rows_outside_the_envelope_hold_the_model_back() -> None:
     settings = _settings(window_instants=10, envelope_fraction=0.5, dwell_instants=0)
     guard = LiveGuard(settings, LEAD, PERIOD)
@@ -148,7 +229,8 @@ def test_disabled_guard_publishes_the_model_and_still_reports() -> None:
     published = _run(guard, truth, model_error)
     np.testing.assert_array_equal(published[:-HORIZON], (truth + model_error)[HORIZON:])
     assert guard.holding  # what the guard would do, for diagnostics
-    assert guard.published_persistence == 0
+    assert guard.published_fallback == 0
+    assert guard.answering == (GuardState.MODEL, GuardState.MODEL)
 
 
 def test_settings_are_checked() -> None:
@@ -191,7 +273,8 @@ def _mixed_run(guard: LiveGuard) -> list[Any]:
         errors.append((errors[-1][0] + step, errors[-1][1] + 1e-6 * (rng.random() - 0.5)))
     for k in range(1, 8000):
         if k == 4000:
-            before = [*guard.status(), guard.scored, guard.published_persistence]
+            before = [*map(_as_first_written, guard.status()), guard.scored,
+                      guard.published_fallback]
             guard.restart()
             model = SimpleNamespace(metadata=SimpleNamespace(features=features, envelope={}))
         if k in {2500, 6000}:
@@ -208,29 +291,36 @@ def _mixed_run(guard: LiveGuard) -> list[Any]:
         miss = (3e-6 * worse_x + 0.3e-6 * rng.random(), 3e-6 * worse_y + 0.3e-6 * rng.random())
         burst = 1.7 if (k // 300) % 5 == 3 else 0.0
         row = (*errors[k], rng.random() - 0.5, rng.random() - 0.5 + burst, 0.4 * rng.random())
-        slot = SimpleNamespace(model=model, window=SimpleNamespace(newest=row))
+        slot = SimpleNamespace(model=model, window=SimpleNamespace(newest=row), prior=None)
         truth = errors[k + HORIZON]
         prediction = (truth[0] + miss[0], truth[1] + miss[1])
         published.append(guard.revise(stamp + LEAD, prediction, slot))  # type: ignore[arg-type]
-    return [*before, *published, *guard.status(), guard.scored, guard.outside_rows,
-            guard.last_outside, guard.published_persistence, guard.outside_fraction,
-            guard.holding]
+    return [*before, *published, *map(_as_first_written, guard.status()), guard.scored,
+            guard.outside_rows, guard.last_outside, guard.published_fallback,
+            guard.outside_fraction, guard.holding]
+
+
+def _as_first_written(status: AxisStatus) -> tuple[object, ...]:
+    """An axis's status as the guard first reported it (no prior): what the pin hashed."""
+    fields = dataclasses.asdict(status)
+    fields.pop('prior_rms', None)
+    return tuple(fields.values())
 
 
 def test_decisions_on_a_long_mixed_stream_are_those_pinned() -> None:
     """Every prediction published, the switches and counters over 8000 samples of
     `_mixed_run`, bit for bit those of the guard as first written (one method call per axis
-    and sample, the envelope compared through `operator.le`): the faster guard decides
-    alike."""
+    and sample, the envelope compared through `operator.le`; the hash taken over the
+    statuses' fields of then, computed again with that guard before the prior came): the
+    faster guard, and the guard of a model without a prior, decide alike."""
     outcome = _mixed_run(LiveGuard(_settings(window_instants=60, dwell_instants=20), LEAD,
                                    PERIOD))
     held_x, held_y, scored, persisted = outcome[:4]  # before the new model
-    assert held_x.state is held_y.state is GuardState.PERSISTENCE
-    assert held_x.reason is held_y.reason is GuardReason.OUTSIDE_ENVELOPE
-    assert (held_x.hand_overs, held_x.hand_backs, held_y.hand_overs, held_y.hand_backs,
-            scored, persisted) == (3, 2, 2, 1, 3777, 2725)
+    assert held_x[0] is held_y[0] is GuardState.PERSISTENCE
+    assert held_x[1] is held_y[1] is GuardReason.OUTSIDE_ENVELOPE
+    assert (*held_x[-2:], *held_y[-2:], scored, persisted) == (3, 2, 2, 1, 3777, 2725)
     x, y = outcome[-8], outcome[-7]
-    assert (x.hand_overs, x.hand_backs, y.hand_overs, y.hand_backs) == (4, 3, 2, 1)
+    assert (*x[-2:], *y[-2:]) == (4, 3, 2, 1)
     assert outcome[-6:] == [3827, 684, 'ref_y', 6016, 0.0, True]
     assert hashlib.sha256(repr(outcome).encode()).hexdigest() == (
-        '3e02665f2eee6e55fa70a265c819b524915289676e72bbe9cb47f68d1a812cf4')
+        'e84001e5c4139b1ddf345c347148a79910dc093e71511daec6a17f4578b4c120')

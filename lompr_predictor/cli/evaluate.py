@@ -101,10 +101,11 @@ def run(args: argparse.Namespace) -> int:
         preview=meta.preview)
     baselines = fit_baselines(problem, FitContext(), (PERSISTENCE,))
     guarded = replay_model_guard(meta, offline.stamps, offline.actual, offline.predicted,
-                                 offline.last_error, offline.newest_rows)
-    scored, models = score_test_part(
-        problem, baselines, {'model': offline.predicted, 'model_guarded': guarded.published},
-        inputs.cleaning.gap_factor)
+                                 offline.last_error, offline.newest_rows, prior=offline.prior)
+    predictions = {'model': offline.predicted, 'model_guarded': guarded.published}
+    if np.isfinite(offline.prior).all():  # a model with a map: its prior alone too
+        predictions['model_prior'] = offline.prior
+    scored, models = score_test_part(problem, baselines, predictions, inputs.cleaning.gap_factor)
     report = base_report('evaluate', problem, data, sources, inputs.cleaning)
     report.update(
         models=models, model_file=str(Path(args.model).resolve()), model_sha256=model.sha256,

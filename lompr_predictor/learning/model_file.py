@@ -154,8 +154,13 @@ class LoadedModel:
     def predict(self, windows: torch.Tensor) -> torch.Tensor:
         """(B, window, features) float64 SI windows -> (B, 2) predicted error [m], in
         inference mode."""
-        with torch.inference_mode() if _INFERENCE_MODE is None else _INFERENCE_MODE(True):
-            return self.module(windows)
+        return run_inference(self.module, windows)
+
+
+def run_inference(module: torch.nn.Module, windows: torch.Tensor) -> torch.Tensor:
+    """`module(windows)` in inference mode (no autograd state), as the node calls it."""
+    with torch.inference_mode() if _INFERENCE_MODE is None else _INFERENCE_MODE(True):
+        return module(windows)
 
 
 #: Names of the input and output of the ONNX graph `export_onnx` writes.
@@ -165,21 +170,26 @@ ONNX_OUTPUT = 'error'
 ONNX_OPSET = 17
 
 
-def export_onnx(model: LoadedModel) -> bytes:
-    """The loaded (checked) module as an ONNX graph in memory: one window (1, window,
-    features) float64 -> (1, 2) float64, the input and output scaling inside it. Exported
-    from the verified module itself, so no second file needs trusting. Raises
+def export_onnx(model: LoadedModel, module: torch.nn.Module | None = None) -> bytes:
+    """The loaded (checked) module, or `module` built around it (e.g. its prediction with
+    its map prior, `map_prior.with_prior`), as an ONNX graph in memory: one window (1,
+    window, features) float64 -> (1, outputs) float64, the input and output scaling inside
+    it. Exported from the verified module itself, so no second file needs trusting. Raises
     `ModelFileError` if the exporter cannot take the module."""
     metadata = model.metadata
     example = torch.zeros((1, metadata.window, len(metadata.features)), dtype=torch.float64)
+    exported = model.module if module is None else module
     buffer = io.BytesIO()
     try:
-        with warnings.catch_warnings():
+        # without autograd: a scripted function first run with it records a graph that
+        # fails when the node then runs it in inference mode (the executor is per method,
+        # shared by every module of that type)
+        with warnings.catch_warnings(), torch.no_grad():
             # the TorchScript-based exporter (the one that takes a ScriptModule and writes to
             # a file object, which its annotation omits) warns about its deprecation and
             # about LSTMs with a batch other than one (ours is 1)
             warnings.simplefilter('ignore')
-            torch.onnx.export(model.module, (example,), buffer,  # type: ignore[arg-type]
+            torch.onnx.export(exported, (example,), buffer,  # type: ignore[arg-type]
                               dynamo=False, input_names=[ONNX_INPUT],
                               output_names=[ONNX_OUTPUT], opset_version=ONNX_OPSET)
     except Exception as err:  # the exporter raises many types for one cause

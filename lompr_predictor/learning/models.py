@@ -40,6 +40,7 @@ from lompr_predictor.data.cleaning import CleanData
 from lompr_predictor.data.features import FEATURES, TARGETS
 from lompr_predictor.data.problem import window_ends
 from lompr_predictor.learning.machine_map import MachineMap
+from lompr_predictor.learning.map_prior import offline_prior
 from lompr_predictor.learning.space import NETWORK_INPUTS
 
 MODEL_TYPES = ('lstm', 'mlp')
@@ -382,6 +383,7 @@ class OfflinePredictions:
     actual: np.ndarray  # (B, 2) measured plant error at those instants [m]
     newest_rows: np.ndarray  # (B, features) each window's last feature row
     last_error: np.ndarray  # (B, 2) plant error at each window's last row: persistence's [m]
+    prior: np.ndarray  # (B, 2) the model's map prior [m] (NaN: it has no map)
 
 
 def offline_predictions(module: nn.Module, data: CleanData, window: int, horizon: int,
@@ -392,7 +394,10 @@ def offline_predictions(module: nn.Module, data: CleanData, window: int, horizon
     sample for sample, given a preview that matched the path."""
     ends = window_ends(data.regular_runs(), window, horizon, preview)
     rows = data.features(preview)
+    newest = rows[ends]
+    prior = (offline_prior(module, newest) if getattr(module, 'use_map', False)
+             else np.full((len(ends), len(TARGETS)), np.nan))
     return OfflinePredictions(ends=ends, stamps=data.stamps[ends + horizon],
                               predicted=predict_rows(module, rows, ends, window),
-                              actual=data.error[ends + horizon], newest_rows=rows[ends],
-                              last_error=data.error[ends])
+                              actual=data.error[ends + horizon], newest_rows=newest,
+                              last_error=data.error[ends], prior=prior)

@@ -1,28 +1,35 @@
-"""The live guard: the model compensates only while it does better than persistence.
+"""The live guard: the model compensates only while it does better than its fallbacks.
 
 A learned model can be wrong on a program or a machine it was not trained on, and then its
 offset makes the error worse than the simplest compensator, persistence (the offset for an
-instant is minus the plant error measured `horizon` samples before it). The guard scores
-both on the same instants as their truth arrives (the contract's plant error, which holds
-under compensation), per axis, and chooses, per axis, whose prediction is published:
+instant is minus the plant error measured `horizon` samples before it). A model with a
+machine map has a second fallback, its map prior (`learning.map_prior`: persistence plus the
+change the map predicts over the horizon, the model before its network's correction), which
+transfers between programs where the network may not. The guard scores the three on the
+same instants as their truth arrives (the contract's plant error, which holds under
+compensation), per axis, and chooses, per axis, whose prediction is published:
 
 - each aligned sample's plant error e(t) is the truth of the predictions made for t: the
-  model's (the prediction it made `horizon` samples earlier, kept by instant whether it was
-  published or not) and persistence's (e(t - horizon)); where both exist, the squared
-  residuals enter an exponentially weighted mean over about `window` seconds of sample
-  time (long enough to span what a program repeats: a model better on the straights and
-  worse at the corners is judged on both, not handed back and forth between them);
-- an axis is handed over to persistence as soon as the model's live RMS exceeds
-  persistence's (a model no better than the simplest compensator has no business
-  compensating), and handed back when it is below persistence's by `margin` (relative):
-  the gap between the two thresholds is the hysteresis; no switch within `min_dwell`
-  seconds of the last one, and none before `min_scored` instants were scored;
+  model's and its prior's (made `horizon` samples earlier, kept by instant whether
+  published or not) and persistence's (e(t - horizon)); the squared residuals enter
+  exponentially weighted means over about `window` seconds of sample time (long enough to
+  span what a program repeats: a model better on the straights and worse at the corners is
+  judged on both, not handed back and forth between them);
+- an axis is handed over as soon as the model's live RMS exceeds the better fallback's (a
+  model no better than what it builds on has no business compensating), and handed back
+  when it is below the better fallback's by `margin` (relative): the gap between the two
+  thresholds is the hysteresis; no switch within `min_dwell` seconds of the last one, and
+  none before `min_scored` instants were scored. Between the two fallbacks the prior is
+  preferred once it is better than persistence by the margin and kept until it is worse;
 - a sample whose feature row lies outside the model's trained envelope (`envelope.py`) is
   counted; while more than `envelope_fraction` of the recent rows lie outside it, both axes
-  are held back whatever the live scores (the model is extrapolating);
-- persistence's prediction is the plant error of the sample the model's window ends at,
-  which the guard saw just before the prediction, so holding back costs nothing but the
-  choice.
+  are held back whatever the live scores (the network is extrapolating; the map's few
+  coefficients of the machine's structure extrapolate sanely, and the live scores still
+  choose between prior and persistence);
+- persistence's and the prior's predictions come with the model's (the plant error of the
+  sample the window ends at; the prior from the same call as the network), so holding back
+  costs nothing but the choice. A model without a map has no prior: the guard chooses
+  between the model and persistence.
 
 The guard is a unit of the predictor core's chain (`sample_units`): it sees every aligned
 sample's plant error and every prediction before the offset gate. ROS-free, on Python
@@ -39,6 +46,7 @@ from enum import StrEnum
 
 from lompr_predictor.learning.envelope import InputEnvelope
 from lompr_predictor.online.alignment import AlignedSample
+from lompr_predictor.online.inference import NO_PRIOR
 from lompr_predictor.online.model_slot import ModelSlot
 from lompr_predictor.online.offset import XY
 from lompr_predictor.stamps import period_ns
@@ -49,18 +57,30 @@ AXES = ('x', 'y')
 NEGLIGIBLE_MS = 1e-18
 
 
+#: The live mean square of a candidate not yet scored (a model without a prior): never
+#: chosen.
+UNSCORED = float('inf')
+
+
 class GuardState(StrEnum):
     """Whose prediction an axis publishes."""
 
     MODEL = 'model'
+    PRIOR = 'prior'  # the model's map prior, without its network's correction
     PERSISTENCE = 'persistence'
 
 
 class GuardReason(StrEnum):
     """Why the guard holds the model back on an axis."""
 
-    WORSE_THAN_PERSISTENCE = 'worse_than_persistence'  # its live RMS, by the margin
+    WORSE_THAN_PERSISTENCE = 'worse_than_persistence'  # its live RMS; persistence answers
+    WORSE_THAN_PRIOR = 'worse_than_prior'  # its live RMS; its map prior answers
     OUTSIDE_ENVELOPE = 'outside_envelope'  # the inputs left what training saw
+
+
+#: The reason an axis answered by a fallback gives when the model is worse there.
+WORSE_THAN = {GuardState.PERSISTENCE: GuardReason.WORSE_THAN_PERSISTENCE,
+              GuardState.PRIOR: GuardReason.WORSE_THAN_PRIOR}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -71,7 +91,7 @@ class GuardSettings:
 
     enabled: bool
     window: float  # seconds of sample time the live RMS is weighted over (time constant)
-    margin: float  # relative: hand over above 1 x persistence, back below (1 - margin) x
+    margin: float  # relative: hand over above 1 x the better fallback, back below (1 - margin) x
     min_dwell: float  # seconds of sample time between two switches of an axis, at least
     min_scored: int  # instants scored before the first decision
     envelope_fraction: float  # recent rows outside the envelope that hold the model back
@@ -101,63 +121,48 @@ class AxisStatus:
     reason: GuardReason | None  # why the model is held back (None: it is not)
     model_rms: float  # live RMS of the model's residual [m] (NaN before the first)
     persistence_rms: float  # live RMS of persistence's residual [m], same instants
-    hand_overs: int  # switches model -> persistence
-    hand_backs: int  # switches persistence -> model
+    prior_rms: float  # live RMS of the map prior's residual [m] (NaN: no prior)
+    hand_overs: int  # switches model -> a fallback
+    hand_backs: int  # switches a fallback -> model
 
 
 class _Axis:
-    """The live scores and state of one axis; the guard updates them (`LiveGuard.observe`,
-    `LiveGuard.choose`) inline, a method call per axis and sample being most of its cost."""
+    """The live scores and state of one axis; the guard updates and decides on them
+    (`LiveGuard.observe`, `LiveGuard.choose`) inline, a method call per axis and sample
+    being most of its cost."""
 
-    __slots__ = ('hand_backs', 'hand_overs', 'model_ms', 'persistence_ms', 'reason', 'state',
-                 'switched_at')
+    __slots__ = ('hand_backs', 'hand_overs', 'model_ms', 'persistence_ms', 'prior_ms', 'reason',
+                 'state', 'switched_at')
 
     def __init__(self, instant: int) -> None:
         self.model_ms = 0.0
         self.persistence_ms = 0.0
+        self.prior_ms = UNSCORED
         self.state = GuardState.MODEL
         self.reason: GuardReason | None = None
         self.switched_at = instant  # the guard's count of decisions at the last switch
         self.hand_overs = 0
         self.hand_backs = 0
 
-    def wanted(self, hand_over: float, hand_back: float,
-               outside: bool) -> tuple[GuardState, GuardReason | None] | None:
-        """The state the rules want (module docstring) and why, given the mean-square ratios
-        `hand_over` and `hand_back` and whether the rows lie outside the envelope; None
-        where the axis stays as it is whatever the dwell (the model in control and no worse
-        than persistence, or held back for being worse and still not better by the margin)."""
-        if outside:
-            return GuardState.PERSISTENCE, GuardReason.OUTSIDE_ENVELOPE
-        if self.state is GuardState.MODEL:
-            if self.model_ms <= hand_over * self.persistence_ms + NEGLIGIBLE_MS:
-                return None
-            return GuardState.PERSISTENCE, GuardReason.WORSE_THAN_PERSISTENCE
-        if self.model_ms < hand_back * self.persistence_ms - NEGLIGIBLE_MS:
-            return GuardState.MODEL, None
-        if self.reason is GuardReason.WORSE_THAN_PERSISTENCE:
-            return None
-        return GuardState.PERSISTENCE, GuardReason.WORSE_THAN_PERSISTENCE
-
 
 class LiveGuard:
-    """Chooses per axis between the model's prediction and persistence's (module
-    docstring), on a grid of instants `period_ns` apart, predictions `lead_ns` ahead: a
-    `sample_units.SampleUnit` of the predictor core. It runs at the sample rate: the rules
-    are read once per change of the settings, the scores and the common decision (both axes
-    kept, the model in control and no worse) are written out inline."""
+    """Chooses per axis between the model's prediction, its map prior's and persistence's
+    (module docstring), on a grid of instants `period_ns` apart, predictions `lead_ns`
+    ahead: a `sample_units.SampleUnit` of the predictor core. It runs at the sample rate:
+    the rules are read once per change of the settings, the scores and the common decision
+    (both axes kept, the model in control and no worse) are written out inline."""
 
     def __init__(self, settings: GuardSettings, lead_ns: int, period_ns: int) -> None:
         self._period_ns = period_ns
         self.settings = settings  # also sets the weight and thresholds, in instants
         self._lead_ns = lead_ns
         self._tolerance_ns = period_ns // 2
-        #: (instant, model x, model y, persistence x, persistence y) awaiting their truth, in
-        #: increasing instants (a sample's truth arrives in stamp order)
-        self._pending: deque[tuple[int, float, float, float, float]] = deque()
+        #: (instant, model x, y, persistence x, y, prior x, y (NaN: none)) awaiting their
+        #: truth, in increasing instants (a sample's truth arrives in stamp order)
+        self._pending: deque[tuple[int, float, float, float, float, float, float]] = deque()
         self._decisions = 0  # predictions chosen: an axis's dwell counts them
         self._axes = (_Axis(0), _Axis(0))
-        self._holding = False  # an axis is in persistence's hands
+        self._holding = False  # an axis is in a fallback's hands
         self._outside = 0.0  # weighted fraction of recent rows outside the envelope
         self._last: tuple[int, XY] | None = None  # the newest sample's stamp and plant error
         self._enveloped: object = None  # the metadata whose envelope `_envelope` is
@@ -165,7 +170,7 @@ class LiveGuard:
         self.scored = 0  # instants where both predictions met their truth
         self.outside_rows = 0  # rows outside the envelope, in all
         self.last_outside = ''  # the column that left the envelope last
-        self.published_persistence = 0  # predictions published with an axis held back
+        self.published_fallback = 0  # predictions published with an axis held back
 
     @classmethod
     def for_stream(cls, settings: GuardSettings, horizon: int,
@@ -197,7 +202,7 @@ class LiveGuard:
         period = self._period_ns * 1e-9
         self._weight = min(1.0, period / settings.window)
         # the rules as the decision compares them: mean-square ratios, dwell in instants
-        self._hand_over = 1.0  # above it, persistence takes over
+        self._hand_over = 1.0  # above it, the better fallback takes over
         self._hand_back = (1.0 - settings.margin) ** 2  # below it, the model takes back
         self._min_dwell = round(settings.min_dwell / period)
         self._min_scored = settings.min_scored
@@ -208,7 +213,7 @@ class LiveGuard:
 
     def observe(self, sample: AlignedSample, error: XY, published: XY | None) -> None:
         """The plant error of a sample: the truth of the predictions made for its instant,
-        scored where both exist, and persistence's prediction for `lead_ns` later."""
+        scored where they exist, and persistence's prediction for `lead_ns` later."""
         del published  # the guard keeps the model's own predictions, published or not
         stamp_ns = sample.stamp_ns
         self._last = (stamp_ns, error)
@@ -217,7 +222,7 @@ class LiveGuard:
             pending.popleft()  # an instant whose truth never came (a dropped sample)
         if not pending or pending[0][0] > stamp_ns + tolerance:
             return
-        _, model_x, model_y, persistence_x, persistence_y = pending.popleft()
+        _, model_x, model_y, persistence_x, persistence_y, prior_x, prior_y = pending.popleft()
         scored = self.scored = self.scored + 1
         weight = 1.0 / scored  # a plain mean at first
         if weight < self._weight:
@@ -233,10 +238,22 @@ class LiveGuard:
         axis_y.model_ms += weight * (residual * residual - axis_y.model_ms)
         residual = error_y - persistence_y
         axis_y.persistence_ms += weight * (residual * residual - axis_y.persistence_ms)
+        if prior_x == prior_x:  # not NaN: the model has a prior
+            residual = error_x - prior_x
+            if axis_x.prior_ms == UNSCORED:
+                axis_x.prior_ms = residual * residual
+            else:
+                axis_x.prior_ms += weight * (residual * residual - axis_x.prior_ms)
+            residual = error_y - prior_y
+            if axis_y.prior_ms == UNSCORED:
+                axis_y.prior_ms = residual * residual
+            else:
+                axis_y.prior_ms += weight * (residual * residual - axis_y.prior_ms)
 
     def revise(self, instant_ns: int, prediction: XY, slot: ModelSlot) -> XY | None:
         """The prediction to publish for `instant_ns`: the model's, or on an axis held back
-        persistence's (the plant error of the sample the window ends at)."""
+        its prior's (the slot's, from the same call) or persistence's (the plant error of
+        the sample the window ends at)."""
         last, tolerance = self._last, self._tolerance_ns
         if last is None or not -tolerance <= last[0] + self._lead_ns - instant_ns <= tolerance:
             return prediction  # no sample `lead_ns` before: nothing to compare with
@@ -250,7 +267,7 @@ class LiveGuard:
             inside = envelope.contains(row)
             if not inside:
                 self.last_outside = envelope.first_outside(row) or ''
-        return self.choose(instant_ns, prediction, last[1], inside)
+        return self.choose(instant_ns, prediction, last[1], inside, slot.prior)
 
     def clear(self) -> None:
         """Forget the predictions awaiting their truth (the window was emptied: a fault, a
@@ -260,16 +277,19 @@ class LiveGuard:
 
     # -- the decision ---------------------------------------------------------------------
 
-    def choose(self, instant_ns: int, model: XY, last_error: XY, inside_envelope: bool) -> XY:
+    def choose(self, instant_ns: int, model: XY, last_error: XY, inside_envelope: bool,
+               prior: XY | None = None) -> XY:
         """The prediction to publish for `instant_ns` given the model's, persistence's (the
-        plant error `lead_ns` before) and whether the model's newest row lies inside its
-        trained envelope; both are kept to be scored when the truth arrives."""
+        plant error `lead_ns` before), whether the model's newest row lies inside its
+        trained envelope, and the model's map prior (None: none); all are kept to be scored
+        when the truth arrives."""
         pending = self._pending
         while pending and pending[-1][0] >= instant_ns - self._tolerance_ns:
             pending.pop()  # a newer prediction for the same instant replaces the older
         model_x, model_y = model
         last_x, last_y = last_error
-        pending.append((instant_ns, model_x, model_y, last_x, last_y))
+        prior_x, prior_y = NO_PRIOR if prior is None else prior
+        pending.append((instant_ns, model_x, model_y, last_x, last_y, prior_x, prior_y))
         if not inside_envelope:
             self.outside_rows += 1
         self._outside += self._weight * ((0.0 if inside_envelope else 1.0) - self._outside)
@@ -281,35 +301,59 @@ class LiveGuard:
             # the common case, the model in control on both axes and no worse, changes nothing
             if outside or self._holding or not (
                     axis_x.model_ms <= hand_over * axis_x.persistence_ms + NEGLIGIBLE_MS
-                    and axis_y.model_ms <= hand_over * axis_y.persistence_ms + NEGLIGIBLE_MS):
+                    and axis_x.model_ms <= hand_over * axis_x.prior_ms + NEGLIGIBLE_MS
+                    and axis_y.model_ms <= hand_over * axis_y.persistence_ms + NEGLIGIBLE_MS
+                    and axis_y.model_ms <= hand_over * axis_y.prior_ms + NEGLIGIBLE_MS):
                 self._decide(outside)
         if not self._holding or not self._enabled:
             return model
-        self.published_persistence += 1
+        self.published_fallback += 1
         axis_x, axis_y = self._axes
-        return (last_x if axis_x.state is GuardState.PERSISTENCE else model_x,
-                last_y if axis_y.state is GuardState.PERSISTENCE else model_y)
+        return (_answer(axis_x.state, model_x, last_x, prior_x),
+                _answer(axis_y.state, model_y, last_y, prior_y))
 
     def _decide(self, outside: bool) -> None:
         """Switch the axes the rules say to switch (module docstring), none within
         `min_dwell` instants of its last switch; `outside`: too many recent rows outside the
-        envelope."""
+        envelope. Written out inline: with an axis held back it runs every sample."""
+        hand_over, hand_back, decisions = self._hand_over, self._hand_back, self._decisions
         for axis in self._axes:
-            wanted = axis.wanted(self._hand_over, self._hand_back, outside)
-            if wanted is None or self._decisions - axis.switched_at < self._min_dwell:
+            if decisions - axis.switched_at < self._min_dwell:
                 continue
-            state, reason = wanted
-            if state is axis.state:
+            state, model_ms = axis.state, axis.model_ms
+            persistence_ms, prior_ms = axis.persistence_ms, axis.prior_ms
+            # the fallback that answers when the model does not: the prior once it beats
+            # persistence by the margin, until it is worse
+            if state is GuardState.PRIOR:
+                prior_worse = prior_ms > persistence_ms + NEGLIGIBLE_MS
+            else:
+                prior_worse = not prior_ms < hand_back * persistence_ms - NEGLIGIBLE_MS
+            fallback = GuardState.PERSISTENCE if prior_worse else GuardState.PRIOR
+            best_ms = persistence_ms if persistence_ms < prior_ms else prior_ms
+            reason: GuardReason | None
+            if outside:
+                wanted, reason = fallback, GuardReason.OUTSIDE_ENVELOPE
+            elif state is GuardState.MODEL:
+                if model_ms <= hand_over * best_ms + NEGLIGIBLE_MS:
+                    continue  # in control and no worse than the better fallback
+                wanted, reason = fallback, WORSE_THAN[fallback]
+            elif model_ms < hand_back * best_ms - NEGLIGIBLE_MS:
+                wanted, reason = GuardState.MODEL, None
+            elif fallback is state and axis.reason is not GuardReason.OUTSIDE_ENVELOPE:
+                continue  # held back, still not better by the margin, same fallback
+            else:
+                wanted, reason = fallback, WORSE_THAN[fallback]
+            if wanted is state:
                 axis.reason = reason
                 continue
-            axis.state, axis.reason, axis.switched_at = state, reason, self._decisions
-            if state is GuardState.PERSISTENCE:
+            if state is GuardState.MODEL:
                 axis.hand_overs += 1
-            else:
+            elif wanted is GuardState.MODEL:
                 axis.hand_backs += 1
+            axis.state, axis.reason, axis.switched_at = wanted, reason, decisions
             axis_x, axis_y = self._axes
-            self._holding = (axis_x.state is GuardState.PERSISTENCE
-                             or axis_y.state is GuardState.PERSISTENCE)
+            self._holding = (axis_x.state is not GuardState.MODEL
+                             or axis_y.state is not GuardState.MODEL)
 
     def restart(self) -> None:
         """A new model: its live scores start from nothing, in control until the rules say
@@ -329,12 +373,12 @@ class LiveGuard:
         return self._holding
 
     @property
-    def held_back(self) -> tuple[bool, bool]:
-        """Per axis (X, Y), whether persistence answers there now (never with the guard
-        off)."""
-        enabled = self._settings.enabled
-        return (enabled and self._axes[0].state is GuardState.PERSISTENCE,
-                enabled and self._axes[1].state is GuardState.PERSISTENCE)
+    def answering(self) -> tuple[GuardState, GuardState]:
+        """Per axis (X, Y), whose prediction is published now (the model's, always, with
+        the guard off)."""
+        if not self._settings.enabled:
+            return GuardState.MODEL, GuardState.MODEL
+        return self._axes[0].state, self._axes[1].state
 
     @property
     def outside_fraction(self) -> float:
@@ -342,11 +386,22 @@ class LiveGuard:
         return self._outside
 
     def status(self) -> tuple[AxisStatus, AxisStatus]:
-        """Per axis (X, Y): state, reason, live RMS of both, switches."""
+        """Per axis (X, Y): state, reason, live RMS of the three, switches."""
         def one(axis: _Axis) -> AxisStatus:
             nan = float('nan')
             return AxisStatus(state=axis.state, reason=axis.reason,
                               model_rms=axis.model_ms ** 0.5 if self.scored else nan,
                               persistence_rms=axis.persistence_ms ** 0.5 if self.scored else nan,
+                              prior_rms=nan if axis.prior_ms == UNSCORED else axis.prior_ms ** 0.5,
                               hand_overs=axis.hand_overs, hand_backs=axis.hand_backs)
         return one(self._axes[0]), one(self._axes[1])
+
+
+def _answer(state: GuardState, model: float, persistence: float, prior: float) -> float:
+    """One axis's published prediction in `state`; persistence's where the prior is wanted
+    but missing at this instant (NaN)."""
+    if state is GuardState.MODEL:
+        return model
+    if state is GuardState.PRIOR and prior == prior:
+        return prior
+    return persistence

@@ -18,13 +18,16 @@ window exports to a graph without an input (the exporter drops it): it runs with
 
 A backend gives `runner(window)`: a call without arguments that runs the network on
 `window` (a (1, window, features) float64 C-contiguous array, read afresh at every call,
-whose memory the caller keeps alive as long as the call) and returns the predicted X/Y
-error [m] as two Python floats.
+whose memory the caller keeps alive as long as the call) and returns four Python floats:
+the predicted X/Y error [m], then the model's map prior X/Y [m] (`learning.map_prior`, which
+the live guard scores as a fallback; NaN for a model without a map). Both backends run the
+prior in the same call as the network, from the same window.
 """
 
 from __future__ import annotations
 
 import importlib
+import math
 from collections.abc import Callable
 from enum import StrEnum
 from typing import Any, Protocol
@@ -33,12 +36,14 @@ import numpy as np
 import torch
 
 from lompr_predictor.errors import LomprError
+from lompr_predictor.learning.map_prior import with_prior
 from lompr_predictor.learning.model_file import (
     ONNX_INPUT,
     ONNX_OUTPUT,
     LoadedModel,
     ModelFileError,
     export_onnx,
+    run_inference,
 )
 
 
@@ -56,8 +61,12 @@ RELATIVE_TOLERANCE = 1e-6
 #: Windows of the warm-up batch: one of zeros and random ones.
 WARM_UP_WINDOWS = 32
 
-#: Runs the network on the window it was made for: predicted X/Y error [m].
-Runner = Callable[[], tuple[float, float]]
+#: Predicted X/Y error, then the map prior's X/Y (NaN: none) [m].
+Prediction = tuple[float, float, float, float]
+#: Runs the network on the window it was made for.
+Runner = Callable[[], Prediction]
+#: The prior of a model without a map.
+NO_PRIOR = (math.nan, math.nan)
 
 
 class InferenceBackendError(LomprError):
@@ -75,21 +84,30 @@ class InferenceBackend(Protocol):
 
 
 class TorchScriptBackend:
-    """The verified TorchScript module itself, on a tensor sharing the window's memory."""
+    """The verified TorchScript module itself (with its map prior beside it where it has
+    one), on a tensor sharing the window's memory."""
 
     name = Backend.TORCHSCRIPT
 
     def __init__(self, model: LoadedModel) -> None:
         self.model = model
+        self._with_prior = with_prior(model)
 
     def runner(self, window: np.ndarray) -> Runner:
         tensor = torch.from_numpy(window)
-        predict = self.model.predict
+        if self._with_prior is None:
+            predict = self.model.predict
 
-        def run() -> tuple[float, float]:
-            (x, y), = predict(tensor).tolist()
-            return x, y
-        return run
+            def run() -> Prediction:
+                (x, y), = predict(tensor).tolist()
+                return x, y, *NO_PRIOR
+            return run
+        module = self._with_prior
+
+        def run_with_prior() -> Prediction:
+            (x, y, prior_x, prior_y), = run_inference(module, tensor).tolist()
+            return x, y, prior_x, prior_y
+        return run_with_prior
 
 
 class OnnxRuntimeBackend:
@@ -105,12 +123,13 @@ class OnnxRuntimeBackend:
         self._session = onnxruntime.InferenceSession(
             graph, options, providers=['CPUExecutionProvider'])
         self._reads_window = any(node.name == ONNX_INPUT for node in self._session.get_inputs())
+        self._outputs = int(self._session.get_outputs()[0].shape[1])  # 4: with the prior
 
     def runner(self, window: np.ndarray) -> Runner:
         if window.dtype != np.float64 or not window.flags.c_contiguous:
             msg = 'an ONNX Runtime input must be a C-contiguous float64 array'
             raise ValueError(msg)
-        output = np.zeros((1, 2))
+        output = np.zeros((1, self._outputs))
         binding = self._session.io_binding()
         if self._reads_window:
             binding.bind_input(ONNX_INPUT, 'cpu', 0, np.float64, list(window.shape),
@@ -119,12 +138,18 @@ class OnnxRuntimeBackend:
                             output.ctypes.data)
         run_bound = self._session.run_with_iobinding
         read = output.tolist
+        if self._outputs == 2:
+            def run() -> Prediction:
+                run_bound(binding)
+                (x, y), = read()
+                return x, y, *NO_PRIOR
+            return run
 
-        def run() -> tuple[float, float]:
+        def run_with_prior() -> Prediction:
             run_bound(binding)
-            (x, y), = read()
-            return x, y
-        return run
+            (x, y, prior_x, prior_y), = read()
+            return x, y, prior_x, prior_y
+        return run_with_prior
 
 
 def warm_up_windows(model: LoadedModel, count: int = WARM_UP_WINDOWS) -> np.ndarray:
@@ -168,7 +193,7 @@ def onnxruntime_backend(model: LoadedModel,
                'pip install -r requirements.txt')
         raise InferenceBackendError(msg) from err
     try:
-        backend = OnnxRuntimeBackend(export_onnx(model), onnxruntime)
+        backend = OnnxRuntimeBackend(export_onnx(model, with_prior(model)), onnxruntime)
     except ModelFileError as err:
         raise InferenceBackendError(str(err)) from err
     except Exception as err:  # ONNX Runtime raises its own types for a bad graph
@@ -185,16 +210,16 @@ def onnxruntime_backend(model: LoadedModel,
 def compare(candidate: InferenceBackend, reference: InferenceBackend,
             windows: np.ndarray) -> str | None:
     """Why `candidate` disagrees with `reference` on `windows` (beyond
-    `RELATIVE_TOLERANCE` of the largest reference output, or not finite where the reference
-    is), None if it agrees; a candidate that raises, binding the window or running,
-    disagrees."""
+    `RELATIVE_TOLERANCE` of the largest reference output, or finite where the reference is
+    not and the other way round), None if it agrees; a candidate that raises, binding the
+    window or running, disagrees."""
     window = np.zeros(windows.shape[1:])
     run_reference = reference.runner(window)
     try:
         run_candidate = candidate.runner(window)
     except Exception as err:  # noqa: BLE001 - any failure of the candidate refuses it
         return f'{candidate.name} cannot bind a window ({_first_line(err)})'
-    got, wanted = np.empty((len(windows), 2)), np.empty((len(windows), 2))
+    got, wanted = np.empty((len(windows), 4)), np.empty((len(windows), 4))
     for k, values in enumerate(windows):
         window[:] = values
         wanted[k] = run_reference()
@@ -202,8 +227,10 @@ def compare(candidate: InferenceBackend, reference: InferenceBackend,
             got[k] = run_candidate()
         except Exception as err:  # noqa: BLE001 - any failure of the candidate refuses it
             return f'{candidate.name} failed on a warm-up window ({_first_line(err)})'
-    scale = float(np.max(np.abs(wanted)))
-    worst = float(np.max(np.abs(got - wanted))) if np.isfinite(got).all() else np.inf
+    finite = np.isfinite(wanted)
+    scale = float(np.max(np.abs(wanted[finite]), initial=0.0))
+    worst = (float(np.max(np.abs(got[finite] - wanted[finite]), initial=0.0))
+             if (np.isfinite(got) == finite).all() else np.inf)
     if not worst <= RELATIVE_TOLERANCE * scale:
         return (f'{candidate.name} and {reference.name} disagree on the warm-up batch by '
                 f'{worst:.3g} m, over {RELATIVE_TOLERANCE:g} of the largest output '

@@ -229,15 +229,15 @@ def prediction_status(lifecycle: Lifecycle, core: OnlinePredictor | None,
 
 
 def guard_status(lifecycle: Lifecycle, guard: LiveGuard | None, envelope: bool) -> Status:
-    """The live guard (`online.guard`): per axis whether the model or persistence answers
-    and why, the live RMS of both on the same instants, the hand-overs, the rows outside
-    the model's trained envelope (`envelope`: whether its file has one). WARN while an axis
-    is held back (or would be, with the guard off)."""
+    """The live guard (`online.guard`): per axis whether the model, its map prior or
+    persistence answers and why, the live RMS of the three on the same instants, the
+    hand-overs, the rows outside the model's trained envelope (`envelope`: whether its file
+    has one). WARN while an axis is held back (or would be, with the guard off)."""
     if guard is None:
         return Status(Level.WARN, lifecycle.state, lifecycle.values())
     enabled = guard.settings.enabled
     values: dict[str, object] = {'enabled': enabled, 'scored': guard.scored,
-                                 'published_with_persistence': guard.published_persistence,
+                                 'published_with_fallback': guard.published_fallback,
                                  'envelope': envelope, 'outside_envelope_total':
                                  guard.outside_rows,
                                  'outside_envelope_fraction': round(guard.outside_fraction, 4),
@@ -249,16 +249,20 @@ def guard_status(lifecycle: Lifecycle, guard: LiveGuard | None, envelope: bool) 
         values.update({f'state_{axis}': str(status.state), f'reason_{axis}': text(status.reason),
                        f'model_rms_{axis}_um': round(status.model_rms * 1e6, 3),
                        f'persistence_rms_{axis}_um': round(status.persistence_rms * 1e6, 3),
+                       f'prior_rms_{axis}_um': round(status.prior_rms * 1e6, 3),
                        f'model_to_persistence_{axis}': round(ratio, 3),
                        f'hand_overs_{axis}': status.hand_overs,
                        f'hand_backs_{axis}': status.hand_backs})
-        if status.state is GuardState.PERSISTENCE:
-            held.append(f'{axis.upper()} ({status.reason}, live RMS {status.model_rms * 1e6:.2f} '
-                        f'vs {status.persistence_rms * 1e6:.2f} um)')
+        if status.state is not GuardState.MODEL:
+            fallback_rms = (status.prior_rms if status.state is GuardState.PRIOR
+                            else status.persistence_rms)
+            why = (f'({status.reason}, live RMS {status.model_rms * 1e6:.2f} vs '
+                   f'{fallback_rms * 1e6:.2f} um)')
+            held.append(f'{status.state} answers on {axis.upper()} {why}' if enabled else
+                        f'guard off: the model answers on {axis.upper()}, though worse than '
+                        f'{status.state} {why}')
     if held:
-        what = ('persistence answers on ' if enabled else
-                'guard off: the model answers, though worse than persistence on ')
-        return Status(Level.WARN, what + ', '.join(held), values)
+        return Status(Level.WARN, '; '.join(held), values)
     if not guard.scored:
         return Status(Level.OK, 'the model answers (not yet scored)' if enabled else
                       'guard off', values)

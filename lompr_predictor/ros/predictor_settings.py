@@ -142,25 +142,26 @@ class PredictorNodeSettings(FrameSettings):
 
     guard_enabled: bool = parameter(
         DEFAULT_GUARD.enabled,
-        'the live guard: per axis, the model publishes only while its live RMS beats '
-        "persistence's (the plant error measured horizon samples before) on the same instants "
-        'and its inputs lie in the envelope it was trained on; else persistence answers '
-        "there. false: the model always (the guard's status still says what it would do)")
+        'the live guard: per axis, the model publishes only while its live RMS beats its '
+        "fallbacks' on the same instants (its map prior, where it has a machine map, and "
+        'persistence, the plant error measured horizon samples before) and its inputs lie '
+        'in the envelope it was trained on; else the better fallback answers there. false: '
+        "the model always (the guard's status still says what it would do)")
     guard_window: float = parameter(
         DEFAULT_GUARD.window,
-        'seconds of sample time the live RMS of the model and of persistence are '
+        'seconds of sample time the live RMS of the model, its prior and persistence are '
         'weighted over (exponentially): long enough to span what a program repeats (a '
         'model better on straights and worse at corners is judged on both)',
         minimum=0.001, maximum=86_400.0, read_only=True)
     guard_margin: float = parameter(
         DEFAULT_GUARD.margin,
-        'relative margin (hysteresis): an axis goes to persistence as soon as the '
-        "model's live RMS exceeds persistence's, and back when the model is better by more "
-        'than this fraction',
+        'relative margin (hysteresis): an axis goes to the better fallback as soon as the '
+        "model's live RMS exceeds that fallback's, and back when the model is better by more "
+        'than this fraction; the prior takes over from persistence when better by it too',
         minimum=0.0, maximum=0.9, read_only=True)
     guard_min_dwell: float = parameter(
         DEFAULT_GUARD.min_dwell,
-        'seconds of sample time an axis stays with the model or persistence before it '
+        'seconds of sample time an axis stays with the model or a fallback before it '
         'may switch again', minimum=0.0, maximum=86_400.0, read_only=True)
     guard_min_scored: int = parameter(
         DEFAULT_GUARD.min_scored,
