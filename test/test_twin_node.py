@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Any
 
@@ -138,6 +139,46 @@ def test_lockstep_applies_a_constant_offset(ros: RosHarness) -> None:
     publisher.publish(late)
     ros.spin_until(lambda: twin.schedule.rejected['late'] == late_before + 1, timeout=5.0,
                    what='the late offset counted')
+
+
+def test_paced_waits_for_each_offset_and_runs_no_faster_than_its_speed(
+        ros: RosHarness, tmp_path: Path) -> None:
+    """paced: lockstep at most `speed_factor` x real time. A responder that stalls holds the
+    twin (no sample runs uncompensated, however long the stall); once it answers again the
+    twin goes on, a sample per period / speed_factor of wall time at most."""
+    run_log = tmp_path / 'run.npz'
+    samples = 40
+    twin = _twin(ros, mode='paced', speed_factor=4.0, lockstep_timeout=0.2, answer_timeout=5.0,
+                 samples=samples, run_log=str(run_log))  # a sample per 10 ms at most
+    answering, held = [True], []
+    publisher = ros.node.create_publisher(Vector3Stamped, '/lompr/compensation', 100)
+
+    def compensate_next(msg: JointState) -> None:
+        out = Vector3Stamped()
+        out.header.stamp.sec, out.header.stamp.nanosec = divmod(_stamp_ns(msg) + PERIOD,
+                                                                1_000_000_000)
+        out.vector.x = 5e-6
+        if answering[0]:
+            publisher.publish(out)
+        else:
+            held.append(out)
+
+    ros.node.create_subscription(JointState, '/joint_states', compensate_next, 100)
+    ros.spin_until(lambda: twin.twin.next_index >= 10, timeout=20.0, what='10 samples')
+    answering[0] = False
+    ros.spin_until(lambda: bool(held), what='an offset held back')
+    stalled_at = twin.twin.next_index
+    ros.spin_for(0.5)  # 50 periods at x4, more than twice the timeout before any answer
+    assert twin.twin.next_index == stalled_at  # it waits: nothing ran without its offset
+    answering[0] = True
+    started = time.monotonic()
+    publisher.publish(held[0])
+    ros.spin_until(run_log.exists, timeout=20.0, what='the run log')
+    elapsed = time.monotonic() - started
+    # a tick per 10 ms; an offset arriving between ticks runs its waiting sample at once
+    assert elapsed >= 0.5 * 0.01 * (samples - stalled_at - 1)
+    arrays, _ = read_run_log(run_log)
+    assert arrays['answered'].tolist() == [False] + [True] * (samples - 1)
 
 
 def test_as_the_clock_it_waits_for_its_nodes_stamps_clock_and_writes_its_run(

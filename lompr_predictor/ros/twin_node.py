@@ -16,7 +16,12 @@ Modes: `realtime` runs a sample every sample period divided by `speed_factor` (f
 slower than real time); `lockstep` runs the next sample as soon as its offset has arrived,
 or `lockstep_timeout` wall seconds after the previous sample without one (`answer_timeout`
 once the previous sample had its offset: an answer is expected), so a closed loop runs as
-fast as the nodes answer. The physics is `twin.DigitalTwin`, one sample per step.
+fast as the nodes answer; `paced` is lockstep no faster than realtime: a sample every
+sample period divided by `speed_factor` at most, each waiting for its offset as in
+lockstep, so that simulated time keeps pace with wall time while the nodes keep up and
+stretches, instead of running samples uncompensated, while they do not (a job beside the
+nodes, e.g. an adaptation attempt, then costs what it costs on a machine, in sample time,
+and never corrupts the loop). The physics is `twin.DigitalTwin`, one sample per step.
 
 Time: with `publish_clock` the twin is the simulation's clock, as Gazebo or Isaac Sim are:
 it publishes each sample's instant on /clock before the sample, so nodes run with
@@ -70,7 +75,7 @@ from lompr_predictor.twin.parameters import load_twin_parameters
 from lompr_predictor.twin.run_log import RunLog, write_run_log
 
 NODE_NAME = 'twin_node'
-MODES = ('realtime', 'lockstep')
+MODES = ('realtime', 'lockstep', 'paced')
 
 
 @dataclass(frozen=True)
@@ -92,12 +97,15 @@ class TwinNodeSettings(FrameSettings):
     samples: int = parameter(0, 'samples to run before stopping, if not 0 (a run shorter '
                              'than a pass); 0: passes decide', minimum=0,
                              maximum=1_000_000_000, read_only=True)
-    mode: str = parameter('realtime', 'realtime (a sample per period / speed_factor) or '
+    mode: str = parameter('realtime', 'realtime (a sample per period / speed_factor), '
                           'lockstep (a sample when its compensation arrived, or after '
-                          'lockstep_timeout)', choices=MODES, read_only=True)
-    speed_factor: float = parameter(1.0, 'realtime mode: simulated seconds per second of '
-                                    'the clock it runs on (wall with publish_clock, else the '
-                                    "node's)", minimum=0.01, maximum=1000.0, read_only=True)
+                          'lockstep_timeout) or paced (lockstep, at most a sample per '
+                          'period / speed_factor of wall time)', choices=MODES,
+                          read_only=True)
+    speed_factor: float = parameter(1.0, 'realtime and paced modes: simulated seconds per '
+                                    'second of the clock it runs on (wall with publish_clock, '
+                                    "else the node's; paced: wall), at most when paced",
+                                    minimum=0.01, maximum=1000.0, read_only=True)
     publish_clock: bool = parameter(
         False, "publish each sample's instant on clock_topic before the sample: the twin is "
         'the simulation clock (run the other nodes with use_sim_time:=true) and paces itself '
@@ -114,13 +122,14 @@ class TwinNodeSettings(FrameSettings):
         'are done (twin.run_log: true and plant error, offsets applied, answered or not)',
         read_only=True)
     lockstep_timeout: float = parameter(
-        0.1, "lockstep mode: wall seconds to wait for the next sample's compensation before "
-        'running it without', minimum=0.001, maximum=60.0, read_only=True)
-    answer_timeout: float = parameter(
-        0.0, 'lockstep mode: wall seconds to wait instead when the previous sample had its '
-        'compensation (the predictor answers: a late answer is a loaded machine, not a '
-        'predictor filling its window); 0: lockstep_timeout', minimum=0.0, maximum=60.0,
+        0.1, "lockstep and paced modes: wall seconds to wait for the next sample's "
+        'compensation before running it without', minimum=0.001, maximum=60.0,
         read_only=True)
+    answer_timeout: float = parameter(
+        0.0, 'lockstep and paced modes: wall seconds to wait instead when the previous '
+        'sample had its compensation (the predictor answers: a late answer is a loaded '
+        'machine, not a predictor filling its window); 0: lockstep_timeout', minimum=0.0,
+        maximum=60.0, read_only=True)
     compensation_enabled: bool = parameter(
         True, 'apply /lompr/compensation offsets (false: count and ignore them)',
         read_only=True)
@@ -203,9 +212,14 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
         self._clock_publisher = self.advertise(CLOCK) if settings.publish_clock else None
         self._preview_publisher = (self.advertise(REFERENCE_PREVIEW)
                                    if settings.preview_samples else None)
+        #: paced: a tick found the next sample's offset missing; its arrival runs the sample
+        self._waiting = False
         if settings.mode == 'realtime':  # the twin as the clock paces itself on wall time
             self._timer = self.start_timer(period / settings.speed_factor, 'step', self.step,
                                            clock=steady if settings.publish_clock else None)
+        elif settings.mode == 'paced':
+            self._timer = self.start_timer(period / settings.speed_factor, 'paced step',
+                                           self._on_paced_timer, clock=steady)
         else:
             self._timer = self.start_timer(settings.lockstep_timeout / 4.0, 'lockstep timer',
                                            self._on_lockstep_timer, clock=steady)
@@ -217,8 +231,9 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
         self.get_logger().info(
             f'twin: {settings.path}, {self.total_samples or "endless"} samples, seed '
             f'{settings.seed}, {settings.mode}'
-            + (f' x{settings.speed_factor:g}' if settings.mode == 'realtime'
-               else f' (timeout {settings.lockstep_timeout:g} s)')
+            + (f' x{settings.speed_factor:g}' if settings.mode != 'lockstep' else '')
+            + (f' (timeout {settings.lockstep_timeout:g} s)' if settings.mode != 'realtime'
+               else '')
             + (f', publishing {settings.clock_topic}' if settings.publish_clock else ''))
 
     @property
@@ -233,8 +248,21 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
         stamp = stamp_to_ns(msg.header.stamp)
         offset = (msg.vector.x, msg.vector.y, msg.vector.z)
         self.schedule.offer(stamp, offset, self.twin.next_index)
-        if self.settings.mode == 'lockstep' and self.schedule.has(self.twin.next_index):
+        mode = self.settings.mode
+        if ((mode == 'lockstep' or (mode == 'paced' and self._waiting))
+                and self.schedule.has(self.twin.next_index)):
+            self._waiting = False
             self.step()
+
+    def _on_paced_timer(self) -> None:
+        """A tick of the paced mode: the next sample if its offset is there (or it has
+        waited its timeout), else wait for it (`on_compensation` runs it)."""
+        if self.schedule.has(self.twin.next_index):
+            self._waiting = False
+            self.step()
+            return
+        self._waiting = True
+        self._on_lockstep_timer()
 
     def _on_lockstep_timer(self) -> None:
         settings = self.settings
@@ -250,7 +278,7 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
             self._audience = (
                 self._joint_publisher.get_subscription_count() >= need
                 and self._reference_publisher.get_subscription_count() >= need
-                and (self.settings.mode != 'lockstep'
+                and (self.settings.mode == 'realtime'
                      or self._compensation_subscription.get_publisher_count() >= 1))
             if self._audience:
                 self.get_logger().info('twin: the nodes are there, starting')
