@@ -12,8 +12,9 @@ dropped by the predictor's overrun policy).
 - inference: the bare TorchScript call (`torch.jit.load` of the file, `module(x)` on one
   window inside `torch.inference_mode`) and the predictor core's inference step (the backend
   `inference.select_backend` picks, 'auto': ONNX Runtime bound to the window's buffer ->
-  prediction as floats, as `OnlinePredictor`'s model slot runs it), in alternating blocks of one
-  run; p50/p99 of wall time [us] and median CPU time.
+  prediction and map prior as floats, as `OnlinePredictor`'s model slot runs it) and, for
+  what the prior costs, the model's ONNX Runtime graph without it, in alternating blocks of
+  one run; p50/p99 of wall time [us] and median CPU time.
 - profile: the per-sample path driven in this process through the real node objects
   (`KinematicsNode`, `PredictorNode`, their subscription callbacks and publishers, with
   subscribers in another context), CPU time per stage [us per sample] (thread CPU time, so
@@ -262,9 +263,13 @@ def percentiles(values: np.ndarray) -> tuple[float, float]:
 
 
 def bench_inference(path: Path, rate: int) -> dict[str, float]:
-    """Bare TorchScript call and the core's inference step (the backend 'auto' selects),
-    in alternating blocks: wall p50/p99 and CPU median [us], and the backend's name."""
-    from lompr_predictor.online.inference import select_backend
+    """Bare TorchScript call, the core's inference step (the backend 'auto' selects) and
+    the model's ONNX Runtime graph without its map prior (what the prior costs), in
+    alternating blocks: wall p50/p99 and CPU median [us], and the backend's name."""
+    import onnxruntime
+
+    from lompr_predictor.learning.model_file import export_onnx
+    from lompr_predictor.online.inference import OnnxRuntimeBackend, select_backend
     from lompr_predictor.online.offset import CompensationLimits
     from lompr_predictor.online.predictor import OnlinePredictor
 
@@ -285,13 +290,15 @@ def bench_inference(path: Path, rate: int) -> dict[str, float]:
     infer = core.primary.predict
 
     bare_module = load_checkpoint(path)  # torch.jit.load, eval(): nothing more
-    window = torch.from_numpy(core.primary.window.rows()[None].copy())
+    rows = core.primary.window.rows()[None].copy()
+    window = torch.from_numpy(rows)
+    without_prior = OnnxRuntimeBackend(export_onnx(model), onnxruntime).runner(rows)
     timings = {name: (np.empty(INFERENCE_CALLS), np.empty(INFERENCE_CALLS))
-               for name in ('bare', 'core')}
+               for name in ('bare', 'core', 'no_prior')}
     clock, cpu = time.perf_counter_ns, time.thread_time_ns
     with torch.inference_mode():
         calls: dict[str, Callable[[], object]] = {'bare': lambda: bare_module(window),
-                                                  'core': infer}
+                                                  'core': infer, 'no_prior': without_prior}
         for _ in range(300):
             for call in calls.values():
                 call()
@@ -862,7 +869,8 @@ def report_inference(model: Path) -> list[Row]:
           'calls each, in alternating blocks), wall p50 / p99, CPU median [us]:')
     backend = inference['backend']
     for name, what in (('bare', 'bare TorchScript call'),
-                       ('core', f"predictor core's inference step ({backend})")):
+                       ('core', f"predictor core's inference step ({backend})"),
+                       ('no_prior', 'ONNX Runtime call without the map prior')):
         print(f'  {what:45s} {inference[f"{name}_p50"]:7.0f} / '
               f'{inference[f"{name}_p99"]:5.0f}   {inference[f"{name}_cpu"]:6.0f}')
     p99 = inference['core_p99']
