@@ -11,14 +11,25 @@ the new recordings' training part from its weights (`training.train_network` wit
 for at most `config.max_epochs` epochs, with the hyperparameters the file records and no
 tuning study, the best validation epoch kept, the starting weights counting as epoch 0 (so
 it is never worse on validation than where it started), and scores it on the test part
-against persistence, the machine map and the model it started from (`parent`). The machine
-map and the normalisation stay the parent's: what changes is what the network learned. The
-new model's metadata is the parent's with the new bags, test metrics, fine-tuning settings,
+against persistence, the machine map and the model it started from (`parent`).
+
+The machine map's coefficients are also fitted again on the new training part (`refit_map`;
+its Jacobian, the robot's kinematics, and its friction speed scales stay the parent's):
+another machine of the same robot, or the machine worn or retuned, differs in just what
+those coefficients are (each branch's servo lag, friction, the posture's sag), which the
+least squares finds in milliseconds from minutes of data. If the refitted map fits the
+validation part's plant error better by `MAP_REFIT_GAIN` (the RMS of what it leaves, the
+residual the network reads), the network is fine-tuned on it too, from the same weights, and
+of the two the lower validation loss is kept: a network reads the new residuals from where
+the parent's left it, which does not always pay within the epochs allowed. The
+normalisation stays the parent's. The new model's metadata is
+the parent's with the new bags, test metrics, fine-tuning settings, the map's coefficients,
 an envelope that takes in both the parent's and the new rows, and `parent_sha256`.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import time
 from pathlib import Path
@@ -69,6 +80,11 @@ from lompr_predictor.robot.description import load_robot_description
 CHECK_WINDOWS = 256
 #: ... to this [m]: both run the same float32 network on the same inputs.
 CHECK_TOLERANCE = 1e-9
+#: Relative: the machine map refitted on the new recordings is kept when what it leaves of
+#: the validation part's plant error (RMS) is below what the parent map leaves by more than
+#: this (else the parent's stays: the same machine, to whose map a few minutes of data would
+#: only add noise).
+MAP_REFIT_GAIN = 0.1
 
 
 class FineTuneError(LomprError):
@@ -160,12 +176,19 @@ def fine_tune_predictor(config: TrainingConfig, init: str | Path) -> TrainingRes
     read_seconds = time.perf_counter() - started
     module = editable_module(parent)
     check_rebuilt(module, parent, problem.rows, problem.split.test)
+    refitted, map_refit = refit_map(module, problem)
     hyperparameters = dict(parent.metadata.hyperparameters)
     settings = config.settings
-    trained = train_network(problem, 'lstm', hyperparameters, settings,
-                            residual=bool(module.residual), progress=config.progress,
-                            label='fine-tuning', init=module)
-    machine_map = module.machine_map if module.use_map else None
+    candidates = {'kept': module, **({'refitted': refitted} if refitted is not None else {})}
+    runs = {name: train_network(problem, 'lstm', hyperparameters, settings,
+                                residual=bool(module.residual), progress=config.progress,
+                                label=f'fine-tuning, map {name}', init=start)
+            for name, start in candidates.items()}
+    chosen = min(runs, key=lambda name: runs[name].validation_loss)
+    trained = runs[chosen]
+    map_refit.update(decision=chosen, validation_loss={
+        name: run.validation_loss for name, run in runs.items()})
+    machine_map = trained.module.machine_map if module.use_map else None
     baselines = fit_baselines(problem, FitContext(settings, machine_map=machine_map),
                               (PERSISTENCE, MAP_PRIOR))
     test = problem.split.test
@@ -181,7 +204,7 @@ def fine_tune_predictor(config: TrainingConfig, init: str | Path) -> TrainingRes
         bo_lstm_beats={name: beats(models['bo_lstm']['metrics'], models[name]['metrics'])
                        for name in models if name != 'bo_lstm'},
         **irreducible_fields(models, sources, problem.horizon),
-        fine_tuning=_fine_tuning_part(parent, trained, settings),
+        fine_tuning={**_fine_tuning_part(parent, trained, settings), 'machine_map': map_refit},
         model_file=str(Path(config.model_path or '').resolve()),
         timings={'read_clean_fk_seconds': read_seconds, 'fine_tuning_seconds': trained.seconds,
                  'total_seconds': time.perf_counter() - started})
@@ -189,6 +212,33 @@ def fine_tune_predictor(config: TrainingConfig, init: str | Path) -> TrainingRes
                          models['bo_lstm']['metrics'])
     return TrainingResult(module=script_module(trained.module), metadata=metadata,
                           report=report, test_part=scored)
+
+
+def refit_map(module: PredictorModule, problem: LearningProblem,
+              ) -> tuple[PredictorModule | None, dict[str, Any]]:
+    """A copy of the module with its machine map fitted again on the problem's training
+    part, if that fits the validation part better by `MAP_REFIT_GAIN` (else None; module
+    docstring), and the figures it was decided on, for the report."""
+    ends = problem.split.validation
+    if not module.use_map or len(ends) == 0:
+        return None, {}
+    refitted = copy.deepcopy(module)
+    training = problem.split.training_rows()
+    refitted.machine_map.fit(problem.rows[training], problem.error[training])
+    before = _residual_rms(module.machine_map, problem, ends)
+    after = _residual_rms(refitted.machine_map, problem, ends)
+    figures = {'validation_residual_rms_um': {'parent_map': before * 1e6,
+                                              'refitted_map': after * 1e6},
+               'gain_needed': MAP_REFIT_GAIN}
+    return (refitted if after < (1.0 - MAP_REFIT_GAIN) * before else None), figures
+
+
+def _residual_rms(machine_map: MachineMap, problem: LearningProblem,
+                  rows: np.ndarray) -> float:
+    """RMS [m] over both axes of what the map leaves of the plant error at `rows`."""
+    residual = problem.error[rows] - machine_map.values(problem.rows[rows])[0]
+    usable = np.isfinite(residual).all(axis=1)
+    return float(np.sqrt(np.mean(residual[usable] ** 2))) if usable.any() else float('inf')
 
 
 def _fine_tuning_part(parent: LoadedModel, trained: TrainedModel,
@@ -219,4 +269,6 @@ def _metadata(parent: LoadedModel, problem: LearningProblem, trained_on: list[An
         hyperparameters={**before.hyperparameters, 'fine_tuning': {
             **vars(settings), 'epochs': trained.epochs, 'best_epoch': trained.best_epoch,
             'cleaning': vars(config.inputs.cleaning)}},
+        machine_map=(trained.module.machine_map.metadata() if trained.module.use_map
+                     else before.machine_map),
         envelope=envelope.to_metadata(), parent_sha256=parent.sha256)

@@ -232,14 +232,25 @@ def _fine_tuning_lines(fine_tuning: Mapping[str, Any] | None) -> list[str]:
         return []
     kept = (" (no epoch bettered it: the parent's weights are kept)"
             if fine_tuning['kept_the_parent_weights'] else '')
+    refit = fine_tuning.get('machine_map', {})
+    rms = refit.get('validation_residual_rms_um')
+    losses = ', '.join(f'{name} {loss:.4g}' for name, loss in
+                       refit.get('validation_loss', {}).items())
+    machine_map = ('' if rms is None else
+                   f" Machine map: {refit['decision']} (what it leaves of the validation "
+                   f"part's plant error, RMS: {rms['parent_map']:.3g} um with the parent's "
+                   f"coefficients, {rms['refitted_map']:.3g} um fitted again on these "
+                   f"recordings; the network fine-tuned on the refitted map too when better "
+                   f"by {100 * refit['gain_needed']:.0f} %, the lower validation MSE kept: "
+                   f"{losses}).")
     return ['', '## Fine-tuning', '',
             f"Started from `{fine_tuning['parent_model']}`, sha256 "
             f"`{fine_tuning['parent_sha256']}` ({fine_tuning['parent_verified_by']}): "
             f"{fine_tuning['epochs']} of at most {fine_tuning['max_epochs']} epochs, best "
             f"epoch {fine_tuning['best_epoch']}{kept}; validation MSE "
             f"{fine_tuning['validation_loss_start']:.4g} at the start, "
-            f"{fine_tuning['validation_loss_best']:.4g} at the best epoch. The parent's "
-            'machine map, normalisation and hyperparameters are kept; "Parent" in the '
+            f"{fine_tuning['validation_loss_best']:.4g} at the best epoch.{machine_map} The "
+            "parent's normalisation and hyperparameters are kept; \"Parent\" in the "
             'tables is the model it started from, on the same test part.']
 
 
