@@ -116,6 +116,18 @@ def lower_priority(nice: int) -> None:
         _renice(nice, '--nice')
 
 
+def confine_to_one_cpu() -> int | None:
+    """Run every thread of this process, and those it starts, on one CPU, the last of those
+    allowed: a job beside the nodes (an adaptation attempt) then never takes more than one
+    core, whatever threads its libraries start. The CPU, or None where the platform has no
+    affinity."""
+    if not hasattr(os, 'sched_setaffinity'):
+        return None
+    cpu = max(os.sched_getaffinity(0))
+    _each_thread(lambda thread: os.sched_setaffinity(thread, {cpu}))
+    return cpu
+
+
 def _set_affinity(cpus: tuple[int, ...]) -> None:
     setting = 'cpu_affinity'
     shown = list(cpus)

@@ -91,6 +91,15 @@ def test_a_node_scheduling_reaches_every_thread() -> None:
         assert fifo['policy'] == [os.SCHED_FIFO]
 
 
+def test_a_job_confined_to_one_cpu_runs_every_thread_there_those_started_after_too() -> None:
+    """An adaptation attempt's confinement: the thread made before and one started after
+    (as a library's worker pool would be) all on the last CPU the process may use."""
+    last = max(os.sched_getaffinity(0))
+    confined = probe('confine_to_one_cpu(); '
+                     'threading.Thread(target=ready.wait, daemon=True).start()')
+    assert confined['threads'] == 3 and confined['cpus'] == [last]
+
+
 @pytest.mark.parametrize(('code', 'message'), [
     ('Scheduling(nice=-5)', r'nice -5: raising the priority needs CAP_SYS_NICE .*RLIMIT_NICE'),
     ('Scheduling(sched_fifo_priority=20)',

@@ -1,7 +1,8 @@
 """One adaptation attempt, the child process the predictor node starts (`adaptation`).
 
 `python -m lompr_predictor.online.adaptation_attempt --fd N --request JSON` runs below the
-node's priority (`scheduling.lower_priority`) on one torch thread: it reads the newest data
+node's priority (`scheduling.lower_priority`) on one torch thread and one CPU
+(`scheduling.confine_to_one_cpu`: whatever threads its libraries start): it reads the newest data
 window of the node's sample store through the ring's inherited descriptor
 (`sample_store.read_ring`), writes it as a bag as the store's own export does (`store_bag`),
 fine-tunes the model in force on it (`fine_tuning.fine_tune_predictor`: warm start, bounded
@@ -40,7 +41,7 @@ import numpy as np
 from lompr_predictor.errors import LomprError
 from lompr_predictor.files import file_sha256, write_json
 from lompr_predictor.online.sample_store import StoredSamples, read_ring
-from lompr_predictor.scheduling import lower_priority
+from lompr_predictor.scheduling import confine_to_one_cpu, lower_priority
 from lompr_predictor.threads import CoreUse, set_torch_threads
 
 if TYPE_CHECKING:  # imported by `attempt`, once the process runs at its lower priority
@@ -181,6 +182,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         with CoreUse() as use:  # its thread is lowered with the others
             lower_priority(args.nice)  # first: the trainer's imports take seconds of CPU
+            confine_to_one_cpu()
             set_torch_threads(1)
             request = AttemptRequest(**json.loads(args.request))
             document = attempt(read_ring(args.fd, args.window_ns), request)
