@@ -69,6 +69,8 @@ def replay_guard(guard: LiveGuard, stamps_ns: np.ndarray, actual: np.ndarray,
     count = len(stamps_ns)
     published = np.empty((count, 2))
     answering = np.zeros((count, 2), dtype=np.int8)
+    has_prior = (np.zeros(count, dtype=bool) if prior is None
+                 else np.isfinite(prior).all(axis=1))
     gap_ns, lead_ns = guard.period_ns * 3 // 2, guard.lead_ns
     truths = 0  # the next instant whose truth the stream has not reached
     for k in range(count):
@@ -83,8 +85,8 @@ def replay_guard(guard: LiveGuard, stamps_ns: np.ndarray, actual: np.ndarray,
             truths += 1
         prediction = (float(model[k, 0]), float(model[k, 1]))
         last = (float(persistence[k, 0]), float(persistence[k, 1]))
-        prior_xy = (None if prior is None or not np.isfinite(prior[k]).all() else
-                    (float(prior[k, 0]), float(prior[k, 1])))
+        prior_xy = ((float(prior[k, 0]), float(prior[k, 1]))
+                    if prior is not None and has_prior[k] else None)
         published[k] = guard.choose(int(stamps_ns[k]), prediction, last,
                                     True if inside is None else bool(inside[k]), prior_xy)
         state_x, state_y = guard.answering
