@@ -97,6 +97,7 @@ from lompr_predictor.learning.models import (
     build_network,
     network_columns,
     network_features,
+    paired_columns,
 )
 from lompr_predictor.monitoring import bin_index, bin_lower_ns, parse_histogram
 from lompr_predictor.online.faults import StreamSettings
@@ -130,8 +131,9 @@ RELAY = Path(__file__).resolve().parent / 'relay_chain.py'
 
 
 def timing_module(sample_period: float, horizon: int, preview: int = 0) -> PredictorModule:
-    """The trainer's exported module at the default size and in its default form: the LSTM
-    on a machine map, reading the map's residuals (`lompr train`'s defaults), with plausible
+    """The trainer's exported module at the default size and in its default form: two
+    LSTMs on a machine map, one reading every feature and one the map's residuals (the
+    'paired' inputs, `lompr train`'s defaults), with plausible
     SI ranges (its rows with the preview block of `preview` samples). The map's
     coefficients are zero (timing only: the same operations as a fitted map's)."""
     torch.manual_seed(0)
@@ -140,13 +142,14 @@ def timing_module(sample_period: float, horizon: int, preview: int = 0) -> Predi
     jacobian = tool_branch_jacobian(geometry, np.array([[0.0, 0.0, 1.097]]))[0]
     machine_map = MachineMap(features, horizon, preview, sample_period, jacobian,
                              np.full(len(FRICTION_SCALES), 0.01))
-    columns, _ = network_columns(network_features(features, machine_map=True),
-                                 relative_errors=True, error_level=True, inputs='machine')
+    rows = network_features(features, machine_map=True)
+    columns, _ = network_columns(rows, relative_errors=True, error_level=True, inputs='paired')
     span = np.full(len(columns), 2e-5)
-    return PredictorModule(build_network('lstm', len(columns), WINDOW, HIDDEN), -span, span,
-                           np.full(2, -2e-5), np.full(2, 2e-5), residual=True,
-                           relative_errors=True, error_level=True, features=features,
-                           machine_map=machine_map, inputs='machine')
+    net = build_network('lstm', len(columns), WINDOW, HIDDEN,
+                        machine_columns=paired_columns(rows, error_level=True))
+    return PredictorModule(net, -span, span, np.full(2, -2e-5), np.full(2, 2e-5),
+                           residual=True, relative_errors=True, error_level=True,
+                           features=features, machine_map=machine_map, inputs='paired')
 
 
 def default_model(path: Path, sample_period: float, horizon: int, preview: int = 0) -> Path:
@@ -157,7 +160,8 @@ def default_model(path: Path, sample_period: float, horizon: int, preview: int =
         features=feature_names(preview), preview=preview, window=WINDOW, horizon=horizon,
         sample_period=sample_period,
         targets=TARGETS, normalisation={}, model_type='lstm',
-        hyperparameters={'hidden': HIDDEN, 'note': 'untrained, for timing only'},
+        hyperparameters={'hidden': HIDDEN, 'network_inputs': 'paired', 'error_level': True,
+                         'note': 'untrained, for timing only'},
         robot_description_sha256=load_robot_description().sha256, training_bags=(), seed=0,
         library_versions={'torch': torch.__version__},
         machine_map=module.machine_map.metadata())
@@ -264,11 +268,13 @@ def percentiles(values: np.ndarray) -> tuple[float, float]:
 
 def bench_inference(path: Path, rate: int) -> dict[str, float]:
     """Bare TorchScript call, the core's inference step (the backend 'auto' selects) and
-    the model's ONNX Runtime graph without its map prior (what the prior costs), in
-    alternating blocks: wall p50/p99 and CPU median [us], and the backend's name."""
+    the ONNX Runtime graph of the model's first network alone, without its prior (what the
+    paired model's second network and the prior cost), in alternating blocks: wall p50/p99
+    and CPU median [us], and the backend's name."""
     import onnxruntime
 
-    from lompr_predictor.learning.model_file import export_onnx
+    from lompr_predictor.learning.fine_tuning import editable_module
+    from lompr_predictor.learning.model_file import export_onnx, script_module
     from lompr_predictor.online.inference import OnnxRuntimeBackend, select_backend
     from lompr_predictor.online.offset import CompensationLimits
     from lompr_predictor.online.predictor import OnlinePredictor
@@ -292,7 +298,10 @@ def bench_inference(path: Path, rate: int) -> dict[str, float]:
     bare_module = load_checkpoint(path)  # torch.jit.load, eval(): nothing more
     rows = core.primary.window.rows()[None].copy()
     window = torch.from_numpy(rows)
-    without_prior = OnnxRuntimeBackend(export_onnx(model), onnxruntime).runner(rows)
+    first_network = editable_module(model)  # the file's module, its networks apart
+    first_network.net = first_network.net.specialist
+    without_prior = OnnxRuntimeBackend(export_onnx(model, script_module(first_network)),
+                                       onnxruntime).runner(rows)
     timings = {name: (np.empty(INFERENCE_CALLS), np.empty(INFERENCE_CALLS))
                for name in ('bare', 'core', 'no_prior')}
     clock, cpu = time.perf_counter_ns, time.thread_time_ns
@@ -870,7 +879,7 @@ def report_inference(model: Path) -> list[Row]:
     backend = inference['backend']
     for name, what in (('bare', 'bare TorchScript call'),
                        ('core', f"predictor core's inference step ({backend})"),
-                       ('no_prior', 'ONNX Runtime call without the map prior')):
+                       ('no_prior', 'ONNX Runtime, first network, no prior')):
         print(f'  {what:45s} {inference[f"{name}_p50"]:7.0f} / '
               f'{inference[f"{name}_p99"]:5.0f}   {inference[f"{name}_cpu"]:6.0f}')
     p99 = inference['core_p99']

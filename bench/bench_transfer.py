@@ -19,9 +19,10 @@ pipeline, default space and budget unless --trials / --restarts) per horizon and
 
 It prints per run the test RMSE per axis of every baseline of the report
 (`learning.baselines.BASELINES`: BP, ridge, boosted trees (HGB), the machine map's prior
-alone), the BO-LSTM and the BO-LSTM under the predictor node's default live guard (`lompr
-evaluate MODEL SCORED`: what the node would publish) as multiples of persistence's on the
-same windows, and checks
+alone), the BO-LSTM, a paired model's generalist (its second network, on the map's residuals
+alone) and the model under the predictor node's default live guard (`lompr evaluate MODEL
+SCORED`: what the node would publish) as multiples of persistence's on the same windows, and
+checks
 the targets: with the preview (K = h) the BO-LSTM <= 0.5x persistence in lopo and <= 0.7x in
 single, and no worse than HGB with the same inputs; without it <= 1.0x persistence; a lopo
 run on three programs within 300 s. The reports stay in --out.
@@ -42,7 +43,7 @@ from lompr_predictor.cli.common import add_nice_argument
 from lompr_predictor.data.loading import BagInputs
 from lompr_predictor.learning.baselines import BASELINES, HGB, PERSISTENCE, WithoutPreview
 from lompr_predictor.learning.options import TrainingConfig
-from lompr_predictor.learning.pipeline import train_predictor, write_outputs
+from lompr_predictor.learning.pipeline import GENERALIST, train_predictor, write_outputs
 from lompr_predictor.robot.paths import PATH_KINDS
 from lompr_predictor.scheduling import lower_priority
 from lompr_predictor.threads import default_workers, set_torch_threads
@@ -55,10 +56,11 @@ TARGET_WITHOUT_PREVIEW = 1.0
 #: The default `lompr train` on three programs' 20-pass recordings on 2 cores.
 TARGET_THREE_PROGRAMS_SECONDS = 300.0
 #: The columns: every baseline of the report but persistence (the denominator) and those
-#: fitted without the preview, then the BO-LSTM.
+#: fitted without the preview, then the BO-LSTM, a paired model's generalist (`-` for
+#: another) and the model as the node publishes it.
 ROWS = (*((b.name, b.label) for b in BASELINES
           if b is not PERSISTENCE and not isinstance(b, WithoutPreview)), ('bo_lstm', 'BO-LSTM'),
-        ('guarded', '+ guard'))
+        (GENERALIST, 'generalist'), ('guarded', '+ guard'))
 COLUMN = 2 + max(len(label) for _, label in ROWS)
 
 

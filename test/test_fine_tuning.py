@@ -34,26 +34,41 @@ SAMPLES = 1200
 EXTRA_LAG = 0.8e-3
 
 
-@pytest.fixture(scope='module')
-def parent(tmp_path_factory: pytest.TempPathFactory,
-           description: RobotDescription) -> tuple[Path, Path]:
-    """(a model trained on one plant, a bag of another plant on the same path)."""
-    folder = tmp_path_factory.mktemp('fine_tuning')
+def trained_parent(folder: Path, description: RobotDescription,
+                   *options: str) -> tuple[Path, Path]:
+    """(a model trained on one plant with `options`, a bag of another plant on the same
+    path)."""
     reference = lissajous_reference(SAMPLES)
     trained_on, _ = synthetic_recording(description.geometry, SAMPLES, noise=2e-7,
                                         reference=reference)
     model = folder / 'parent.pt'
     assert lompr_main(['train', str(write_recording(folder / 'a', trained_on)), '--out',
-                       str(model), '--report', str(folder / 'report_a'), *FAST]) == 0
+                       str(model), '--report', str(folder / 'report_a'), *FAST, *options]) == 0
     lag = EXTRA_LAG * np.gradient(reference[:, :2], 0.04, axis=0)
     other, _ = synthetic_recording(description.geometry, SAMPLES, noise=2e-7, seed=1,
                                    reference=reference, offset=lag)
     return model, write_recording(folder / 'b', other)
 
 
+@pytest.fixture(scope='module')
+def parent(tmp_path_factory: pytest.TempPathFactory,
+           description: RobotDescription) -> tuple[Path, Path]:
+    """The default (paired) model of one plant, and a bag of another plant."""
+    return trained_parent(tmp_path_factory.mktemp('fine_tuning'), description)
+
+
+@pytest.fixture(scope='module')
+def machine_parent(tmp_path_factory: pytest.TempPathFactory,
+                   description: RobotDescription) -> tuple[Path, Path]:
+    """A model of one plant on the map's residuals alone (its network cannot read the lag
+    off the velocities), and a bag of another plant."""
+    return trained_parent(tmp_path_factory.mktemp('fine_tuning_machine'), description,
+                          '--network-inputs', 'machine')
+
+
 def test_init_fine_tunes_on_the_new_plant_and_names_its_parent(
-        parent: tuple[Path, Path], tmp_path: Path) -> None:
-    model, bag = parent
+        machine_parent: tuple[Path, Path], tmp_path: Path) -> None:
+    model, bag = machine_parent
     out, report = tmp_path / 'child.pt', tmp_path / 'report'
     assert lompr_main(['train', str(bag), '--init', str(model), '--out', str(out), '--report',
                        str(report), '--max-epochs', '6', '--quiet']) == 0

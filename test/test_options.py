@@ -70,7 +70,7 @@ def test_the_declared_defaults_are_lompr_trains() -> None:
         if name not in ('model_path', 'report_dir'):
             assert getattr(config, name) == spec.default, name
     assert flag_of('model_path') == '--out' and flag_of('machine_map') == '--no-machine-map'
-    assert recorded_options(config) == {'network_inputs': 'machine', 'max_epochs': 120,
+    assert recorded_options(config) == {'network_inputs': 'paired', 'max_epochs': 120,
                                         'patience': 8, 'epoch_windows': 20_000}
     assert study_options(config) == {'horizon': 1, 'window': 25, 'seed': 0}
 
@@ -92,10 +92,10 @@ def test_what_the_command_derives_from_other_options() -> None:
 @pytest.mark.parametrize(('changes', 'names', 'message'), [
     ({'horizon': 0}, ('horizon',), 'horizon must be an integer >= 1, got 0'),
     ({'network_inputs': 'path'}, ('network_inputs',),
-     "network_inputs must be one of machine, all, got 'path'"),
+     "network_inputs must be one of paired, machine, all, got 'path'"),
     ({'study_name': ' '}, ('study_name',), 'study_name must not be empty'),
     ({'machine_map': False}, ('network_inputs', 'machine_map'),
-     "network_inputs 'machine' reads the machine map's residuals"),
+     "network_inputs 'paired' reads the machine map's residuals"),
     ({'report_dir': None}, ('model_path', 'report_dir'), 'the model_path and the report_dir'),
 ])
 def test_the_library_refuses_in_its_own_words(changes: dict[str, Any], names: tuple[str, ...],
@@ -129,7 +129,10 @@ def test_existing_studies_keep_their_names() -> None:
     description: Any = SimpleNamespace(sha256='cd' * 32)
     names = [study_name_for(study_definition(TrainingConfig(inputs=BagInputs(bags=('/x',)),
                                                             **changes), sources, description))
-             for changes in ({}, {'preview': 3}, {'machine_map': False, 'network_inputs': 'all'},
+             # studies before the paired default read the map's residuals ('machine')
+             for changes in ({'network_inputs': 'machine'},
+                             {'preview': 3, 'network_inputs': 'machine'},
+                             {'machine_map': False, 'network_inputs': 'all'},
                              {'network_inputs': 'all', 'horizon': 5, 'seed': 3,
                               'max_epochs': 12})]
     assert names == ['lompr-b23347a584d1556a', 'lompr-73728b7dbaa0ecb9',

@@ -63,7 +63,7 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
     content = json.loads((report / 'report.json').read_text())
     assert content['counts']['bags'] == 2 and content['counts']['kept'] == 2400
     assert set(content['models']) == {'persistence', 'bp', 'ridge', 'hgb', 'machine_map',
-                                      'bo_lstm'}
+                                      'bo_lstm', 'bo_lstm_generalist'}
     for baseline in ('persistence', 'bp', 'ridge', 'hgb', 'machine_map'):  # per axis, metric
         beaten = content['bo_lstm_beats'][baseline]
         assert set(beaten) == {'x', 'y'}
@@ -84,13 +84,20 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
         report / 'report.md').read_text()
     assert len(loaded.metadata.training_bags) == 2
     assert loaded.metadata.hyperparameters['error_level'] is True
-    # the default network reads the machine map's residuals, relative and, with the
-    # error level, as they are
+    # the default is two networks: one reads every feature and the machine map's
+    # residuals, the errors and residuals relative and, with the error level, as they are;
+    # the other (the generalist, the guard's fallback) reads the residuals alone
     columns = loaded.metadata.normalisation['input_columns']
-    assert columns == ['map_residual_x - last row', 'map_residual_y - last row',
-                       'map_residual_x', 'map_residual_y']
-    assert len(loaded.metadata.normalisation['feature_centre']) == 4
-    assert loaded.metadata.hyperparameters['network_inputs'] == 'machine'
+    assert columns == [*(name + (' - last row' if name in ('error_x', 'error_y') else '')
+                         for name in FEATURES),
+                       'map_residual_x - last row', 'map_residual_y - last row',
+                       'error_x', 'error_y', 'map_residual_x', 'map_residual_y']
+    assert len(loaded.metadata.normalisation['feature_centre']) == len(FEATURES) + 6
+    assert loaded.metadata.hyperparameters['network_inputs'] == 'paired'
+    generalist = loaded.module.net.machine_columns.tolist()
+    assert [columns[k] for k in generalist] == ['map_residual_x - last row',
+                                                'map_residual_y - last row',
+                                                'map_residual_x', 'map_residual_y']
     assert set(loaded.metadata.machine_map['branch_coefficients']) >= {'velocity',
                                                                        'acceleration'}
     assert set(loaded.metadata.envelope['ranges']) == set(FEATURES) - {'error_x', 'error_y'}

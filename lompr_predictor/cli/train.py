@@ -236,7 +236,8 @@ def summary_line(report: dict[str, Any]) -> str:
     tuning, timings = report['tuning'], report['timings']
     split = ', '.join(f'{label} {timings[key]:.1f} s' for label, key in (
         ('read+clean', 'read_clean_fk_seconds'), ('tuning', 'tuning_seconds'),
-        ('best model', 'best_model_seconds'), ('BP', 'bp_seconds'),
+        ('best model', 'best_model_seconds'), ('generalist', 'generalist_seconds'),
+        ('BP', 'bp_seconds'),
         ('ridge+HGB', 'baselines_seconds'), ('scoring', 'scoring_seconds'),
         ('writing', 'writing_seconds')) if key in timings)
     return (f"tuning: {tuning['trials_spent']} trials spent ({tuning['budget']} tuning, "

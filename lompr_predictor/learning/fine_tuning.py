@@ -64,12 +64,14 @@ from lompr_predictor.learning.models import (
     build_network,
     network_columns,
     network_features,
+    paired_columns,
     predict_rows,
 )
 from lompr_predictor.learning.options import TrainingConfig, TrainSettings
 from lompr_predictor.learning.pipeline import (
     TrainingResult,
     check_config,
+    network_predictions,
     read_problem,
 )
 from lompr_predictor.learning.report import base_report, irreducible_fields
@@ -124,10 +126,14 @@ def editable_module(parent: LoadedModel) -> PredictorModule:
     inputs = str(hyperparameters.get('network_inputs', 'machine' if use_map else 'all'))
     error_level = bool(hyperparameters.get('error_level', False))
     try:
-        width = len(network_columns(network_features(metadata.features, use_map), True,
-                                    error_level, inputs)[0])
-        hidden = int(state['net.lstm.weight_hh_l0'].shape[1])
-        net = build_network('lstm', width, metadata.window, hidden, int(scripted.net.steps))
+        features = network_features(metadata.features, use_map)
+        width = len(network_columns(features, True, error_level, inputs)[0])
+        paired = inputs == 'paired'
+        lstm = scripted.net.specialist if paired else scripted.net
+        prefix = 'net.specialist.' if paired else 'net.'
+        hidden = int(state[prefix + 'lstm.weight_hh_l0'].shape[1])
+        net = build_network('lstm', width, metadata.window, hidden, int(lstm.steps),
+                            paired_columns(features, error_level) if paired else None)
         machine_map = (MachineMap(metadata.features, metadata.horizon, metadata.preview,
                                   metadata.sample_period) if use_map else None)
         module = PredictorModule(net, np.zeros(width), np.ones(width), np.zeros(len(TARGETS)),
@@ -193,9 +199,8 @@ def fine_tune_predictor(config: TrainingConfig, init: str | Path) -> TrainingRes
                               (PERSISTENCE, MAP_PRIOR))
     test = problem.split.test
     scored, models = score_test_part(problem, baselines, {
-        name: predict_rows(network, problem.rows, test, problem.window)
-        for name, network in (('parent', parent.module), ('bo_lstm', trained.module))},
-        config.inputs.cleaning.gap_factor)
+        'parent': predict_rows(parent.module, problem.rows, test, problem.window),
+        **network_predictions(trained.module, problem)}, config.inputs.cleaning.gap_factor)
     models['bo_lstm'].update(training_seconds=trained.seconds, hyperparameters=hyperparameters,
                              target=RESIDUAL_TARGET, epochs=trained.epochs)
     report = base_report('train', problem, data, sources, config.inputs.cleaning)

@@ -1,26 +1,28 @@
-"""The map prior beside the prediction: what a model with a machine map predicts before its
-network adds anything.
+"""The model's prior beside its prediction: what a model predicts from the machine alone,
+which the live guard scores as the third candidate beside the model and persistence.
 
 Why. A model with a machine map (`machine_map.py`) predicts e(t) + g(t+h) - g(t) + n, the
-prior plus its network's correction n. The map has a few dozen coefficients with the
-machine's structure and transfers between programs; the network learns more and can learn
-the path: on a program it was not trained on, the network's correction can make the
-prediction worse than the prior alone (and than persistence) while the prior still does
-better than persistence. The live guard (`online.guard`) therefore scores the prior as a
-third candidate beside the model and persistence, and hands an axis to whichever of the two
-fallbacks does better.
+map prior plus its network's correction n. The map has a few dozen coefficients with the
+machine's structure and transfers between programs; a network that reads the path learns
+the programs it was trained on, and on another program its correction can make the
+prediction worse than what the machine alone predicts (and than persistence). The live
+guard (`online.guard`) therefore scores the prior as a third candidate beside the model and
+persistence, and hands an axis to whichever of the two fallbacks does better. The prior is
 
-`PredictionWithPrior` runs a model (a loaded TorchScript module or the trainer's
-`models.PredictorModule`) and returns (B, 4): its prediction (X, Y) then its prior (X, Y),
-[m]. It is built around the verified module at load time, so model files written before it
-existed serve it too; a model without a map has no prior (`with_prior` gives None).
+- for a paired model (`models.PairedNet`, `lompr train`'s default), its generalist's
+  prediction: the map prior plus a network that reads the map's residuals alone;
+- for a model with a map and one network, the map prior itself.
+
+`prediction_with_prior(module)` wraps a model (a loaded TorchScript module or the trainer's
+`models.PredictorModule`) into a module that returns (B, 4): its prediction (X, Y) then its
+prior (X, Y), [m], in one call. It is built around the verified module at load time, so model
+files written before it existed serve it too; a model without a map has no prior (None).
 """
 
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
 import torch
 from torch import nn
 
@@ -28,9 +30,6 @@ from lompr_predictor.learning.model_file import ExportedModule, LoadedModel, scr
 
 if TYPE_CHECKING:
     from lompr_predictor.learning.machine_map import MachineMap
-
-#: Rows per batch when the prior of many windows is computed offline.
-OFFLINE_BATCH = 4096
 
 
 class PredictionWithPrior(nn.Module):
@@ -58,24 +57,36 @@ class PredictionWithPrior(nn.Module):
                 - now)
 
 
-def has_prior(model: LoadedModel) -> bool:
-    """Whether the model builds on a machine map (its metadata says so), hence has a prior."""
-    return bool(model.metadata.machine_map)
+class PredictionWithGeneralist(nn.Module):
+    """A paired model's prediction and its generalist's side by side (module docstring):
+    the model's `candidates`, both networks in one call."""
+
+    def __init__(self, module: Any) -> None:
+        """`module`: a `models.PredictorModule` with a `models.PairedNet`, or its scripted
+        form."""
+        super().__init__()
+        self.model = module
+
+    def forward(self, windows: torch.Tensor) -> torch.Tensor:
+        return self.model.candidates(windows)
+
+
+def is_paired(module: Any) -> bool:
+    """Whether a model's module (scripted or not) runs a `models.PairedNet`."""
+    return hasattr(getattr(module, 'net', None), 'generalist')
+
+
+def prediction_with_prior(module: Any) -> nn.Module | None:
+    """The module (B, window, F) -> (B, 4) of a model's prediction and its prior (module
+    docstring); None for a model without a map."""
+    if is_paired(module):
+        return PredictionWithGeneralist(module)
+    if getattr(module, 'use_map', False):
+        return PredictionWithPrior(module)
+    return None
 
 
 def with_prior(model: LoadedModel) -> ExportedModule | None:
-    """The scripted `PredictionWithPrior` of a loaded model (None without a map)."""
-    if not has_prior(model):
-        return None
-    return script_module(PredictionWithPrior(model.module))
-
-
-def offline_prior(module: Any, newest_rows: np.ndarray) -> np.ndarray:
-    """(B, 2) the map prior [m] for windows whose newest feature rows are `newest_rows`
-    (B, F), for a module with a map: what the node's guard scores beside the model."""
-    prior = PredictionWithPrior(module)
-    table = torch.from_numpy(np.ascontiguousarray(newest_rows, dtype=np.float64))
-    with torch.inference_mode():
-        parts = [prior.prior(table[start:start + OFFLINE_BATCH])
-                 for start in range(0, len(table), OFFLINE_BATCH)]
-    return torch.cat(parts).numpy() if parts else np.zeros((0, 2))
+    """The scripted `prediction_with_prior` of a loaded model (None without a map)."""
+    wrapper = prediction_with_prior(model.module)
+    return None if wrapper is None else script_module(wrapper)

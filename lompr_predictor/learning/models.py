@@ -21,6 +21,11 @@ Learning problem (recorded in the model metadata):
   "autoregressive highway" on the flattened window (as LSTNet does): the linear part carries
   noise averaging and the linear extrapolation of the path, the LSTM and its head the
   non-linear rest (friction and backlash switching at reversals, posture).
+  With 'paired' inputs (`lompr train`'s default) two such networks run side by side
+  (`PairedNet`): one reads every feature, the path's too, and learns what the programs it
+  was trained on do next (the model's prediction); the other reads the map's residuals
+  alone and holds on programs it was not trained on (the model's fallback, which the live
+  guard publishes where the first does worse: `PredictorModule.candidates`).
 - BP: the paper's baseline, an MLP with one sigmoid hidden layer on the flattened window,
   predicting the error itself (`residual=False`).
 - Persistence: e(t+h) = e(t), the floor every model has to beat.
@@ -40,7 +45,7 @@ from lompr_predictor.data.cleaning import CleanData
 from lompr_predictor.data.features import FEATURES, TARGETS
 from lompr_predictor.data.problem import window_ends
 from lompr_predictor.learning.machine_map import MachineMap
-from lompr_predictor.learning.map_prior import offline_prior
+from lompr_predictor.learning.map_prior import prediction_with_prior
 from lompr_predictor.learning.space import NETWORK_INPUTS
 
 MODEL_TYPES = ('lstm', 'mlp')
@@ -77,6 +82,29 @@ class LstmNet(nn.Module):
         return self.head(sequence[:, -1]) + self.highway(x.flatten(1))
 
 
+class PairedNet(nn.Module):
+    """Two `LstmNet`s on the same normalised window: the specialist on every column, the
+    generalist on the `machine_columns` alone (the map's residuals); outputs (B, 2 x
+    n_outputs), the specialist's first. One training fits both (their parameters are
+    disjoint: each learns as it would alone) at one point of the search space."""
+
+    if TYPE_CHECKING:  # for the type checker only (see `PredictorModule`)
+        machine_columns: torch.Tensor
+
+    def __init__(self, n_features: int, window: int, hidden: int,
+                 machine_columns: Sequence[int], n_outputs: int = 2,
+                 steps: int = LSTM_STEPS) -> None:
+        super().__init__()
+        self.specialist = LstmNet(n_features, window, hidden, n_outputs, steps)
+        self.generalist = LstmNet(len(machine_columns), window, hidden, n_outputs, steps)
+        self.register_buffer('machine_columns', torch.tensor(list(machine_columns),
+                                                             dtype=torch.long))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.cat([self.specialist(x),
+                          self.generalist(x.index_select(2, self.machine_columns))], 1)
+
+
 class MlpNet(nn.Module):
     """The paper's BP network: flattened window -> one sigmoid hidden layer -> outputs."""
 
@@ -94,8 +122,12 @@ BP_HYPERPARAMETERS = {'batch_size': 1500, 'hidden': 35, 'learning_rate': 0.01}
 
 
 def build_network(model_type: str, n_features: int, window: int, hidden: int,
-                  steps: int = LSTM_STEPS) -> nn.Module:
-    """A network of `model_type` ('lstm', over its window's last `steps` rows, or 'mlp')."""
+                  steps: int = LSTM_STEPS,
+                  machine_columns: Sequence[int] | None = None) -> nn.Module:
+    """A network of `model_type` ('lstm', over its window's last `steps` rows, or 'mlp');
+    an LSTM given `machine_columns` (`paired_columns`) is a `PairedNet`."""
+    if model_type == 'lstm' and machine_columns is not None:
+        return PairedNet(n_features, window, hidden, machine_columns, len(TARGETS), steps)
     if model_type == 'lstm':
         return LstmNet(n_features, window, hidden, len(TARGETS), steps)
     if model_type == 'mlp':
@@ -130,28 +162,39 @@ def network_columns(features: Sequence[str] = FEATURES, relative_errors: bool = 
 
     `inputs` 'all': every feature, the error columns (and map residuals) relative if
     `relative_errors`, then with `error_level` the error columns again as they are (the
-    level, `PredictorModule`). 'machine' (needs a map): the map residuals alone, relative,
-    then with `error_level` again as they are: what the map leaves of the error is the
-    machine's drift, noise and unmodelled dynamics, while the raw error and the motion
-    columns also tell where the path goes, which a network trained on one program learns
-    and then gets wrong on another (docs/training.md, "Programs")."""
+    level, `PredictorModule`). 'paired' (needs a map): every feature as 'all', then with
+    `error_level` the error columns and the map residuals again as they are (of which the
+    generalist of a `PairedNet` reads `paired_columns`). 'machine' (needs a map): the map
+    residuals alone, relative, then with `error_level` again as they are: what the map
+    leaves of the error is the machine's drift, noise and unmodelled dynamics, while the raw
+    error and the motion columns also tell where the path goes, which a network trained on
+    one program learns and then gets wrong on another (docs/training.md, "Programs")."""
     names = list(features)
     errors = error_columns(features)
     residuals = [names.index(name) for name in MAP_RESIDUALS if name in names]
     if inputs not in NETWORK_INPUTS:
         msg = f'unknown network inputs {inputs!r}; choose one of {", ".join(NETWORK_INPUTS)}'
         raise ValueError(msg)
-    if inputs == 'machine' and not residuals:
-        msg = "the network inputs 'machine' are the machine map's residuals: give it a map"
+    if inputs in ('machine', 'paired') and not residuals:
+        msg = f"the network inputs {inputs!r} read the machine map's residuals: give it a map"
         raise ValueError(msg)
-    columns = list(range(len(features))) if inputs == 'all' else list(residuals)
+    columns = list(residuals) if inputs == 'machine' else list(range(len(features)))
     relative = errors + residuals
     mask = [1.0 if relative_errors and column in relative else 0.0 for column in columns]
     if error_level:
-        level = errors if inputs == 'all' else residuals
+        level = {'all': errors, 'machine': residuals, 'paired': errors + residuals}[inputs]
         columns += level
         mask += [0.0] * len(level)
     return columns, mask
+
+
+def paired_columns(features: Sequence[str], error_level: bool = False) -> list[int]:
+    """Positions, among the 'paired' network input's columns (`network_columns` of
+    `features`, which end in the map residuals), of what the generalist of a `PairedNet`
+    reads: the map residuals, then with `error_level` their levels (the 'machine' inputs)."""
+    columns = network_columns(features, True, error_level, 'paired')[0]
+    residuals = [list(features).index(name) for name in MAP_RESIDUALS]
+    return [position for position, column in enumerate(columns) if column in residuals]
 
 
 def normalise_windows(windows: torch.Tensor, relative_mask: torch.Tensor, centre: torch.Tensor,
@@ -249,19 +292,30 @@ class PredictorModule(nn.Module):
         return torch.from_numpy(scaled.astype(np.float32))
 
     def forward(self, windows: torch.Tensor) -> torch.Tensor:
+        return self.candidates(windows)[:, :2]
+
+    def candidates(self, windows: torch.Tensor) -> torch.Tensor:
+        """(B, 2 k) the predicted plant X/Y error [m] of each of the network's k outputs:
+        the model's (`forward`), then with a `PairedNet` its generalist's (the fallback the
+        live guard scores beside it, `map_prior.PredictionWithFallback`)."""
         if not self.use_map:
-            return self._predict(windows, windows)
+            return self._predict(windows, windows, windows, windows)
         mapped = self.machine_map.rows(windows)
         inputs = torch.cat([windows, windows.index_select(2, self.error_columns) - mapped], 2)
-        return (self._predict(inputs, windows) + self.machine_map.ahead(windows[:, -1])
-                - mapped[:, -1])
+        return self._predict(inputs, windows, self.machine_map.ahead(windows[:, -1]),
+                             mapped[:, -1])
 
-    def _predict(self, inputs: torch.Tensor, windows: torch.Tensor) -> torch.Tensor:
-        """The network on its rows `inputs`, as an error prediction for raw `windows`."""
-        output = self.net(self.normalise(inputs)).double() * self.target_half + self.target_centre
+    def _predict(self, inputs: torch.Tensor, windows: torch.Tensor, ahead: torch.Tensor,
+                 now: torch.Tensor) -> torch.Tensor:
+        """The network on its rows `inputs`, as (B, 2 k) error predictions for raw `windows`;
+        with a map each output plus its change over the horizon, `ahead` - `now` (B, 2)."""
+        output = self.net(self.normalise(inputs)).double()
+        output = output.reshape(output.shape[0], -1, 2) * self.target_half + self.target_centre
         if self.residual:
-            output = output + windows[:, -1].index_select(1, self.error_columns)
-        return output
+            output = output + windows[:, -1].index_select(1, self.error_columns).unsqueeze(1)
+        if self.use_map:
+            output = output + ahead.unsqueeze(1) - now.unsqueeze(1)
+        return output.flatten(1)
 
 
 def with_map_residuals(machine_map: MachineMap, rows: np.ndarray,
@@ -362,15 +416,15 @@ def gather_windows(rows: np.ndarray | torch.Tensor, ends: np.ndarray,
 
 
 def predict_rows(module: nn.Module, rows: np.ndarray, ends: np.ndarray, window: int,
-                 batch: int = 4096) -> np.ndarray:
-    """(B, 2) predictions [m] of a raw-SI module for the windows of feature `rows` ending at
-    `ends`: what `LoadedModel.predict` gives for those windows, in batches."""
+                 batch: int = 4096, width: int = len(TARGETS)) -> np.ndarray:
+    """(B, `width`) predictions [m] of a raw-SI module for the windows of feature `rows`
+    ending at `ends`: what `LoadedModel.predict` gives for those windows, in batches."""
     table = torch.from_numpy(np.ascontiguousarray(rows, dtype=np.float64))
     out = []
     with torch.inference_mode():
         for start in range(0, len(ends), batch):
             out.append(module(gather_windows(table, ends[start:start + batch], window)).numpy())
-    return np.concatenate(out) if out else np.zeros((0, len(TARGETS)))
+    return np.concatenate(out) if out else np.zeros((0, width))
 
 
 @dataclass(frozen=True)
@@ -383,7 +437,7 @@ class OfflinePredictions:
     actual: np.ndarray  # (B, 2) measured plant error at those instants [m]
     newest_rows: np.ndarray  # (B, features) each window's last feature row
     last_error: np.ndarray  # (B, 2) plant error at each window's last row: persistence's [m]
-    prior: np.ndarray  # (B, 2) the model's map prior [m] (NaN: it has no map)
+    prior: np.ndarray  # (B, 2) the model's prior [m] (`map_prior`; NaN: it has none)
 
 
 def offline_predictions(module: nn.Module, data: CleanData, window: int, horizon: int,
@@ -394,10 +448,14 @@ def offline_predictions(module: nn.Module, data: CleanData, window: int, horizon
     sample for sample, given a preview that matched the path."""
     ends = window_ends(data.regular_runs(), window, horizon, preview)
     rows = data.features(preview)
-    newest = rows[ends]
-    prior = (offline_prior(module, newest) if getattr(module, 'use_map', False)
-             else np.full((len(ends), len(TARGETS)), np.nan))
+    with_prior = prediction_with_prior(module)
+    if with_prior is None:
+        predicted = predict_rows(module, rows, ends, window)
+        prior = np.full((len(ends), len(TARGETS)), np.nan)
+    else:  # both from one call, as the node has them
+        both = predict_rows(with_prior, rows, ends, window, width=2 * len(TARGETS))
+        predicted, prior = both[:, :len(TARGETS)], both[:, len(TARGETS):]
     return OfflinePredictions(ends=ends, stamps=data.stamps[ends + horizon],
-                              predicted=predict_rows(module, rows, ends, window),
-                              actual=data.error[ends + horizon], newest_rows=newest,
-                              last_error=data.error[ends], prior=prior)
+                              predicted=predicted, actual=data.error[ends + horizon],
+                              newest_rows=rows[ends], last_error=data.error[ends],
+                              prior=prior)

@@ -170,10 +170,11 @@ class TrainingConfig:
         "first, carries each actuator's error to the tool through the kinematics: what "
         'makes a model hold on programs it was not trained on; docs/training.md)')
     network_inputs: str = option(
-        'machine', "what the LSTM reads: 'machine' (the machine map's residuals: what holds "
-        "on programs it was not trained on; the default with the map) or 'all' (every "
-        "feature, the path's too: best on the program it was trained on, worse on others; "
-        'the default with --no-machine-map)', choices=NETWORK_INPUTS, recorded=True)
+        'paired', "what the LSTM reads: 'paired' (two LSTMs, one on every feature, best on "
+        "the programs it was trained on, and one on the machine map's residuals alone, "
+        "which holds on others and which the node's guard falls back to; the default with "
+        "the map), 'machine' (the second alone) or 'all' (the first alone; the default "
+        'with --no-machine-map)', choices=NETWORK_INPUTS, recorded=True)
     trials: int = option(DEFAULT_TRIALS, 'tuning budget: trials of the study, finished and '
                          'pruned ones counting (default {default})', minimum=1)
     restarts: int = option(
@@ -256,9 +257,9 @@ def check_options(config: TrainingConfig, *, finishing: bool = True) -> None:
         problem = spec.problem(getattr(config, name))
         if problem:
             raise OptionError(f'{name} {problem}', (name,))
-    if config.network_inputs == 'machine' and not config.machine_map:
-        msg = ("network_inputs 'machine' reads the machine map's residuals: keep the "
-               "machine_map or read 'all'")
+    if config.network_inputs in ('machine', 'paired') and not config.machine_map:
+        msg = (f"network_inputs {config.network_inputs!r} reads the machine map's "
+               "residuals: keep the machine_map or read 'all'")
         raise OptionError(msg, ('network_inputs', 'machine_map'))
     if finishing and (config.model_path is None or config.report_dir is None):
         msg = 'the model_path and the report_dir are needed to finish the study'

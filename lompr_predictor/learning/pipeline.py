@@ -33,6 +33,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import optuna
 import torch
 
@@ -59,11 +60,13 @@ from lompr_predictor.learning.baselines import (
 )
 from lompr_predictor.learning.envelope import fit_envelope
 from lompr_predictor.learning.machine_map import MachineMap, fit_machine_map
+from lompr_predictor.learning.map_prior import PredictionWithGeneralist, is_paired
 from lompr_predictor.learning.metrics import ratios
 from lompr_predictor.learning.model_file import (
     ExportedModule,
     ModelMetadata,
     library_versions,
+    script_module,
     sidecar_path,
     write_model,
 )
@@ -76,6 +79,7 @@ from lompr_predictor.learning.options import (
     recorded_options,
     study_options,
 )
+from lompr_predictor.learning.pairing import paired_module, train_generalist
 from lompr_predictor.learning.report import (
     base_report,
     irreducible_fields,
@@ -104,6 +108,9 @@ from lompr_predictor.learning.workers import StudySpec, TuningRun, tune
 from lompr_predictor.robot.description import RobotDescription, load_robot_description
 from lompr_predictor.threads import default_workers
 
+#: The report's key of a paired BO-LSTM's generalist (`models.PairedNet`).
+GENERALIST = 'bo_lstm_generalist'
+
 
 @dataclass(frozen=True)
 class TrainingResult:
@@ -124,6 +131,7 @@ class _Tuned:
     training_seconds: float  # the best trial's training time
     tuning_seconds: float  # the whole study's wall time in this run
     best_model_seconds: float  # loading (or retraining) the best trial's module
+    generalist_seconds: float  # training a paired model's generalist (`pairing.py`)
     report: dict[str, Any]
 
 
@@ -185,9 +193,9 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     baselines = fit_baselines(problem, FitContext(config.settings, config.progress,
                                                   machine_map))
     scoring_started = time.perf_counter()
-    scored, models = score_test_part(problem, baselines, {'bo_lstm': predict_rows(
-        tuned.module, problem.rows, problem.split.test, problem.window)},
-        config.inputs.cleaning.gap_factor)
+    scored, models = score_test_part(problem, baselines,
+                                     network_predictions(tuned.module, problem),
+                                     config.inputs.cleaning.gap_factor)
     models['bo_lstm'].update(training_seconds=tuned.training_seconds,
                              hyperparameters=tuned.params, target=RESIDUAL_TARGET)
     report = _report(config, problem, data, sources, models, tuned)
@@ -199,6 +207,7 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     report['timings'] = {'read_clean_fk_seconds': read_seconds,
                          'tuning_seconds': tuned.tuning_seconds,
                          'best_model_seconds': tuned.best_model_seconds,
+                         'generalist_seconds': tuned.generalist_seconds,
                          'bp_seconds': baselines[BP.name].seconds,
                          'baselines_seconds': sum(fitted.seconds for name, fitted
                                                   in baselines.items() if name != BP.name),
@@ -210,6 +219,17 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
             config.test_inputs.bags)
     return TrainingResult(module=tuned.module, metadata=metadata, report=report,
                           test_part=scored)
+
+
+def network_predictions(module: Any, problem: LearningProblem) -> dict[str, np.ndarray]:
+    """The trained BO-LSTM's predictions of the problem's test part (key 'bo_lstm'), and
+    with a paired network its generalist's (`GENERALIST`), from one call."""
+    test = problem.split.test
+    if not is_paired(module):
+        return {'bo_lstm': predict_rows(module, problem.rows, test, problem.window)}
+    both = predict_rows(PredictionWithGeneralist(module), problem.rows, test, problem.window,
+                        width=2 * len(TARGETS))
+    return {'bo_lstm': both[:, :len(TARGETS)], GENERALIST: both[:, len(TARGETS):]}
 
 
 def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tuned,
@@ -225,7 +245,9 @@ def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tu
                                              problem.features),
         model_type='lstm',
         hyperparameters={**tuned.params,  # every one, tuned or fixed (`SearchSpace.suggest`)
-                         'architecture': 'LSTM over the last lstm_steps rows, last state -> '
+                         'architecture': ('two networks (every feature; the map residuals '
+                                          'alone), each ' if is_paired(tuned.module) else '')
+                                         + 'LSTM over the last lstm_steps rows, last state -> '
                                          'MLP head (2 GELU layers) + linear highway on the window'
                                          + (', on the machine map' if machine_map else ''),
                          'optimiser': 'AdamW, cosine learning-rate decay over max_epochs',
@@ -382,6 +404,13 @@ def _tune(config: TrainingConfig, problem: LearningProblem, machine_map: Machine
     params = objective.params_of(best)
     module, seconds = objective.model_of(best)
     best_model_seconds = time.perf_counter() - started
+    generalist_seconds = 0.0
+    if config.network_inputs == 'paired' and machine_map is not None:
+        generalist = train_generalist(problem, params, config.settings, machine_map,
+                                      progress=config.progress)
+        module = script_module(paired_module(module, generalist.module, machine_map, problem,
+                                             params))
+        generalist_seconds = generalist.seconds
     counts = trial_counts(study)
     trials = history(study)
     report = {'study_name': study.study_name, 'storage': storage.spec.describe(),
@@ -404,7 +433,7 @@ def _tune(config: TrainingConfig, problem: LearningProblem, machine_map: Machine
               'settings': {**vars(config.settings), 'threads': torch.get_num_threads()}}
     return _Tuned(module=module, params=params, training_seconds=seconds,
                   tuning_seconds=run.seconds, best_model_seconds=best_model_seconds,
-                  report=report)
+                  generalist_seconds=generalist_seconds, report=report)
 
 
 def _report(config: TrainingConfig, problem: LearningProblem, data: CleanData,

@@ -37,7 +37,9 @@ TUNING_PLOT = 'tuning_history.png'
 #: Labels of the models that are not baselines (a baseline's entry carries its own label,
 #: `baselines.Baseline.label`); any other model is shown by its key.
 MODEL_LABELS = {'parent': 'Parent (--init)', 'bo_lstm': 'BO-LSTM', 'model': 'Model',
-                'model_guarded': 'Model + live guard', 'model_prior': 'Map prior of the model'}
+                'bo_lstm_generalist': 'BO-LSTM, machine inputs only (its fallback)',
+                'model_guarded': 'Model + live guard',
+                'model_prior': "Prior of the model (the guard's fallback)"}
 METRIC_LABELS = {
     'mse_pct': 'MSE (%^2)', 'rmse_pct': 'RMSE (%)', 'mae_pct': 'MAE (%)',
     'mse_um2': 'MSE (um^2)', 'rmse_um': 'RMSE (um)', 'mae_um': 'MAE (um)',
@@ -186,13 +188,14 @@ def _guard_lines(guard: Mapping[str, Any] | None) -> list[str]:
     if not guard:
         return []
     held = ', '.join(f"{axis.upper()} {100 * guard[axis]['held_back_fraction']:.1f} % "
-                     f"(the map prior {100 * guard[axis].get('prior_fraction', 0.0):.1f} %; "
+                     f"(the prior {100 * guard[axis].get('prior_fraction', 0.0):.1f} %; "
                      f"{guard[axis]['hand_overs']} hand-overs, {guard[axis]['hand_backs']} "
                      'back)' for axis in TARGETS)
     return ['', '## Live guard', '',
             "`Model + live guard` is what the predictor node publishes with its default guard "
-            "(guard_* parameters): per axis the better of its fallbacks (the model's map prior, "
-            "persistence) while the model's live RMS is worse. Held back: "
+            "(guard_* parameters): per axis the better of its fallbacks (the model's prior, "
+            "what it predicts from the machine alone, and persistence) while the model's live "
+            "RMS is worse. Held back: "
             f"{held}; rows outside the trained envelope: {guard['rows_outside_envelope']}. An "
             'axis held back most of the time says the model does not know this program or '
             'machine: record it and train on it.']

@@ -31,9 +31,10 @@ HEARTBEAT_SECONDS = 10
 #: The LSTM rows a search space uses unless told otherwise (`models.LSTM_STEPS`, kept here
 #: too so that the command line needs no torch).
 DEFAULT_LSTM_STEPS = 10
-#: What the network reads of its rows (`models.network_columns`): the machine map's
-#: residuals, or every feature.
-NETWORK_INPUTS = ('machine', 'all')
+#: What the network reads of its rows (`models.network_columns`): two networks side by
+#: side, one on every feature and one on the machine map's residuals alone ('paired'), the
+#: machine map's residuals alone, or every feature.
+NETWORK_INPUTS = ('paired', 'machine', 'all')
 
 
 class SpaceError(LomprError, ValueError):

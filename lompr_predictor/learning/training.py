@@ -137,6 +137,8 @@ def build_module(problem: LearningProblem, model_type: str, hidden: int, *, resi
     targets = inputs.targets(problem, fit, residual)
     width = len(network_columns(inputs.features, relative_errors, error_level,
                                 network_inputs)[0])
+    # 'paired' inputs: the specialist alone; its generalist is trained at the tuned point
+    # (`pairing.py`)
     net = build_network(model_type, width, problem.window, hidden, steps)
     windows = input_windows(problem, inputs, relative_errors, error_level, network_inputs)
     options: dict[str, Any] = {'residual': residual, 'relative_errors': relative_errors,
@@ -155,13 +157,21 @@ def build_module(problem: LearningProblem, model_type: str, hidden: int, *, resi
 def validation_loss(net: nn.Module, inputs: ScaledRows, ends: np.ndarray,
                     targets: torch.Tensor, window: int) -> float:
     """Mean squared error of `net` on normalised targets, in batches without gradients."""
-    total = 0.0
+    total, outputs = 0.0, targets.shape[1]
     with torch.no_grad():
         for start in range(0, len(ends), EVAL_BATCH):
             x = inputs.windows(ends[start:start + EVAL_BATCH], window)
-            diff = net(x) - targets[start:start + EVAL_BATCH]
+            output = net(x)
+            diff = output - each_output(output, targets[start:start + EVAL_BATCH])
             total += float((diff * diff).sum())
-    return total / (len(ends) * targets.shape[1])
+            outputs = output.shape[1]
+    return total / (len(ends) * outputs)
+
+
+def each_output(output: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    """`targets` (B, 2) once for each prediction in a network's `output` (B, 2 k): a
+    `PairedNet`'s two networks learn the same targets, and its loss is their mean."""
+    return targets.repeat(1, output.shape[1] // targets.shape[1])
 
 
 class _Schedule:
@@ -204,7 +214,8 @@ def _train_epoch(net: nn.Module, schedule: _Schedule,
     net.train()
     for start in range(0, len(ends), batch):
         x = windows(ends[start:start + batch], window)
-        loss = nn.functional.mse_loss(net(x), targets[start:start + batch])
+        output = net(x)
+        loss = nn.functional.mse_loss(output, each_output(output, targets[start:start + batch]))
         schedule.optimiser.zero_grad()
         loss.backward()
         nn.utils.clip_grad_norm_(net.parameters(), GRADIENT_CLIP)

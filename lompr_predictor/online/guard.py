@@ -3,9 +3,10 @@
 A learned model can be wrong on a program or a machine it was not trained on, and then its
 offset makes the error worse than the simplest compensator, persistence (the offset for an
 instant is minus the plant error measured `horizon` samples before it). A model with a
-machine map has a second fallback, its map prior (`learning.map_prior`: persistence plus the
-change the map predicts over the horizon, the model before its network's correction), which
-transfers between programs where the network may not. The guard scores the three on the
+machine map has a second fallback, its prior (`learning.map_prior`: what it predicts from
+the machine alone, its second network's prediction for a paired model, else persistence plus
+the change the map predicts over the horizon), which transfers between programs where the
+network that reads the path does not. The guard scores the three on the
 same instants as their truth arrives (the contract's plant error, which holds under
 compensation), per axis, and chooses, per axis, whose prediction is published:
 
@@ -66,7 +67,7 @@ class GuardState(StrEnum):
     """Whose prediction an axis publishes."""
 
     MODEL = 'model'
-    PRIOR = 'prior'  # the model's map prior, without its network's correction
+    PRIOR = 'prior'  # the model's prior: what it predicts from the machine alone
     PERSISTENCE = 'persistence'
 
 
@@ -74,7 +75,7 @@ class GuardReason(StrEnum):
     """Why the guard holds the model back on an axis."""
 
     WORSE_THAN_PERSISTENCE = 'worse_than_persistence'  # its live RMS; persistence answers
-    WORSE_THAN_PRIOR = 'worse_than_prior'  # its live RMS; its map prior answers
+    WORSE_THAN_PRIOR = 'worse_than_prior'  # its live RMS; its prior answers
     OUTSIDE_ENVELOPE = 'outside_envelope'  # the inputs left what training saw
 
 
@@ -121,7 +122,7 @@ class AxisStatus:
     reason: GuardReason | None  # why the model is held back (None: it is not)
     model_rms: float  # live RMS of the model's residual [m] (NaN before the first)
     persistence_rms: float  # live RMS of persistence's residual [m], same instants
-    prior_rms: float  # live RMS of the map prior's residual [m] (NaN: no prior)
+    prior_rms: float  # live RMS of the prior's residual [m] (NaN: no prior)
     hand_overs: int  # switches model -> a fallback
     hand_backs: int  # switches a fallback -> model
 
@@ -146,7 +147,7 @@ class _Axis:
 
 
 class LiveGuard:
-    """Chooses per axis between the model's prediction, its map prior's and persistence's
+    """Chooses per axis between the model's prediction, its prior's and persistence's
     (module docstring), on a grid of instants `period_ns` apart, predictions `lead_ns`
     ahead: a `sample_units.SampleUnit` of the predictor core. It runs at the sample rate:
     the rules are read once per change of the settings, the scores and the common decision
@@ -281,7 +282,7 @@ class LiveGuard:
                prior: XY | None = None) -> XY:
         """The prediction to publish for `instant_ns` given the model's, persistence's (the
         plant error `lead_ns` before), whether the model's newest row lies inside its
-        trained envelope, and the model's map prior (None: none); all are kept to be scored
+        trained envelope, and the model's prior (None: none); all are kept to be scored
         when the truth arrives."""
         pending = self._pending
         while pending and pending[-1][0] >= instant_ns - self._tolerance_ns:

@@ -19,7 +19,7 @@ window exports to a graph without an input (the exporter drops it): it runs with
 A backend gives `runner(window)`: a call without arguments that runs the network on
 `window` (a (1, window, features) float64 C-contiguous array, read afresh at every call,
 whose memory the caller keeps alive as long as the call) and returns four Python floats:
-the predicted X/Y error [m], then the model's map prior X/Y [m] (`learning.map_prior`, which
+the predicted X/Y error [m], then the model's prior X/Y [m] (`learning.map_prior`, which
 the live guard scores as a fallback; NaN for a model without a map). Both backends run the
 prior in the same call as the network, from the same window.
 """
@@ -61,7 +61,7 @@ RELATIVE_TOLERANCE = 1e-6
 #: Windows of the warm-up batch: one of zeros and random ones.
 WARM_UP_WINDOWS = 32
 
-#: Predicted X/Y error, then the map prior's X/Y (NaN: none) [m].
+#: Predicted X/Y error, then the prior's X/Y (NaN: none) [m].
 Prediction = tuple[float, float, float, float]
 #: Runs the network on the window it was made for.
 Runner = Callable[[], Prediction]
@@ -84,7 +84,7 @@ class InferenceBackend(Protocol):
 
 
 class TorchScriptBackend:
-    """The verified TorchScript module itself (with its map prior beside it where it has
+    """The verified TorchScript module itself (with its prior beside it where it has
     one), on a tensor sharing the window's memory."""
 
     name = Backend.TORCHSCRIPT

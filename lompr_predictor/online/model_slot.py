@@ -68,7 +68,7 @@ class ModelSlot:
         self.inference_time = inference_time
         self.answers = 0  # windows this slot was asked to answer
         self.predictions = 0  # finite predictions it gave
-        #: The map prior of the last prediction (`learning.map_prior`; None: the model has
+        #: The prior of the last prediction (`learning.map_prior`; None: the model has
         #: no map, or it was not finite): the live guard's third candidate.
         self.prior: XY | None = None
         self.use(model, backend)
@@ -83,7 +83,7 @@ class ModelSlot:
     def predict(self) -> XY | None:
         """The network on the window as it is now (full): the predicted X/Y plant error,
         or None if the model raised or gave anything but one row of two finite numbers; its
-        map prior goes to `prior`."""
+        prior goes to `prior`."""
         runner = self._runners[self.window.start]
         start = time.perf_counter()
         try:

@@ -229,7 +229,7 @@ def prediction_status(lifecycle: Lifecycle, core: OnlinePredictor | None,
 
 
 def guard_status(lifecycle: Lifecycle, guard: LiveGuard | None, envelope: bool) -> Status:
-    """The live guard (`online.guard`): per axis whether the model, its map prior or
+    """The live guard (`online.guard`): per axis whether the model, its prior or
     persistence answers and why, the live RMS of the three on the same instants, the
     hand-overs, the rows outside the model's trained envelope (`envelope`: whether its file
     has one). WARN while an axis is held back (or would be, with the guard off)."""

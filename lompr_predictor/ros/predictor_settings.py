@@ -143,8 +143,9 @@ class PredictorNodeSettings(FrameSettings):
     guard_enabled: bool = parameter(
         DEFAULT_GUARD.enabled,
         'the live guard: per axis, the model publishes only while its live RMS beats its '
-        "fallbacks' on the same instants (its map prior, where it has a machine map, and "
-        'persistence, the plant error measured horizon samples before) and its inputs lie '
+        "fallbacks' on the same instants (its prior, what it predicts from the machine "
+        'alone, and persistence, the plant error measured horizon samples before) and its '
+        'inputs lie '
         'in the envelope it was trained on; else the better fallback answers there. false: '
         "the model always (the guard's status still says what it would do)")
     guard_window: float = parameter(

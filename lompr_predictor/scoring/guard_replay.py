@@ -1,7 +1,7 @@
 """The live guard replayed on recorded predictions: what the predictor node would publish.
 
 Offline a model is scored as it is; online the live guard (`online.guard`) hands an axis to
-the model's map prior or to persistence while the model does worse there, and back when it
+the model's prior or to persistence while the model does worse there, and back when it
 does better. To say how a model will compensate a recording of a program it was not trained
 on, `lompr evaluate` (and the transfer bench) runs the same guard over the model's, its
 prior's and persistence's predictions of every window, in stamp order, with the truth of an
@@ -63,7 +63,7 @@ def replay_guard(guard: LiveGuard, stamps_ns: np.ndarray, actual: np.ndarray,
     the model's prediction `model` (B, 2), persistence's `persistence` (B, 2: the plant
     error `guard.lead_ns` before each instant), the plant error `actual` (B, 2) at each instant,
     whether the model's newest row lay inside its trained envelope (`inside`, (B,);
-    None: always) and the model's map prior (`prior`, (B, 2); None or NaN rows: none). An
+    None: always) and the model's prior (`prior`, (B, 2); None or NaN rows: none). An
     instant's truth is scored once the stream reaches it; a step between instants longer
     than the guard's sample period and a half is a gap."""
     count = len(stamps_ns)
@@ -105,7 +105,7 @@ def replay_model_guard(metadata: ModelMetadata, stamps_ns: np.ndarray, actual: n
     """`replay_guard` with the guard a predictor node builds for this model (its horizon,
     sample period and trained envelope, the node's default rules unless `settings`), the
     envelope checked on each window's newest feature row (`newest_rows`, (B, features)),
-    with the model's map prior `prior` where it has one."""
+    with the model's prior `prior` where it has one."""
     envelope = InputEnvelope.from_metadata(metadata.envelope, metadata.features)
     inside = (None if envelope is None else
               np.array([envelope.contains(row) for row in newest_rows.tolist()], dtype=bool))
