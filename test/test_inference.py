@@ -211,9 +211,11 @@ def test_both_backends_give_the_map_prior_of_the_trainer_beside_the_prediction(
     for values, prior in zip(windows, offline, strict=True):
         window[0] = values
         served, torchscript = run_ort(), run_torch()
-        assert len(served) == len(torchscript) == 4
-        np.testing.assert_allclose(torchscript[2:], prior, rtol=1e-9, atol=1e-15)
-        np.testing.assert_allclose(served[2:], prior, rtol=1e-9, atol=1e-15)
+        assert len(served) == len(torchscript) == 6
+        np.testing.assert_allclose(torchscript[2:4], prior, rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(served[2:4], prior, rtol=1e-9, atol=1e-15)
+        # one network: no second prior (a paired model's map prior)
+        assert np.isnan([*served[4:], *torchscript[4:]]).all()
         wanted = model.predict(torch.from_numpy(window)).numpy()[0]
         np.testing.assert_array_equal(torchscript[:2], wanted)
     assert np.abs(offline).max() > 1e-7  # a prior of real size, not zeros
@@ -222,8 +224,8 @@ def test_both_backends_give_the_map_prior_of_the_trainer_beside_the_prediction(
 def test_a_model_without_a_map_has_no_prior(trained: LoadedModel) -> None:
     window = np.zeros((1, WINDOW, len(FEATURES)))
     for backend in (select_backend(trained, 'auto')[0], TorchScriptBackend(trained)):
-        x, y, prior_x, prior_y = backend.runner(window)()
-        assert np.isfinite([x, y]).all() and np.isnan([prior_x, prior_y]).all()
+        x, y, *priors = backend.runner(window)()
+        assert np.isfinite([x, y]).all() and len(priors) == 4 and np.isnan(priors).all()
 
 
 @pytest.mark.faults

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 from trainer_data import lissajous_reference, synthetic_recording
 
 from lompr_predictor.data.cleaning import clean_recordings
@@ -42,10 +43,16 @@ def test_the_paired_module_predicts_as_its_two_networks_did(
     alone = [predict_rows(part.module, problem.rows, ends, window)
              for part in (specialist, generalist)]
     both = predict_rows(prediction_with_prior(script_module(joined)), problem.rows, ends, window,
-                        width=4)
+                        width=6)
     np.testing.assert_allclose(both[:, :2], alone[0], rtol=0, atol=1e-15)
-    np.testing.assert_allclose(both[:, 2:], alone[1], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(both[:, 2:4], alone[1], rtol=0, atol=1e-15)
     np.testing.assert_array_equal(predict_rows(joined, problem.rows, ends, window), both[:, :2])
+    # then the map prior: persistence plus the map's change over the horizon
+    newest = problem.rows[ends]
+    with torch.no_grad():
+        table = torch.from_numpy(newest)
+        change = (machine_map.ahead(table) - machine_map.rows(table[:, None])[:, 0]).numpy()
+    np.testing.assert_allclose(both[:, 4:], newest[:, :2] + change, rtol=1e-12, atol=1e-18)
     # two networks trained apart learn apart: they do not predict alike
     assert np.max(np.abs(alone[0] - alone[1])) > 1e-8
 

@@ -112,8 +112,10 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
     scored = tmp_path / 'scored'
     assert run(['evaluate', str(model), str(bags[1]), '--report', str(scored), '--quiet']) == 0
     evaluation = json.loads((scored / 'report.json').read_text())
-    # the model builds on a machine map (the default): its prior alone is scored too
-    assert set(evaluation['models']) == {'persistence', 'model', 'model_guarded', 'model_prior'}
+    # the model is paired on a machine map (the default): its prior (the generalist) and
+    # its map prior alone are scored too
+    assert set(evaluation['models']) == {'persistence', 'model', 'model_guarded', 'model_prior',
+                                         'model_map_prior'}
     for axis in ('x', 'y'):  # as the node publishes: the model where the guard keeps it
         held = evaluation['guard'][axis]['held_back_fraction']
         rmse = {name: entry['metrics'][axis]['rmse_um']

@@ -101,10 +101,13 @@ def run(args: argparse.Namespace) -> int:
         preview=meta.preview)
     baselines = fit_baselines(problem, FitContext(), (PERSISTENCE,))
     guarded = replay_model_guard(meta, offline.stamps, offline.actual, offline.predicted,
-                                 offline.last_error, offline.newest_rows, prior=offline.prior)
+                                 offline.last_error, offline.newest_rows, prior=offline.prior,
+                                 map_prior=offline.map_prior)
     predictions = {'model': offline.predicted, 'model_guarded': guarded.published}
     if np.isfinite(offline.prior).all():  # a model with a map: its prior alone too
         predictions['model_prior'] = offline.prior
+    if np.isfinite(offline.map_prior).all():  # a paired model: its map prior alone too
+        predictions['model_map_prior'] = offline.map_prior
     scored, models = score_test_part(problem, baselines, predictions, inputs.cleaning.gap_factor)
     report = base_report('evaluate', problem, data, sources, inputs.cleaning)
     report.update(

@@ -10,13 +10,17 @@ guard (`online.guard`) therefore scores the prior as a third candidate beside th
 persistence, and hands an axis to whichever of the two fallbacks does better. The prior is
 
 - for a paired model (`models.PairedNet`, `lompr train`'s default), its generalist's
-  prediction: the map prior plus a network that reads the map's residuals alone;
+  prediction: the map prior plus a network that reads the map's residuals alone; the map
+  prior itself comes beside it as a second fallback (a generalist trained on one program, or
+  on a machine whose physics differ, can do worse than the map alone, which has only the
+  machine's structure to get wrong);
 - for a model with a map and one network, the map prior itself.
 
 `prediction_with_prior(module)` wraps a model (a loaded TorchScript module or the trainer's
 `models.PredictorModule`) into a module that returns (B, 4): its prediction (X, Y) then its
-prior (X, Y), [m], in one call. It is built around the verified module at load time, so model
-files written before it existed serve it too; a model without a map has no prior (None).
+prior (X, Y), [m], or for a paired model (B, 6), the map prior (X, Y) last, in one call.
+It is built around the verified module at load time, so model files written before it
+existed serve it too; a model without a map has no prior (None).
 """
 
 from __future__ import annotations
@@ -58,17 +62,19 @@ class PredictionWithPrior(nn.Module):
 
 
 class PredictionWithGeneralist(nn.Module):
-    """A paired model's prediction and its generalist's side by side (module docstring):
-    the model's `candidates`, both networks in one call."""
+    """A paired model's prediction, its generalist's and its map prior side by side (module
+    docstring): the model's `candidates`, both networks in one call, then the map prior."""
 
     def __init__(self, module: Any) -> None:
         """`module`: a `models.PredictorModule` with a `models.PairedNet`, or its scripted
         form."""
         super().__init__()
         self.model = module
+        self.map_prior = PredictionWithPrior(module)
 
     def forward(self, windows: torch.Tensor) -> torch.Tensor:
-        return self.model.candidates(windows)
+        return torch.cat([self.model.candidates(windows),
+                          self.map_prior.prior(windows[:, -1])], 1)
 
 
 def is_paired(module: Any) -> bool:
@@ -77,8 +83,8 @@ def is_paired(module: Any) -> bool:
 
 
 def prediction_with_prior(module: Any) -> nn.Module | None:
-    """The module (B, window, F) -> (B, 4) of a model's prediction and its prior (module
-    docstring); None for a model without a map."""
+    """The module (B, window, F) -> (B, 4) of a model's prediction and its prior, (B, 6)
+    with a paired model's map prior (module docstring); None for a model without a map."""
     if is_paired(module):
         return PredictionWithGeneralist(module)
     if getattr(module, 'use_map', False):

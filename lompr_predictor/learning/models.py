@@ -45,7 +45,7 @@ from lompr_predictor.data.cleaning import CleanData
 from lompr_predictor.data.features import FEATURES, TARGETS
 from lompr_predictor.data.problem import window_ends
 from lompr_predictor.learning.machine_map import MachineMap
-from lompr_predictor.learning.map_prior import prediction_with_prior
+from lompr_predictor.learning.map_prior import is_paired, prediction_with_prior
 from lompr_predictor.learning.space import NETWORK_INPUTS
 
 MODEL_TYPES = ('lstm', 'mlp')
@@ -438,6 +438,7 @@ class OfflinePredictions:
     newest_rows: np.ndarray  # (B, features) each window's last feature row
     last_error: np.ndarray  # (B, 2) plant error at each window's last row: persistence's [m]
     prior: np.ndarray  # (B, 2) the model's prior [m] (`map_prior`; NaN: it has none)
+    map_prior: np.ndarray  # (B, 2) a paired model's map prior [m] (NaN: another model)
 
 
 def offline_predictions(module: nn.Module, data: CleanData, window: int, horizon: int,
@@ -449,13 +450,14 @@ def offline_predictions(module: nn.Module, data: CleanData, window: int, horizon
     ends = window_ends(data.regular_runs(), window, horizon, preview)
     rows = data.features(preview)
     with_prior = prediction_with_prior(module)
+    columns = np.full((len(ends), 3 * len(TARGETS)), np.nan)
     if with_prior is None:
-        predicted = predict_rows(module, rows, ends, window)
-        prior = np.full((len(ends), len(TARGETS)), np.nan)
-    else:  # both from one call, as the node has them
-        both = predict_rows(with_prior, rows, ends, window, width=2 * len(TARGETS))
-        predicted, prior = both[:, :len(TARGETS)], both[:, len(TARGETS):]
+        columns[:, :len(TARGETS)] = predict_rows(module, rows, ends, window)
+    else:  # from one call, as the node has them
+        width = (3 if is_paired(module) else 2) * len(TARGETS)
+        columns[:, :width] = predict_rows(with_prior, rows, ends, window, width=width)
+    predicted, prior, map_prior = np.split(columns, 3, axis=1)
     return OfflinePredictions(ends=ends, stamps=data.stamps[ends + horizon],
                               predicted=predicted, actual=data.error[ends + horizon],
                               newest_rows=rows[ends], last_error=data.error[ends],
-                              prior=prior)
+                              prior=prior, map_prior=map_prior)

@@ -227,9 +227,9 @@ def network_predictions(module: Any, problem: LearningProblem) -> dict[str, np.n
     test = problem.split.test
     if not is_paired(module):
         return {'bo_lstm': predict_rows(module, problem.rows, test, problem.window)}
-    both = predict_rows(PredictionWithGeneralist(module), problem.rows, test, problem.window,
-                        width=2 * len(TARGETS))
-    return {'bo_lstm': both[:, :len(TARGETS)], GENERALIST: both[:, len(TARGETS):]}
+    three = predict_rows(PredictionWithGeneralist(module), problem.rows, test, problem.window,
+                         width=3 * len(TARGETS))  # the prediction, the generalist's, the map's
+    return {'bo_lstm': three[:, :len(TARGETS)], GENERALIST: three[:, len(TARGETS):-len(TARGETS)]}
 
 
 def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tuned,

@@ -39,7 +39,8 @@ TUNING_PLOT = 'tuning_history.png'
 MODEL_LABELS = {'parent': 'Parent (--init)', 'bo_lstm': 'BO-LSTM', 'model': 'Model',
                 'bo_lstm_generalist': 'BO-LSTM, machine inputs only (its fallback)',
                 'model_guarded': 'Model + live guard',
-                'model_prior': "Prior of the model (the guard's fallback)"}
+                'model_prior': "Prior of the model (the guard's fallback)",
+                'model_map_prior': 'Map prior of the model (the second fallback)'}
 METRIC_LABELS = {
     'mse_pct': 'MSE (%^2)', 'rmse_pct': 'RMSE (%)', 'mae_pct': 'MAE (%)',
     'mse_um2': 'MSE (um^2)', 'rmse_um': 'RMSE (um)', 'mae_um': 'MAE (um)',

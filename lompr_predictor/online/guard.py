@@ -6,7 +6,9 @@ instant is minus the plant error measured `horizon` samples before it). A model 
 machine map has a second fallback, its prior (`learning.map_prior`: what it predicts from
 the machine alone, its second network's prediction for a paired model, else persistence plus
 the change the map predicts over the horizon), which transfers between programs where the
-network that reads the path does not. The guard scores the three on the
+network that reads the path does not; a paired model's map prior (persistence plus the
+change the map predicts) comes beside its generalist as a second prior, and the better of
+the two live is the prior that answers. The guard scores them on the
 same instants as their truth arrives (the contract's plant error, which holds under
 compensation), per axis, and chooses, per axis, whose prediction is published:
 
@@ -123,6 +125,7 @@ class AxisStatus:
     model_rms: float  # live RMS of the model's residual [m] (NaN before the first)
     persistence_rms: float  # live RMS of persistence's residual [m], same instants
     prior_rms: float  # live RMS of the prior's residual [m] (NaN: no prior)
+    map_prior_rms: float  # a paired model's map prior's, its second prior [m] (NaN: none)
     hand_overs: int  # switches model -> a fallback
     hand_backs: int  # switches a fallback -> model
 
@@ -132,13 +135,15 @@ class _Axis:
     (`LiveGuard.observe`, `LiveGuard.choose`) inline, a method call per axis and sample
     being most of its cost."""
 
-    __slots__ = ('hand_backs', 'hand_overs', 'model_ms', 'persistence_ms', 'prior_ms', 'reason',
-                 'state', 'switched_at')
+    __slots__ = ('hand_backs', 'hand_overs', 'map_ms', 'model_ms', 'on_map', 'persistence_ms',
+                 'prior_ms', 'reason', 'state', 'switched_at')
 
     def __init__(self, instant: int) -> None:
         self.model_ms = 0.0
         self.persistence_ms = 0.0
         self.prior_ms = UNSCORED
+        self.map_ms = UNSCORED  # a paired model's map prior, its second prior
+        self.on_map = False  # the prior state answers with the map prior (the better)
         self.state = GuardState.MODEL
         self.reason: GuardReason | None = None
         self.switched_at = instant  # the guard's count of decisions at the last switch
@@ -158,9 +163,11 @@ class LiveGuard:
         self.settings = settings  # also sets the weight and thresholds, in instants
         self._lead_ns = lead_ns
         self._tolerance_ns = period_ns // 2
-        #: (instant, model x, y, persistence x, y, prior x, y (NaN: none)) awaiting their
-        #: truth, in increasing instants (a sample's truth arrives in stamp order)
-        self._pending: deque[tuple[int, float, float, float, float, float, float]] = deque()
+        #: (instant, model x, y, persistence x, y, prior x, y, map prior x, y (NaN: none))
+        #: awaiting their truth, in increasing instants (a sample's truth arrives in stamp
+        #: order)
+        self._pending: deque[tuple[int, float, float, float, float, float, float, float,
+                                   float]] = deque()
         self._decisions = 0  # predictions chosen: an axis's dwell counts them
         self._axes = (_Axis(0), _Axis(0))
         self._holding = False  # an axis is in a fallback's hands
@@ -223,7 +230,8 @@ class LiveGuard:
             pending.popleft()  # an instant whose truth never came (a dropped sample)
         if not pending or pending[0][0] > stamp_ns + tolerance:
             return
-        _, model_x, model_y, persistence_x, persistence_y, prior_x, prior_y = pending.popleft()
+        (_, model_x, model_y, persistence_x, persistence_y, prior_x, prior_y, map_x,
+         map_y) = pending.popleft()
         scored = self.scored = self.scored + 1
         weight = 1.0 / scored  # a plain mean at first
         if weight < self._weight:
@@ -250,6 +258,17 @@ class LiveGuard:
                 axis_y.prior_ms = residual * residual
             else:
                 axis_y.prior_ms += weight * (residual * residual - axis_y.prior_ms)
+        if map_x == map_x:  # not NaN: a paired model's map prior
+            residual = error_x - map_x
+            if axis_x.map_ms == UNSCORED:
+                axis_x.map_ms = residual * residual
+            else:
+                axis_x.map_ms += weight * (residual * residual - axis_x.map_ms)
+            residual = error_y - map_y
+            if axis_y.map_ms == UNSCORED:
+                axis_y.map_ms = residual * residual
+            else:
+                axis_y.map_ms += weight * (residual * residual - axis_y.map_ms)
 
     def revise(self, instant_ns: int, prediction: XY, slot: ModelSlot) -> XY | None:
         """The prediction to publish for `instant_ns`: the model's, or on an axis held back
@@ -268,7 +287,7 @@ class LiveGuard:
             inside = envelope.contains(row)
             if not inside:
                 self.last_outside = envelope.first_outside(row) or ''
-        return self.choose(instant_ns, prediction, last[1], inside, slot.prior)
+        return self.choose(instant_ns, prediction, last[1], inside, slot.prior, slot.map_prior)
 
     def clear(self) -> None:
         """Forget the predictions awaiting their truth (the window was emptied: a fault, a
@@ -279,18 +298,20 @@ class LiveGuard:
     # -- the decision ---------------------------------------------------------------------
 
     def choose(self, instant_ns: int, model: XY, last_error: XY, inside_envelope: bool,
-               prior: XY | None = None) -> XY:
+               prior: XY | None = None, map_prior: XY | None = None) -> XY:
         """The prediction to publish for `instant_ns` given the model's, persistence's (the
         plant error `lead_ns` before), whether the model's newest row lies inside its
-        trained envelope, and the model's prior (None: none); all are kept to be scored
-        when the truth arrives."""
+        trained envelope, the model's prior and a paired model's map prior (None: none);
+        all are kept to be scored when the truth arrives."""
         pending = self._pending
         while pending and pending[-1][0] >= instant_ns - self._tolerance_ns:
             pending.pop()  # a newer prediction for the same instant replaces the older
         model_x, model_y = model
         last_x, last_y = last_error
         prior_x, prior_y = NO_PRIOR if prior is None else prior
-        pending.append((instant_ns, model_x, model_y, last_x, last_y, prior_x, prior_y))
+        map_x, map_y = NO_PRIOR if map_prior is None else map_prior
+        pending.append((instant_ns, model_x, model_y, last_x, last_y, prior_x, prior_y, map_x,
+                        map_y))
         if not inside_envelope:
             self.outside_rows += 1
         self._outside += self._weight * ((0.0 if inside_envelope else 1.0) - self._outside)
@@ -303,15 +324,17 @@ class LiveGuard:
             if outside or self._holding or not (
                     axis_x.model_ms <= hand_over * axis_x.persistence_ms + NEGLIGIBLE_MS
                     and axis_x.model_ms <= hand_over * axis_x.prior_ms + NEGLIGIBLE_MS
+                    and axis_x.model_ms <= hand_over * axis_x.map_ms + NEGLIGIBLE_MS
                     and axis_y.model_ms <= hand_over * axis_y.persistence_ms + NEGLIGIBLE_MS
-                    and axis_y.model_ms <= hand_over * axis_y.prior_ms + NEGLIGIBLE_MS):
+                    and axis_y.model_ms <= hand_over * axis_y.prior_ms + NEGLIGIBLE_MS
+                    and axis_y.model_ms <= hand_over * axis_y.map_ms + NEGLIGIBLE_MS):
                 self._decide(outside)
         if not self._holding or not self._enabled:
             return model
         self.published_fallback += 1
         axis_x, axis_y = self._axes
-        return (_answer(axis_x.state, model_x, last_x, prior_x),
-                _answer(axis_y.state, model_y, last_y, prior_y))
+        return (_answer(axis_x.state, model_x, last_x, map_x if axis_x.on_map else prior_x),
+                _answer(axis_y.state, model_y, last_y, map_y if axis_y.on_map else prior_y))
 
     def _decide(self, outside: bool) -> None:
         """Switch the axes the rules say to switch (module docstring), none within
@@ -323,6 +346,10 @@ class LiveGuard:
                 continue
             state, model_ms = axis.state, axis.model_ms
             persistence_ms, prior_ms = axis.persistence_ms, axis.prior_ms
+            # of a paired model's two priors the better live answers, switched freely
+            axis.on_map = axis.map_ms < prior_ms
+            if axis.on_map:
+                prior_ms = axis.map_ms
             # the fallback that answers when the model does not: the prior once it beats
             # persistence by the margin, until it is worse
             if state is GuardState.PRIOR:
@@ -394,6 +421,8 @@ class LiveGuard:
                               model_rms=axis.model_ms ** 0.5 if self.scored else nan,
                               persistence_rms=axis.persistence_ms ** 0.5 if self.scored else nan,
                               prior_rms=nan if axis.prior_ms == UNSCORED else axis.prior_ms ** 0.5,
+                              map_prior_rms=(nan if axis.map_ms == UNSCORED
+                                             else axis.map_ms ** 0.5),
                               hand_overs=axis.hand_overs, hand_backs=axis.hand_backs)
         return one(self._axes[0]), one(self._axes[1])
 

@@ -18,10 +18,11 @@ window exports to a graph without an input (the exporter drops it): it runs with
 
 A backend gives `runner(window)`: a call without arguments that runs the network on
 `window` (a (1, window, features) float64 C-contiguous array, read afresh at every call,
-whose memory the caller keeps alive as long as the call) and returns four Python floats:
+whose memory the caller keeps alive as long as the call) and returns six Python floats:
 the predicted X/Y error [m], then the model's prior X/Y [m] (`learning.map_prior`, which
-the live guard scores as a fallback; NaN for a model without a map). Both backends run the
-prior in the same call as the network, from the same window.
+the live guard scores as a fallback; NaN for a model without a map), then a paired model's
+map prior X/Y [m] (its second fallback; NaN for another model). Both backends run the priors
+in the same call as the network, from the same window.
 """
 
 from __future__ import annotations
@@ -61,8 +62,9 @@ RELATIVE_TOLERANCE = 1e-6
 #: Windows of the warm-up batch: one of zeros and random ones.
 WARM_UP_WINDOWS = 32
 
-#: Predicted X/Y error, then the prior's X/Y (NaN: none) [m].
-Prediction = tuple[float, float, float, float]
+#: Predicted X/Y error, then the prior's X/Y, then a paired model's map prior X/Y (NaN:
+#: none) [m].
+Prediction = tuple[float, float, float, float, float, float]
 #: Runs the network on the window it was made for.
 Runner = Callable[[], Prediction]
 #: The prior of a model without a map.
@@ -100,13 +102,14 @@ class TorchScriptBackend:
 
             def run() -> Prediction:
                 (x, y), = predict(tensor).tolist()
-                return x, y, *NO_PRIOR
+                return x, y, *NO_PRIOR, *NO_PRIOR
             return run
         module = self._with_prior
 
         def run_with_prior() -> Prediction:
-            (x, y, prior_x, prior_y), = run_inference(module, tensor).tolist()
-            return x, y, prior_x, prior_y
+            (x, y, prior_x, prior_y, *map_prior), = run_inference(module, tensor).tolist()
+            map_x, map_y = map_prior or NO_PRIOR
+            return x, y, prior_x, prior_y, map_x, map_y
         return run_with_prior
 
 
@@ -123,7 +126,8 @@ class OnnxRuntimeBackend:
         self._session = onnxruntime.InferenceSession(
             graph, options, providers=['CPUExecutionProvider'])
         self._reads_window = any(node.name == ONNX_INPUT for node in self._session.get_inputs())
-        self._outputs = int(self._session.get_outputs()[0].shape[1])  # 4: with the prior
+        # 2; 4 with the prior; 6 with a paired model's map prior too
+        self._outputs = int(self._session.get_outputs()[0].shape[1])
 
     def runner(self, window: np.ndarray) -> Runner:
         if window.dtype != np.float64 or not window.flags.c_contiguous:
@@ -142,14 +146,20 @@ class OnnxRuntimeBackend:
             def run() -> Prediction:
                 run_bound(binding)
                 (x, y), = read()
-                return x, y, *NO_PRIOR
+                return x, y, *NO_PRIOR, *NO_PRIOR
             return run
+        if self._outputs == 4:
+            def run_with_prior() -> Prediction:
+                run_bound(binding)
+                (x, y, prior_x, prior_y), = read()
+                return x, y, prior_x, prior_y, *NO_PRIOR
+            return run_with_prior
 
-        def run_with_prior() -> Prediction:
+        def run_with_priors() -> Prediction:
             run_bound(binding)
-            (x, y, prior_x, prior_y), = read()
-            return x, y, prior_x, prior_y
-        return run_with_prior
+            (x, y, prior_x, prior_y, map_x, map_y), = read()
+            return x, y, prior_x, prior_y, map_x, map_y
+        return run_with_priors
 
 
 def warm_up_windows(model: LoadedModel, count: int = WARM_UP_WINDOWS) -> np.ndarray:
@@ -219,7 +229,7 @@ def compare(candidate: InferenceBackend, reference: InferenceBackend,
         run_candidate = candidate.runner(window)
     except Exception as err:  # noqa: BLE001 - any failure of the candidate refuses it
         return f'{candidate.name} cannot bind a window ({_first_line(err)})'
-    got, wanted = np.empty((len(windows), 4)), np.empty((len(windows), 4))
+    got, wanted = np.empty((len(windows), 6)), np.empty((len(windows), 6))
     for k, values in enumerate(windows):
         window[:] = values
         wanted[k] = run_reference()

@@ -69,8 +69,10 @@ class ModelSlot:
         self.answers = 0  # windows this slot was asked to answer
         self.predictions = 0  # finite predictions it gave
         #: The prior of the last prediction (`learning.map_prior`; None: the model has
-        #: no map, or it was not finite): the live guard's third candidate.
+        #: no map, or it was not finite): the live guard's third candidate; and a paired
+        #: model's map prior, its fourth (None: another model).
         self.prior: XY | None = None
+        self.map_prior: XY | None = None
         self.use(model, backend)
 
     def use(self, model: LoadedModel, backend: InferenceBackend | None = None) -> None:
@@ -83,17 +85,19 @@ class ModelSlot:
     def predict(self) -> XY | None:
         """The network on the window as it is now (full): the predicted X/Y plant error,
         or None if the model raised or gave anything but one row of two finite numbers; its
-        prior goes to `prior`."""
+        priors go to `prior` and `map_prior`."""
         runner = self._runners[self.window.start]
         start = time.perf_counter()
         try:
-            x, y, prior_x, prior_y = runner()
+            x, y, prior_x, prior_y, map_x, map_y = runner()
             x, y = float(x), float(y)
         except Exception:  # noqa: BLE001 - a model file is code: any failure is a fault
-            x = y = prior_x = prior_y = math.nan
+            x = y = prior_x = prior_y = map_x = map_y = math.nan
         self.inference_time.record(time.perf_counter() - start)
         self.prior = ((prior_x, prior_y) if math.isfinite(prior_x) and math.isfinite(prior_y)
                       else None)
+        self.map_prior = ((map_x, map_y) if math.isfinite(map_x) and math.isfinite(map_y)
+                          else None)
         if math.isfinite(x) and math.isfinite(y):
             self.predictions += 1
             return x, y

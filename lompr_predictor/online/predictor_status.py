@@ -250,12 +250,13 @@ def guard_status(lifecycle: Lifecycle, guard: LiveGuard | None, envelope: bool) 
                        f'model_rms_{axis}_um': round(status.model_rms * 1e6, 3),
                        f'persistence_rms_{axis}_um': round(status.persistence_rms * 1e6, 3),
                        f'prior_rms_{axis}_um': round(status.prior_rms * 1e6, 3),
+                       f'map_prior_rms_{axis}_um': round(status.map_prior_rms * 1e6, 3),
                        f'model_to_persistence_{axis}': round(ratio, 3),
                        f'hand_overs_{axis}': status.hand_overs,
                        f'hand_backs_{axis}': status.hand_backs})
         if status.state is not GuardState.MODEL:
-            fallback_rms = (status.prior_rms if status.state is GuardState.PRIOR
-                            else status.persistence_rms)
+            fallback_rms = (min(status.prior_rms, status.map_prior_rms)
+                            if status.state is GuardState.PRIOR else status.persistence_rms)
             why = (f'({status.reason}, live RMS {status.model_rms * 1e6:.2f} vs '
                    f'{fallback_rms * 1e6:.2f} um)')
             held.append(f'{status.state} answers on {axis.upper()} {why}' if enabled else

@@ -58,19 +58,21 @@ class GuardReplay:
 def replay_guard(guard: LiveGuard, stamps_ns: np.ndarray, actual: np.ndarray,
                  model: np.ndarray, persistence: np.ndarray,
                  inside: np.ndarray | None = None,
-                 prior: np.ndarray | None = None) -> GuardReplay:
+                 prior: np.ndarray | None = None,
+                 map_prior: np.ndarray | None = None) -> GuardReplay:
     """Run `guard` over B predicted instants in increasing stamps `stamps_ns` (int64 ns):
     the model's prediction `model` (B, 2), persistence's `persistence` (B, 2: the plant
     error `guard.lead_ns` before each instant), the plant error `actual` (B, 2) at each instant,
     whether the model's newest row lay inside its trained envelope (`inside`, (B,);
-    None: always) and the model's prior (`prior`, (B, 2); None or NaN rows: none). An
+    None: always), the model's prior (`prior`, (B, 2); None or NaN rows: none) and a paired
+    model's map prior (`map_prior`, alike). An
     instant's truth is scored once the stream reaches it; a step between instants longer
     than the guard's sample period and a half is a gap."""
     count = len(stamps_ns)
     published = np.empty((count, 2))
     answering = np.zeros((count, 2), dtype=np.int8)
-    has_prior = (np.zeros(count, dtype=bool) if prior is None
-                 else np.isfinite(prior).all(axis=1))
+    priors = [(np.zeros(count, dtype=bool) if values is None
+               else np.isfinite(values).all(axis=1), values) for values in (prior, map_prior)]
     gap_ns, lead_ns = guard.period_ns * 3 // 2, guard.lead_ns
     truths = 0  # the next instant whose truth the stream has not reached
     for k in range(count):
@@ -85,10 +87,12 @@ def replay_guard(guard: LiveGuard, stamps_ns: np.ndarray, actual: np.ndarray,
             truths += 1
         prediction = (float(model[k, 0]), float(model[k, 1]))
         last = (float(persistence[k, 0]), float(persistence[k, 1]))
-        prior_xy = ((float(prior[k, 0]), float(prior[k, 1]))
-                    if prior is not None and has_prior[k] else None)
+        prior_xy, map_xy = ((float(values[k, 0]), float(values[k, 1]))
+                            if values is not None and finite[k] else None
+                            for finite, values in priors)
         published[k] = guard.choose(int(stamps_ns[k]), prediction, last,
-                                    True if inside is None else bool(inside[k]), prior_xy)
+                                    True if inside is None else bool(inside[k]), prior_xy,
+                                    map_xy)
         state_x, state_y = guard.answering
         answering[k] = ANSWERING[state_x], ANSWERING[state_y]
     x, y = guard.status()
@@ -101,13 +105,14 @@ def replay_guard(guard: LiveGuard, stamps_ns: np.ndarray, actual: np.ndarray,
 def replay_model_guard(metadata: ModelMetadata, stamps_ns: np.ndarray, actual: np.ndarray,
                        model: np.ndarray, persistence: np.ndarray, newest_rows: np.ndarray,
                        settings: GuardSettings = DEFAULT_GUARD,
-                       prior: np.ndarray | None = None) -> GuardReplay:
+                       prior: np.ndarray | None = None,
+                       map_prior: np.ndarray | None = None) -> GuardReplay:
     """`replay_guard` with the guard a predictor node builds for this model (its horizon,
     sample period and trained envelope, the node's default rules unless `settings`), the
     envelope checked on each window's newest feature row (`newest_rows`, (B, features)),
-    with the model's prior `prior` where it has one."""
+    with the model's prior `prior` (and a paired model's `map_prior`) where it has one."""
     envelope = InputEnvelope.from_metadata(metadata.envelope, metadata.features)
     inside = (None if envelope is None else
               np.array([envelope.contains(row) for row in newest_rows.tolist()], dtype=bool))
     guard = LiveGuard.for_stream(settings, metadata.horizon, metadata.sample_period)
-    return replay_guard(guard, stamps_ns, actual, model, persistence, inside, prior)
+    return replay_guard(guard, stamps_ns, actual, model, persistence, inside, prior, map_prior)
