@@ -128,11 +128,12 @@ def alternating_cpu(cores: Sequence[tuple[str, tuple[OnlinePredictor, list[int]]
 
 class _Frozen(NamedTuple):
     """What a guard reads of a slot at a revise call: the model's metadata, the newest row,
-    the map prior of the prediction."""
+    the priors of the prediction."""
 
     model: Any
     window: Any
     prior: Any
+    map_prior: Any
 
 
 class RecordingUnit:
@@ -148,7 +149,8 @@ class RecordingUnit:
         self.unit.observe(sample, error, published)
 
     def revise(self, instant_ns: int, prediction: XY, slot: ModelSlot) -> XY | None:
-        frozen = _Frozen(slot.model, SimpleNamespace(newest=slot.window.newest), slot.prior)
+        frozen = _Frozen(slot.model, SimpleNamespace(newest=slot.window.newest), slot.prior,
+                         slot.map_prior)
         self.calls.append((True, (instant_ns, prediction, frozen)))
         return self.unit.revise(instant_ns, prediction, slot)
 
