@@ -85,8 +85,9 @@ class LstmNet(nn.Module):
 class PairedNet(nn.Module):
     """Two `LstmNet`s on the same normalised window: the specialist on every column, the
     generalist on the `machine_columns` alone (the map's residuals); outputs (B, 2 x
-    n_outputs), the specialist's first. One training fits both (their parameters are
-    disjoint: each learns as it would alone) at one point of the search space."""
+    n_outputs), the specialist's first. `lompr train` trains the two apart at one point of
+    the search space (`pairing.py`); fine-tuning trains them together, their parameters
+    disjoint, each on its own output as it would alone."""
 
     if TYPE_CHECKING:  # for the type checker only (see `PredictorModule`)
         machine_columns: torch.Tensor
@@ -297,7 +298,7 @@ class PredictorModule(nn.Module):
     def candidates(self, windows: torch.Tensor) -> torch.Tensor:
         """(B, 2 k) the predicted plant X/Y error [m] of each of the network's k outputs:
         the model's (`forward`), then with a `PairedNet` its generalist's (the fallback the
-        live guard scores beside it, `map_prior.PredictionWithFallback`)."""
+        live guard scores beside it, `map_prior.PredictionWithGeneralist`)."""
         if not self.use_map:
             return self._predict(windows, windows, windows, windows)
         mapped = self.machine_map.rows(windows)
