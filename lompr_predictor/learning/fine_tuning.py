@@ -11,7 +11,9 @@ the new recordings' training part from its weights (`training.train_network` wit
 for at most `config.max_epochs` epochs, with the hyperparameters the file records and no
 tuning study, the best validation epoch kept, the starting weights counting as epoch 0 (so
 it is never worse on validation than where it started), and scores it on the test part
-against persistence, the machine map and the model it started from (`parent`).
+against persistence, the machine map and the model it started from (`parent`). A paired
+model's two networks (`pairing.py`) are fine-tuned together, each on its own output, and
+both are scored.
 
 The machine map's coefficients are also fitted again on the new training part (`refit_map`;
 its Jacobian, the robot's kinematics, and its friction speed scales stay the parent's):
