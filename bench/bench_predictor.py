@@ -70,7 +70,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import rclpy
@@ -299,7 +299,7 @@ def bench_inference(path: Path, rate: int) -> dict[str, float]:
     rows = core.primary.window.rows()[None].copy()
     window = torch.from_numpy(rows)
     first_network = editable_module(model)  # the file's module, its networks apart
-    first_network.net = first_network.net.specialist
+    first_network.net = cast(torch.nn.Module, first_network.net.specialist)
     without_prior = OnnxRuntimeBackend(export_onnx(model, script_module(first_network)),
                                        onnxruntime).runner(rows)
     timings = {name: (np.empty(INFERENCE_CALLS), np.empty(INFERENCE_CALLS))

@@ -42,8 +42,9 @@ def test_the_paired_module_predicts_as_its_two_networks_did(
     ends, window = problem.split.test, problem.window
     alone = [predict_rows(part.module, problem.rows, ends, window)
              for part in (specialist, generalist)]
-    both = predict_rows(prediction_with_prior(script_module(joined)), problem.rows, ends, window,
-                        width=6)
+    served = prediction_with_prior(script_module(joined))
+    assert served is not None
+    both = predict_rows(served, problem.rows, ends, window, width=6)
     np.testing.assert_allclose(both[:, :2], alone[0], rtol=0, atol=1e-15)
     np.testing.assert_allclose(both[:, 2:4], alone[1], rtol=0, atol=1e-15)
     np.testing.assert_array_equal(predict_rows(joined, problem.rows, ends, window), both[:, :2])
