@@ -63,18 +63,17 @@ class PredictionWithPrior(nn.Module):
 
 class PredictionWithGeneralist(nn.Module):
     """A paired model's prediction, its generalist's and its map prior side by side (module
-    docstring): the model's `candidates`, both networks in one call, then the map prior."""
+    docstring): the model's `candidates`, both networks and the map prior in one call, the
+    map's rows computed once."""
 
     def __init__(self, module: Any) -> None:
         """`module`: a `models.PredictorModule` with a `models.PairedNet`, or its scripted
         form."""
         super().__init__()
         self.model = module
-        self.map_prior = PredictionWithPrior(module)
 
     def forward(self, windows: torch.Tensor) -> torch.Tensor:
-        return torch.cat([self.model.candidates(windows),
-                          self.map_prior.prior(windows[:, -1])], 1)
+        return self.model.candidates(windows)
 
 
 def is_paired(module: Any) -> bool:

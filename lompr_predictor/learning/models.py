@@ -296,15 +296,17 @@ class PredictorModule(nn.Module):
         return self.candidates(windows)[:, :2]
 
     def candidates(self, windows: torch.Tensor) -> torch.Tensor:
-        """(B, 2 k) the predicted plant X/Y error [m] of each of the network's k outputs:
-        the model's (`forward`), then with a `PairedNet` its generalist's (the fallback the
-        live guard scores beside it, `map_prior.PredictionWithGeneralist`)."""
+        """(B, 2 k [+ 2]) the predicted plant X/Y error [m] of each of the network's k
+        outputs: the model's (`forward`), then with a `PairedNet` its generalist's; then,
+        with a map, the map prior e(t) + g(t+h) - g(t) from the same map rows (the
+        fallbacks the live guard scores beside the model, `map_prior`)."""
         if not self.use_map:
             return self._predict(windows, windows, windows, windows)
         mapped = self.machine_map.rows(windows)
         inputs = torch.cat([windows, windows.index_select(2, self.error_columns) - mapped], 2)
-        return self._predict(inputs, windows, self.machine_map.ahead(windows[:, -1]),
-                             mapped[:, -1])
+        ahead, now = self.machine_map.ahead(windows[:, -1]), mapped[:, -1]
+        prior = windows[:, -1].index_select(1, self.error_columns) + ahead - now
+        return torch.cat([self._predict(inputs, windows, ahead, now), prior], 1)
 
     def _predict(self, inputs: torch.Tensor, windows: torch.Tensor, ahead: torch.Tensor,
                  now: torch.Tensor) -> torch.Tensor:
