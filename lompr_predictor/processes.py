@@ -85,6 +85,18 @@ class StopSignal(KeyboardInterrupt):
         return 128 + int(self.signal)
 
 
+#: The signal that stopped the current `stop_on_signals` block, once one has.
+_stopped_by: signal.Signals | None = None
+
+
+def stop_signal() -> signal.Signals | None:
+    """The signal that stopped the current (or last) `stop_on_signals` block, if one did. An
+    error raised after it may be the stop itself, come out as another exception from library
+    code it landed in (a clean-up there that raised its own error): callers take it as the
+    stop."""
+    return _stopped_by
+
+
 @contextlib.contextmanager
 def stop_on_signals() -> Iterator[None]:
     """Inside, the first SIGINT or SIGTERM raises `StopSignal` in the main thread and later
@@ -96,14 +108,15 @@ def stop_on_signals() -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    stopping = False
+    global _stopped_by
+    _stopped_by = None
 
     def stop(number: int, frame: FrameType | None) -> None:
         del frame
-        nonlocal stopping
-        if not stopping:
-            stopping = True
-            raise StopSignal(signal.Signals(number))
+        global _stopped_by
+        if _stopped_by is None:
+            _stopped_by = signal.Signals(number)
+            raise StopSignal(_stopped_by)
 
     wanted = [number for number in (signal.SIGINT, signal.SIGTERM)
               if signal.getsignal(number) is not signal.SIG_IGN]

@@ -4,6 +4,7 @@ PostgreSQL, settings checked on joining, bad options refused in one line."""
 
 from __future__ import annotations
 
+import fcntl
 import json
 import math
 import multiprocessing
@@ -26,6 +27,7 @@ from lompr_predictor.learning.model_file import load_model
 from lompr_predictor.learning.space import DEFAULT_RESTARTS, PAPER_SPACE
 from lompr_predictor.learning.storage import (
     HEARTBEAT_ATTR,
+    JournalFileFlock,
     StudyError,
     StudyStorage,
     default_storage,
@@ -41,6 +43,7 @@ from lompr_predictor.learning.tuning import (
     trial_counts,
 )
 from lompr_predictor.learning.workers import StudySpec, tune
+from lompr_predictor.processes import StopSignal, stop_on_signals
 from lompr_predictor.robot.description import RobotDescription
 from lompr_predictor.scheduling import TRAINING_NICE
 
@@ -121,6 +124,95 @@ def test_a_silent_trial_is_failed_and_its_point_run_again(tmp_path: Path) -> Non
     assert retry.state == State.COMPLETE and PAPER_SPACE.suggest(
         optuna.trial.FixedTrial(retry.params)) == point
     assert study.trials[orphan.number].state == State.FAIL
+
+
+def _held_elsewhere(path: Path) -> bool:
+    """Whether another holder has the flock on `path` (a try from a descriptor of our own)."""
+    descriptor = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(descriptor)
+    return False
+
+
+def test_a_stop_while_waiting_for_the_journal_lock_leaves_the_holders_lock(
+        tmp_path: Path) -> None:
+    """A stop (KeyboardInterrupt) that lands while a process waits for the journal's write
+    lock reaches it as the stop, and the lock stays with its holder (Optuna's own lock file
+    removes whatever file is there on the way out, another holder's included)."""
+    path = tmp_path / 'study.journal.write-lock'
+    holder, waiter = JournalFileFlock(path), JournalFileFlock(path)
+    holder.acquire()
+
+    def stop(number: int, frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGALRM, stop)
+    try:
+        signal.setitimer(signal.ITIMER_REAL, 0.2)
+        with pytest.raises(KeyboardInterrupt):
+            waiter.acquire()
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+    assert _held_elsewhere(path)
+    holder.release()
+    assert not _held_elsewhere(path)
+    waiter.acquire()  # the waiter is usable again after its stop
+    assert _held_elsewhere(path)
+    waiter.release()
+
+
+def test_the_journal_lock_of_a_killed_process_is_free_at_once(tmp_path: Path) -> None:
+    """A worker killed while it writes the journal leaves no lock behind: the next writer
+    goes on at once (Optuna's lock file held the others for its 30 s grace period)."""
+    journal = default_storage(tmp_path)
+    path = Path(f'{journal}.write-lock')
+    code = ('import sys, time; from pathlib import Path; '
+            'from lompr_predictor.learning.storage import JournalFileFlock; '
+            'lock = JournalFileFlock(Path(sys.argv[1])); lock.acquire(); '
+            'print("held", flush=True); time.sleep(600)')
+    holder = subprocess.Popen([sys.executable, '-c', code, str(path)], stdout=subprocess.PIPE,
+                              text=True)
+    try:
+        assert holder.stdout is not None and holder.stdout.readline() == 'held\n'
+        assert _held_elsewhere(path)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert not _held_elsewhere(path)
+    storage = open_storage(journal)
+    study = open_study(storage, 'after-a-kill', budget=2)
+    assert run_study(study, storage, toy, progress=False) == 2
+
+
+def _stopped_with_another_error(trial: optuna.Trial) -> float:
+    """An objective a stop reaches inside library code whose clean-up raises its own error."""
+    PAPER_SPACE.suggest(trial)
+    try:
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(30)
+    except StopSignal:
+        msg = 'did not possess lock'  # what Optuna's journal lock once raised there
+        raise RuntimeError(msg) from None
+    return 0.0
+
+
+def test_a_stop_that_comes_out_as_another_error_queues_its_trial_again(tmp_path: Path) -> None:
+    """A stop is a stop whatever exception it reaches the worker loop as: the trial it cut
+    short is failed and its point queued again for the command run again (an error of the
+    objective alone fails the trial without queueing it)."""
+    storage = open_storage(default_storage(tmp_path))
+    study = open_study(storage, 'stopped', budget=2)
+    with pytest.raises(RuntimeError, match='did not possess lock'), stop_on_signals():
+        run_trials(study, storage, _stopped_with_another_error)
+    counts = trial_counts(study)
+    assert (counts.failed, counts.running, counts.waiting) == (1, 0, 1)
+    retry = next(t for t in study.trials if t.system_attrs.get(RETRY_OF_ATTR) == 0)
+    assert retry.state == State.WAITING and retry.params == study.trials[0].params
 
 
 def _explode(trial: optuna.Trial) -> float:

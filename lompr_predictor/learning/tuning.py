@@ -36,6 +36,7 @@ from tqdm import tqdm
 
 from lompr_predictor.learning.space import DEFAULT_TRIALS
 from lompr_predictor.learning.storage import StudyError, StudyStorage, fail_and_retry
+from lompr_predictor.processes import stop_signal
 
 #: Trial states that count toward the budget.
 SPENT = (TrialState.COMPLETE, TrialState.PRUNED)
@@ -298,8 +299,9 @@ def _next_trial(study: optuna.Study, storage: StudyStorage, worker: str) -> Any:
                 trial.relative_params  # noqa: B018 - the property samples and records it
             trial.set_user_attr(WORKER, worker)
             storage.beat(study, trial._trial_id)  # Optuna's storage API addresses trials by id
-        except KeyboardInterrupt:  # stopped: the trial would hold a slot until found silent
-            _stopped(study, trial)
+        except BaseException as error:
+            if _is_stop(error):  # stopped: the trial would hold a slot until found silent
+                _stopped(study, trial)
             raise
         return trial
 
@@ -327,17 +329,23 @@ def _run_trial(study: optuna.Study, storage: StudyStorage, trial: optuna.Trial,
         except UpdateFinishedTrialError:
             _taken_as_dead(trial)
             return None
-        except KeyboardInterrupt:  # stopped (Ctrl-C, SIGTERM)
-            with storage.lock(study.study_name):
-                _stopped(study, trial)
-            raise
-        except BaseException:
-            study.tell(trial, state=TrialState.FAIL, skip_if_finished=True)
+        except BaseException as error:
+            if _is_stop(error):
+                with storage.lock(study.study_name):
+                    _stopped(study, trial)
+            else:
+                study.tell(trial, state=TrialState.FAIL, skip_if_finished=True)
             raise
     if study._storage.get_trial(trial._trial_id).state.is_finished():
         _taken_as_dead(trial)
         return None
     return study.tell(trial, value, state=state, skip_if_finished=True).state
+
+
+def _is_stop(error: BaseException) -> bool:
+    """Whether `error` is a stop: Ctrl-C or SIGTERM (`processes.stop_on_signals`), also when
+    it came out of the library code it landed in as another exception."""
+    return isinstance(error, KeyboardInterrupt) or stop_signal() is not None
 
 
 def _stopped(study: optuna.Study, trial: optuna.Trial) -> None:
