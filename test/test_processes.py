@@ -3,6 +3,7 @@ command stopped by SIGINT or SIGTERM alike."""
 
 from __future__ import annotations
 
+import argparse
 import os
 import signal
 import subprocess
@@ -12,6 +13,7 @@ from collections.abc import Callable
 
 import pytest
 
+from lompr_predictor import cli
 from lompr_predictor.processes import StopSignal, stop_on_signals, stop_processes, stop_signal
 
 #: A child that says it is ready, then handles the signals as its argument says: `interrupt`
@@ -107,21 +109,36 @@ def test_a_sigint_inherited_ignored_stays_ignored() -> None:
     assert (out, process.returncode) == ('stopped by SIGTERM\n', 128 + signal.SIGTERM)
 
 
+def stopped_in_library_code() -> None:
+    """Work a SIGTERM reaches inside library code whose clean-up raises its own error."""
+    try:
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(30)
+    except StopSignal:
+        msg = 'did not possess lock'  # what Optuna's journal lock once raised here
+        raise RuntimeError(msg) from None
+
+
 def test_a_stop_that_comes_out_as_another_error_is_still_known() -> None:
     """Library code a stop lands in may raise an error of its own in its clean-up, which
     then reaches the caller in place of the stop: `stop_signal` still names the stop (until
     the next block starts)."""
-    def stopped_in_library_code() -> None:
-        try:
-            os.kill(os.getpid(), signal.SIGTERM)
-            time.sleep(30)
-        except StopSignal:
-            msg = 'did not possess lock'  # what Optuna's journal lock once raised here
-            raise RuntimeError(msg) from None
-
     with pytest.raises(RuntimeError, match='did not possess lock'), stop_on_signals():
         stopped_in_library_code()
     assert stop_signal() == signal.SIGTERM
     with stop_on_signals():
         assert stop_signal() is None
+
+
+def test_a_command_stopped_inside_library_code_says_it_was_stopped(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """`lompr`: a stop that reached the command as another error is reported as the stop,
+    with its exit code, not as an internal error."""
+    parser = argparse.ArgumentParser(prog='lompr')
+    parser.add_argument('--debug', action='store_true')
+    commands = parser.add_subparsers(dest='command')
+    commands.add_parser('work').set_defaults(run=lambda args: stopped_in_library_code())
+    monkeypatch.setattr(cli, 'build_parser', lambda: parser)
+    assert cli.main(['work']) == 128 + signal.SIGTERM
+    assert capsys.readouterr().err == 'lompr work: stopped by SIGTERM\n'
 
