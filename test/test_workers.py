@@ -20,6 +20,7 @@ from typing import Any
 import optuna
 import pytest
 from postgres_server import available, postgres_server
+from test_processes import stopped_in_library_code
 from trainer_data import lissajous_reference, synthetic_recording
 
 from lompr_predictor.data.bags import write_recording
@@ -43,7 +44,7 @@ from lompr_predictor.learning.tuning import (
     trial_counts,
 )
 from lompr_predictor.learning.workers import StudySpec, tune
-from lompr_predictor.processes import StopSignal, stop_on_signals
+from lompr_predictor.processes import stop_on_signals
 from lompr_predictor.robot.description import RobotDescription
 from lompr_predictor.scheduling import TRAINING_NICE
 
@@ -192,12 +193,7 @@ def test_the_journal_lock_of_a_killed_process_is_free_at_once(tmp_path: Path) ->
 def _stopped_with_another_error(trial: optuna.Trial) -> float:
     """An objective a stop reaches inside library code whose clean-up raises its own error."""
     PAPER_SPACE.suggest(trial)
-    try:
-        os.kill(os.getpid(), signal.SIGTERM)
-        time.sleep(30)
-    except StopSignal:
-        msg = 'did not possess lock'  # what Optuna's journal lock once raised there
-        raise RuntimeError(msg) from None
+    stopped_in_library_code()
     return 0.0
 
 
