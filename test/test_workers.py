@@ -428,8 +428,10 @@ def test_a_stopped_training_leaves_no_process_and_resumes(tmp_path: Path,
     """SIGTERM or SIGINT to `lompr train --workers 2` mid-study: it stops its workers, says
     so in one line and exits with 128 + the signal; SIGKILL: its workers stop by themselves.
     Either way no process of it is left (by pid and by process group), the workers ran at
-    the default lower priority, the trial cut short is failed and its point queued, and the
-    same command afterwards resumes the study (that point run again) and finishes it."""
+    the default lower priority, the trials cut short are failed and their points queued, and
+    the same command afterwards resumes the study (those points run again) and finishes it.
+    (The trial seen mid-training may finish before the signal lands: the trials cut short
+    are those the stop failed, whichever they are.)"""
     bag = tmp_path / 'bag'
     subprocess.run([lompr(), 'simulate', '--out', str(bag), '--passes', '2', '--seed', '3',
                     '--no-plot'], check=True, capture_output=True, timeout=300)
@@ -440,7 +442,7 @@ def test_a_stopped_training_leaves_no_process_and_resumes(tmp_path: Path,
                                text=True, start_new_session=True)  # its own group, to check
     try:
         study = _journal_study(report, command)
-        victim = _wait_for_running_trial(study, lambda pid: pid in _children(command.pid))
+        _wait_for_running_trial(study, lambda pid: pid in _children(command.pid))
         workers = _children(command.pid)  # the tuning workers (and multiprocessing's tracker)
         niceness = {int(fields[16]) for pid, fields in _processes().items()
                     if pid in workers | {command.pid}}
@@ -453,14 +455,16 @@ def test_a_stopped_training_leaves_no_process_and_resumes(tmp_path: Path,
     if number != signal.SIGKILL:
         assert errors.strip().splitlines()[-1].startswith(
             f'lompr train: stopped by {number.name}; the tuning study is kept'), errors
-    assert trial_counts(study).running == 0
-    assert study.trials[victim.number].state == State.FAIL
+    cut_short = [t for t in study.trials if t.state == State.FAIL]
+    assert trial_counts(study).running == 0 and cut_short, 'the stop cut no trial short'
     resumed = subprocess.run(train, capture_output=True, text=True, timeout=600)
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     counts = trial_counts(study)
     assert (counts.spent, counts.running, counts.waiting) == (4, 0, 0)
-    retry = next(t for t in study.trials if t.system_attrs.get(RETRY_OF_ATTR) == victim.number)
-    assert retry.params == victim.params and retry.state in (State.COMPLETE, State.PRUNED)
+    for trial in cut_short:
+        retry = next(t for t in study.trials if t.system_attrs.get(RETRY_OF_ATTR) == trial.number)
+        assert retry.state in (State.COMPLETE, State.PRUNED)
+        assert retry.params == trial.params or not trial.params  # none: cut before sampling
     load_model(model, expected={'window': 8, 'horizon': 2})
 
 
