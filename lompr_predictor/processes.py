@@ -90,10 +90,11 @@ _stopped_by: signal.Signals | None = None
 
 
 def stop_signal() -> signal.Signals | None:
-    """The signal that stopped the current (or last) `stop_on_signals` block, if one did. An
-    error raised after it may be the stop itself, come out as another exception from library
-    code it landed in (a clean-up there that raised its own error): callers take it as the
-    stop."""
+    """The signal that stopped the current `stop_on_signals` block, if one did (None outside
+    a block). An error raised after it may be the stop itself, come out as another exception
+    from library code it landed in (a clean-up there that raised its own error): code inside
+    the block that handles errors takes it as the stop; the block itself lets it out as the
+    `StopSignal`."""
     return _stopped_by
 
 
@@ -104,12 +105,14 @@ def stop_on_signals() -> Iterator[None]:
     recording their work) is not itself cut short. A signal the process inherited ignored
     (SIGINT in a job a shell script started in the background) stays ignored. The previous
     handlers come back after the block; outside the main thread (no handlers there) this
-    does nothing."""
+    does nothing. An error (an `Exception`) that leaves the block after a stop leaves it as
+    that stop's `StopSignal`, chained from the error: whoever cleans up after a stop does
+    after this one too."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     global _stopped_by
-    _stopped_by = None
+    outer, _stopped_by = _stopped_by, None
 
     def stop(number: int, frame: FrameType | None) -> None:
         del frame
@@ -123,6 +126,11 @@ def stop_on_signals() -> Iterator[None]:
     previous = {number: signal.signal(number, stop) for number in wanted}
     try:
         yield
+    except Exception as error:
+        if _stopped_by is not None:  # the stop, come out of library code as another error
+            raise StopSignal(_stopped_by) from error
+        raise
     finally:
         for number, handler in previous.items():
             signal.signal(number, handler)
+        _stopped_by = outer

@@ -119,15 +119,23 @@ def stopped_in_library_code() -> None:
         raise RuntimeError(msg) from None
 
 
-def test_a_stop_that_comes_out_as_another_error_is_still_known() -> None:
-    """Library code a stop lands in may raise an error of its own in its clean-up, which
-    then reaches the caller in place of the stop: `stop_signal` still names the stop (until
-    the next block starts)."""
-    with pytest.raises(RuntimeError, match='did not possess lock'), stop_on_signals():
-        stopped_in_library_code()
-    assert stop_signal() == signal.SIGTERM
-    with stop_on_signals():
-        assert stop_signal() is None
+def test_a_stop_that_comes_out_as_another_error_leaves_the_block_as_the_stop() -> None:
+    """Library code a stop lands in may raise an error of its own in its clean-up: inside the
+    block `stop_signal` names the stop, and the error leaves the block as that stop (chained
+    from the error); outside a block there is no stop."""
+    seen = []
+
+    def stopped_and_seen() -> None:
+        try:
+            stopped_in_library_code()
+        finally:
+            seen.append(stop_signal())
+
+    with pytest.raises(StopSignal) as raised, stop_on_signals():
+        stopped_and_seen()
+    assert seen == [signal.SIGTERM] and raised.value.signal == signal.SIGTERM
+    assert isinstance(raised.value.__cause__, RuntimeError)
+    assert stop_signal() is None
 
 
 def test_a_command_stopped_inside_library_code_says_it_was_stopped(

@@ -23,7 +23,7 @@ from collections.abc import Sequence
 from typing import NoReturn
 
 from lompr_predictor.errors import LomprError
-from lompr_predictor.processes import StopSignal, stop_on_signals, stop_signal
+from lompr_predictor.processes import StopSignal, stop_on_signals
 
 SUBCOMMANDS = ('simulate', 'train', 'evaluate', 'demo')
 #: Exit codes: a usage or input error; an internal error (a bug, or a failure nobody
@@ -61,14 +61,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         with stop_on_signals():
             return int(args.run(args) or 0)
     except KeyboardInterrupt as interrupt:  # a StopSignal, or Ctrl-C before it was set up
-        return _report_stop(args, interrupt if isinstance(interrupt, StopSignal)
-                            else StopSignal(signal.SIGINT))
+        stopped = interrupt if isinstance(interrupt, StopSignal) else StopSignal(signal.SIGINT)
+        print(f'lompr {args.command}: stopped by {stopped.signal.name}'
+              f'{getattr(args, "stop_hint", "")}', file=sys.stderr)
+        return stopped.exit_code
     except Exception as err:
         if args.debug:
             raise
-        number = stop_signal()
-        if number is not None:  # the stop, come out of library code as another error
-            return _report_stop(args, StopSignal(number))
         if isinstance(err, LomprError):
             print(f'lompr {args.command}: error: {err}', file=sys.stderr)
             return EXIT_USAGE
@@ -76,13 +75,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f'lompr {args.command}: internal error: {type(err).__name__}: {text} (run '
               f'lompr --debug {args.command} ... for the traceback)', file=sys.stderr)
         return EXIT_INTERNAL
-
-
-def _report_stop(args: argparse.Namespace, stopped: StopSignal) -> int:
-    """Say in one line what stopped the command; its exit code."""
-    print(f'lompr {args.command}: stopped by {stopped.signal.name}'
-          f'{getattr(args, "stop_hint", "")}', file=sys.stderr)
-    return stopped.exit_code
 
 
 if __name__ == '__main__':

@@ -293,6 +293,8 @@ class PredictorModule(nn.Module):
         return torch.from_numpy(scaled.astype(np.float32))
 
     def forward(self, windows: torch.Tensor) -> torch.Tensor:
+        # through `candidates`, which scripting compiles only because forward calls it (the
+        # node calls it on the model file); the map prior it adds costs a few tensor ops
         return self.candidates(windows)[:, :2]
 
     def candidates(self, windows: torch.Tensor) -> torch.Tensor:

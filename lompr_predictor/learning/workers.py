@@ -64,7 +64,7 @@ from lompr_predictor.learning.tuning import (
     trial_counts,
     worker_name,
 )
-from lompr_predictor.processes import stop_on_signals, stop_signal
+from lompr_predictor.processes import stop_on_signals
 from lompr_predictor.threads import set_torch_threads
 
 if TYPE_CHECKING:
@@ -244,12 +244,12 @@ def _worker_main(spec: StudySpec, make_objective: ObjectiveFactory, threads: int
             with contextlib.suppress(threading.BrokenBarrierError):
                 barrier.wait(START_TIMEOUT)
             ran = run_trials(study, storage, objective)
-    except BaseException as err:
-        if isinstance(err, KeyboardInterrupt) or stop_signal() is not None:
-            sys.exit(130)  # stopped (also when the stop came out of library code as an error)
-        if isinstance(err, LomprError):  # a message for the user: the parent prints it
-            messages.put(('error', name, str(err)))
-            sys.exit(2)
-        messages.put(('error', name, f'{type(err).__name__}: {err}'))  # a bug: the traceback
-        raise  # too (printed by multiprocessing)
+    except KeyboardInterrupt:  # stopped (`stop_on_signals`: also a stop come out as an error)
+        sys.exit(130)
+    except LomprError as err:  # a message for the user: the parent prints it, one line
+        messages.put(('error', name, str(err)))
+        sys.exit(2)
+    except BaseException as err:  # a bug: the traceback too (printed by multiprocessing)
+        messages.put(('error', name, f'{type(err).__name__}: {err}'))
+        raise
     messages.put(('done', name, ran))
