@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from test_online_guard import HORIZON, LEAD, PERIOD, _run, _settings, _walk
 
 from lompr_predictor.online.guard import GuardState, LiveGuard
@@ -18,9 +19,9 @@ def _instants(truth: np.ndarray, model_error: np.ndarray, start_ns: int = 0
 
 
 def test_replay_publishes_what_the_guard_publishes_sample_by_sample() -> None:
-    """A model worse than persistence on X for a while, then better: the replay hands over
-    and back at the same instants as the guard fed in the node's order (a sample's truth,
-    then the prediction from its window)."""
+    """A model better than persistence, then worse on X for a while, then better again: the
+    replay hands to the model, over and back at the same instants as the guard fed in the
+    node's order (a sample's truth, then the prediction from its window)."""
     truth = _walk(900, seed=11)
     model_error = np.random.default_rng(12).normal(0.0, 0.3e-6, truth.shape)
     model_error[100:400, 0] = 4e-6
@@ -28,10 +29,14 @@ def test_replay_publishes_what_the_guard_publishes_sample_by_sample() -> None:
     online = _run(LiveGuard(settings, LEAD, PERIOD), truth, model_error)[:-HORIZON]
     replay = replay_guard(LiveGuard(settings, LEAD, PERIOD), *_instants(truth, model_error))
     np.testing.assert_array_equal(replay.published, online)
-    assert replay.hand_overs == (1, 0) and replay.hand_backs == (1, 0)
-    held_x = replay.held_back[:, 0]
+    assert replay.hand_overs == (1, 0) and replay.hand_backs == (2, 1)
+    held_x, held_y = replay.held_back.T
     np.testing.assert_array_equal(held_x, online[:, 0] == truth[:-HORIZON, 0])
-    assert 0.2 < held_x.mean() < 0.5 and not replay.held_back[:, 1].any()
+    # unproven until the first decision the dwell allows (its 30th), then the model on Y
+    earned = 29
+    assert held_y[:earned].all() and not held_y[earned:].any()
+    assert held_x[:earned].all() and not held_x[earned:100].any()
+    assert 0.2 < held_x.mean() < 0.5
 
 
 def test_a_gap_forgets_the_predictions_awaiting_their_truth() -> None:
@@ -62,11 +67,13 @@ def test_rows_outside_the_envelope_are_counted_and_held_back() -> None:
     replay = replay_guard(LiveGuard(settings, LEAD, PERIOD),
                           *_instants(truth, np.zeros_like(truth)), inside)
     assert replay.outside_envelope == 60
-    assert replay.held_back[110:160].all() and not replay.held_back[:100].any()
+    earned = settings.min_scored + HORIZON - 1  # unproven until the 50th score
+    assert replay.held_back[:earned].all() and not replay.held_back[earned:100].any()
+    assert replay.held_back[110:160].all()
     summary = replay.summary()
     assert summary['rows_outside_envelope'] == 60
     assert summary['x'] == {'held_back_fraction': float(replay.held_back[:, 0].mean()),
-                            'prior_fraction': 0.0, 'hand_overs': 1, 'hand_backs': 1}
+                            'prior_fraction': 0.0, 'hand_overs': 1, 'hand_backs': 2}
 
 
 def test_replay_with_a_prior_publishes_what_the_guard_publishes() -> None:
@@ -85,10 +92,16 @@ def test_replay_with_a_prior_publishes_what_the_guard_publishes() -> None:
                           prior=(truth + prior_error)[HORIZON:])
     np.testing.assert_array_equal(replay.published, online)
     on_prior = replay.answering[:, 0] == ANSWERING[GuardState.PRIOR]
-    np.testing.assert_array_equal(on_prior, replay.held_back[:, 0])
+    # persistence answers until the first decision (the 30th: the dwell), then the model
+    # and the prior by turns
+    earned = 29
+    assert replay.held_back[:earned].all() and not on_prior[:earned].any()
+    np.testing.assert_array_equal(on_prior[earned:], replay.held_back[earned:, 0])
     np.testing.assert_array_equal(replay.published[on_prior, 0],
                                   (truth + prior_error)[HORIZON:][on_prior, 0])
     x = replay.summary()['x']
     assert isinstance(x, dict)
-    assert 0.3 < x['prior_fraction'] == x['held_back_fraction'] < 0.6
-    assert replay.hand_overs == (1, 0) and replay.hand_backs == (1, 0)
+    assert x['held_back_fraction'] == pytest.approx(x['prior_fraction'] + earned / len(on_prior),
+                                                   rel=1e-12)
+    assert 0.3 < x['prior_fraction'] < 0.6
+    assert replay.hand_overs == (1, 0) and replay.hand_backs == (2, 1)

@@ -18,12 +18,16 @@ compensation), per axis, and chooses, per axis, whose prediction is published:
   exponentially weighted means over about `window` seconds of sample time (long enough to
   span what a program repeats: a model better on the straights and worse at the corners is
   judged on both, not handed back and forth between them);
-- an axis is handed over as soon as the model's live RMS exceeds the better fallback's (a
-  model no better than what it builds on has no business compensating), and handed back
-  when it is below the better fallback's by `margin` (relative): the gap between the two
-  thresholds is the hysteresis; no switch within `min_dwell` seconds of the last one, and
-  none before `min_scored` instants were scored. Between the two fallbacks the prior is
-  preferred once it is better than persistence by the margin and kept until it is worse;
+- a model earns control: each axis starts on persistence (`unproven`: nothing is known of
+  the model on this machine and program yet, and a model is most often wrong where it was
+  not trained, which the first instants cannot show), and the model takes it when its live
+  RMS is below the better fallback's by `margin` (relative); it is handed over as soon as
+  its live RMS exceeds the better fallback's (a model no better than what it builds on has
+  no business compensating), and handed back when below by the margin again: the gap
+  between the two thresholds is the hysteresis; no switch within `min_dwell` seconds of the
+  last one (or of the start), and none before `min_scored` instants were scored. Between
+  the two fallbacks the prior is preferred once it is better than persistence by the
+  margin and kept until it is worse;
 - a sample whose feature row lies outside the model's trained envelope (`envelope.py`) is
   counted; while more than `envelope_fraction` of the recent rows lie outside it, both axes
   are held back whatever the live scores (the network is extrapolating; the map's few
@@ -79,6 +83,7 @@ class GuardReason(StrEnum):
     WORSE_THAN_PERSISTENCE = 'worse_than_persistence'  # its live RMS; persistence answers
     WORSE_THAN_PRIOR = 'worse_than_prior'  # its live RMS; its prior answers
     OUTSIDE_ENVELOPE = 'outside_envelope'  # the inputs left what training saw
+    UNPROVEN = 'unproven'  # not yet better than the fallbacks by the margin, nor worse
 
 
 #: The reason an axis answered by a fallback gives when the model is worse there.
@@ -144,8 +149,8 @@ class _Axis:
         self.prior_ms = UNSCORED
         self.map_ms = UNSCORED  # a paired model's map prior, its second prior
         self.on_map = False  # the prior state answers with the map prior (the better)
-        self.state = GuardState.MODEL
-        self.reason: GuardReason | None = None
+        self.state = GuardState.PERSISTENCE  # until the model earns control
+        self.reason: GuardReason | None = GuardReason.UNPROVEN
         self.switched_at = instant  # the guard's count of decisions at the last switch
         self.hand_overs = 0
         self.hand_backs = 0
@@ -170,7 +175,7 @@ class LiveGuard:
                                    float]] = deque()
         self._decisions = 0  # predictions chosen: an axis's dwell counts them
         self._axes = (_Axis(0), _Axis(0))
-        self._holding = False  # an axis is in a fallback's hands
+        self._holding = True  # an axis is in a fallback's hands
         self._outside = 0.0  # weighted fraction of recent rows outside the envelope
         self._last: tuple[int, XY] | None = None  # the newest sample's stamp and plant error
         self._enveloped: object = None  # the metadata whose envelope `_envelope` is
@@ -367,10 +372,14 @@ class LiveGuard:
                 wanted, reason = fallback, WORSE_THAN[fallback]
             elif model_ms < hand_back * best_ms - NEGLIGIBLE_MS:
                 wanted, reason = GuardState.MODEL, None
-            elif fallback is state and axis.reason is not GuardReason.OUTSIDE_ENVELOPE:
-                continue  # held back, still not better by the margin, same fallback
             else:
-                wanted, reason = fallback, WORSE_THAN[fallback]
+                # held back, still not better by the margin: unproven until shown worse
+                reason = (GuardReason.UNPROVEN if axis.reason is GuardReason.UNPROVEN
+                          and model_ms <= hand_over * best_ms + NEGLIGIBLE_MS
+                          else WORSE_THAN[fallback])
+                if fallback is state and reason is axis.reason:
+                    continue
+                wanted = fallback
             if wanted is state:
                 axis.reason = reason
                 continue
@@ -384,11 +393,11 @@ class LiveGuard:
                              or axis_y.state is not GuardState.MODEL)
 
     def restart(self) -> None:
-        """A new model: its live scores start from nothing, in control until the rules say
-        otherwise (the envelope is read from the new model's metadata)."""
+        """A new model: its live scores start from nothing, unproven on persistence until
+        it earns control (the envelope is read from the new model's metadata)."""
         self.clear()
         self._axes = (_Axis(self._decisions), _Axis(self._decisions))
-        self._holding = False
+        self._holding = True
         self._outside = 0.0
         self._enveloped = self._envelope = None
         self.scored = 0

@@ -19,7 +19,7 @@ from lompr_predictor.monitoring import (
     latency_values,
     rejection_values,
 )
-from lompr_predictor.online.guard import AXES, GuardState, LiveGuard
+from lompr_predictor.online.guard import AXES, GuardReason, GuardState, LiveGuard
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_counts import (
     INPUTS_STATUS,
@@ -232,7 +232,8 @@ def guard_status(lifecycle: Lifecycle, guard: LiveGuard | None, envelope: bool) 
     """The live guard (`online.guard`): per axis whether the model, its prior or
     persistence answers and why, the live RMS of the three on the same instants, the
     hand-overs, the rows outside the model's trained envelope (`envelope`: whether its file
-    has one). WARN while an axis is held back (or would be, with the guard off)."""
+    has one). WARN while an axis is held back (or would be, with the guard off) for a
+    reason other than being unproven, the start of every model."""
     if guard is None:
         return Status(Level.WARN, lifecycle.state, lifecycle.values())
     enabled = guard.settings.enabled
@@ -242,7 +243,7 @@ def guard_status(lifecycle: Lifecycle, guard: LiveGuard | None, envelope: bool) 
                                  guard.outside_rows,
                                  'outside_envelope_fraction': round(guard.outside_fraction, 4),
                                  'last_outside_column': guard.last_outside}
-    held = []
+    held, unproven = [], []
     for axis, status in zip(AXES, guard.status(), strict=True):
         ratio = (status.model_rms / status.persistence_rms if status.persistence_rms > 0
                  else float('nan'))
@@ -258,15 +259,21 @@ def guard_status(lifecycle: Lifecycle, guard: LiveGuard | None, envelope: bool) 
             fallback_rms = (min(status.prior_rms, status.map_prior_rms)
                             if status.state is GuardState.PRIOR else status.persistence_rms)
             why = (f'({status.reason}, live RMS {status.model_rms * 1e6:.2f} vs '
-                   f'{fallback_rms * 1e6:.2f} um)')
-            held.append(f'{status.state} answers on {axis.upper()} {why}' if enabled else
-                        f'guard off: the model answers on {axis.upper()}, though worse than '
-                        f'{status.state} {why}')
+                   f'{fallback_rms * 1e6:.2f} um)' if guard.scored else
+                   f'({status.reason}, not yet scored)')
+            if status.reason is GuardReason.UNPROVEN:
+                unproven.append(f'{status.state} answers on {axis.upper()} until the model is '
+                                f'better by the margin {why}' if enabled else
+                                f'guard off: the model answers on {axis.upper()}, not yet '
+                                f'better than {status.state} {why}')
+            else:
+                held.append(f'{status.state} answers on {axis.upper()} {why}' if enabled else
+                            f'guard off: the model answers on {axis.upper()}, though worse '
+                            f'than {status.state} {why}')
     if held:
-        return Status(Level.WARN, '; '.join(held), values)
-    if not guard.scored:
-        return Status(Level.OK, 'the model answers (not yet scored)' if enabled else
-                      'guard off', values)
+        return Status(Level.WARN, '; '.join(held + unproven), values)
+    if unproven:  # the start of every model: it earns control
+        return Status(Level.OK, '; '.join(unproven), values)
     return Status(Level.OK, 'the model answers' + ('' if enabled else ' (guard off)'), values)
 
 

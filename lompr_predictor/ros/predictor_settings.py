@@ -166,7 +166,8 @@ class PredictorNodeSettings(FrameSettings):
         'may switch again', minimum=0.0, maximum=86_400.0, read_only=True)
     guard_min_scored: int = parameter(
         DEFAULT_GUARD.min_scored,
-        'instants scored before the guard first judges the model', minimum=0,
+        'instants scored before the guard first judges the model (persistence answers '
+        'until the model is better by the margin)', minimum=0,
         maximum=10_000_000, read_only=True)
     guard_envelope_fraction: float = parameter(
         DEFAULT_GUARD.envelope_fraction,
