@@ -9,10 +9,12 @@ import pytest
 from fake_clock import FakeClock
 from model_helpers import save_constant
 from test_online import stream
+from test_online_guard import HORIZON, LEAD, PERIOD, _run, _settings, _walk
 
 from lompr_predictor.data.features import HISTORY
 from lompr_predictor.learning.model_file import load_model
 from lompr_predictor.monitoring import LatencySummary, Level, RateMeter, Status
+from lompr_predictor.online.guard import LiveGuard
 from lompr_predictor.online.offset import CompensationLimits
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_counts import (
@@ -28,6 +30,7 @@ from lompr_predictor.online.predictor_status import (
     Lifecycle,
     ModelHistory,
     PredictionLimits,
+    guard_status,
     input_status,
     model_status,
     prediction_status,
@@ -205,3 +208,29 @@ def test_counts_missing_from_the_statuses_are_named() -> None:
         read_counts({**written, PREDICTION_STATUS: renamed})
     with pytest.raises(CountsMissingError, match=r'no faults\.<reason> counts'):
         read_counts({**written, INPUTS_STATUS: {'rejected.duplicate': '1'}})
+
+
+def test_a_model_unproven_for_a_whole_window_is_a_warning() -> None:
+    """A model 0.97x persistence on every instant, inside the margin, never earns control:
+    the guard status is OK while fewer than a window of instants were scored (the start of
+    every model), WARN after, naming the axes; the state stays `persistence`, `unproven`."""
+    window = 100  # instants
+    settings = _settings(window_instants=window, min_scored=10, dwell_instants=10)
+    truth = _walk(window + HORIZON + 20, seed=21)
+    model_error = np.zeros_like(truth)
+    model_error[HORIZON:] = -0.97 * (truth[HORIZON:] - truth[:-HORIZON])
+    statuses = []
+    for count in (window, len(truth)):  # scored: a window less HORIZON, then past it
+        guard = LiveGuard(settings, LEAD, PERIOD)
+        _run(guard, truth[:count], model_error[:count])
+        statuses.append(guard_status(ACTIVE, guard, envelope=False))
+    early, late = statuses
+    assert early.level is Level.OK
+    assert early.message.startswith('persistence answers on X until the model is better by '
+                                    'the margin (unproven, live RMS ')
+    assert late.level is Level.WARN
+    assert 'persistence answers on X until' in late.message
+    assert 'persistence answers on Y until' in late.message
+    assert late.values['state_x'] == late.values['state_y'] == 'persistence'
+    assert late.values['reason_x'] == late.values['reason_y'] == 'unproven'
+    assert late.values['model_to_persistence_x'] == pytest.approx(0.97, abs=0.005)

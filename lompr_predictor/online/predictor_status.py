@@ -232,8 +232,8 @@ def guard_status(lifecycle: Lifecycle, guard: LiveGuard | None, envelope: bool) 
     """The live guard (`online.guard`): per axis whether the model, its prior or
     persistence answers and why, the live RMS of the three on the same instants, the
     hand-overs, the rows outside the model's trained envelope (`envelope`: whether its file
-    has one). WARN while an axis is held back (or would be, with the guard off) for a
-    reason other than being unproven, the start of every model."""
+    has one). WARN while an axis is held back (or would be, with the guard off), but for
+    the start of every model: unproven for less than a window of scored instants."""
     if guard is None:
         return Status(Level.WARN, lifecycle.state, lifecycle.values())
     enabled = guard.settings.enabled
@@ -243,7 +243,11 @@ def guard_status(lifecycle: Lifecycle, guard: LiveGuard | None, envelope: bool) 
                                  guard.outside_rows,
                                  'outside_envelope_fraction': round(guard.outside_fraction, 4),
                                  'last_outside_column': guard.last_outside}
-    held, unproven = [], []
+    held: list[str] = []
+    unproven: list[str] = []
+    # a model still unproven once a whole window was scored does not know this program or
+    # machine: said as loudly as a model shown worse
+    warming_up = guard.scored * guard.period_ns * 1e-9 < guard.settings.window
     for axis, status in zip(AXES, guard.status(), strict=True):
         ratio = (status.model_rms / status.persistence_rms if status.persistence_rms > 0
                  else float('nan'))
@@ -262,10 +266,11 @@ def guard_status(lifecycle: Lifecycle, guard: LiveGuard | None, envelope: bool) 
                    f'{fallback_rms * 1e6:.2f} um)' if guard.scored else
                    f'({status.reason}, not yet scored)')
             if status.reason is GuardReason.UNPROVEN:
-                unproven.append(f'{status.state} answers on {axis.upper()} until the model is '
-                                f'better by the margin {why}' if enabled else
-                                f'guard off: the model answers on {axis.upper()}, not yet '
-                                f'better than {status.state} {why}')
+                (unproven if warming_up else held).append(
+                    f'{status.state} answers on {axis.upper()} until the model is better by '
+                    f'the margin {why}' if enabled else
+                    f'guard off: the model answers on {axis.upper()}, not yet better than '
+                    f'{status.state} {why}')
             else:
                 held.append(f'{status.state} answers on {axis.upper()} {why}' if enabled else
                             f'guard off: the model answers on {axis.upper()}, though worse '
