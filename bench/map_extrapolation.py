@@ -64,7 +64,7 @@ def main() -> None:
     def g(xy: np.ndarray, v: np.ndarray, a: np.ndarray) -> np.ndarray:
         with torch.no_grad():
             return machine_map.evaluate(*(torch.from_numpy(np.ascontiguousarray(z)) for z in
-                                          (xy[:, 0], xy[:, 1], v, a))).numpy()
+                                          (xy, v, a))).numpy()
 
     lead = h * problem.sample_period
     change = problem.error[later] - problem.error[ends]

@@ -114,14 +114,26 @@ class MachineMap(nn.Module):
 
     # -- the map --------------------------------------------------------------------------
 
-    def evaluate(self, x: torch.Tensor, y: torch.Tensor, velocity: torch.Tensor,
+    def evaluate(self, position: torch.Tensor, velocity: torch.Tensor,
                  acceleration: torch.Tensor) -> torch.Tensor:
-        """(..., 2) g for positions x, y (...) and branch velocities and accelerations
-        (..., 3)."""
-        motion = self.branch_motion(velocity, acceleration)
-        branch_error = (motion * self.branch_coefficients).sum(-2)  # (..., 3)
-        return (branch_error @ self.jacobian.t()
-                + posture_terms(x, y) @ self.posture_coefficients)
+        """(..., 2) g for positions x, y (..., 2) and branch velocities and accelerations
+        (..., 3): every term of the map in one row times one matrix, so that the exported
+        graph is a handful of operations (the matrix is the coefficients' own product, which
+        the runtime folds into a constant)."""
+        signs = torch.tanh(velocity.unsqueeze(-2) / self.scales.unsqueeze(-1))  # (..., S, 3)
+        products = position.unsqueeze(-1) * position.unsqueeze(-2)  # x x, x y, y x, y y
+        terms = torch.cat([velocity, acceleration, signs.flatten(-2), position,
+                           products.flatten(-2)], -1)
+        return terms @ self._term_matrix() + self.posture_coefficients[0]
+
+    def _term_matrix(self) -> torch.Tensor:
+        """(T, 2) g per unit of each of `evaluate`'s terms: per branch motion term its
+        coefficient times the Jacobian's column, then the posture polynomial's x, y, x^2,
+        x y (once), y^2."""
+        branch = (self.branch_coefficients.unsqueeze(-1) * self.jacobian.t().unsqueeze(0))
+        posture = self.posture_coefficients
+        zero = torch.zeros_like(posture[0:1])
+        return torch.cat([branch.flatten(0, 1), posture[1:5], zero, posture[5:6]], 0)
 
     def branch_motion(self, velocity: torch.Tensor, acceleration: torch.Tensor) -> torch.Tensor:
         """(..., 2 + S, 3): per branch its velocity, acceleration and friction signs."""
@@ -131,8 +143,7 @@ class MachineMap(nn.Module):
     def rows(self, windows: torch.Tensor) -> torch.Tensor:
         """(B, W, 2) g of every row of raw windows (B, W, F)."""
         position = windows.index_select(2, self.position_columns)
-        return self.evaluate(position[..., 0], position[..., 1],
-                             windows.index_select(2, self.velocity_columns),
+        return self.evaluate(position, windows.index_select(2, self.velocity_columns),
                              windows.index_select(2, self.acceleration_columns))
 
     def ahead(self, last: torch.Tensor) -> torch.Tensor:
@@ -147,7 +158,7 @@ class MachineMap(nn.Module):
         lead = self.extrapolation
         position = position + last.index_select(1, self.ahead_tool_velocity_columns) * lead
         velocity = velocity + acceleration * lead
-        return self.evaluate(position[:, 0], position[:, 1], velocity, acceleration)
+        return self.evaluate(position, velocity, acceleration)
 
     def values(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N, 2) g at raw feature rows (N, F), and (N, 2) g at the instant predicted from
