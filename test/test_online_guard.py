@@ -284,6 +284,39 @@ def test_disabled_guard_publishes_the_model_and_still_reports() -> None:
     assert guard.answering == (GuardState.MODEL, GuardState.MODEL)
 
 
+def test_a_new_model_starts_unproven_and_an_adapted_one_inherits_the_choice() -> None:
+    """X with the model (better), Y with persistence (the model worse). A new model: both
+    axes back on persistence, unproven, scores fresh. An adapted model (`inherit`): X stays
+    with the model, Y with persistence for the reason it had, scores fresh; the first
+    predictions after it are published accordingly."""
+    settings = _settings(min_scored=50, dwell_instants=50)
+    truth = _walk(300, seed=22)
+    model_error = np.random.default_rng(23).normal(0.0, 0.2e-6, truth.shape)
+    model_error[:, 1] = 5e-6
+    guards = []
+    for inherit in (False, True):
+        guard = LiveGuard(settings, LEAD, PERIOD)
+        _run(guard, truth, model_error)
+        assert guard.answering == (GuardState.MODEL, GuardState.PERSISTENCE)
+        guard.restart(inherit=inherit)
+        assert guard.scored == 0 and guard.holding
+        guards.append(guard)
+    fresh, adapted = guards
+    x, y = fresh.status()
+    assert x.state is y.state is GuardState.PERSISTENCE
+    assert x.reason is y.reason is GuardReason.UNPROVEN
+    x, y = adapted.status()
+    assert (x.state, x.reason) == (GuardState.MODEL, None)
+    assert (y.state, y.reason) == (GuardState.PERSISTENCE, GuardReason.WORSE_THAN_PERSISTENCE)
+    assert math.isnan(x.model_rms)  # scores start from nothing
+    last = (float(truth[-1, 0]), float(truth[-1, 1]))
+    instant = (len(truth) - 1) * PERIOD + LEAD
+    error = (float(truth[-1, 0]), float(truth[-1, 1]))
+    adapted.observe(AlignedSample((len(truth) - 1) * PERIOD, *error, 0.0, 0.0, 1.1), error, None)
+    assert adapted.choose(instant, (1e-6, 2e-6), last, True) == (1e-6, last[1])
+    assert fresh.choose(instant, (1e-6, 2e-6), last, True) == last
+
+
 def test_settings_are_checked() -> None:
     with pytest.raises(ValueError, match='margin'):
         _settings(margin=1.0)

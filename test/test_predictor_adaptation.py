@@ -17,11 +17,14 @@ from adaptation_data import other_plant, train_parent
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from model_helpers import save_constant
+from rclpy.parameter import Parameter
 from ros_helpers import RosHarness, set_stamp
 from test_predictor_node import HORIZON, WINDOW, Wiring
 
 from lompr_predictor.learning.model_file import load_model
 from lompr_predictor.online.adaptation import LOG_NAME, WORK_PREFIX, AttemptOutcome
+from lompr_predictor.online.alignment import AlignedSample
+from lompr_predictor.online.guard import GuardState, LiveGuard
 from lompr_predictor.online.sample_store import StoredSamples, capacity_for
 from lompr_predictor.robot.description import ROBOT_FRAME, RobotDescription
 
@@ -94,7 +97,7 @@ def test_a_model_that_fails_verification_or_has_another_parent_is_never_swapped_
         ros: RosHarness, tmp_path: Path) -> None:
     in_force = constant(tmp_path / 'in_force.pt')
     folder = tmp_path / 'models'
-    wiring = adapting(ros, in_force, folder)
+    wiring = adapting(ros, in_force, folder, guard_enabled=True)
     node = wiring.node
     assert node.adaptation is not None
     parent = node.core.model.sha256
@@ -118,14 +121,35 @@ def test_a_model_that_fails_verification_or_has_another_parent_is_never_swapped_
     assert node.core.model.path == str(in_force)
     assert 'the model in force changed during the attempt' in (
         node.adaptation.adaptation.state.last['reason'])
+    assert node.model_guard is not None
+    _earn_x(node.model_guard)
     node.adaptation._settle(accepted(3, parent))  # intact, from the model in force
     assert node.core.model.path == str(candidate) and node.settings.model_sha256 == digest
+    # the adapted model keeps each axis's choice, scored afresh; an operator's swap does not
+    assert node.model_guard.answering == (GuardState.MODEL, GuardState.PERSISTENCE)
+    assert node.model_guard.scored == 0
     log = [json.loads(line) for line in (folder / LOG_NAME).read_text().splitlines()]
     assert [(e['attempt'], e['decision'], e['swapped']) for e in log] == [
         (1, 'failed', False), (2, 'failed', False), (3, 'accepted', True)]
     status = wait_status(wiring, lambda s: s.get('swaps') == '1', 'the swap on /diagnostics')
     assert status['_message'] == 'attempt 3 accepted: better'
     assert status['failed'] == '2' and status['last_model'] == str(candidate)
+    _earn_x(node.model_guard)
+    assert node.set_parameters_atomically([Parameter('model_path', value=str(in_force)),
+                                           Parameter('model_sha256', value='')]).successful
+    assert node.model_guard.answering == (GuardState.PERSISTENCE, GuardState.PERSISTENCE)
+
+
+def _earn_x(guard: LiveGuard) -> None:
+    """Feed `guard` a plant error ramping on X, flat on Y, and a model exact on both: X
+    is handed to the model (persistence lags the ramp), Y stays unproven (both exact)."""
+    period, lead = guard.period_ns, guard.lead_ns
+    ahead = lead // period
+    for k in range(400):
+        error = (1e-6 * k, 0.0)
+        guard.observe(AlignedSample(k * period, *error, 0.0, 0.0, 1.1), error, None)
+        guard.choose(k * period + lead, (1e-6 * (k + ahead), 0.0), error, True)
+    assert guard.answering == (GuardState.MODEL, GuardState.PERSISTENCE)
 
 
 def test_a_folder_it_cannot_write_is_a_warning_never_a_callback_failure(

@@ -392,12 +392,19 @@ class LiveGuard:
             self._holding = (axis_x.state is not GuardState.MODEL
                              or axis_y.state is not GuardState.MODEL)
 
-    def restart(self) -> None:
+    def restart(self, *, inherit: bool = False) -> None:
         """A new model: its live scores start from nothing, unproven on persistence until
-        it earns control (the envelope is read from the new model's metadata)."""
+        it earns control (the envelope is read from the new model's metadata). With
+        `inherit` (a model shown better than the one in force on this machine's own recent
+        samples: an online adaptation's) each axis keeps whose prediction it publishes and
+        why, the new model in control where the old one was, until the rules say otherwise."""
         self.clear()
+        old = self._axes
         self._axes = (_Axis(self._decisions), _Axis(self._decisions))
-        self._holding = True
+        if inherit:
+            for axis, before in zip(self._axes, old, strict=True):
+                axis.state, axis.reason, axis.on_map = before.state, before.reason, before.on_map
+        self._holding = any(axis.state is not GuardState.MODEL for axis in self._axes)
         self._outside = 0.0
         self._enveloped = self._envelope = None
         self.scored = 0

@@ -16,7 +16,6 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.parameter import Parameter
 from rclpy.timer import Timer
 
 from lompr_predictor.monitoring import Level, Status
@@ -57,8 +56,7 @@ class AdaptationHost(Protocol):
 
     def warn_throttled(self, key: str, text: str) -> None: ...
 
-    def set_parameters_atomically(self, parameter_list: list[Parameter]
-                                  ) -> SetParametersResult: ...
+    def swap_in_adapted(self, path: str, sha256: str) -> SetParametersResult: ...
 
 
 def off_status(enabled: bool, state: str) -> Status:
@@ -126,8 +124,7 @@ class NodeAdaptation:
                 swap_error = (f'the model in force changed during the attempt (now '
                               f'{node.core.model.path})')
             else:
-                result = node.set_parameters_atomically([
-                    Parameter('model_path', value=path), Parameter('model_sha256', value=digest)])
+                result = node.swap_in_adapted(path, digest)
                 swap_error = None if result.successful else result.reason
         self.adaptation.settle(outcome, swap_error, node.core.model.path)
         entry = self.adaptation.state.last
