@@ -194,9 +194,10 @@ def _guard_lines(guard: Mapping[str, Any] | None) -> list[str]:
                      'back)' for axis in TARGETS)
     return ['', '## Live guard', '',
             "`Model + live guard` is what the predictor node publishes with its default guard "
-            "(guard_* parameters): per axis the better of its fallbacks (the model's prior, "
-            "what it predicts from the machine alone, and persistence) while the model's live "
-            "RMS is worse. Held back: "
+            "(guard_* parameters): per axis persistence until the model is better than its "
+            "fallbacks by the margin (the model's prior, what it predicts from the machine "
+            "alone, and persistence), then the model, or the better fallback while the "
+            "model's live RMS is worse. Held back: "
             f"{held}; rows outside the trained envelope: {guard['rows_outside_envelope']}. An "
             'axis held back most of the time says the model does not know this program or '
             'machine: record it and train on it.']
