@@ -16,6 +16,7 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.parameter import Parameter
 from rclpy.timer import Timer
 
 from lompr_predictor.monitoring import Level, Status
@@ -56,7 +57,10 @@ class AdaptationHost(Protocol):
 
     def warn_throttled(self, key: str, text: str) -> None: ...
 
-    def swap_in_adapted(self, path: str, sha256: str) -> SetParametersResult: ...
+    adapted_swap: bool  # set while an adapted model is swapped in: the guard's choice stays
+
+    def set_parameters_atomically(self, parameter_list: list[Parameter]
+                                  ) -> SetParametersResult: ...
 
 
 def off_status(enabled: bool, state: str) -> Status:
@@ -124,7 +128,15 @@ class NodeAdaptation:
                 swap_error = (f'the model in force changed during the attempt (now '
                               f'{node.core.model.path})')
             else:
-                result = node.swap_in_adapted(path, digest)
+                # shown better than the model in force on the node's own recent samples,
+                # it keeps the live guard's choice of each axis (`LiveGuard.restart`)
+                node.adapted_swap = True
+                try:
+                    result = node.set_parameters_atomically([
+                        Parameter('model_path', value=path),
+                        Parameter('model_sha256', value=digest)])
+                finally:
+                    node.adapted_swap = False
                 swap_error = None if result.successful else result.reason
         self.adaptation.settle(outcome, swap_error, node.core.model.path)
         entry = self.adaptation.state.last

@@ -15,12 +15,10 @@ from collections.abc import Sequence
 from dataclasses import replace
 from typing import Any
 
-from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import ClockChange, JumpThreshold, TimeJump
 from rclpy.context import Context
 from rclpy.duration import Duration
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
-from rclpy.parameter import Parameter
 
 from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import LatencyRecorder
@@ -100,7 +98,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self.sample_period = 0.0  # [s] the parameter, else the first model's: later ones fit
         self._running: ReadyModel | None = None  # the model the core runs
         self._candidate: ReadyModel | None = None  # accepted, swapped in by apply_settings
-        self._adapted_swap = False  # the model being swapped in is an adaptation's
+        self.adapted_swap = False  # the model being swapped in is an adaptation's (it inherits)
         self.history = ModelHistory()
         self.dropped_inactive = 0  # samples received while not active
         self.clock_jumps_back = 0
@@ -118,8 +116,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
                                                           or None)),
             PredictorMeters(self.pose_rate, self.reference_rate, self.preview_rate,
                             self.outputs), self.readings)
-        # Backward jumps (a simulator reset) and a change of time source; the clock's start
-        # (its first /clock, a forward jump from 0) is handled by the staleness timer.
+        # backward jumps (a simulator reset), a change of time source (its start: staleness timer)
         self._jump_handle = self.get_clock().create_jump_callback(
             JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1),
                           on_clock_change=True),
@@ -352,17 +349,6 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self._candidate = outcome.ready
         return outcome.reason
 
-    def swap_in_adapted(self, path: str, sha256: str) -> SetParametersResult:
-        """Swap in a model an online adaptation accepted (better than the model in force on
-        this node's recent samples): through the same checks as any swap, its live guard
-        keeping each axis's choice (`LiveGuard.restart`)."""
-        self._adapted_swap = True
-        try:
-            return self.set_parameters_atomically([Parameter('model_path', value=path),
-                                                   Parameter('model_sha256', value=sha256)])
-        finally:
-            self._adapted_swap = False
-
     def apply_settings(self, previous: PredictorNodeSettings, changed: frozenset[str]) -> None:
         """Take accepted changes: new limits, the model validated in `validate_settings`."""
         del previous
@@ -375,9 +361,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         candidate = self._candidate
         if 'model_path' in changed and candidate is not None:
             self._core.replace_model(candidate.model, candidate.backend)
-            # the new model earns its place afresh, but for an adapted one, shown better
-            # than the model in force on this machine's own recent samples
-            self.model_guard.restart(inherit=self._adapted_swap)
+            self.model_guard.restart(inherit=self.adapted_swap)  # else it earns its place
             self._running, self._candidate = candidate, None
             self.history = replace(self.history, swaps=self.history.swaps + 1,
                                    reload_error=None, backend_why=candidate.backend_why)
