@@ -171,9 +171,10 @@ def test_bag_replay_matches_offline_predictions(
     bag = write_recording(tmp_path / 'spiral', spiral_recording(description, 120, 13_000_000))
     recording = read_recording(bag)
     model_path = save_linear(tmp_path / 'model.pt', window=WINDOW, horizon=HORIZON)
-    # the guard off: the model's own predictions, whatever persistence would have done
+    # the guard off (Wiring's default): the model's own predictions, whatever persistence
+    # would have done
     wiring = Wiring(ros, model_path, kinematics=True, compensation_enabled=False,
-                    stale_periods=1000.0, guard_enabled=False)
+                    stale_periods=1000.0)
     joints, reference = recording.joints, recording.reference
     order = np.argsort(np.concatenate([joints.stamps, reference.stamps]), kind='stable')
     for index in order:  # the bag's time order, each message answered before the next

@@ -40,6 +40,7 @@ class AdaptationHost(Protocol):
 
     settings: PredictorNodeSettings
     sample_period: float
+    adapted_swap: bool  # set while an adapted model is swapped in: the guard's choice stays
 
     @property
     def core(self) -> OnlinePredictor: ...
@@ -56,8 +57,6 @@ class AdaptationHost(Protocol):
     def get_logger(self) -> Any: ...
 
     def warn_throttled(self, key: str, text: str) -> None: ...
-
-    adapted_swap: bool  # set while an adapted model is swapped in: the guard's choice stays
 
     def set_parameters_atomically(self, parameter_list: list[Parameter]
                                   ) -> SetParametersResult: ...
