@@ -113,52 +113,115 @@ class MachineMap(nn.Module):
         self.extrapolation = float(max(horizon - preview, 0) * sample_period)
 
     # -- the map --------------------------------------------------------------------------
+    # g is evaluated in three steps that export to a handful of graph operations (the node
+    # runs it at the sample rate, where each operation costs about as much as its
+    # arithmetic): the columns a row is read at, gathered once; times one matrix, its
+    # arguments (the posture's linear part and the branches' linear terms through the
+    # Jacobian, each branch velocity over each friction scale, and x, y, x + y); then each
+    # argument, its tanh and its square times one weight matrix. The two matrices are
+    # products of the coefficients, which the runtime folds into constants.
 
     def evaluate(self, position: torch.Tensor, velocity: torch.Tensor,
                  acceleration: torch.Tensor) -> torch.Tensor:
         """(..., 2) g for positions x, y (..., 2) and branch velocities and accelerations
-        (..., 3): every term of the map in one row times one matrix, so that the exported
-        graph is a handful of operations (the matrix is the coefficients' own product, which
-        the runtime folds into a constant)."""
-        signs = torch.tanh(velocity.unsqueeze(-2) / self.scales.unsqueeze(-1))  # (..., S, 3)
-        products = position.unsqueeze(-1) * position.unsqueeze(-2)  # x x, x y, y x, y y
-        terms = torch.cat([velocity, acceleration, signs.flatten(-2), position,
-                           products.flatten(-2)], -1)
-        return terms @ self._term_matrix() + self.posture_coefficients[0]
-
-    def _term_matrix(self) -> torch.Tensor:
-        """(T, 2) g per unit of each of `evaluate`'s terms: per branch motion term its
-        coefficient times the Jacobian's column, then the posture polynomial's x, y, x^2,
-        x y (once), y^2."""
-        branch = (self.branch_coefficients.unsqueeze(-1) * self.jacobian.t().unsqueeze(0))
-        posture = self.posture_coefficients
-        zero = torch.zeros_like(posture[0:1])
-        return torch.cat([branch.flatten(0, 1), posture[1:5], zero, posture[5:6]], 0)
-
-    def branch_motion(self, velocity: torch.Tensor, acceleration: torch.Tensor) -> torch.Tensor:
-        """(..., 2 + S, 3): per branch its velocity, acceleration and friction signs."""
-        signs = torch.tanh(velocity.unsqueeze(-2) / self.scales.unsqueeze(-1))
-        return torch.cat([velocity.unsqueeze(-2), acceleration.unsqueeze(-2), signs], -2)
+        (..., 3)."""
+        row = torch.cat([position, velocity, acceleration], -1)
+        return self._of_arguments(row @ self._row_arguments())
 
     def rows(self, windows: torch.Tensor) -> torch.Tensor:
         """(B, W, 2) g of every row of raw windows (B, W, F)."""
-        position = windows.index_select(2, self.position_columns)
-        return self.evaluate(position, windows.index_select(2, self.velocity_columns),
-                             windows.index_select(2, self.acceleration_columns))
+        return self._of_arguments(windows.index_select(2, self._row_columns())
+                                  @ self._row_arguments())
 
     def ahead(self, last: torch.Tensor) -> torch.Tensor:
         """(B, 2) g at the predicted instant from the windows' last rows (B, F): the
         preview's row (or the last row), extrapolated by `extrapolation` seconds at
         constant acceleration."""
-        position = last.index_select(1, self.ahead_position_columns)
-        if self.plan_is_displacement:
-            position = position + last.index_select(1, self.position_columns)
-        velocity = last.index_select(1, self.ahead_velocity_columns)
-        acceleration = last.index_select(1, self.ahead_acceleration_columns)
+        return self._of_arguments(last.index_select(1, self._ahead_columns())
+                                  @ self._ahead_arguments())
+
+    def rows_and_ahead(self, windows: torch.Tensor) -> torch.Tensor:
+        """(B, W + 1, 2) `rows` of raw windows (B, W, F), then `ahead` of their last rows:
+        the map's values a model reads, in one evaluation."""
+        rows = windows.index_select(2, self._row_columns()) @ self._row_arguments()
+        ahead = (windows.narrow(1, windows.shape[1] - 1, 1).index_select(2, self._ahead_columns())
+                 @ self._ahead_arguments())
+        return self._of_arguments(torch.cat([rows, ahead], 1))
+
+    def _row_columns(self) -> torch.Tensor:
+        """The feature columns a row is read at: x, y, the branch velocities, their
+        accelerations."""
+        return torch.cat([self.position_columns, self.velocity_columns,
+                          self.acceleration_columns])
+
+    def _row_arguments(self) -> torch.Tensor:
+        """(8, A) the arguments per unit of each of `_row_columns`."""
+        unit = torch.eye(8, dtype=torch.float64)
+        return self._arguments(unit[:, 0:2], unit[:, 2:5], unit[:, 5:8])
+
+    def _ahead_columns(self) -> torch.Tensor:
+        """The feature columns the predicted instant is read at: the preview's (or the
+        row's) x, y, the row's x, y (the preview's are displacements from them), the tool
+        velocity, the branch velocities and accelerations."""
+        return torch.cat([self.ahead_position_columns, self.position_columns,
+                          self.ahead_tool_velocity_columns, self.ahead_velocity_columns,
+                          self.ahead_acceleration_columns])
+
+    def _ahead_arguments(self) -> torch.Tensor:
+        """(12, A) the arguments at the predicted instant per unit of each of
+        `_ahead_columns` (the extrapolation is linear in them)."""
+        unit = torch.eye(12, dtype=torch.float64)
         lead = self.extrapolation
-        position = position + last.index_select(1, self.ahead_tool_velocity_columns) * lead
-        velocity = velocity + acceleration * lead
-        return self.evaluate(position, velocity, acceleration)
+        position = unit[:, 0:2] + unit[:, 4:6] * lead
+        if self.plan_is_displacement:
+            position = position + unit[:, 2:4]
+        velocity = unit[:, 6:9] + unit[:, 9:12] * lead
+        return self._arguments(position, velocity, unit[:, 9:12])
+
+    def _arguments(self, position: torch.Tensor, velocity: torch.Tensor,
+                   acceleration: torch.Tensor) -> torch.Tensor:
+        """(C, A) the map's arguments per unit of each of C columns that enter x, y as
+        `position` (C, 2), the branch velocities as `velocity` (C, 3) and accelerations as
+        `acceleration` (C, 3): the linear part (2), v_i / s_k (S x 3), x, y, x + y (3)."""
+        coefficients = self.branch_coefficients
+        linear = (velocity @ (coefficients[0].unsqueeze(-1) * self.jacobian.t())
+                  + acceleration @ (coefficients[1].unsqueeze(-1) * self.jacobian.t())
+                  + position @ self.posture_coefficients[1:3])
+        friction = (velocity.unsqueeze(1) / self.scales.unsqueeze(-1)).flatten(1)
+        quadratic = position @ torch.tensor([[1.0, 0.0, 1.0], [0.0, 1.0, 1.0]],
+                                            dtype=torch.float64)
+        return torch.cat([linear, friction, quadratic], 1)
+
+    def _of_arguments(self, arguments: torch.Tensor) -> torch.Tensor:
+        """(..., 2) g from its arguments (..., A): the linear part as it is, the friction
+        terms through tanh, the posture's quadratic terms as squares (x y = ((x + y)^2 - x^2
+        - y^2) / 2); one matrix weighs each argument, its tanh and its square, zero where a
+        function does not apply."""
+        weights = self._function_weights()
+        functions = torch.cat([arguments, torch.tanh(arguments), arguments * arguments], -1)
+        return functions @ weights + self.posture_coefficients[0]
+
+    def _function_weights(self) -> torch.Tensor:
+        """(3 A, 2) the weight of each argument, of its tanh and of its square (`_arguments`'
+        order)."""
+        friction = (self.branch_coefficients[2:].unsqueeze(-1)
+                    * self.jacobian.t().unsqueeze(0)).flatten(0, 1)  # (S x 3, 2)
+        posture = self.posture_coefficients
+        squares = torch.stack([posture[3] - 0.5 * posture[4], posture[5] - 0.5 * posture[4],
+                               0.5 * posture[4]])  # x^2, y^2, (x + y)^2
+        n_linear, n_friction = 2, friction.shape[0]
+        zero_linear = torch.zeros((n_linear, 2), dtype=torch.float64)
+        zero_friction = torch.zeros((n_friction, 2), dtype=torch.float64)
+        zero_squares = torch.zeros((3, 2), dtype=torch.float64)
+        identity = torch.eye(2, dtype=torch.float64)
+        return torch.cat([identity, zero_friction, zero_squares,  # the arguments
+                          zero_linear, friction, zero_squares,  # their tanh
+                          zero_linear, zero_friction, squares], 0)  # their squares
+
+    def branch_motion(self, velocity: torch.Tensor, acceleration: torch.Tensor) -> torch.Tensor:
+        """(..., 2 + S, 3): per branch its velocity, acceleration and friction signs."""
+        signs = torch.tanh(velocity.unsqueeze(-2) / self.scales.unsqueeze(-1))
+        return torch.cat([velocity.unsqueeze(-2), acceleration.unsqueeze(-2), signs], -2)
 
     def values(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N, 2) g at raw feature rows (N, F), and (N, 2) g at the instant predicted from

@@ -37,7 +37,8 @@ if TYPE_CHECKING:
 
 
 class PredictionWithPrior(nn.Module):
-    """A map model's prediction and its map prior side by side (module docstring)."""
+    """A map model's prediction and its map prior side by side (module docstring), from
+    its map's `rows` and `ahead`: for model files written before models had `candidates`."""
 
     if TYPE_CHECKING:  # for the type checker only (see `models.PredictorModule`)
         error_columns: torch.Tensor
@@ -61,14 +62,13 @@ class PredictionWithPrior(nn.Module):
                 - now)
 
 
-class PredictionWithGeneralist(nn.Module):
-    """A paired model's prediction, its generalist's and its map prior side by side (module
-    docstring): the model's `candidates`, both networks and the map prior in one call, the
-    map's rows computed once."""
+class PredictionWithCandidates(nn.Module):
+    """A map model's prediction and its priors side by side (module docstring) as the model
+    gives them, its `candidates`: the map evaluated once, for a paired model both networks
+    in the same call."""
 
     def __init__(self, module: Any) -> None:
-        """`module`: a `models.PredictorModule` with a `models.PairedNet`, or its scripted
-        form."""
+        """`module`: a `models.PredictorModule` with a map, or its scripted form."""
         super().__init__()
         self.model = module
 
@@ -84,11 +84,12 @@ def is_paired(module: Any) -> bool:
 def prediction_with_prior(module: Any) -> nn.Module | None:
     """The module (B, window, F) -> (B, 4) of a model's prediction and its prior, (B, 6)
     with a paired model's map prior (module docstring); None for a model without a map."""
-    if is_paired(module):
-        return PredictionWithGeneralist(module)
-    if getattr(module, 'use_map', False):
-        return PredictionWithPrior(module)
-    return None
+    if not getattr(module, 'use_map', False):
+        return None
+    # model files written before `candidates` existed (one network) have the map's own
+    # methods instead, which a model of today compiles only through `candidates`
+    return (PredictionWithCandidates(module) if hasattr(module, 'candidates')
+            else PredictionWithPrior(module))
 
 
 def with_prior(model: LoadedModel) -> ExportedModule | None:

@@ -78,8 +78,8 @@ class LstmNet(nn.Module):
         self.highway = nn.Linear(window * n_features, n_outputs)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        sequence, _ = self.lstm(x[:, x.shape[1] - self.steps:])
-        return self.head(sequence[:, -1]) + self.highway(x.flatten(1))
+        _, (state, _) = self.lstm(x[:, x.shape[1] - self.steps:])
+        return self.head(state[0]) + self.highway(x.flatten(1))
 
 
 class PairedNet(nn.Module):
@@ -302,25 +302,27 @@ class PredictorModule(nn.Module):
         outputs: the model's (`forward`), then with a `PairedNet` its generalist's; then,
         with a map, the map prior e(t) + g(t+h) - g(t) from the same map rows (the
         fallbacks the live guard scores beside the model, `map_prior`)."""
+        # written for the exported graph, where each operation costs about as much as its
+        # arithmetic: the last row by `select`, the outputs' scaling over their flat form
         if not self.use_map:
-            return self._predict(windows, windows, windows, windows)
-        mapped = self.machine_map.rows(windows)
-        inputs = torch.cat([windows, windows.index_select(2, self.error_columns) - mapped], 2)
-        ahead, now = self.machine_map.ahead(windows[:, -1]), mapped[:, -1]
-        prior = windows[:, -1].index_select(1, self.error_columns) + ahead - now
-        return torch.cat([self._predict(inputs, windows, ahead, now), prior], 1)
+            last_error = windows.select(1, -1).index_select(1, self.error_columns)
+            return self._predict(windows, last_error if self.residual
+                                 else torch.zeros_like(last_error))
+        mapped = self.machine_map.rows_and_ahead(windows)
+        errors = windows.index_select(2, self.error_columns)
+        inputs = torch.cat([windows, errors - mapped[:, :-1]], 2)
+        change = mapped.select(1, -1) - mapped.select(1, -2)
+        prior = errors.select(1, -1) + change
+        return torch.cat([self._predict(inputs, prior if self.residual else change), prior], 1)
 
-    def _predict(self, inputs: torch.Tensor, windows: torch.Tensor, ahead: torch.Tensor,
-                 now: torch.Tensor) -> torch.Tensor:
-        """The network on its rows `inputs`, as (B, 2 k) error predictions for raw `windows`;
-        with a map each output plus its change over the horizon, `ahead` - `now` (B, 2)."""
+    def _predict(self, inputs: torch.Tensor, base: torch.Tensor) -> torch.Tensor:
+        """The network on its rows `inputs`, as (B, 2 k) error predictions: each output
+        scaled to metres plus `base` (B, 2), what the network predicts a change from (the
+        last error, with a map plus the map's change over the horizon)."""
         output = self.net(self.normalise(inputs)).double()
-        output = output.reshape(output.shape[0], -1, 2) * self.target_half + self.target_centre
-        if self.residual:
-            output = output + windows[:, -1].index_select(1, self.error_columns).unsqueeze(1)
-        if self.use_map:
-            output = output + ahead.unsqueeze(1) - now.unsqueeze(1)
-        return output.flatten(1)
+        outputs = output.shape[1] // 2
+        return (output * self.target_half.repeat(outputs)
+                + (self.target_centre.unsqueeze(0) + base).repeat(1, outputs))
 
 
 def with_map_residuals(machine_map: MachineMap, rows: np.ndarray,

@@ -60,7 +60,7 @@ from lompr_predictor.learning.baselines import (
 )
 from lompr_predictor.learning.envelope import fit_envelope
 from lompr_predictor.learning.machine_map import MachineMap, fit_machine_map
-from lompr_predictor.learning.map_prior import PredictionWithGeneralist, is_paired
+from lompr_predictor.learning.map_prior import PredictionWithCandidates, is_paired
 from lompr_predictor.learning.metrics import ratios
 from lompr_predictor.learning.model_file import (
     ExportedModule,
@@ -227,7 +227,7 @@ def network_predictions(module: Any, problem: LearningProblem) -> dict[str, np.n
     test = problem.split.test
     if not is_paired(module):
         return {'bo_lstm': predict_rows(module, problem.rows, test, problem.window)}
-    three = predict_rows(PredictionWithGeneralist(module), problem.rows, test, problem.window,
+    three = predict_rows(PredictionWithCandidates(module), problem.rows, test, problem.window,
                          width=3 * len(TARGETS))  # the prediction, the generalist's, the map's
     return {'bo_lstm': three[:, :len(TARGETS)], GENERALIST: three[:, len(TARGETS):-len(TARGETS)]}
 
