@@ -1,0 +1,92 @@
+"""Benchmark: two or more model files' inference side by side, as the predictor serves it.
+
+    python bench/compare_models.py --write PATH     # this checkout's timing model, as a file
+    python bench/compare_models.py A.pt B.pt [--blocks 30] [--calls 1000]
+
+A model file holds the code it was written with, so the files that the package of two
+commits writes (the first form, run in each checkout, e.g. a `git worktree` of the commit
+before with `PYTHONPATH` pointing at it) compare what each commit's model code costs at the
+node, in one process: each file's backend as the node selects it (`inference_backend` auto:
+the ONNX graph with the priors) and its TorchScript fallback, each on its own window, run in
+blocks of `--calls` calls, one block per file and backend in turn, `--blocks` rounds. The
+process CPU time per call is printed per file and backend (median and best block) with the
+ratio of each file to the first: ratios of the same run hold on a loaded machine, absolute
+figures drift between processes. The timing model is `bench_predictor.py`'s at 1 kHz,
+horizon 1 (untrained; the default form of `lompr train`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_predictor import default_model
+
+from lompr_predictor.learning.model_file import load_model
+from lompr_predictor.online.inference import Runner, TorchScriptBackend, select_backend
+from lompr_predictor.threads import set_torch_threads
+
+#: The rate and horizon of the timing model (`bench_predictor.py`'s 1 kHz case).
+RATE, HORIZON = 1000, 1
+
+
+def runners(path: Path) -> list[tuple[str, Runner, np.ndarray]]:
+    """The node's backend and the TorchScript fallback of a model file: (name, runner, the
+    window it reads, which must stay alive with it), each window of plausible values."""
+    model = load_model(path)
+    metadata = model.metadata
+    backend, why = select_backend(model, 'auto')
+    if why:
+        print(f'{path}: {why}')
+    served = []
+    for name, chosen in ((backend.name, backend), ('torchscript', TorchScriptBackend(model))):
+        window = np.random.default_rng(0).normal(
+            scale=0.01, size=(1, metadata.window, len(metadata.features)))
+        served.append((name, chosen.runner(window), window))
+    return served
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n', 1)[0])
+    parser.add_argument('models', nargs='*', type=Path, help='model files to compare')
+    parser.add_argument('--write', type=Path,
+                        help="write this checkout's timing model to this path and exit")
+    parser.add_argument('--blocks', type=int, default=30, help='rounds of blocks')
+    parser.add_argument('--calls', type=int, default=1000, help='calls per block')
+    args = parser.parse_args()
+    if args.write:
+        default_model(args.write, 1.0 / RATE, HORIZON)
+        print(f'wrote {args.write}')
+        return 0
+    if not args.models:
+        parser.error('give model files to compare, or --write PATH')
+    set_torch_threads(1)  # as the predictor node's executable does by default
+    runs = {path: runners(path) for path in args.models}
+    for path, served in runs.items():
+        print(f'{path}: {", ".join(f"{v:.6g}" for v in served[0][1]())}')
+    times: dict[tuple[Path, str], list[float]] = {}
+    for _ in range(args.blocks):
+        for path, served in runs.items():
+            for name, run, _ in served:
+                start = time.process_time()
+                for _ in range(args.calls):
+                    run()
+                elapsed = (time.process_time() - start) / args.calls * 1e6
+                times.setdefault((path, name), []).append(elapsed)
+    print(f'\nprocess CPU per call [us], {args.blocks} blocks of {args.calls} calls:')
+    print(f'{"model file":<40}{"backend":<14}{"median":>8}{"best":>8}{"x first":>9}')
+    for (path, name), values in times.items():
+        median = float(np.median(values))
+        base = float(np.median(times[(args.models[0], name)]))
+        print(f'{path!s:<40}{name:<14}{median:8.1f}{min(values):8.1f}{median / base:9.2f}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
