@@ -80,6 +80,22 @@ def _known_map(features: tuple[str, ...], horizon: int = 1, preview: int = 0) ->
     return machine_map
 
 
+def _no_change_module(machine_map: MachineMap) -> PredictorModule:
+    """A model on `machine_map` whose network predicts no change: its prediction is the
+    map prior."""
+    n = len(FEATURES)
+    return PredictorModule(NoChangeNet(), np.zeros(n + 2), np.ones(n + 2), -np.ones(2),
+                           np.ones(2), residual=True, relative_errors=True,
+                           machine_map=machine_map)
+
+
+def _rows_with_errors(seed: int) -> np.ndarray:
+    """40 feature rows (`_rows`) with plant errors of a few micrometres."""
+    rows = _rows(40, seed=seed)
+    rows[:, :2] = np.random.default_rng(seed).normal(0.0, 1e-5, (40, 2))
+    return rows
+
+
 def test_map_is_each_branch_error_through_the_jacobian_plus_the_posture() -> None:
     """g = J (c_v v + c_a a + sum c_k tanh(v / s_k)) + P(x, y), by hand for one row."""
     machine_map = _known_map(FEATURES)
@@ -151,13 +167,8 @@ def test_predicted_instant_from_the_plan_or_extrapolated() -> None:
 def test_module_prior_is_persistence_plus_the_maps_change() -> None:
     """A network predicting no change on a map gives e(t) + g(t+h) - g(t), scripted alike."""
     machine_map = _known_map(FEATURES, horizon=3)
-    n = len(FEATURES)
-    module = PredictorModule(NoChangeNet(), np.zeros(n + 2), np.ones(n + 2), -np.ones(2),
-                             np.ones(2), residual=True, relative_errors=True,
-                             machine_map=machine_map)
-    rows = _rows(40, seed=5)
-    rows[:, :2] = np.random.default_rng(5).normal(0.0, 1e-5, (40, 2))
-    ends = np.arange(9, 40)
+    module = _no_change_module(machine_map)
+    rows, ends = _rows_with_errors(seed=5), np.arange(9, 40)
     predicted = predict_rows(module, rows, ends, 10)
     with torch.no_grad():
         table = torch.from_numpy(rows)
@@ -191,15 +202,9 @@ def test_a_model_file_of_before_candidates_is_served_its_prior_by_the_maps_metho
     machine_map = _known_map(FEATURES, horizon=3)
     before = prediction_with_prior(script_module(_MapModelOfBefore(machine_map)))
     assert isinstance(before, PredictionWithPrior)
-    n = len(FEATURES)
-    today = PredictorModule(NoChangeNet(), np.zeros(n + 2), np.ones(n + 2), -np.ones(2),
-                            np.ones(2), residual=True, relative_errors=True,
-                            machine_map=machine_map)
-    rows = _rows(40, seed=6)
-    rows[:, :2] = np.random.default_rng(6).normal(0.0, 1e-5, (40, 2))
-    ends = np.arange(9, 40)
+    rows, ends = _rows_with_errors(seed=6), np.arange(9, 40)
     served = predict_rows(script_module(before), rows, ends, 10, width=4)
-    candidates = prediction_with_prior(script_module(today))
+    candidates = prediction_with_prior(script_module(_no_change_module(machine_map)))
     assert candidates is not None and not isinstance(candidates, PredictionWithPrior)
     expected = predict_rows(script_module(candidates), rows, ends, 10, width=4)
     np.testing.assert_allclose(served, expected, rtol=1e-12, atol=1e-18)

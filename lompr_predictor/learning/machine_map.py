@@ -130,23 +130,28 @@ class MachineMap(nn.Module):
 
     def rows(self, windows: torch.Tensor) -> torch.Tensor:
         """(B, W, 2) g of every row of raw windows (B, W, F)."""
-        return self._of_arguments(windows.index_select(2, self._row_columns())
-                                  @ self._row_arguments())
+        return self._of_arguments(self._row_values(windows))
 
     def ahead(self, last: torch.Tensor) -> torch.Tensor:
         """(B, 2) g at the predicted instant from the windows' last rows (B, F): the
         preview's row (or the last row), extrapolated by `extrapolation` seconds at
         constant acceleration."""
-        return self._of_arguments(last.index_select(1, self._ahead_columns())
-                                  @ self._ahead_arguments())
+        return self._of_arguments(self._ahead_values(last))
 
     def rows_and_ahead(self, windows: torch.Tensor) -> torch.Tensor:
         """(B, W + 1, 2) `rows` of raw windows (B, W, F), then `ahead` of their last rows:
         the map's values a model reads, in one evaluation."""
-        rows = windows.index_select(2, self._row_columns()) @ self._row_arguments()
-        ahead = (windows.narrow(1, windows.shape[1] - 1, 1).index_select(2, self._ahead_columns())
-                 @ self._ahead_arguments())
-        return self._of_arguments(torch.cat([rows, ahead], 1))
+        last = windows.narrow(1, windows.shape[1] - 1, 1)
+        return self._of_arguments(torch.cat([self._row_values(windows),
+                                             self._ahead_values(last)], 1))
+
+    def _row_values(self, rows: torch.Tensor) -> torch.Tensor:
+        """(..., A) the map's arguments at raw feature rows (..., F)."""
+        return rows.index_select(-1, self._row_columns()) @ self._row_arguments()
+
+    def _ahead_values(self, rows: torch.Tensor) -> torch.Tensor:
+        """(..., A) the map's arguments at the instant predicted from raw rows (..., F)."""
+        return rows.index_select(-1, self._ahead_columns()) @ self._ahead_arguments()
 
     def _row_columns(self) -> torch.Tensor:
         """The feature columns a row is read at: x, y, the branch velocities, their
