@@ -29,8 +29,8 @@ adapting loop:
   machine seed; no persistence loop): adaptation changes the RMS over all scored passes by
   less than 3 %;
 - always: the sample path answers >= 99.9 % of the samples whose instant falls while an
-  attempt runs (from its start to the node seeing its end, on the node's clock; the twin's
-  run log says which samples had their offset), the loop without adaptation on the same
+  attempt runs (from its start to the node having swapped its model in, on the node's
+  clock; the twin's run log says which samples had their offset), the loop without adaptation on the same
   instants beside it; the target is for 250 Hz in real time (`--preset highrate --speed 1
   --twin-mode realtime`, a model trained on that preset; paced, the twin waits for every
   offset, so only a timeout leaves a sample unanswered);
@@ -78,11 +78,13 @@ def pass_rms(run: LoopRun) -> np.ndarray:
 
 def during_attempts(run: LoopRun, attempts: list[dict[str, Any]]) -> np.ndarray:
     """(N,) bool: the samples whose instant falls while an attempt ran, from its start to
-    the node seeing its end (the node's clock is the twin's sample time)."""
+    the node having swapped its model in (or seen its end; the node's clock is the twin's
+    sample time)."""
     seconds = run.stamps * 1e-9
     during = np.zeros(len(seconds), dtype=bool)
     for entry in attempts:
-        during |= (seconds >= entry['clock_started_s']) & (seconds <= entry['clock_ended_s'])
+        end = entry.get('clock_settled_s', entry['clock_ended_s'])
+        during |= (seconds >= entry['clock_started_s']) & (seconds <= end)
     return during
 
 

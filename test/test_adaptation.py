@@ -97,11 +97,12 @@ def test_each_attempt_is_logged_and_a_refused_swap_is_a_failure(tmp_path: Path) 
     accepted = {'decision': 'accepted', 'reason': 'better', 'model_path': 'x.pt',
                 'model_sha256': 'ab', 'scores_um': {'bo_lstm': 1.0, 'parent': 2.0,
                                                     'persistence': 3.0}}
-    runs.settle(AttemptOutcome(1, 5 * 10**9, 8 * 10**9, dict(accepted)), None, 'x.pt')
+    runs.settle(AttemptOutcome(1, 5 * 10**9, 8 * 10**9, dict(accepted)), None, 'x.pt',
+                9 * 10**9)
     runs.settle(AttemptOutcome(2, 9 * 10**9, 11 * 10**9, dict(accepted)), 'sha256 mismatch',
-                'x.pt')
+                'x.pt', 12 * 10**9)
     refused = {'decision': 'refused', 'reason': 'no'}
-    runs.settle(AttemptOutcome(3, 12 * 10**9, 15 * 10**9, refused), None, 'x.pt')
+    runs.settle(AttemptOutcome(3, 12 * 10**9, 15 * 10**9, refused), None, 'x.pt', 15 * 10**9)
     lines = [json.loads(line) for line in (tmp_path / 'adaptation.jsonl').read_text()
              .splitlines()]
     assert [(e['attempt'], e['decision'], e['swapped']) for e in lines] == [
@@ -109,6 +110,7 @@ def test_each_attempt_is_logged_and_a_refused_swap_is_a_failure(tmp_path: Path) 
     assert lines[1]['reason'] == 'not swapped in: sha256 mismatch'
     assert lines[0]['clock_started_s'] == 5.0 and lines[0]['scores_um']['parent'] == 2.0
     assert [e['clock_ended_s'] for e in lines] == pytest.approx([8.0, 11.0, 15.0])
+    assert [e['clock_settled_s'] for e in lines] == pytest.approx([9.0, 12.0, 15.0])
     state = runs.state
     assert (state.accepted, state.failed, state.refused, state.swaps) == (1, 1, 1, 1)
     status = runs.status(20 * 10**9)

@@ -1,7 +1,9 @@
-"""online.model_loader: a model file loaded, checked and warmed up, or the reason why not."""
+"""online.model_loader: a model file loaded, checked and warmed up, or the reason why not;
+a swap prepared beside the sample path."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 from model_helpers import save_constant
@@ -10,6 +12,7 @@ from lompr_predictor.learning.model_file import MetadataMismatchError, ModelFile
 from lompr_predictor.online.model_loader import (
     LoadOutcome,
     ModelRequest,
+    SwapInBackground,
     expected_metadata,
     load_ready_model,
     prepare_swap,
@@ -70,3 +73,24 @@ def test_a_swap_keeps_the_running_window_and_horizon(tmp_path: Path) -> None:
     refused = prepare_swap(running, str(longer), '')
     assert refused.ready is None and 'window' in refusal(refused)
     assert refusal(refused).endswith(f'; still running {running.model.path}')
+
+
+def test_a_swap_prepared_beside_the_sample_path_is_taken_only_for_its_own_change(
+        tmp_path: Path) -> None:
+    running = load_ready_model(request(save_constant(tmp_path / 'a.pt'))).ready
+    assert running is not None
+    other = str(save_constant(tmp_path / 'b.pt', (3e-6, 0.0)))
+    prepared = SwapInBackground(running, other, '')
+    deadline = time.monotonic() + 60.0
+    while not prepared.done and time.monotonic() < deadline:
+        time.sleep(0.01)
+    ready = prepared.outcome.ready
+    assert ready is not None and ready.model.path == other
+    assert prepare_swap(running, other, '', prepared) is prepared.outcome
+    # another change, or the same one of a model swapped in meanwhile, loads afresh
+    pinned = prepare_swap(running, other, 'f' * 64, prepared)
+    assert pinned.ready is None and 'f' * 64 in refusal(pinned)
+    again = load_ready_model(request(tmp_path / 'a.pt')).ready
+    assert again is not None
+    fresh = prepare_swap(again, other, '', prepared).ready
+    assert fresh is not None and fresh is not ready and fresh.model.path == other

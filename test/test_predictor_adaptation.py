@@ -1,27 +1,31 @@
 """The predictor node's online adaptation over ROS: off by default (nothing started, the
 outputs as before), the store sized for it, a model that fails verification or comes from
-another parent never swapped in, an attempt that fails or is killed leaving the node
-compensating with the model in force, and an attempt on another plant's samples swapped in
-through the node's verification."""
+another parent never swapped in, the sample path answering with the model in force while an
+accepted model loads, an attempt that fails or is killed leaving the node compensating with
+the model in force, and an attempt on another plant's samples swapped in through the node's
+verification."""
 
 from __future__ import annotations
 
 import json
 import os
 import signal
+import threading
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from adaptation_data import other_plant, train_parent
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from model_helpers import save_constant
 from rclpy.parameter import Parameter
-from ros_helpers import RosHarness, set_stamp
+from ros_helpers import RosHarness, set_stamp, xy
 from test_predictor_node import HORIZON, WINDOW, Wiring
 
 from lompr_predictor.learning.model_file import load_model
+from lompr_predictor.online import model_loader
 from lompr_predictor.online.adaptation import LOG_NAME, WORK_PREFIX, AttemptOutcome
 from lompr_predictor.online.alignment import AlignedSample
 from lompr_predictor.online.guard import GuardState, LiveGuard
@@ -64,6 +68,30 @@ def publish(wiring: Wiring, samples: StoredSamples) -> None:
         wiring.wait_received(received + 2, f'sample {stamp}')
 
 
+def collect(wiring: Wiring, outcome: AttemptOutcome) -> dict[str, Any]:
+    """Hand the node an attempt's outcome as its timer does and wait until the attempt is
+    recorded (an accepted model is swapped in by a later tick, once prepared); its log
+    entry."""
+    adaptation = wiring.node.adaptation
+    assert adaptation is not None
+    state = adaptation.adaptation.state
+
+    def settled() -> int:
+        return state.accepted + state.refused + state.failed
+
+    before = settled()
+    adaptation._collect(outcome)
+    wiring.ros.spin_until(lambda: settled() > before, what=f'attempt {outcome.number} settled')
+    return state.last
+
+
+def accepted_outcome(number: int, parent_sha256: str, model: Path) -> AttemptOutcome:
+    """An attempt that wrote `model` from the model whose digest is `parent_sha256`."""
+    return AttemptOutcome(number, 0, 0, {
+        'decision': 'accepted', 'reason': 'better', 'parent_sha256': parent_sha256,
+        'model_path': str(model), 'model_sha256': load_model(model).sha256})
+
+
 def wait_status(wiring: Wiring, condition: Any, what: str, timeout: float = 30.0
                 ) -> dict[str, Any]:
     wiring.ros.spin_until(lambda: condition(wiring.status(STATUS) or {}), timeout=timeout,
@@ -102,28 +130,21 @@ def test_a_model_that_fails_verification_or_has_another_parent_is_never_swapped_
     assert node.adaptation is not None
     parent = node.core.model.sha256
     candidate = constant(folder / 'adapted-20250101T000000Z-001.pt', (1e-6, 1e-6))
-    digest = load_model(candidate).sha256
+    outcome = accepted_outcome(1, parent, candidate)
+    digest = outcome.model[1]
     written = candidate.read_bytes()
     candidate.write_bytes(written[:-1] + bytes([written[-1] ^ 1]))  # changed after writing
-
-    def accepted(number: int, parent_sha256: str) -> AttemptOutcome:
-        return AttemptOutcome(number, 0, 0, {
-            'decision': 'accepted', 'reason': 'better', 'parent_sha256': parent_sha256,
-            'model_path': str(candidate), 'model_sha256': digest})
-
-    node.adaptation._settle(accepted(1, parent))
+    entry = collect(wiring, outcome)
     assert node.core.model.path == str(in_force) and node.settings.model_path == str(in_force)
-    entry = node.adaptation.adaptation.state.last
     assert entry['decision'] == 'failed' and not entry['swapped']
     assert entry['reason'].startswith('not swapped in: ') and digest in entry['reason']
     candidate.write_bytes(written)  # intact, but written from another model than in force
-    node.adaptation._settle(accepted(2, 'f' * 64))
+    entry = collect(wiring, accepted_outcome(2, 'f' * 64, candidate))
     assert node.core.model.path == str(in_force)
-    assert 'the model in force changed during the attempt' in (
-        node.adaptation.adaptation.state.last['reason'])
+    assert 'the model in force changed during the attempt' in entry['reason']
     assert node.model_guard is not None
     _earn_x(node.model_guard)
-    node.adaptation._settle(accepted(3, parent))  # intact, from the model in force
+    collect(wiring, accepted_outcome(3, parent, candidate))  # intact, from the model in force
     assert node.core.model.path == str(candidate) and node.settings.model_sha256 == digest
     # the adapted model keeps each axis's choice, scored afresh; an operator's swap does not
     assert node.model_guard.answering == (GuardState.MODEL, GuardState.PERSISTENCE)
@@ -138,6 +159,38 @@ def test_a_model_that_fails_verification_or_has_another_parent_is_never_swapped_
     assert node.set_parameters_atomically([Parameter('model_path', value=str(in_force)),
                                            Parameter('model_sha256', value='')]).successful
     assert node.model_guard.answering == (GuardState.PERSISTENCE, GuardState.PERSISTENCE)
+
+
+def test_the_sample_path_answers_with_the_model_in_force_while_an_adapted_model_loads(
+        ros: RosHarness, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    in_force = constant(tmp_path / 'in_force.pt', (-10e-6, 5e-6))
+    folder = tmp_path / 'models'
+    wiring = adapting(ros, in_force, folder)
+    node = wiring.node
+    assert node.adaptation is not None
+    candidate = constant(folder / 'adapted-20250101T000000Z-001.pt', (1e-6, 1e-6))
+    release = threading.Event()
+    loaders: list[threading.Thread] = []
+    load = model_loader.load_ready_model
+
+    def held_load(request: model_loader.ModelRequest) -> model_loader.LoadOutcome:
+        loaders.append(threading.current_thread())
+        release.wait(30.0)  # a load that takes as long as the test wants
+        return load(request)
+
+    monkeypatch.setattr(model_loader, 'load_ready_model', held_load)
+    node.adaptation._collect(accepted_outcome(1, node.core.model.sha256, candidate))
+    ros.spin_until(lambda: bool(loaders), what='the adapted model loading')
+    wiring.run(0, 2 + HORIZON + 6)
+    ros.spin_until(lambda: len(wiring.predictions) >= 6, what='answers during the load')
+    assert not release.is_set() and loaders[0] is not threading.current_thread()
+    assert node.core.model.path == str(in_force)
+    np.testing.assert_allclose(xy(wiring.predictions), [[-10e-6, 5e-6]] * len(wiring.predictions))
+    release.set()
+    ros.spin_until(lambda: node.core.model.path == str(candidate), what='the swap')
+    entry = node.adaptation.adaptation.state.last
+    assert entry['decision'] == 'accepted' and entry['swapped']
+    assert entry['clock_settled_s'] >= entry['clock_ended_s']
 
 
 def _earn_x(guard: LiveGuard) -> None:

@@ -9,12 +9,13 @@ whole data window: the node's clock, so simulated time counts as the samples do)
 it with the store ring's descriptor (the node's cost is starting a process; the child reads
 the ring while the node writes on), and collects how it ended (`poll`): its document, or,
 for a process that died or was killed, why. The node then swaps an accepted model in
-through its own verification (the hot swap of `model_path`) and hands the swap's outcome to
-`settle`, which appends the attempt to the log (`adaptation.jsonl`, one JSON document a line,
-in the models folder) and deletes the oldest adapted models beyond the number kept (never
-the one in force). Each attempt's work folder (`.attempt-*`, its bag and result) is deleted
-when it is collected, and any left by a process killed with the node when the next starts:
-the folder's size is bounded by the models kept, one attempt's data and the log.
+through its own verification (the hot swap of `model_path`, prepared beside the sample
+path) and hands the swap's outcome to `settle`, which appends the attempt to the log
+(`adaptation.jsonl`, one JSON document a line, in the models folder) and deletes the oldest
+adapted models beyond the number kept (never the one in force). Each attempt's work folder
+(`.attempt-*`, its bag and result) is deleted when it is collected, and any left by a
+process killed with the node when the next starts: the folder's size is bounded by the
+models kept, one attempt's data and the log.
 """
 
 from __future__ import annotations
@@ -175,10 +176,12 @@ class Adaptation:
         shutil.rmtree(work, ignore_errors=True)
         return AttemptOutcome(self.state.attempts, self._started_ns or 0, now_ns, document)
 
-    def settle(self, outcome: AttemptOutcome, swap_error: str | None, in_force: str) -> None:
-        """Record an attempt the node has acted on: `swap_error` why an accepted model was not
-        swapped in (None: it was, or there was none to swap); the log line; the models kept
-        (`in_force`, the model file the node runs, is never deleted)."""
+    def settle(self, outcome: AttemptOutcome, swap_error: str | None, in_force: str,
+               now_ns: int) -> None:
+        """Record an attempt the node has acted on at its clock `now_ns`: `swap_error` why an
+        accepted model was not swapped in (None: it was, or there was none to swap); the log
+        line; the models kept (`in_force`, the model file the node runs, is never
+        deleted)."""
         decision = outcome.decision
         if decision == ACCEPTED and swap_error is not None:
             decision = FAILED
@@ -191,6 +194,7 @@ class Adaptation:
                  'time_utc': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
                  'clock_started_s': outcome.started_clock_ns * 1e-9,
                  'clock_ended_s': outcome.ended_clock_ns * 1e-9,
+                 'clock_settled_s': now_ns * 1e-9,  # the model swapped in, or not
                  **outcome.document, 'decision': decision, 'swapped': decision == ACCEPTED}
         state.last = entry
         with self.log_path.open('a', encoding='utf-8') as log:

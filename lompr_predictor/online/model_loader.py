@@ -1,10 +1,17 @@
 """Load a model file for online use: read it under a hash policy, check it against the
 configuration, warm it up and choose what runs its network (`inference.select_backend`).
 One entry point, `load_ready_model`, so that configuring a node
-and swapping its model at run time refuse a file for the same reasons, with one message."""
+and swapping its model at run time refuse a file for the same reasons, with one message.
+
+Loading takes most of a second (the file's hash, its code, the warm-up, the ONNX export and
+the backends' comparison): hundreds of samples at a servo rate. A swap the node starts
+itself (an adaptation's model) is prepared beside the sample path by `SwapInBackground` and
+taken by the parameter change once ready; an operator's change loads in its own callback,
+so that its answer can say why a file is refused."""
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
@@ -124,10 +131,14 @@ def load_ready_model(request: ModelRequest) -> LoadOutcome:
             f'model {request.path}: {type(err).__name__}: {err}'))
 
 
-def prepare_swap(running: ReadyModel, path: str | None, sha256: str) -> LoadOutcome:
+def prepare_swap(running: ReadyModel, path: str | None, sha256: str,
+                 prepared: SwapInBackground | None = None) -> LoadOutcome:
     """What replaces `running` when the model path becomes `path` (None: unchanged) and the
     pin `sha256`: the new model (`ready`), nothing to do (neither), or why the change is
-    refused (`error`); the running model is left as it is either way."""
+    refused (`error`); the running model is left as it is either way. `prepared`: the same
+    change made ready beside the sample path, taken if it is this one."""
+    if prepared is not None and prepared.answers(running, path, sha256):
+        return prepared.outcome
     model = running.model
     if path is None:
         if sha256 and sha256.lower() != model.sha256:
@@ -140,6 +151,40 @@ def prepare_swap(running: ReadyModel, path: str | None, sha256: str) -> LoadOutc
         return LoadOutcome(error=ModelFileError(
             f'{outcome.reason}; still running {model.path}'))
     return outcome
+
+
+class SwapInBackground:
+    """`prepare_swap` of one change on a thread of its own (module docstring): the sample
+    path keeps answering with the running model while the new one loads. Its GIL share is
+    Python's switch interval at most, against the whole load in a callback."""
+
+    def __init__(self, running: ReadyModel, path: str, sha256: str) -> None:
+        self.running, self.path, self.sha256 = running, path, sha256
+        self._outcome = LoadOutcome()
+        self._thread = threading.Thread(target=self._prepare, name='model swap', daemon=True)
+        self._thread.start()
+
+    def _prepare(self) -> None:
+        self._outcome = prepare_swap(self.running, self.path, self.sha256)
+
+    @property
+    def done(self) -> bool:
+        """Whether the preparation has ended (ready or refused)."""
+        return not self._thread.is_alive()
+
+    @property
+    def outcome(self) -> LoadOutcome:
+        """The prepared model or why it is refused (only once `done`)."""
+        if not self.done:
+            msg = 'the swap is still being prepared'
+            raise RuntimeError(msg)
+        return self._outcome
+
+    def answers(self, running: ReadyModel, path: str | None, sha256: str) -> bool:
+        """Whether this preparation is the change to `path`, `sha256` of `running` (a
+        model swapped meanwhile by someone else makes it stale)."""
+        return (self.done and running is self.running and path == self.path
+                and sha256 == self.sha256)
 
 
 def _load(request: ModelRequest) -> ReadyModel:

@@ -2,12 +2,14 @@
 attempts when due, collects them, and swaps an accepted model in.
 
 The attempts and their bookkeeping are ROS-free (`online.adaptation`, the child process
-`online.adaptation_attempt`); this is the node's side. An accepted model is swapped in by
-setting `model_path` and `model_sha256` (the digest the attempt wrote, so the bytes loaded
-are pinned) in one change: the node's own verification, the check against the running
-model and the warm-up of every swap (`predictor_node.validate_settings`), which may still
-refuse it. A model written from another parent than the one in force (the parameter was
-changed meanwhile) is not swapped in.
+`online.adaptation_attempt`); this is the node's side. An accepted model is made ready
+beside the sample path (`model_loader.SwapInBackground`: the node's own verification, the
+check against the running model and the warm-up of every swap), then swapped in by setting
+`model_path` and `model_sha256` (the digest the attempt wrote, so the bytes loaded are
+pinned) in one change, which takes the prepared model or refuses it with the reason
+(`predictor_node.validate_settings`). A model written from another parent than the one in
+force (the parameter was changed meanwhile) is not swapped in. No attempt starts while a
+swap is being prepared.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from lompr_predictor.online.adaptation import (
     AttemptOutcome,
     ModelInForce,
 )
+from lompr_predictor.online.model_loader import ReadyModel, SwapInBackground
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.ros.predictor_settings import PredictorNodeSettings
 from lompr_predictor.ros.predictor_store import NodeSampleStore
@@ -40,7 +43,9 @@ class AdaptationHost(Protocol):
 
     settings: PredictorNodeSettings
     sample_period: float
-    adapted_swap: bool  # set while an adapted model is swapped in: the guard's choice stays
+    running: ReadyModel | None  # the model the core runs
+    #: Set while an adapted model is swapped in: the model prepared, and the guard's choice stays.
+    adapted: SwapInBackground | None
 
     @property
     def core(self) -> OnlinePredictor: ...
@@ -77,6 +82,8 @@ class NodeAdaptation:
         self._node = node
         self._store = store
         self.adaptation = Adaptation(node.settings.adaptation)
+        #: An accepted attempt whose model is being prepared, and the preparation.
+        self._swapping: tuple[AttemptOutcome, SwapInBackground] | None = None
         tick = min(CHECK_PERIOD, max(node.settings.adaptation_period / 4, 0.05))
         node.own(node.start_timer(tick, 'adaptation', self.on_timer))
 
@@ -101,12 +108,15 @@ class NodeAdaptation:
 
     def _step(self) -> None:
         node = self._node
+        if self._swapping is not None:
+            self._swap_when_ready()
         outcome = self.adaptation.poll(node.clock_ns())
         if outcome is not None:
-            self._settle(outcome)
+            self._collect(outcome)
         now = node.clock_ns()
         store = self._store.store
-        if node.active and self.adaptation.due(now, store, node.sample_period):
+        if (node.active and self._swapping is None
+                and self.adaptation.due(now, store, node.sample_period)):
             self.adaptation.start(store, self._in_force(), self._store.provenance(), now)
             node.get_logger().info(
                 f'adaptation attempt {self.adaptation.state.attempts} started (pid '
@@ -117,27 +127,44 @@ class NodeAdaptation:
         return ModelInForce(model.path, model.sha256, settings.robot_description_file or None,
                             settings.frame)
 
-    def _settle(self, outcome: AttemptOutcome) -> None:
-        """Swap an accepted model in (or say why not), then record the attempt."""
-        node = self._node
-        swap_error = None
-        if outcome.decision == ACCEPTED:
+    def _collect(self, outcome: AttemptOutcome) -> None:
+        """An attempt that ended: an accepted model from the model in force is prepared
+        beside the sample path (swapped in by a later tick); any other outcome is
+        recorded now."""
+        node, running = self._node, self._node.running
+        if outcome.decision != ACCEPTED:
+            self._settle(outcome, None)
+        elif running is None or outcome.document.get('parent_sha256') != running.model.sha256:
+            self._settle(outcome, f'the model in force changed during the attempt (now '
+                                  f'{node.core.model.path})')
+        else:
             path, digest = outcome.model
-            if outcome.document.get('parent_sha256') != node.core.model.sha256:
-                swap_error = (f'the model in force changed during the attempt (now '
-                              f'{node.core.model.path})')
-            else:
-                # shown better than the model in force on the node's own recent samples,
-                # it keeps the live guard's choice of each axis (`LiveGuard.restart`)
-                node.adapted_swap = True
-                try:
-                    result = node.set_parameters_atomically([
-                        Parameter('model_path', value=path),
-                        Parameter('model_sha256', value=digest)])
-                finally:
-                    node.adapted_swap = False
-                swap_error = None if result.successful else result.reason
-        self.adaptation.settle(outcome, swap_error, node.core.model.path)
+            self._swapping = (outcome, SwapInBackground(running, path, digest))
+
+    def _swap_when_ready(self) -> None:
+        """Swap the prepared model in once ready, through the node's parameters; record the
+        attempt with the swap's outcome."""
+        assert self._swapping is not None
+        outcome, prepared = self._swapping
+        if not prepared.done:
+            return
+        self._swapping = None
+        node = self._node
+        # shown better than the model in force on the node's own recent samples, it keeps
+        # the live guard's choice of each axis (`LiveGuard.restart`)
+        node.adapted = prepared
+        try:
+            result = node.set_parameters_atomically([
+                Parameter('model_path', value=prepared.path),
+                Parameter('model_sha256', value=prepared.sha256)])
+        finally:
+            node.adapted = None
+        self._settle(outcome, None if result.successful else result.reason)
+
+    def _settle(self, outcome: AttemptOutcome, swap_error: str | None) -> None:
+        """Record an attempt: its decision, or why an accepted model was not swapped in."""
+        node = self._node
+        self.adaptation.settle(outcome, swap_error, node.core.model.path, node.clock_ns())
         entry = self.adaptation.state.last
         text = f'adaptation attempt {entry["attempt"]} {entry["decision"]}: {entry["reason"]}'
         if entry['decision'] == FAILED:

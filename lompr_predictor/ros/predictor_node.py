@@ -28,6 +28,7 @@ from lompr_predictor.online.inference import Backend
 from lompr_predictor.online.model_loader import (
     ModelRequest,
     ReadyModel,
+    SwapInBackground,
     expected_metadata,
     load_ready_model,
     prepare_swap,
@@ -96,9 +97,10 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self.sample_store: NodeSampleStore | None = None  # while configured, if one is kept
         self.adaptation: NodeAdaptation | None = None  # while configured, if enabled
         self.sample_period = 0.0  # [s] the parameter, else the first model's: later ones fit
-        self._running: ReadyModel | None = None  # the model the core runs
+        self.running: ReadyModel | None = None  # the model the core runs
         self._candidate: ReadyModel | None = None  # accepted, swapped in by apply_settings
-        self.adapted_swap = False  # the model being swapped in is an adaptation's (it inherits)
+        #: An adaptation's model being swapped in, prepared beside the sample path (it inherits)
+        self.adapted: SwapInBackground | None = None
         self.history = ModelHistory()
         self.dropped_inactive = 0  # samples received while not active
         self.clock_jumps_back = 0
@@ -179,7 +181,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             HASH_HINT, Backend(settings.inference_backend)))
         if outcome.ready is None:
             return outcome.error
-        self._running = ready = outcome.ready
+        self.running = ready = outcome.ready
         fallback = None
         if settings.fallback_model_path and ready.model.metadata.preview:
             fallback_outcome = load_ready_model(
@@ -230,7 +232,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self.destroy_owned()
         self.outputs.detach()
         self._let_go_store()
-        self._core = self._running = self._candidate = self.model_guard = None
+        self._core = self.running = self._candidate = self.model_guard = None
 
     def destroy_node(self) -> None:
         self._jump_handle.unregister()
@@ -338,11 +340,11 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         """Configured: load, check and warm a new model beside the running one; refuse a
         bad one. Unconfigured: the next configure loads it."""
         self._candidate = None
-        if self._running is None:
+        if self.running is None:
             return None
         path = changes.get('model_path')
         sha256 = changes.get('model_sha256', '' if path is None else self.settings.model_sha256)
-        outcome = prepare_swap(self._running, path, sha256)
+        outcome = prepare_swap(self.running, path, sha256, self.adapted)
         if outcome.error is not None and path is not None:
             self.history = replace(self.history, reload_error=outcome.reason)
             self.get_logger().error(f'model not swapped: {outcome.reason}')
@@ -361,8 +363,8 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         candidate = self._candidate
         if 'model_path' in changed and candidate is not None:
             self._core.replace_model(candidate.model, candidate.backend)
-            self.model_guard.restart(inherit=self.adapted_swap)  # else it earns its place
-            self._running, self._candidate = candidate, None
+            self.model_guard.restart(inherit=self.adapted is not None)  # else it earns its place
+            self.running, self._candidate = candidate, None
             self.history = replace(self.history, swaps=self.history.swaps + 1,
                                    reload_error=None, backend_why=candidate.backend_why)
             self.get_logger().info(f'model swapped: now {self._core.model.path} '
