@@ -17,6 +17,7 @@ from adaptation_data import other_plant, train_parent
 from lompr_predictor.learning.model_file import load_model, sidecar_path
 from lompr_predictor.online import adaptation
 from lompr_predictor.online.adaptation import (
+    GRAPH_NAME,
     WORK_PREFIX,
     Adaptation,
     AdaptationSettings,
@@ -31,6 +32,7 @@ from lompr_predictor.online.adaptation_attempt import (
     decide,
 )
 from lompr_predictor.online.alignment import AlignedSample
+from lompr_predictor.online.inference import select_backend
 from lompr_predictor.online.sample_store import SampleStore
 from lompr_predictor.robot.description import RobotDescription
 
@@ -175,10 +177,14 @@ def test_an_attempt_writes_a_better_model_and_only_a_better_one(
         pytest.approx(899 * 0.04))
     if decision == REFUSED:
         assert not models.exists() and document['model_path'] == ''
+        assert not (work / GRAPH_NAME).exists()
         assert document['reason'].startswith(f'{scores["bo_lstm"]:.3f} um RMS, not below 0.1 x')
         return
     written = load_model(document['model_path'])  # verified by its sidecar
     assert written.sha256 == document['model_sha256']
+    # its ONNX graph beside the document serves the node's swap: checked like its own export
+    backend, why = select_backend(written, 'onnxruntime', (work / GRAPH_NAME).read_bytes())
+    assert why is None and backend.name == 'onnxruntime'
     meta = written.metadata
     assert meta.parent_sha256 == loaded.sha256
     data = meta.hyperparameters['fine_tuning']['data']

@@ -17,6 +17,7 @@ from lompr_predictor.data.cleaning import clean_recordings
 from lompr_predictor.data.features import FEATURES, TARGETS
 from lompr_predictor.data.problem import LearningProblem, build_problem
 from lompr_predictor.learning.machine_map import fit_machine_map, map_prior
+from lompr_predictor.learning.map_prior import with_prior
 from lompr_predictor.learning.model_file import (
     LoadedModel,
     ModelMetadata,
@@ -255,3 +256,25 @@ def test_a_candidate_that_cannot_bind_the_window_falls_back_with_the_reason(
     backend, why = select_backend(trained, 'auto')
     assert backend.name == 'torchscript' and why is not None
     assert 'Failed to find input name in the mapping' in why and trained.path in why
+
+
+def test_a_graph_exported_elsewhere_serves_and_a_wrong_one_is_exported_again(
+        trained: LoadedModel, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    own = export_onnx(trained, with_prior(trained))
+    other = load_model(save_linear(tmp_path / 'other.pt', window=WINDOW, horizon=HORIZON))
+    wrong = (b'not an ONNX graph', export_onnx(other, with_prior(other)))
+
+    def exported_here(model: LoadedModel, module: torch.nn.Module) -> bytes:
+        exports.append(model.path)
+        return export_onnx(model, module)
+
+    exports: list[str] = []
+    monkeypatch.setattr(inference, 'export_onnx', exported_here)
+    window = np.random.default_rng(1).normal(scale=0.01, size=(1, WINDOW, len(FEATURES)))
+    wanted = TorchScriptBackend(trained).runner(window)()
+    for graph, exported in ((own, []), (wrong[0], [trained.path]), (wrong[1], [trained.path])):
+        exports.clear()
+        backend, why = select_backend(trained, 'onnxruntime', graph)
+        assert (backend.name, why, exports) == ('onnxruntime', None, exported)
+        np.testing.assert_allclose(backend.runner(window)(), wanted, rtol=0,
+                                   atol=RELATIVE_TOLERANCE * np.nanmax(np.abs(wanted)))

@@ -173,10 +173,11 @@ def test_the_sample_path_answers_with_the_model_in_force_while_an_adapted_model_
     loaders: list[threading.Thread] = []
     load = model_loader.load_ready_model
 
-    def held_load(request: model_loader.ModelRequest) -> model_loader.LoadOutcome:
+    def held_load(request: model_loader.ModelRequest,
+                  graph: bytes | None) -> model_loader.LoadOutcome:
         loaders.append(threading.current_thread())
         release.wait(30.0)  # a load that takes as long as the test wants
-        return load(request)
+        return load(request, graph)
 
     monkeypatch.setattr(model_loader, 'load_ready_model', held_load)
     node.adaptation._collect(accepted_outcome(1, node.core.model.sha256, candidate))

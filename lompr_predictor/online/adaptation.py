@@ -38,8 +38,10 @@ ATTEMPT_MODULE = 'lompr_predictor.online.adaptation_attempt'
 #: In the models folder: the log, and each attempt's work folder (prefix).
 LOG_NAME = 'adaptation.jsonl'
 WORK_PREFIX = '.attempt-'
-#: The attempt's document and its stderr, in its work folder (`adaptation_attempt`).
+#: The attempt's document, an accepted model's ONNX graph and its stderr, in its work
+#: folder (`adaptation_attempt`).
 RESULT_JSON = 'result.json'
+GRAPH_NAME = 'candidate.onnx'
 STDERR_NAME = 'stderr.txt'
 #: Adapted model files (`adaptation_attempt.new_model_path`).
 MODEL_GLOB = 'adapted-*.pt'
@@ -85,6 +87,7 @@ class AttemptOutcome:
     started_clock_ns: int  # the node's clock when it started...
     ended_clock_ns: int  # ... and when its end was seen
     document: dict[str, Any]
+    graph: bytes | None = None  # an accepted model's ONNX graph, exported by the attempt
 
     @property
     def decision(self) -> str:
@@ -171,10 +174,12 @@ class Adaptation:
         document = _read_document(work / RESULT_JSON)
         if document is None:
             document = {'decision': FAILED, 'reason': _why_it_failed(process.returncode, work)}
+        graph = _read_graph(work / GRAPH_NAME) if document['decision'] == ACCEPTED else None
         self._process = self._work = None
         self.state.running_pid = 0
         shutil.rmtree(work, ignore_errors=True)
-        return AttemptOutcome(self.state.attempts, self._started_ns or 0, now_ns, document)
+        return AttemptOutcome(self.state.attempts, self._started_ns or 0, now_ns, document,
+                              graph)
 
     def settle(self, outcome: AttemptOutcome, swap_error: str | None, in_force: str,
                now_ns: int) -> None:
@@ -281,6 +286,14 @@ def _read_document(path: Path) -> dict[str, Any] | None:
     except (OSError, ValueError):
         return None
     return document if isinstance(document, dict) else None
+
+
+def _read_graph(path: Path) -> bytes | None:
+    """The ONNX graph an attempt exported, None if it wrote none (the node then exports)."""
+    try:
+        return path.read_bytes()
+    except OSError:
+        return None
 
 
 def _why_it_failed(returncode: int, work: Path) -> str:

@@ -16,6 +16,12 @@ beside it, into the models folder; its metadata names the model it came from
 (`parent_sha256`) and the data it learned (`hyperparameters.fine_tuning.data`: the node,
 the samples and the sample time they span).
 
+An accepted model's ONNX graph (`model_file.export_onnx` of the file as written, with its
+priors, as the node's backend exports it) goes beside the document (`candidate.onnx`): the
+node's swap takes it instead of exporting in its own process, where an export would hold the
+interpreter from the sample path for most of half a second, and checks it against the file's
+own module as it checks its own export.
+
 The outcome is one JSON document (`result.json` in the attempt's work folder, written
 atomically last), which the node reads once the process has ended: the decision, the scores,
 the new file and the cores the attempt used (`threads.CoreUse`: in all, and the most of any
@@ -39,7 +45,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from lompr_predictor.errors import LomprError
-from lompr_predictor.files import file_sha256, write_json
+from lompr_predictor.files import file_sha256, write_atomic, write_json
+from lompr_predictor.online.adaptation import GRAPH_NAME, RESULT_JSON
 from lompr_predictor.online.sample_store import StoredSamples, read_ring
 from lompr_predictor.scheduling import confine_to_one_cpu, lower_priority
 from lompr_predictor.threads import CoreUse, set_torch_threads
@@ -48,8 +55,6 @@ if TYPE_CHECKING:  # imported by `attempt`, once the process runs at its lower p
     from lompr_predictor.learning.model_file import ModelMetadata
     from lompr_predictor.learning.pipeline import TrainingResult
 
-#: The attempt's document, in its work folder.
-RESULT_JSON = 'result.json'
 #: New model files are named this, then the UTC time and a number.
 MODEL_PREFIX = 'adapted-'
 #: The decisions an attempt ends with (the node adds 'failed' for one that did not end).
@@ -131,7 +136,8 @@ def attempt(samples: StoredSamples, request: AttemptRequest) -> dict[str, Any]:
     result document. `LomprError` (one line) when the samples cannot make a fine-tuning."""
     from lompr_predictor.data.loading import BagInputs
     from lompr_predictor.learning.fine_tuning import fine_tune_predictor, parent_settings
-    from lompr_predictor.learning.model_file import write_model
+    from lompr_predictor.learning.map_prior import with_prior
+    from lompr_predictor.learning.model_file import export_onnx, load_model, write_model
     from lompr_predictor.learning.pipeline import TrainingConfig
     from lompr_predictor.online.store_bag import write_store_bag
 
@@ -165,6 +171,8 @@ def attempt(samples: StoredSamples, request: AttemptRequest) -> dict[str, Any]:
         path = new_model_path(Path(request.models_folder))
         digest = write_model(path, result.module, adapted_metadata(result.metadata, data))
         document.update(model_path=str(path), model_sha256=digest)
+        written = load_model(path, sha256=digest)
+        write_atomic(work / GRAPH_NAME, export_onnx(written, with_prior(written)))
     document['seconds'] = time.perf_counter() - started
     return document
 

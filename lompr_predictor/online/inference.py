@@ -172,10 +172,13 @@ def warm_up_windows(model: LoadedModel, count: int = WARM_UP_WINDOWS) -> np.ndar
 
 
 def select_backend(model: LoadedModel, requested: Backend | str = Backend.AUTO,
-                   ) -> tuple[InferenceBackend, str | None]:
+                   graph: bytes | None = None) -> tuple[InferenceBackend, str | None]:
     """The backend to serve `model` with and why it is not the one preferred (None when it
     is: ONNX Runtime for 'auto' and 'onnxruntime', TorchScript for 'torchscript'); see the
-    module docstring."""
+    module docstring. `graph`: the model's ONNX graph exported by another process (an
+    adaptation attempt's, so that this one need not: an export holds the interpreter for
+    most of its half second), checked like this process's own; refused, the model is
+    exported here."""
     try:
         requested = Backend(requested)
     except ValueError as err:
@@ -185,17 +188,20 @@ def select_backend(model: LoadedModel, requested: Backend | str = Backend.AUTO,
     if requested == Backend.TORCHSCRIPT:
         return torchscript, None
     try:
-        return onnxruntime_backend(model, torchscript), None
+        return onnxruntime_backend(model, torchscript, graph), None
     except InferenceBackendError as err:
+        if graph is not None:
+            return select_backend(model, requested)
         if requested == Backend.ONNXRUNTIME:
             raise
         return torchscript, f'TorchScript serves: {err}'
 
 
-def onnxruntime_backend(model: LoadedModel,
-                        reference: InferenceBackend | None = None) -> OnnxRuntimeBackend:
-    """The ONNX Runtime backend of `model`, checked against `reference` (default: its
-    TorchScript backend) on the warm-up batch; `InferenceBackendError` naming why not."""
+def onnxruntime_backend(model: LoadedModel, reference: InferenceBackend | None = None,
+                        graph: bytes | None = None) -> OnnxRuntimeBackend:
+    """The ONNX Runtime backend of `model` (its graph exported here unless `graph` is
+    given), checked against `reference` (default: its TorchScript backend) on the warm-up
+    batch; `InferenceBackendError` naming why not."""
     try:
         onnxruntime = importlib.import_module('onnxruntime')
     except Exception as err:  # a broken install raises more than ImportError
@@ -203,7 +209,9 @@ def onnxruntime_backend(model: LoadedModel,
                'pip install -r requirements.txt')
         raise InferenceBackendError(msg) from err
     try:
-        backend = OnnxRuntimeBackend(export_onnx(model, with_prior(model)), onnxruntime)
+        if graph is None:
+            graph = export_onnx(model, with_prior(model))
+        backend = OnnxRuntimeBackend(graph, onnxruntime)
     except ModelFileError as err:
         raise InferenceBackendError(str(err)) from err
     except Exception as err:  # ONNX Runtime raises its own types for a bad graph

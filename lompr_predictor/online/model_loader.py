@@ -119,11 +119,12 @@ class LoadOutcome:
         return None if self.error is None else str(self.error)
 
 
-def load_ready_model(request: ModelRequest) -> LoadOutcome:
-    """Load, verify, check and warm up `request.path`; any failure is a refusal with its
-    reason, never an exception (a model file is code: anything can fail in it)."""
+def load_ready_model(request: ModelRequest, graph: bytes | None = None) -> LoadOutcome:
+    """Load, verify, check and warm up `request.path` (`graph`: its ONNX graph exported
+    elsewhere, `inference.select_backend`); any failure is a refusal with its reason, never
+    an exception (a model file is code: anything can fail in it)."""
     try:
-        return LoadOutcome(ready=_load(request))
+        return LoadOutcome(ready=_load(request, graph))
     except LomprError as err:
         return LoadOutcome(error=err)
     except Exception as err:  # noqa: BLE001 - a model file is code: any failure refuses it
@@ -132,11 +133,13 @@ def load_ready_model(request: ModelRequest) -> LoadOutcome:
 
 
 def prepare_swap(running: ReadyModel, path: str | None, sha256: str,
-                 prepared: SwapInBackground | None = None) -> LoadOutcome:
+                 prepared: SwapInBackground | None = None,
+                 graph: bytes | None = None) -> LoadOutcome:
     """What replaces `running` when the model path becomes `path` (None: unchanged) and the
     pin `sha256`: the new model (`ready`), nothing to do (neither), or why the change is
     refused (`error`); the running model is left as it is either way. `prepared`: the same
-    change made ready beside the sample path, taken if it is this one."""
+    change made ready beside the sample path, taken if it is this one; `graph`: the new
+    model's ONNX graph exported elsewhere (`load_ready_model`)."""
     if prepared is not None and prepared.answers(running, path, sha256):
         return prepared.outcome
     model = running.model
@@ -146,7 +149,7 @@ def prepare_swap(running: ReadyModel, path: str | None, sha256: str,
                 f'the running model {model.path} has sha256 {model.sha256}, not {sha256}; '
                 'set model_path with it'))
         return LoadOutcome()
-    outcome = load_ready_model(running.swap_request(path, sha256))
+    outcome = load_ready_model(running.swap_request(path, sha256), graph)
     if outcome.error is not None:
         return LoadOutcome(error=ModelFileError(
             f'{outcome.reason}; still running {model.path}'))
@@ -155,17 +158,22 @@ def prepare_swap(running: ReadyModel, path: str | None, sha256: str,
 
 class SwapInBackground:
     """`prepare_swap` of one change on a thread of its own (module docstring): the sample
-    path keeps answering with the running model while the new one loads. Its GIL share is
-    Python's switch interval at most, against the whole load in a callback."""
+    path keeps answering with the running model while the new one loads. The thread shares
+    the interpreter: the sample path waits for it a switch interval at a time, longer in
+    the parts of the load that hold the interpreter (the ONNX export most: given a `graph`
+    exported elsewhere, it is not run here)."""
 
-    def __init__(self, running: ReadyModel, path: str, sha256: str) -> None:
+    def __init__(self, running: ReadyModel, path: str, sha256: str,
+                 graph: bytes | None = None) -> None:
         self.running, self.path, self.sha256 = running, path, sha256
+        self._graph = graph  # the new model's ONNX graph exported elsewhere (or None)
         self._outcome = LoadOutcome()
         self._thread = threading.Thread(target=self._prepare, name='model swap', daemon=True)
         self._thread.start()
 
     def _prepare(self) -> None:
-        self._outcome = prepare_swap(self.running, self.path, self.sha256)
+        self._outcome = prepare_swap(self.running, self.path, self.sha256, graph=self._graph)
+        self._graph = None
 
     @property
     def done(self) -> bool:
@@ -187,7 +195,7 @@ class SwapInBackground:
                 and sha256 == self.sha256)
 
 
-def _load(request: ModelRequest) -> ReadyModel:
+def _load(request: ModelRequest, graph: bytes | None = None) -> ReadyModel:
     if not request.path:
         msg = 'parameter model_path is empty: give the model file (lompr train --out)'
         raise ModelFileError(msg)
@@ -196,7 +204,7 @@ def _load(request: ModelRequest) -> ReadyModel:
     period = request.sample_period or model.metadata.sample_period
     check_sample_period(model.metadata, period, request.path)
     warm_up_seconds = warm_up(model)
-    backend, why = select_backend(model, request.backend)
+    backend, why = select_backend(model, request.backend, graph)
     return ReadyModel(model, period, warm_up_seconds, request, backend, why)
 
 

@@ -139,7 +139,7 @@ class NodeAdaptation:
                                   f'{node.core.model.path})')
         else:
             path, digest = outcome.model
-            self._swapping = (outcome, SwapInBackground(running, path, digest))
+            self._swapping = (outcome, SwapInBackground(running, path, digest, outcome.graph))
 
     def _swap_when_ready(self) -> None:
         """Swap the prepared model in once ready, through the node's parameters; record the
