@@ -30,10 +30,11 @@ adapting loop:
   less than 3 %;
 - always: the sample path answers >= 99.9 % of the samples whose instant falls while an
   attempt runs (from its start to the node having swapped its model in, on the node's
-  clock; the twin's run log says which samples had their offset), the loop without adaptation on the same
-  instants beside it; the target is for 250 Hz in real time (`--preset highrate --speed 1
-  --twin-mode realtime`, a model trained on that preset; paced, the twin waits for every
-  offset, so only a timeout leaves a sample unanswered);
+  clock; the twin's run log says which samples had their offset), the loop without
+  adaptation on the same instants beside it; the target is for 250 Hz in real time
+  (`--preset highrate --speed 1 --twin-mode realtime`, a model trained on that preset, its
+  horizon covering the loop's latency; paced, the twin waits for every offset, so only a
+  timeout leaves a sample unanswered);
 - always: no attempt used more than one core in any second (its `cpu` in the log,
   `threads.CoreUse`).
 
