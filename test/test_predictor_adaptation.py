@@ -161,6 +161,23 @@ def test_a_model_that_fails_verification_or_has_another_parent_is_never_swapped_
     assert node.model_guard.answering == (GuardState.PERSISTENCE, GuardState.PERSISTENCE)
 
 
+class HeldLoads:
+    """Model loads that wait until the test releases them, and the threads they ran on."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        self.release = threading.Event()
+        self.threads: list[threading.Thread] = []
+        load = model_loader.load_ready_model
+
+        def held_load(request: model_loader.ModelRequest,
+                      graph: bytes | None) -> model_loader.LoadOutcome:
+            self.threads.append(threading.current_thread())
+            self.release.wait(30.0)  # a load that takes as long as the test wants
+            return load(request, graph)
+
+        monkeypatch.setattr(model_loader, 'load_ready_model', held_load)
+
+
 def test_the_sample_path_answers_with_the_model_in_force_while_an_adapted_model_loads(
         ros: RosHarness, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     in_force = constant(tmp_path / 'in_force.pt', (-10e-6, 5e-6))
@@ -169,29 +186,43 @@ def test_the_sample_path_answers_with_the_model_in_force_while_an_adapted_model_
     node = wiring.node
     assert node.adaptation is not None
     candidate = constant(folder / 'adapted-20250101T000000Z-001.pt', (1e-6, 1e-6))
-    release = threading.Event()
-    loaders: list[threading.Thread] = []
-    load = model_loader.load_ready_model
-
-    def held_load(request: model_loader.ModelRequest,
-                  graph: bytes | None) -> model_loader.LoadOutcome:
-        loaders.append(threading.current_thread())
-        release.wait(30.0)  # a load that takes as long as the test wants
-        return load(request, graph)
-
-    monkeypatch.setattr(model_loader, 'load_ready_model', held_load)
+    loads = HeldLoads(monkeypatch)
     node.adaptation._collect(accepted_outcome(1, node.core.model.sha256, candidate))
-    ros.spin_until(lambda: bool(loaders), what='the adapted model loading')
+    ros.spin_until(lambda: bool(loads.threads), what='the adapted model loading')
     wiring.run(0, 2 + HORIZON + 6)
     ros.spin_until(lambda: len(wiring.predictions) >= 6, what='answers during the load')
-    assert not release.is_set() and loaders[0] is not threading.current_thread()
+    assert not loads.release.is_set() and loads.threads[0] is not threading.current_thread()
     assert node.core.model.path == str(in_force)
     np.testing.assert_allclose(xy(wiring.predictions), [[-10e-6, 5e-6]] * len(wiring.predictions))
-    release.set()
+    loads.release.set()
     ros.spin_until(lambda: node.core.model.path == str(candidate), what='the swap')
     entry = node.adaptation.adaptation.state.last
     assert entry['decision'] == 'accepted' and entry['swapped']
     assert entry['clock_settled_s'] >= entry['clock_ended_s']
+
+
+def test_an_operators_swap_while_an_adapted_model_loads_wins(
+        ros: RosHarness, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    in_force = constant(tmp_path / 'in_force.pt')
+    folder = tmp_path / 'models'
+    wiring = adapting(ros, in_force, folder)
+    node = wiring.node
+    assert node.adaptation is not None
+    candidate = constant(folder / 'adapted-20250101T000000Z-001.pt', (1e-6, 1e-6))
+    operators = constant(tmp_path / 'operators.pt', (2e-6, 2e-6))
+    loads = HeldLoads(monkeypatch)
+    node.adaptation._collect(accepted_outcome(1, node.core.model.sha256, candidate))
+    ros.spin_until(lambda: bool(loads.threads), what='the adapted model loading')
+    loads.release.set()  # the operator's own load goes through at once
+    assert node.set_parameters_atomically([Parameter('model_path', value=str(operators))]
+                                          ).successful
+    ros.spin_until(lambda: node.adaptation is not None and node.adaptation._swapping is None,
+                   what='the adapted model settled')
+    assert node.core.model.path == str(operators)
+    entry = node.adaptation.adaptation.state.last
+    assert entry['decision'] == 'failed' and not entry['swapped']
+    assert entry['reason'] == ('not swapped in: the model in force changed during the attempt '
+                               f'(now {operators})')
 
 
 def _earn_x(guard: LiveGuard) -> None:

@@ -131,12 +131,11 @@ class NodeAdaptation:
         """An attempt that ended: an accepted model from the model in force is prepared
         beside the sample path (swapped in by a later tick); any other outcome is
         recorded now."""
-        node, running = self._node, self._node.running
+        running = self._node.running
         if outcome.decision != ACCEPTED:
             self._settle(outcome, None)
         elif running is None or outcome.document.get('parent_sha256') != running.model.sha256:
-            self._settle(outcome, f'the model in force changed during the attempt (now '
-                                  f'{node.core.model.path})')
+            self._settle(outcome, self._changed())
         else:
             path, digest = outcome.model
             self._swapping = (outcome, SwapInBackground(running, path, digest, outcome.graph))
@@ -150,6 +149,9 @@ class NodeAdaptation:
             return
         self._swapping = None
         node = self._node
+        if node.running is not prepared.running:  # an operator's swap while it loaded
+            self._settle(outcome, self._changed())
+            return
         # shown better than the model in force on the node's own recent samples, it keeps
         # the live guard's choice of each axis (`LiveGuard.restart`)
         node.adapted = prepared
@@ -160,6 +162,10 @@ class NodeAdaptation:
         finally:
             node.adapted = None
         self._settle(outcome, None if result.successful else result.reason)
+
+    def _changed(self) -> str:
+        """Why an accepted model is not swapped in when the model in force is another."""
+        return f'the model in force changed during the attempt (now {self._node.core.model.path})'
 
     def _settle(self, outcome: AttemptOutcome, swap_error: str | None) -> None:
         """Record an attempt: its decision, or why an accepted model was not swapped in."""

@@ -99,8 +99,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self.sample_period = 0.0  # [s] the parameter, else the first model's: later ones fit
         self.running: ReadyModel | None = None  # the model the core runs
         self._candidate: ReadyModel | None = None  # accepted, swapped in by apply_settings
-        #: An adaptation's model being swapped in, prepared beside the sample path (it inherits)
-        self.adapted: SwapInBackground | None = None
+        self.adapted: SwapInBackground | None = None  # an adaptation's swap, prepared (inherits)
         self.history = ModelHistory()
         self.dropped_inactive = 0  # samples received while not active
         self.clock_jumps_back = 0
