@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 from adaptation_data import other_plant, train_parent
 
-from lompr_predictor.learning.model_file import load_model, sidecar_path
+from lompr_predictor.learning import model_file
+from lompr_predictor.learning.model_file import ModelFileError, load_model, sidecar_path
 from lompr_predictor.online import adaptation
 from lompr_predictor.online.adaptation import (
     GRAPH_NAME,
@@ -159,9 +160,15 @@ def parent(tmp_path_factory: pytest.TempPathFactory, description: RobotDescripti
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(('margin', 'decision'), [(0.05, ACCEPTED), (0.9, REFUSED)])
+@pytest.mark.parametrize(('margin', 'decision', 'exportable'),
+                         [(0.05, ACCEPTED, True), (0.9, REFUSED, True), (0.05, ACCEPTED, False)])
 def test_an_attempt_writes_a_better_model_and_only_a_better_one(
-        parent: Path, tmp_path: Path, margin: float, decision: str) -> None:
+        parent: Path, tmp_path: Path, margin: float, decision: str, exportable: bool,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    if not exportable:  # the model is still written; the node exports or falls back itself
+        def refuse(*args: object) -> bytes:
+            raise ModelFileError('cannot be exported to ONNX (test)')
+        monkeypatch.setattr(model_file, 'export_onnx', refuse)
     loaded = load_model(parent)
     samples = other_plant(900)
     models, work = tmp_path / 'models', tmp_path / 'work'
@@ -182,6 +189,9 @@ def test_an_attempt_writes_a_better_model_and_only_a_better_one(
         return
     written = load_model(document['model_path'])  # verified by its sidecar
     assert written.sha256 == document['model_sha256']
+    if not exportable:
+        assert not (work / GRAPH_NAME).exists()
+        return
     # its ONNX graph beside the document serves the node's swap: checked like its own export
     backend, why = select_backend(written, 'onnxruntime', (work / GRAPH_NAME).read_bytes())
     assert why is None and backend.name == 'onnxruntime'

@@ -33,6 +33,7 @@ imports this module (nor the trainer it loads).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import sys
@@ -137,7 +138,12 @@ def attempt(samples: StoredSamples, request: AttemptRequest) -> dict[str, Any]:
     from lompr_predictor.data.loading import BagInputs
     from lompr_predictor.learning.fine_tuning import fine_tune_predictor, parent_settings
     from lompr_predictor.learning.map_prior import with_prior
-    from lompr_predictor.learning.model_file import export_onnx, load_model, write_model
+    from lompr_predictor.learning.model_file import (
+        ModelFileError,
+        export_onnx,
+        load_model,
+        write_model,
+    )
     from lompr_predictor.learning.pipeline import TrainingConfig
     from lompr_predictor.online.store_bag import write_store_bag
 
@@ -172,7 +178,9 @@ def attempt(samples: StoredSamples, request: AttemptRequest) -> dict[str, Any]:
         digest = write_model(path, result.module, adapted_metadata(result.metadata, data))
         document.update(model_path=str(path), model_sha256=digest)
         written = load_model(path, sha256=digest)
-        write_atomic(work / GRAPH_NAME, export_onnx(written, with_prior(written)))
+        # a module the exporter cannot take is served as the node's backend choice says
+        with contextlib.suppress(ModelFileError):
+            write_atomic(work / GRAPH_NAME, export_onnx(written, with_prior(written)))
     document['seconds'] = time.perf_counter() - started
     return document
 
