@@ -62,17 +62,19 @@ def cpu_list_problem(cpus: Iterable[int]) -> str | None:
     return None
 
 
-def threads() -> list[int]:
-    """Ids of this process's threads (Linux: /proc/self/task); elsewhere [0], the caller."""
+def threads(pid: int = 0) -> list[int]:
+    """Ids of the threads of process `pid` (0: this one; Linux: /proc/PID/task); elsewhere
+    [pid], the process itself."""
     try:
-        return sorted(int(name) for name in os.listdir('/proc/self/task'))
+        return sorted(int(name) for name in os.listdir(f'/proc/{pid or "self"}/task'))
     except OSError:
-        return [0]
+        return [pid]
 
 
-def _each_thread(action: Callable[[int], None]) -> None:
-    """`action(thread id)` for every thread; one that ended meanwhile is skipped."""
-    for thread in threads():
+def _each_thread(action: Callable[[int], None], pid: int = 0) -> None:
+    """`action(thread id)` for every thread of process `pid` (0: this one); one that ended
+    meanwhile is skipped."""
+    for thread in threads(pid):
         try:
             action(thread)
         except ProcessLookupError:
@@ -116,15 +118,30 @@ def lower_priority(nice: int) -> None:
         _renice(nice, '--nice')
 
 
-def confine_to_one_cpu() -> int | None:
-    """Run every thread of this process, and those it starts, on one CPU, the last of those
-    allowed: a job beside the nodes (an adaptation attempt) then never takes more than one
-    core, whatever threads its libraries start. The CPU, or None where the platform has no
-    affinity."""
-    if not hasattr(os, 'sched_setaffinity'):
-        return None
-    cpu = max(os.sched_getaffinity(0))
-    _each_thread(lambda thread: os.sched_setaffinity(thread, {cpu}))
+def lower_job(pid: int, nice: int, idle: bool = True) -> int | None:
+    """Put process `pid`, a job this one just started beside the nodes (an adaptation
+    attempt), below them before its imports run, every thread it has and, by inheritance,
+    those it starts: under SCHED_IDLE if `idle` and the platform has it (it then runs only on
+    CPU time no other thread wants), else the normal policy (a real-time one inherited from
+    a node is given up) with `nice` >= 0 added to its nice value; and on one CPU, the last of
+    this process's, so that it never takes more than one core whatever threads its libraries
+    start. The CPU, or None where the platform has no affinity."""
+    if nice < 0:
+        msg = f'a job beside the nodes only lowers its priority: nice must be >= 0, got {nice}'
+        raise ValueError(msg)
+    policy = os.SCHED_IDLE if idle and hasattr(os, 'SCHED_IDLE') else getattr(
+        os, 'SCHED_OTHER', None)
+    cpu = max(os.sched_getaffinity(0)) if hasattr(os, 'sched_setaffinity') else None
+
+    def lower(thread: int) -> None:
+        if policy is not None:
+            os.sched_setscheduler(thread, policy, os.sched_param(0))
+        os.setpriority(os.PRIO_PROCESS, thread,
+                       min(MAX_NICE, os.getpriority(os.PRIO_PROCESS, thread) + nice))
+        if cpu is not None:
+            os.sched_setaffinity(thread, {cpu})
+
+    _each_thread(lower, pid)
     return cpu
 
 

@@ -38,7 +38,7 @@ from lompr_predictor.online.sample_store import SampleStore
 from lompr_predictor.robot.description import RobotDescription
 
 SETTINGS = AdaptationSettings(minutes=0.1, period=30.0, margin=0.1, folder='', keep=2,
-                              max_epochs=4, nice=10)
+                              max_epochs=4, nice=10, idle=True)
 
 
 def settings(folder: Path, **changes: object) -> AdaptationSettings:

@@ -17,7 +17,12 @@ from typing import TYPE_CHECKING
 import pytest
 from ros_helpers import start_executable, stop_process
 
-from lompr_predictor.scheduling import Scheduling, SchedulingError, shared_scheduling
+from lompr_predictor.scheduling import (
+    Scheduling,
+    SchedulingError,
+    lower_job,
+    shared_scheduling,
+)
 
 if TYPE_CHECKING:
     from ros_helpers import RosHarness
@@ -91,13 +96,42 @@ def test_a_node_scheduling_reaches_every_thread() -> None:
         assert fifo['policy'] == [os.SCHED_FIFO]
 
 
-def test_a_job_confined_to_one_cpu_runs_every_thread_there_those_started_after_too() -> None:
-    """An adaptation attempt's confinement: the thread made before and one started after
-    (as a library's worker pool would be) all on the last CPU the process may use."""
-    last = max(os.sched_getaffinity(0))
-    confined = probe('confine_to_one_cpu(); '
-                     'threading.Thread(target=ready.wait, daemon=True).start()')
-    assert confined['threads'] == 3 and confined['cpus'] == [last]
+#: A job to be lowered from outside: a thread made before, then (once a line arrives on
+#: stdin) one made after, and every thread's nice value, policy and CPUs as JSON.
+JOB = """
+import json, os, sys, threading
+ready = threading.Event()
+threading.Thread(target=ready.wait, daemon=True).start()
+print('started', flush=True)
+sys.stdin.readline()
+threading.Thread(target=ready.wait, daemon=True).start()
+tids = [int(t) for t in os.listdir('/proc/self/task')]
+print(json.dumps({'threads': len(tids),
+                  'nice': sorted({os.getpriority(os.PRIO_PROCESS, t) for t in tids}),
+                  'policy': sorted({os.sched_getscheduler(t) for t in tids}),
+                  'cpus': sorted({c for t in tids for c in os.sched_getaffinity(t)})}))
+"""
+
+
+@pytest.mark.parametrize('idle', [True, False])
+def test_a_job_beside_the_nodes_is_lowered_from_outside_every_thread_those_after_too(
+        idle: bool) -> None:
+    """An adaptation attempt, lowered by the node that started it: the thread made before
+    and one started after (as a library's worker pool would be) under SCHED_IDLE or `nice`
+    levels lower, all on the last CPU this process may use."""
+    base, last = os.nice(0), max(os.sched_getaffinity(0))
+    with subprocess.Popen([sys.executable, '-c', JOB], stdin=subprocess.PIPE,
+                          stdout=subprocess.PIPE, text=True) as job:
+        assert job.stdout is not None and job.stdin is not None
+        assert job.stdout.readline().strip() == 'started'
+        assert lower_job(job.pid, 5, idle=idle) == last
+        job.stdin.write('go\n')
+        job.stdin.flush()
+        lowered = json.loads(job.stdout.readline())
+    assert lowered == {'threads': 3, 'nice': [min(base + 5, 19)],
+                       'policy': [os.SCHED_IDLE if idle else os.SCHED_OTHER], 'cpus': [last]}
+    with pytest.raises(ValueError, match='only lowers its priority'):
+        lower_job(os.getpid(), -1)
 
 
 @pytest.mark.parametrize(('code', 'message'), [

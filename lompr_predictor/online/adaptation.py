@@ -32,6 +32,7 @@ from typing import Any
 
 from lompr_predictor.monitoring import Level, Status
 from lompr_predictor.online.sample_store import NS_PER_MINUTE, SampleStore, capacity_for
+from lompr_predictor.scheduling import lower_job
 
 #: The child's module (run with `-m`, never imported here: it loads the trainer).
 ATTEMPT_MODULE = 'lompr_predictor.online.adaptation_attempt'
@@ -59,7 +60,8 @@ class AdaptationSettings:
     folder: str  # where models and the log are written ('': $ROS_HOME/lompr_models)
     keep: int  # adapted models kept (the newest; the one in force always)
     max_epochs: int  # of each fine-tuning
-    nice: int  # added to the attempt process's nice value
+    nice: int  # added to the attempt process's nice value (unless idle)
+    idle: bool  # the attempt runs under SCHED_IDLE (`scheduling.lower_job`)
 
 
 def default_folder() -> Path:
@@ -155,13 +157,15 @@ class Adaptation:
                    'robot_description': model.robot_description, 'frame': model.frame,
                    'seed': self.state.attempts, 'info': info}
         command = [sys.executable, '-m', ATTEMPT_MODULE, '--fd', str(store.fd), '--window-ns',
-                   str(self.window_ns), '--nice', str(self.settings.nice),
-                   '--request', json.dumps(request)]
+                   str(self.window_ns), '--request', json.dumps(request)]
         with (work / STDERR_NAME).open('wb') as stderr:
             self._process = subprocess.Popen(command, pass_fds=(store.fd,),
                                              stdin=subprocess.DEVNULL,
                                              stdout=subprocess.DEVNULL, stderr=stderr,
                                              start_new_session=True)
+        # lowered from here, as soon as it runs: its interpreter's start and imports take
+        # a third of a second of CPU, which at the node's priority would delay the samples
+        lower_job(self._process.pid, self.settings.nice, self.settings.idle)
         self._work, self._started_ns = work, now_ns
         self.state.running_pid, self.state.error = self._process.pid, ''
 

@@ -1,8 +1,8 @@
 """One adaptation attempt, the child process the predictor node starts (`adaptation`).
 
 `python -m lompr_predictor.online.adaptation_attempt --fd N --request JSON` runs below the
-node's priority (`scheduling.lower_priority`) on one torch thread and one CPU
-(`scheduling.confine_to_one_cpu`: whatever threads its libraries start): it reads the newest data
+node's priority and on one CPU (the node lowers it as it starts, `scheduling.lower_job`:
+whatever threads its libraries start), on one torch thread: it reads the newest data
 window of the node's sample store through the ring's inherited descriptor
 (`sample_store.read_ring`), writes it as a bag as the store's own export does (`store_bag`),
 fine-tunes the model in force on it (`fine_tuning.fine_tune_predictor`: warm start, bounded
@@ -49,7 +49,6 @@ from lompr_predictor.errors import LomprError
 from lompr_predictor.files import file_sha256, write_atomic, write_json
 from lompr_predictor.online.adaptation import GRAPH_NAME, RESULT_JSON
 from lompr_predictor.online.sample_store import StoredSamples, read_ring
-from lompr_predictor.scheduling import confine_to_one_cpu, lower_priority
 from lompr_predictor.threads import CoreUse, set_torch_threads
 
 if TYPE_CHECKING:  # imported by `attempt`, once the process runs at its lower priority
@@ -192,13 +191,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--fd', type=int, required=True, help="the store ring's descriptor")
     parser.add_argument('--window-ns', type=int, required=True,
                         help='the sample time to learn from, back from the newest [ns]')
-    parser.add_argument('--nice', type=int, default=0, help='added to the nice value')
     parser.add_argument('--request', required=True, help='the AttemptRequest as JSON')
     args = parser.parse_args(argv)
     try:
-        with CoreUse() as use:  # its thread is lowered with the others
-            lower_priority(args.nice)  # first: the trainer's imports take seconds of CPU
-            confine_to_one_cpu()
+        with CoreUse() as use:
             set_torch_threads(1)
             request = AttemptRequest(**json.loads(args.request))
             document = attempt(read_ring(args.fd, args.window_ns), request)

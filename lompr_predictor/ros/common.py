@@ -45,6 +45,11 @@ from lompr_predictor.ros.parameters import ParameterSpec
 from lompr_predictor.ros.wire import StatusFields, diagnostic_array
 from lompr_predictor.scheduling import Scheduling, apply_scheduling, shared_scheduling
 
+#: How long another thread of a node's process (a model prepared for a swap, a store export)
+#: keeps the interpreter once the executor asks for it [s]. Python's 5 ms is more than a
+#: sample period at 250 Hz, and the executor asks at each of its calls that let it go.
+SWITCH_INTERVAL = 0.0005
+
 
 def status_fields(name: str, hardware_id: str, status: Status) -> StatusFields:
     """A `Status` as the fields of a diagnostic_msgs/DiagnosticStatus (`wire`)."""
@@ -393,6 +398,7 @@ def _spin(node_factory: Callable[[Context], Node | Sequence[Node]], executor_nam
         # out of the collector's sight: a full collection over every object torch and rclpy
         # made at start-up stalls a callback for many sample periods
         gc.freeze()
+        sys.setswitchinterval(SWITCH_INTERVAL)
         _spin_timed(executor, context, stop, nodes)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -225,7 +225,12 @@ class PredictorNodeSettings(FrameSettings):
         maximum=10_000, read_only=True)
     adaptation_nice: int = parameter(
         TRAINING_NICE, "added to the attempt process's nice value: it leaves the cores to "
-        'the node first', minimum=0, maximum=19, read_only=True)
+        'the node first (no effect under adaptation_idle)', minimum=0, maximum=19,
+        read_only=True)
+    adaptation_idle: bool = parameter(
+        True, 'the attempt process runs under SCHED_IDLE (Linux): only on CPU time no other '
+        'thread wants, so it never delays a sample; false: the normal policy, '
+        'adaptation_nice below the node', read_only=True)
 
     def stream(self, sample_period: float) -> StreamSettings:
         """The rules the input stream is held to, at `sample_period` [s] (the model's, or
