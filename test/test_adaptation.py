@@ -24,6 +24,7 @@ from lompr_predictor.online.adaptation import (
     AdaptationSettings,
     AttemptOutcome,
     ModelInForce,
+    read_graph,
 )
 from lompr_predictor.online.adaptation_attempt import (
     ACCEPTED,
@@ -33,7 +34,12 @@ from lompr_predictor.online.adaptation_attempt import (
     decide,
 )
 from lompr_predictor.online.alignment import AlignedSample
-from lompr_predictor.online.inference import select_backend
+from lompr_predictor.online.inference import (
+    TorchScriptBackend,
+    reference_outputs,
+    select_backend,
+    warm_up_windows,
+)
 from lompr_predictor.online.sample_store import SampleStore
 from lompr_predictor.robot.description import RobotDescription
 
@@ -192,9 +198,15 @@ def test_an_attempt_writes_a_better_model_and_only_a_better_one(
     if not exportable:
         assert not (work / GRAPH_NAME).exists()
         return
-    # its ONNX graph beside the document serves the node's swap: checked like its own export
-    backend, why = select_backend(written, 'onnxruntime', (work / GRAPH_NAME).read_bytes())
-    assert why is None and backend.name == 'onnxruntime'
+    # its ONNX graph beside the document serves the node's swap, checked against the outputs
+    # of the file's own module beside it: the node need not compile the module
+    graph = read_graph(work)
+    assert graph is not None and graph.outputs is not None
+    np.testing.assert_array_equal(graph.outputs, reference_outputs(
+        TorchScriptBackend(written), warm_up_windows(written)))
+    swapped = load_model(document['model_path'], sha256=written.sha256, compile_now=False)
+    backend, why = select_backend(swapped, 'onnxruntime', graph)
+    assert why is None and backend.name == 'onnxruntime' and 'module' not in vars(swapped)
     meta = written.metadata
     assert meta.parent_sha256 == loaded.sha256
     data = meta.hyperparameters['fine_tuning']['data']

@@ -30,10 +30,13 @@ from lompr_predictor.learning.training import TrainSettings, train_network
 from lompr_predictor.online import inference
 from lompr_predictor.online.inference import (
     RELATIVE_TOLERANCE,
+    ExportedGraph,
     InferenceBackendError,
     OnnxRuntimeBackend,
     TorchScriptBackend,
+    reference_outputs,
     select_backend,
+    warm_up_windows,
 )
 from lompr_predictor.robot.description import RobotDescription
 
@@ -263,6 +266,7 @@ def test_a_graph_exported_elsewhere_serves_and_a_wrong_one_is_exported_again(
     own = export_onnx(trained, with_prior(trained))
     other = load_model(save_linear(tmp_path / 'other.pt', window=WINDOW, horizon=HORIZON))
     wrong = (b'not an ONNX graph', export_onnx(other, with_prior(other)))
+    outputs = reference_outputs(TorchScriptBackend(trained), warm_up_windows(trained))
 
     def exported_here(model: LoadedModel, module: torch.nn.Module) -> bytes:
         exports.append(model.path)
@@ -272,9 +276,18 @@ def test_a_graph_exported_elsewhere_serves_and_a_wrong_one_is_exported_again(
     monkeypatch.setattr(inference, 'export_onnx', exported_here)
     window = np.random.default_rng(1).normal(scale=0.01, size=(1, WINDOW, len(FEATURES)))
     wanted = TorchScriptBackend(trained).runner(window)()
-    for graph, exported in ((own, []), (wrong[0], [trained.path]), (wrong[1], [trained.path])):
+    for graph, exported in ((ExportedGraph(own), []), (ExportedGraph(own, outputs), []),
+                            (ExportedGraph(own, outputs * 1.01), [trained.path]),
+                            (ExportedGraph(own, outputs[:, :4]), [trained.path]),
+                            (ExportedGraph(wrong[0]), [trained.path]),
+                            (ExportedGraph(wrong[1]), [trained.path]),
+                            (ExportedGraph(wrong[1], outputs), [trained.path])):
         exports.clear()
-        backend, why = select_backend(trained, 'onnxruntime', graph)
+        # loaded as a swap beside a sample path loads it: compiled only if it must be
+        model = load_model(trained.path, compile_now=graph.outputs is None)
+        backend, why = select_backend(model, 'onnxruntime', graph)
         assert (backend.name, why, exports) == ('onnxruntime', None, exported)
+        # checked against another process's outputs, the graph served uncompiled
+        assert ('module' in vars(model)) == (graph.outputs is None or exported != [])
         np.testing.assert_allclose(backend.runner(window)(), wanted, rtol=0,
                                    atol=RELATIVE_TOLERANCE * np.nanmax(np.abs(wanted)))

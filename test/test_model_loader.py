@@ -51,7 +51,7 @@ def test_every_refusal_is_a_reason_not_an_exception(tmp_path: Path) -> None:
     period = load_ready_model(request(model, sample_period=0.01))
     assert isinstance(period.error, ModelFileError) and '0.01' in refusal(period)
     nan = load_ready_model(request(save_constant(tmp_path / 'nan.pt', (float('nan'), 0.0))))
-    assert refusal(nan).endswith('not a finite (1, 2) prediction')
+    assert refusal(nan).endswith('warm-up on onnxruntime gave (nan, 0.0), not a finite prediction')
 
 
 def test_expected_metadata_leaves_out_what_the_configuration_leaves_open() -> None:

@@ -668,3 +668,37 @@ def test_onnx_runtime_in_the_core_gives_the_torchscript_outputs(linear_model: Lo
     assert len(outputs[0]) == len(stamps) - NEEDED + 1
     np.testing.assert_allclose([predicted(o) for o in outputs[0]],
                                [predicted(o) for o in outputs[1]], rtol=1e-6, atol=1e-15)
+
+
+def test_a_swapped_in_backend_binds_each_window_view_once_when_first_read(
+        linear_model: LoadedModel) -> None:
+    """A swap binds nothing at once (a call bound per view of the window, all at the swap,
+    would hold the sample path a sample period or more): each view the first time it is
+    read, once, and the predictions are those of a core that ran the model throughout."""
+    stamps, reference, tips = spiral(300)
+    backend, _ = select_backend(linear_model, 'onnxruntime')
+    bound: list[int] = []
+
+    class CountingBackend:
+        name = backend.name
+
+        def runner(self, window: np.ndarray) -> Any:
+            bound.append(window.ctypes.data)
+            return backend.runner(window)
+
+    swapped, throughout = (OnlinePredictor(linear_model, stream(), limits(),
+                                           clock=FakeClock().ns, backend=backend)
+                           for _ in range(2))
+    outputs: list[list[Output]] = [[], []]
+    for i in range(len(stamps)):
+        if i == 30:
+            swapped.replace_model(linear_model, CountingBackend())
+            assert bound == []
+            answered = swapped.primary.answers
+        for core, out in zip((swapped, throughout), outputs, strict=True):
+            out += core.add_reference(int(stamps[i]), *reference[i])
+            out += core.add_pose(int(stamps[i]), *tips[i])
+    views = len(swapped.primary.window.arrays)
+    assert swapped.primary.answers - answered > views > 1
+    assert len(bound) == len(set(bound)) == views
+    assert [predicted(o) for o in outputs[0]] == [predicted(o) for o in outputs[1]]

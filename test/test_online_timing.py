@@ -41,7 +41,7 @@ def slow(model: LoadedModel, clock: NodeClock, durations: Iterator[int]) -> Load
         clock.ns += next(durations)
         return cast(torch.Tensor, module(windows))
 
-    return dataclasses.replace(model, module=cast(ExportedModule, run))
+    return dataclasses.replace(model, compiled=cast(ExportedModule, run))
 
 
 def stream_through(core: OnlinePredictor, clock: NodeClock, samples: int, period_ns: int,

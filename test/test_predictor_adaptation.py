@@ -29,6 +29,7 @@ from lompr_predictor.online import model_loader
 from lompr_predictor.online.adaptation import LOG_NAME, WORK_PREFIX, AttemptOutcome
 from lompr_predictor.online.alignment import AlignedSample
 from lompr_predictor.online.guard import GuardState, LiveGuard
+from lompr_predictor.online.inference import ExportedGraph
 from lompr_predictor.online.sample_store import StoredSamples, capacity_for
 from lompr_predictor.robot.description import ROBOT_FRAME, RobotDescription
 
@@ -170,7 +171,7 @@ class HeldLoads:
         load = model_loader.load_ready_model
 
         def held_load(request: model_loader.ModelRequest,
-                      graph: bytes | None) -> model_loader.LoadOutcome:
+                      graph: ExportedGraph | None) -> model_loader.LoadOutcome:
             self.threads.append(threading.current_thread())
             self.release.wait(30.0)  # a load that takes as long as the test wants
             return load(request, graph)

@@ -572,7 +572,7 @@ def test_overruns_are_counted_on_diagnostics(ros: Any, tmp_path: Path) -> None:
         return cast(torch.Tensor, module(windows))
 
     core.replace_model(dataclasses.replace(core.model,
-                                           module=cast(ExportedModule, slow_module)))
+                                           compiled=cast(ExportedModule, slow_module)))
     wiring.run(0, NEEDED + 3)
     overrun = core.overrun
     assert overrun.late_outputs_dropped + overrun.inference_skipped_late >= 3

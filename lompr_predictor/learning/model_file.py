@@ -34,9 +34,11 @@ import json
 import platform
 import re
 import warnings
+import zipfile
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from enum import StrEnum
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -143,13 +145,33 @@ class ModelMetadata:
 
 @dataclass(frozen=True)
 class LoadedModel:
-    """A checked, warmed-up predictor ready for inference."""
+    """A checked predictor ready for inference: the metadata of the checked bytes, and
+    their TorchScript module (`module`)."""
 
-    module: ExportedModule
     metadata: ModelMetadata
     path: str
     sha256: str  # of the bytes that were loaded (and checked, see verified_by)
     verified_by: Verification = Verification.NONE
+    #: The checked bytes, which `module` is compiled from (never a second read).
+    data: bytes = field(default=b'', repr=False, compare=False)
+    #: The module if it is given already made (a test's stand-in), else None.
+    compiled: ExportedModule | None = field(default=None, repr=False, compare=False)
+
+    @cached_property
+    def module(self) -> ExportedModule:
+        """The file's TorchScript module, compiled from the checked bytes on first use and
+        kept: the compile holds the interpreter for tens of milliseconds, which a model
+        served by its ONNX graph alone need not cost a sample path beside it
+        (`load_model(compile_now=False)`); `ModelFileError` if it is no TorchScript."""
+        if self.compiled is not None:
+            return self.compiled
+        try:
+            module = torch.jit.load(io.BytesIO(self.data), map_location='cpu')
+        except (RuntimeError, ValueError, OSError) as err:
+            msg = f'model {self.path}: not a TorchScript file ({str(err).splitlines()[0]})'
+            raise ModelFileError(msg) from err
+        module.eval()
+        return module
 
     def predict(self, windows: torch.Tensor) -> torch.Tensor:
         """(B, window, features) float64 SI windows -> (B, 2) predicted error [m], in
@@ -300,6 +322,7 @@ def load_model(
     sha256: str | None = None,
     verify: bool = True,
     hint: str = '',
+    compile_now: bool = True,
 ) -> LoadedModel:
     """Open, check and warm up a model file.
 
@@ -310,23 +333,16 @@ def load_model(
     message). `verify=False`
     without a pin loads unchecked bytes (development). `expected` maps metadata field names
     to the values the caller's configuration needs; the first disagreement raises
-    `MetadataMismatchError` naming the field. A warm-up inference on a zero window checks
-    the output shape before anyone relies on it.
+    `MetadataMismatchError` naming the field. With `compile_now` the module is compiled and
+    a warm-up inference on a zero window checks the output shape before anyone relies on
+    the model; without, the module is compiled on first use (`LoadedModel.module`) and the
+    caller checks the model otherwise (a graph exported elsewhere, `inference`).
     """
     path = Path(path)
     data = _read_model_bytes(path)
     digest = hashlib.sha256(data).hexdigest()
     verified_by = _verify(path, digest, sha256, verify, hint)
-    extra = {METADATA_NAME: ''}
-    try:
-        module = torch.jit.load(io.BytesIO(data), map_location='cpu', _extra_files=extra)
-    except (RuntimeError, ValueError, OSError) as err:
-        msg = f'model {path}: not a TorchScript file ({str(err).splitlines()[0]})'
-        raise ModelFileError(msg) from err
-    if not extra[METADATA_NAME]:
-        msg = f'model {path}: no {METADATA_NAME} inside; not a lompr_predictor model'
-        raise ModelFileError(msg)
-    metadata = ModelMetadata.from_json(extra[METADATA_NAME], str(path))
+    metadata = ModelMetadata.from_json(_read_metadata(path, data), str(path))
     defined = feature_names(metadata.preview)
     if metadata.features != defined:  # the columns its preview defines, in their order
         raise MetadataMismatchError(str(path), 'features', defined, metadata.features)
@@ -334,11 +350,29 @@ def load_model(
         found = getattr(metadata, name)
         if _normalised(found) != _normalised(value):
             raise MetadataMismatchError(str(path), name, value, found)
-    module.eval()
-    loaded = LoadedModel(module=module, metadata=metadata, path=str(path), sha256=digest,
-                         verified_by=verified_by)
-    _warm_up(loaded)
+    loaded = LoadedModel(metadata=metadata, path=str(path), sha256=digest,
+                         verified_by=verified_by, data=data)
+    if compile_now:
+        _warm_up(loaded)
     return loaded
+
+
+def _read_metadata(path: Path, data: bytes) -> str:
+    """The `METADATA_NAME` text among a TorchScript archive's extra files (where
+    `save_model` puts it and torch.jit.load's `_extra_files` reads it: `<archive>/extra/`,
+    the archive being the folder of its first record), read without compiling the code;
+    `ModelFileError` if the bytes are no such archive or it has none."""
+    try:
+        with zipfile.ZipFile(io.BytesIO(data)) as archive:
+            names = archive.namelist()
+            record = f'{names[0].split("/", 1)[0]}/extra/{METADATA_NAME}' if names else ''
+            if record not in names:
+                msg = f'model {path}: no {METADATA_NAME} inside; not a lompr_predictor model'
+                raise ModelFileError(msg)
+            return archive.read(record).decode('utf-8')
+    except (zipfile.BadZipFile, UnicodeDecodeError, OSError) as err:
+        msg = f'model {path}: not a TorchScript file ({type(err).__name__}: {err})'
+        raise ModelFileError(msg) from err
 
 
 def _read_model_bytes(path: Path) -> bytes:

@@ -30,7 +30,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from lompr_predictor.monitoring import Level, Status
+from lompr_predictor.online.inference import ExportedGraph
 from lompr_predictor.online.sample_store import NS_PER_MINUTE, SampleStore, capacity_for
 from lompr_predictor.scheduling import lower_job
 
@@ -39,10 +42,12 @@ ATTEMPT_MODULE = 'lompr_predictor.online.adaptation_attempt'
 #: In the models folder: the log, and each attempt's work folder (prefix).
 LOG_NAME = 'adaptation.jsonl'
 WORK_PREFIX = '.attempt-'
-#: The attempt's document, an accepted model's ONNX graph and its stderr, in its work
-#: folder (`adaptation_attempt`).
+#: The attempt's document, an accepted model's ONNX graph and the outputs of its module on
+#: the warm-up batch (`inference.ExportedGraph`), and its stderr, in its work folder
+#: (`adaptation_attempt`).
 RESULT_JSON = 'result.json'
 GRAPH_NAME = 'candidate.onnx'
+GRAPH_OUTPUTS_NAME = 'candidate_outputs.npy'
 STDERR_NAME = 'stderr.txt'
 #: Adapted model files (`adaptation_attempt.new_model_path`).
 MODEL_GLOB = 'adapted-*.pt'
@@ -89,7 +94,7 @@ class AttemptOutcome:
     started_clock_ns: int  # the node's clock when it started...
     ended_clock_ns: int  # ... and when its end was seen
     document: dict[str, Any]
-    graph: bytes | None = None  # an accepted model's ONNX graph, exported by the attempt
+    graph: ExportedGraph | None = None  # an accepted model's, exported by the attempt
 
     @property
     def decision(self) -> str:
@@ -178,7 +183,7 @@ class Adaptation:
         document = _read_document(work / RESULT_JSON)
         if document is None:
             document = {'decision': FAILED, 'reason': _why_it_failed(process.returncode, work)}
-        graph = _read_graph(work / GRAPH_NAME) if document['decision'] == ACCEPTED else None
+        graph = read_graph(work) if document['decision'] == ACCEPTED else None
         self._process = self._work = None
         self.state.running_pid = 0
         shutil.rmtree(work, ignore_errors=True)
@@ -292,12 +297,21 @@ def _read_document(path: Path) -> dict[str, Any] | None:
     return document if isinstance(document, dict) else None
 
 
-def _read_graph(path: Path) -> bytes | None:
-    """The ONNX graph an attempt exported, None if it wrote none (the node then exports)."""
+def read_graph(work: Path) -> ExportedGraph | None:
+    """The ONNX graph an attempt exported and the outputs to check it against, None if it
+    wrote no graph (the node then exports); outputs None if it wrote none readable (the
+    node then checks against the module it compiles)."""
     try:
-        return path.read_bytes()
+        graph = (work / GRAPH_NAME).read_bytes()
     except OSError:
         return None
+    try:
+        outputs = np.load(work / GRAPH_OUTPUTS_NAME, allow_pickle=False)
+    except (OSError, ValueError):
+        return ExportedGraph(graph)
+    if outputs.dtype != np.float64 or outputs.ndim != 2:
+        return ExportedGraph(graph)
+    return ExportedGraph(graph, outputs)
 
 
 def _why_it_failed(returncode: int, work: Path) -> str:

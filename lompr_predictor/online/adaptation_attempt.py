@@ -17,10 +17,12 @@ beside it, into the models folder; its metadata names the model it came from
 the samples and the sample time they span).
 
 An accepted model's ONNX graph (`model_file.export_onnx` of the file as written, with its
-priors, as the node's backend exports it) goes beside the document (`candidate.onnx`): the
-node's swap takes it instead of exporting in its own process, where an export would hold the
-interpreter from the sample path for most of half a second, and checks it against the file's
-own module as it checks its own export.
+priors, as the node's backend exports it) goes beside the document (`candidate.onnx`), with
+what the file's own TorchScript module gives on the backends' warm-up batch
+(`candidate_outputs.npy`): the node's swap takes the graph instead of exporting in its own
+process, where an export would hold the interpreter from the sample path for most of half a
+second, and checks it against those outputs as it checks its own export against its module,
+whose compile (tens of milliseconds holding the interpreter) it then need not run.
 
 The outcome is one JSON document (`result.json` in the attempt's work folder, written
 atomically last), which the node reads once the process has ended: the decision, the scores,
@@ -35,6 +37,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import io
 import json
 import sys
 import time
@@ -47,7 +50,7 @@ import numpy as np
 
 from lompr_predictor.errors import LomprError
 from lompr_predictor.files import file_sha256, write_atomic, write_json
-from lompr_predictor.online.adaptation import GRAPH_NAME, RESULT_JSON
+from lompr_predictor.online.adaptation import GRAPH_NAME, GRAPH_OUTPUTS_NAME, RESULT_JSON
 from lompr_predictor.online.sample_store import StoredSamples, read_ring
 from lompr_predictor.threads import CoreUse, set_torch_threads
 
@@ -144,6 +147,11 @@ def attempt(samples: StoredSamples, request: AttemptRequest) -> dict[str, Any]:
         write_model,
     )
     from lompr_predictor.learning.pipeline import TrainingConfig
+    from lompr_predictor.online.inference import (
+        TorchScriptBackend,
+        reference_outputs,
+        warm_up_windows,
+    )
     from lompr_predictor.online.store_bag import write_store_bag
 
     started = time.perf_counter()
@@ -180,6 +188,10 @@ def attempt(samples: StoredSamples, request: AttemptRequest) -> dict[str, Any]:
         # a module the exporter cannot take is served as the node's backend choice says
         with contextlib.suppress(ModelFileError):
             write_atomic(work / GRAPH_NAME, export_onnx(written, with_prior(written)))
+            outputs = io.BytesIO()
+            np.save(outputs, reference_outputs(TorchScriptBackend(written),
+                                               warm_up_windows(written)))
+            write_atomic(work / GRAPH_OUTPUTS_NAME, outputs.getvalue())
     document['seconds'] = time.perf_counter() - started
     return document
 

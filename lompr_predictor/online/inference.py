@@ -30,6 +30,7 @@ from __future__ import annotations
 import importlib
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any, Protocol
 
@@ -171,37 +172,46 @@ def warm_up_windows(model: LoadedModel, count: int = WARM_UP_WINDOWS) -> np.ndar
     return windows
 
 
+@dataclass(frozen=True)
+class ExportedGraph:
+    """A model's ONNX graph exported by another process (an adaptation attempt's, so that
+    this one need not: an export holds the interpreter for most of its half second), and
+    `outputs`, what that process's TorchScript module of the same file gave on the warm-up
+    batch (`reference_outputs`), so that this one checks the graph without compiling the
+    module (None: it compiles it and checks against it)."""
+
+    graph: bytes
+    outputs: np.ndarray | None = None
+
+
 def select_backend(model: LoadedModel, requested: Backend | str = Backend.AUTO,
-                   graph: bytes | None = None) -> tuple[InferenceBackend, str | None]:
+                   graph: ExportedGraph | None = None) -> tuple[InferenceBackend, str | None]:
     """The backend to serve `model` with and why it is not the one preferred (None when it
     is: ONNX Runtime for 'auto' and 'onnxruntime', TorchScript for 'torchscript'); see the
-    module docstring. `graph`: the model's ONNX graph exported by another process (an
-    adaptation attempt's, so that this one need not: an export holds the interpreter for
-    most of its half second), checked like this process's own; refused, the model is
-    exported here."""
+    module docstring. `graph`: the model's ONNX graph exported by another process, checked
+    like this process's own; refused, the model is exported here."""
     try:
         requested = Backend(requested)
     except ValueError as err:
         msg = f'inference backend {requested!r} is none of {", ".join(Backend)}'
         raise InferenceBackendError(msg) from err
-    torchscript = TorchScriptBackend(model)
     if requested == Backend.TORCHSCRIPT:
-        return torchscript, None
+        return TorchScriptBackend(model), None
     try:
-        return onnxruntime_backend(model, torchscript, graph), None
+        return onnxruntime_backend(model, graph=graph), None
     except InferenceBackendError as err:
         if graph is not None:
             return select_backend(model, requested)
         if requested == Backend.ONNXRUNTIME:
             raise
-        return torchscript, f'TorchScript serves: {err}'
+        return TorchScriptBackend(model), f'TorchScript serves: {err}'
 
 
 def onnxruntime_backend(model: LoadedModel, reference: InferenceBackend | None = None,
-                        graph: bytes | None = None) -> OnnxRuntimeBackend:
+                        graph: ExportedGraph | None = None) -> OnnxRuntimeBackend:
     """The ONNX Runtime backend of `model` (its graph exported here unless `graph` is
-    given), checked against `reference` (default: its TorchScript backend) on the warm-up
-    batch; `InferenceBackendError` naming why not."""
+    given), checked on the warm-up batch against the outputs `graph` brings, else against
+    `reference` (default: its TorchScript backend); `InferenceBackendError` naming why not."""
     try:
         onnxruntime = importlib.import_module('onnxruntime')
     except Exception as err:  # a broken install raises more than ImportError
@@ -209,48 +219,66 @@ def onnxruntime_backend(model: LoadedModel, reference: InferenceBackend | None =
                'pip install -r requirements.txt')
         raise InferenceBackendError(msg) from err
     try:
-        if graph is None:
-            graph = export_onnx(model, with_prior(model))
-        backend = OnnxRuntimeBackend(graph, onnxruntime)
+        backend = OnnxRuntimeBackend(
+            export_onnx(model, with_prior(model)) if graph is None else graph.graph,
+            onnxruntime)
     except ModelFileError as err:
         raise InferenceBackendError(str(err)) from err
     except Exception as err:  # ONNX Runtime raises its own types for a bad graph
         msg = f'model {model.path}: ONNX Runtime cannot take its graph ({_first_line(err)})'
         raise InferenceBackendError(msg) from err
-    disagreement = compare(backend, reference or TorchScriptBackend(model),
-                           warm_up_windows(model))
+    windows = warm_up_windows(model)
+    if graph is not None and graph.outputs is not None:
+        wanted, by = graph.outputs, 'the exporting process'
+    else:
+        reference = reference or TorchScriptBackend(model)
+        wanted, by = reference_outputs(reference, windows), reference.name
+    disagreement = compare(backend, wanted, windows, by)
     if disagreement is not None:
         msg = f'model {model.path}: {disagreement}'
         raise InferenceBackendError(msg)
     return backend
 
 
-def compare(candidate: InferenceBackend, reference: InferenceBackend,
-            windows: np.ndarray) -> str | None:
-    """Why `candidate` disagrees with `reference` on `windows` (beyond
-    `RELATIVE_TOLERANCE` of the largest reference output, or finite where the reference is
-    not and the other way round), None if it agrees; a candidate that raises, binding the
-    window or running, disagrees."""
+def reference_outputs(reference: InferenceBackend, windows: np.ndarray) -> np.ndarray:
+    """(len(windows), 6): what `reference` gives on each of `windows` (`warm_up_windows`),
+    the outputs another backend must agree with (`compare`)."""
     window = np.zeros(windows.shape[1:])
-    run_reference = reference.runner(window)
+    run = reference.runner(window)
+    outputs = np.empty((len(windows), 6))
+    for k, values in enumerate(windows):
+        window[:] = values
+        outputs[k] = run()
+    return outputs
+
+
+def compare(candidate: InferenceBackend, wanted: np.ndarray, windows: np.ndarray,
+            reference: str) -> str | None:
+    """Why `candidate` disagrees with `wanted`, the outputs `reference` gave on `windows`
+    (`reference_outputs`), beyond `RELATIVE_TOLERANCE` of the largest of them, or finite
+    where they are not and the other way round; None if it agrees. A candidate that
+    raises, binding the window or running, disagrees."""
+    window = np.zeros(windows.shape[1:])
     try:
         run_candidate = candidate.runner(window)
     except Exception as err:  # noqa: BLE001 - any failure of the candidate refuses it
         return f'{candidate.name} cannot bind a window ({_first_line(err)})'
-    got, wanted = np.empty((len(windows), 6)), np.empty((len(windows), 6))
+    got = np.empty((len(windows), 6))
     for k, values in enumerate(windows):
         window[:] = values
-        wanted[k] = run_reference()
         try:
             got[k] = run_candidate()
         except Exception as err:  # noqa: BLE001 - any failure of the candidate refuses it
             return f'{candidate.name} failed on a warm-up window ({_first_line(err)})'
+    if wanted.shape != got.shape:
+        return (f'{reference} gave {wanted.shape[0]} outputs of {wanted.shape[1:]} on the '
+                f'warm-up batch, {candidate.name} {got.shape[0]} of {got.shape[1:]}')
     finite = np.isfinite(wanted)
     scale = float(np.max(np.abs(wanted[finite]), initial=0.0))
     worst = (float(np.max(np.abs(got[finite] - wanted[finite]), initial=0.0))
              if (np.isfinite(got) == finite).all() else np.inf)
     if not worst <= RELATIVE_TOLERANCE * scale:
-        return (f'{candidate.name} and {reference.name} disagree on the warm-up batch by '
+        return (f'{candidate.name} and {reference} disagree on the warm-up batch by '
                 f'{worst:.3g} m, over {RELATIVE_TOLERANCE:g} of the largest output '
                 f'{scale:.3g} m')
     return None

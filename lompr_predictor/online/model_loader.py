@@ -11,13 +11,14 @@ so that its answer can say why a file is refused."""
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-import torch
+import numpy as np
 
 from lompr_predictor.errors import LomprError
 from lompr_predictor.learning.model_file import (
@@ -26,10 +27,15 @@ from lompr_predictor.learning.model_file import (
     check_sample_period,
     load_model,
 )
-from lompr_predictor.online.inference import Backend, InferenceBackend, select_backend
+from lompr_predictor.online.inference import (
+    Backend,
+    ExportedGraph,
+    InferenceBackend,
+    select_backend,
+)
 
-#: Inferences run on a loaded model before it may answer a sample (the first calls of a
-#: TorchScript module profile and optimise its graph); each must give a finite (1, 2)
+#: Inferences run by a loaded model's backend before it may answer a sample (the first
+#: calls of a TorchScript module profile and optimise its graph); each must give a finite
 #: prediction.
 WARM_UP_INFERENCES = 5
 
@@ -119,7 +125,7 @@ class LoadOutcome:
         return None if self.error is None else str(self.error)
 
 
-def load_ready_model(request: ModelRequest, graph: bytes | None = None) -> LoadOutcome:
+def load_ready_model(request: ModelRequest, graph: ExportedGraph | None = None) -> LoadOutcome:
     """Load, verify, check and warm up `request.path` (`graph`: its ONNX graph exported
     elsewhere, `inference.select_backend`); any failure is a refusal with its reason, never
     an exception (a model file is code: anything can fail in it)."""
@@ -134,7 +140,7 @@ def load_ready_model(request: ModelRequest, graph: bytes | None = None) -> LoadO
 
 def prepare_swap(running: ReadyModel, path: str | None, sha256: str,
                  prepared: SwapInBackground | None = None,
-                 graph: bytes | None = None) -> LoadOutcome:
+                 graph: ExportedGraph | None = None) -> LoadOutcome:
     """What replaces `running` when the model path becomes `path` (None: unchanged) and the
     pin `sha256`: the new model (`ready`), nothing to do (neither), or why the change is
     refused (`error`); the running model is left as it is either way. `prepared`: the same
@@ -160,11 +166,12 @@ class SwapInBackground:
     """`prepare_swap` of one change on a thread of its own (module docstring): the sample
     path keeps answering with the running model while the new one loads. The thread shares
     the interpreter: the sample path waits for it a switch interval at a time, longer in
-    the parts of the load that hold the interpreter (the ONNX export most: given a `graph`
-    exported elsewhere, it is not run here)."""
+    the parts of the load that hold the interpreter throughout: the ONNX export (half a
+    second) and the TorchScript compile (tens of milliseconds). Given a `graph` exported
+    elsewhere with the outputs to check it against, neither runs here."""
 
     def __init__(self, running: ReadyModel, path: str, sha256: str,
-                 graph: bytes | None = None) -> None:
+                 graph: ExportedGraph | None = None) -> None:
         self.running, self.path, self.sha256 = running, path, sha256
         self._graph = graph  # the new model's ONNX graph exported elsewhere (or None)
         self._outcome = LoadOutcome()
@@ -195,29 +202,31 @@ class SwapInBackground:
                 and sha256 == self.sha256)
 
 
-def _load(request: ModelRequest, graph: bytes | None = None) -> ReadyModel:
+def _load(request: ModelRequest, graph: ExportedGraph | None = None) -> ReadyModel:
     if not request.path:
         msg = 'parameter model_path is empty: give the model file (lompr train --out)'
         raise ModelFileError(msg)
+    # a graph checked against another process's outputs serves without the module, whose
+    # compile would hold the interpreter from the sample path (compiled if ever needed)
     model = load_model(request.path, expected=request.expected, sha256=request.sha256 or None,
-                       verify=request.verify, hint=request.hint)
+                       verify=request.verify, hint=request.hint,
+                       compile_now=graph is None or graph.outputs is None)
     period = request.sample_period or model.metadata.sample_period
     check_sample_period(model.metadata, period, request.path)
-    warm_up_seconds = warm_up(model)
     backend, why = select_backend(model, request.backend, graph)
-    return ReadyModel(model, period, warm_up_seconds, request, backend, why)
+    return ReadyModel(model, period, warm_up(model, backend), request, backend, why)
 
 
-def warm_up(model: LoadedModel, inferences: int = WARM_UP_INFERENCES) -> float:
-    """Run `inferences` predictions of a zero window, each of which must be a finite (1, 2)
-    array (`ModelFileError` otherwise); returns the seconds they took."""
-    window = torch.zeros((1, model.metadata.window, len(model.metadata.features)),
-                         dtype=torch.float64)
+def warm_up(model: LoadedModel, backend: InferenceBackend,
+            inferences: int = WARM_UP_INFERENCES) -> float:
+    """Run `inferences` predictions of `backend` on a zero window, each of which must give
+    a finite X/Y prediction (`ModelFileError` otherwise); returns the seconds they took."""
+    run = backend.runner(np.zeros((1, model.metadata.window, len(model.metadata.features))))
     start = time.perf_counter()
     for _ in range(inferences):
-        output = model.predict(window)
-        if tuple(output.shape) != (1, 2) or not bool(torch.isfinite(output).all()):
-            msg = (f'model {model.path}: warm-up gave {tuple(output.shape)} '
-                   f'{output.flatten().tolist()[:4]}, not a finite (1, 2) prediction')
+        x, y, *_ = run()
+        if not (math.isfinite(x) and math.isfinite(y)):
+            msg = (f'model {model.path}: warm-up on {backend.name} gave ({x}, {y}), not a '
+                   'finite prediction')
             raise ModelFileError(msg)
     return time.perf_counter() - start

@@ -16,7 +16,7 @@ import time
 from lompr_predictor.data.features import feature_names
 from lompr_predictor.learning.model_file import LoadedModel, MetadataMismatchError
 from lompr_predictor.monitoring import LatencyRecorder
-from lompr_predictor.online.inference import InferenceBackend, TorchScriptBackend
+from lompr_predictor.online.inference import InferenceBackend, Runner, TorchScriptBackend
 from lompr_predictor.online.offset import XY
 from lompr_predictor.online.window import FeatureWindow
 from lompr_predictor.robot.description import RobotDescription
@@ -77,18 +77,23 @@ class ModelSlot:
 
     def use(self, model: LoadedModel, backend: InferenceBackend | None = None) -> None:
         """Serve `model` with `backend` (default TorchScript) from the next window on, one
-        call bound per view of the window (`inference.InferenceBackend.runner`)."""
+        call bound per view of the window (`inference.InferenceBackend.runner`) when that
+        view is first read: binding them all at once would hold the sample path a sample
+        period or more at a swap."""
         self.model = model
         self.backend = backend or TorchScriptBackend(model)
-        self._runners = tuple(self.backend.runner(array) for array in self.window.arrays)
+        self._runners: list[Runner | None] = [None] * len(self.window.arrays)
 
     def predict(self) -> XY | None:
         """The network on the window as it is now (full): the predicted X/Y plant error,
         or None if the model raised or gave anything but one row of two finite numbers; its
         priors go to `prior` and `map_prior`."""
-        runner = self._runners[self.window.start]
+        view = self.window.start
         start = time.perf_counter()
         try:
+            runner = self._runners[view]
+            if runner is None:
+                runner = self._runners[view] = self.backend.runner(self.window.arrays[view])
             x, y, prior_x, prior_y, map_x, map_y = runner()
             x, y = float(x), float(y)
         except Exception:  # noqa: BLE001 - a model file is code: any failure is a fault
