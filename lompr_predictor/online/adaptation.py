@@ -169,7 +169,7 @@ class Adaptation:
                                              stdout=subprocess.DEVNULL, stderr=stderr,
                                              start_new_session=True)
         # lowered from here, as soon as it runs: its interpreter's start and imports take
-        # a third of a second of CPU, which at the node's priority would delay the samples
+        # many sample periods of CPU, which at the node's priority would delay the samples
         lower_job(self._process.pid, self.settings.nice, self.settings.idle)
         self._work, self._started_ns = work, now_ns
         self.state.running_pid, self.state.error = self._process.pid, ''
