@@ -3,7 +3,8 @@
 
     python bench/bench_adaptation.py --model MODEL.pt [--path spiral] [--preset worn]
                                      [--seed 7] [--passes 12] [--minutes 2] [--period 60]
-                                     [--speed 4] [--twin-mode paced] [--trained] [--out DIR]
+                                     [--speed 4] [--twin-mode paced] [--trained]
+                                     [--sched-fifo PRIORITY] [--out DIR]
 
 Runs the twin (`--path`, `--preset`'s physics over the defaults, run and machine seed
 `--seed`) in closed loop through the nodes as three processes on simulated time, the twin
@@ -37,6 +38,11 @@ adapting loop:
   timeout leaves a sample unanswered);
 - always: no attempt used more than one core in any second (its `cpu` in the log,
   `threads.CoreUse`).
+
+`--sched-fifo PRIORITY` runs kinematics_node and predictor_node under SCHED_FIFO at that
+priority in every loop (their `sched_fifo_priority`; needs CAP_SYS_NICE or an RLIMIT_RTPRIO
+allowing it), as a machine whose cores the nodes and an attempt fill runs them; the twin
+keeps the normal policy.
 
 Everything, each target's figure and verdict too, goes to --out as JSON.
 """
@@ -208,6 +214,8 @@ def main() -> int:
     parser.add_argument('--trained', action='store_true',
                         help='the plant (--preset, --seed) is the one the model was trained '
                              'for: check that adaptation changes little; no persistence loop')
+    parser.add_argument('--sched-fifo', type=int, default=0, metavar='PRIORITY',
+                        help='if > 0, the two nodes run under SCHED_FIFO at this priority')
     parser.add_argument('--out', default='bench_adaptation_out')
     args = parser.parse_args()
     out = Path(args.out)
@@ -216,7 +224,8 @@ def main() -> int:
     base = LoopSettings(
         model_path=args.model, passes=args.passes, path=args.path, seed=args.seed,
         twin_parameters_file=str(PRESETS / f'{args.preset}.yaml') if args.preset else '',
-        processes=True, twin_parameters={'mode': args.twin_mode, 'speed_factor': args.speed})
+        processes=True, twin_parameters={'mode': args.twin_mode, 'speed_factor': args.speed},
+        sched_fifo_priority=args.sched_fifo)
     adapting = {'adaptation_enabled': True, 'adaptation_folder': str(out / 'models'),
                 'adaptation_minutes': args.minutes, 'adaptation_period': args.period,
                 'adaptation_max_epochs': args.max_epochs}
@@ -234,7 +243,8 @@ def main() -> int:
           f'model {args.model}{" (trained for this plant)" if args.trained else ""}, '
           f'{args.twin_mode} x{args.speed:g} real time ({rate:g} samples/s'
           f'{" at most" if args.twin_mode == "paced" else ""}); adaptation: {args.minutes:g} min '
-          f'window, every {args.period:g} s, <= {args.max_epochs} epochs')
+          f'window, every {args.period:g} s, <= {args.max_epochs} epochs'
+          + (f'; nodes under SCHED_FIFO {args.sched_fifo}' if args.sched_fifo else ''))
     ratios = [(n, 'persistence') for n in ('off', 'on') if not args.trained] + [('on', 'off')]
     first = ratios[0][1]
     print(f'pass | {first} [um] | ' + ' | '.join(f'{n} / {d}' for n, d in ratios))

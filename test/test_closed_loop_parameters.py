@@ -3,6 +3,7 @@ parameters, apart from what each mode sets for itself, and count a run alike."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -10,9 +11,15 @@ import pytest
 pytest.importorskip('rclpy')
 
 from lompr_predictor.online.predictor_counts import PredictorCounts
+from lompr_predictor.ros.closed_loop import run_closed_loop
 from lompr_predictor.ros.loop_in_process import in_process_parameters, loop_topics
 from lompr_predictor.ros.loop_processes import loop_commands, ros_value
-from lompr_predictor.ros.loop_settings import TWIN_COUNTS, LoopSettings, loop_counts
+from lompr_predictor.ros.loop_settings import (
+    TWIN_COUNTS,
+    ClosedLoopError,
+    LoopSettings,
+    loop_counts,
+)
 
 pytestmark = pytest.mark.ros
 
@@ -54,6 +61,19 @@ def test_both_modes_give_the_nodes_the_same_parameters(settings: LoopSettings,
     assert twin['passes'] == str(settings.lead_in_passes + settings.passes)
     assert 'robot_description_file' not in twin or twin['robot_description_file'] == (
         'robot.urdf')
+
+
+def test_a_real_time_priority_goes_to_the_two_nodes_across_processes_only(
+        tmp_path: Path) -> None:
+    settings = LoopSettings(model_path='model.pt', processes=True, sched_fifo_priority=50)
+    commands = loop_commands(settings, 1, 0.004, tmp_path / 'run.npz')
+    assert {node: command_parameters(command).get('sched_fifo_priority')
+            for node, command in commands.items()} == {
+        'kinematics_node': '50', 'predictor_node': '50', 'twin_node': None}
+    assert 'sched_fifo_priority' not in command_parameters(loop_commands(
+        LoopSettings(model_path='model.pt'), 1, 0.004, tmp_path / 'run.npz')['predictor_node'])
+    with pytest.raises(ClosedLoopError, match='sched_fifo_priority needs the loop across'):
+        run_closed_loop(replace(settings, processes=False))
 
 
 def test_a_long_horizon_lets_the_twin_wait_for_its_offset(tmp_path: Path) -> None:

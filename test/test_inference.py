@@ -4,7 +4,9 @@ one line)."""
 
 from __future__ import annotations
 
+import gc
 import sys
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -136,6 +138,25 @@ def test_the_onnx_runtime_input_must_be_the_buffer_itself(trained: LoadedModel) 
     assert isinstance(backend, OnnxRuntimeBackend)
     with pytest.raises(ValueError, match='C-contiguous float64'):
         backend.runner(np.zeros((1, WINDOW, len(FEATURES)), dtype=np.float32))
+
+
+def test_a_runner_keeps_the_window_it_reads_alive(trained: LoadedModel) -> None:
+    """ONNX Runtime reads the window at the address bound: a runner made on a temporary
+    window (as a warm-up does) must keep it, or it reads freed memory, whatever is there."""
+    shape = (1, WINDOW, len(FEATURES))
+    backend, _ = select_backend(trained, 'onnxruntime')
+    window = np.zeros(shape)
+    wanted = TorchScriptBackend(trained).runner(window)()
+    kept = weakref.ref(window)
+    run = backend.runner(window)
+    del window
+    gc.collect()
+    assert kept() is not None
+    litter = [np.full(shape, np.inf) for _ in range(64)]  # what reuses freed memory
+    assert run()[:2] == pytest.approx(wanted[:2], rel=RELATIVE_TOLERANCE, abs=1e-12)
+    del run, litter
+    gc.collect()
+    assert kept() is None
 
 
 class WindowIgnoringModel(torch.nn.Module):

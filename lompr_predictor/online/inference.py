@@ -142,21 +142,23 @@ class OnnxRuntimeBackend:
         binding.bind_output(ONNX_OUTPUT, 'cpu', 0, np.float64, list(output.shape),
                             output.ctypes.data)
         run_bound = self._session.run_with_iobinding
-        read = output.tolist
+        read = output.tolist  # which keeps the output array alive
+        # The binding holds only the window's address: each runner keeps the array itself
+        # (a runner made on a temporary window would read freed memory).
         if self._outputs == 2:
-            def run() -> Prediction:
+            def run(_window: np.ndarray = window) -> Prediction:
                 run_bound(binding)
                 (x, y), = read()
                 return x, y, *NO_PRIOR, *NO_PRIOR
             return run
         if self._outputs == 4:
-            def run_with_prior() -> Prediction:
+            def run_with_prior(_window: np.ndarray = window) -> Prediction:
                 run_bound(binding)
                 (x, y, prior_x, prior_y), = read()
                 return x, y, prior_x, prior_y, *NO_PRIOR
             return run_with_prior
 
-        def run_with_priors() -> Prediction:
+        def run_with_priors(_window: np.ndarray = window) -> Prediction:
             run_bound(binding)
             (x, y, prior_x, prior_y, map_x, map_y), = read()
             return x, y, prior_x, prior_y, map_x, map_y

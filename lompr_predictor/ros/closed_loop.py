@@ -51,6 +51,10 @@ def run_closed_loop(settings: LoopSettings, *, progress: bool = True,
         msg = (f'passes must be at least 1 and lead-in passes at least 0, got '
                f'{settings.passes} and {settings.lead_in_passes}')
         raise ClosedLoopError(msg)
+    if settings.sched_fifo_priority and not settings.processes:
+        msg = ('sched_fifo_priority needs the loop across processes (processes=True): in one '
+               "process it would be the caller's own")
+        raise ClosedLoopError(msg)
     metadata = load_model(settings.model_path).metadata
     if metadata.preview and not settings.preview_samples:
         # a plan reaching past the instant the model reads, so it has arrived in time

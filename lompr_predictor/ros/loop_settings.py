@@ -65,6 +65,10 @@ class LoopSettings:
     #: adaptation, or the twin in real time at a speed factor).
     predictor_parameters: Mapping[str, Any] = field(default_factory=dict)
     twin_parameters: Mapping[str, Any] = field(default_factory=dict)
+    #: If > 0, kinematics_node and predictor_node run under SCHED_FIFO at this priority (their
+    #: `sched_fifo_priority`), as on a machine whose cores a job beside them fills; the
+    #: twin, the machine's controller, keeps the normal policy. Across processes only.
+    sched_fifo_priority: int = 0
 
 
 @dataclass(frozen=True)
@@ -117,10 +121,12 @@ def loop_parameters(settings: LoopSettings, horizon: int,
     """The parameters of the loop's three nodes that both modes set alike, by node name
     (empty strings, the nodes' defaults, left out)."""
     description = {'robot_description_file': settings.robot_description_file}
+    nodes = {**description, **({'sched_fifo_priority': settings.sched_fifo_priority}
+                               if settings.sched_fifo_priority else {})}
     parameters: dict[str, dict[str, Any]] = {
-        'kinematics_node': description,
+        'kinematics_node': nodes,
         'predictor_node': {
-            **description, 'model_path': settings.model_path,
+            **nodes, 'model_path': settings.model_path,
             'compensation_enabled': settings.compensation_enabled,
             'guard_enabled': settings.guard_enabled,
             'max_compensation': settings.max_compensation,
