@@ -229,8 +229,8 @@ class PredictorNodeSettings(FrameSettings):
         read_only=True)
     adaptation_idle: bool = parameter(
         True, 'the attempt process runs under SCHED_IDLE (Linux): only on CPU time no other '
-        'thread wants, so it never delays a sample; false: the normal policy, '
-        'adaptation_nice below the node', read_only=True)
+        'thread wants (where the cores are full, sched_fifo_priority keeps the nodes ahead); '
+        'false: the normal policy, adaptation_nice below the node', read_only=True)
 
     def stream(self, sample_period: float) -> StreamSettings:
         """The rules the input stream is held to, at `sample_period` [s] (the model's, or
