@@ -36,10 +36,12 @@ dropped by the predictor's overrun policy).
   (`lompr train --threads 1` on a small simulated bag, at its default priority, nice +10;
   `--no-training` skips it). Each run beside the same chain through `relay_chain.py` (the
   nodes' topics, QoS and executor, raw bytes in and out, no work): the transport floor of
-  this machine, which no node can go below. After each run through the nodes, each node's
-  'callback timing' status (`monitoring.CallbackTimes`, on /diagnostics) over the timed
-  stream: per kind of work (each callback, logging, garbage collection by generation, the
-  executor's own CPU per wake-up) runs, mean wall and CPU time, p50 / p99 / p99.9 / max.
+  this machine, which no node can go below. `--sched-fifo PRIORITY` runs both chains under
+  SCHED_FIFO (the nodes by their `sched_fifo_priority`, the relays by `chrt`). After each
+  run through the nodes, each node's 'callback timing' status (`monitoring.CallbackTimes`,
+  on /diagnostics) over the timed stream: per kind of work (each callback, logging, garbage
+  collection by generation, the executor's own CPU per wake-up) runs, mean wall and CPU
+  time, p50 / p99 / p99.9 / max.
 
 Targets: at 1 kHz, with a training job beside and without, >= 99.9 % of the samples
 answered, p99 <= 2 ms across processes and <= 1 ms in one process; the core's inference
@@ -659,39 +661,49 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
-def node_commands(mode: str, model: Path, period: float,
-                  executor: str = EXECUTORS[0]) -> list[list[str]]:
-    """The command lines of the chain `mode` names, through the node executables."""
+def node_commands(mode: str, model: Path, period: float, executor: str = EXECUTORS[0],
+                  sched_fifo: int = 0) -> list[list[str]]:
+    """The command lines of the chain `mode` names, through the node executables (under
+    SCHED_FIFO at `sched_fifo` if > 0: each node's `sched_fifo_priority`)."""
     bin_dir = Path(sys.executable).parent
-    predictor = [f'model_path:={model}', f'sample_period:={period}', 'compensation_enabled:=true']
+    both = [f'sched_fifo_priority:={sched_fifo}'] if sched_fifo else []
+    predictor = [f'model_path:={model}', f'sample_period:={period}',
+                 'compensation_enabled:=true', *both]
     spin = ['--executor', executor]
     if mode == 'one process':
         args = [item for p in predictor for item in ('-p', f'predictor_node:{p}')]
+        args += [item for p in both for item in ('-p', f'kinematics_node:{p}')]
         return [[str(bin_dir / 'lompr_pipeline'), *spin, '--ros-args', *args]]
-    return [[str(bin_dir / 'kinematics_node'), *spin],
+    return [[str(bin_dir / 'kinematics_node'), *spin,
+             *(['--ros-args', *[item for p in both for item in ('-p', p)]] if both else [])],
             [str(bin_dir / 'predictor_node'), *spin, '--ros-args',
              *[item for p in predictor for item in ('-p', p)]]]
 
 
-def relay_commands(mode: str, lead_ns: int, executor: str = EXECUTORS[0]) -> list[list[str]]:
-    """The command lines of the same chain through `relay_chain.py` (the transport floor)."""
-    relay = [sys.executable, str(RELAY), '--executor', executor]
+def relay_commands(mode: str, lead_ns: int, executor: str = EXECUTORS[0],
+                   sched_fifo: int = 0) -> list[list[str]]:
+    """The command lines of the same chain through `relay_chain.py` (the transport floor;
+    under SCHED_FIFO at `sched_fifo` if > 0, as the nodes then are)."""
+    chrt = ['chrt', '--fifo', str(sched_fifo)] if sched_fifo else []
+    relay = [*chrt, sys.executable, str(RELAY), '--executor', executor]
     lead = ['--ros-args', '-p', f'lead_ns:={lead_ns}']
+    script = len(chrt) + 2  # the chain's part goes after the script
     if mode == 'one process':
-        return [[*relay[:2], 'both', *relay[2:], *lead]]
-    return [[*relay[:2], 'kinematics', *relay[2:]], [*relay[:2], 'predictor', *relay[2:], *lead]]
+        return [[*relay[:script], 'both', *relay[script:], *lead]]
+    return [[*relay[:script], 'kinematics', *relay[script:]],
+            [*relay[:script], 'predictor', *relay[script:], *lead]]
 
 
 def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path | None,
-                     executor: str = EXECUTORS[0]) -> dict[str, Any]:
+                     executor: str = EXECUTORS[0], sched_fifo: int = 0) -> dict[str, Any]:
     """The chain `mode` names through the nodes running `model`, or through the relays
-    (`relay_chain.py`) when `model` is None."""
+    (`relay_chain.py`) when `model` is None; both under SCHED_FIFO at `sched_fifo` if > 0."""
     period = 1.0 / rate
     horizon = HORIZONS[rate]
     samples = max(int(seconds * rate), WINDOW + HISTORY + 50)
     tips, joints = spiral_joints(samples, rate)
-    commands = (relay_commands(mode, horizon * round(period * 1e9), executor) if model is None
-                else node_commands(mode, model, period, executor))
+    commands = (relay_commands(mode, horizon * round(period * 1e9), executor, sched_fifo)
+                if model is None else node_commands(mode, model, period, executor, sched_fifo))
     processes = [start(command) for command in commands]
     context = Context()
     rclpy.init(context=context)
@@ -828,6 +840,10 @@ def main() -> int:
                              f'callgrind ({CALLGRIND_SAMPLES} samples, several minutes)')
     parser.add_argument('--parts', default=','.join(PARTS),
                         help='comma list of the parts to run (default: all)')
+    parser.add_argument('--sched-fifo', type=int, default=0, metavar='PRIORITY',
+                        help='if > 0, the end-to-end chains run under SCHED_FIFO at this '
+                             'priority: the nodes by their sched_fifo_priority, the relays by '
+                             'chrt; the training job and this client keep the normal policy')
     parser.add_argument('--profile-samples', type=int, default=PROFILE_SAMPLES,
                         help='samples driven through the profile (the first '
                              f'{PROFILE_WARMUP} are not counted)')
@@ -863,7 +879,8 @@ def main() -> int:
             rates = [int(r) for r in args.rates.split(',')]
             executors = args.executors.split(',')
             for load, job in loads:
-                rows += report_end_to_end(load, job, models, args.seconds, rates, executors)
+                rows += report_end_to_end(load, job, models, args.seconds, rates, executors,
+                                          args.sched_fifo)
     print('\nsummary (wall-clock figures are pessimistic on a shared machine):')
     print_table(rows)
     missed = [r.figure for r in rows if r.ok is False]
@@ -907,7 +924,7 @@ def report_profile(model: Path, samples: int) -> list[Row]:
 
 def report_end_to_end(load: str, job: contextlib.AbstractContextManager[Any],
                       models: dict[int, Path], seconds: float, rates: list[int],
-                      executors: list[str]) -> list[Row]:
+                      executors: list[str], sched_fifo: int = 0) -> list[Row]:
     rows: list[Row] = []
     print(f'\nend to end{load or ", no training job"} (CPU us per sample: kinematics / '
           'predictor process, or the one process; chain "relays": the same topics, QoS and '
@@ -919,7 +936,8 @@ def report_end_to_end(load: str, job: contextlib.AbstractContextManager[Any],
             for mode in ('two processes', 'one process'):
                 for rate in rates:
                     duration = max(seconds, 8.0) if rate == 25 else seconds
-                    results = {chain: bench_end_to_end(mode, rate, duration, model, executor)
+                    results = {chain: bench_end_to_end(mode, rate, duration, model, executor,
+                                                       sched_fifo)
                                for chain, model in (('nodes', models[rate]), ('relays', None))}
                     for chain, result in results.items():
                         share = result['answered'] / result['answerable']
