@@ -661,6 +661,12 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
+def ros_parameters(parameters: list[str], node: str = '') -> list[str]:
+    """`-p NAME:=VALUE` for each of `parameters` (prefixed `node:` for one node of a
+    process holding several)."""
+    return [item for p in parameters for item in ('-p', f'{node}:{p}' if node else p)]
+
+
 def node_commands(mode: str, model: Path, period: float, executor: str = EXECUTORS[0],
                   sched_fifo: int = 0) -> list[list[str]]:
     """The command lines of the chain `mode` names, through the node executables (under
@@ -671,13 +677,11 @@ def node_commands(mode: str, model: Path, period: float, executor: str = EXECUTO
                  'compensation_enabled:=true', *both]
     spin = ['--executor', executor]
     if mode == 'one process':
-        args = [item for p in predictor for item in ('-p', f'predictor_node:{p}')]
-        args += [item for p in both for item in ('-p', f'kinematics_node:{p}')]
-        return [[str(bin_dir / 'lompr_pipeline'), *spin, '--ros-args', *args]]
-    return [[str(bin_dir / 'kinematics_node'), *spin,
-             *(['--ros-args', *[item for p in both for item in ('-p', p)]] if both else [])],
-            [str(bin_dir / 'predictor_node'), *spin, '--ros-args',
-             *[item for p in predictor for item in ('-p', p)]]]
+        return [[str(bin_dir / 'lompr_pipeline'), *spin, '--ros-args',
+                 *ros_parameters(predictor, 'predictor_node'),
+                 *ros_parameters(both, 'kinematics_node')]]
+    return [[str(bin_dir / 'kinematics_node'), *spin, '--ros-args', *ros_parameters(both)],
+            [str(bin_dir / 'predictor_node'), *spin, '--ros-args', *ros_parameters(predictor)]]
 
 
 def relay_commands(mode: str, lead_ns: int, executor: str = EXECUTORS[0],
@@ -685,13 +689,12 @@ def relay_commands(mode: str, lead_ns: int, executor: str = EXECUTORS[0],
     """The command lines of the same chain through `relay_chain.py` (the transport floor;
     under SCHED_FIFO at `sched_fifo` if > 0, as the nodes then are)."""
     chrt = ['chrt', '--fifo', str(sched_fifo)] if sched_fifo else []
-    relay = [*chrt, sys.executable, str(RELAY), '--executor', executor]
-    lead = ['--ros-args', '-p', f'lead_ns:={lead_ns}']
-    script = len(chrt) + 2  # the chain's part goes after the script
+    relay = [*chrt, sys.executable, str(RELAY)]
+    options = ['--executor', executor]
+    lead = ['--ros-args', *ros_parameters([f'lead_ns:={lead_ns}'])]
     if mode == 'one process':
-        return [[*relay[:script], 'both', *relay[script:], *lead]]
-    return [[*relay[:script], 'kinematics', *relay[script:]],
-            [*relay[:script], 'predictor', *relay[script:], *lead]]
+        return [[*relay, 'both', *options, *lead]]
+    return [[*relay, 'kinematics', *options], [*relay, 'predictor', *options, *lead]]
 
 
 def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path | None,
