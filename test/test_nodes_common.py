@@ -288,7 +288,7 @@ def test_run_node_help_lists_parameters_and_qos_overrides(
     assert "mode (default 'fast' {fast|slow}): a mode" in out
     assert "names (default ['a', 'b'], read-only): some names" in out
     assert ('qos_overrides./toy_in.subscription.{history,depth,reliability} (default '
-            'keep_last, 100, best_effort, read-only): QoS of the toy input subscription (the '
+            'keep_last, 1000, best_effort, read-only): QoS of the toy input subscription (the '
             'topic is input_topic)') in out
     assert 'qos_overrides./toy_out.publisher.{history' in out
     assert 'qos_overrides./toy_diagnostics.publisher.{history,depth,reliability} (default ' \

@@ -111,8 +111,10 @@ S = TypeVar('S', bound='DataclassInstance')
 
 #: Inputs from a robot or another node: best effort hears reliable and best-effort
 #: (sensor-data) publishers alike, whereas a reliable subscription hears nothing from a
-#: best-effort publisher; depth 100 queues 0.1 s at 1 kHz while the executor is busy.
-SENSOR_INPUT_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+#: best-effort publisher; depth 1000 queues 1 s at 1 kHz while the process is held up (a
+#: burst of other work on the machine): a sample lost there is a gap that costs the window's
+#: refill, a queued one at most its own answer.
+SENSOR_INPUT_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT)
 #: Commands that must not be lost on the way (the compensation a controller applies).
 COMMAND_INPUT_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 #: Outputs: reliable, so that a reliable subscriber (a controller, a recorder) hears them;
