@@ -30,19 +30,28 @@ reset for an instant the new run has not reached is the run's before (it was on 
 the nodes' counters are also shown per run (read from reports that come once a second, so a
 count near a reset may fall in either run).
 
+With `--bursts` other work shares the machine in bursts (`BURST_PROCESSES` busy processes
+for `BURST_SECONDS` every `BURST_EVERY` s, from the start): the load under which a node held
+up for longer than its input queues last loses samples. `--input-depth N` overrides the
+depth of the nodes' input subscriptions (`qos_overrides.*`; their default otherwise), so that
+a depth can be compared with another under the same bursts.
+
 Targets: RSS growth < 5 MB over 10 minutes for each node, >= 99.9 % answered (in every run).
 Run: .venv/bin/python bench/soak_predictor.py [--minutes M] [--preview K] [--resets R]
-(exit code 1 on a miss)
+[--bursts] [--input-depth N] (exit code 1 on a miss)
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
+import multiprocessing
 import struct
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -92,6 +101,14 @@ COUNTERS = {
 #: The statuses whose counters are also listed by reason (`faults.*`, `rejected.*`).
 BY_REASON = ('predictor_node: inputs', 'predictor_node: reference preview')
 #: How the report names the places of the unanswered instants (`missed_instants`).
+#: `--bursts`: processes busy together, for how long, how often [s].
+BURST_PROCESSES = 3
+BURST_SECONDS = 0.3
+BURST_EVERY = 3.0
+#: The nodes' input subscriptions (`--input-depth`), by resolved topic.
+INPUT_TOPICS = {'kinematics_node': ('/joint_states',),
+                'predictor_node': ('/lompr/end_pose', '/lompr/reference',
+                                   '/lompr/reference_preview')}
 WHERE = {'start': 'at the start (after the refill)', 'end': 'at the end',
          'single': 'single', 'short': 'in short holes',
          'refill': 'in holes of a refill or longer (a fault)'}
@@ -103,6 +120,33 @@ def rss_mb(pid: int) -> float:
         if line.startswith('VmRSS:'):
             return int(line.split()[1]) / 1024
     return float('nan')
+
+
+def _busy_in_bursts(stop: Any) -> None:
+    while not stop.wait(BURST_EVERY - BURST_SECONDS):
+        end = time.monotonic() + BURST_SECONDS
+        while time.monotonic() < end:
+            pass
+
+
+@contextlib.contextmanager
+def bursts_of_other_work(enabled: bool) -> Iterator[None]:
+    """While inside, `BURST_PROCESSES` processes busy in bursts (if `enabled`)."""
+    if not enabled:
+        yield
+        return
+    context = multiprocessing.get_context('fork')  # before any rclpy or DDS thread exists
+    stop = context.Event()
+    workers = [context.Process(target=_busy_in_bursts, args=(stop,), daemon=True)
+               for _ in range(BURST_PROCESSES)]
+    for worker in workers:
+        worker.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        for worker in workers:
+            worker.join()
 
 
 class PreviewWriter:
@@ -245,25 +289,31 @@ def _order(label: str) -> tuple[int, str]:
     return (99, label)
 
 
-def node_commands(model: Path, period: float, simulated: bool) -> list[list[str]]:
+def node_commands(model: Path, period: float, simulated: bool,
+                  input_depth: int = 0) -> list[list[str]]:
     """The two node executables (`bench_predictor.node_commands`), on simulated time if
-    `simulated`."""
+    `simulated`, their input subscriptions `input_depth` deep if > 0."""
     commands = bench.node_commands('two processes', model, period)
-    if simulated:
-        for command in commands:
-            if '--ros-args' not in command:
-                command.append('--ros-args')
+    for command, topics in zip(commands, INPUT_TOPICS.values(), strict=True):
+        if '--ros-args' not in command:
+            command.append('--ros-args')
+        if simulated:
             command += ['-p', 'use_sim_time:=true']
+        if input_depth > 0:
+            command += bench.ros_parameters([f'qos_overrides.{topic}.subscription.depth:='
+                                             f'{input_depth}' for topic in topics])
     return commands
 
 
-def soak(minutes: float, model: Path, preview: int = 0, resets: int = 0) -> dict[str, Any]:
+def soak(minutes: float, model: Path, preview: int = 0, resets: int = 0,
+         input_depth: int = 0) -> dict[str, Any]:
     runs = resets + 1
     samples = max(int(minutes * 60 * RATE) // runs, 10 * RATE)
     period = 1.0 / RATE
     tips, joints = bench.spiral_joints(CYCLE, RATE)
     simulated = resets > 0
-    processes = [bench.start(command) for command in node_commands(model, period, simulated)]
+    processes = [bench.start(command)
+                 for command in node_commands(model, period, simulated, input_depth)]
     context = Context()
     rclpy.init(context=context)
     client = SoakClient(context, runs, samples, preview)
@@ -333,7 +383,8 @@ def soak(minutes: float, model: Path, preview: int = 0, resets: int = 0) -> dict
             'rss': rss, 'counts': counted(counters[0], counters[-1]),
             'counts_by_run': [counted(*pair) for pair in itertools.pairwise(counters)],
             'preview': preview,
-            'resets': resets, 'timing': (timing_before, dict(client.timing))}
+            'resets': resets, 'input_depth': input_depth,
+            'timing': (timing_before, dict(client.timing))}
 
 
 def report(result: dict[str, Any]) -> bool:
@@ -343,7 +394,11 @@ def report(result: dict[str, Any]) -> bool:
     print(f'soak: {result["samples"]} samples at {RATE} Hz in {result["seconds"]:.1f} s '
           f'({minutes:.2f} min), kinematics_node and predictor_node as two processes, '
           f'preview {preview} samples, {resets} reset(s)'
-          + (' (simulated time, /clock back to the start)' if resets else ''))
+          + (' (simulated time, /clock back to the start)' if resets else '')
+          + (f', other work in bursts ({BURST_PROCESSES} processes busy {BURST_SECONDS} s '
+             f'every {BURST_EVERY} s)' if result.get('bursts') else '')
+          + (f", input subscriptions {result['input_depth']} deep" if result['input_depth']
+             else ''))
     ok = True
     rss = result['rss']
     (_, first), (_, last) = rss[0], rss[-1]
@@ -395,17 +450,26 @@ def main() -> int:
     parser.add_argument('--resets', type=int, default=0, metavar='R',
                         help='the path generator resets R times, evenly spaced, on simulated '
                              'time (default 0)')
+    parser.add_argument('--bursts', action='store_true',
+                        help=f'other work in bursts: {BURST_PROCESSES} busy processes for '
+                             f'{BURST_SECONDS} s every {BURST_EVERY} s')
+    parser.add_argument('--input-depth', type=int, default=0, metavar='N',
+                        help="the nodes' input subscriptions N deep (default 0: the nodes' "
+                             'default)')
     args = parser.parse_args()
     if not args.minutes > 0:
         parser.error(f'--minutes must be > 0, got {args.minutes}')
-    if args.preview < 0 or args.resets < 0:
-        parser.error(f'--preview and --resets must be >= 0, got {args.preview}, {args.resets}')
+    if args.preview < 0 or args.resets < 0 or args.input_depth < 0:
+        parser.error(f'--preview, --resets and --input-depth must be >= 0, got '
+                     f'{args.preview}, {args.resets}, {args.input_depth}')
     set_torch_threads(1)
     isolate_ros_domain()  # this soak talks only to itself
     with tempfile.TemporaryDirectory() as temporary:
         model = bench.default_model(Path(temporary) / 'lstm_1000.pt', 1.0 / RATE, HORIZON,
                                     args.preview)
-        result = soak(args.minutes, model, args.preview, args.resets)
+        with bursts_of_other_work(args.bursts):
+            result = soak(args.minutes, model, args.preview, args.resets, args.input_depth)
+        result['bursts'] = args.bursts
     return 0 if report(result) else 1
 
 
