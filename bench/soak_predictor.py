@@ -100,7 +100,6 @@ COUNTERS = {
 }
 #: The statuses whose counters are also listed by reason (`faults.*`, `rejected.*`).
 BY_REASON = ('predictor_node: inputs', 'predictor_node: reference preview')
-#: How the report names the places of the unanswered instants (`missed_instants`).
 #: `--bursts`: processes busy together, for how long, how often [s].
 BURST_PROCESSES = 3
 BURST_SECONDS = 0.3
@@ -109,6 +108,7 @@ BURST_EVERY = 3.0
 INPUT_TOPICS = {'kinematics_node': ('/joint_states',),
                 'predictor_node': ('/lompr/end_pose', '/lompr/reference',
                                    '/lompr/reference_preview')}
+#: How the report names the places of the unanswered instants (`missed_instants`).
 WHERE = {'start': 'at the start (after the refill)', 'end': 'at the end',
          'single': 'single', 'short': 'in short holes',
          'refill': 'in holes of a refill or longer (a fault)'}
@@ -387,8 +387,9 @@ def soak(minutes: float, model: Path, preview: int = 0, resets: int = 0,
             'timing': (timing_before, dict(client.timing))}
 
 
-def report(result: dict[str, Any]) -> bool:
-    """Print the figures; whether every target was met."""
+def report(result: dict[str, Any], bursts: bool = False) -> bool:
+    """Print the figures (of a run beside `bursts` of other work or not); whether every
+    target was met."""
     minutes = result['seconds'] / 60
     preview, resets = result['preview'], result['resets']
     print(f'soak: {result["samples"]} samples at {RATE} Hz in {result["seconds"]:.1f} s '
@@ -396,7 +397,7 @@ def report(result: dict[str, Any]) -> bool:
           f'preview {preview} samples, {resets} reset(s)'
           + (' (simulated time, /clock back to the start)' if resets else '')
           + (f', other work in bursts ({BURST_PROCESSES} processes busy {BURST_SECONDS} s '
-             f'every {BURST_EVERY} s)' if result.get('bursts') else '')
+             f'every {BURST_EVERY} s)' if bursts else '')
           + (f", input subscriptions {result['input_depth']} deep" if result['input_depth']
              else ''))
     ok = True
@@ -469,8 +470,7 @@ def main() -> int:
                                     args.preview)
         with bursts_of_other_work(args.bursts):
             result = soak(args.minutes, model, args.preview, args.resets, args.input_depth)
-        result['bursts'] = args.bursts
-    return 0 if report(result) else 1
+    return 0 if report(result, args.bursts) else 1
 
 
 if __name__ == '__main__':
