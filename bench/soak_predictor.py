@@ -295,8 +295,6 @@ def node_commands(model: Path, period: float, simulated: bool,
     `simulated`, their input subscriptions `input_depth` deep if > 0."""
     commands = bench.node_commands('two processes', model, period)
     for command, topics in zip(commands, INPUT_TOPICS.values(), strict=True):
-        if '--ros-args' not in command:
-            command.append('--ros-args')
         if simulated:
             command += ['-p', 'use_sim_time:=true']
         if input_depth > 0:
