@@ -98,12 +98,13 @@ def test_init_fine_tunes_on_the_new_plant_and_names_its_parent(
     part = document['fine_tuning']
     assert part['parent_sha256'] == before.sha256 and part['epochs'] <= 6
     assert part['validation_loss_best'] <= part['validation_loss_start']
-    # the other plant's lag is what the map's coefficients say: fitted again, the map leaves
-    # far less of the error; the network was fine-tuned on both maps and the lower
-    # validation loss kept, with its map's coefficients in the file
+    # the other plant's lag is what the map's coefficients say: fitted again, the map misses
+    # less of the error's changes (what is left is mostly the sensor noise of one-sample
+    # changes); the network was fine-tuned on both maps and the lower validation loss kept,
+    # with its map's coefficients in the file
     refit = part['machine_map']
-    rms, losses = refit['validation_residual_rms_um'], refit['validation_loss']
-    assert rms['refitted_map'] < 0.5 * rms['parent_map'], refit
+    misfit, losses = refit['validation_misfit'], refit['validation_loss']
+    assert misfit['refitted_map'] < 0.85 * misfit['parent_map'], refit
     assert set(losses) == {'kept', 'refitted'}
     assert refit['decision'] == min(losses, key=losses.get)
     assert part['validation_loss_best'] == losses[refit['decision']]
@@ -137,8 +138,8 @@ def test_on_its_own_plant_the_parent_map_is_kept(
                        str(report), '--max-epochs', '2', '--quiet']) == 0
     refit = json.loads((report / 'report.json').read_text())['fine_tuning']['machine_map']
     assert refit['decision'] == 'kept' and set(refit['validation_loss']) == {'kept'}, refit
-    rms = refit['validation_residual_rms_um']  # about the same: no second fine-tuning
-    assert rms['refitted_map'] > (1 - MAP_REFIT_GAIN) * rms['parent_map'], refit
+    misfit = refit['validation_misfit']  # about the same: no second fine-tuning
+    assert misfit['refitted_map'] > (1 - MAP_REFIT_GAIN) * misfit['parent_map'], refit
     assert load_model(out).metadata.machine_map == load_model(model).metadata.machine_map
     assert 'Machine map: kept' in (report / 'report.md').read_text()
 

@@ -19,14 +19,15 @@ The machine map's coefficients are also fitted again on the new training part (`
 its Jacobian, the robot's kinematics, and its friction speed scales stay the parent's):
 another machine of the same robot, or the machine worn or retuned, differs in just what
 those coefficients are (each branch's servo lag, friction, the posture's sag), which the
-least squares finds in milliseconds from minutes of data. If the refitted map fits the
-validation part's plant error better by `MAP_REFIT_GAIN` (the RMS of what it leaves, the
-residual the network reads), the network is fine-tuned on it too, from the same weights, and
+least squares finds in milliseconds from minutes of data (fitted on the new training part,
+judged on its validation part). If the refitted map fits the validation part better by
+`MAP_REFIT_GAIN` (`MachineMap.misfit`: the share of the plant error's changes it misses,
+the fit's own objective), the network is fine-tuned on it too, from the same weights, and
 of the two the lower validation loss is kept: a network reads the new residuals from where
 the parent's left it, which does not always pay within the epochs allowed. The
-normalisation stays the parent's. The new model's metadata is
-the parent's with the new bags, test metrics, fine-tuning settings, the map's coefficients,
-an envelope that takes in both the parent's and the new rows, and `parent_sha256`.
+normalisation stays the parent's. The new model's metadata is the parent's with the new
+bags, test metrics, fine-tuning settings, the map's coefficients, an envelope that takes in
+both the parent's and the new rows, and `parent_sha256`.
 """
 
 from __future__ import annotations
@@ -84,8 +85,8 @@ from lompr_predictor.robot.description import load_robot_description
 CHECK_WINDOWS = 256
 #: ... to this [m]: both run the same float32 network on the same inputs.
 CHECK_TOLERANCE = 1e-9
-#: Relative: the machine map refitted on the new recordings is kept when what it leaves of
-#: the validation part's plant error (RMS) is below what the parent map leaves by more than
+#: Relative: the machine map refitted on the new recordings is kept when its misfit of the
+#: validation part's error changes (`MachineMap.misfit`) is below the parent map's by more than
 #: this (else the parent's stays: the same machine, to whose map a few minutes of data would
 #: only add noise).
 MAP_REFIT_GAIN = 0.1
@@ -230,22 +231,12 @@ def refit_map(module: PredictorModule, problem: LearningProblem,
     if not module.use_map or len(ends) == 0:
         return None, {}
     refitted = copy.deepcopy(module)
-    training = problem.split.training_rows()
-    refitted.machine_map.fit(problem.rows[training], problem.error[training])
-    before = _residual_rms(module.machine_map, problem, ends)
-    after = _residual_rms(refitted.machine_map, problem, ends)
-    figures = {'validation_residual_rms_um': {'parent_map': before * 1e6,
-                                              'refitted_map': after * 1e6},
+    refitted.machine_map.fit(problem.rows, problem.error, problem.split.train)
+    before, after = (machine_map.misfit(problem.rows, problem.error, ends)
+                     for machine_map in (module.machine_map, refitted.machine_map))
+    figures = {'validation_misfit': {'parent_map': before, 'refitted_map': after},
                'gain_needed': MAP_REFIT_GAIN}
     return (refitted if after < (1.0 - MAP_REFIT_GAIN) * before else None), figures
-
-
-def _residual_rms(machine_map: MachineMap, problem: LearningProblem,
-                  rows: np.ndarray) -> float:
-    """RMS [m] over both axes of what the map leaves of the plant error at `rows`."""
-    residual = problem.error[rows] - machine_map.values(problem.rows[rows])[0]
-    usable = np.isfinite(residual).all(axis=1)
-    return float(np.sqrt(np.mean(residual[usable] ** 2))) if usable.any() else float('inf')
 
 
 def _fine_tuning_part(parent: LoadedModel, trained: TrainedModel,

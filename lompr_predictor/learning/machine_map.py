@@ -1,5 +1,6 @@
 """The machine map: the plant error that the commanded motion and posture explain, in the
-form the robot's kinematics give it; fitted by least squares, the prior of the BO-LSTM.
+form the robot's kinematics give it; fitted by least squares on the error's changes over the
+horizon and a few times it (`MachineMap.fit`), the prior of the BO-LSTM.
 
 Why. The error sources of this machine act per actuator: a branch's servo lags its commanded
 velocity and acceleration, its friction follows its direction of motion and speed, and its
@@ -56,6 +57,9 @@ POSTURE_TERMS = ('1', 'x', 'y', 'x^2', 'x*y', 'y^2')
 #: Relative Tikhonov penalty of the least squares (times the basis' mean square): keeps a
 #: scale that the training motion never excites at zero instead of at a large value.
 RIDGE = 1e-9
+#: The lags, in horizons, of the error changes the map is fitted on (`MachineMap.fit`): up to
+#: seconds at the sample rates of such machines, short against heat and drift (minutes).
+FIT_LAGS = (1, 5, 25)
 #: Commanded poses the Jacobian is averaged over (it changes by a few per cent over the
 #: mirror, so a few thousand evenly spaced poses give its mean to far better than that).
 JACOBIAN_POSES = 2000
@@ -107,7 +111,10 @@ class MachineMap(nn.Module):
         self.register_buffer('ahead_acceleration_columns',
                              _columns(names, tuple(ahead + n for n in _branch('a'))))
         self.plan_is_displacement = bool(preview)
-        #: RMS [m] of the least squares' residual over its rows (NaN until `fit`)
+        #: the lags [samples] of the error changes the map is fitted on (`fit`)
+        self.fit_lags = tuple(factor * int(horizon) for factor in FIT_LAGS)
+        #: RMS [m] of what g's change misses of the error's change over the horizon at the
+        #: fit's instants (NaN until `fit`)
         self.fit_rms = float('nan')
         #: how far beyond the row read for the predicted instant it lies [s]
         self.extrapolation = float(max(horizon - preview, 0) * sample_period)
@@ -251,32 +258,78 @@ class MachineMap(nn.Module):
             posture = terms.unsqueeze(1).unsqueeze(-1) * eye.unsqueeze(1)  # (N, 2, M, 2)
         return torch.cat([branch.flatten(2), posture.flatten(2)], 2).numpy()
 
-    def fit(self, rows: np.ndarray, error: np.ndarray) -> float:
-        """Least squares of the coefficients on feature rows (N, F) and their plant errors
-        (N, 2), rows with a NaN left out; returns the RMS [m] of the fit's residual."""
-        basis = self.basis(rows)
-        usable = np.isfinite(basis).all(axis=(1, 2)) & np.isfinite(error).all(axis=1)
-        if usable.sum() < basis.shape[2]:
-            msg = (f'the machine map needs at least {basis.shape[2]} rows with every feature, '
-                   f'got {int(usable.sum())}')
-            raise ValueError(msg)
-        design = basis[usable].reshape(-1, basis.shape[2])
-        target = np.asarray(error, dtype=float)[usable].reshape(-1)
+    def fit(self, rows: np.ndarray, error: np.ndarray, instants: np.ndarray) -> float:
+        """Least squares of the coefficients on the plant error's changes, e(t+d) - e(t)
+        against g(t+d) - g(t), over the lags d in `FIT_LAGS` horizons, of feature rows
+        (N, F) and plant errors (N, 2) at `instants` (row indices; consecutive ones are
+        consecutive samples of one gap-free run, as window ends are; pairs with a NaN left
+        out); each lag's equations weighted by the inverse RMS of its error changes, so that
+        each has the same say. Then the posture's constant, which no change sees, set to the
+        mean of what the map leaves of the error at `instants`. Returns `fit_rms`.
+
+        Why changes and not levels: the prior uses g only through its change over the
+        horizon, and a slow part of the error that the commanded motion does not explain
+        (heat, drift, a recording's offset) changes little over seconds; fitted on levels,
+        the least squares bends the coefficients towards it (on a machine that warms with
+        its work the prior was then worse on programs it was not fitted on). Why lags beyond
+        the horizon: the posture terms and the motion's slower parts change little within
+        one horizon and are determined by the longer ones."""
+        changes = self.lag_changes(rows, error, instants)
+        for lag, (design, _) in zip(self.fit_lags, changes, strict=True):
+            if len(design) < design.shape[2]:
+                msg = (f'the machine map needs at least {design.shape[2]} instants with every '
+                       f'feature now and {lag} samples later in the same run, got {len(design)}')
+                raise ValueError(msg)
+        weights = [1.0 / max(float(np.sqrt(np.mean(target ** 2))), 1e-15)
+                   for _, target in changes]
+        design = np.vstack([weight * lag_design.reshape(-1, lag_design.shape[2])
+                            for weight, (lag_design, _) in zip(weights, changes, strict=True)])
+        target = np.concatenate([weight * lag_target.reshape(-1)
+                                 for weight, (_, lag_target) in zip(weights, changes, strict=True)])
         scale = np.sqrt(np.mean(design ** 2, axis=0))
         scale[scale == 0] = 1.0
         scaled = design / scale
         gram = scaled.T @ scaled
         gram[np.diag_indices_from(gram)] += RIDGE * len(scaled)
         coefficients = np.linalg.solve(gram, scaled.T @ target) / scale
+        instants = np.asarray(instants, dtype=np.int64)
+        level = np.asarray(error, dtype=float)[instants] - self.basis(rows[instants]) @ coefficients
         n_branch = self.branch_coefficients.numel()
+        posture = coefficients[n_branch:].reshape(self.posture_coefficients.shape)
+        posture[POSTURE_TERMS.index('1')] += np.nanmean(level, axis=0)
         with torch.no_grad():
             self.branch_coefficients.copy_(torch.from_numpy(
                 coefficients[:n_branch].reshape(self.branch_coefficients.shape)))
-            self.posture_coefficients.copy_(torch.from_numpy(
-                coefficients[n_branch:].reshape(self.posture_coefficients.shape)))
-        residual = target - design @ coefficients
-        self.fit_rms = float(np.sqrt(np.mean(residual ** 2)))
+            self.posture_coefficients.copy_(torch.from_numpy(posture))
+        horizon_design, horizon_target = changes[0]
+        missed = horizon_target - horizon_design @ coefficients
+        self.fit_rms = float(np.sqrt(np.mean(missed ** 2)))
         return self.fit_rms
+
+    def lag_changes(self, rows: np.ndarray, error: np.ndarray,
+                    instants: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per lag of `fit_lags`, the basis' changes (M, 2, C) and the plant error's (M, 2)
+        between the instants t and t + lag of `instants` that lie in one run (`fit`), pairs
+        with a NaN left out."""
+        basis = self.basis(rows)
+        error = np.asarray(error, dtype=float)
+        changes = []
+        for lag in self.fit_lags:
+            first = consecutive_pairs(instants, lag)
+            design, target = basis[first + lag] - basis[first], error[first + lag] - error[first]
+            usable = np.isfinite(design).all(axis=(1, 2)) & np.isfinite(target).all(axis=1)
+            changes.append((design[usable], target[usable]))
+        return changes
+
+    def misfit(self, rows: np.ndarray, error: np.ndarray, instants: np.ndarray) -> float:
+        """`fit`'s objective at `instants`: over the lags, the RMS of what g's change misses
+        of the plant error's change as a share of that change's RMS (0: all explained, 1: no
+        better than no map); inf without a usable pair."""
+        coefficients = torch.cat([self.branch_coefficients.flatten(),
+                                  self.posture_coefficients.flatten()]).numpy()
+        shares = [np.mean((target - design @ coefficients) ** 2) / np.mean(target ** 2)
+                  for design, target in self.lag_changes(rows, error, instants) if len(target)]
+        return float(np.sqrt(np.mean(shares))) if shares else float('inf')
 
     def metadata(self) -> dict[str, Any]:
         """The map's constants, for the model file's metadata (people and tools)."""
@@ -295,6 +348,14 @@ class MachineMap(nn.Module):
 def posture_terms(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """(..., len(POSTURE_TERMS)) the posture polynomial's terms at x, y (...)."""
     return torch.stack([torch.ones_like(x), x, y, x * x, x * y, y * y], -1)
+
+
+def consecutive_pairs(instants: np.ndarray, lag: int) -> np.ndarray:
+    """The instants t of `instants` (row indices) whose rows t..t+lag are all in it: the
+    first rows of the pairs `lag` samples apart within one run."""
+    instants = np.unique(np.asarray(instants, dtype=np.int64))
+    first = np.arange(max(len(instants) - lag, 0))
+    return instants[first[instants[first + lag] - instants[first] == lag]]
 
 
 def speed_scales(rows: np.ndarray, features: Sequence[str]) -> np.ndarray:
@@ -323,18 +384,21 @@ def _tensor(values: np.ndarray) -> torch.Tensor:
 
 def fit_machine_map(problem: LearningProblem, tips: np.ndarray,
                     geometry: LomprGeometry) -> MachineMap:
-    """The machine map of `problem`, fitted on its training part's rows: its Jacobian from
+    """The machine map of `problem`, fitted on the error's changes over the horizon at its
+    training and validation windows' last instants (`MachineMap.fit`): its Jacobian from
     the robot's kinematics at the training recordings' commanded tool tips (N, 3) [m]
     (`JACOBIAN_POSES` of them, evenly spaced, suffice for a mean)."""
+    rows, error = problem.rows, problem.error
+    ends = np.concatenate([problem.split.train, problem.split.validation])
     training = problem.split.training_rows()
-    rows, error = problem.rows[training], problem.error[training]
     tips = np.asarray(tips, dtype=float)
     sample = tips[np.linspace(0, len(tips) - 1, min(len(tips), JACOBIAN_POSES)).astype(int)]
     jacobian = tool_branch_jacobian(geometry, sample)
     machine_map = MachineMap(problem.features, problem.horizon, problem.preview,
                              problem.sample_period,
-                             np.nanmean(jacobian, axis=0), speed_scales(rows, problem.features))
-    machine_map.fit(rows, error)
+                             np.nanmean(jacobian, axis=0),
+                             speed_scales(rows[training], problem.features))
+    machine_map.fit(rows, error, ends)
     return machine_map
 
 

@@ -238,13 +238,13 @@ def _fine_tuning_lines(fine_tuning: Mapping[str, Any] | None) -> list[str]:
     kept = (" (no epoch bettered it: the parent's weights are kept)"
             if fine_tuning['kept_the_parent_weights'] else '')
     refit = fine_tuning.get('machine_map', {})
-    rms = refit.get('validation_residual_rms_um')
+    misfit = refit.get('validation_misfit')
     losses = ', '.join(f'{name} {loss:.4g}' for name, loss in
                        refit.get('validation_loss', {}).items())
-    machine_map = ('' if rms is None else
-                   f" Machine map: {refit['decision']} (what it leaves of the validation "
-                   f"part's plant error, RMS: {rms['parent_map']:.3g} um with the parent's "
-                   f"coefficients, {rms['refitted_map']:.3g} um fitted again on these "
+    machine_map = ('' if misfit is None else
+                   f" Machine map: {refit['decision']} (the share of the validation part's "
+                   f"error changes it misses: {misfit['parent_map']:.3g} with the parent's "
+                   f"coefficients, {misfit['refitted_map']:.3g} fitted again on these "
                    f"recordings; the network fine-tuned on the refitted map too when better "
                    f"by {100 * refit['gain_needed']:.0f} %, the lower validation MSE kept: "
                    f"{losses}).")
