@@ -13,7 +13,7 @@ from lompr_predictor.data.problem import build_problem
 from lompr_predictor.learning.machine_map import fit_machine_map
 from lompr_predictor.learning.map_prior import is_paired, prediction_with_prior
 from lompr_predictor.learning.model_file import script_module
-from lompr_predictor.learning.models import predict_rows
+from lompr_predictor.learning.models import MAP_RESIDUALS, predict_rows
 from lompr_predictor.learning.pairing import paired_module, train_generalist
 from lompr_predictor.learning.training import TrainSettings, train_network
 from lompr_predictor.robot.description import RobotDescription
@@ -35,6 +35,9 @@ def test_the_paired_module_predicts_as_its_two_networks_did(
                                machine_map=machine_map, network_inputs='paired')
     generalist = train_generalist(problem, POINT, SETTINGS, machine_map)
     assert not is_paired(specialist.module) and not is_paired(generalist.module)
+    # the point gives the specialist the error level, never the generalist: it reads the
+    # map's two residuals, relative to the window's last row, and nothing else
+    assert generalist.module.relative_mask.tolist() == [1.0] * len(MAP_RESIDUALS)
     # the tuned specialist comes back from its checkpoint scripted: joined alike
     joined = paired_module(script_module(specialist.module), generalist.module, machine_map,
                            problem, POINT)

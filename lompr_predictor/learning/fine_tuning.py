@@ -67,7 +67,6 @@ from lompr_predictor.learning.models import (
     build_network,
     network_columns,
     network_features,
-    paired_columns,
     predict_rows,
 )
 from lompr_predictor.learning.options import TrainingConfig, TrainSettings
@@ -136,7 +135,7 @@ def editable_module(parent: LoadedModel) -> PredictorModule:
         prefix = 'net.specialist.' if paired else 'net.'
         hidden = int(state[prefix + 'lstm.weight_hh_l0'].shape[1])
         net = build_network('lstm', width, metadata.window, hidden, int(lstm.steps),
-                            paired_columns(features, error_level) if paired else None)
+                            state['net.machine_columns'].tolist() if paired else None)
         machine_map = (MachineMap(metadata.features, metadata.horizon, metadata.preview,
                                   metadata.sample_period) if use_map else None)
         module = PredictorModule(net, np.zeros(width), np.ones(width), np.zeros(len(TARGETS)),

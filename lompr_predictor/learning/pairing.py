@@ -13,8 +13,13 @@ prior, `map_prior`) on an axis where the first does worse.
 How. The tuning study tunes the first alone, the paper's BO-LSTM on every feature (its
 validation loss is the model's). `train_generalist` then trains the second once at the best
 point, on the same windows and normalisation, and `paired_module` joins the two into one
-module with the first's constants. Fine-tuning (`lompr train --init`, online adaptation)
-trains both together, each on its own output.
+module with the first's constants. The generalist reads the map's residuals relative to the
+window's last row only, never their level, even where the tuned point gives the first the
+error level: what the map leaves of the error's level carries the machine's slow state
+(heat, drift), which differs between programs and days, and read as input it took the
+generalist to 2.9 / 4.2x persistence on a held-out program of the warming machine
+(docs/results.md, "The map fitted on the error's changes"). Fine-tuning (`lompr train
+--init`, online adaptation) trains both together, each on its own output.
 """
 
 from __future__ import annotations
@@ -47,10 +52,11 @@ CONSTANTS_TOLERANCE = 1e-9
 def train_generalist(problem: LearningProblem, params: Mapping[str, Any],
                      settings: TrainSettings, machine_map: MachineMap, *,
                      progress: bool = False) -> TrainedModel:
-    """The network on the map's residuals alone ('machine' inputs) at the tuned point
-    `params`, trained once."""
-    return train_network(problem, 'lstm', params, settings, progress=progress,
-                         label='generalist', machine_map=machine_map, network_inputs='machine')
+    """The network on the map's residuals alone ('machine' inputs, relative, without their
+    level: module docstring) at the tuned point `params`, trained once."""
+    return train_network(problem, 'lstm', {**params, 'error_level': False}, settings,
+                         progress=progress, label='generalist', machine_map=machine_map,
+                         network_inputs='machine')
 
 
 def paired_module(specialist: Any, generalist: Any, machine_map: MachineMap,
@@ -61,7 +67,7 @@ def paired_module(specialist: Any, generalist: Any, machine_map: MachineMap,
     normalisations disagree."""
     state = specialist.state_dict()
     error_level = bool(params.get('error_level', False))
-    machine = paired_columns(network_features(problem.features, True), error_level)
+    machine = paired_columns(network_features(problem.features, True), False)
     for name in ('feature_centre', 'feature_inverse_half'):
         ours, theirs = state[name][machine], generalist.state_dict()[name]
         if not torch.allclose(ours, theirs, rtol=CONSTANTS_TOLERANCE, atol=0.0):
