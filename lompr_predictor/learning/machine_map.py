@@ -274,7 +274,8 @@ class MachineMap(nn.Module):
         its work the prior was then worse on programs it was not fitted on). Why lags beyond
         the horizon: the posture terms and the motion's slower parts change little within
         one horizon and are determined by the longer ones."""
-        changes = self.lag_changes(rows, error, instants)
+        basis = self.basis(rows)
+        changes = self._lag_changes(basis, error, instants)
         for lag, (design, _) in zip(self.fit_lags, changes, strict=True):
             if len(design) < design.shape[2]:
                 msg = (f'the machine map needs at least {design.shape[2]} instants with every '
@@ -293,7 +294,7 @@ class MachineMap(nn.Module):
         gram[np.diag_indices_from(gram)] += RIDGE * len(scaled)
         coefficients = np.linalg.solve(gram, scaled.T @ target) / scale
         instants = np.asarray(instants, dtype=np.int64)
-        level = np.asarray(error, dtype=float)[instants] - self.basis(rows[instants]) @ coefficients
+        level = np.asarray(error, dtype=float)[instants] - basis[instants] @ coefficients
         n_branch = self.branch_coefficients.numel()
         posture = coefficients[n_branch:].reshape(self.posture_coefficients.shape)
         posture[POSTURE_TERMS.index('1')] += np.nanmean(level, axis=0)
@@ -306,12 +307,11 @@ class MachineMap(nn.Module):
         self.fit_rms = float(np.sqrt(np.mean(missed ** 2)))
         return self.fit_rms
 
-    def lag_changes(self, rows: np.ndarray, error: np.ndarray,
-                    instants: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Per lag of `fit_lags`, the basis' changes (M, 2, C) and the plant error's (M, 2)
-        between the instants t and t + lag of `instants` that lie in one run (`fit`), pairs
-        with a NaN left out."""
-        basis = self.basis(rows)
+    def _lag_changes(self, basis: np.ndarray, error: np.ndarray,
+                     instants: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per lag of `fit_lags`, the changes (M, 2, C) of `basis` (N, 2, C) and (M, 2) of
+        the plant error (N, 2) between the instants t and t + lag of `instants` that lie in
+        one run (`fit`), pairs with a NaN left out."""
         error = np.asarray(error, dtype=float)
         changes = []
         for lag in self.fit_lags:
@@ -328,7 +328,8 @@ class MachineMap(nn.Module):
         coefficients = torch.cat([self.branch_coefficients.flatten(),
                                   self.posture_coefficients.flatten()]).numpy()
         shares = [np.mean((target - design @ coefficients) ** 2) / np.mean(target ** 2)
-                  for design, target in self.lag_changes(rows, error, instants) if len(target)]
+                  for design, target in self._lag_changes(self.basis(rows), error, instants)
+                  if len(target)]
         return float(np.sqrt(np.mean(shares))) if shares else float('inf')
 
     def metadata(self) -> dict[str, Any]:
