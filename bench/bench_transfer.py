@@ -3,7 +3,7 @@
     python bench/bench_transfer.py [--presets P ...] [--programs K ...] [--horizons 1 5]
                                    [--previews 0 h] [--modes lopo single same]
                                    [--single spiral] [--passes 20] [--trials T]
-                                   [--restarts R] [--workers N] [--out DIR]
+                                   [--restarts R] [--seed S] [--workers N] [--out DIR]
 
 For each twin preset it records every program once (`lompr simulate --path K --preset P
 --passes 20 --seed 1`, machine seed 1; kept in --out and reused) and runs `lompr train` (its
@@ -132,6 +132,8 @@ def train_and_score(run: Run, args: argparse.Namespace, out: Path) -> tuple[floa
         config = dataclasses.replace(config, trials=args.trials)
     if args.restarts is not None:
         config = dataclasses.replace(config, restarts=args.restarts)
+    if args.seed is not None:
+        config = dataclasses.replace(config, seed=args.seed)
     started = time.perf_counter()
     result = train_predictor(config)
     write_outputs(config, result)
@@ -192,6 +194,9 @@ def main() -> int:
     parser.add_argument('--passes', type=int, default=20)
     parser.add_argument('--trials', type=int, default=None, help="default: lompr train's")
     parser.add_argument('--restarts', type=int, default=None, help="default: lompr train's")
+    parser.add_argument('--seed', type=int, default=None,
+                        help="the study's and every training's seed (default: lompr train's); "
+                             'another seed tells a change from the tuning taking another path')
     parser.add_argument('--workers', type=int, default=default_workers())
     parser.add_argument('--out', default='bench_transfer_out')
     add_nice_argument(parser)
