@@ -14,10 +14,12 @@ from lompr_predictor.data.features import FEATURES, feature_names
 from lompr_predictor.data.problem import build_problem, train_test_problem
 from lompr_predictor.learning.machine_map import (
     FRICTION_SCALES,
+    LEVEL_WINDOW_SECONDS,
     POSTURE_TERMS,
     MachineMap,
     consecutive_pairs,
     fit_machine_map,
+    local_deviations,
     speed_scales,
 )
 from lompr_predictor.learning.map_prior import PredictionWithPrior, prediction_with_prior
@@ -78,6 +80,10 @@ def _known_map(features: tuple[str, ...], horizon: int = 1, preview: int = 0) ->
             rng.normal(0.0, 1e-5, machine_map.branch_coefficients.shape)))
         machine_map.posture_coefficients.copy_(torch.from_numpy(
             rng.normal(0.0, 1e-5, machine_map.posture_coefficients.shape)))
+        machine_map.level_branch_coefficients.copy_(torch.from_numpy(
+            rng.normal(0.0, 1e-5, machine_map.branch_coefficients.shape)))
+        machine_map.level_posture_coefficients.copy_(torch.from_numpy(
+            rng.normal(0.0, 1e-5, machine_map.posture_coefficients.shape)))
     return machine_map
 
 
@@ -98,23 +104,50 @@ def _rows_with_errors(seed: int) -> np.ndarray:
 
 
 def test_map_is_each_branch_error_through_the_jacobian_plus_the_posture() -> None:
-    """g = J (c_v v + c_a a + sum c_k tanh(v / s_k)) + P(x, y), by hand for one row."""
+    """g = J (c_v v + c_a a + sum c_k tanh(v / s_k)) + P(x, y), by hand for one row; the
+    residual map the same form with its own coefficients."""
     machine_map = _known_map(FEATURES)
     row = _rows(1, seed=3)[0]
     value = lambda name: row[FEATURES.index(name)]  # noqa: E731
     v = np.array([value(f'ups{i}_v') for i in (1, 2, 3)])
     a = np.array([value(f'ups{i}_a') for i in (1, 2, 3)])
-    c = machine_map.branch_coefficients.numpy()
     scales = machine_map.scales.numpy()
-    branch_error = c[0] * v + c[1] * a + sum(c[2 + k] * np.tanh(v / s)
-                                             for k, s in enumerate(scales))
     x, y = value('ref_x'), value('ref_y')
     terms = np.array([1.0, x, y, x * x, x * y, y * y])
-    expected = JACOBIAN @ branch_error + terms @ machine_map.posture_coefficients.numpy()
+
+    def by_hand(branch: torch.Tensor, posture: torch.Tensor) -> np.ndarray:
+        c = branch.numpy()
+        branch_error = c[0] * v + c[1] * a + sum(c[2 + k] * np.tanh(v / s)
+                                                 for k, s in enumerate(scales))
+        return JACOBIAN @ branch_error + terms @ posture.numpy()
+
     with torch.no_grad():
         got = machine_map.rows(torch.from_numpy(row[None, None]))[0, 0].numpy()
-    np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-20)
+        levels = machine_map.levels_and_change(torch.from_numpy(row[None, None]))[0][0, 0]
+    np.testing.assert_allclose(got, by_hand(machine_map.branch_coefficients,
+                                            machine_map.posture_coefficients),
+                               rtol=1e-12, atol=1e-20)
+    np.testing.assert_allclose(levels.numpy(), by_hand(machine_map.level_branch_coefficients,
+                                                       machine_map.level_posture_coefficients),
+                               rtol=1e-12, atol=1e-20)
+    assert np.abs(levels.numpy() - got).min() > 1e-7  # two maps, not one read twice
     assert len(POSTURE_TERMS) == len(terms)
+
+
+def test_one_evaluation_gives_the_residual_map_and_the_change_of_g() -> None:
+    """`levels_and_change` of windows: the residual map at every row (`levels`), and g at
+    the predicted instant minus g at the last row (`ahead` - `rows`)."""
+    machine_map = _known_map(FEATURES, horizon=3)
+    rows = _rows_with_errors(seed=8)
+    windows = torch.from_numpy(np.stack([rows[:10], rows[20:30]]))
+    with torch.no_grad():
+        levels, change = machine_map.levels_and_change(windows)
+        expected_change = (machine_map.ahead(windows[:, -1])
+                           - machine_map.rows(windows)[:, -1]).numpy()
+    np.testing.assert_allclose(levels.numpy(), np.stack([machine_map.levels(rows[:10]),
+                                                         machine_map.levels(rows[20:30])]),
+                               rtol=1e-12, atol=1e-20)
+    np.testing.assert_allclose(change.numpy(), expected_change, rtol=1e-12, atol=1e-20)
 
 
 def test_least_squares_recovers_the_coefficients() -> None:
@@ -128,9 +161,10 @@ def test_least_squares_recovers_the_coefficients() -> None:
     assert fitted.fit(rows, error, np.arange(len(rows))) < 1e-10  # m
     check = _rows(500, seed=2)
     with torch.no_grad():
+        expected = truth.rows(torch.from_numpy(check[None]))[0].numpy()
         np.testing.assert_allclose(fitted.rows(torch.from_numpy(check[None]))[0].numpy(),
-                                   truth.rows(torch.from_numpy(check[None]))[0].numpy(),
-                                   atol=1e-9)
+                                   expected, atol=1e-9)
+    np.testing.assert_allclose(fitted.levels(check), expected, atol=1e-9)
 
 
 def test_a_slow_drift_of_the_error_leaves_the_coefficients_as_they_are() -> None:
@@ -166,6 +200,45 @@ def test_the_fit_pairs_instants_only_within_a_run() -> None:
     np.testing.assert_array_equal(consecutive_pairs(instants, 3),
                                   np.r_[np.arange(10, 17), np.arange(40, 42)])
     assert len(consecutive_pairs(instants, 10)) == 0
+
+
+def test_the_residual_map_leaves_a_drift_slower_than_its_window_out() -> None:
+    """The same slow drift (`test_a_slow_drift...`, here 40 windows long) with the tool's
+    x drifting alike: the residual map, fitted on the error's deviations from its mean over
+    its window, gives the known map's values to 5 % of their RMS; fitted over a window
+    longer than the record (the error's levels), the drift bends it by far more."""
+    truth = _known_map(FEATURES)
+    with torch.no_grad():
+        truth.level_branch_coefficients.copy_(truth.branch_coefficients)
+        truth.level_posture_coefficients.copy_(truth.posture_coefficients)
+    rows = _rows(8000, seed=1)
+    slow = np.sin(np.linspace(0.0, np.pi, len(rows)))
+    rng = np.random.default_rng(4)
+    rows[:, FEATURES.index('ref_x')] = 0.15 * slow + rng.uniform(-0.05, 0.05, len(rows))
+    with torch.no_grad():
+        made = truth.rows(torch.from_numpy(rows[None]))[0].numpy()
+    error = made + 50e-6 * slow[:, None] * np.array([1.0, -0.6])
+    check = _rows(500, seed=2)
+    expected = truth.levels(check)
+    missed = {}
+    for name, window in (('window', 100), ('levels', 10 * len(rows))):
+        fitted = MachineMap(FEATURES, 1, 0, LEVEL_WINDOW_SECONDS / window, JACOBIAN,
+                            truth.scales.numpy())
+        assert fitted.level_window == window
+        fitted.fit(rows, error, np.arange(len(rows)))
+        got = fitted.levels(check)
+        missed[name] = np.sqrt(np.mean((got - got.mean(0) - expected + expected.mean(0)) ** 2,
+                                       axis=0)) / np.std(expected, axis=0)
+    assert (missed['window'] < 0.05).all(), missed
+    assert (missed['levels'] > 0.5).all(), missed
+
+
+def test_local_deviations_by_hand() -> None:
+    """Values minus their mean over a centred window of 3 within each run of consecutive
+    instants (two samples at a run's end), a NaN left out of the mean (the last: 50 alone)."""
+    values = np.array([1.0, 2.0, 3.0, 0.0, 0.0, 10.0, 20.0, np.nan, 50.0])
+    got = local_deviations(values, np.array([0, 1, 2, 5, 6, 7, 8]), 3)
+    np.testing.assert_allclose(got, [-0.5, 0.0, 0.5, -5.0, 5.0, np.nan, 0.0])
 
 
 def test_predicted_instant_from_the_plan_or_extrapolated() -> None:

@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from lompr_predictor.data.features import TARGETS
 from lompr_predictor.data.problem import LearningProblem
@@ -143,13 +144,20 @@ def editable_module(parent: LoadedModel) -> PredictorModule:
                                  relative_errors=True, error_level=error_level,
                                  features=metadata.features, machine_map=machine_map,
                                  inputs=inputs)
-        module.load_state_dict(state)
+        module.load_state_dict(with_residual_map(state) if use_map else state)
     except (KeyError, AttributeError, RuntimeError, ValueError) as err:
         msg = (f'model {parent.path}: its network cannot be rebuilt for training '
                f'({str(err).splitlines()[0]})')
         raise FineTuneError(msg) from err
     module.eval()
     return module
+
+
+def with_residual_map(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """A map model's state with the residual map's coefficients; a model file written
+    before the map had a second fit has g's (its networks read e - g), which these are."""
+    return {f'machine_map.level_{name}_coefficients': state[f'machine_map.{name}_coefficients']
+            for name in ('branch', 'posture')} | dict(state)
 
 
 def check_rebuilt(module: PredictorModule, parent: LoadedModel, rows: np.ndarray,

@@ -1,6 +1,7 @@
 """The machine map: the plant error that the commanded motion and posture explain, in the
 form the robot's kinematics give it; fitted by least squares on the error's changes over the
-horizon and a few times it (`MachineMap.fit`), the prior of the BO-LSTM.
+horizon and a few times it (`MachineMap.fit`), the prior of the BO-LSTM, and fitted again on
+the error's course within a minute, what the BO-LSTM reads the error's residual of.
 
 Why. The error sources of this machine act per actuator: a branch's servo lags its commanded
 velocity and acceleration, its friction follows its direction of motion and speed, and its
@@ -27,8 +28,22 @@ v_i and acceleration a_i along the reference, `data.features`):
 How the model uses it (`models.PredictorModule`): the prior for the instant h samples after
 row t is e(t) + g(row t+h) - g(row t), the row t+h being the reference preview's where the
 model has one and row t's extrapolated at constant acceleration beyond what the preview
-covers; the network reads every row's map residual e - g and predicts what the prior misses
-(the noise averaging and drift of the residual, non-linear effects the map lacks).
+covers; the network reads every row's map residual e - g' and predicts what the prior misses
+(the noise averaging and drift of the residual, non-linear effects the map lacks). g' is the
+residual map: the same basis with coefficients of a second fit, on the error's deviations
+from its mean over `LEVEL_WINDOW_SECONDS` (`MachineMap.fit` says why two).
+
+Why g is fitted on changes and not levels: the prior uses g only through its change over
+the horizon, and a slow part of the error that the commanded motion does not explain (heat,
+drift, a recording's offset) changes little over seconds; fitted on levels, the least
+squares bends the coefficients towards it (on a machine that warms with its work the prior
+was then worse on programs it was not fitted on). Why lags beyond the horizon: the posture
+terms and the motion's slower parts change little within one horizon and are determined by
+the longer ones. Why a second fit for what the networks read: fitted on changes, the map
+weighs the fast part of the error (the lag-1 changes), and what it leaves of the error's
+course through a program is the path's, which a network trained on one program learns and
+gets wrong on another; fitted on that course (within a minute, so that heat and drift stay
+out) it leaves less of the path (docs/results.md, "Two fits of the map").
 
 The map is a TorchScript-able module: the exported model computes it from the raw window,
 so the node runs the same numbers as the trainer.
@@ -60,6 +75,10 @@ RIDGE = 1e-9
 #: The lags, in horizons, of the error changes the map is fitted on (`MachineMap.fit`): up to
 #: seconds at the sample rates of such machines, short against heat and drift (minutes).
 FIT_LAGS = (1, 5, 25)
+#: The window [s] about whose mean the residual map is fitted (`MachineMap.fit`): long
+#: against the motion's seconds, so the map explains the error's course through a program,
+#: short against heat and drift (minutes), which would otherwise bend its coefficients.
+LEVEL_WINDOW_SECONDS = 60.0
 #: Commanded poses the Jacobian is averaged over (it changes by a few per cent over the
 #: mirror, so a few thousand evenly spaced poses give its mean to far better than that).
 JACOBIAN_POSES = 2000
@@ -75,6 +94,8 @@ class MachineMap(nn.Module):
         scales: torch.Tensor
         branch_coefficients: torch.Tensor
         posture_coefficients: torch.Tensor
+        level_branch_coefficients: torch.Tensor
+        level_posture_coefficients: torch.Tensor
         position_columns: torch.Tensor
         velocity_columns: torch.Tensor
         acceleration_columns: torch.Tensor
@@ -96,6 +117,9 @@ class MachineMap(nn.Module):
                              torch.zeros(2 + len(scales), len(BRANCH_JOINTS), dtype=torch.float64))
         self.register_buffer('posture_coefficients',
                              torch.zeros(len(POSTURE_TERMS), len(TARGETS), dtype=torch.float64))
+        # the residual map's (module docstring): the same basis, another fit
+        self.register_buffer('level_branch_coefficients', self.branch_coefficients.clone())
+        self.register_buffer('level_posture_coefficients', self.posture_coefficients.clone())
         # where the map reads a row, and the row it takes for the predicted instant: the
         # preview's (its position as a displacement from the row) or the row's own
         ahead = 'plan_' if preview else ''
@@ -113,6 +137,8 @@ class MachineMap(nn.Module):
         self.plan_is_displacement = bool(preview)
         #: the lags [samples] of the error changes the map is fitted on (`fit`)
         self.fit_lags = tuple(factor * int(horizon) for factor in FIT_LAGS)
+        #: the window [samples] about whose mean the residual map is fitted (`fit`)
+        self.level_window = max(1, round(LEVEL_WINDOW_SECONDS / (sample_period or 1.0)))
         #: RMS [m] of what g's change misses of the error's change over the horizon at the
         #: fit's instants (NaN until `fit`)
         self.fit_rms = float('nan')
@@ -120,37 +146,42 @@ class MachineMap(nn.Module):
         self.extrapolation = float(max(horizon - preview, 0) * sample_period)
 
     # -- the map --------------------------------------------------------------------------
-    # g is evaluated in three steps that export to a handful of graph operations (the node
-    # runs it at the sample rate, where each operation costs about as much as its
-    # arithmetic): the columns a row is read at, gathered once; times one matrix, its
-    # arguments (the posture's linear part and the branches' linear terms through the
-    # Jacobian, each branch velocity over each friction scale, and x, y, x + y); then each
-    # argument, its tanh and its square times one weight matrix. The two matrices are
-    # products of the coefficients, which the runtime folds into constants.
+    # g and the residual map are evaluated in three steps that export to a handful of graph
+    # operations (the node runs them at the sample rate, where each operation costs about
+    # as much as its arithmetic): the columns a row is read at, gathered once; times one
+    # matrix, their arguments (each map's posture linear part and branch linear terms
+    # through the Jacobian, each branch velocity over each friction scale, and x, y, x + y);
+    # then each argument, its tanh and its square times one weight matrix (a column per map
+    # and axis). The matrices are products of the coefficients, which the runtime folds
+    # into constants.
 
     def evaluate(self, position: torch.Tensor, velocity: torch.Tensor,
                  acceleration: torch.Tensor) -> torch.Tensor:
         """(..., 2) g for positions x, y (..., 2) and branch velocities and accelerations
         (..., 3)."""
         row = torch.cat([position, velocity, acceleration], -1)
-        return self._of_arguments(row @ self._row_arguments())
+        return self._of_arguments(row @ self._row_arguments(), self._weights(False))
 
     def rows(self, windows: torch.Tensor) -> torch.Tensor:
         """(B, W, 2) g of every row of raw windows (B, W, F)."""
-        return self._of_arguments(self._row_values(windows))
+        return self._of_arguments(self._row_values(windows), self._weights(False))
 
     def ahead(self, last: torch.Tensor) -> torch.Tensor:
         """(B, 2) g at the predicted instant from the windows' last rows (B, F): the
         preview's row (or the last row), extrapolated by `extrapolation` seconds at
         constant acceleration."""
-        return self._of_arguments(self._ahead_values(last))
+        return self._of_arguments(self._ahead_values(last), self._weights(False))
 
-    def rows_and_ahead(self, windows: torch.Tensor) -> torch.Tensor:
-        """(B, W + 1, 2) `rows` of raw windows (B, W, F), then `ahead` of their last rows:
-        the map's values a model reads, in one evaluation."""
+    def levels_and_change(self, windows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, W, 2) the residual map at every row of raw windows (B, W, F), and (B, 2) g's
+        change from their last rows to the predicted instant (`ahead` - `rows`): what a
+        model reads and adds to persistence, in one evaluation of both maps."""
         last = windows.narrow(1, windows.shape[1] - 1, 1)
-        return self._of_arguments(torch.cat([self._row_values(windows),
-                                             self._ahead_values(last)], 1))
+        both = torch.cat([self._weights(False), self._weights(True)], 1)
+        values = self._of_arguments(torch.cat([self._row_values(windows),
+                                               self._ahead_values(last)], 1), both)
+        change = values.select(1, -1) - values.select(1, -2)
+        return values.narrow(1, 0, windows.shape[1]).narrow(2, 2, 2), change.narrow(1, 0, 2)
 
     def _row_values(self, rows: torch.Tensor) -> torch.Tensor:
         """(..., A) the map's arguments at raw feature rows (..., F)."""
@@ -192,43 +223,50 @@ class MachineMap(nn.Module):
 
     def _arguments(self, position: torch.Tensor, velocity: torch.Tensor,
                    acceleration: torch.Tensor) -> torch.Tensor:
-        """(C, A) the map's arguments per unit of each of C columns that enter x, y as
+        """(C, A) the maps' arguments per unit of each of C columns that enter x, y as
         `position` (C, 2), the branch velocities as `velocity` (C, 3) and accelerations as
-        `acceleration` (C, 3): the linear part (2), v_i / s_k (S x 3), x, y, x + y (3)."""
-        coefficients = self.branch_coefficients
-        linear = (velocity @ (coefficients[0].unsqueeze(-1) * self.jacobian.t())
-                  + acceleration @ (coefficients[1].unsqueeze(-1) * self.jacobian.t())
-                  + position @ self.posture_coefficients[1:3])
+        `acceleration` (C, 3): the linear part of g (2) and of the residual map (2),
+        v_i / s_k (S x 3), x, y, x + y (3)."""
+        linear = [velocity @ (branch[0].unsqueeze(-1) * self.jacobian.t())
+                  + acceleration @ (branch[1].unsqueeze(-1) * self.jacobian.t())
+                  + position @ posture[1:3]
+                  for branch, posture in ((self.branch_coefficients, self.posture_coefficients),
+                                          (self.level_branch_coefficients,
+                                           self.level_posture_coefficients))]
         friction = (velocity.unsqueeze(1) / self.scales.unsqueeze(-1)).flatten(1)
         quadratic = position @ torch.tensor([[1.0, 0.0, 1.0], [0.0, 1.0, 1.0]],
                                             dtype=torch.float64)
-        return torch.cat([linear, friction, quadratic], 1)
+        return torch.cat([linear[0], linear[1], friction, quadratic], 1)
 
-    def _of_arguments(self, arguments: torch.Tensor) -> torch.Tensor:
-        """(..., 2) g from its arguments (..., A): the linear part as it is, the friction
-        terms through tanh, the posture's quadratic terms as squares (x y = ((x + y)^2 - x^2
-        - y^2) / 2); one matrix weighs each argument, its tanh and its square, zero where a
-        function does not apply."""
-        weights = self._function_weights()
+    def _of_arguments(self, arguments: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        """(..., C) maps from their arguments (..., A) and `_weights` (3 A + 1, C): the
+        linear part as it is, the friction terms through tanh, the posture's quadratic terms
+        as squares (x y = ((x + y)^2 - x^2 - y^2) / 2); one matrix weighs each argument, its
+        tanh and its square, zero where a function does not apply, and the last row is the
+        constant."""
         functions = torch.cat([arguments, torch.tanh(arguments), arguments * arguments], -1)
-        return functions @ weights + self.posture_coefficients[0]
+        return functions @ weights.narrow(0, 0, weights.shape[0] - 1) + weights[-1]
 
-    def _function_weights(self) -> torch.Tensor:
-        """(3 A, 2) the weight of each argument, of its tanh and of its square (`_arguments`'
-        order)."""
-        friction = (self.branch_coefficients[2:].unsqueeze(-1)
+    def _weights(self, levels: bool) -> torch.Tensor:
+        """(3 A + 1, 2) the weight of each argument, of its tanh and of its square
+        (`_arguments`' order), then the constant: of g, or with `levels` of the residual
+        map."""
+        branch = self.level_branch_coefficients if levels else self.branch_coefficients
+        posture = self.level_posture_coefficients if levels else self.posture_coefficients
+        friction = (branch[2:].unsqueeze(-1)
                     * self.jacobian.t().unsqueeze(0)).flatten(0, 1)  # (S x 3, 2)
-        posture = self.posture_coefficients
         squares = torch.stack([posture[3] - 0.5 * posture[4], posture[5] - 0.5 * posture[4],
                                0.5 * posture[4]])  # x^2, y^2, (x + y)^2
-        n_linear, n_friction = 2, friction.shape[0]
-        zero_linear = torch.zeros((n_linear, 2), dtype=torch.float64)
-        zero_friction = torch.zeros((n_friction, 2), dtype=torch.float64)
+        zero_linear = torch.zeros((4, 2), dtype=torch.float64)
+        zero_friction = torch.zeros((friction.shape[0], 2), dtype=torch.float64)
         zero_squares = torch.zeros((3, 2), dtype=torch.float64)
         identity = torch.eye(2, dtype=torch.float64)
-        return torch.cat([identity, zero_friction, zero_squares,  # the arguments
+        linear = (torch.cat([torch.zeros((2, 2), dtype=torch.float64), identity]) if levels
+                  else torch.cat([identity, torch.zeros((2, 2), dtype=torch.float64)]))
+        return torch.cat([linear, zero_friction, zero_squares,  # the arguments
                           zero_linear, friction, zero_squares,  # their tanh
-                          zero_linear, zero_friction, squares], 0)  # their squares
+                          zero_linear, zero_friction, squares,  # their squares
+                          posture[0:1]], 0)  # the constant
 
     def branch_motion(self, velocity: torch.Tensor, acceleration: torch.Tensor) -> torch.Tensor:
         """(..., 2 + S, 3): per branch its velocity, acceleration and friction signs."""
@@ -241,6 +279,13 @@ class MachineMap(nn.Module):
         table = torch.from_numpy(np.ascontiguousarray(rows, dtype=np.float64))
         with torch.no_grad():
             return self.rows(table.unsqueeze(0))[0].numpy(), self.ahead(table).numpy()
+
+    def levels(self, rows: np.ndarray) -> np.ndarray:
+        """(N, 2) the residual map at raw feature rows (N, F), in float64 (NaN where a row
+        lacks a feature): what a model subtracts from the error it reads."""
+        with torch.no_grad():
+            return self.levels_and_change(torch.from_numpy(
+                np.ascontiguousarray(rows, dtype=np.float64)).unsqueeze(0))[0][0].numpy()
 
     # -- fitting --------------------------------------------------------------------------
 
@@ -265,17 +310,12 @@ class MachineMap(nn.Module):
         consecutive samples of one gap-free run, as window ends are; pairs with a NaN left
         out); each lag's equations weighted by the inverse RMS of its error changes, so that
         each has the same say. Then the posture's constant, which no change sees, set to the
-        mean of what the map leaves of the error at `instants`. Returns `fit_rms`.
-
-        Why changes and not levels: the prior uses g only through its change over the
-        horizon, and a slow part of the error that the commanded motion does not explain
-        (heat, drift, a recording's offset) changes little over seconds; fitted on levels,
-        the least squares bends the coefficients towards it (on a machine that warms with
-        its work the prior was then worse on programs it was not fitted on). Why lags beyond
-        the horizon: the posture terms and the motion's slower parts change little within
-        one horizon and are determined by the longer ones."""
+        mean of what the map leaves of the error at `instants`; and the residual map, the
+        same least squares on the error's deviations from its mean over `level_window`
+        samples (`local_deviations`). Returns `fit_rms`. The module docstring says why two
+        fits, and why on changes."""
         basis = self.basis(rows)
-        changes = self._lag_changes(basis, error, instants)
+        changes = lag_changes(basis, error, instants, self.fit_lags)
         for lag, (design, _) in zip(self.fit_lags, changes, strict=True):
             if len(design) < design.shape[2]:
                 msg = (f'the machine map needs at least {design.shape[2]} instants with every '
@@ -283,43 +323,37 @@ class MachineMap(nn.Module):
                 raise ValueError(msg)
         weights = [1.0 / max(float(np.sqrt(np.mean(target ** 2))), 1e-15)
                    for _, target in changes]
-        design = np.vstack([weight * lag_design.reshape(-1, lag_design.shape[2])
-                            for weight, (lag_design, _) in zip(weights, changes, strict=True)])
-        target = np.concatenate([weight * lag_target.reshape(-1)
-                                 for weight, (_, lag_target) in zip(weights, changes, strict=True)])
-        scale = np.sqrt(np.mean(design ** 2, axis=0))
-        scale[scale == 0] = 1.0
-        scaled = design / scale
-        gram = scaled.T @ scaled
-        gram[np.diag_indices_from(gram)] += RIDGE * len(scaled)
-        coefficients = np.linalg.solve(gram, scaled.T @ target) / scale
-        instants = np.asarray(instants, dtype=np.int64)
-        level = np.asarray(error, dtype=float)[instants] - basis[instants] @ coefficients
-        n_branch = self.branch_coefficients.numel()
-        posture = coefficients[n_branch:].reshape(self.posture_coefficients.shape)
-        posture[POSTURE_TERMS.index('1')] += np.nanmean(level, axis=0)
-        with torch.no_grad():
-            self.branch_coefficients.copy_(torch.from_numpy(
-                coefficients[:n_branch].reshape(self.branch_coefficients.shape)))
-            self.posture_coefficients.copy_(torch.from_numpy(posture))
+        coefficients = _least_squares(
+            np.vstack([weight * lag_design.reshape(-1, lag_design.shape[2])
+                       for weight, (lag_design, _) in zip(weights, changes, strict=True)]),
+            np.concatenate([weight * lag_target.reshape(-1)
+                            for weight, (_, lag_target) in zip(weights, changes, strict=True)]))
+        self._set_coefficients(coefficients, basis, error, instants, levels=False)
+        design, target = (local_deviations(values, instants, self.level_window)
+                          for values in (basis, np.asarray(error, dtype=float)))
+        usable = np.isfinite(design).all(axis=(1, 2)) & np.isfinite(target).all(axis=1)
+        self._set_coefficients(_least_squares(design[usable].reshape(-1, design.shape[2]),
+                                              target[usable].reshape(-1)),
+                               basis, error, instants, levels=True)
         horizon_design, horizon_target = changes[0]
         missed = horizon_target - horizon_design @ coefficients
         self.fit_rms = float(np.sqrt(np.mean(missed ** 2)))
         return self.fit_rms
 
-    def _lag_changes(self, basis: np.ndarray, error: np.ndarray,
-                     instants: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Per lag of `fit_lags`, the changes (M, 2, C) of `basis` (N, 2, C) and (M, 2) of
-        the plant error (N, 2) between the instants t and t + lag of `instants` that lie in
-        one run (`fit`), pairs with a NaN left out."""
-        error = np.asarray(error, dtype=float)
-        changes = []
-        for lag in self.fit_lags:
-            first = consecutive_pairs(instants, lag)
-            design, target = basis[first + lag] - basis[first], error[first + lag] - error[first]
-            usable = np.isfinite(design).all(axis=(1, 2)) & np.isfinite(target).all(axis=1)
-            changes.append((design[usable], target[usable]))
-        return changes
+    def _set_coefficients(self, coefficients: np.ndarray, basis: np.ndarray,
+                          error: np.ndarray, instants: np.ndarray, levels: bool) -> None:
+        """Take `coefficients` (the basis' order) as g's or with `levels` the residual
+        map's, the posture's constant raised by the mean of what they leave of the error at
+        `instants` (the fits do not see a constant)."""
+        level = np.asarray(error, dtype=float)[instants] - basis[instants] @ coefficients
+        branch, posture = ((self.level_branch_coefficients, self.level_posture_coefficients)
+                           if levels else (self.branch_coefficients, self.posture_coefficients))
+        constant = np.zeros(posture.shape)
+        constant[POSTURE_TERMS.index('1')] = np.nanmean(level, axis=0)
+        with torch.no_grad():
+            branch.copy_(torch.from_numpy(coefficients[:branch.numel()].reshape(branch.shape)))
+            posture.copy_(torch.from_numpy(
+                coefficients[branch.numel():].reshape(posture.shape) + constant))
 
     def misfit(self, rows: np.ndarray, error: np.ndarray, instants: np.ndarray) -> float:
         """`fit`'s objective at `instants`: over the lags, the RMS of what g's change misses
@@ -328,7 +362,8 @@ class MachineMap(nn.Module):
         coefficients = torch.cat([self.branch_coefficients.flatten(),
                                   self.posture_coefficients.flatten()]).numpy()
         shares = [np.mean((target - design @ coefficients) ** 2) / np.mean(target ** 2)
-                  for design, target in self._lag_changes(self.basis(rows), error, instants)
+                  for design, target in lag_changes(self.basis(rows), error, instants,
+                                                         self.fit_lags)
                   if len(target)]
         return float(np.sqrt(np.mean(shares))) if shares else float('inf')
 
@@ -343,12 +378,63 @@ class MachineMap(nn.Module):
                     self.branch_coefficients.tolist(), strict=True)),
                 'posture_terms': list(POSTURE_TERMS),
                 'posture_coefficients': self.posture_coefficients.tolist(),
-                'extrapolation_seconds': self.extrapolation}
+                'extrapolation_seconds': self.extrapolation,
+                'residual_map': {
+                    'fitted_on': ("the error's deviations from its mean over "
+                                  f'{self.level_window} samples'),
+                    'branch_coefficients': self.level_branch_coefficients.tolist(),
+                    'posture_coefficients': self.level_posture_coefficients.tolist()}}
 
 
 def posture_terms(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """(..., len(POSTURE_TERMS)) the posture polynomial's terms at x, y (...)."""
     return torch.stack([torch.ones_like(x), x, y, x * x, x * y, y * y], -1)
+
+
+def lag_changes(basis: np.ndarray, error: np.ndarray, instants: np.ndarray,
+                lags: Sequence[int]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per lag of `lags`, the changes (M, 2, C) of a map's basis (N, 2, C) and (M, 2) of
+    the plant error (N, 2) between the instants t and t + lag of `instants` that lie in one
+    run (`MachineMap.fit`), pairs with a NaN left out."""
+    error = np.asarray(error, dtype=float)
+    changes = []
+    for lag in lags:
+        first = consecutive_pairs(instants, lag)
+        design, target = basis[first + lag] - basis[first], error[first + lag] - error[first]
+        usable = np.isfinite(design).all(axis=(1, 2)) & np.isfinite(target).all(axis=1)
+        changes.append((design[usable], target[usable]))
+    return changes
+
+
+def local_deviations(values: np.ndarray, instants: np.ndarray, window: int) -> np.ndarray:
+    """(M, ...) `values` (N, ...) at the sorted distinct `instants` (M row indices) minus
+    their mean over the `window` instants centred on each in the same run (consecutive
+    indices; shorter at a run's ends), NaN left out of the means."""
+    instants = np.unique(np.asarray(instants, dtype=np.int64))
+    picked = np.asarray(values, dtype=float)[instants]
+    finite = np.isfinite(picked)
+    sums = np.cumsum(np.concatenate([np.zeros_like(picked[:1]), np.where(finite, picked, 0.0)]),
+                     axis=0)
+    counts = np.cumsum(np.concatenate([np.zeros_like(picked[:1]), finite.astype(float)]), axis=0)
+    runs = np.concatenate([[0], np.flatnonzero(np.diff(instants) != 1) + 1, [len(instants)]])
+    start = np.repeat(runs[:-1], np.diff(runs))
+    end = np.repeat(runs[1:], np.diff(runs))
+    position = np.arange(len(instants))
+    low = np.maximum(position - window // 2, start)
+    high = np.minimum(position + window // 2 + 1, end)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        return picked - (sums[high] - sums[low]) / (counts[high] - counts[low])
+
+
+def _least_squares(design: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """The coefficients of design (M, C) @ c = target (M,), each column scaled to unit mean
+    square and `RIDGE` added (a column that never varies stays at zero)."""
+    scale = np.sqrt(np.mean(design ** 2, axis=0))
+    scale[scale == 0] = 1.0
+    scaled = design / scale
+    gram = scaled.T @ scaled
+    gram[np.diag_indices_from(gram)] += RIDGE * len(scaled)
+    return np.linalg.solve(gram, scaled.T @ target) / scale
 
 
 def consecutive_pairs(instants: np.ndarray, lag: int) -> np.ndarray:

@@ -15,7 +15,9 @@ Learning problem (recorded in the model metadata):
   (`residual=True`): persistence is the prior and the network learns what moves the error
   away from it. With a machine map (`machine_map.py`, the default of `lompr train`) the prior
   is persistence plus the change the map predicts from the commanded motion, e(t) + g(t+h) -
-  g(t), and the network also reads every row's map residual e - g: the map carries what
+  g(t), and the network also reads every row's map residual e - g' (g' the residual map:
+  the same basis fitted on the error's course within a minute, `MachineMap.fit`, where g
+  is fitted on its changes over the horizon and a few times it): the map carries what
   transfers between programs (per actuator, through the kinematics), the network what the
   map misses. The LSTM's last state goes through an MLP head, and the network adds a linear
   "autoregressive highway" on the flattened window (as LSTNet does): the linear part carries
@@ -50,7 +52,7 @@ from lompr_predictor.learning.space import NETWORK_INPUTS
 
 MODEL_TYPES = ('lstm', 'mlp')
 #: The columns a machine map appends to the rows the network reads: each row's plant error
-#: minus the map's value there (`PredictorModule`).
+#: minus the residual map's value there (`PredictorModule`, `MachineMap.levels`).
 MAP_RESIDUALS = ('map_residual_x', 'map_residual_y')
 
 
@@ -308,10 +310,9 @@ class PredictorModule(nn.Module):
             last_error = windows.select(1, -1).index_select(1, self.error_columns)
             return self._predict(windows, last_error if self.residual
                                  else torch.zeros_like(last_error))
-        mapped = self.machine_map.rows_and_ahead(windows)
+        levels, change = self.machine_map.levels_and_change(windows)
         errors = windows.index_select(2, self.error_columns)
-        inputs = torch.cat([windows, errors - mapped[:, :-1]], 2)
-        change = mapped.select(1, -1) - mapped.select(1, -2)
+        inputs = torch.cat([windows, errors - levels], 2)
         prior = errors.select(1, -1) + change
         return torch.cat([self._predict(inputs, prior if self.residual else change), prior], 1)
 
@@ -328,10 +329,9 @@ class PredictorModule(nn.Module):
 def with_map_residuals(machine_map: MachineMap, rows: np.ndarray,
                        errors: Sequence[int]) -> np.ndarray:
     """(N, F + 2) raw feature rows (N, F) with each row's plant error (columns `errors`)
-    minus the map there appended (`MAP_RESIDUALS`; NaN where the map lacks a feature): the
-    rows a network with a machine map reads (`network_features`)."""
-    values, _ = machine_map.values(rows)
-    return np.concatenate([rows, rows[:, list(errors)] - values], axis=1)
+    minus the residual map there appended (`MAP_RESIDUALS`; NaN where the map lacks a
+    feature): the rows a network with a machine map reads (`network_features`)."""
+    return np.concatenate([rows, rows[:, list(errors)] - machine_map.levels(rows)], axis=1)
 
 
 class ScaledRows:
