@@ -167,6 +167,20 @@ def test_least_squares_recovers_the_coefficients() -> None:
     np.testing.assert_allclose(fitted.levels(check), expected, atol=1e-9)
 
 
+def _drifting_record(truth: MachineMap, count: int
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.random.Generator]:
+    """`count` feature rows whose tool x follows half a period of a sine over the record (a
+    program that works its way across the mirror), the errors `truth` makes at them, the
+    sine, and the random generator the x jitter was drawn from (for more draws)."""
+    rows = _rows(count, seed=1)
+    slow = np.sin(np.linspace(0.0, np.pi, count))
+    rng = np.random.default_rng(4)
+    rows[:, FEATURES.index('ref_x')] = 0.15 * slow + rng.uniform(-0.05, 0.05, count)
+    with torch.no_grad():
+        made = truth.rows(torch.from_numpy(rows[None]))[0].numpy()
+    return rows, made, slow, rng
+
+
 def test_a_slow_drift_of_the_error_leaves_the_coefficients_as_they_are() -> None:
     """Heat or drift adds to the error a slow part the motion does not explain (here 50 um
     over the record, half a period of a sine, with a noise of 0.5 um) while the tool's x
@@ -175,12 +189,7 @@ def test_a_slow_drift_of_the_error_leaves_the_coefficients_as_they_are() -> None
     levels, the drift goes into the posture terms: 85-130 % off)."""
     horizon = 3
     truth = _known_map(FEATURES, horizon)
-    rows = _rows(4000, seed=1)
-    slow = np.sin(np.linspace(0.0, np.pi, len(rows)))
-    rng = np.random.default_rng(4)
-    rows[:, FEATURES.index('ref_x')] = 0.15 * slow + rng.uniform(-0.05, 0.05, len(rows))
-    with torch.no_grad():
-        made = truth.rows(torch.from_numpy(rows[None]))[0].numpy()
+    rows, made, slow, rng = _drifting_record(truth, 4000)
     drift = 50e-6 * slow[:, None] * np.array([1.0, -0.6])
     noise = rng.normal(0.0, 0.5e-6, made.shape)
     fitted = MachineMap(FEATURES, horizon, 0, 0.04, JACOBIAN, truth.scales.numpy())
@@ -211,12 +220,7 @@ def test_the_residual_map_leaves_a_drift_slower_than_its_window_out() -> None:
     with torch.no_grad():
         truth.level_branch_coefficients.copy_(truth.branch_coefficients)
         truth.level_posture_coefficients.copy_(truth.posture_coefficients)
-    rows = _rows(8000, seed=1)
-    slow = np.sin(np.linspace(0.0, np.pi, len(rows)))
-    rng = np.random.default_rng(4)
-    rows[:, FEATURES.index('ref_x')] = 0.15 * slow + rng.uniform(-0.05, 0.05, len(rows))
-    with torch.no_grad():
-        made = truth.rows(torch.from_numpy(rows[None]))[0].numpy()
+    rows, made, slow, _ = _drifting_record(truth, 8000)
     error = made + 50e-6 * slow[:, None] * np.array([1.0, -0.6])
     check = _rows(500, seed=2)
     expected = truth.levels(check)
