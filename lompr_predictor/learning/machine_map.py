@@ -31,7 +31,7 @@ model has one and row t's extrapolated at constant acceleration beyond what the 
 covers; the network reads every row's map residual e - g' and predicts what the prior misses
 (the noise averaging and drift of the residual, non-linear effects the map lacks). g' is the
 residual map: the same basis with coefficients of a second fit, on the error's deviations
-from its mean over `LEVEL_WINDOW_SECONDS` (`MachineMap.fit` says why two).
+from its mean over `LEVEL_WINDOW_SECONDS` (why two fits: below).
 
 Why g is fitted on changes and not levels: the prior uses g only through its change over
 the horizon, and a slow part of the error that the commanded motion does not explain (heat,
