@@ -148,7 +148,7 @@ def timing_module(sample_period: float, horizon: int, preview: int = 0) -> Predi
     columns, _ = network_columns(rows, relative_errors=True, error_level=True, inputs='paired')
     span = np.full(len(columns), 2e-5)
     net = build_network('lstm', len(columns), WINDOW, HIDDEN,
-                        machine_columns=paired_columns(rows, error_level=True))
+                        machine_columns=paired_columns(rows))
     return PredictorModule(net, -span, span, np.full(2, -2e-5), np.full(2, 2e-5),
                            residual=True, relative_errors=True, error_level=True,
                            features=features, machine_map=machine_map, inputs='paired')

@@ -16,14 +16,25 @@ from trainer_data import lissajous_reference, synthetic_recording
 
 from lompr_predictor.cli import main as lompr_main
 from lompr_predictor.data.bags import read_recording, write_recording
+from lompr_predictor.data.features import FEATURES, TARGETS
 from lompr_predictor.learning.fine_tuning import (
     MAP_REFIT_GAIN,
     FineTuneError,
     check_rebuilt,
     editable_module,
 )
-from lompr_predictor.learning.model_file import load_model
-from lompr_predictor.learning.models import predict_rows
+from lompr_predictor.learning.machine_map import FRICTION_SCALES, MachineMap
+from lompr_predictor.learning.model_file import ModelMetadata, load_model, save_model
+from lompr_predictor.learning.models import (
+    MAP_RESIDUALS,
+    PredictorModule,
+    build_network,
+    error_columns,
+    network_columns,
+    network_features,
+    paired_columns,
+    predict_rows,
+)
 from lompr_predictor.robot.description import RobotDescription
 from lompr_predictor.ros.closed_loop import persistence_model
 
@@ -163,6 +174,45 @@ def test_the_rebuilt_network_predicts_as_the_file_and_a_changed_one_is_refused(
             parameter.add_(1e-2)
     with pytest.raises(FineTuneError, match='predicts up to'):
         check_rebuilt(module, loaded, rows, ends)
+
+
+def test_a_paired_file_that_reads_the_residuals_level_is_rebuilt_with_its_columns(
+        tmp_path: Path, description: RobotDescription) -> None:
+    """Paired files written before the first network read the error's level alone read the
+    map residuals' level too (two columns more): fine-tuning rebuilds them as they are."""
+    features = network_features(FEATURES, True)
+    columns, mask = network_columns(features, True, True, 'paired')
+    residuals = [features.index(name) for name in MAP_RESIDUALS]
+    assert columns[-2:] == error_columns(FEATURES) and mask[-2:] == [0.0, 0.0]
+    old_columns, old_mask = columns + residuals, [*mask, 0.0, 0.0]
+    window, horizon, width = 6, 1, len(columns) + 2
+    torch.manual_seed(3)
+    machine_map = MachineMap(FEATURES, horizon, 0, 0.04, np.array([[0.0, 1.2, -1.1],
+                                                                    [-1.4, 0.7, 0.6]]),
+                             np.full(len(FRICTION_SCALES), 0.01))
+    net = build_network('lstm', width, window, 8, machine_columns=paired_columns(features))
+    span = np.full(width, 2e-5)
+    module = PredictorModule(net, -span, span, np.full(2, -2e-5), np.full(2, 2e-5),
+                             residual=True, relative_errors=True, error_level=True,
+                             features=FEATURES, machine_map=machine_map, inputs='paired')
+    module.input_columns = torch.tensor(old_columns)
+    module.relative_mask = torch.tensor(old_mask, dtype=torch.float64)
+    info = ModelMetadata(
+        features=FEATURES, window=window, horizon=horizon, sample_period=0.04,
+        targets=TARGETS, normalisation={}, model_type='lstm',
+        hyperparameters={'hidden': 8, 'network_inputs': 'paired', 'error_level': True},
+        robot_description_sha256=description.sha256, training_bags=(), seed=0,
+        library_versions={'torch': torch.__version__}, machine_map=machine_map.metadata())
+    loaded = load_model(save_model(tmp_path / 'old.pt', module, info))
+    rows = np.random.default_rng(4).normal(0.0, 1e-5, (200, len(FEATURES)))
+    ends = np.arange(window, 200, 3)
+    rebuilt = editable_module(loaded)
+    assert rebuilt.input_columns.tolist() == old_columns
+    expected = predict_rows(loaded.module, rows, ends, window)
+    assert np.abs(expected).max() > 1e-7  # the network moves the prediction
+    np.testing.assert_allclose(predict_rows(rebuilt, rows, ends, window), expected,
+                               rtol=0, atol=1e-15)
+    check_rebuilt(rebuilt, loaded, rows, ends)
 
 
 @pytest.mark.faults

@@ -85,15 +85,15 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
     assert len(loaded.metadata.training_bags) == 2
     assert loaded.metadata.hyperparameters['error_level'] is True
     # the default is two networks: one reads every feature and the machine map's
-    # residuals, the errors and residuals relative and, with the error level, as they are;
-    # the other (the generalist, the guard's fallback) reads the residuals alone, relative to
-    # the window's last row, never their level
+    # residuals, the errors and residuals relative and, with the error level, the errors as
+    # they are (the residuals' level never); the other (the generalist, the guard's
+    # fallback) reads the residuals alone, relative to the window's last row
     columns = loaded.metadata.normalisation['input_columns']
     assert columns == [*(name + (' - last row' if name in ('error_x', 'error_y') else '')
                          for name in FEATURES),
                        'map_residual_x - last row', 'map_residual_y - last row',
-                       'error_x', 'error_y', 'map_residual_x', 'map_residual_y']
-    assert len(loaded.metadata.normalisation['feature_centre']) == len(FEATURES) + 6
+                       'error_x', 'error_y']
+    assert len(loaded.metadata.normalisation['feature_centre']) == len(FEATURES) + 4
     assert loaded.metadata.hyperparameters['network_inputs'] == 'paired'
     generalist = loaded.module.net.machine_columns.tolist()
     assert [columns[k] for k in generalist] == ['map_residual_x - last row',

@@ -66,8 +66,6 @@ from lompr_predictor.learning.model_file import (
 from lompr_predictor.learning.models import (
     PredictorModule,
     build_network,
-    network_columns,
-    network_features,
     predict_rows,
 )
 from lompr_predictor.learning.options import TrainingConfig, TrainSettings
@@ -129,8 +127,7 @@ def editable_module(parent: LoadedModel) -> PredictorModule:
     inputs = str(hyperparameters.get('network_inputs', 'machine' if use_map else 'all'))
     error_level = bool(hyperparameters.get('error_level', False))
     try:
-        features = network_features(metadata.features, use_map)
-        width = len(network_columns(features, True, error_level, inputs)[0])
+        width = len(state['input_columns'])
         paired = inputs == 'paired'
         lstm = scripted.net.specialist if paired else scripted.net
         prefix = 'net.specialist.' if paired else 'net.'
@@ -144,6 +141,10 @@ def editable_module(parent: LoadedModel) -> PredictorModule:
                                  relative_errors=True, error_level=error_level,
                                  features=metadata.features, machine_map=machine_map,
                                  inputs=inputs)
+        # the columns the file was trained on, in the layout of its day (a paired file
+        # written before its level was the error's alone reads the residual's too)
+        module.input_columns = state['input_columns'].clone()
+        module.relative_mask = state['relative_mask'].clone()
         module.load_state_dict(with_residual_map(state) if use_map else state)
     except (KeyError, AttributeError, RuntimeError, ValueError) as err:
         msg = (f'model {parent.path}: its network cannot be rebuilt for training '

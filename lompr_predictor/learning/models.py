@@ -165,9 +165,11 @@ def network_columns(features: Sequence[str] = FEATURES, relative_errors: bool = 
 
     `inputs` 'all': every feature, the error columns (and map residuals) relative if
     `relative_errors`, then with `error_level` the error columns again as they are (the
-    level, `PredictorModule`). 'paired' (needs a map): every feature as 'all', then with
-    `error_level` the error columns and the map residuals again as they are (of which the
-    generalist of a `PairedNet` reads `paired_columns`). 'machine' (needs a map): the map
+    level, `PredictorModule`). 'paired' (needs a map): the same, of which the generalist of
+    a `PairedNet` reads `paired_columns`; the level is the error's alone, not the map
+    residual's: the residual's level carries what the residual map leaves of the machine's
+    slow state, which a network validated on one recording learns and its next run does not
+    repeat (docs/results.md, "Two fits of the map"). 'machine' (needs a map): the map
     residuals alone, relative, then with `error_level` again as they are: what the map
     leaves of the error is the machine's drift, noise and unmodelled dynamics, while the raw
     error and the motion columns also tell where the path goes, which a network trained on
@@ -185,17 +187,18 @@ def network_columns(features: Sequence[str] = FEATURES, relative_errors: bool = 
     relative = errors + residuals
     mask = [1.0 if relative_errors and column in relative else 0.0 for column in columns]
     if error_level:
-        level = {'all': errors, 'machine': residuals, 'paired': errors + residuals}[inputs]
+        level = residuals if inputs == 'machine' else errors
         columns += level
         mask += [0.0] * len(level)
     return columns, mask
 
 
-def paired_columns(features: Sequence[str], error_level: bool = False) -> list[int]:
+def paired_columns(features: Sequence[str]) -> list[int]:
     """Positions, among the 'paired' network input's columns (`network_columns` of
     `features`, which end in the map residuals), of what the generalist of a `PairedNet`
-    reads: the map residuals, then with `error_level` their levels (the 'machine' inputs)."""
-    columns = network_columns(features, True, error_level, 'paired')[0]
+    reads: the map residuals relative to the window's last row (the 'machine' inputs
+    without their level, `pairing.py`)."""
+    columns = network_columns(features, True, False, 'paired')[0]
     residuals = [list(features).index(name) for name in MAP_RESIDUALS]
     return [position for position, column in enumerate(columns) if column in residuals]
 

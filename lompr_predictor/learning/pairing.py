@@ -67,7 +67,7 @@ def paired_module(specialist: Any, generalist: Any, machine_map: MachineMap,
     normalisations disagree."""
     state = specialist.state_dict()
     error_level = bool(params.get('error_level', False))
-    machine = paired_columns(network_features(problem.features, True), False)
+    machine = paired_columns(network_features(problem.features, True))
     for name in ('feature_centre', 'feature_inverse_half'):
         ours, theirs = state[name][machine], generalist.state_dict()[name]
         if not torch.allclose(ours, theirs, rtol=CONSTANTS_TOLERANCE, atol=0.0):
