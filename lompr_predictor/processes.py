@@ -2,6 +2,12 @@
 (SIGINT, then SIGTERM, then SIGKILL: `stop_processes`), and a command that stops on SIGTERM
 as on Ctrl-C (`stop_on_signals`).
 
+A process that hangs instead says where: one that called `dump_tracebacks_on_signal` (every
+node executable) writes each thread's Python traceback to its stderr on `TRACEBACK_SIGNAL`,
+which `stop_processes(..., tracebacks=True)` sends before SIGKILL. The dump comes from
+faulthandler's C signal handler, so it is written also while the main thread is stuck in a
+library call (a middleware that hangs at exit); a hang below Python shows as such.
+
 Why three steps and not SIGINT then SIGKILL: a SIGINT can be lost. A process started by a job
 that runs in the background inherits SIGINT ignored, so one that arrives while a node is still
 importing (before it installs its own handler) does nothing, and the node then runs on. SIGTERM
@@ -12,8 +18,10 @@ for a process that still hangs (a Fast DDS participant can hang at exit).
 from __future__ import annotations
 
 import contextlib
+import faulthandler
 import signal
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator, Sequence
@@ -25,6 +33,11 @@ from typing import Any, NamedTuple
 INTERRUPT_TIMEOUT = 5.0
 #: Seconds a process gets to exit after SIGTERM before it is killed (`sigkill_timeout`).
 TERMINATE_TIMEOUT = 5.0
+#: The signal on which a process that called `dump_tracebacks_on_signal` writes every
+#: thread's Python traceback to stderr.
+TRACEBACK_SIGNAL = signal.SIGUSR1
+#: Seconds a hung process gets to write its tracebacks before it is killed.
+TRACEBACK_TIMEOUT = 1.0
 
 
 class Stopped(NamedTuple):
@@ -42,14 +55,18 @@ def stop_processes(
     *,
     interrupt_timeout: float = INTERRUPT_TIMEOUT,
     terminate_timeout: float = TERMINATE_TIMEOUT,
+    tracebacks: bool = False,
 ) -> list[Stopped]:
     """Stop every process still running, all at once (each step signals all that remain, then
     waits one deadline for them), reading each one's piped output while waiting for it (a
-    child blocked on a full pipe would not exit); one `Stopped` per process, in order."""
+    child blocked on a full pipe would not exit); one `Stopped` per process, in order. With
+    `tracebacks` (processes that called `dump_tracebacks_on_signal`: to any other the signal
+    is fatal) one that outlived SIGTERM is asked for its tracebacks before SIGKILL."""
     outputs: list[tuple[Any, Any]] = [(None, None)] * len(processes)
     sent: list[signal.Signals | None] = [None] * len(processes)
     pending = list(range(len(processes)))
     steps = ((signal.SIGINT, interrupt_timeout), (signal.SIGTERM, terminate_timeout),
+             *(((TRACEBACK_SIGNAL, TRACEBACK_TIMEOUT),) if tracebacks else ()),
              (signal.SIGKILL, None))
     for number, timeout in steps:
         for index in pending:
@@ -69,6 +86,15 @@ def stop_processes(
             break
     return [Stopped(out, err, process.returncode, number)
             for (out, err), process, number in zip(outputs, processes, sent, strict=True)]
+
+
+def dump_tracebacks_on_signal() -> None:
+    """From now on `TRACEBACK_SIGNAL` makes this process write every thread's Python
+    traceback to its standard error (module docstring); nothing where it has none."""
+    stream = sys.__stderr__
+    with contextlib.suppress(AttributeError, ValueError, OSError):
+        if stream is not None:
+            faulthandler.register(TRACEBACK_SIGNAL, file=stream, all_threads=True)
 
 
 class StopSignal(KeyboardInterrupt):

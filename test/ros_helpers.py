@@ -142,7 +142,7 @@ def stop_process(process: subprocess.Popen[str]) -> tuple[int, str]:
     """Stop a node process as `ros2 launch` does (`processes.stop_processes`); the exit code
     and stderr. The stderr is also echoed to the test's captured stderr, which pytest shows
     when the test fails (so a failure in the test body shows what the node said)."""
-    stopped = stop_processes([process])[0]
+    stopped = stop_processes([process], tracebacks=True)[0]
     sys.stderr.write(f'node process {process.pid} exited with {stopped.returncode} '
                      f'(stopped by {stopped.signal}), its stderr:\n{stopped.stderr}\n')
     return stopped.returncode, stopped.stderr

@@ -55,6 +55,33 @@ def test_each_process_stops_at_the_first_signal_it_obeys() -> None:
     assert [len(s.stderr) for s in stopped[1:]] == [200_000, 200_000]
 
 
+#: A child stuck in a call that ignores SIGINT and SIGTERM, as a middleware hanging at exit.
+HUNG = """
+import signal, time
+from lompr_predictor.processes import dump_tracebacks_on_signal
+signal.signal(signal.SIGINT, signal.SIG_IGN)
+signal.signal(signal.SIGTERM, signal.SIG_IGN)
+dump_tracebacks_on_signal()
+def destroy_participant():
+    print('ready', flush=True)
+    time.sleep(60)
+destroy_participant()
+"""
+
+
+def test_a_hung_process_says_where_before_it_is_killed() -> None:
+    process = subprocess.Popen([sys.executable, '-c', HUNG], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    assert process.stdout is not None and process.stdout.readline() == 'ready\n'
+    (stopped,) = stop_processes([process], interrupt_timeout=0.3, terminate_timeout=0.3,
+                                tracebacks=True)
+    assert stopped.signal is signal.SIGKILL and stopped.returncode == -signal.SIGKILL
+    # the main thread's stack, from the call it hangs in out
+    assert 'Current thread' in stopped.stderr, stopped.stderr
+    assert 'in destroy_participant' in stopped.stderr, stopped.stderr
+    assert stopped.stderr.index('in destroy_participant') < stopped.stderr.index('<module>')
+
+
 def test_a_process_that_has_exited_is_not_signalled() -> None:
     process = subprocess.Popen([sys.executable, '-c', 'print(7)'], stdout=subprocess.PIPE,
                                text=True)

@@ -41,6 +41,7 @@ from rclpy.utilities import remove_ros_args
 
 from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import CallbackTimes, Level, Status
+from lompr_predictor.processes import dump_tracebacks_on_signal
 from lompr_predictor.ros.parameters import ParameterSpec
 from lompr_predictor.ros.wire import StatusFields, diagnostic_array
 from lompr_predictor.scheduling import Scheduling, apply_scheduling, shared_scheduling
@@ -326,6 +327,7 @@ def run_node(
         return 2
     args = parser.parse_args(plain_args)
     events = args.executor == 'events'
+    dump_tracebacks_on_signal()  # a node that hangs (at exit, say) can be asked where
     stop = StopRequest()  # before rclpy.init: rclpy's own handlers pass signals on to it
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO if events else None)
     return _spin(node_factory, args.executor, stop, parser.prog)

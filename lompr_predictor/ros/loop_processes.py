@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import functools
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -51,6 +52,9 @@ from lompr_predictor.stamps import stamp_to_ns
 from lompr_predictor.twin.digital_twin import EPOCH_NS
 from lompr_predictor.twin.parameters import load_twin_parameters
 from lompr_predictor.twin.run_log import read_run_log
+
+#: Lines of a killed process's log shown: its tracebacks (`processes.TRACEBACK_SIGNAL`).
+KILLED_LOG_LINES = 60
 
 
 def run_processes(settings: LoopSettings, horizon: int, progress: bool,
@@ -213,8 +217,9 @@ class _Watch:
             bar.n = total
             bar.close()
         finally:
-            ends = dict(zip(self.processes, stop_processes(list(self.processes.values())),
-                            strict=True))
+            ends = dict(zip(self.processes, stop_processes(list(self.processes.values()),
+                                                           tracebacks=True), strict=True))
+            self._report_killed(label, ends)
             executor.remove_node(monitor)
             monitor.destroy_node()
             executor.shutdown()
@@ -231,6 +236,15 @@ class _Watch:
                 self.processes[name] = subprocess.Popen(
                     command, env={**os.environ, **self.environment}, stdout=output,
                     stderr=subprocess.STDOUT)
+
+    def _report_killed(self, label: str, ends: dict[str, Stopped]) -> None:
+        """Where each process that outlived SIGTERM hung (its tracebacks, the end of its log,
+        which goes with the run's folder), on stderr."""
+        for name, end in ends.items():
+            if end.signal is signal.SIGKILL:
+                sys.stderr.write(f'{label}: {name} did not stop on SIGINT or SIGTERM and was '
+                                 f'killed; the end of its log:\n'
+                                 f'{_log_tail(self.logs[name], KILLED_LOG_LINES)}\n')
 
     def _check(self, label: str, samples: int) -> None:
         """A `ClosedLoopError` with the tail of its log if a process has exited."""
