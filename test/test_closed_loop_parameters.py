@@ -23,9 +23,9 @@ from lompr_predictor.ros.loop_settings import (
 
 pytestmark = pytest.mark.ros
 
-#: What only one mode sets: private topics and a wall-time staleness in one process;
-#: simulated time, the twin's /clock and its run log across processes.
-IN_PROCESS_ONLY = {'stale_periods'}
+#: What only one mode sets: private topics and a wall-time staleness and lateness in one
+#: process; simulated time, the twin's /clock and its run log across processes.
+IN_PROCESS_ONLY = {'stale_periods', 'late_tolerance'}
 PROCESSES_ONLY = {'use_sim_time', 'publish_clock', 'wait_for_subscribers', 'run_log'}
 
 
@@ -56,6 +56,11 @@ def test_both_modes_give_the_nodes_the_same_parameters(settings: LoopSettings,
         theirs = {name: value for name, value in command_parameters(command).items()
                   if name not in PROCESSES_ONLY}
         assert ours == theirs, node
+    # in one process the node's clock is wall time, not the lockstep's sample time: only a
+    # stall of seconds is stale input or a late output
+    predictor = in_process['predictor_node']
+    assert predictor['stale_periods'] * 0.04 == pytest.approx(10.0)
+    assert predictor['late_tolerance'] == 10.0
     twin = command_parameters(processes['twin_node'])
     assert twin['compensation_timeout'] == '1.0'  # (3 + 2) x 0.04 s, at least 1 s
     assert twin['passes'] == str(settings.lead_in_passes + settings.passes)

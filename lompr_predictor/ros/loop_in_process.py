@@ -92,12 +92,14 @@ def loop_topics(prefix: str) -> dict[str, str]:
 def in_process_parameters(settings: LoopSettings, horizon: int, period: float,
                           topics: dict[str, str]) -> dict[str, dict[str, Any]]:
     """`loop_parameters` and what only the in-process loop sets: private topic names, and
-    the predictor's staleness on wall time (`LoopSettings.stale_periods`)."""
+    the predictor's staleness and lateness on wall time (`LoopSettings.stale_periods`,
+    `late_tolerance`)."""
     shared = loop_parameters(settings, horizon, period)
     own: dict[str, dict[str, Any]] = {
         'kinematics_node': {'joint_state_topic': topics['joint_states'],
                             'end_pose_topic': topics['end_pose']},
         'predictor_node': {'stale_periods': settings.stale_periods,
+                           'late_tolerance': settings.late_tolerance,
                            'end_pose_topic': topics['end_pose'],
                            'reference_topic': topics['reference'],
                            'reference_preview_topic': topics['reference_preview'],

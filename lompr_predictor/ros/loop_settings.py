@@ -52,6 +52,10 @@ class LoopSettings:
     #: 10 s) should count as stale input. Across processes the nodes run on the twin's
     #: simulated time with the predictor's default staleness, and this is not used.
     stale_periods: float = 250.0
+    #: Likewise the predictor's overrun policy there judges an output's lateness on wall
+    #: time: a stall of the one process (a collection of its heap under load) is no late
+    #: output of the loop's sample time, so only one this long [s] drops an output.
+    late_tolerance: float = 10.0
     wall_timeout: float = 1800.0  # a run that takes longer is stopped with an error
     #: True: twin_node, kinematics_node and predictor_node as three processes on simulated
     #: time (module docstring); False: one process, one executor.
