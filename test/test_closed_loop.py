@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+import time
 from pathlib import Path
 
 import numpy as np
@@ -194,6 +195,36 @@ def test_switching_compensation_off_returns_to_the_uncompensated_error(
     # before the switch it is the model loop, sample for sample (the run is deterministic)
     np.testing.assert_allclose(run.true_error[:switch - 1], loops['model'].true_error[:switch - 1],
                                rtol=0, atol=1e-12)
+
+
+def test_a_stall_of_the_one_process_loop_leaves_no_sample_without_its_offset(
+        tmp_path: Path, description: RobotDescription, monkeypatch: pytest.MonkeyPatch) -> None:
+    """In one process the predictor's clock is wall time while the lockstep runs on sample
+    time: an inference held up for 0.3 s (a collection of the process's heap under load) is
+    no late output of the loop (its default `late_tolerance`), and the twin still gets
+    every offset; with the node's default tolerance (5 ms) that output is dropped late and
+    the next sample skipped (the last inference took 0.3 s), as a CI run once saw."""
+    from lompr_predictor.online.predictor import OnlinePredictor
+
+    publish = OnlinePredictor._publish
+    calls = {'count': 0}
+
+    def stalled(self: OnlinePredictor, *args: object, **kwargs: object) -> None:
+        calls['count'] += 1
+        if calls['count'] == 100:
+            time.sleep(0.3)
+        publish(self, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(OnlinePredictor, '_publish', stalled)
+    model = fit_ridge_model(tmp_path / 'ridge.pt', description)
+    settings = LoopSettings(model_path=str(model), passes=1, lead_in_passes=0, samples=200,
+                            seed=LOOP_SEED, lockstep_timeout=0.05)
+    for tolerance, unanswered in ((settings.late_tolerance, 0), (0.005, 2)):
+        calls['count'] = 0
+        run = run_closed_loop(dataclasses.replace(settings, late_tolerance=tolerance),
+                              progress=False)
+        assert calls['count'] > 100, calls
+        assert run.counts['unanswered_after_first'] == unanswered, (tolerance, run.counts)
 
 
 def test_the_loop_across_processes_on_simulated_time(
