@@ -180,3 +180,30 @@ def test_a_diagnostic_array_is_written_as_rclpy_serializes_it() -> None:
     assert len(data) == len(serialize_message(expected))
     assert deserialize_message(data, DiagnosticArray) == expected
     assert deserialize_message(diagnostic_array(0, 0, []), DiagnosticArray) == DiagnosticArray()
+
+
+def test_the_offset_leaves_before_the_prediction_of_the_same_instant() -> None:
+    """The controller waits for the offset: of an output's two messages it is published
+    first, and a zero (no prediction) publishes the offset alone."""
+    from lompr_predictor.monitoring import LatencyRecorder, RateMeter
+    from lompr_predictor.online.faults import FaultReason
+    from lompr_predictor.online.offset import Output
+    from lompr_predictor.ros.predictor_outputs import OutputPublisher
+
+    sent: list[tuple[str, Vector3Stamped]] = []
+
+    class Recorder:
+        def __init__(self, topic: str) -> None:
+            self.topic = topic
+
+        def publish(self, data: bytes) -> None:
+            sent.append((self.topic, deserialize_message(data, Vector3Stamped)))
+
+    latency = LatencyRecorder(10)
+    outputs = OutputPublisher('world', RateMeter(), latency, lambda *_: None)
+    outputs.attach(Recorder('predicted_error'), Recorder('compensation'))  # type: ignore[arg-type]
+    outputs.publish([Output(5_000_000_001, (3e-6, -4e-6), (-3e-6, 4e-6), None, 1),
+                     Output(5_000_000_002, None, (0.0, 0.0), FaultReason.GAP, 1)], 0.0)
+    assert [(topic, msg.header.stamp.nanosec, msg.vector.x) for topic, msg in sent] == [
+        ('compensation', 1, -3e-6), ('predicted_error', 1, 3e-6), ('compensation', 2, 0.0)]
+    assert latency.total == 1  # the answered sample's, not the zero's

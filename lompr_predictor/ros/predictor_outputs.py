@@ -40,9 +40,10 @@ class OutputPublisher:
         if predictions is None or compensations is None:
             return
         for output in outputs:
+            # the offset first: it is what the controller waits for
+            compensations.publish(self._vector(output.instant_ns, output.compensation))
             if output.prediction is not None:
                 predictions.publish(self._vector(output.instant_ns, output.prediction))
-            compensations.publish(self._vector(output.instant_ns, output.compensation))
             if is_fault(output.reason):
                 self._warn(output.reason, f'offset set to zero ({output.reason}); output '
                            'resumes once the window has refilled with good samples')
