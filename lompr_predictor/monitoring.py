@@ -282,10 +282,11 @@ class DurationHistogram:
         self.sum_ns = 0
         self.max_ns = 0
 
-    def record(self, ns: int) -> None:
-        self.counts[bin_index(ns)] += 1
-        self.total += 1
-        self.sum_ns += ns
+    def record(self, ns: int, runs: int = 1) -> None:
+        """`runs` durations of `ns` each."""
+        self.counts[bin_index(ns)] += runs
+        self.total += runs
+        self.sum_ns += ns * runs
         if ns > self.max_ns:
             self.max_ns = ns
 
@@ -325,18 +326,20 @@ class CallbackTimes:
     def __init__(self) -> None:
         self.rows: dict[str, DurationHistogram] = {}
         self.cpu_ns: dict[str, int] = {}
-        #: CPU time of the outermost `measure`d runs [ns] (the executor's is the rest).
+        #: CPU time of the outermost `measure`d runs [ns] (the executor's is the rest), and
+        #: how many they were.
         self.measured_cpu_ns = 0
+        self.measured_runs = 0
         self._depth = 0  # `measure` calls running (a log call inside a callback: 2)
         self._gc_started = 0
 
-    def record(self, row: str, wall_ns: int, cpu_ns: int | None = None) -> None:
-        """One run of `row` that took `wall_ns` (and `cpu_ns` of the thread's CPU, if
-        measured)."""
+    def record(self, row: str, wall_ns: int, cpu_ns: int | None = None, runs: int = 1) -> None:
+        """`runs` runs of `row` that took `wall_ns` each (and `cpu_ns` of the thread's CPU
+        together, if measured)."""
         histogram = self.rows.get(row)
         if histogram is None:
             histogram = self.rows[row] = DurationHistogram()
-        histogram.record(wall_ns)
+        histogram.record(wall_ns, runs)
         if cpu_ns is not None:
             self.cpu_ns[row] = self.cpu_ns.get(row, 0) + cpu_ns
 
@@ -352,6 +355,7 @@ class CallbackTimes:
             self._depth -= 1
             if not self._depth:
                 self.measured_cpu_ns += used
+                self.measured_runs += 1
 
     def on_gc(self, phase: str, info: dict[str, int]) -> None:
         """A `gc.callbacks` hook: each collection recorded by generation."""
