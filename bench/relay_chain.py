@@ -76,8 +76,8 @@ class PredictorRelay(Node):
         sec, nanosec = read_stamp(data)
         sec, nanosec = divmod(sec * NS_PER_SECOND + nanosec + self._lead_ns, NS_PER_SECOND)
         answer = self._writer.pack(sec, nanosec, 0.0, 0.0)
+        self._compensations.publish(answer)  # first, as the predictor node does
         self._predictions.publish(answer)
-        self._compensations.publish(answer)
 
 
 def main() -> int:

@@ -62,16 +62,16 @@ import numpy as np
 import rclpy
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped, Vector3Stamped
+from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path as PathMessage
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
 
 from lompr_predictor.data.features import HISTORY
 from lompr_predictor.processes import stop_processes
 from lompr_predictor.robot.description import ROBOT_FRAME
+from lompr_predictor.ros.common import events_executor
 from lompr_predictor.ros.domain import isolate_ros_domain
 from lompr_predictor.stamps import NS_PER_SECOND, ns_to_sec_nanosec
 from lompr_predictor.threads import set_torch_threads
@@ -226,12 +226,11 @@ class SoakClient(bench.Client):
                                                     tips[(k + ahead) % len(tips)]))
         return publish
 
-    def _on_offset(self, msg: Vector3Stamped) -> None:
-        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+    def answered(self, stamp_ns: int, arrival: float) -> None:
         if not self.base_ns:  # the warm-up: any answer shows the chain works
-            self.arrivals.setdefault(stamp, time.perf_counter())
+            super().answered(stamp_ns, arrival)
             return
-        k = (stamp - self.base_ns) // self.period_ns - HORIZON
+        k = (stamp_ns - self.base_ns) // self.period_ns - HORIZON
         if not 0 <= k < self.arrival.shape[1]:
             return
         run = self.run
@@ -241,7 +240,7 @@ class SoakClient(bench.Client):
         if run and np.isnan(self.sent[run, k]):
             run -= 1
         if np.isnan(self.arrival[run, k]) and np.isfinite(self.sent[run, k]):
-            self.arrival[run, k] = time.perf_counter()
+            self.arrival[run, k] = arrival
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         super()._on_diagnostics(msg)
@@ -315,7 +314,7 @@ def soak(minutes: float, model: Path, preview: int = 0, resets: int = 0,
     context = Context()
     rclpy.init(context=context)
     client = SoakClient(context, runs, samples, preview)
-    executor = SingleThreadedExecutor(context=context)
+    executor = events_executor(context)
     executor.add_node(client)
     rss: list[tuple[float, list[float]]] = []
     try:
