@@ -4,11 +4,12 @@
 predictor` relays /lompr/end_pose to /lompr/predicted_error and /lompr/compensation (stamp +
 `lead_ns`, as the predictor answers an instant ahead) and takes /lompr/reference like the
 predictor; `relay_chain.py both` runs the two in one process on one executor, as
-`lompr_pipeline` does. As cheap as an honest relay can be, and built as the nodes are: the
-same endpoints (their message types and QoS: the nodes' own `Endpoint`s), raw
-subscriptions and serialized messages published as bytes (`ros/wire.py`), of which a relay
-reads the stamp alone, and the same executor, signal handling and start-up (`run_node`).
-What the bench's end-to-end figures cost above this chain is what the nodes' own work costs.
+`lompr_pipeline` does (the end pose published and handed over by a call). As cheap as an
+honest relay can be, and built as the nodes are: the same endpoints (their message types and
+QoS: the nodes' own `Endpoint`s), raw subscriptions and serialized messages published as
+bytes (`ros/wire.py`), of which a relay reads the stamp alone, and the same executor, signal
+handling and start-up (`run_node`). What the bench's end-to-end figures cost above this
+chain is what the nodes' own work costs.
 """
 
 from __future__ import annotations
@@ -50,18 +51,23 @@ class KinematicsRelay(Node):
         super().__init__('kinematics_relay', context=context, **node_kwargs)
         self._writer = PoseStampedWriter(ROBOT_FRAME)
         self._out = publisher(self, kinematics_node.END_POSE, '/lompr/end_pose')
+        self.end_pose_readers: list[Callable[[bytes], None]] = []  # in this process
         subscribe(self, kinematics_node.JOINT_STATES, '/joint_states', self._relay)
 
     def _relay(self, data: bytes) -> None:
         sec, nanosec = read_stamp(data)
-        self._out.publish(self._writer.pack(sec, nanosec, ORIGIN, IDENTITY))
+        end_pose = self._writer.pack(sec, nanosec, ORIGIN, IDENTITY)
+        self._out.publish(end_pose)
+        for reader in self.end_pose_readers:
+            reader(end_pose)
 
 
 class PredictorRelay(Node):
     """An end pose in, a predicted error and a compensation stamped `lead_ns` later out;
     references taken."""
 
-    def __init__(self, context: Context, **node_kwargs: Any) -> None:
+    def __init__(self, context: Context, *, end_pose_in_process: bool = False,
+                 **node_kwargs: Any) -> None:
         super().__init__('predictor_relay', context=context, **node_kwargs)
         self._lead_ns = self.declare_parameter('lead_ns', 0).value
         self._writer = Vector3StampedWriter(ROBOT_FRAME)
@@ -69,10 +75,11 @@ class PredictorRelay(Node):
                                       '/lompr/predicted_error')
         self._compensations = publisher(self, predictor_settings.COMPENSATION,
                                         '/lompr/compensation')
-        subscribe(self, predictor_settings.END_POSE, '/lompr/end_pose', self._relay)
+        if not end_pose_in_process:
+            subscribe(self, predictor_settings.END_POSE, '/lompr/end_pose', self.relay)
         subscribe(self, predictor_settings.REFERENCE, '/lompr/reference', lambda _data: None)
 
-    def _relay(self, data: bytes) -> None:
+    def relay(self, data: bytes) -> None:
         sec, nanosec = read_stamp(data)
         sec, nanosec = divmod(sec * NS_PER_SECOND + nanosec + self._lead_ns, NS_PER_SECOND)
         answer = self._writer.pack(sec, nanosec, 0.0, 0.0)
@@ -87,12 +94,14 @@ def main() -> int:
         return 2
 
     def build(context: Context) -> list[Node]:
-        nodes: list[Node] = []
-        if role in ('kinematics', 'both'):
-            nodes.append(KinematicsRelay(context))
-        if role in ('predictor', 'both'):
-            nodes.append(PredictorRelay(context))
-        return nodes
+        if role == 'kinematics':
+            return [KinematicsRelay(context)]
+        if role == 'predictor':
+            return [PredictorRelay(context)]
+        kinematics = KinematicsRelay(context)
+        predictor = PredictorRelay(context, end_pose_in_process=True)
+        kinematics.end_pose_readers.append(predictor.relay)
+        return [kinematics, predictor]
 
     return run_node(build, description=__doc__.split('\n', 1)[0])
 

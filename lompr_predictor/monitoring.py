@@ -330,6 +330,10 @@ class CallbackTimes:
         #: how many they were.
         self.measured_cpu_ns = 0
         self.measured_runs = 0
+        # wall and CPU time [ns] of the work run `apart` so far (taken out of the run
+        # around it)
+        self._apart_wall_ns = 0
+        self._apart_cpu_ns = 0
         self._depth = 0  # `measure` calls running (a log call inside a callback: 2)
         self._gc_started = 0
 
@@ -344,18 +348,31 @@ class CallbackTimes:
             self.cpu_ns[row] = self.cpu_ns.get(row, 0) + cpu_ns
 
     def measure(self, row: str, function: Callable[..., object], *args: object) -> None:
-        """Run `function(*args)` and record it under `row`, also when it raises."""
+        """Run `function(*args)` and record it under `row`, also when it raises (without
+        the work it ran `apart`)."""
         wall, cpu = time.perf_counter_ns(), time.thread_time_ns()
+        apart_wall, apart_cpu = self._apart_wall_ns, self._apart_cpu_ns
         self._depth += 1
         try:
             function(*args)
         finally:
-            used = time.thread_time_ns() - cpu
-            self.record(row, time.perf_counter_ns() - wall, used)
+            used = time.thread_time_ns() - cpu - (self._apart_cpu_ns - apart_cpu)
+            self.record(row, time.perf_counter_ns() - wall - (self._apart_wall_ns - apart_wall),
+                        used)
             self._depth -= 1
             if not self._depth:
                 self.measured_cpu_ns += used
                 self.measured_runs += 1
+
+    def apart(self, function: Callable[..., object], *args: object) -> None:
+        """Run `function(*args)`, work that is not this node's (another node's callback
+        called from one of this node's), outside the time of the run it is called from."""
+        wall, cpu = time.perf_counter_ns(), time.thread_time_ns()
+        try:
+            function(*args)
+        finally:
+            self._apart_cpu_ns += time.thread_time_ns() - cpu
+            self._apart_wall_ns += time.perf_counter_ns() - wall
 
     def on_gc(self, phase: str, info: dict[str, int]) -> None:
         """A `gc.callbacks` hook: each collection recorded by generation."""

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from fake_clock import FakeClock
 
+from lompr_predictor import monitoring
 from lompr_predictor.monitoring import (
     CallbackTimes,
     DurationHistogram,
@@ -228,6 +229,41 @@ def test_callback_times_rows_measure_wall_and_cpu_and_nested_runs_count_once() -
                                         for row in ('work', 'idle', 'outer', 'failing'))
     assert values['outer.cpu_mean_us'] >= values['logging.cpu_mean_us']
     assert parse_histogram(str(values['work.histogram_ns'])) != {}
+
+
+def test_work_run_apart_is_out_of_the_run_it_is_called_from(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Another node's callback called from one of this node's (the pipeline's end pose) is
+    not this node's time: the run around it is recorded without it, also when it raises,
+    and the measured CPU counts only the run's own."""
+    now = [0]  # both clocks advance only when the work says so [ns]
+
+    class FakeTime:
+        perf_counter_ns = thread_time_ns = staticmethod(lambda: now[0])
+
+    monkeypatch.setattr(monitoring, 'time', FakeTime)
+    times = CallbackTimes()
+
+    def take(ns: int) -> None:
+        now[0] += ns
+
+    def failing() -> None:
+        take(4_000)
+        raise ZeroDivisionError
+
+    def callback() -> None:
+        take(100_000)
+        times.apart(take, 700_000)
+        take(20_000)
+        with pytest.raises(ZeroDivisionError):
+            times.apart(failing)
+
+    times.measure('joint states', callback)
+    times.measure('joint states', take, 50_000)  # the next run: nothing taken out
+    row = times.rows['joint states']
+    assert (row.total, row.sum_ns, row.max_ns) == (2, 170_000, 120_000)
+    assert times.cpu_ns['joint states'] == times.measured_cpu_ns == 170_000
+    assert times.measured_runs == 2
 
 
 def test_callback_times_records_garbage_collections_by_generation() -> None:

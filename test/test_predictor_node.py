@@ -55,6 +55,7 @@ from lompr_predictor.robot.description import (
 )
 from lompr_predictor.robot.kinematics import inverse_kinematics
 from lompr_predictor.ros.kinematics_node import KinematicsNode
+from lompr_predictor.ros.pipeline import build_pipeline
 from lompr_predictor.ros.predictor_node import PredictorNode
 
 pytestmark = pytest.mark.ros
@@ -510,6 +511,69 @@ def test_one_process_pipeline_answers_joint_states(
         assert stamp_ns(answers()[-1]) == recording.joints.stamps[NEEDED] + HORIZON * PERIOD_NS
     finally:
         stop_process(process)
+
+
+def pipeline_parameters(model: Path, **overrides: object) -> dict[str, list[Parameter]]:
+    """The predictor's parameters of an in-process pipeline test (as `Wiring`'s: staleness
+    and lateness out of a loaded machine's way, the guard off)."""
+    values = {'model_path': str(model), 'compensation_enabled': True, 'guard_enabled': False,
+              'stale_periods': 1000.0, 'late_tolerance': 60.0, **overrides}
+    return {'predictor_node': [Parameter(k, value=v) for k, v in values.items()]}
+
+
+def test_the_pipeline_hands_its_end_poses_over_in_process(
+        ros: RosHarness, description: RobotDescription, tmp_path: Path) -> None:
+    """In one process the predictor takes the kinematics node's end poses by a call, not
+    back from the topic they are still published on (no subscription of its own): every
+    sample is answered as through the topic, and both nodes time their own callbacks."""
+    model = save_constant(tmp_path / 'c.pt', (-7e-6, 3e-6), window=WINDOW, horizon=HORIZON)
+    kinematics, predictor = (ros.add(node) for node in
+                             build_pipeline(ros.context, pipeline_parameters(model)))
+    assert predictor.end_pose_in_process
+    assert kinematics.end_pose_readers == [predictor.read_end_pose]
+    assert '/lompr/end_pose' not in {s.topic_name for s in predictor.subscriptions}
+    end_poses = ros.collect('/lompr/end_pose', PoseStamped, 100)
+    compensations = ros.collect('/lompr/compensation', Vector3Stamped, 100)
+    joints = ros.node.create_publisher(JointState, '/joint_states', 100)
+    reference = ros.node.create_publisher(PoseStamped, '/lompr/reference', 100)
+    ros.wait_for_subscribers(joints)
+    ros.wait_for_subscribers(reference)
+    ros.wait_for_subscribers(kinematics._publisher)  # the test's reader, not the predictor
+    ros.wait_for_publishers('/lompr/compensation')
+    recording = spiral_recording(description, NEEDED + 1)
+    for k in range(NEEDED + 1):
+        ref = PoseStamped()
+        ref.header.frame_id = ROBOT_FRAME
+        set_stamp(ref, recording.reference.stamps[k])
+        ref.pose.position.x, ref.pose.position.y = map(float,
+                                                       recording.reference.positions[k, :2])
+        reference.publish(ref)
+        ros.spin_until(lambda: predictor.reference_rate.total > k,  # noqa: B023
+                       what=f'reference {k}')
+        msg = JointState(name=list(MEASURED_JOINTS),
+                         position=recording.joints.positions[k].tolist())
+        set_stamp(msg, recording.joints.stamps[k])
+        joints.publish(msg)
+        ros.spin_until(lambda: len(end_poses) > k, what=f'end pose {k}')  # noqa: B023
+    ros.spin_until(lambda: len(compensations) == 2, what='two offsets')
+    np.testing.assert_allclose(xy(compensations), [[7e-6, -3e-6]] * 2)
+    assert [stamp_ns(c) for c in compensations] == [
+        recording.joints.stamps[k] + HORIZON * PERIOD_NS for k in (NEEDED - 1, NEEDED)]
+    assert predictor.pose_rate.total == NEEDED + 1  # each end pose once, by the call
+    # each node's callbacks in its own rows (the time apart: test_monitoring)
+    assert predictor.callback_times.rows['end pose'].total == NEEDED + 1
+    assert kinematics.callback_times.rows['joint states'].total == NEEDED + 1
+
+
+def test_a_pipeline_predictor_on_another_topic_subscribes_to_it(
+        ros: RosHarness, tmp_path: Path) -> None:
+    """The handover is for the topic the kinematics node publishes on: a predictor told to
+    read another one subscribes to that one as on its own."""
+    model = save_constant(tmp_path / 'c.pt', window=WINDOW, horizon=HORIZON)
+    kinematics, predictor = (ros.add(node) for node in build_pipeline(
+        ros.context, pipeline_parameters(model, end_pose_topic='/cell2/end_pose')))
+    assert not predictor.end_pose_in_process and not kinematics.end_pose_readers
+    assert '/cell2/end_pose' in {s.topic_name for s in predictor.subscriptions}
 
 
 # -- faults: refusals, the trust chain, overruns --------------------------------------------

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any
@@ -177,6 +177,10 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
         self._rejected_at_last_report = 0
 
         self._publisher = self.advertise(END_POSE)
+        #: Readers of the end pose in this process (the one-process pipeline's predictor),
+        #: each called with the serialized end pose as published, outside this node's
+        #: callback timing.
+        self.end_pose_readers: list[Callable[[bytes], None]] = []
         self._pose_writer = PoseStampedWriter(settings.frame)
         self._all_joints = AllJoints(self.description)
         self._full_publisher = (self.advertise(FULL_JOINT_STATES)
@@ -221,11 +225,19 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
             self._reject(KINEMATICS_REASONS.get(type(err), JointStateDrop.KINEMATICS), sec,
                          nanosec, err)
             return
-        self._publisher.publish(self._pose_writer.pack(
-            sec, nanosec, pose.position.tolist(), pose.quaternion.tolist()))
+        end_pose = self._pose_writer.pack(sec, nanosec, pose.position.tolist(),
+                                          pose.quaternion.tolist())
+        self._publisher.publish(end_pose)
         self.output_rate.tick(now)
         if self._full_publisher is not None:
             self.publish_full_joint_state(sec, nanosec, joints)
+        for reader in self.end_pose_readers:
+            self.callback_times.apart(reader, end_pose)
+
+    @property
+    def end_pose_topic(self) -> str:
+        """The resolved topic the end poses are published on."""
+        return self._publisher.topic_name
 
     def publish_full_joint_state(self, sec: int, nanosec: int, joints: Sequence[float]) -> None:
         """Every joint of the URDF for the sample just solved (`publish_full_joint_state`)."""

@@ -1,8 +1,11 @@
 """lompr_pipeline: the kinematics and predictor nodes in one process, on one executor.
 
-The lowest-latency way to run them: /lompr/end_pose goes from one node to the other inside
-one process (one interpreter, one executor, no second process to wake and schedule);
-bench/bench_predictor.py measures it beside the two executables. Topics, parameters and
+The lowest-latency way to run them: one interpreter, one executor, no second process to
+wake and schedule, and the end pose handed from one node to the other by a call (still
+published on /lompr/end_pose for anyone else, not read back from it: no transport, no
+second wake-up, as an rclcpp intra-process connection), while the predictor reads the topic
+the kinematics node publishes on; bench/bench_predictor.py measures it beside the two
+executables. Topics, parameters and
 diagnostics are those of the two nodes; a params file with a `kinematics_node:` and a
 `predictor_node:` section configures both, e.g.
 
@@ -57,11 +60,17 @@ def build_pipeline(context: Context,
     kinematics = kinematics_node.KinematicsNode(
         context=context, parameter_overrides=parameters.get(kinematics_node.NODE_NAME, []))
     try:
-        return [kinematics, predictor_node.build_entry_point(
-            context, parameter_overrides=parameters.get(predictor_node.NODE_NAME, []))]
+        predictor = predictor_node.build_entry_point(
+            context, end_poses_in_process_on=kinematics.end_pose_topic,
+            parameter_overrides=parameters.get(predictor_node.NODE_NAME, []))
     except BaseException:
         kinematics.destroy_node()
         raise
+    if predictor.end_pose_in_process:
+        kinematics.end_pose_readers.append(predictor.read_end_pose)
+        predictor.get_logger().info(f'end poses of {kinematics.end_pose_topic} taken in '
+                                    'process from kinematics_node')
+    return [kinematics, predictor]
 
 
 def main(argv: Sequence[str] | None = None) -> int:

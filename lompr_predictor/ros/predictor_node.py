@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Any
 
@@ -102,6 +102,10 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self.adapted: SwapInBackground | None = None  # an adaptation's swap, prepared (inherits)
         self.history = ModelHistory()
         self.dropped_inactive = 0  # samples received while not active
+        #: End poses come from a kinematics node in this process (`read_end_pose`), not
+        #: from the topic (set before the node is configured: the one-process pipeline).
+        self.end_pose_in_process = False
+        self._end_pose_reader: Callable[[bytes], None] | None = None  # while configured
         self.clock_jumps_back = 0
         self._clock_started = False
         self.pose_rate = self.rate_meter(settings.rate_window)
@@ -208,7 +212,10 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             time_stages(self._core, StageHistograms(self.callback_times))
         self.outputs.attach(self.own(self.advertise(PREDICTED_ERROR)),
                             self.own(self.advertise(COMPENSATION)))
-        self.own(self.subscribe(END_POSE, self.on_end_pose, raw=True))
+        if self.end_pose_in_process:
+            self._end_pose_reader = self.guard(END_POSE.what, self.on_end_pose)
+        else:
+            self.own(self.subscribe(END_POSE, self.on_end_pose, raw=True))
         self.own(self.subscribe(REFERENCE, self.on_reference, raw=True))
         if self._core.preview:
             self.own(self.subscribe(REFERENCE_PREVIEW, self.on_reference_preview, raw=True))
@@ -229,6 +236,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
     def release(self) -> None:
         """Destroy the endpoints and the timer, drop the core and the model."""
         self.destroy_owned()
+        self._end_pose_reader = None
         self.outputs.detach()
         self._let_go_store()
         self._core = self.running = self._candidate = self.model_guard = None
@@ -260,6 +268,13 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             return
         sec, nanosec, x, y, _ = read_pose_stamped(msg)
         self.outputs.publish(self._core.add_pose(Stamp(sec, nanosec), x, y), start)
+
+    def read_end_pose(self, msg: bytes) -> None:
+        """One serialized end pose from a kinematics node in this process
+        (`end_pose_in_process`), as the topic's subscription would deliver it while the
+        node is configured."""
+        if self._end_pose_reader is not None:
+            self._end_pose_reader(msg)
 
     def on_reference(self, msg: bytes) -> None:
         """One serialized reference PoseStamped; in another frame: dropped, counted."""
@@ -385,12 +400,18 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             self.callback_values(), self.sample_store, self.adaptation)
 
 
-def build_entry_point(context: Context, **node_kwargs: Any) -> PredictorNode:
+def build_entry_point(context: Context, end_poses_in_process_on: str | None = None,
+                      **node_kwargs: Any) -> PredictorNode:
     """The node of an executable: built, the process's torch threads set from its
     `inference_threads` (process-wide, so here and not in the node: tests and one-process
     runs build several nodes), then started (`autostart`: configured and activated, so the
-    warm-up runs on those threads). `node_kwargs` go to the node."""
+    warm-up runs on those threads). `end_poses_in_process_on`: the resolved topic a
+    kinematics node in this process publishes its end poses on; if it is the one this node
+    reads, they come by `read_end_pose` (`end_pose_in_process`). `node_kwargs` go to the
+    node."""
     node = PredictorNode(context=context, deferred=True, **node_kwargs)
+    node.end_pose_in_process = end_poses_in_process_on == node.resolve_topic_name(
+        node.settings.end_pose_topic)
     set_torch_threads(node.settings.inference_threads)
     node.start()
     return node
