@@ -604,12 +604,15 @@ class Client(Node):
         """The compensation for the instant `stamp_ns` arrived at `arrival` (perf_counter)."""
         self.arrivals.setdefault(stamp_ns, arrival)
 
-    def discovered(self) -> bool:
-        """Every link of the chain is in the graph, the nodes' own end-pose link included."""
+    def discovered(self, end_pose_read_from_topic: bool = True) -> bool:
+        """Every link of the chain is in the graph, the nodes' own end-pose link included
+        where it goes through the topic (across processes: in one the end pose is handed
+        over by a call)."""
         return (self.joints.get_subscription_count() >= 1
                 and self.reference.get_subscription_count() >= 1
                 and self.count_publishers('/lompr/end_pose') >= 1
-                and self.count_subscribers('/lompr/end_pose') >= 1
+                and (not end_pose_read_from_topic
+                     or self.count_subscribers('/lompr/end_pose') >= 1)
                 and self.count_publishers('/lompr/compensation') >= 1)
 
 
@@ -743,7 +746,7 @@ def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path | None,
     spinner.add_node(client)
     try:
         deadline = time.monotonic() + DISCOVERY_TIMEOUT
-        while not client.discovered():
+        while not client.discovered(end_pose_read_from_topic=mode == 'two processes'):
             if time.monotonic() > deadline or any(p.poll() is not None for p in processes):
                 errors = ' | '.join(
                     (p.stderr.read() if p.stderr is not None and p.poll() is not None
