@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import replace
 from typing import Any
 
@@ -72,6 +72,9 @@ from lompr_predictor.stamps import Stamp
 from lompr_predictor.threads import set_torch_threads
 
 NODE_NAME = 'predictor_node'
+#: How a pose in another frame is dropped and named, by input.
+READ_END_POSE = (DropReason.WRONG_FRAME, 'end pose')
+READ_REFERENCE = (DropReason.REFERENCE_WRONG_FRAME, 'reference')
 #: How the fallback model is verified, for a refusal message (its own sidecar: `HASH_HINT`'s
 #: model_sha256 pins model_path only).
 FALLBACK_HASH_HINT = ('predictor_node: the fallback model is verified by its own sidecar '
@@ -102,10 +105,8 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self.adapted: SwapInBackground | None = None  # an adaptation's swap, prepared (inherits)
         self.history = ModelHistory()
         self.dropped_inactive = 0  # samples received while not active
-        #: End poses come from a kinematics node in this process (`read_end_pose`), not
-        #: from the topic (set before the node is configured: the one-process pipeline).
-        self.end_pose_in_process = False
-        self._end_pose_reader: Callable[[bytes], None] | None = None  # while configured
+        self.end_pose_in_process = False  # end poses by `read_end_pose` (pipeline), not topic
+        self.read_end_pose = self.guard(END_POSE.what, self.on_end_pose)
         self.clock_jumps_back = 0
         self._clock_started = False
         self.pose_rate = self.rate_meter(settings.rate_window)
@@ -212,9 +213,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             time_stages(self._core, StageHistograms(self.callback_times))
         self.outputs.attach(self.own(self.advertise(PREDICTED_ERROR)),
                             self.own(self.advertise(COMPENSATION)))
-        if self.end_pose_in_process:
-            self._end_pose_reader = self.guard(END_POSE.what, self.on_end_pose)
-        else:
+        if not self.end_pose_in_process:
             self.own(self.subscribe(END_POSE, self.on_end_pose, raw=True))
         self.own(self.subscribe(REFERENCE, self.on_reference, raw=True))
         if self._core.preview:
@@ -236,7 +235,6 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
     def release(self) -> None:
         """Destroy the endpoints and the timer, drop the core and the model."""
         self.destroy_owned()
-        self._end_pose_reader = None
         self.outputs.detach()
         self._let_go_store()
         self._core = self.running = self._candidate = self.model_guard = None
@@ -259,34 +257,24 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
 
     def on_end_pose(self, msg: bytes) -> None:
         """One serialized PoseStamped (raw: `wire`); in another frame: dropped, counted."""
-        start = time.perf_counter()
-        self.pose_rate.tick()
-        if self._core is None or not self.active:
-            self.dropped_inactive += 1
-            return
-        if not self._in_frame(msg, DropReason.WRONG_FRAME, 'end pose'):
-            return
-        sec, nanosec, x, y, _ = read_pose_stamped(msg)
-        self.outputs.publish(self._core.add_pose(Stamp(sec, nanosec), x, y), start)
-
-    def read_end_pose(self, msg: bytes) -> None:
-        """One serialized end pose from a kinematics node in this process
-        (`end_pose_in_process`), as the topic's subscription would deliver it while the
-        node is configured."""
-        if self._end_pose_reader is not None:
-            self._end_pose_reader(msg)
+        self._on_pose(msg, reference=False)
 
     def on_reference(self, msg: bytes) -> None:
         """One serialized reference PoseStamped; in another frame: dropped, counted."""
+        self._on_pose(msg, reference=True)
+
+    def _on_pose(self, msg: bytes, *, reference: bool) -> None:
         start = time.perf_counter()
-        self.reference_rate.tick()
+        (self.reference_rate if reference else self.pose_rate).tick()
         if self._core is None or not self.active:
             self.dropped_inactive += 1
             return
-        if not self._in_frame(msg, DropReason.REFERENCE_WRONG_FRAME, 'reference'):
+        if not self._in_frame(msg, *(READ_REFERENCE if reference else READ_END_POSE)):
             return
         sec, nanosec, x, y, z = read_pose_stamped(msg)
-        self.outputs.publish(self._core.add_reference(Stamp(sec, nanosec), x, y, z), start)
+        stamp = Stamp(sec, nanosec)
+        self.outputs.publish(self._core.add_reference(stamp, x, y, z) if reference
+                             else self._core.add_pose(stamp, x, y), start)
 
     def _in_frame(self, msg: bytes, reason: DropReason, what: str) -> bool:
         """Whether a pose is in the node's frame; if not, counted and said (throttled)."""
