@@ -1,13 +1,12 @@
 """lompr_pipeline: the kinematics and predictor nodes in one process, on one executor.
 
 The lowest-latency way to run them: one interpreter, one executor, no second process to
-wake and schedule, and the end pose handed from one node to the other by a call (still
-published on /lompr/end_pose for anyone else, not read back from it: no transport, no
-second wake-up, as an rclcpp intra-process connection), while the predictor reads the topic
-the kinematics node publishes on; bench/bench_predictor.py measures it beside the two
-executables. Topics, parameters and
-diagnostics are those of the two nodes; a params file with a `kinematics_node:` and a
-`predictor_node:` section configures both, e.g.
+wake and schedule, and the end pose handed from one node to the other by a call while the
+predictor reads the topic the kinematics node publishes on (still published on it for
+anyone else, not read back from it: no transport, no second wake-up, as an rclcpp
+intra-process connection); bench/bench_predictor.py measures it beside the two executables.
+Topics, parameters and diagnostics are those of the two nodes; a params file with a
+`kinematics_node:` and a `predictor_node:` section configures both, e.g.
 
     lompr_pipeline --ros-args --params-file kinematics_node.yaml \\
         --params-file predictor_node.yaml -p predictor_node:model_path:=MODEL.pt
