@@ -9,7 +9,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import pytest
 import rclpy
@@ -458,3 +458,31 @@ def test_the_node_clock_under_simulated_time_is_the_ros_clock(ros: RosHarness) -
     assert node.clock_seconds() == pytest.approx(1234.567890123)
     node.set_parameters([Parameter('use_sim_time', value=False)])
     assert abs(node.clock_ns() - time.time_ns()) < 5_000_000_000
+
+
+@pytest.mark.parametrize('name', EXECUTORS)
+def test_the_spin_steps_leave_nothing_behind_on_either_executor(
+        ros: RosHarness, name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The spin waits on a future that never completes, a fresh one each step: rclpy's own
+    executors add a done-callback to the future at every call, which would pile up on one
+    kept for days (ten a second)."""
+    from lompr_predictor.ros import common
+
+    monkeypatch.setattr(common, 'SPIN_STEP', 0.001)
+    executor = make_executor(name, ros.context)
+    futures: list[Any] = []
+    stop = common.StopRequest()
+
+    class Recording:  # the executor, each future it is given kept
+        def spin_until_future_complete(self, future: Any, timeout_sec: float) -> None:
+            futures.append(future)
+            executor.spin_until_future_complete(future, timeout_sec=timeout_sec)
+            stop.requested = len(futures) >= 50
+
+    try:
+        common._spin_timed(cast(Any, Recording()), ros.context, stop, [])
+    finally:
+        executor.shutdown()
+    assert len(futures) == 50 and len({id(f) for f in futures}) == 50
+    assert max(len(f._callbacks) for f in futures) <= 2  # what one step's call adds
+    assert not any(f.done() for f in futures)
