@@ -326,10 +326,12 @@ class CallbackTimes:
     def __init__(self) -> None:
         self.rows: dict[str, DurationHistogram] = {}
         self.cpu_ns: dict[str, int] = {}
-        #: CPU time of the outermost `measure`d runs [ns] (the executor's is the rest), and
-        #: how many they were.
+        #: CPU time of the outermost `measure`d runs [ns] (the executor's is the rest), how
+        #: many they were, and how many runs it called `apart` (callbacks the executor did
+        #: not dispatch: another node's, called from this node's).
         self.measured_cpu_ns = 0
         self.measured_runs = 0
+        self.apart_runs = 0
         # wall and CPU time [ns] of the work run `apart` so far (taken out of the run
         # around it)
         self._apart_wall_ns = 0
@@ -368,6 +370,7 @@ class CallbackTimes:
         """Run `function(*args)`, work that is not this node's (another node's callback
         called from one of this node's), outside the time of the run it is called from."""
         wall, cpu = time.perf_counter_ns(), time.thread_time_ns()
+        self.apart_runs += 1
         try:
             function(*args)
         finally:

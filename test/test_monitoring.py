@@ -263,7 +263,7 @@ def test_work_run_apart_is_out_of_the_run_it_is_called_from(
     row = times.rows['joint states']
     assert (row.total, row.sum_ns, row.max_ns) == (2, 170_000, 120_000)
     assert times.cpu_ns['joint states'] == times.measured_cpu_ns == 170_000
-    assert times.measured_runs == 2
+    assert times.measured_runs == 2 and times.apart_runs == 2
 
 
 def test_callback_times_records_garbage_collections_by_generation() -> None:

@@ -486,3 +486,39 @@ def test_the_spin_steps_leave_nothing_behind_on_either_executor(
     assert len(futures) == 50 and len({id(f) for f in futures}) == 50
     assert max(len(f._callbacks) for f in futures) <= 2  # what one step's call adds
     assert not any(f.done() for f in futures)
+
+
+def test_the_executor_row_counts_the_callbacks_it_dispatched_not_those_run_apart(
+        ros: RosHarness, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A callback one node calls `apart` from its own (the pipeline's end pose) is no
+    callback of the executor: its own CPU is shared among the ticks it dispatched only."""
+    from lompr_predictor.ros import common
+
+    class Tick(NodeBase, Node):
+        pass
+
+    monkeypatch.setattr(common, 'SPIN_STEP', 0.02)
+    caller, called = Tick('caller', context=ros.context), Tick('called', context=ros.context)
+    inner = called.guard('inner', lambda: None)
+    caller.start_timer(0.002, 'tick', lambda: caller.callback_times.apart(inner))
+    executor = make_executor('events', ros.context)
+    stop = common.StopRequest()
+
+    class StopAfterTicks:  # the executor, stopped once 50 ticks have run
+        def spin_until_future_complete(self, future: Any, timeout_sec: float) -> None:
+            executor.spin_until_future_complete(future, timeout_sec=timeout_sec)
+            tick = caller.callback_times.rows.get('tick')
+            stop.requested = tick is not None and tick.total >= 50
+
+    try:
+        for node in (caller, called):
+            executor.add_node(node)
+        common._spin_timed(cast(Any, StopAfterTicks()), ros.context, stop, [caller, called])
+    finally:
+        executor.shutdown()
+        caller.destroy_node()
+        called.destroy_node()
+    ticks = caller.callback_times.rows['tick'].total
+    assert ticks >= 50 and called.callback_times.rows['inner'].total == ticks
+    for node in (caller, called):  # every tick of the ended steps, once
+        assert node.callback_times.rows[common.EXECUTOR_ROW].total == ticks

@@ -370,20 +370,21 @@ def _spin_timed(executor: Executor, context: Context, stop: StopRequest,
                 nodes: Sequence[Node]) -> None:
     """Spin in steps of `SPIN_STEP` s until shutdown or a stop request, recording into each
     lompr node's `callback_times` the executor's own CPU time per callback (`EXECUTOR_ROW`:
-    a step's thread CPU beyond its callbacks', shared evenly among them). A step runs every
-    callback that comes within it without returning here (`spin_until_future_complete` on
-    a future that never completes, a fresh one each step: rclpy's own executors add a
-    done-callback to it at every call): with rclpy's events executor, less CPU per callback
-    than a `spin_once` each (`bench/kinematics_cpu.py`)."""
+    a step's thread CPU beyond its callbacks', shared evenly among those it dispatched, not
+    those one node called `apart` from another's). A step runs every callback that comes
+    within it without returning here (`spin_until_future_complete` on a future that never
+    completes, a fresh one each step: rclpy's own executors add a done-callback to it at
+    every call): with rclpy's events executor, less CPU per callback than a `spin_once` each
+    (`bench/kinematics_cpu.py`)."""
     times = [found for found in (getattr(node, 'callback_times', None) for node in nodes)
              if isinstance(found, CallbackTimes)]
     cpu = time.thread_time_ns
     while context.ok() and not stop.requested:
         started = cpu()
         measured = sum(t.measured_cpu_ns for t in times)
-        runs = sum(t.measured_runs for t in times)
+        runs = sum(t.measured_runs - t.apart_runs for t in times)
         executor.spin_until_future_complete(Future(), timeout_sec=SPIN_STEP)
-        callbacks = sum(t.measured_runs for t in times) - runs
+        callbacks = sum(t.measured_runs - t.apart_runs for t in times) - runs
         if callbacks:
             own = cpu() - started - (sum(t.measured_cpu_ns for t in times) - measured)
             each = max(own, 0) // callbacks
