@@ -476,7 +476,7 @@ def _drive(kinematics: Any, predictor: Any,
     predictor_module = sys.modules[type(predictor).__module__]
     stages.wrap(kinematics_module, 'read_joint_state', 'receive joint state')
     stages.wrap(predictor_module, 'read_pose_stamped', 'receive poses')
-    stages.wrap(kinematics._fk, 'solve', 'forward kinematics')
+    stages.wrap(kinematics.measured.solver, 'solve', 'forward kinematics')
     stages.wrap(kinematics._pose_writer, 'pack', 'publish end pose')  # serialized, then sent
     core = predictor.core
     core_stages = CoreStages(stages)

@@ -25,7 +25,7 @@ from lompr_predictor.data.problem import train_test_problem
 from lompr_predictor.learning.baselines import HGB, FitContext
 from lompr_predictor.learning.model_file import load_model
 from lompr_predictor.learning.models import predict_rows
-from lompr_predictor.robot.description import load_robot_description
+from lompr_predictor.robot.chain import load_chain
 from lompr_predictor.threads import set_torch_threads
 
 UM = 1e6
@@ -44,9 +44,9 @@ def main() -> int:
     set_torch_threads(1)
     model = load_model(args.model, expected={'targets': TARGETS})
     window, horizon = model.metadata.window, model.metadata.horizon
-    geometry = load_robot_description(None).geometry
-    train, _ = load_clean_data(BagInputs(bags=tuple(map(str, args.train_bags))), geometry)
-    test, _ = load_clean_data(BagInputs(bags=tuple(map(str, args.test_bags))), geometry)
+    chain = load_chain()
+    train, _ = load_clean_data(BagInputs(bags=tuple(map(str, args.train_bags))), chain)
+    test, _ = load_clean_data(BagInputs(bags=tuple(map(str, args.test_bags))), chain)
     problem = train_test_problem(train, test, window, horizon, preview=model.metadata.preview)
     ends = problem.split.test
     actual = problem.error[ends + horizon]

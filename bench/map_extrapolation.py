@@ -28,6 +28,7 @@ import torch
 from lompr_predictor.data.loading import BagInputs, load_clean_data
 from lompr_predictor.data.problem import train_test_problem
 from lompr_predictor.learning.machine_map import fit_machine_map
+from lompr_predictor.robot.chain import LomprChain
 from lompr_predictor.robot.description import BRANCH_JOINTS, load_robot_description
 
 
@@ -43,11 +44,11 @@ def main() -> None:
     parser.add_argument('--horizon', type=int, default=1)
     args = parser.parse_args()
     description = load_robot_description()
-    train = load_clean_data(BagInputs(bags=tuple(args.bags)), description.geometry)[0]
-    test = load_clean_data(BagInputs(bags=(args.test_bag,)), description.geometry)[0]
+    train = load_clean_data(BagInputs(bags=tuple(args.bags)), LomprChain(description))[0]
+    test = load_clean_data(BagInputs(bags=(args.test_bag,)), LomprChain(description))[0]
     problem = train_test_problem(train, test, horizon=args.horizon)
     training = problem.split.training_rows()[:len(train)]
-    machine_map = fit_machine_map(problem, train.reference[training], description.geometry)
+    machine_map = fit_machine_map(problem, train.reference[training], LomprChain(description))
     h, names, rows = args.horizon, list(problem.features), problem.rows
     ends = problem.split.test
     ends = ends[ends + h < len(rows)]

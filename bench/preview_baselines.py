@@ -26,7 +26,7 @@ from bench_train import PRESETS, TEST_SEED, TRAIN_SEED, recording
 from lompr_predictor.data.loading import BagInputs, load_clean_data
 from lompr_predictor.data.problem import LearningProblem, train_test_problem
 from lompr_predictor.learning.baselines import BASELINES, FitContext, WithoutPreview, fit_baselines
-from lompr_predictor.robot.description import load_robot_description
+from lompr_predictor.robot.chain import load_chain
 
 #: The baselines `lompr train --preview` also fits without the preview: (with, without).
 PAIRS = tuple((b.base, b) for b in BASELINES if isinstance(b, WithoutPreview))
@@ -52,12 +52,12 @@ def main() -> int:
     args = parser.parse_args()
     bags = Path(args.bags)
     bags.mkdir(parents=True, exist_ok=True)
-    geometry = load_robot_description().geometry
+    chain = load_chain()
     print(f'{"preset":<16}{"h":>3}  {"model":<6}{"K = 0, um":>14}{"K = h, um":>14}'
           f'{"ratio":>14}   (X / Y)')
     for preset in args.presets:
         data = [load_clean_data(BagInputs(bags=(str(recording(bags, preset, seed, 1)),)),
-                                geometry)[0] for seed in (TRAIN_SEED, TEST_SEED)]
+                                chain)[0] for seed in (TRAIN_SEED, TEST_SEED)]
         for horizon in args.horizons:
             rmse = test_rmse(train_test_problem(data[0], data[1], horizon=horizon,
                                                 preview=horizon))

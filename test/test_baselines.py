@@ -25,6 +25,7 @@ from lompr_predictor.learning.baselines import (
 )
 from lompr_predictor.learning.metrics import METRIC_NAMES
 from lompr_predictor.learning.report import markdown
+from lompr_predictor.robot.chain import LomprChain
 from lompr_predictor.robot.description import RobotDescription
 
 
@@ -32,7 +33,7 @@ from lompr_predictor.robot.description import RobotDescription
 def problem(description: RobotDescription) -> LearningProblem:
     recording, _ = synthetic_recording(description.geometry, 2000, noise=2e-7,
                                        reference=lissajous_reference(2000))
-    return build_problem(clean_recordings([recording], description.geometry), window=10,
+    return build_problem(clean_recordings([recording], LomprChain(description)), window=10,
                          horizon=5)
 
 

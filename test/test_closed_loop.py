@@ -28,6 +28,7 @@ from lompr_predictor.data.features import (
 )
 from lompr_predictor.data.loading import BagInputs, load_clean_data
 from lompr_predictor.learning.model_file import load_model
+from lompr_predictor.robot.chain import LomprChain
 from lompr_predictor.robot.description import RobotDescription
 from lompr_predictor.robot.kinematics import VerticalToolBranches, batch_forward_kinematics
 from lompr_predictor.scoring.loops import (
@@ -318,7 +319,7 @@ def test_a_closed_loop_bag_trains_on_the_plant_error(
     run = loops['model']
     bag = record_loop(tmp_path / 'model', run)
     data, _ = load_clean_data(BagInputs((str(bag),), cleaning=CleaningConfig(
-        hampel_threshold=1e12)), description.geometry)
+        hampel_threshold=1e12)), LomprChain(description))
     rows = np.searchsorted(run.stamps, data.stamps)
     assert len(data) == len(run.stamps) and data.compensation is not None
     np.testing.assert_array_equal(run.stamps[rows], data.stamps)
@@ -340,7 +341,7 @@ def test_a_closed_loop_bag_trains_on_the_plant_error(
     none = loops['none']
     plain, _ = load_clean_data(BagInputs((str(record_loop(tmp_path / 'none', none)),),
                                          cleaning=CleaningConfig(hampel_threshold=1e12)),
-                               description.geometry)
+                               LomprChain(description))
     np.testing.assert_array_equal(plain.stamps, data.stamps)
     scored = run.scored[rows]
     gap, left = (rms((data.error - plain.error)[scored]),

@@ -23,6 +23,7 @@ from lompr_predictor.data.bags import (
 )
 from lompr_predictor.data.cleaning import CleaningConfig
 from lompr_predictor.data.loading import BagInputs, load_clean_data
+from lompr_predictor.robot.chain import LomprChain
 from lompr_predictor.robot.description import RobotDescription
 
 SAMPLES = 600
@@ -64,7 +65,7 @@ def test_the_plant_error_is_the_tool_tip_less_reference_and_newest_offset(
     bag = write_recording(tmp_path / 'compensated', recording)
     read = read_recording(bag)
     assert read.compensation is not None and len(read.compensation.stamps) == 2 * SAMPLES + 88
-    data, _ = load_clean_data(BagInputs((str(bag),), cleaning=NO_SPIKES), description.geometry)
+    data, _ = load_clean_data(BagInputs((str(bag),), cleaning=NO_SPIKES), LomprChain(description))
     assert data.compensation is not None and len(data) == SAMPLES
     np.testing.assert_allclose(data.compensation, offset, rtol=0, atol=1e-15)
     np.testing.assert_allclose(data.error, error, rtol=0, atol=1e-9)  # IK -> FK round trip
@@ -76,7 +77,7 @@ def test_the_plant_error_is_the_tool_tip_less_reference_and_newest_offset(
     # the same bag with the topic read under another name: read as without compensation
     plain, _ = load_clean_data(BagInputs((str(bag),), cleaning=NO_SPIKES,
                                          topics=BagTopics(compensation='/other')),
-                               description.geometry)
+                               LomprChain(description))
     assert plain.compensation is None and 'compensated' not in plain.counts
     np.testing.assert_allclose(plain.error, error + offset, rtol=0, atol=1e-9)
 
@@ -112,7 +113,7 @@ def test_a_bag_without_the_topic_reads_as_before(tmp_path: Path,
                                            reference=lissajous_reference(200))
     bag = write_recording(tmp_path / 'plain', recording)
     assert read_recording(bag).compensation is None
-    data, _ = load_clean_data(BagInputs((str(bag),)), description.geometry)
+    data, _ = load_clean_data(BagInputs((str(bag),)), LomprChain(description))
     assert data.compensation is None and 'compensation_read' not in data.counts
     np.testing.assert_allclose(data.error, error, rtol=0, atol=1e-9)
     np.testing.assert_array_equal(data.tool_error, data.error)

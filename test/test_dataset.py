@@ -40,7 +40,8 @@ from lompr_predictor.data.problem import (
     minmax_range,
     window_ends,
 )
-from lompr_predictor.robot.description import RobotDescription, load_robot_description
+from lompr_predictor.robot.chain import LomprChain, load_chain
+from lompr_predictor.robot.description import RobotDescription
 
 
 def test_nonfinite_rows_dropped_and_counted() -> None:
@@ -154,7 +155,7 @@ def test_minmax_from_training_part_only() -> None:
     stamps = np.arange(n, dtype=np.int64) * PERIOD_NS
     data = CleanData(stamps=stamps, error=error, reference=np.zeros((n, 3)),
                      segments=np.array([[0, n]]), sample_period=0.04,
-                     geometry=load_robot_description().geometry)
+                     chain=load_chain())
     problem = build_problem(data, 5, 1, test_fraction=0.1, validation_fraction=0.2)
     np.testing.assert_array_equal(problem.split.parts, [[0, 144, 180, 200]])
     np.testing.assert_allclose(problem.error_low, [-1e-5, 0.0])
@@ -165,7 +166,7 @@ def test_minmax_from_training_part_only() -> None:
 
 def test_clean_recovers_error_through_fk(description: RobotDescription) -> None:
     recording, error = synthetic_recording(description.geometry, 600)
-    data = clean_recordings([recording], description.geometry)
+    data = clean_recordings([recording], LomprChain(description))
     np.testing.assert_allclose(data.error, error, atol=1e-9)
     assert data.counts['kept'] == 600 and data.counts['segments'] == 1
     assert data.sample_period == pytest.approx(0.04)
@@ -193,7 +194,7 @@ def test_clean_stitches_bags_and_counts_every_fault(description: RobotDescriptio
     second = Recording(joints=JointSamples(stamps[450:], positions[450:], j.names),
                        reference=ReferenceSamples(ref_stamps[460:], ref_positions[460:],
                                                   orientations[460:]))
-    data = clean_recordings([second, first], description.geometry)
+    data = clean_recordings([second, first], LomprChain(description))
     counts = data.counts
     assert counts['joint_read'] == 781
     assert counts['joint_nonfinite'] == 1
@@ -252,7 +253,7 @@ def test_overlapping_bags_become_separate_segments(description: RobotDescription
     first, error_first = synthetic_recording(description.geometry, 300, seed=0)
     second, error_second = synthetic_recording(description.geometry, 200, seed=1)
     assert first.joints.stamps[0] == second.joints.stamps[0]
-    data = clean_recordings([first, second], description.geometry)
+    data = clean_recordings([first, second], LomprChain(description))
     assert data.counts['bags_moved_in_time'] == 1 and data.counts['kept'] == 500
     assert data.counts['segments'] == 2 and (np.diff(data.stamps) > 0).all()
     # the earlier-sorted bag keeps its stamps, the other follows after a gap
@@ -273,7 +274,7 @@ def test_a_slower_reference_is_interpolated_not_dropped(description: RobotDescri
         joints=JointSamples(stamps, recording.joints.positions, recording.joints.names),
         reference=ReferenceSamples(stamps[slow], recording.reference.positions[slow],
                                    recording.reference.orientations[slow]))
-    data = clean_recordings([recording], description.geometry)
+    data = clean_recordings([recording], LomprChain(description))
     # only the last three, after the last reference, lack one
     assert data.counts['no_reference'] == 3 and data.counts['segments'] == 1
     assert data.sample_period == pytest.approx(0.01)
@@ -288,7 +289,7 @@ def test_no_window_spans_a_missing_sample(description: RobotDescription) -> None
     j, r = recording.joints, recording.reference
     holed = Recording(joints=JointSamples(j.stamps[keep], j.positions[keep], j.names),
                       reference=r)
-    data = clean_recordings([holed], description.geometry)
+    data = clean_recordings([holed], LomprChain(description))
     assert data.counts['segments'] == 1
     np.testing.assert_array_equal(data.regular_runs(), [[0, 150], [150, 299]])
     window, horizon = 10, 3
@@ -322,7 +323,7 @@ def circle_data(radius: float, error: tuple[float, float]) -> CleanData:
     return CleanData(stamps=EPOCH_NS + np.arange(400) * PERIOD_NS,
                      error=np.tile(error, (400, 1)), reference=reference,
                      segments=np.array([[0, 400]]), sample_period=PERIOD_NS * 1e-9,
-                     geometry=load_robot_description().geometry)
+                     chain=load_chain())
 
 
 @pytest.mark.faults

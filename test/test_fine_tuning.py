@@ -35,6 +35,7 @@ from lompr_predictor.learning.models import (
     paired_columns,
     predict_rows,
 )
+from lompr_predictor.robot.chain import LomprChain
 from lompr_predictor.robot.description import RobotDescription
 from lompr_predictor.ros.closed_loop import persistence_model
 
@@ -161,7 +162,7 @@ def test_the_rebuilt_network_predicts_as_the_file_and_a_changed_one_is_refused(
 
     model, bag = parent
     loaded = load_model(model)
-    data, _ = load_clean_data(BagInputs((str(bag),)), description.geometry)
+    data, _ = load_clean_data(BagInputs((str(bag),)), LomprChain(description))
     rows = data.features(0)
     ends = np.arange(40, len(data) - 5, 7)
     module = editable_module(loaded)

@@ -11,7 +11,12 @@ from rclpy.parameter import Parameter
 from ros_helpers import RosHarness, set_stamp
 from sensor_msgs.msg import JointState
 
-from lompr_predictor.robot.description import BRANCH_JOINTS, MEASURED_JOINTS, RobotDescription
+from lompr_predictor.robot.description import (
+    BRANCH_JOINTS,
+    MEASURED_JOINTS,
+    RobotDescription,
+    load_robot_description,
+)
 from lompr_predictor.robot.kinematics import AllJoints, ForwardKinematics, inverse_kinematics
 from lompr_predictor.ros.kinematics_node import KinematicsNode
 
@@ -65,12 +70,12 @@ def test_kinematics_node_publishes_every_joint_only_when_asked(ros: RosHarness) 
     ros.wait_for_subscribers(joints)
     ros.wait_for_publishers('/lompr/full_joint_states')
     measured = [float(v) for v in inverse_kinematics(
-        plain.description.geometry, TIPS[1:2]).joints[0]]
+        load_robot_description().geometry, TIPS[1:2]).joints[0]]
     message = JointState(name=list(MEASURED_JOINTS), position=measured)
     set_stamp(message, 1_700_000_000 * 10**9)
     joints.publish(message)
     ros.spin_until(lambda: len(received) == 1, what='a full joint state')
     full = dict(zip(received[0].name, received[0].position, strict=True))
-    assert len(full) == len(plain.description.model.names) - 1
+    assert len(full) == len(load_robot_description().model.names) - 1
     assert [full[name] for name in MEASURED_JOINTS] == pytest.approx(measured)
     assert received[0].header.stamp.sec == 1_700_000_000

@@ -40,6 +40,7 @@ from lompr_predictor.online.inference import (
     select_backend,
     warm_up_windows,
 )
+from lompr_predictor.robot.chain import LomprChain
 from lompr_predictor.robot.description import RobotDescription
 
 WINDOW, HORIZON = 12, 10
@@ -49,7 +50,7 @@ WINDOW, HORIZON = 12, 10
 def problem(description: RobotDescription) -> LearningProblem:
     recording, _ = synthetic_recording(description.geometry, 2000, noise=2e-7,
                                        reference=lissajous_reference(2000))
-    return build_problem(clean_recordings([recording], description.geometry),
+    return build_problem(clean_recordings([recording], LomprChain(description)),
                          window=WINDOW, horizon=HORIZON)
 
 
@@ -198,11 +199,11 @@ def mapped(description: RobotDescription,
     windows."""
     recording, _ = synthetic_recording(description.geometry, 2000, noise=2e-7,
                                        reference=lissajous_reference(2000))
-    data = clean_recordings([recording], description.geometry)
+    data = clean_recordings([recording], LomprChain(description))
     problem = build_problem(data, window=WINDOW, horizon=HORIZON)
     machine_map = fit_machine_map(
         problem, data.reference[problem.split.training_rows()[:len(data)]],
-        description.geometry)
+        LomprChain(description))
     hyper = {'batch_size': 200, 'hidden': 8, 'learning_rate': 0.01}
     network = train_network(problem, 'lstm', hyper, TrainSettings(max_epochs=2, patience=2, seed=4),
                             progress=False, machine_map=machine_map)

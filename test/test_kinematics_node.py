@@ -16,6 +16,7 @@ from rclpy.parameter import Parameter
 from ros_helpers import RosHarness, latest_status
 from sensor_msgs.msg import JointState
 
+from lompr_predictor.errors import RobotDescriptionError
 from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME, RobotDescription
 from lompr_predictor.robot.kinematics import inverse_kinematics
 from lompr_predictor.ros.kinematics_node import JointStateDrop, KinematicsNode
@@ -194,9 +195,13 @@ def test_renamed_joints_and_bad_joint_names_parameter(
     assert node.settings.warm_start_max_gap == 2.0
     assert not node.set_parameters([Parameter('frame_id', value='base')])[0].successful
     assert node.settings.frame_id == ROBOT_FRAME
-    with pytest.raises(InvalidParameterValueException, match='5 distinct names'):
+    with pytest.raises(InvalidParameterValueException, match='needs distinct, non-empty'):
         KinematicsNode(node_name='bad_names', context=ros.context, parameter_overrides=[
             Parameter('joint_names', value=['a', 'a', 'b', 'c', 'd'])])
+    # how many the robot's chain says: the LOMPR measures five
+    with pytest.raises(RobotDescriptionError, match='a,b,c,d: needs 5 distinct names'):
+        KinematicsNode(node_name='four_names', context=ros.context, parameter_overrides=[
+            Parameter('joint_names', value=['a', 'b', 'c', 'd'])])
 
 
 def test_a_sensor_data_publisher_is_heard_by_default(

@@ -25,6 +25,7 @@ from lompr_predictor.learning.machine_map import (
 from lompr_predictor.learning.map_prior import PredictionWithPrior, prediction_with_prior
 from lompr_predictor.learning.model_file import script_module
 from lompr_predictor.learning.models import NoChangeNet, PredictorModule, predict_rows
+from lompr_predictor.robot.chain import LomprChain
 from lompr_predictor.robot.description import RobotDescription
 from lompr_predictor.robot.kinematics import (
     batch_forward_kinematics,
@@ -343,7 +344,7 @@ def test_learned_on_a_spiral_it_predicts_a_grid(description: RobotDescription) -
     fitted on the grid itself it does little better, so what it learned is the machine."""
     params = load_twin_parameters()
     data = {path: clean_recordings([to_recording(simulate(
-        description, params, passes=2, seed=1, path=path))[0]], description.geometry)
+        description, params, passes=2, seed=1, path=path))[0]], LomprChain(description))
         for path in ('spiral', 'grid')}
     ratios = {}
     for trained_on in ('spiral', 'grid'):
@@ -351,7 +352,7 @@ def test_learned_on_a_spiral_it_predicts_a_grid(description: RobotDescription) -
         if trained_on == 'grid':  # in distribution: the grid's own first 90 %
             problem = build_problem(data['grid'], 5, 1, preview=1)
         machine_map = fit_machine_map(problem, data[trained_on].reference,
-                                      description.geometry)
+                                      LomprChain(description))
         n = len(problem.features)
         module = PredictorModule(NoChangeNet(), np.zeros(n + 2), np.ones(n + 2), -np.ones(2),
                                  np.ones(2), residual=True, relative_errors=True,

@@ -45,6 +45,7 @@ from lompr_predictor.learning.training import (
     evenly_spaced,
     train_network,
 )
+from lompr_predictor.robot.chain import LomprChain
 from lompr_predictor.robot.description import RobotDescription
 
 SETTINGS = TrainSettings(max_epochs=8, patience=3, seed=3)
@@ -55,7 +56,7 @@ HYPER = {'batch_size': 200, 'hidden': 8, 'learning_rate': 0.01}
 def problem(description: RobotDescription) -> LearningProblem:
     recording, _ = synthetic_recording(description.geometry, 3000, noise=2e-7,
                                        reference=lissajous_reference(3000))
-    data = clean_recordings([recording], description.geometry)
+    data = clean_recordings([recording], LomprChain(description))
     return build_problem(data, window=12, horizon=10)
 
 

@@ -26,6 +26,7 @@ from lompr_predictor.learning.tuning import (
     run_study,
     worker_name,
 )
+from lompr_predictor.robot.chain import LomprChain
 from lompr_predictor.robot.description import RobotDescription
 
 SPACE = SearchSpace(batch_sizes=(300,), hidden_units=(4, 6), learning_rates=(0.01,))
@@ -35,7 +36,7 @@ SPACE = SearchSpace(batch_sizes=(300,), hidden_units=(4, 6), learning_rates=(0.0
 def problem(description: RobotDescription) -> LearningProblem:
     recording, _ = synthetic_recording(description.geometry, 1500, noise=2e-7,
                                        reference=lissajous_reference(1500))
-    return build_problem(clean_recordings([recording], description.geometry), 8, 2)
+    return build_problem(clean_recordings([recording], LomprChain(description)), 8, 2)
 
 
 def test_objective_trains_checkpoints_and_skips_a_repeated_point(

@@ -28,6 +28,7 @@ from lompr_predictor.online.inference import select_backend
 from lompr_predictor.online.offset import XY, CompensationLimits, OffsetGate, Output
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.stage_timing import STAGES, time_stages
+from lompr_predictor.robot.chain import LomprChain
 from lompr_predictor.robot.description import RobotDescription, load_robot_description
 from lompr_predictor.robot.kinematics import VerticalToolBranches
 from lompr_predictor.stamps import StampReason, stamp_problem
@@ -196,8 +197,10 @@ def test_a_model_of_other_features_or_for_another_robot_is_refused(tmp_path: Pat
     with pytest.raises(MetadataMismatchError,
                        match=f"'robot_description_sha256' is '{packaged.sha256}', this "
                              f"configuration needs '{calibrated.sha256}'"):
-        OnlinePredictor(model, stream(), limits(), clock=FakeClock().ns, description=calibrated)
-    core = OnlinePredictor(model, stream(), limits(), clock=FakeClock().ns, description=packaged)
+        OnlinePredictor(model, stream(), limits(), clock=FakeClock().ns,
+                        chain=LomprChain(calibrated))
+    core = OnlinePredictor(model, stream(), limits(), clock=FakeClock().ns,
+                           chain=LomprChain(packaged))
     with pytest.raises(MetadataMismatchError, match="'robot_description_sha256'"):
         core.replace_model(other_robot)
 

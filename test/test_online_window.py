@@ -13,14 +13,13 @@ from lompr_predictor.data.features import (
     with_preview,
 )
 from lompr_predictor.online.window import FeatureWindow
-from lompr_predictor.robot.description import load_robot_description
-from lompr_predictor.robot.kinematics import VerticalToolBranches
+from lompr_predictor.robot.chain import load_chain
 from lompr_predictor.stamps import seconds_since
 
 T0 = 1_700_000_000_000_000_000
 PERIOD_NS = 40_000_000
-GEOMETRY = load_robot_description().geometry
-BRANCHES = VerticalToolBranches(GEOMETRY)
+CHAIN = load_chain()
+BRANCHES = CHAIN.actuator_coordinates()
 
 
 def samples(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -41,7 +40,7 @@ def push_all(window: FeatureWindow, stamps: np.ndarray, error: np.ndarray,
 
 def test_rows_equal_feature_rows_of_the_same_samples() -> None:
     stamps, error, reference = samples(9)
-    window = FeatureWindow(3, GEOMETRY)
+    window = FeatureWindow(3, CHAIN)
     assert window.needed == 3 + HISTORY
     full = push_all(window, stamps, error, reference)
     assert full == [False] * 4 + [True] * 5
@@ -55,7 +54,7 @@ def test_rows_equal_feature_rows_of_the_same_samples() -> None:
 
 def test_fill_and_a_window_that_is_not_full() -> None:
     stamps, error, reference = samples(4)
-    window = FeatureWindow(3, GEOMETRY)
+    window = FeatureWindow(3, CHAIN)
     assert window.empty
     assert window.last_stamp_ns is None
     push_all(window, stamps, error, reference)
@@ -67,7 +66,7 @@ def test_fill_and_a_window_that_is_not_full() -> None:
 
 def test_a_cleared_window_refills_from_new_samples_only() -> None:
     stamps, error, reference = samples(12)
-    window = FeatureWindow(2, GEOMETRY)
+    window = FeatureWindow(2, CHAIN)
     push_all(window, stamps[:6], error[:6], reference[:6])
     window.clear()
     assert window.empty and window.fill == 0
@@ -79,7 +78,7 @@ def test_a_cleared_window_refills_from_new_samples_only() -> None:
 
 def test_a_window_needs_a_row() -> None:
     with pytest.raises(ValueError, match='at least one row'):
-        FeatureWindow(0, GEOMETRY)
+        FeatureWindow(0, CHAIN)
 
 
 def test_each_row_is_feature_rows_of_its_last_samples_bit_for_bit() -> None:
@@ -93,7 +92,7 @@ def test_each_row_is_feature_rows_of_its_last_samples_bit_for_bit() -> None:
     error = rng.normal(scale=1e-5, size=(n, 2))
     reference = np.cumsum(rng.normal(scale=1e-4, size=(n, 3)), axis=0)
     reference += (0.05, -0.1, 1.097)
-    window = FeatureWindow(5, GEOMETRY)
+    window = FeatureWindow(5, CHAIN)
     start = 0
     for k in range(n):
         if k == 31:
@@ -114,7 +113,7 @@ def test_each_row_is_feature_rows_of_its_last_samples_bit_for_bit() -> None:
 
 def test_the_model_input_is_a_view_made_once() -> None:
     stamps, error, reference = samples(12)
-    window = FeatureWindow(3, GEOMETRY)
+    window = FeatureWindow(3, CHAIN)
     push_all(window, stamps[:5], error[:5], reference[:5])
     first = window.array()
     assert window.array() is first  # no allocation per call
@@ -142,7 +141,7 @@ def test_preview_blocks_equal_the_offline_blocks_of_the_commanded_path() -> None
     stamps, error, reference = samples(n + preview)
     offline = with_preview(feature_rows(seconds_since(stamps), error, reference, BRANCHES),
                            preview)[:n]
-    window = FeatureWindow(size, GEOMETRY, preview)
+    window = FeatureWindow(size, CHAIN, preview)
     full = [window.push(int(stamps[k]), *sample(error, reference, k),
                         planned=(int(stamps[k + preview]), *reference[k + preview].tolist()))
             for k in range(n)]
@@ -159,7 +158,7 @@ def test_a_sample_without_a_plan_holds_the_window_until_every_row_has_a_block() 
         plan = (int(stamps[k + preview]), *reference[k + preview].tolist()) if planned else None
         return window.push(int(stamps[k]), *sample(error, reference, k), planned=plan)
 
-    window = FeatureWindow(size, GEOMETRY, preview)
+    window = FeatureWindow(size, CHAIN, preview)
     assert [push(k) for k in range(6)] == [False] * 4 + [True] * 2
     assert not push(6, planned=False)  # no plan for this sample's row
     assert [push(k) for k in range(7, 12)] == [False] * 4 + [True]

@@ -126,7 +126,7 @@ def test_existing_studies_keep_their_names() -> None:
     from lompr_predictor.learning.tuning import study_name_for
 
     sources = [BagSource(path='/x', sha256='ab' * 32)]
-    description: Any = SimpleNamespace(sha256='cd' * 32)
+    description: Any = SimpleNamespace(sha256='cd' * 32, kind='lompr')
     names = [study_name_for(study_definition(TrainingConfig(inputs=BagInputs(bags=('/x',)),
                                                             **changes), sources, description))
              # studies before the paired default read the map's residuals ('machine')

@@ -16,6 +16,7 @@ from lompr_predictor.learning.model_file import script_module
 from lompr_predictor.learning.models import MAP_RESIDUALS, predict_rows
 from lompr_predictor.learning.pairing import paired_module, train_generalist
 from lompr_predictor.learning.training import TrainSettings, train_network
+from lompr_predictor.robot.chain import LomprChain
 from lompr_predictor.robot.description import RobotDescription
 
 SETTINGS = TrainSettings(max_epochs=3, patience=3, seed=1)
@@ -27,10 +28,10 @@ def test_the_paired_module_predicts_as_its_two_networks_did(
         description: RobotDescription) -> None:
     recording, _ = synthetic_recording(description.geometry, 1500, noise=2e-7,
                                        reference=lissajous_reference(1500))
-    data = clean_recordings([recording], description.geometry)
+    data = clean_recordings([recording], LomprChain(description))
     problem = build_problem(data, window=12, horizon=2)
     training_rows = problem.split.training_rows()[:len(data)]
-    machine_map = fit_machine_map(problem, data.reference[training_rows], description.geometry)
+    machine_map = fit_machine_map(problem, data.reference[training_rows], LomprChain(description))
     specialist = train_network(problem, 'lstm', POINT, SETTINGS, progress=False,
                                machine_map=machine_map, network_inputs='paired')
     generalist = train_generalist(problem, POINT, SETTINGS, machine_map)
@@ -68,11 +69,11 @@ def test_a_generalist_of_another_normalisation_is_refused(
                   for seed in (0, 1)]
     parts = []
     for recording in recordings:
-        data = clean_recordings([recording], description.geometry)
+        data = clean_recordings([recording], LomprChain(description))
         problem = build_problem(data, window=12, horizon=2)
         training_rows = problem.split.training_rows()[:len(data)]
         parts.append((problem, fit_machine_map(problem, data.reference[training_rows],
-                                               description.geometry)))
+                                               LomprChain(description))))
     (problem, machine_map), (other, other_map) = parts
     settings = TrainSettings(max_epochs=1, patience=1, seed=1)
     specialist = train_network(problem, 'lstm', POINT, settings, progress=False,

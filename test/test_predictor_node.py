@@ -47,6 +47,7 @@ from lompr_predictor.learning.model_file import (
 )
 from lompr_predictor.learning.models import predict_rows
 from lompr_predictor.monitoring import Level, parse_histogram
+from lompr_predictor.robot.chain import LomprChain
 from lompr_predictor.robot.description import (
     MEASURED_JOINTS,
     ROBOT_FRAME,
@@ -196,7 +197,7 @@ def test_bag_replay_matches_offline_predictions(
             wiring.reference.publish(msg)
             wiring.wait_received(received + 1, 'reference')
     # offline: the trainer's cleaning (interpolation, batch FK, error) and feature rows
-    data = clean_recordings([recording], description.geometry)
+    data = clean_recordings([recording], LomprChain(description))
     assert data.counts['spike'] == 0 and len(data.segments) == 1
     ends = np.arange(NEEDED - 1, len(data))
     offline = predict_rows(load_model(model_path).module, data.features(), ends, WINDOW)

@@ -34,6 +34,7 @@ from lompr_predictor.online.sample_store import (
 )
 from lompr_predictor.online.store_bag import INFO_JSON, write_store_bag
 from lompr_predictor.online.store_export import StoreExport, StoreExportError
+from lompr_predictor.robot.chain import LomprChain
 from lompr_predictor.robot.description import RobotDescription
 from lompr_predictor.robot.kinematics import batch_forward_kinematics
 from lompr_predictor.twin.parameters import load_twin_parameters
@@ -197,7 +198,7 @@ def test_a_store_bag_is_read_back_as_the_plant_error_it_holds(
     assert info['span_seconds'] == pytest.approx(299 * PERIOD_NS * 1e-9)
     # what the trainer reads: the plant error the core computed, the offset in force
     data, _ = load_clean_data(BagInputs((str(bag),), cleaning=CleaningConfig(
-        hampel_threshold=1e12)), description.geometry)
+        hampel_threshold=1e12)), LomprChain(description))
     assert data.counts['end_pose_read'] == 300 and data.counts['compensated'] == 300
     np.testing.assert_array_equal(data.stamps, stored.stamps)
     np.testing.assert_allclose(data.error, stored.error, rtol=0, atol=1e-15)
@@ -258,7 +259,7 @@ def test_lompr_train_learns_from_a_store_bag_what_the_joint_bag_holds(
     bag = write_store_bag(tmp_path / 'store', store.snapshot(), {})
     store.close()
     joints = write_recording(tmp_path / 'joints', to_recording(sim)[0])
-    (stored, _), (recorded, _) = (load_clean_data(BagInputs((str(b),)), description.geometry)
+    (stored, _), (recorded, _) = (load_clean_data(BagInputs((str(b),)), LomprChain(description))
                                   for b in (bag, joints))
     np.testing.assert_array_equal(stored.stamps, recorded.stamps)
     np.testing.assert_allclose(stored.error, recorded.error, rtol=0, atol=1e-12)

@@ -14,6 +14,7 @@ from lompr_predictor.cli import main as lompr_main
 from lompr_predictor.cli import simulate as simulate_cli
 from lompr_predictor.data.bags import JointSamples, Recording, read_recording, write_recording
 from lompr_predictor.data.loading import BagInputs, load_clean_data
+from lompr_predictor.robot.chain import LomprChain
 from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME, RobotDescription
 from lompr_predictor.robot.kinematics import ForwardKinematics
 from lompr_predictor.robot.paths import build_cycle
@@ -276,7 +277,7 @@ def test_the_new_programs_record_bags_that_lompr_train_reads(
         truth, document = read_ground_truth(bags[kind])
         samples[kind] = 2 * len(build_cycle(kind, PARAMS.path, PARAMS.sample_period, 1))
         assert document['path'] == kind and document['samples'] == samples[kind]
-        clean, _ = load_clean_data(BagInputs((str(bags[kind]),)), description.geometry)
+        clean, _ = load_clean_data(BagInputs((str(bags[kind]),)), LomprChain(description))
         kept = np.isin(truth['stamps'], clean.stamps)
         assert kept.sum() == len(clean) >= samples[kind] - 5  # a few spikes may be dropped
         np.testing.assert_allclose(clean.error, truth['error_measured'][kept, :2], rtol=0,

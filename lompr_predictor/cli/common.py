@@ -23,17 +23,18 @@ from lompr_predictor.data.bags import (
 )
 from lompr_predictor.data.cleaning import HAMPEL_HALF_WINDOW, HAMPEL_THRESHOLD, CleaningConfig
 from lompr_predictor.data.loading import BagInputs
-from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME, joint_names_problem
+from lompr_predictor.robot.chain import RobotSpec
+from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME
 from lompr_predictor.scheduling import MAX_NICE, TRAINING_NICE
 from lompr_predictor.stamps import GAP_FACTOR
 
 
 def joint_names(text: str) -> tuple[str, ...]:
-    """--joint-names: five distinct names, the order rules of kinematics_node's joint_names."""
+    """--joint-names: distinct, non-empty names (how many and which the robot's chain says,
+    `chain.load_chain`)."""
     names = comma_list(str)(text)
-    problem = joint_names_problem(names)
-    if problem is not None:
-        msg = f'{problem}, got {text!r}'
+    if '' in names or len(set(names)) != len(names):
+        msg = f'the joint names must be distinct and non-empty, got {text!r}'
         raise argparse.ArgumentTypeError(msg)
     return names
 
@@ -51,10 +52,23 @@ def add_data_arguments(parser: argparse.ArgumentParser) -> None:
                              'of a bag recorded with compensation on: the plant error is the '
                              'tool tip - (reference + offset); a bag without it was recorded '
                              'without compensation (default %(default)s)')
-    parser.add_argument('--joint-names', type=joint_names, default=MEASURED_JOINTS,
-                        metavar='A,B,C,D,E',
-                        help='your JointState names of ups1, ups2, ups3, head_primary, '
-                             "head_secondary, in this order (as kinematics_node's joint_names)")
+    parser.add_argument('--command-topic', default='',
+                        help='the commanded joints (JointState, the --joint-names) of a robot '
+                             'commanded in joints (a ros2_control robot): the reference is '
+                             'their forward kinematics, the reference topic is not read '
+                             '(default: none, the reference topic)')
+    parser.add_argument('--joint-names', type=joint_names, default=(), metavar='A,B,...',
+                        help='the measured joints: for a serial chain the URDF joints from '
+                             'the base to the tip frame (default: all of them, in that '
+                             'order); for the LOMPR your JointState names of '
+                             f'{", ".join(MEASURED_JOINTS)}, in this order '
+                             "(as kinematics_node's joint_names)")
+    parser.add_argument('--base-frame', default='',
+                        help="the URDF frame the poses are in (default: the URDF's root; "
+                             'the LOMPR: its robot frame)')
+    parser.add_argument('--tip-frame', default='',
+                        help='the URDF frame of the tool tip (needed for a robot other '
+                             'than the LOMPR, whose tip is tool_tip)')
     parser.add_argument('--frame', type=non_empty, default=ROBOT_FRAME,
                         help='the robot frame (Z down) the recorded reference is in: its '
                              'header.frame_id; a bag in another frame is refused (default '
@@ -63,7 +77,8 @@ def add_data_arguments(parser: argparse.ArgumentParser) -> None:
                         help='skip a corrupt or truncated bag (listed in the report) '
                              'instead of stopping')
     parser.add_argument('--robot-description', type=readable_file, default=None,
-                        help='URDF file (default: the packaged LOMPR description)')
+                        help="URDF file: the LOMPR's closed chain or any serial chain "
+                             '(default: the packaged LOMPR description)')
     parser.add_argument('--gap-factor', type=float_above(1.0), default=GAP_FACTOR,
                         help='a step longer than this many sample periods splits the data')
     parser.add_argument('--hampel-window', type=positive_int, default=HAMPEL_HALF_WINDOW,
@@ -94,11 +109,17 @@ def cleaning_config(args: argparse.Namespace) -> CleaningConfig:
 def bag_topics(args: argparse.Namespace) -> BagTopics:
     """The topics `add_data_arguments`' options name."""
     return BagTopics(joints=args.joint_topic, reference=args.reference_topic,
-                     end_pose=args.end_pose_topic, compensation=args.compensation_topic)
+                     end_pose=args.end_pose_topic, compensation=args.compensation_topic,
+                     commands=args.command_topic)
+
+
+def robot_spec(args: argparse.Namespace) -> RobotSpec:
+    """The robot `add_data_arguments`' options name."""
+    return RobotSpec(args.robot_description, args.base_frame, args.tip_frame,
+                     tuple(args.joint_names))
 
 
 def bag_inputs(args: argparse.Namespace, bags: list[str]) -> BagInputs:
     """`bags` with the topics, bad-bag policy and cleaning rules of the options."""
     return BagInputs(bags=tuple(bags), topics=bag_topics(args), skip_bad=args.skip_bad,
-                     joint_names=args.joint_names, frame=args.frame,
-                     cleaning=cleaning_config(args))
+                     frame=args.frame, cleaning=cleaning_config(args))

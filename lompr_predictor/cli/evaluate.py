@@ -15,14 +15,14 @@ from typing import Any
 
 import numpy as np
 
-from lompr_predictor.cli.common import add_data_arguments, bag_inputs
+from lompr_predictor.cli.common import add_data_arguments, bag_inputs, robot_spec
 from lompr_predictor.cli.validation import existing_path, output_directory
 from lompr_predictor.data.features import TARGETS
 from lompr_predictor.data.loading import load_clean_data
 from lompr_predictor.data.problem import LearningProblem, Split
 from lompr_predictor.errors import LomprError
 from lompr_predictor.learning.report import base_report, irreducible_fields, write_report
-from lompr_predictor.robot.description import load_robot_description
+from lompr_predictor.robot.chain import description_sha256, load_chain, spec_with_model
 from lompr_predictor.threads import set_torch_threads
 
 
@@ -55,7 +55,7 @@ def _evaluate_loops(args: argparse.Namespace) -> int:
 
     document = evaluate_loop_bags(
         bag_inputs(args, [args.model, *args.bags]),
-        geometry=load_robot_description(args.robot_description).geometry,
+        chain=load_chain(robot_spec(args)),
         report=args.report)
     print(f"{document['text']}\nreport in {args.report}")
     return 0
@@ -76,12 +76,12 @@ def run(args: argparse.Namespace) -> int:
 
     started = time.perf_counter()
     set_torch_threads(args.threads)
-    description = load_robot_description(args.robot_description)
-    model = load_model(args.model, expected={'targets': TARGETS,
-                                             'robot_description_sha256': description.sha256})
+    model = load_model(args.model, expected={
+        'targets': TARGETS, 'robot_description_sha256': description_sha256(args.robot_description)})
     meta = model.metadata
     inputs = bag_inputs(args, args.bags)
-    data, sources = load_clean_data(inputs, description.geometry)
+    data, sources = load_clean_data(inputs, load_chain(spec_with_model(robot_spec(args),
+                                                                       meta.robot)))
     if abs(data.sample_period - meta.sample_period) > PERIOD_TOLERANCE * meta.sample_period:
         msg = (f'the recordings are sampled every {data.sample_period * 1e3:.3g} ms, the model '
                f'{args.model} was trained at {meta.sample_period * 1e3:.3g} ms')

@@ -6,6 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from lompr_predictor.cli.validation import (
@@ -15,9 +16,20 @@ from lompr_predictor.cli.validation import (
     positive_int,
     readable_file,
 )
-from lompr_predictor.data.bags import STORAGES
+from lompr_predictor.data.bags import COMMAND_TOPIC, STORAGES, write_recording
+from lompr_predictor.errors import LomprError
+from lompr_predictor.files import write_json
 from lompr_predictor.robot.description import load_robot_description
 from lompr_predictor.robot.paths import PATH_KINDS, build_cycle
+from lompr_predictor.twin.arm import (
+    BASE_FRAME,
+    arm_description_path,
+    arm_recording,
+    load_arm_model,
+    simulate_arm,
+)
+from lompr_predictor.twin.arm_programs import PROGRAMS as ARM_PROGRAMS
+from lompr_predictor.twin.arm_programs import TIP_FRAME
 from lompr_predictor.twin.faults import FAULT_TOPICS, FaultSpec
 from lompr_predictor.twin.parameters import load_twin_parameters, preset_names
 from lompr_predictor.twin.recording import (
@@ -26,6 +38,11 @@ from lompr_predictor.twin.recording import (
     write_simulation,
 )
 from lompr_predictor.twin.simulation import error_summary, irreducible_rmse, simulate
+
+#: The machines the twin simulates.
+ROBOTS = ('lompr', 'arm')
+#: What the arm's recording holds beside its bag: the run's true tool-tip error.
+ARM_TRUTH_JSON = 'arm_ground_truth.json'
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -48,9 +65,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument('--preset', choices=preset_names(), metavar='PRESET',
                         help='twin preset applied over the defaults: one of '
                              f'{", ".join(preset_names())}')
-    parser.add_argument('--path', choices=PATH_KINDS, default='spiral',
-                        help='machining program, run pass after pass (default spiral; '
-                             'docs/twin.md)')
+    parser.add_argument('--robot', choices=ROBOTS, default='lompr',
+                        help='the machine: lompr (the LOMPR twin: /joint_states and '
+                             '/lompr/reference) or arm (a serial 6-joint arm, '
+                             'description/arm6.urdf, commanded in joints: /joint_states and '
+                             f'{COMMAND_TOPIC}; its programs {", ".join(ARM_PROGRAMS)}) '
+                             '(default lompr)')
+    parser.add_argument('--path', choices=PATH_KINDS + ARM_PROGRAMS, default=None,
+                        help='machining program, run pass after pass (default: spiral, the '
+                             "arm's circle; docs/twin.md)")
     parser.add_argument('--params', type=readable_file,
                         help='twin parameter YAML overriding the packaged config/twin.yaml '
                              'and the preset (any subset of its keys)')
@@ -85,10 +108,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
-    params = load_twin_parameters(args.params, preset=args.preset)
     if Path(args.out).exists():  # before the run, not after it
         msg = f'{args.out} already exists; choose a new directory'
         raise RecordingExistsError(msg)
+    programs = ARM_PROGRAMS if args.robot == 'arm' else PATH_KINDS
+    args.path = args.path or programs[0]
+    if args.path not in programs:
+        msg = (f'--path {args.path} is not a program of the {args.robot}: one of '
+               f'{", ".join(programs)}')
+        raise LomprError(msg)
+    if args.robot == 'arm':
+        return _simulate_arm(args, started)
+    params = load_twin_parameters(args.params, preset=args.preset)
     description = load_robot_description(args.robot_description)
     faults = FaultSpec(gaps=args.gaps, gap_length=args.gap_length, duplicates=args.duplicates,
                        out_of_order=args.out_of_order, nans=args.nans, spikes=args.spikes,
@@ -108,4 +139,28 @@ def run(args: argparse.Namespace) -> int:
         print(f'  measured error {axis}: peak {summary[axis]["peak_um"]:.1f} um, '
               f'RMS {summary[axis]["rms_um"]:.1f} um; irreducible RMSE {irreducible[i]:.2f} um')
     print(f'  ground truth: {out / GROUND_TRUTH_JSON}')
+    return 0
+
+
+def _simulate_arm(args: argparse.Namespace, started: float) -> int:
+    """`lompr simulate --robot arm`: the serial arm's twin, recorded as a robot commanded
+    in joints records (measured and commanded JointState, frames `arm_base` -> `tool0`)."""
+    run = simulate_arm(args.path, passes=args.passes, seed=args.seed,
+                       machine_seed=args.machine_seed,
+                       model=load_arm_model(args.robot_description))
+    out = write_recording(args.out, arm_recording(run), storage=args.storage)
+    error = run.tool_error
+    truth = {'robot': 'arm', 'program': run.program, 'passes': args.passes,
+             'seed': args.seed, 'machine_seed': args.machine_seed, 'base_frame': BASE_FRAME,
+             'tip_frame': TIP_FRAME, 'joint_names': list(run.joint_names),
+             'command_topic': COMMAND_TOPIC,
+             'tool_error_rms_um': {axis: float(np.sqrt(np.mean(error[:, i] ** 2)) * 1e6)
+                                   for i, axis in enumerate('xyz')}}
+    write_json(out / ARM_TRUTH_JSON, truth)
+    print(f'wrote {out} ({len(run.stamps)} samples of the arm, program {run.program}) in '
+          f'{time.perf_counter() - started:.1f} s; tool-tip error RMS x '
+          f'{truth["tool_error_rms_um"]["x"]:.1f} um, y {truth["tool_error_rms_um"]["y"]:.1f} '
+          f'um; train with --robot-description '
+          f'{args.robot_description or arm_description_path()} '
+          f'--tip-frame {TIP_FRAME} --command-topic {COMMAND_TOPIC}')
     return 0

@@ -27,7 +27,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from lompr_predictor.cli.common import add_data_arguments, add_nice_argument, bag_inputs
+from lompr_predictor.cli.common import (
+    add_data_arguments,
+    add_nice_argument,
+    bag_inputs,
+    robot_spec,
+)
 from lompr_predictor.cli.validation import (
     comma_list,
     existing_path,
@@ -183,7 +188,7 @@ def training_config(args: argparse.Namespace) -> TrainingConfig:
     if given.get('machine_map') is False:
         given.setdefault('network_inputs', 'all')
     return TrainingConfig(
-        inputs=bag_inputs(args, args.bags), robot_description=args.robot_description,
+        inputs=bag_inputs(args, args.bags), robot=robot_spec(args),
         space=search_space(args, window), progress=not args.quiet,
         test_inputs=bag_inputs(args, args.test_bags) if args.test_bags else None, **given)
 
@@ -267,10 +272,12 @@ def ridge_warning(report: dict[str, Any]) -> str | None:
     beaten = report.get('bo_lstm_beats', {}).get('ridge')
     if not beaten:
         return None
-    lost = [axis for axis, metrics in beaten.items() if not metrics['rmse_um']]
+    models = report['models']
+    lost = [axis for axis, metrics in beaten.items() if not metrics['rmse_um']
+            and models['bo_lstm']['metrics'][axis]['rmse_um']
+            != models['ridge']['metrics'][axis]['rmse_um']]  # equal: an axis without error
     if not lost:
         return None
-    models = report['models']
     figures = ', '.join(f"{axis.upper()} {models['bo_lstm']['metrics'][axis]['rmse_um']:.3g} "
                         f"vs {models['ridge']['metrics'][axis]['rmse_um']:.3g} um"
                         for axis in lost)

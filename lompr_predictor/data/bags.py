@@ -46,6 +46,9 @@ DEFAULT_REFERENCE_TOPIC = '/lompr/reference'
 DEFAULT_PREVIEW_TOPIC = '/lompr/reference_preview'
 DEFAULT_END_POSE_TOPIC = '/lompr/end_pose'
 DEFAULT_COMPENSATION_TOPIC = '/lompr/compensation'
+#: Where a robot commanded in joints publishes its command (`BagTopics.commands`, off by
+#: default): what `lompr simulate --robot arm` records and `--command-topic` names.
+COMMAND_TOPIC = '/joint_commands'
 STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
 #: The orientation of a tool along the robot frame's +Z, vertically down (x, y, z, w): the
 #: reference's and the preview's.
@@ -115,7 +118,9 @@ class Recording:
     """The LOMPR topics of one bag, as recorded: the measured tool tip as `joints` or, in a
     bag without joints (`joints` empty), as `end_pose`; `preview` only when written (the
     trainer takes the planned path from the reference itself, docs/interface.md);
-    `compensation` only where recorded (None: none was applied)."""
+    `compensation` only where recorded (None: none was applied); `commands`, the commanded
+    joints, in a bag of a robot commanded in joints (its reference is their forward
+    kinematics, `reference` then empty)."""
 
     joints: JointSamples
     reference: ReferenceSamples
@@ -123,6 +128,7 @@ class Recording:
     preview: PreviewSamples | None = None
     end_pose: PoseSamples | None = None
     compensation: CompensationSamples | None = None
+    commands: JointSamples | None = None
 
     @property
     def measured_stamps(self) -> np.ndarray:
@@ -136,7 +142,7 @@ class Recording:
         """The same recording `delta_ns` later, every stream alike (a preview, which only
         the node reads, is dropped)."""
         joints, reference = self.joints, self.reference
-        end_pose, compensation = self.end_pose, self.compensation
+        end_pose, compensation, commands = self.end_pose, self.compensation, self.commands
         return Recording(
             joints=JointSamples(joints.stamps + delta_ns, joints.positions, joints.names),
             reference=ReferenceSamples(reference.stamps + delta_ns, reference.positions,
@@ -145,7 +151,15 @@ class Recording:
             end_pose=None if end_pose is None else PoseSamples(end_pose.stamps + delta_ns,
                                                                end_pose.positions),
             compensation=None if compensation is None else CompensationSamples(
-                compensation.stamps + delta_ns, compensation.offsets))
+                compensation.stamps + delta_ns, compensation.offsets),
+            commands=None if commands is None else JointSamples(
+                commands.stamps + delta_ns, commands.positions, commands.names))
+
+
+def no_reference() -> ReferenceSamples:
+    """The reference of a recording that has none (its commanded joints stand for it)."""
+    return ReferenceSamples(stamps=np.zeros(0, dtype=np.int64), positions=np.zeros((0, 3)),
+                            orientations=np.zeros((0, 4)))
 
 
 def no_joints(names: Sequence[str] = MEASURED_JOINTS) -> JointSamples:
@@ -165,13 +179,16 @@ def _header(ns: int, frame_id: str) -> Any:
 
 @dataclass(frozen=True)
 class BagTopics:
-    """The topic names of a bag's streams (the interface's defaults)."""
+    """The topic names of a bag's streams (the interface's defaults); `commands` names the
+    commanded joints' topic of a robot commanded in joints ('' : none, the reference is
+    the pose topic)."""
 
     joints: str = DEFAULT_JOINT_TOPIC
     reference: str = DEFAULT_REFERENCE_TOPIC
     preview: str = DEFAULT_PREVIEW_TOPIC
     end_pose: str = DEFAULT_END_POSE_TOPIC
     compensation: str = DEFAULT_COMPENSATION_TOPIC
+    commands: str = ''
 
 
 class _Stream(NamedTuple):
@@ -219,16 +236,17 @@ def write_recording(
 
 def _streams(recording: Recording, topics: BagTopics, frame_id: str) -> list[_Stream]:
     """The topics `write_recording` writes, in the order they go on equal stamps."""
-    joints, reference = recording.joints, recording.reference
-    joint_state = _TYPESTORE.types[JOINT_STATE]
+    joints, reference, commands = recording.joints, recording.reference, recording.commands
     streams = []
     if len(joints.stamps) or recording.end_pose is None:
-        streams.append(_Stream(topics.joints, JOINT_STATE, joints.stamps, lambda i: joint_state(
-            header=_header(int(joints.stamps[i]), ''), name=list(joints.names),
-            position=np.ascontiguousarray(joints.positions[i], dtype=np.float64),
-            velocity=np.empty(0), effort=np.empty(0))))
-    streams.append(_Stream(topics.reference, POSE_STAMPED, reference.stamps, lambda i: _pose(
-        int(reference.stamps[i]), frame_id, reference.positions[i], reference.orientations[i])))
+        streams.append(_joint_stream(topics.joints, joints))
+    if commands is not None:
+        streams.append(_joint_stream(topics.commands or COMMAND_TOPIC, commands))
+    if commands is None or len(reference.stamps):
+        streams.append(_Stream(topics.reference, POSE_STAMPED, reference.stamps,
+                               lambda i: _pose(int(reference.stamps[i]), frame_id,
+                                               reference.positions[i],
+                                               reference.orientations[i])))
     preview, end_pose = recording.preview, recording.end_pose
     if preview is not None:
         streams.append(_Stream(topics.preview, PATH, preview.stamps,
@@ -242,6 +260,15 @@ def _streams(recording: Recording, topics: BagTopics, frame_id: str) -> list[_St
                                lambda i: _vector(int(compensation.stamps[i]), frame_id,
                                                  compensation.offsets[i])))
     return streams
+
+
+def _joint_stream(topic: str, joints: JointSamples) -> _Stream:
+    """JointState messages of `joints` on `topic`."""
+    joint_state = _TYPESTORE.types[JOINT_STATE]
+    return _Stream(topic, JOINT_STATE, joints.stamps, lambda i: joint_state(
+        header=_header(int(joints.stamps[i]), ''), name=list(joints.names),
+        position=np.ascontiguousarray(joints.positions[i], dtype=np.float64),
+        velocity=np.empty(0), effort=np.empty(0)))
 
 
 def _vector(stamp_ns: int, frame_id: str, offset: np.ndarray) -> Any:
@@ -301,7 +328,8 @@ def read_recording(
     frame: str = ROBOT_FRAME,
 ) -> Recording:
     """Read the measured tool tip (the joint states, or in a bag without them the end
-    pose), the reference and, if recorded, the compensation of one rosbag2 directory.
+    pose), the reference (or with `topics.commands` the commanded joints) and, if recorded,
+    the compensation of one rosbag2 directory.
 
     Raises `BagError` naming the bag for a missing or corrupt bag, a topic that is absent or
     of the wrong type, a pose or offset in another frame than `frame` (its header.frame_id),
@@ -337,7 +365,9 @@ def _connections(path: Path, connections: Sequence[Any], topics: BagTopics) -> l
     measured = (topics.joints, JOINT_STATE)
     if topics.joints not in present and topics.end_pose in present:
         measured = (topics.end_pose, POSE_STAMPED)
-    required = [measured, (topics.reference, POSE_STAMPED)]
+    commanded = ((topics.commands, JOINT_STATE) if topics.commands
+                 else (topics.reference, POSE_STAMPED))
+    required = [measured, commanded]
     optional = [(topics.compensation, VECTOR3_STAMPED)] if topics.compensation in present else []
     for topic, msgtype in required + optional:
         types = {c.msgtype for c in connections if c.topic == topic}
@@ -360,12 +390,13 @@ class _Rows:
         self.path, self.topics, self.names, self.frame = path, topics, names, frame
         self._column = {name: i for i, name in enumerate(names)}
         self.seen: set[str] = set()  # every joint name of the joint-state topic
+        self.commanded: set[str] = set()  # every joint name of the command topic
         self.stamps: dict[str, list[int]] = {}
         self.values: dict[str, list[Any]] = {}
 
     def add(self, topic: str, message: Any) -> None:
-        if topic == self.topics.joints:
-            self.seen.update(message.name)
+        if topic in (self.topics.joints, self.topics.commands):
+            (self.seen if topic == self.topics.joints else self.commanded).update(message.name)
             value: Any = _joint_row(message.name, message.position, self._column,
                                     len(self.names))
         elif topic == self.topics.compensation:
@@ -385,13 +416,16 @@ class _Rows:
     def recording(self) -> Recording:
         """The `Recording` of the messages added; `BagError` for joints the topic lacks."""
         topics, names = self.topics, self.names
-        missing = [name for name in names if name not in self.seen]
-        if self.stamps.get(topics.joints) and missing:
-            raise BagError(self.path, (
-                f'no joint(s) {", ".join(missing)} on {topics.joints}; its joints are '
-                f'{", ".join(sorted(self.seen)) or "none"} (name yours with --joint-names in '
-                f'the order {",".join(MEASURED_JOINTS)})'))
+        for topic, seen in ((topics.joints, self.seen), (topics.commands, self.commanded)):
+            missing = [name for name in names if name not in seen]
+            if self.stamps.get(topic) and missing:
+                raise BagError(self.path, (
+                    f'no joint(s) {", ".join(missing)} on {topic}; its joints are '
+                    f'{", ".join(sorted(seen)) or "none"} (the measured and commanded joints '
+                    "are the --joint-names, in their order: the chain's joints from base to "
+                    f'tip, or for the LOMPR {",".join(MEASURED_JOINTS)})'))
         joint_stamps, joints = self._arrays(topics.joints, len(names))
+        command_stamps, commands = self._arrays(topics.commands, len(names))
         reference_stamps, reference = self._arrays(topics.reference, 7)
         pose_stamps, poses = self._arrays(topics.end_pose, 7)
         offset_stamps, offsets = self._arrays(topics.compensation, 2)
@@ -404,7 +438,9 @@ class _Rows:
             end_pose=(PoseSamples(pose_stamps, poses[:, :3].copy())
                       if topics.end_pose in self.stamps else None),
             compensation=(CompensationSamples(offset_stamps, offsets)
-                          if topics.compensation in self.stamps else None))
+                          if topics.compensation in self.stamps else None),
+            commands=(JointSamples(command_stamps, commands, names) if topics.commands
+                      else None))
 
 
 def _joint_row(names: Sequence[str], positions: Sequence[float], column: dict[str, int],

@@ -28,8 +28,7 @@ from scipy import ndimage
 
 from lompr_predictor.data.bags import Recording
 from lompr_predictor.data.features import feature_names, feature_rows, with_preview
-from lompr_predictor.robot.description import MEASURED_JOINTS, LomprGeometry
-from lompr_predictor.robot.kinematics import VerticalToolBranches, batch_forward_kinematics
+from lompr_predictor.robot.chain import KinematicChain
 from lompr_predictor.stamps import GAP_FACTOR, seconds_since
 
 #: Defaults of the cleaning rules, in one place (the CLI and the report use these).
@@ -72,7 +71,7 @@ class CleanData:
     reference: np.ndarray  # (N, 3) reference position at the stamps [m]
     segments: np.ndarray  # (S, 2) [start, end) row ranges without a gap
     sample_period: float  # median step [s]
-    geometry: LomprGeometry  # the robot description's, for the features' inverse kinematics
+    chain: KinematicChain  # the robot's, for the features' actuator coordinates
     counts: dict[str, int] = field(default_factory=dict)  # read / dropped by reason / segments
     #: (R, 2) [start, end) rows of each recording (bag), in time order; None: one recording
     recording_rows: np.ndarray | None = None
@@ -110,12 +109,13 @@ class CleanData:
         """(N, len(feature_names(preview))) feature rows, computed segment by segment (NaN
         where a row lacks `HISTORY` samples of its own segment, or the `preview` samples
         after it)."""
-        rows = np.full((len(self), len(feature_names(preview))), np.nan)
-        branches = VerticalToolBranches(self.geometry)
+        rows = np.full((len(self), len(feature_names(preview, self.chain.actuators))), np.nan)
+        coordinates = self.chain.actuator_coordinates()
         for start, end in self.segments:
             seconds = seconds_since(self.stamps[start:end])
             rows[start:end] = with_preview(feature_rows(
-                seconds, self.error[start:end], self.reference[start:end], branches), preview)
+                seconds, self.error[start:end], self.reference[start:end], coordinates),
+                preview)
         return rows
 
 
@@ -240,7 +240,7 @@ def separate_overlapping(recordings: Sequence[Recording]) -> tuple[list[Recordin
     return out, moved
 
 
-def measured_tips(recordings: Sequence[Recording], geometry: LomprGeometry,
+def measured_tips(recordings: Sequence[Recording], chain: KinematicChain,
                   counts: dict[str, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(stamps (N,) int64, X/Y tool tips (N, 2) [m], valid (N,) bool) of time-ordered,
     separated recordings, in stamp order: the forward kinematics of the joints (valid where
@@ -250,9 +250,9 @@ def measured_tips(recordings: Sequence[Recording], geometry: LomprGeometry,
     stamps, joints = sanitise_stream(
         np.concatenate(joint_stamps or [np.zeros(0)]).astype(np.int64),
         np.concatenate([r.joints.positions for r in recordings if len(r.joints.stamps)]
-                       or [np.zeros((0, len(MEASURED_JOINTS)))]), 'joint', counts)
-    poses = batch_forward_kinematics(geometry, joints)
-    parts = [(stamps, poses.position[:, :2], poses.valid)]
+                       or [np.zeros((0, len(chain.joints)))]), 'joint', counts)
+    positions, valid = chain.tool_positions(joints)
+    parts = [(stamps, positions[:, :2], valid)]
     end_poses = [r.end_pose for r in recordings if not len(r.joints.stamps) and r.end_pose]
     if end_poses:
         stamps, tips = sanitise_stream(
@@ -263,6 +263,31 @@ def measured_tips(recordings: Sequence[Recording], geometry: LomprGeometry,
     order = np.argsort(stamps, kind='stable')
     return (stamps[order], np.concatenate([part[1] for part in parts])[order],
             np.concatenate([part[2] for part in parts])[order])
+
+
+def commanded_reference(recordings: Sequence[Recording], chain: KinematicChain,
+                        counts: dict[str, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps (M,) int64, positions (M, 3) [m]) of the commanded tool tip of time-ordered,
+    separated recordings, sorted and sanitised (counted under 'reference'): the reference
+    poses, or of a recording of a robot commanded in joints the forward kinematics of its
+    commanded joints (rows that do not solve, a joint out of its limits, counted as
+    'command_fk_invalid' and left out)."""
+    stamps, positions = [], []
+    invalid = 0
+    for recording in recordings:
+        commands = recording.commands
+        if commands is None:
+            stamps.append(recording.reference.stamps)
+            positions.append(recording.reference.positions)
+            continue
+        tips, valid = chain.tool_positions(commands.positions)
+        finite = np.isfinite(commands.positions).all(axis=1)
+        invalid += int((finite & ~valid).sum())
+        stamps.append(commands.stamps)
+        positions.append(tips)
+    counts['command_fk_invalid'] = invalid
+    return sanitise_stream(np.concatenate(stamps).astype(np.int64),
+                           np.concatenate(positions).reshape(-1, 3), 'reference', counts)
 
 
 def applied_compensation(stamps: np.ndarray, recordings: Sequence[Recording],
@@ -304,7 +329,7 @@ def applied_compensation(stamps: np.ndarray, recordings: Sequence[Recording],
 
 def clean_recordings(
     recordings: Sequence[Recording],
-    geometry: LomprGeometry,
+    chain: KinematicChain,
     config: CleaningConfig | None = None,
 ) -> CleanData:
     """Stitch, clean, align and convert recordings to the plant error (module docstring);
@@ -315,10 +340,8 @@ def clean_recordings(
     if not ordered:
         msg = 'the recordings hold no joint state (nor end pose)'
         raise ValueError(msg)
-    stamps, tips, solved = measured_tips(ordered, geometry, counts)
-    ref_stamps, reference = sanitise_stream(
-        np.concatenate([r.reference.stamps for r in ordered]).astype(np.int64),
-        np.concatenate([r.reference.positions for r in ordered]), 'reference', counts)
+    stamps, tips, solved = measured_tips(ordered, chain, counts)
+    ref_stamps, reference = commanded_reference(ordered, chain, counts)
     period = _period_ns(stamps)
     max_step = config.gap_factor * period
     # The reference may come slower than the joint states (docs/interface.md, topics): a bracket is
@@ -344,7 +367,7 @@ def clean_recordings(
     counts['kept'] = len(stamps)
     counts['segments'] = len(segments)
     return CleanData(stamps=stamps, error=error, reference=aligned, segments=segments,
-                     sample_period=period * 1e-9, geometry=geometry, counts=counts,
+                     sample_period=period * 1e-9, chain=chain, counts=counts,
                      recording_rows=bag_rows,
                      compensation=None if compensation is None else compensation[~spikes])
 
@@ -382,7 +405,7 @@ def implausible_error(data: CleanData) -> str:
     extent = float(np.sqrt(np.mean(np.sum((path - path.mean(axis=0)) ** 2, axis=1))))
     if error <= max(IMPLAUSIBLE_FRACTION * extent, IMPLAUSIBLE_FLOOR):
         return ''
-    joints = ', '.join(MEASURED_JOINTS)
+    joints = ', '.join(data.chain.joints)
     return (f'the forward kinematics of the measured joints lies {error * 1e3:.3g} mm (RMS) '
             f'from the reference, {error / extent:.0%} of the extent of the commanded path '
             f'({extent * 1e3:.3g} mm RMS), where the tracking error of a machine is a fraction '

@@ -8,7 +8,8 @@ from dataclasses import dataclass, field
 
 from lompr_predictor.data.bags import BagSource, BagTopics, read_bags
 from lompr_predictor.data.cleaning import CleanData, CleaningConfig, clean_recordings
-from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME, LomprGeometry
+from lompr_predictor.robot.chain import KinematicChain
+from lompr_predictor.robot.description import ROBOT_FRAME
 
 
 @dataclass(frozen=True)
@@ -19,18 +20,17 @@ class BagInputs:
     bags: tuple[str, ...]
     topics: BagTopics = field(default_factory=BagTopics)
     skip_bad: bool = False  # a bad bag is left out whole and listed, instead of stopping
-    #: The bag's names of the measured joints, in `MEASURED_JOINTS` order.
-    joint_names: tuple[str, ...] = MEASURED_JOINTS
     #: The robot frame the reference is in (header.frame_id); a bag in another is refused.
     frame: str = ROBOT_FRAME
     cleaning: CleaningConfig = field(default_factory=CleaningConfig)
 
 
 def load_clean_data(inputs: BagInputs,
-                    geometry: LomprGeometry) -> tuple[CleanData, list[BagSource]]:
-    """Read the bags whole (`bags.read_bags`) and clean them (`cleaning.clean_recordings`);
-    the sources list every bag, used or skipped."""
+                    chain: KinematicChain) -> tuple[CleanData, list[BagSource]]:
+    """Read the bags whole (`bags.read_bags`, the joints by the chain's `joint_names`) and
+    clean them (`cleaning.clean_recordings`); the sources list every bag, used or
+    skipped."""
     recordings, sources = read_bags(inputs.bags, topics=inputs.topics,
-                                    skip_bad=inputs.skip_bad, joint_names=inputs.joint_names,
+                                    skip_bad=inputs.skip_bad, joint_names=chain.joint_names,
                                     frame=inputs.frame)
-    return clean_recordings(recordings, geometry, inputs.cleaning), sources
+    return clean_recordings(recordings, chain, inputs.cleaning), sources

@@ -16,8 +16,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from lompr_predictor.data.cleaning import CleanData
-from lompr_predictor.data.features import FEATURES, HISTORY, feature_names
+from lompr_predictor.data.features import HISTORY, base_features, feature_names
 from lompr_predictor.errors import LomprError
+from lompr_predictor.robot.description import BRANCH_JOINTS
 
 #: Defaults of the learning problem, in one place (`lompr train` uses these).
 DEFAULT_WINDOW = 25  # samples per window
@@ -146,11 +147,13 @@ class LearningProblem:
     error_low: np.ndarray  # (2,) training-part min of the error (the metrics' scale)
     error_high: np.ndarray  # (2,)
     preview: int = 0  # samples of the planned reference after each row (0: none)
+    #: the robot's actuator coordinates the rows carry (`features.base_features`)
+    actuators: tuple[str, ...] = BRANCH_JOINTS
 
     @property
     def features(self) -> tuple[str, ...]:
         """Names of the columns of `rows`."""
-        return feature_names(self.preview)
+        return feature_names(self.preview, self.actuators)
 
     def targets(self, ends: np.ndarray, residual: bool) -> np.ndarray:
         """(B, 2) what a model learns for windows ending at `ends`: the error `horizon`
@@ -162,7 +165,8 @@ class LearningProblem:
 def without_preview(problem: LearningProblem) -> LearningProblem:
     """The same windows and split with the rows' preview block left out (the K = 0 inputs
     of the same instants, to see what the preview gives)."""
-    return replace(problem, rows=problem.rows[:, :len(FEATURES)], preview=0)
+    return replace(problem, rows=problem.rows[:, :len(base_features(problem.actuators))],
+                   preview=0)
 
 
 def build_problem(data: CleanData, window: int = DEFAULT_WINDOW,
@@ -178,7 +182,7 @@ def build_problem(data: CleanData, window: int = DEFAULT_WINDOW,
     return LearningProblem(rows=data.features(preview), error=data.error, stamps=data.stamps,
                            window=window, horizon=horizon, sample_period=data.sample_period,
                            split=split, error_low=error_low, error_high=error_high,
-                           preview=preview)
+                           preview=preview, actuators=data.chain.actuators)
 
 
 def train_test_problem(train: CleanData, test: CleanData, window: int = DEFAULT_WINDOW,
@@ -201,4 +205,4 @@ def train_test_problem(train: CleanData, test: CleanData, window: int = DEFAULT_
                            stamps=np.concatenate([train.stamps, test.stamps]),
                            window=window, horizon=horizon, sample_period=train.sample_period,
                            split=split, error_low=error_low, error_high=error_high,
-                           preview=preview)
+                           preview=preview, actuators=train.chain.actuators)

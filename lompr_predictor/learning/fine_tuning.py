@@ -77,7 +77,7 @@ from lompr_predictor.learning.pipeline import (
 )
 from lompr_predictor.learning.report import base_report, irreducible_fields
 from lompr_predictor.learning.training import TrainedModel, train_network
-from lompr_predictor.robot.description import load_robot_description
+from lompr_predictor.robot.chain import load_chain, spec_with_model
 
 #: Windows on which the rebuilt module must predict as the file does, at most.
 CHECK_WINDOWS = 256
@@ -181,9 +181,10 @@ def fine_tune_predictor(config: TrainingConfig, init: str | Path) -> TrainingRes
     written (`pipeline.write_outputs` writes the result)."""
     check_config(config)
     started = time.perf_counter()
-    description = load_robot_description(config.robot_description)
-    parent = load_parent(init, config, description.sha256)
-    data, problem, trained_on, sources = read_problem(config, description)
+    chain = load_chain(config.robot)
+    parent = load_parent(init, config, chain.sha256)
+    chain = load_chain(spec_with_model(config.robot, parent.metadata.robot))
+    data, problem, trained_on, sources = read_problem(config, chain)
     if abs(problem.sample_period - parent.metadata.sample_period) > (
             PERIOD_TOLERANCE * parent.metadata.sample_period):
         msg = (f'the recordings are sampled every {problem.sample_period * 1e3:.3g} ms, the '

@@ -18,7 +18,9 @@ v_i and acceleration a_i along the reference, `data.features`):
     g = J (c_v v + c_a a + sum_k c_k tanh(v / s_k)) + P(x, y)
 
 - J (2 x 3): tool-tip X, Y per unit branch length, `kinematics.tool_branch_jacobian`
-  averaged over the training poses (the robot description's kinematics, not fitted);
+  averaged over the training poses (the robot description's kinematics, not fitted); a
+  chain without actuator coordinates along the tool tip (a serial chain, `robot.chain`) has
+  the same terms in the tool's own x, y (J the identity, v and a the tool's);
 - c_v, c_a, c_k (one per branch each): the branch's length error per unit of its motion, the
   inner sum being the branch's own error (servo lag, friction);
 - s_k: friction speed scales, `FRICTION_SCALES` times the training rows' RMS branch speed, so
@@ -58,10 +60,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from lompr_predictor.data.features import TARGETS
+from lompr_predictor.data.features import TARGETS, actuators_of
 from lompr_predictor.data.problem import LearningProblem
-from lompr_predictor.robot.description import BRANCH_JOINTS, LomprGeometry
-from lompr_predictor.robot.kinematics import tool_branch_jacobian
+from lompr_predictor.robot.chain import KinematicChain
 
 #: Friction speed scales as fractions of the training rows' RMS commanded branch speed: a
 #: sign change smoothed over a third of the typical speed down to one switching within a
@@ -109,31 +110,24 @@ class MachineMap(nn.Module):
                  speed_scales: np.ndarray | None = None) -> None:
         super().__init__()
         names = list(features)
+        velocities, _ = motion_columns(names)
         scales = np.ones(len(FRICTION_SCALES)) if speed_scales is None else speed_scales
-        self.register_buffer('jacobian', _tensor(np.zeros((len(TARGETS), len(BRANCH_JOINTS)))
-                                                 if jacobian is None else jacobian))
+        if jacobian is None:  # in the tool's own axes the map's Jacobian is the identity
+            jacobian = (np.zeros((len(TARGETS), len(velocities))) if actuators_of(names)
+                        else np.eye(len(TARGETS)))
+        #: the coordinates the map's motion terms act in (the chain's actuators, or x, y)
+        self.motion_count = len(velocities)
+        self.register_buffer('jacobian', _tensor(jacobian))
         self.register_buffer('scales', _tensor(scales))
         self.register_buffer('branch_coefficients',
-                             torch.zeros(2 + len(scales), len(BRANCH_JOINTS), dtype=torch.float64))
+                             torch.zeros(2 + len(scales), len(velocities), dtype=torch.float64))
         self.register_buffer('posture_coefficients',
                              torch.zeros(len(POSTURE_TERMS), len(TARGETS), dtype=torch.float64))
         # the residual map's (module docstring): the same basis, another fit
         self.register_buffer('level_branch_coefficients', self.branch_coefficients.clone())
         self.register_buffer('level_posture_coefficients', self.posture_coefficients.clone())
-        # where the map reads a row, and the row it takes for the predicted instant: the
-        # preview's (its position as a displacement from the row) or the row's own
-        ahead = 'plan_' if preview else ''
-        self.register_buffer('position_columns', _columns(names, ('ref_x', 'ref_y')))
-        self.register_buffer('velocity_columns', _columns(names, _branch('v')))
-        self.register_buffer('acceleration_columns', _columns(names, _branch('a')))
-        self.register_buffer('ahead_position_columns', _columns(
-            names, ('plan_dx', 'plan_dy') if preview else ('ref_x', 'ref_y')))
-        self.register_buffer('ahead_tool_velocity_columns', _columns(
-            names, (f'{ahead}ref_vx', f'{ahead}ref_vy')))
-        self.register_buffer('ahead_velocity_columns',
-                             _columns(names, tuple(ahead + n for n in _branch('v'))))
-        self.register_buffer('ahead_acceleration_columns',
-                             _columns(names, tuple(ahead + n for n in _branch('a'))))
+        for name, columns in map_columns(names, preview).items():
+            self.register_buffer(name, columns)
         self.plan_is_displacement = bool(preview)
         #: the lags [samples] of the error changes the map is fitted on (`fit`)
         self.fit_lags = tuple(factor * int(horizon) for factor in FIT_LAGS)
@@ -158,7 +152,7 @@ class MachineMap(nn.Module):
     def evaluate(self, position: torch.Tensor, velocity: torch.Tensor,
                  acceleration: torch.Tensor) -> torch.Tensor:
         """(..., 2) g for positions x, y (..., 2) and branch velocities and accelerations
-        (..., 3)."""
+        (..., M)."""
         row = torch.cat([position, velocity, acceleration], -1)
         return self._of_arguments(row @ self._row_arguments(), self._weights(False))
 
@@ -198,9 +192,11 @@ class MachineMap(nn.Module):
                           self.acceleration_columns])
 
     def _row_arguments(self) -> torch.Tensor:
-        """(8, A) the arguments per unit of each of `_row_columns`."""
-        unit = torch.eye(8, dtype=torch.float64)
-        return self._arguments(unit[:, 0:2], unit[:, 2:5], unit[:, 5:8])
+        """(2 + 2 M, A) the arguments per unit of each of `_row_columns` (M motion
+        coordinates)."""
+        count = self.motion_count
+        unit = torch.eye(2 + 2 * count, dtype=torch.float64)
+        return self._arguments(unit[:, 0:2], unit[:, 2:2 + count], unit[:, 2 + count:])
 
     def _ahead_columns(self) -> torch.Tensor:
         """The feature columns the predicted instant is read at: the preview's (or the
@@ -211,22 +207,24 @@ class MachineMap(nn.Module):
                           self.ahead_acceleration_columns])
 
     def _ahead_arguments(self) -> torch.Tensor:
-        """(12, A) the arguments at the predicted instant per unit of each of
+        """(6 + 2 M, A) the arguments at the predicted instant per unit of each of
         `_ahead_columns` (the extrapolation is linear in them)."""
-        unit = torch.eye(12, dtype=torch.float64)
+        count = self.motion_count
+        unit = torch.eye(6 + 2 * count, dtype=torch.float64)
         lead = self.extrapolation
         position = unit[:, 0:2] + unit[:, 4:6] * lead
         if self.plan_is_displacement:
             position = position + unit[:, 2:4]
-        velocity = unit[:, 6:9] + unit[:, 9:12] * lead
-        return self._arguments(position, velocity, unit[:, 9:12])
+        accelerations = unit[:, 6 + count:]
+        velocity = unit[:, 6:6 + count] + accelerations * lead
+        return self._arguments(position, velocity, accelerations)
 
     def _arguments(self, position: torch.Tensor, velocity: torch.Tensor,
                    acceleration: torch.Tensor) -> torch.Tensor:
         """(C, A) the maps' arguments per unit of each of C columns that enter x, y as
-        `position` (C, 2), the branch velocities as `velocity` (C, 3) and accelerations as
-        `acceleration` (C, 3): the linear part of g (2) and of the residual map (2),
-        v_i / s_k (S x 3), x, y, x + y (3)."""
+        `position` (C, 2), the M motion velocities as `velocity` (C, M) and accelerations
+        as `acceleration` (C, M): the linear part of g (2) and of the residual map (2),
+        v_i / s_k (S x M), x, y, x + y (3)."""
         linear = [velocity @ (branch[0].unsqueeze(-1) * self.jacobian.t())
                   + acceleration @ (branch[1].unsqueeze(-1) * self.jacobian.t())
                   + position @ posture[1:3]
@@ -269,7 +267,8 @@ class MachineMap(nn.Module):
                           posture[0:1]], 0)  # the constant
 
     def branch_motion(self, velocity: torch.Tensor, acceleration: torch.Tensor) -> torch.Tensor:
-        """(..., 2 + S, 3): per branch its velocity, acceleration and friction signs."""
+        """(..., 2 + S, M): per motion coordinate its velocity, acceleration and friction
+        signs."""
         signs = torch.tanh(velocity.unsqueeze(-2) / self.scales.unsqueeze(-1))
         return torch.cat([velocity.unsqueeze(-2), acceleration.unsqueeze(-2), signs], -2)
 
@@ -297,7 +296,7 @@ class MachineMap(nn.Module):
             motion = self.branch_motion(table.index_select(1, self.velocity_columns),
                                         table.index_select(1, self.acceleration_columns))
             # branch part: motion[n, p, i] * J[a, i]; posture part: term[n, m] * delta(a, a')
-            branch = motion.unsqueeze(1) * self.jacobian.unsqueeze(-2)  # (N, 2, P, 3)
+            branch = motion.unsqueeze(1) * self.jacobian.unsqueeze(-2)  # (N, 2, P, M)
             terms = posture_terms(position[:, 0], position[:, 1])  # (N, M)
             eye = torch.eye(len(TARGETS), dtype=torch.float64)
             posture = terms.unsqueeze(1).unsqueeze(-1) * eye.unsqueeze(1)  # (N, 2, M, 2)
@@ -446,9 +445,9 @@ def consecutive_pairs(instants: np.ndarray, lag: int) -> np.ndarray:
 
 
 def speed_scales(rows: np.ndarray, features: Sequence[str]) -> np.ndarray:
-    """(S,) friction speed scales [m/s]: `FRICTION_SCALES` times the RMS commanded branch
-    speed of feature rows (N, F)."""
-    columns = [list(features).index(name) for name in _branch('v')]
+    """(S,) friction speed scales [m/s]: `FRICTION_SCALES` times the RMS commanded speed of
+    the map's motion coordinates in feature rows (N, F)."""
+    columns = [list(features).index(name) for name in motion_columns(features)[0]]
     speeds = np.asarray(rows, dtype=float)[:, columns]
     rms = float(np.sqrt(np.nanmean(speeds ** 2))) if np.isfinite(speeds).any() else 0.0
     if not rms > 0.0:
@@ -457,8 +456,32 @@ def speed_scales(rows: np.ndarray, features: Sequence[str]) -> np.ndarray:
     return rms * np.asarray(FRICTION_SCALES)
 
 
-def _branch(quantity: str) -> tuple[str, ...]:
-    return tuple(f'{branch}_{quantity}' for branch in BRANCH_JOINTS)
+def map_columns(names: list[str], preview: int) -> dict[str, torch.Tensor]:
+    """Where the map reads a feature row (of columns `names`), and the row it takes for the
+    predicted instant: the preview's (its position as a displacement from the row) or the
+    row's own; a buffer of column indices each, by the map's name for it."""
+    velocities, accelerations = motion_columns(names)
+    ahead = 'plan_' if preview else ''
+    wanted = {
+        'position_columns': ('ref_x', 'ref_y'),
+        'velocity_columns': velocities,
+        'acceleration_columns': accelerations,
+        'ahead_position_columns': ('plan_dx', 'plan_dy') if preview else ('ref_x', 'ref_y'),
+        'ahead_tool_velocity_columns': (f'{ahead}ref_vx', f'{ahead}ref_vy'),
+        'ahead_velocity_columns': tuple(ahead + name for name in velocities),
+        'ahead_acceleration_columns': tuple(ahead + name for name in accelerations)}
+    return {buffer: _columns(names, columns) for buffer, columns in wanted.items()}
+
+
+def motion_columns(features: Sequence[str]) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(velocity, acceleration) columns the map's motion terms read: the chain's actuator
+    coordinates' where its rows carry them, else the tool's own x, y (a serial chain: its
+    servo lag and friction as seen at the tool)."""
+    actuators = actuators_of(features)
+    if actuators:
+        return (tuple(f'{name}_v' for name in actuators),
+                tuple(f'{name}_a' for name in actuators))
+    return ('ref_vx', 'ref_vy'), ('ref_ax', 'ref_ay')
 
 
 def _columns(names: list[str], wanted: Sequence[str]) -> torch.Tensor:
@@ -470,20 +493,19 @@ def _tensor(values: np.ndarray) -> torch.Tensor:
 
 
 def fit_machine_map(problem: LearningProblem, tips: np.ndarray,
-                    geometry: LomprGeometry) -> MachineMap:
+                    chain: KinematicChain) -> MachineMap:
     """The machine map of `problem`, fitted on the error's changes over the horizon at its
     training and validation windows' last instants (`MachineMap.fit`): its Jacobian from
-    the robot's kinematics at the training recordings' commanded tool tips (N, 3) [m]
-    (`JACOBIAN_POSES` of them, evenly spaced, suffice for a mean)."""
+    the chain's kinematics at the training recordings' commanded tool tips (N, 3) [m]
+    (`JACOBIAN_POSES` of them, evenly spaced, suffice for a mean; none for a chain whose
+    map works in the tool's axes)."""
     rows, error = problem.rows, problem.error
     ends = np.concatenate([problem.split.train, problem.split.validation])
     training = problem.split.training_rows()
     tips = np.asarray(tips, dtype=float)
     sample = tips[np.linspace(0, len(tips) - 1, min(len(tips), JACOBIAN_POSES)).astype(int)]
-    jacobian = tool_branch_jacobian(geometry, sample)
     machine_map = MachineMap(problem.features, problem.horizon, problem.preview,
-                             problem.sample_period,
-                             np.nanmean(jacobian, axis=0),
+                             problem.sample_period, chain.map_jacobian(sample),
                              speed_scales(rows[training], problem.features))
     machine_map.fit(rows, error, ends)
     return machine_map

@@ -44,7 +44,7 @@ from typing import Any
 
 import torch
 
-from lompr_predictor.data.features import feature_names
+from lompr_predictor.data.features import actuators_of, feature_names
 from lompr_predictor.errors import LomprError
 from lompr_predictor.files import atomic_file, write_atomic
 
@@ -118,6 +118,9 @@ class ModelMetadata:
     #: the sha256 of the model file it was fine-tuned from (`lompr train --init`; empty:
     #: trained from scratch, as in files written before it existed)
     parent_sha256: str = ''
+    #: the robot's chain it was trained for (`chain.KinematicChain.metadata`: kind, frames,
+    #: joints; empty: the LOMPR, as in files written before it existed)
+    robot: Mapping[str, Any] = field(default_factory=dict)
     format_version: int = FORMAT_VERSION
 
     def to_json(self) -> str:
@@ -343,7 +346,7 @@ def load_model(
     digest = hashlib.sha256(data).hexdigest()
     verified_by = _verify(path, digest, sha256, verify, hint)
     metadata = ModelMetadata.from_json(_read_metadata(path, data), str(path))
-    defined = feature_names(metadata.preview)
+    defined = feature_names(metadata.preview, actuators_of(metadata.features))
     if metadata.features != defined:  # the columns its preview defines, in their order
         raise MetadataMismatchError(str(path), 'features', defined, metadata.features)
     for name, value in (expected or {}).items():

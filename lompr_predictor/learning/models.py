@@ -286,6 +286,18 @@ class PredictorModule(nn.Module):
                    error_level=error_level, features=features, machine_map=machine_map,
                    inputs=inputs)
 
+    def with_fixed_targets(self, targets: np.ndarray) -> PredictorModule:
+        """This module with the output of each target axis that never varied in the
+        training `targets` (B, 2) held at its value there: an axis the error has no part in
+        (a single axis's Y) is predicted as it was, never from the network's output scaled
+        by a range it did not have."""
+        targets = np.asarray(targets, dtype=float)
+        fixed = torch.from_numpy(np.ptp(targets, axis=0) == 0)
+        with torch.no_grad():
+            self.target_half[fixed] = 0.0
+            self.target_centre[fixed] = torch.from_numpy(targets[0])[fixed]
+        return self
+
     def normalise(self, windows: torch.Tensor) -> torch.Tensor:
         """Float64 windows of the network's rows (`network_features`) -> normalised float32
         network input."""
@@ -295,7 +307,8 @@ class PredictorModule(nn.Module):
     def normalise_targets(self, targets: np.ndarray) -> torch.Tensor:
         """(B, 2) training targets [m] -> the network's float32 targets: the inverse of the
         output map in `forward` (not part of the scripted module)."""
-        scaled = (targets - self.target_centre.numpy()) / self.target_half.numpy()
+        half = self.target_half.numpy()
+        scaled = (targets - self.target_centre.numpy()) / np.where(half > 0, half, 1.0)
         return torch.from_numpy(scaled.astype(np.float32))
 
     def forward(self, windows: torch.Tensor) -> torch.Tensor:

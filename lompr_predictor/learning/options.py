@@ -38,6 +38,7 @@ from lompr_predictor.learning.space import (
     NETWORK_INPUTS,
     SearchSpace,
 )
+from lompr_predictor.robot.chain import RobotSpec
 from lompr_predictor.threads import MAX_DEFAULT_WORKERS, default_workers
 
 #: Defaults of the training loop (`training.train_network`).
@@ -212,7 +213,8 @@ class TrainingConfig:
         HEARTBEAT_SECONDS, "seconds between a running trial's heartbeats; a trial silent for "
         '3 of them (its worker died) is failed and its point queued again (default '
         '{default})', minimum=1, metavar='SECONDS')
-    robot_description: str | None = None  # URDF file; None: the packaged LOMPR description
+    #: URDF, frames, joints; default: the packaged LOMPR
+    robot: RobotSpec = field(default_factory=RobotSpec)
     space: SearchSpace = DEFAULT_SPACE
     progress: bool = True  # progress bars
     test_inputs: BagInputs | None = None  # other recordings as the test part (e.g. another

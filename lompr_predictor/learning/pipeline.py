@@ -105,7 +105,7 @@ from lompr_predictor.learning.tuning import (
     worker_counts,
 )
 from lompr_predictor.learning.workers import StudySpec, TuningRun, tune
-from lompr_predictor.robot.description import RobotDescription, load_robot_description
+from lompr_predictor.robot.chain import LOMPR_KIND, KinematicChain, load_chain
 from lompr_predictor.threads import default_workers
 
 #: The report's key of a paired BO-LSTM's generalist (`models.PairedNet`).
@@ -167,12 +167,12 @@ def run_workers(config: TrainingConfig) -> WorkerSummary:
     spent; no baseline, no model, no report."""
     storage = open_storage(check_config(config, finishing=False))
     started = time.perf_counter()
-    description = load_robot_description(config.robot_description)
-    data, sources = load_clean_data(config.inputs, description.geometry)
+    chain = load_chain(config.robot)
+    data, sources = load_clean_data(config.inputs, chain)
     read_seconds = time.perf_counter() - started
     problem = _problem(data, None, config)
-    machine_map = _machine_map(config, problem, data, description)
-    study, run = _run_study(config, problem, machine_map, sources, description, storage)
+    machine_map = _machine_map(config, problem, data, chain)
+    study, run = _run_study(config, problem, machine_map, sources, chain, storage)
     counts = trial_counts(study)
     return WorkerSummary(study_name=study.study_name, storage=storage.spec.describe(), run=run,
                          budget=study_budget(study), restarts=study_restarts(study),
@@ -185,11 +185,11 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     and its checkpoints."""
     storage = open_storage(check_config(config))  # connects: fails before reading any bag
     started = time.perf_counter()
-    description = load_robot_description(config.robot_description)
-    data, problem, trained_on, sources = read_problem(config, description)
+    chain = load_chain(config.robot)
+    data, problem, trained_on, sources = read_problem(config, chain)
     read_seconds = time.perf_counter() - started
-    machine_map = _machine_map(config, problem, data, description)
-    tuned = _tune(config, problem, machine_map, sources, description, storage)
+    machine_map = _machine_map(config, problem, data, chain)
+    tuned = _tune(config, problem, machine_map, sources, chain, storage)
     baselines = fit_baselines(problem, FitContext(config.settings, config.progress,
                                                   machine_map))
     scoring_started = time.perf_counter()
@@ -200,7 +200,7 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
                              hyperparameters=tuned.params, target=RESIDUAL_TARGET)
     report = _report(config, problem, data, sources, models, tuned)
     scoring_seconds = time.perf_counter() - scoring_started
-    metadata = _model_metadata(config, problem, tuned, machine_map, description, trained_on,
+    metadata = _model_metadata(config, problem, tuned, machine_map, chain, trained_on,
                                models['bo_lstm']['metrics'])
     total = time.perf_counter() - started
     # where the time went; write_outputs adds writing_seconds
@@ -233,7 +233,7 @@ def network_predictions(module: Any, problem: LearningProblem) -> dict[str, np.n
 
 
 def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tuned,
-                    machine_map: MachineMap | None, description: RobotDescription,
+                    machine_map: MachineMap | None, chain: KinematicChain,
                     trained_on: list[BagSource], test_metrics: dict[str, Any]) -> ModelMetadata:
     """The metadata the model file carries (docs/interface.md, the model file)."""
     return ModelMetadata(
@@ -253,7 +253,7 @@ def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tu
                          'optimiser': 'AdamW, cosine learning-rate decay over max_epochs',
                          **recorded_options(config),
                          'cleaning': vars(config.inputs.cleaning)},
-        robot_description_sha256=description.sha256,
+        robot_description_sha256=chain.sha256, robot=chain.metadata(),
         training_bags=tuple({'path': str(Path(s.path).resolve()), 'sha256': s.sha256}
                             for s in trained_on if not s.skipped_reason),
         seed=config.seed, library_versions=library_versions(),
@@ -290,15 +290,15 @@ class DataError(LomprError):
     preview or split, or an error no machine makes)."""
 
 
-def read_problem(config: TrainingConfig, description: RobotDescription
+def read_problem(config: TrainingConfig, chain: KinematicChain
                  ) -> tuple[CleanData, LearningProblem, list[BagSource], list[BagSource]]:
     """Read and clean the config's bags (and test bags): the clean training data, the
     learning problem (`_problem`), the training bags and every bag read (the test bags
     last: the irreducible level is theirs)."""
-    data, sources = load_clean_data(config.inputs, description.geometry)
+    data, sources = load_clean_data(config.inputs, chain)
     if config.test_inputs is None:
         return data, _problem(data, None, config), list(sources), list(sources)
-    test_data, test_sources = load_clean_data(config.test_inputs, description.geometry)
+    test_data, test_sources = load_clean_data(config.test_inputs, chain)
     return data, _problem(data, test_data, config), list(sources), sources + test_sources
 
 
@@ -335,14 +335,17 @@ def _report_dir(config: TrainingConfig) -> Path:
 
 
 def study_definition(config: TrainingConfig, sources: list[BagSource],
-                     description: RobotDescription) -> dict[str, Any]:
+                     chain: KinematicChain) -> dict[str, Any]:
     """What defines the tuning problem, recorded in the study (a command with other settings
     is refused) and naming it unless the config does: the bags by content (their paths
-    differ between machines), the robot description, topics, cleaning, space, the options
+    differ between machines), the robot chain, topics, cleaning, space, the options
     declared to define it (`options.study_options`: window, horizon, seed, preview), the
     machine map's and the training loop's settings."""
     return {'bags': sorted(s.sha256 for s in sources if not s.skipped_reason),
-            'robot_description': description.sha256,
+            'robot_description': chain.sha256,
+            # only for other robots than the LOMPR, which came later: its studies keep
+            # their names
+            **({'robot': chain.metadata()} if chain.kind != LOMPR_KIND else {}),
             'topics': _topics(config.inputs.topics),
             'cleaning': vars(config.inputs.cleaning), 'space': config.space.as_dict(),
             **study_options(config),
@@ -364,20 +367,20 @@ def _topics(topics: BagTopics) -> list[str]:
 
 
 def _machine_map(config: TrainingConfig, problem: LearningProblem, data: CleanData,
-                 description: RobotDescription) -> MachineMap | None:
+                 chain: KinematicChain) -> MachineMap | None:
     """The machine map of the problem's training part (None when the config wants none)."""
     if not config.machine_map:
         return None
     training = problem.split.training_rows()[:len(data)]
-    return fit_machine_map(problem, data.reference[training], description.geometry)
+    return fit_machine_map(problem, data.reference[training], chain)
 
 
 def _run_study(config: TrainingConfig, problem: LearningProblem,
                machine_map: MachineMap | None, sources: list[BagSource],
-               description: RobotDescription,
+               chain: KinematicChain,
                storage: StudyStorage) -> tuple[optuna.Study, TuningRun]:
     """Open (create, resume or join) the study and run it to its budget here."""
-    definition = study_definition(config, sources, description)
+    definition = study_definition(config, sources, chain)
     name = config.study_name or study_name_for(definition)
     study = open_study(storage, name, seed=config.seed, budget=config.trials,
                        restarts=config.restarts, definition=definition)
@@ -392,10 +395,10 @@ def _run_study(config: TrainingConfig, problem: LearningProblem,
 
 
 def _tune(config: TrainingConfig, problem: LearningProblem, machine_map: MachineMap | None,
-          sources: list[BagSource], description: RobotDescription,
+          sources: list[BagSource], chain: KinematicChain,
           storage: StudyStorage) -> _Tuned:
     """Run (or resume, or finish) the study to its budget; the best trial's module."""
-    study, run = _run_study(config, problem, machine_map, sources, description, storage)
+    study, run = _run_study(config, problem, machine_map, sources, chain, storage)
     objective = NetworkObjective(study, problem, config.space, config.settings,
                                  config.checkpoint_dir, progress=config.progress,
                                  machine_map=machine_map, network_inputs=config.network_inputs)

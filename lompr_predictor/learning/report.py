@@ -152,7 +152,7 @@ def _metric_tables(report: Mapping[str, Any]) -> list[str]:
             if with_bp:
                 ratio = report['ratios_to_bp'][axis][metric]
                 row.append('-' if ratio is None else f'{100 * ratio:.1f} %')
-            row += ['yes' if beaten[n][axis][metric] else '**no**' for n in beaten]
+            row += [_verdict(beaten[n][axis][metric], models, n, axis, metric) for n in beaten]
             lines.append('| ' + ' | '.join(row) + ' |')
         if irreducible:
             row = ['RMSE / irreducible'] + [
@@ -165,6 +165,15 @@ def _metric_tables(report: Mapping[str, Any]) -> list[str]:
         lines += ['Irreducible RMSE at this horizon (twin ground truth): '
                   f"X {irreducible['x']:.3g} um, Y {irreducible['y']:.3g} um.", '']
     return lines
+
+
+def _verdict(beaten: bool, models: dict[str, Any], name: str, axis: str, metric: str) -> str:
+    """'yes' where the BO-LSTM beats model `name`, 'tie' where both score the same (an axis
+    the error has no part in: both predict its zero), else '**no**'."""
+    if beaten:
+        return 'yes'
+    ours, theirs = (models[n]['metrics'][axis][metric] for n in ('bo_lstm', name))
+    return 'tie' if ours == theirs else '**no**'
 
 
 def _training_lines(report: Mapping[str, Any]) -> list[str]:

@@ -147,11 +147,13 @@ def build_module(problem: LearningProblem, model_type: str, hidden: int, *, resi
     if NORMALISATION[model_type] == 'standard':
         centre, scale = moments(windows)
         target_centre, target_scale = moments(targets)
-        return PredictorModule.from_affine(net, centre, scale, target_centre, target_scale,
-                                           **options)
-    low, high = minmax_range(windows)
-    target_low, target_high = minmax_range(targets)
-    return PredictorModule(net, low, high, target_low, target_high, **options)
+        module = PredictorModule.from_affine(net, centre, scale, target_centre, target_scale,
+                                             **options)
+    else:
+        low, high = minmax_range(windows)
+        target_low, target_high = minmax_range(targets)
+        module = PredictorModule(net, low, high, target_low, target_high, **options)
+    return module.with_fixed_targets(targets)
 
 
 def validation_loss(net: nn.Module, inputs: ScaledRows, ends: np.ndarray,

@@ -52,6 +52,7 @@ from lompr_predictor.errors import LomprError
 from lompr_predictor.files import file_sha256, write_atomic, write_json
 from lompr_predictor.online.adaptation import GRAPH_NAME, GRAPH_OUTPUTS_NAME, RESULT_JSON
 from lompr_predictor.online.sample_store import StoredSamples, read_ring
+from lompr_predictor.robot.chain import RobotSpec
 from lompr_predictor.threads import CoreUse, set_torch_threads
 
 if TYPE_CHECKING:  # imported by `attempt`, once the process runs at its lower priority
@@ -161,7 +162,7 @@ def attempt(samples: StoredSamples, request: AttemptRequest) -> dict[str, Any]:
     window, horizon, preview = parent_settings(request.parent)
     config = TrainingConfig(
         inputs=BagInputs((str(bag),), frame=request.frame), model_path=work / 'candidate.pt',
-        report_dir=work / 'report', robot_description=request.robot_description,
+        report_dir=work / 'report', robot=RobotSpec(request.robot_description),
         window=window, horizon=horizon, preview=preview, seed=request.seed,
         max_epochs=request.max_epochs, progress=False)
     result = fine_tune_predictor(config, request.parent)

@@ -33,6 +33,8 @@ from lompr_predictor.online.inference import (
     InferenceBackend,
     select_backend,
 )
+from lompr_predictor.online.model_slot import check_model
+from lompr_predictor.robot.chain import KinematicChain, RobotSpec, load_chain, spec_with_model
 
 #: Inferences run by a loaded model's backend before it may answer a sample (the first
 #: calls of a TorchScript module profile and optimise its graph); each must give a finite
@@ -59,6 +61,9 @@ class ModelRequest:
     verify: bool = True  # False (development only): an unverified file is loaded
     hint: str = ''  # how to pin or skip the hash, for the refusal message
     backend: Backend = Backend.AUTO  # what should run the network
+    #: The robot it runs for (frames and joints it leaves open: the model file's); by
+    #: default the packaged LOMPR's chain.
+    robot: RobotSpec = field(default_factory=RobotSpec)
 
 
 def expected_metadata(description_sha256: str, window: int = -1,
@@ -82,6 +87,8 @@ class ReadyModel:
     warm_up_seconds: float
     request: ModelRequest
     backend: InferenceBackend
+    #: The robot's chain the model runs for (the request's robot, completed by the model's).
+    chain: KinematicChain
     #: Why the backend is not the one the request prefers (None if it is).
     backend_why: str | None = None
 
@@ -213,8 +220,10 @@ def _load(request: ModelRequest, graph: ExportedGraph | None = None) -> ReadyMod
                        compile_now=graph is None or graph.outputs is None)
     period = request.sample_period or model.metadata.sample_period
     check_sample_period(model.metadata, period, request.path)
+    chain = load_chain(spec_with_model(request.robot, model.metadata.robot))
+    check_model(model, chain)
     backend, why = select_backend(model, request.backend, graph)
-    return ReadyModel(model, period, warm_up(model, backend), request, backend, why)
+    return ReadyModel(model, period, warm_up(model, backend), request, backend, chain, why)
 
 
 def warm_up(model: LoadedModel, backend: InferenceBackend,

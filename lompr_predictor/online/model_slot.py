@@ -19,24 +19,30 @@ from lompr_predictor.monitoring import LatencyRecorder
 from lompr_predictor.online.inference import InferenceBackend, Runner, TorchScriptBackend
 from lompr_predictor.online.offset import XY
 from lompr_predictor.online.window import FeatureWindow
-from lompr_predictor.robot.description import RobotDescription
+from lompr_predictor.robot.chain import KinematicChain
 
 
-def check_model(model: LoadedModel, description: RobotDescription) -> None:
-    """Refuse a model that reads other features than its preview defines or was trained
-    for another robot than `description`."""
-    for field, needed in (('features', feature_names(model.metadata.preview)),
-                          ('robot_description_sha256', description.sha256)):
+def check_model(model: LoadedModel, chain: KinematicChain) -> None:
+    """Refuse a model that reads other features than its preview defines for `chain` or was
+    trained for another robot (description, or a chain of it with other frames or
+    joints)."""
+    for field, needed in (('features', feature_names(model.metadata.preview, chain.actuators)),
+                          ('robot_description_sha256', chain.sha256)):
         found = getattr(model.metadata, field)
         if found != needed:
             raise MetadataMismatchError(model.path, field, needed, found)
+    trained_for = model.metadata.robot
+    ours = chain.metadata()
+    for key in ('base_frame', 'tip_frame', 'joints'):
+        if trained_for and trained_for.get(key) != ours[key]:
+            raise MetadataMismatchError(model.path, f'robot.{key}', ours[key],
+                                        trained_for.get(key))
 
 
-def check_fallback(fallback: LoadedModel, description: RobotDescription,
-                   horizon: int) -> None:
+def check_fallback(fallback: LoadedModel, chain: KinematicChain, horizon: int) -> None:
     """Refuse a fallback that `check_model` refuses, reads a preview, or predicts for
     another instant than `horizon` samples ahead."""
-    check_model(fallback, description)
+    check_model(fallback, chain)
     for field, needed in (('preview', 0), ('horizon', horizon)):
         found = getattr(fallback.metadata, field)
         if found != needed:
@@ -44,10 +50,10 @@ def check_fallback(fallback: LoadedModel, description: RobotDescription,
 
 
 def check_replacement(running: LoadedModel, model: LoadedModel,
-                      description: RobotDescription) -> None:
+                      chain: KinematicChain) -> None:
     """Refuse a model to swap in for `running` that `check_model` refuses or that reads
     another window or preview, or predicts for another horizon (`ValueError`)."""
-    check_model(model, description)
+    check_model(model, chain)
     old, new = running.metadata, model.metadata
     if (new.window, new.horizon, new.preview) != (old.window, old.horizon, old.preview):
         msg = (f'model {model.path} has window {new.window}, horizon {new.horizon} and '
@@ -61,10 +67,10 @@ class ModelSlot:
     docstring). `inference_time` records the duration of every network call."""
 
     def __init__(self, model: LoadedModel, backend: InferenceBackend | None,
-                 description: RobotDescription, inference_time: LatencyRecorder) -> None:
+                 chain: KinematicChain, inference_time: LatencyRecorder) -> None:
         metadata = model.metadata
         #: The rows the model reads, pushed by the core sample by sample.
-        self.window = FeatureWindow(metadata.window, description.geometry, metadata.preview)
+        self.window = FeatureWindow(metadata.window, chain, metadata.preview)
         self.inference_time = inference_time
         self.answers = 0  # windows this slot was asked to answer
         self.predictions = 0  # finite predictions it gave

@@ -40,7 +40,7 @@ from lompr_predictor.online.predictor_counts import PredictorCounts
 from lompr_predictor.online.preview import Planned, PlannedPath, PlanReader, PreviewDrop
 from lompr_predictor.online.sample_units import LiveAccuracy, SampleUnit
 from lompr_predictor.online.timing import OverrunGuard
-from lompr_predictor.robot.description import RobotDescription, load_robot_description
+from lompr_predictor.robot.chain import KinematicChain, load_chain
 from lompr_predictor.stamps import StampLike, period_ns
 
 #: The fallback model and what runs it (None: TorchScript).
@@ -54,12 +54,12 @@ class OnlinePredictor:
     def __init__(
         self, model: LoadedModel, stream: StreamSettings, limits: CompensationLimits, *,
         clock: Callable[[], int], backend: InferenceBackend | None = None,
-        fallback: Fallback | None = None, description: RobotDescription | None = None,
+        fallback: Fallback | None = None, chain: KinematicChain | None = None,
         units: Sequence[SampleUnit] = (), latency_samples: int = 1000,
     ) -> None:
         #: The robot the models must have been trained for (default: the packaged LOMPR).
-        self.description = description or load_robot_description()
-        check_model(model, self.description)
+        self.chain = chain or load_chain()
+        check_model(model, self.chain)
         self.stream = stream
         metadata = model.metadata
         self.horizon = metadata.horizon
@@ -82,11 +82,11 @@ class OnlinePredictor:
         self.inference_time = LatencyRecorder(latency_samples)
         #: The model's slot; the fallback's (None without one) answers where the plan is
         #: missing, from its own window of the same samples.
-        self.primary = ModelSlot(model, backend, self.description, self.inference_time)
+        self.primary = ModelSlot(model, backend, self.chain, self.inference_time)
         self.fallback: ModelSlot | None = None
         if fallback is not None:
-            check_fallback(fallback[0], self.description, self.horizon)
-            self.fallback = ModelSlot(*fallback, self.description, self.inference_time)
+            check_fallback(fallback[0], self.chain, self.horizon)
+            self.fallback = ModelSlot(*fallback, self.chain, self.inference_time)
         self._slots = tuple(slot for slot in (self.primary, self.fallback) if slot)
         #: The offsets published and their bounds, with their counters (change the bounds
         #: with `set_limits`).
@@ -179,7 +179,7 @@ class OnlinePredictor:
                       backend: InferenceBackend | None = None) -> None:
         """Use `model` (run by `backend`, default TorchScript) from the next sample on; it
         must read the same window and horizon."""
-        check_replacement(self.model, model, self.description)
+        check_replacement(self.model, model, self.chain)
         self.primary.use(model, backend)
 
     # -- state for diagnostics ------------------------------------------------------------

@@ -5,8 +5,9 @@ window here equals the offline window over the same samples. A row needs `HISTOR
 before it (the second difference), so a full window of `window` rows takes `window +
 HISTORY` samples after the window was last emptied.
 
-Each sample costs one row, computed incrementally: the newest sample's branch lengths (one
-`VerticalToolBranches.at` call, the inverse kinematics `feature_rows` does on arrays), then
+Each sample costs one row, computed incrementally: the newest sample's actuator coordinates
+(one `at` call of the chain's, e.g. the LOMPR's branch lengths by inverse kinematics, as
+`feature_rows` does on arrays), then
 `newest_row`, `feature_rows` applied to the last `HISTORY + 1` samples, written out on
 Python floats (the same operations in the same order, so the same bits), since NumPy's
 per-call overhead on arrays of three is many times the arithmetic. The rows live in a
@@ -31,63 +32,58 @@ import struct
 
 import numpy as np
 
-from lompr_predictor.data.features import FEATURES, HISTORY, PLANNED_COLUMNS, feature_names
-from lompr_predictor.robot.description import LomprGeometry
-from lompr_predictor.robot.kinematics import VerticalToolBranches
+from lompr_predictor.data.features import FIRST_PLANNED_COLUMN, HISTORY, feature_names
+from lompr_predictor.robot.chain import KinematicChain
 
-# `newest_row` is written for a second difference of these columns; a feature change must
-# change it too.
+# `newest_row` is written for a second difference of the differenced coordinates.
 assert HISTORY == 2, 'window.newest_row computes the features of features.py by hand'
-assert len(FEATURES) == 14, 'window.newest_row computes the features of features.py by hand'
-assert tuple(range(4, 14)) == PLANNED_COLUMNS, 'FeatureWindow._block writes the preview block'
+assert FIRST_PLANNED_COLUMN == 4, 'FeatureWindow._block writes the preview block'
 
-#: stamp [ns], error x, y [m], then the differenced coordinates: reference x, y and the
-#: three branch lengths [m]
-Sample = tuple[int, float, float, float, float, float, float, float]
-_NONE: Sample = (0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+#: stamp [ns], error x, y [m], then the differenced coordinates: reference x, y [m] and the
+#: chain's actuator coordinates
+Sample = tuple[float, ...]
 #: The planned instant K samples after a sample [ns] and the planned tool tip there [m].
 Planned = tuple[int, float, float, float]
-_NO_BLOCK = (0.0,) * (len(feature_names(1)) - len(FEATURES))
 
 
 def newest_row(older: Sample, previous: Sample, newest: Sample) -> tuple[float, ...]:
     """The last row of `feature_rows` over three consecutive samples (`Sample`), with the
     stamps as `stamps.seconds_since` the first: the same floating-point operations, so bit
     for bit the same row."""
-    s0, _, _, x0, y0, p0, q0, r0 = older  # p, q, r: the lengths of branches 1, 2, 3
-    s1, _, _, x1, y1, p1, q1, r1 = previous
-    s2, ex, ey, x2, y2, p2, q2, r2 = newest
-    t1 = (s1 - s0) * 1e-9  # seconds_since: integer difference first, then to seconds
-    dt2 = (s2 - s0) * 1e-9 - t1  # np.diff of the seconds (the first step is t1 - 0.0 = t1)
-    vx, vy = (x2 - x1) / dt2, (y2 - y1) / dt2
-    vp, vq, vr = (p2 - p1) / dt2, (q2 - q1) / dt2, (r2 - r1) / dt2
-    return (ex, ey, x2, y2, vx, vy,
-            (vx - (x1 - x0) / t1) / dt2, (vy - (y1 - y0) / t1) / dt2,
-            vp, vq, vr,
-            (vp - (p1 - p0) / t1) / dt2, (vq - (q1 - q0) / t1) / dt2,
-            (vr - (r1 - r0) / t1) / dt2)
+    s1 = previous[0]
+    s2, ex, ey = newest[0], newest[1], newest[2]
+    t1 = (s1 - older[0]) * 1e-9  # seconds_since: integer difference first, then to seconds
+    dt2 = (s2 - older[0]) * 1e-9 - t1  # np.diff of the seconds (the first step is t1 - 0.0)
+    coordinates = range(3, len(newest))
+    velocity = [(newest[k] - previous[k]) / dt2 for k in coordinates]
+    acceleration = [(v - (previous[k] - older[k]) / t1) / dt2
+                    for v, k in zip(velocity, coordinates, strict=True)]
+    return (ex, ey, newest[3], newest[4], velocity[0], velocity[1],
+            acceleration[0], acceleration[1], *velocity[2:], *acceleration[2:])
 
 
 class FeatureWindow:
     """The feature rows of the last `window` samples since the window was last emptied,
-    for the robot of `geometry` (its branches' inverse kinematics), with the preview block
-    of `preview` samples (0: none)."""
+    for the robot of `chain` (its actuator coordinates along the reference), with the
+    preview block of `preview` samples (0: none)."""
 
-    def __init__(self, window: int, geometry: LomprGeometry, preview: int = 0) -> None:
+    def __init__(self, window: int, chain: KinematicChain, preview: int = 0) -> None:
         if window < 1:
             msg = f'a window needs at least one row, got {window}'
             raise ValueError(msg)
         self.window = window
         self.preview = preview
-        columns = len(feature_names(preview))
-        self._planned_older = self._planned_previous = _NONE
+        columns = len(feature_names(preview, chain.actuators))
+        self._none: Sample = (0, *(0.0,) * (4 + len(chain.actuators)))
+        self._no_block = (0.0,) * (columns - len(feature_names(0, chain.actuators)))
+        self._planned_older = self._planned_previous = self._none
         self._planned_run = 0  # consecutive samples pushed with a plan
         #: Samples a full window takes after it was emptied.
         self.needed = window + HISTORY
-        self._branches = VerticalToolBranches(geometry)
+        self._coordinates = chain.actuator_coordinates()
         # the last HISTORY + 1 samples (`Sample`), those before the first since the window
-        # was emptied left as _NONE (never read: see `_filled`)
-        self._previous = self._newest = _NONE
+        # was emptied left as `_none` (never read: see `_filled`)
+        self._previous = self._newest = self._none
         self._buffer = np.zeros((2 * window, columns))
         # a row is written with one C call: struct packing into the buffer's memory
         self._write_row = struct.Struct(f'={columns}d').pack_into
@@ -106,7 +102,7 @@ class FeatureWindow:
     @property
     def last_stamp_ns(self) -> int | None:
         """Stamp of the newest sample in the window [ns], None while it is empty."""
-        return self._newest[0] if self._filled else None
+        return int(self._newest[0]) if self._filled else None
 
     @property
     def empty(self) -> bool:
@@ -128,7 +124,7 @@ class FeatureWindow:
         plan `preview` samples later (None: no plan there); True once the window is full."""
         older, previous = self._previous, self._newest
         newest = (stamp_ns, error_x, error_y, reference_x, reference_y,
-                  *self._branches.at(reference_x, reference_y, reference_z))
+                  *self._coordinates.at(reference_x, reference_y, reference_z))
         self._previous, self._newest = previous, newest
         self._filled += 1
         block = self._block(reference_x, reference_y, planned) if self.preview else ()
@@ -154,14 +150,14 @@ class FeatureWindow:
         samples had a plan (such a row is never read: `full`)."""
         if planned is None:
             self._planned_run = 0
-            return _NO_BLOCK
+            return self._no_block
         stamp_ns, x, y, z = planned
         older, previous = self._planned_older, self._planned_previous
-        newest = (stamp_ns, 0.0, 0.0, x, y, *self._branches.at(x, y, z))
+        newest = (stamp_ns, 0.0, 0.0, x, y, *self._coordinates.at(x, y, z))
         self._planned_older, self._planned_previous = previous, newest
         self._planned_run += 1
         if self._planned_run <= HISTORY:
-            return _NO_BLOCK
+            return self._no_block
         row = newest_row(older, previous, newest)
         return (row[2] - reference_x, row[3] - reference_y, *row[4:])
 
@@ -185,6 +181,6 @@ class FeatureWindow:
 
     def clear(self) -> None:
         """Empty the window: the next `needed` samples refill it."""
-        self._previous = self._newest = _NONE
+        self._previous = self._newest = self._none
         self._filled = 0
         self._planned_run = 0

@@ -123,17 +123,7 @@ class RobotDescription:
     @classmethod
     def from_file(cls, path: str | Path) -> RobotDescription:
         """Load a URDF file."""
-        path = Path(path)
-        try:
-            xml = path.read_text(encoding='utf-8')
-        except OSError as err:
-            msg = f'cannot read robot description {path}: {err.strerror or err}'
-            raise RobotDescriptionError(msg) from err
-        except UnicodeDecodeError as err:
-            msg = (f'robot description {path} is not a URDF (XML text in UTF-8): byte '
-                   f'{err.start} is not UTF-8')
-            raise RobotDescriptionError(msg) from err
-        return cls(xml, str(path))
+        return cls(read_urdf(path), str(path))
 
     def joint_id(self, name: str) -> int:
         """Pinocchio joint index of `name`, or a `NameNotFoundError` listing the joints."""
@@ -259,6 +249,20 @@ def robot_subtree(urdf_xml: str, source: str) -> tuple[str, str]:
         if parent is not None and parent.get('link') not in below:
             root.remove(joint)
     return ElementTree.tostring(root, encoding='unicode'), base
+
+
+def read_urdf(path: str | Path) -> str:
+    """The text of a URDF file, or a `RobotDescriptionError` saying why it cannot be read."""
+    path = Path(path)
+    try:
+        return path.read_text(encoding='utf-8')
+    except OSError as err:
+        msg = f'cannot read robot description {path}: {err.strerror or err}'
+        raise RobotDescriptionError(msg) from err
+    except UnicodeDecodeError as err:
+        msg = (f'robot description {path} is not a URDF (XML text in UTF-8): byte '
+               f'{err.start} is not UTF-8')
+        raise RobotDescriptionError(msg) from err
 
 
 def default_description_path() -> Path:

@@ -1,12 +1,15 @@
 """kinematics_node: measured joints (/joint_states) -> tool-tip pose (/lompr/end_pose).
 
-A thin node: it matches joints by name, calls `kinematics.ForwardKinematics.solve`, and
-publishes the pose with the JointState's own stamp in the robot frame (`lompr_base`, after
-`frame_prefix`). A sample it cannot answer (malformed message, missing joint, NaN/inf,
-branch out of stroke, head angle out of range, pose out of workspace, no convergence) gets
-no output: the reason is counted for /diagnostics, a throttled warning says what was wrong,
-and the next good sample is answered. A bad sample or a gap in the stamps restarts the FK
-warm start.
+A thin node: it matches the robot's joints by name and solves their forward kinematics
+(`robot.joint_stream`, on the chain `robot.chain` loads from the URDF, its base and tip
+frames: the LOMPR's closed chain or any serial chain), and publishes the pose with the
+JointState's own stamp in the robot frame (`frame_id`, after `frame_prefix`). With
+`command_topic`, the commanded joints of a robot commanded in joints go the same way and
+come out as the reference pose (`reference_topic`), stamped with the command's instant. A
+sample it cannot answer (malformed message, missing joint, NaN/inf, a joint out of its
+limits, pose out of workspace, no convergence) gets no output: the reason is counted for
+/diagnostics, a throttled warning says what was wrong, and the next good sample is
+answered. A bad sample or a gap in the stamps restarts the FK warm start.
 
 Time: each JointState is answered when it arrives, whatever the clock says; its rates,
 throttled warnings and /diagnostics run on the node's clock (simulated time, from /clock,
@@ -16,10 +19,8 @@ under use_sim_time), the solve times on the wall clock.
 from __future__ import annotations
 
 import sys
-import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from enum import StrEnum
 from typing import Any
 
 from geometry_msgs.msg import PoseStamped
@@ -27,14 +28,7 @@ from rclpy.context import Context
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from lompr_predictor.errors import (
-    ConvergenceError,
-    JointLimitError,
-    KinematicsError,
-    LomprError,
-    StrokeLimitError,
-    WorkspaceError,
-)
+from lompr_predictor.errors import KinematicsError
 from lompr_predictor.monitoring import (
     LatencyRecorder,
     Level,
@@ -43,12 +37,15 @@ from lompr_predictor.monitoring import (
     latency_values,
     rejection_values,
 )
-from lompr_predictor.robot.description import (
-    MEASURED_JOINTS,
-    joint_names_problem,
-    load_robot_description,
+from lompr_predictor.robot.chain import RobotSpec, load_chain
+from lompr_predictor.robot.joint_stream import (
+    KINEMATICS_REASONS,
+    JointStateDrop,
+    JointStateError,
+    JointStream,
+    StreamLimits,
 )
-from lompr_predictor.robot.kinematics import AllJoints, ForwardKinematics, NonFiniteJointError
+from lompr_predictor.robot.kinematics import ToolPose
 from lompr_predictor.ros.common import run_node
 from lompr_predictor.ros.node_base import (
     OUTPUT_QOS,
@@ -60,39 +57,18 @@ from lompr_predictor.ros.node_base import (
 )
 from lompr_predictor.ros.parameters import parameter
 from lompr_predictor.ros.wire import PoseStampedWriter, WireError, read_joint_state
-from lompr_predictor.stamps import NS_PER_SECOND, StampReason, period_ns, stamp_problem
+from lompr_predictor.stamps import period_ns
 
 NODE_NAME = 'kinematics_node'
+__all__ = ['KINEMATICS_REASONS', 'JointStateDrop', 'KinematicsNode', 'KinematicsNodeSettings',
+           'main']
 
 
-class JointStateDrop(StrEnum):
-    """Why a joint state got no end pose; each is a key `rejected.<reason>` in
-    /diagnostics."""
-
-    # the message
-    MALFORMED = 'malformed'
-    UNSTAMPED = 'unstamped'
-    BAD_STAMP = StampReason.BAD_STAMP.value
-    FUTURE_STAMP = StampReason.FUTURE_STAMP.value
-    MISSING_JOINT = 'missing_joint'
-    DUPLICATE_JOINT = 'duplicate_joint'
-    # the kinematics
-    NON_FINITE = 'non_finite'
-    STROKE_LIMIT = 'stroke_limit'
-    JOINT_LIMIT = 'joint_limit'
-    WORKSPACE = 'workspace'
-    NO_CONVERGENCE = 'no_convergence'
-    KINEMATICS = 'kinematics'  # any other kinematics error
-
-
-#: The drop reason of each kinematics error.
-KINEMATICS_REASONS: Mapping[type[KinematicsError], JointStateDrop] = {
-    NonFiniteJointError: JointStateDrop.NON_FINITE,
-    StrokeLimitError: JointStateDrop.STROKE_LIMIT,
-    JointLimitError: JointStateDrop.JOINT_LIMIT,
-    WorkspaceError: JointStateDrop.WORKSPACE,
-    ConvergenceError: JointStateDrop.NO_CONVERGENCE,
-}
+def _joint_names_problem(names: tuple[str, ...]) -> str | None:
+    """Why `names` cannot name the measured joints (the chain checks which they must be)."""
+    if '' in names or len(set(names)) != len(names):
+        return 'needs distinct, non-empty names'
+    return None
 
 
 @dataclass(frozen=True)
@@ -101,12 +77,27 @@ class KinematicsNodeSettings(FrameSettings):
     declared by `NodeBase.declare_settings`."""
 
     robot_description_file: str = parameter(
-        '', 'URDF of the robot (its calibrated geometry); empty: the packaged nominal LOMPR '
-        'description', read_only=True)
+        '', "URDF of the robot (its calibrated geometry): the LOMPR's closed chain or any "
+        'serial chain; empty: the packaged nominal LOMPR description', read_only=True)
+    base_frame: str = parameter(
+        '', "URDF frame the tool pose is expressed in; empty: the URDF's root (the LOMPR: "
+        'its robot frame)', read_only=True)
+    tip_frame: str = parameter(
+        '', "URDF frame of the tool tip; empty: the LOMPR's tool_tip (another robot needs "
+        'it named)', read_only=True)
     joint_names: tuple[str, ...] = parameter(
-        MEASURED_JOINTS, 'names, as they appear in the JointState, of the joints ups1, ups2, '
-        'ups3, head_primary, head_secondary (in this order); other names are ignored',
-        read_only=True, check=joint_names_problem)
+        (), 'the measured joints, as they appear in the JointState: for a serial chain the '
+        "URDF's joints from base to tip (empty: all of them, in that order); for the LOMPR "
+        'the names of ups1, ups2, ups3, head_primary, head_secondary (in this order; empty: '
+        'these); other names in a message are ignored', read_only=True,
+        check=_joint_names_problem, items=str)
+    command_topic: str = parameter(
+        '', 'JointState of the commanded joints (a robot commanded in joints, as a '
+        'ros2_control robot is): their forward kinematics is published on reference_topic '
+        "with the command's stamp; empty: off", read_only=True)
+    reference_topic: str = parameter(
+        'lompr/reference', 'PoseStamped output of the commanded tool pose (with '
+        'command_topic)', read_only=True)
     joint_state_topic: str = parameter('joint_states', 'JointState input topic (relative: '
                                        "in the node's namespace)", read_only=True)
     end_pose_topic: str = parameter('lompr/end_pose', 'PoseStamped output topic',
@@ -140,19 +131,16 @@ JOINT_STATES = Endpoint('subscription', JointState, 'joint_state_topic', SENSOR_
 END_POSE = Endpoint('publisher', PoseStamped, 'end_pose_topic', OUTPUT_QOS, 'end poses')
 FULL_JOINT_STATES = Endpoint('publisher', JointState, 'full_joint_state_topic', OUTPUT_QOS,
                              'full joint states')
-ENDPOINTS = (JOINT_STATES, END_POSE, FULL_JOINT_STATES)
-
-
-class JointStateError(LomprError):
-    """A JointState message that cannot be turned into the five measured joints."""
-
-    def __init__(self, reason: JointStateDrop, message: str) -> None:
-        self.reason = reason
-        super().__init__(message)
+COMMANDS = Endpoint('subscription', JointState, 'command_topic', SENSOR_INPUT_QOS,
+                    'commanded joints (command_topic set)')
+REFERENCE = Endpoint('publisher', PoseStamped, 'reference_topic', OUTPUT_QOS,
+                     'commanded tool poses (command_topic set)')
+ENDPOINTS = (JOINT_STATES, END_POSE, FULL_JOINT_STATES, COMMANDS, REFERENCE)
 
 
 class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
-    """Forward kinematics of every measured JointState, with diagnostics.
+    """Forward kinematics of every measured JointState (and, with `command_topic`, of every
+    commanded one), with diagnostics.
 
     Extra keyword arguments go to `rclpy.node.Node` (`context`, `parameter_overrides`,
     `namespace`, ...), so tests and one-process pipelines create it on their own context.
@@ -161,17 +149,13 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
     def __init__(self, node_name: str = NODE_NAME, **node_kwargs: Any) -> None:
         super().__init__(node_name, **node_kwargs)
         settings = self.declare_settings(KinematicsNodeSettings)
-        self.description = load_robot_description(settings.robot_description_file or None)
-        self._fk = ForwardKinematics(self.description)
-        self._last_names: tuple[str, ...] | None = None
-        self._indices: list[int] | None = None  # where the joints are in _last_names
-        #: Why `_indices` is None: (reason, explanation).
-        self._missing = (JointStateDrop.MISSING_JOINT, 'no joint state seen yet')
-        self._last_stamp_ns: int | None = None
-        self.warm_start_resets = 0
-
-        self.rejected = RejectionCounter(JointStateDrop)
+        #: The robot: the URDF's chain from base to tip, its measured joints.
+        self.chain = load_chain(RobotSpec(settings.robot_description_file or None,
+                                          settings.base_frame, settings.tip_frame,
+                                          settings.joint_names))
         self.solve_time = LatencyRecorder(settings.latency_samples)
+        self.measured = JointStream(self.chain, self.chain.joint_names, self.solve_time)
+        self.rejected = RejectionCounter(JointStateDrop)
         self.input_rate = self.rate_meter(settings.rate_window)  # on the node's clock
         self.output_rate = self.rate_meter(settings.rate_window)
         self._rejected_at_last_report = 0
@@ -182,19 +166,29 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
         #: callback timing.
         self.end_pose_readers: list[Callable[[bytes], None]] = []
         self._pose_writer = PoseStampedWriter(settings.frame)
-        self._all_joints = AllJoints(self.description)
         self._full_publisher = (self.advertise(FULL_JOINT_STATES)
                                 if settings.publish_full_joint_state else None)
         self._subscription = self.subscribe(JOINT_STATES, self.on_joint_state, raw=True)
         self._diagnostics = self.start_diagnostics(
             settings.diagnostics_topic, settings.diagnostics_period,
-            hardware_id=self.description.name)
+            hardware_id=self.chain.name)
         self._diagnostics.add('joint states', self.input_status)
         self._diagnostics.add('forward kinematics', self.kinematics_status)
+        #: The commanded joints' path (None without `command_topic`).
+        self.commands = CommandPath(self) if settings.command_topic else None
+        if self.commands is not None:
+            self._diagnostics.add('commanded joints', self.commands.status)
         self.get_logger().info(
             f'forward kinematics of {settings.joint_state_topic} -> '
-            f'{settings.end_pose_topic} with {self.description.source} '
-            f'(sha256 {self.description.sha256[:16]})')
+            f'{settings.end_pose_topic} with {self.chain.source} ({self.chain.kind} chain '
+            f'{self.chain.base_frame} -> {self.chain.tip_frame}, sha256 '
+            f'{self.chain.sha256[:16]})')
+
+    @property
+    def limits(self) -> StreamLimits:
+        """The stamps' rules of every joint stream, from the parameters."""
+        return StreamLimits(period_ns(self.settings.max_future_stamp),
+                            self.settings.warm_start_max_gap)
 
     def on_joint_state(self, data: bytes) -> None:
         """Publish the end pose of one serialized JointState (the subscription takes it raw:
@@ -202,29 +196,10 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
         now_ns = self.clock_ns()
         now = now_ns * 1e-9  # clock_seconds, read once
         self.input_rate.tick(now)
-        sec = nanosec = 0
-        clock = time.perf_counter
-        try:
-            try:
-                sec, nanosec, names, positions = read_joint_state(data)
-            except WireError as err:
-                raise JointStateError(JointStateDrop.MALFORMED, str(err)) from err
-            stamp_ns = self._stamp_ns(sec, nanosec, now_ns)
-            joints = self._measured_joints(names, positions)
-            self._check_gap(stamp_ns)
-            start = clock()
-            try:
-                pose = self._fk.solve(joints)
-            finally:
-                self.solve_time.record(clock() - start)
-        except JointStateError as err:
-            self._fk.reset()
-            self._reject(err.reason, sec, nanosec, err)
+        answer = self.solve(self.measured, data, now_ns, self.rejected)
+        if answer is None:
             return
-        except KinematicsError as err:  # the FK has already dropped its warm start
-            self._reject(KINEMATICS_REASONS.get(type(err), JointStateDrop.KINEMATICS), sec,
-                         nanosec, err)
-            return
+        sec, nanosec, pose, joints = answer
         end_pose = self._pose_writer.pack(sec, nanosec, pose.position.tolist(),
                                           pose.quaternion.tolist())
         self._publisher.publish(end_pose)
@@ -233,6 +208,27 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
             self.publish_full_joint_state(sec, nanosec, joints)
         for reader in self.end_pose_readers:
             self.callback_times.apart(reader, end_pose)
+
+    def solve(self, stream: JointStream, data: bytes, now_ns: int, rejected: RejectionCounter
+              ) -> tuple[int, int, ToolPose, list[float]] | None:
+        """(stamp sec, nanosec, tool pose, joints) of one serialized JointState of `stream`,
+        or None with the reason counted in `rejected` and a throttled warning."""
+        sec = nanosec = 0
+        try:
+            try:
+                sec, nanosec, names, positions = read_joint_state(data)
+            except WireError as err:
+                raise JointStateError(JointStateDrop.MALFORMED, str(err)) from err
+            pose, joints = stream.pose(sec, nanosec, names, positions, now_ns, self.limits)
+        except JointStateError as err:
+            stream.solver.reset()
+            self._reject(rejected, err.reason, sec, nanosec, err)
+            return None
+        except KinematicsError as err:  # the FK has already dropped its warm start
+            self._reject(rejected, KINEMATICS_REASONS.get(type(err), JointStateDrop.KINEMATICS),
+                         sec, nanosec, err)
+            return None
+        return sec, nanosec, pose, joints
 
     @property
     def end_pose_topic(self) -> str:
@@ -244,65 +240,16 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
         assert self._full_publisher is not None
         message = JointState()
         message.header.stamp.sec, message.header.stamp.nanosec = sec, nanosec
-        message.name = list(self._all_joints.names)
-        message.position = self._all_joints.positions(self._fk.last_up, joints)
+        names, positions = self.chain.all_joints(self.measured.solver, joints)
+        message.name, message.position = list(names), positions
         self._full_publisher.publish(message)
 
-    def _stamp_ns(self, sec: int, nanosec: int, now_ns: int) -> int:
-        if sec == 0 and nanosec == 0:
-            raise JointStateError(JointStateDrop.UNSTAMPED, 'header.stamp is zero: the '
-                                  'sample instant is unknown, so its pose could not be '
-                                  'aligned with anything')
-        problem = stamp_problem(sec, nanosec, now_ns, period_ns(self.settings.max_future_stamp))
-        if problem is not None:
-            raise JointStateError(JointStateDrop(problem.reason), problem.explanation)
-        return sec * NS_PER_SECOND + nanosec
-
-    def _measured_joints(self, names: tuple[str, ...],
-                         positions: Sequence[float]) -> list[float]:
-        """The five measured joints in `MEASURED_JOINTS` order, matched by name."""
-        if len(positions) != len(names):
-            raise JointStateError(
-                JointStateDrop.MALFORMED, f'{len(names)} names but {len(positions)} positions')
-        if names != self._last_names:  # a robot sends the same names every time: match once
-            self._match(names)
-        if self._indices is None:
-            raise JointStateError(*self._missing)
-        return [positions[i] for i in self._indices]
-
-    def _match(self, names: tuple[str, ...]) -> None:
-        """Where the measured joints are in `names`; a joint missing, or named twice (which
-        value would be meant?), leaves no match and says why."""
-        wanted = self.settings.joint_names
-        index = {name: i for i, name in enumerate(names)}
-        missing = [name for name in wanted if name not in index]
-        twice = [name for name in wanted if names.count(name) > 1]
-        self._last_names = names
-        self._indices = None if missing or twice else [index[n] for n in wanted]
-        if twice:
-            self._missing = (JointStateDrop.DUPLICATE_JOINT,
-                             f'joint(s) {", ".join(twice)} named more than once (got '
-                             f'{", ".join(names)})')
-        else:
-            self._missing = (JointStateDrop.MISSING_JOINT,
-                             f'missing joint(s) {", ".join(missing)} (got '
-                             f'{", ".join(names) or "none"})')
-
-    def _check_gap(self, stamp_ns: int) -> None:
-        """Drop the warm start after a gap or a stamp that does not move forward, measured
-        from the previous sample that reached the solver."""
-        last, self._last_stamp_ns = self._last_stamp_ns, stamp_ns
-        if last is None:
-            return
-        gap = (stamp_ns - last) * 1e-9
-        if gap <= 0.0 or gap > self.settings.warm_start_max_gap:
-            self._fk.reset()
-            self.warm_start_resets += 1
-
-    def _reject(self, reason: JointStateDrop, sec: int, nanosec: int, err: Exception) -> None:
-        self.rejected.add(reason)
-        self.warn_throttled(reason, f'no end pose for the joint state at '
-                                    f'{sec}.{nanosec:09d} ({reason}): {err}')
+    def _reject(self, rejected: RejectionCounter, reason: JointStateDrop, sec: int,
+                nanosec: int, err: Exception) -> None:
+        rejected.add(reason)
+        what = 'end pose' if rejected is self.rejected else 'commanded pose'
+        self.warn_throttled(f'{what} {reason}', f'no {what} for the joint state at '
+                                                f'{sec}.{nanosec:09d} ({reason}): {err}')
 
     def input_status(self) -> Status:
         """Diagnostics of /joint_states: rate, counts, rejections by reason."""
@@ -333,10 +280,11 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
             **latency_values('solve_time', summary),
             'output_rate_hz': round(self.output_rate.rate(), 3),
             'published_total': self.output_rate.total,
-            'warm_start_resets': self.warm_start_resets,
-            'newton_iterations_last': self._fk.last_iterations,
-            'robot_description': self.description.source,
-            'robot_description_sha256': self.description.sha256,
+            'warm_start_resets': self.measured.warm_start_resets,
+            'newton_iterations_last': self.measured.solver.last_iterations,
+            'robot_description': self.chain.source,
+            'robot_description_sha256': self.chain.sha256,
+            'chain': f'{self.chain.kind}: {self.chain.base_frame} -> {self.chain.tip_frame}',
         }
         if summary.samples == 0:
             return Status(Level.OK, 'no joint state solved yet', values)
@@ -345,6 +293,48 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
             limit = self.settings.solve_time_warn * 1e6
             return Status(Level.WARN, f'{timing} (over {limit:.0f} us)', values)
         return Status(Level.OK, timing, values)
+
+
+class CommandPath:
+    """The commanded joints of a robot commanded in joints (`command_topic`): each one's
+    forward kinematics published as the reference pose with its stamp, so the predictor
+    reads them as it reads a path generator's reference; drops counted by reason, a status
+    of their own."""
+
+    def __init__(self, node: KinematicsNode) -> None:
+        settings = node.settings
+        self.node = node
+        self.stream = JointStream(node.chain, node.chain.joint_names,
+                                  LatencyRecorder(settings.latency_samples))
+        self.rejected = RejectionCounter(JointStateDrop)
+        self.input_rate = node.rate_meter(settings.rate_window)
+        self.writer = PoseStampedWriter(settings.frame)
+        self.publisher = node.advertise(REFERENCE)
+        node.subscribe(COMMANDS, self.on_command, raw=True)
+
+    def on_command(self, data: bytes) -> None:
+        """Publish the commanded tool pose of one serialized JointState."""
+        now_ns = self.node.clock_ns()
+        self.input_rate.tick(now_ns * 1e-9)
+        answer = self.node.solve(self.stream, data, now_ns, self.rejected)
+        if answer is not None:
+            sec, nanosec, pose, _ = answer
+            self.publisher.publish(self.writer.pack(sec, nanosec, pose.position.tolist(),
+                                                    pose.quaternion.tolist()))
+
+    def status(self) -> Status:
+        """Diagnostics of the commanded joints: rate, counts, rejections by reason."""
+        values: dict[str, object] = {
+            'input_rate_hz': round(self.input_rate.rate(), 3),
+            'received_total': self.input_rate.total, **rejection_values(self.rejected)}
+        topic = self.node.settings.command_topic
+        if self.input_rate.seconds_since_last() is None:
+            return Status(Level.WARN, f'no commanded joints on {topic} for '
+                                      f'{self.node.settings.rate_window:g} s', values)
+        if self.rejected.total:
+            return Status(Level.WARN, f'{self.rejected.total} commanded joint states '
+                                      'rejected', values)
+        return Status(Level.OK, f'{values["input_rate_hz"]} Hz', values)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -38,7 +38,8 @@ from lompr_predictor.online.predictor_status import Lifecycle, ModelHistory
 from lompr_predictor.online.preview import PreviewDrop
 from lompr_predictor.online.sample_store import SampleStoreError
 from lompr_predictor.online.stage_timing import StageHistograms, time_stages
-from lompr_predictor.robot.description import load_robot_description, robot_name
+from lompr_predictor.robot.chain import description_sha256
+from lompr_predictor.robot.description import robot_name
 from lompr_predictor.ros.common import run_node
 from lompr_predictor.ros.managed import ManagedNode
 from lompr_predictor.ros.node_base import NodeBase, node_help
@@ -175,14 +176,13 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         """Load the description and the model, build the core and the endpoints (or why not)."""
         settings = self.settings
         try:
-            description = load_robot_description(settings.robot_description_file or None)
+            sha256 = description_sha256(settings.robot_description_file or None)
         except LomprError as err:
             return err
         outcome = load_ready_model(ModelRequest(
-            settings.model_path, expected_metadata(description.sha256, settings.window,
-                                                   settings.horizon),
+            settings.model_path, expected_metadata(sha256, settings.window, settings.horizon),
             settings.sample_period, settings.model_sha256, settings.verify_model_hash,
-            HASH_HINT, Backend(settings.inference_backend)))
+            HASH_HINT, Backend(settings.inference_backend), settings.robot))
         if outcome.ready is None:
             return outcome.error
         self.running = ready = outcome.ready
@@ -207,7 +207,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             ready.model, settings.stream(self.sample_period), settings.limits,
             clock=self.clock_ns, backend=ready.backend,
             fallback=(fallback.model, fallback.backend) if fallback else None,
-            description=description, latency_samples=settings.latency_samples,
+            chain=ready.chain, latency_samples=settings.latency_samples,
             units=(self.model_guard, *([store.store] if store else [])))
         if settings.time_stages:
             time_stages(self._core, StageHistograms(self.callback_times))

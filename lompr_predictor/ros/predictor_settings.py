@@ -14,6 +14,7 @@ from lompr_predictor.online.faults import StreamSettings
 from lompr_predictor.online.guard import DEFAULT_GUARD, GuardSettings
 from lompr_predictor.online.inference import Backend
 from lompr_predictor.online.offset import CompensationLimits
+from lompr_predictor.robot.chain import RobotSpec
 from lompr_predictor.ros.node_base import (
     OUTPUT_QOS,
     SENSOR_INPUT_QOS,
@@ -63,8 +64,14 @@ class PredictorNodeSettings(FrameSettings):
         minimum=0.0, maximum=0.01)
     robot_description_file: str = parameter(
         '', 'URDF of the robot (its calibrated geometry), the one the model must have been '
-        "trained for: it gives the features' branch kinematics and its sha256 is checked; "
+        "trained for: it gives the features' kinematics and its sha256 is checked; "
         'empty: the packaged nominal LOMPR description', read_only=True)
+    base_frame: str = parameter(
+        '', "the URDF frame the poses are in; empty: the model file's (the description's "
+        'for the LOMPR)', read_only=True)
+    tip_frame: str = parameter(
+        '', "the URDF frame of the tool tip; empty: the model file's (the LOMPR's tool_tip)",
+        read_only=True)
     sample_period: float = parameter(
         0.0, 'period [s] of the pose stamps, which the model must have been trained at '
         "(within 2 %); 0: the model file's", minimum=0.0, maximum=10.0, read_only=True)
@@ -259,6 +266,11 @@ class PredictorNodeSettings(FrameSettings):
         if self.adaptation_enabled:
             return max(self.store_minutes, self.adaptation_minutes)
         return self.store_minutes
+
+    @property
+    def robot(self) -> RobotSpec:
+        """The robot the model must run for (what it leaves open: the model file's)."""
+        return RobotSpec(self.robot_description_file or None, self.base_frame, self.tip_frame)
 
     @property
     def limits(self) -> CompensationLimits:

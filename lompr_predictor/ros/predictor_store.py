@@ -100,7 +100,7 @@ class NodeSampleStore:
         core = node.core
         return {'node': node.get_fully_qualified_name(), 'model_path': core.model.path,
                 'model_sha256': core.model.sha256,
-                'robot_description_sha256': core.description.sha256,
+                'robot_description_sha256': core.chain.sha256,
                 'sample_period': node.sample_period, 'store_minutes': self.minutes,
                 'restarts': self.store.restarts,
                 'use_sim_time': bool(node.get_parameter('use_sim_time').value),

@@ -25,6 +25,7 @@ import numpy as np
 from lompr_predictor.data.features import TARGETS
 from lompr_predictor.files import write_atomic, write_json
 from lompr_predictor.plots import pyplot, save_figure
+from lompr_predictor.robot.chain import KinematicChain
 from lompr_predictor.stamps import NS_PER_SECOND, seconds_since
 from lompr_predictor.twin.simulation import Simulation, error_summary, irreducible_rmse
 
@@ -194,14 +195,14 @@ def common_instants(stamps: Mapping[str, np.ndarray], tolerance_ns: float) -> di
     return {name: rows[keep] for name, rows in chosen.items()}
 
 
-def _scored_bag(bag: str | Path, geometry: Any,
+def _scored_bag(bag: str | Path, chain: KinematicChain,
                 inputs: BagInputs) -> tuple[np.ndarray, np.ndarray, Any, float]:
     """The measured error (tool tip - reference: what the compensation left) and stamps of
     one closed-loop bag, its truth (None without one) and its sample period [s]: with a
     truth beside it, only the passes after the lead-in, which the demo scores."""
     from lompr_predictor.data.loading import load_clean_data
 
-    data, _ = load_clean_data(dataclasses.replace(inputs, bags=(str(bag),)), geometry)
+    data, _ = load_clean_data(dataclasses.replace(inputs, bags=(str(bag),)), chain)
     truth = read_loop_truth(bag)
     keep = np.ones(len(data.stamps), dtype=bool)
     if truth is not None:
@@ -212,7 +213,7 @@ def _scored_bag(bag: str | Path, geometry: Any,
     return data.tool_error[keep], data.stamps[keep], truth, data.sample_period
 
 
-def evaluate_loop_bags(inputs: BagInputs, *, geometry: Any,
+def evaluate_loop_bags(inputs: BagInputs, *, chain: KinematicChain,
                        report: str | Path) -> dict[str, Any]:
     """Score closed-loop recordings of the same passes (`inputs.bags`), the first the
     baseline (no compensation): each bag's measured error FK(joints) - reference (offsets
@@ -234,7 +235,7 @@ def evaluate_loop_bags(inputs: BagInputs, *, geometry: Any,
     truths = {}
     period = np.inf  # [s] the shortest sample period among the bags
     for name, bag in zip(names, bags, strict=False):
-        measured[name], stamps[name], truths[name], bag_period = _scored_bag(bag, geometry,
+        measured[name], stamps[name], truths[name], bag_period = _scored_bag(bag, chain,
                                                                              inputs)
         period = min(period, bag_period)
     rows = common_instants(stamps, 0.5 * period * NS_PER_SECOND)

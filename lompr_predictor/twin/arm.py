@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
+from lompr_predictor.data.bags import JointSamples, Recording, no_reference
+from lompr_predictor.robot.chain import RobotSpec, SerialChain
 from lompr_predictor.twin.arm_plant import ArmParameters, ArmPlant
 from lompr_predictor.twin.arm_programs import (
     DEFAULT_SAMPLE_PERIOD,
@@ -28,6 +30,8 @@ from lompr_predictor.twin.arm_programs import (
 from lompr_predictor.twin.digital_twin import EPOCH_NS
 
 NS_PER_SECOND = 1_000_000_000
+#: The arm's base frame: the frame its poses, errors and offsets are in.
+BASE_FRAME = 'arm_base'
 
 
 def arm_description_path() -> Path:
@@ -45,15 +49,21 @@ def joint_names(model: pin.Model) -> tuple[str, ...]:
     return tuple(str(name) for name in list(model.names)[1:])
 
 
+def arm_spec(path: str | Path | None = None) -> RobotSpec:
+    """The arm as the package names a robot: its URDF (default: the packaged one), base
+    `arm_base`, tip `tool0`, every joint measured."""
+    return RobotSpec(arm_description_path() if path is None else path, BASE_FRAME, TIP_FRAME)
+
+
 def tool_positions(model: pin.Model, joints: np.ndarray) -> np.ndarray:
-    """(N, 3) positions [m] of `tool0` in the base frame at the (N, 6) `joints`."""
-    data = model.createData()
-    frame = model.getFrameId(TIP_FRAME)
-    out = np.empty((len(joints), 3))
-    for k, q in enumerate(np.asarray(joints, dtype=float)):
-        pin.forwardKinematics(model, data, q)
-        out[k] = pin.updateFramePlacement(model, data, frame).translation
-    return out
+    """(N, 3) positions [m] of `tool0` in the base frame at the (N, 6) `joints`: the
+    robot's serial chain of `model` (`robot.chain`), every joint within its limits."""
+    chain = SerialChain(model, BASE_FRAME, TIP_FRAME, joint_names(model))
+    positions, valid = chain.tool_positions(joints)
+    if not valid.all():
+        msg = f"{int((~valid).sum())} rows of the arm's joints are outside its limits"
+        raise ValueError(msg)
+    return positions
 
 
 @dataclass(frozen=True)
@@ -102,3 +112,13 @@ def simulate_arm(program: str = 'circle', passes: int = 1, seed: int = 0,
                   measured=out.measured, actual=out.actual, drift=out.drift,
                   tool_commanded=tool_positions(model, out.commanded),
                   tool_actual=tool_positions(model, out.actual), joint_names=joint_names(model))
+
+
+def arm_recording(run: ArmRun) -> Recording:
+    """The run as a robot commanded in joints records it: the measured joints on
+    /joint_states and the commanded ones (`Recording.commands`), no reference pose."""
+    return Recording(
+        joints=JointSamples(stamps=run.stamps, positions=run.measured, names=run.joint_names),
+        reference=no_reference(),
+        commands=JointSamples(stamps=run.stamps, positions=run.commanded,
+                              names=run.joint_names))
