@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from lompr_predictor.data.cleaning import clean_recordings
-from lompr_predictor.data.features import FEATURES, feature_names
+from lompr_predictor.data.features import FEATURES, base_features, feature_names
 from lompr_predictor.data.problem import build_problem, train_test_problem
 from lompr_predictor.learning.machine_map import (
     FRICTION_SCALES,
@@ -20,6 +20,7 @@ from lompr_predictor.learning.machine_map import (
     consecutive_pairs,
     fit_machine_map,
     local_deviations,
+    motion_columns,
     speed_scales,
 )
 from lompr_predictor.learning.map_prior import PredictionWithPrior, prediction_with_prior
@@ -201,6 +202,64 @@ def test_a_slow_drift_of_the_error_leaves_the_coefficients_as_they_are() -> None
                    for m in (fitted, truth)]
     missed = np.sqrt(np.mean((changes[0] - changes[1]) ** 2, axis=0))
     assert (missed < 0.05 * np.sqrt(np.mean(changes[1] ** 2, axis=0))).all(), missed
+
+
+def test_runs_too_short_for_the_longer_lags_fit_on_the_shorter_ones() -> None:
+    """Runs of 300 samples at horizon 20 hold pairs 20 and 100 apart but none 500 apart:
+    the map fits on the first two and recovers the known map; runs shorter than one
+    horizon's pairs are refused naming it."""
+    truth = _known_map(FEATURES, horizon=20)
+    rows = _rows(3000, seed=1)
+    with torch.no_grad():
+        error = truth.rows(torch.from_numpy(rows[None]))[0].numpy()
+    runs = np.concatenate([np.arange(start, start + 300) for start in range(0, 2700, 310)])
+    fitted = MachineMap(FEATURES, 20, 0, 0.04, JACOBIAN, truth.scales.numpy())
+    assert fitted.fit(rows, error, runs) < 1e-10
+    assert fitted.fit_lags == (20, 100)
+    check = torch.from_numpy(_rows(200, seed=2)[None])
+    with torch.no_grad():
+        np.testing.assert_allclose(fitted.rows(check)[0].numpy(), truth.rows(check)[0].numpy(),
+                                   atol=1e-9)
+    short = np.concatenate([np.arange(start, start + 15) for start in range(0, 2980, 20)])
+    with pytest.raises(ValueError, match='needs at least 33 instants with every feature now '
+                                         'and 20 samples later in the same run, got 0'):
+        MachineMap(FEATURES, 20, 0, 0.04, JACOBIAN, truth.scales.numpy()).fit(rows, error,
+                                                                              short)
+
+
+def test_without_actuator_coordinates_the_map_acts_in_the_tools_axes() -> None:
+    """A serial chain's rows carry no actuator columns: the map's motion terms read the
+    tool's velocity and acceleration, its Jacobian the identity, and a known map of that
+    form is fitted back to 1e-9 m."""
+    tool = base_features(())
+    assert motion_columns(tool) == (('ref_vx', 'ref_vy'), ('ref_ax', 'ref_ay'))
+    truth = MachineMap(tool, 1, 0, 0.004, speed_scales=0.02 * np.asarray(FRICTION_SCALES))
+    np.testing.assert_array_equal(truth.jacobian.numpy(), np.eye(2))
+    rng = np.random.default_rng(3)
+    with torch.no_grad():
+        truth.branch_coefficients.copy_(torch.from_numpy(
+            rng.normal(0.0, 1e-5, truth.branch_coefficients.shape)))
+        truth.posture_coefficients.copy_(torch.from_numpy(
+            rng.normal(0.0, 1e-5, truth.posture_coefficients.shape)))
+    rows = np.zeros((4000, len(tool)))
+    for name, scale in (('ref_x', 0.2), ('ref_y', 0.2), ('ref_vx', 0.05), ('ref_vy', 0.05),
+                        ('ref_ax', 0.2), ('ref_ay', 0.2)):
+        rows[:, tool.index(name)] = rng.uniform(-scale, scale, len(rows))
+    with torch.no_grad():
+        error = truth.rows(torch.from_numpy(rows[None]))[0].numpy()
+    # by hand for one row: x velocity 0.01 m/s alone moves X by c_v 0.01 + sum c_k tanh
+    one = np.zeros((1, len(tool)))
+    one[0, tool.index('ref_vx')] = 0.01
+    coefficients = truth.branch_coefficients.numpy()[:, 0]
+    by_hand = (coefficients[0] * 0.01 + sum(
+        c * np.tanh(0.01 / s) for c, s in zip(coefficients[2:], truth.scales.numpy(),
+                                              strict=True))
+               + truth.posture_coefficients.numpy()[0, 0])
+    with torch.no_grad():
+        assert truth.rows(torch.from_numpy(one[None]))[0, 0, 0].item() == pytest.approx(
+            by_hand, abs=1e-15)
+    fitted = MachineMap(tool, 1, 0, 0.004, speed_scales=truth.scales.numpy())
+    assert fitted.fit(rows, error, np.arange(len(rows))) < 1e-10
 
 
 def test_the_fit_pairs_instants_only_within_a_run() -> None:

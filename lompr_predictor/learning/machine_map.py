@@ -315,11 +315,17 @@ class MachineMap(nn.Module):
         fits, and why on changes."""
         basis = self.basis(rows)
         changes = lag_changes(basis, error, instants, self.fit_lags)
-        for lag, (design, _) in zip(self.fit_lags, changes, strict=True):
-            if len(design) < design.shape[2]:
-                msg = (f'the machine map needs at least {design.shape[2]} instants with every '
-                       f'feature now and {lag} samples later in the same run, got {len(design)}')
-                raise ValueError(msg)
+        # a lag longer than the recording's runs allow is left out (a high rate makes the
+        # longer lags many samples), the horizon's own never
+        kept = [k for k, (design, _) in enumerate(changes) if len(design) >= design.shape[2]]
+        if not kept or kept[0] != 0:
+            design = changes[0][0]
+            msg = (f'the machine map needs at least {design.shape[2]} instants with every '
+                   f'feature now and {self.fit_lags[0]} samples later in the same run, got '
+                   f'{len(design)}')
+            raise ValueError(msg)
+        self.fit_lags = tuple(self.fit_lags[k] for k in kept)
+        changes = [changes[k] for k in kept]
         weights = [1.0 / max(float(np.sqrt(np.mean(target ** 2))), 1e-15)
                    for _, target in changes]
         coefficients = _least_squares(
