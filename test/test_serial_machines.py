@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -267,3 +268,26 @@ def test_lompr_simulate_records_the_twin_arm_as_a_robot_commanded_in_joints(
     assert ('--path spiral is not a program of the arm: one of circle, raster, figure8'
             in capsys.readouterr().err)
     assert not (tmp_path / 'refused').exists()
+
+
+@pytest.mark.parametrize(('robot', 'message'), [
+    (['--tip-frame', 'hand'], "tip frame 'hand' is not in robot description"),
+    (['--tip-frame', 'flange', '--joint-names', 'yaw,shoulder'],
+     r'moves joint\(s\) elbow that the joint names lack'),
+    (['--tip-frame', 'flange', '--joint-names', 'yaw,shoulder,elbow,grip'],
+     r'joint\(s\) grip not on the chain'),
+])
+def test_lompr_train_refuses_a_robot_named_wrong_in_one_line_writing_nothing(
+        tmp_path: Path, arm_urdf: Path, capsys: pytest.CaptureFixture[str],
+        robot: list[str], message: str) -> None:
+    from lompr_predictor.cli import main as lompr_main
+
+    bag = write_recording(tmp_path / 'arm', arm_recording(100))
+    model, report = tmp_path / 'm.pt', tmp_path / 'report'
+    assert lompr_main(['train', str(bag), '--out', str(model), '--report', str(report),
+                       '--robot-description', str(arm_urdf), '--command-topic', COMMAND_TOPIC,
+                       *robot, '--quiet']) == 2
+    error = capsys.readouterr().err.strip()
+    assert len(error.splitlines()) == 1
+    assert re.search(message, error), error
+    assert not model.exists() and not report.exists()

@@ -165,9 +165,9 @@ def run_workers(config: TrainingConfig) -> WorkerSummary:
     """An extra worker of a shared study (`lompr train --workers-only`): read and clean the
     bags, run the study's trials with `config.workers` local processes until its budget is
     spent; no baseline, no model, no report."""
+    chain = load_chain(config.robot)  # a robot named wrong: refused before anything is made
     storage = open_storage(check_config(config, finishing=False))
     started = time.perf_counter()
-    chain = load_chain(config.robot)
     data, sources = load_clean_data(config.inputs, chain)
     read_seconds = time.perf_counter() - started
     problem = _problem(data, None, config)
@@ -183,9 +183,9 @@ def run_workers(config: TrainingConfig) -> WorkerSummary:
 def train_predictor(config: TrainingConfig) -> TrainingResult:
     """Read, clean, tune, train, score (module docstring); nothing is written but the study
     and its checkpoints."""
+    chain = load_chain(config.robot)  # a robot named wrong: refused before anything is made
     storage = open_storage(check_config(config))  # connects: fails before reading any bag
     started = time.perf_counter()
-    chain = load_chain(config.robot)
     data, problem, trained_on, sources = read_problem(config, chain)
     read_seconds = time.perf_counter() - started
     machine_map = _machine_map(config, problem, data, chain)

@@ -38,7 +38,6 @@ from lompr_predictor.robot.description import (
     RobotDescription,
     default_description_path,
     joint_names_problem,
-    load_robot_description,
     read_urdf,
 )
 from lompr_predictor.robot.kinematics import (
@@ -333,7 +332,8 @@ def load_chain(spec: RobotSpec = RobotSpec()) -> KinematicChain:
     description_text = _read_urdf(path)
     model = _build_model(description_text)
     if any(model.existJointName(name) for name in _LOMPR_MARKERS):
-        return _lompr_chain(load_robot_description(path), spec)
+        return _lompr_chain(RobotDescription(description_text.xml, description_text.source),
+                            spec)
     return _serial_chain(model, description_text, spec)
 
 
