@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import time
 from pathlib import Path
 from typing import Any
@@ -18,6 +19,8 @@ from sensor_msgs.msg import JointState
 
 from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME
 from lompr_predictor.ros.twin_node import TwinNode
+from lompr_predictor.ros.twin_outputs import TwinChoiceError, twin_path
+from lompr_predictor.twin.arm_twin import ArmDigitalTwin
 from lompr_predictor.twin.compensation import CompensationSchedule
 from lompr_predictor.twin.run_log import read_run_log
 
@@ -249,3 +252,46 @@ def test_the_preview_is_the_reference_the_twin_then_commands(ros: RosHarness) ->
 def test_without_preview_samples_no_preview_is_advertised(ros: RosHarness) -> None:
     twin = _twin(ros, samples=1)
     assert twin.count_publishers('/lompr/reference_preview') == 0
+
+
+def test_the_arm_publishes_its_joints_and_its_commanded_joints_not_a_reference(
+        ros: RosHarness, tmp_path: Path) -> None:
+    """robot arm: the measured joints on /joint_states and the nominal commanded ones on
+    command_topic, by the arm's joint names, at its 4 ms period; no reference pose (the
+    kinematics node makes it from the commands); the run log holds its six joints."""
+    run_log = tmp_path / 'arm.npz'
+    joints = ros.collect('/joint_states', JointState, 100)
+    commands = ros.collect('/joint_commands', JointState, 100)
+    twin = _twin(ros, robot='arm', path='raster', seed=3, speed_factor=10.0, samples=20,
+                 run_log=str(run_log), frame_id='arm_base', wait_for_subscribers=1)
+    ros.spin_until(lambda: run_log.exists() and len(joints) == 20 and len(commands) == 20,
+                   what='20 samples of the arm')
+    assert twin.count_publishers('/lompr/reference') == 0
+    plain = ArmDigitalTwin(seed=3, program='raster').step(20)
+    names = list(twin.twin.joint_names)
+    assert len(names) == 6 and all(list(m.name) == names for m in joints + commands)
+    np.testing.assert_array_equal([m.position for m in commands], plain.commanded)
+    np.testing.assert_array_equal([m.position for m in joints], plain.joints.measured)
+    assert [_stamp_ns(m) for m in commands] == plain.stamps.tolist()
+    assert set(np.diff(plain.stamps)) == {4_000_000}
+    arrays, document = read_run_log(run_log)
+    np.testing.assert_array_equal(arrays['joints'], plain.joints.measured)
+    np.testing.assert_array_equal(arrays['true_error'], plain.error_true[:, :2])
+    assert (document['robot'], document['path'], document['sample_period']) == (
+        'arm', 'raster', 0.004)
+
+
+@pytest.mark.parametrize(('robot', 'path', 'message'), [
+    ('arm', 'spiral', "path 'spiral' is not a program of robot arm: one of circle, raster, "
+                      'figure8'),
+    ('lompr', 'circle', "path 'circle' is not a program of robot lompr: one of spiral, "),
+])
+def test_a_path_of_the_other_machine_is_refused_in_one_line(
+        ros: RosHarness, robot: str, path: str, message: str) -> None:
+    with pytest.raises(TwinChoiceError, match=re.escape(message)):
+        TwinNode(context=ros.context, parameter_overrides=[
+            Parameter('robot', value=robot), Parameter('path', value=path)])
+
+
+def test_an_empty_path_is_the_machines_first() -> None:
+    assert (twin_path('lompr', ''), twin_path('arm', '')) == ('spiral', 'circle')

@@ -135,10 +135,14 @@ class _Loop:
         self.predictor = PredictorNode(context=context,
                                        parameter_overrides=overrides('predictor_node'))
         self.twin = TwinNode(context=context, parameter_overrides=overrides('twin_node'))
+        if not isinstance(self.twin.twin, DigitalTwin):
+            msg = 'the closed loop runs the LOMPR twin (twin_node robot lompr)'
+            raise ClosedLoopError(msg)
+        #: the LOMPR twin the node runs (its path cycle gives each sample's pass)
+        self.lompr = self.twin.twin
         topics = self.topics
         self.total = int(self.twin.total_samples or 0)
-        self.collector = _Collector(context, topics, self.twin.twin, self.total,
-                                    self._on_sample)
+        self.collector = _Collector(context, topics, self.lompr, self.total, self._on_sample)
         self.switched_off_at: int | None = None
         self._bar: tqdm | None = None
 
@@ -180,10 +184,10 @@ class _Loop:
         counts = loop_counts({**twin.run_document(), **twin.log.counts()}, core.counts(),
                              kinematics_rejected=self.kinematics.rejected.counts())
         data = self.collector.arrays()
-        cycle = twin.twin.cycle
+        cycle = self.lompr.cycle
         return LoopRun(
             settings=self.settings, horizon=self.horizon,
-            sample_period=twin.twin.params.sample_period, stamps=data['stamps'],
+            sample_period=self.lompr.params.sample_period, stamps=data['stamps'],
             reference=data['reference'], joints=data['joints'],
             true_error=data['true_error'], plant_error=data['plant_error'],
             pass_index=cycle.pass_index(0, self.total), in_pass=cycle.in_pass(0, self.total),

@@ -1,8 +1,12 @@
-"""twin_node: the live digital twin of the LOMPR, a stand-in for the robot's controller.
+"""twin_node: the live digital twin of a machine, a stand-in for the robot's controller.
 
-Publishes the measured joints (/joint_states) and the nominal commanded tool tip
-(/lompr/reference) of each sample, stamped on the simulated clock, and applies the
-feedforward offsets of /lompr/compensation by stamp (docs/interface.md, the error): an offset is
+`robot` chooses the machine (`twin_outputs`): the LOMPR, whose controller is commanded in
+tool tips, or the serial arm, commanded in joints. Publishes the measured joints
+(/joint_states) and the nominal command of each sample, stamped on the simulated clock: the
+LOMPR's commanded tool tip (/lompr/reference), the arm's commanded joints (`command_topic`;
+kinematics_node turns them into the reference). It applies the
+feedforward offsets of /lompr/compensation by stamp (docs/interface.md, the error), the arm's
+as the joint offset that moves its tool tip by the offset (`twin.arm_twin`): an offset is
 used at the instant it names, and dropped like a real controller drops it when it arrives
 after that instant, waited longer than `compensation_timeout`, is off the sample grid,
 non-finite or larger than `max_compensation`. For scoring it publishes, per sample, its true
@@ -21,7 +25,8 @@ sample period divided by `speed_factor` at most, each waiting for its offset as 
 lockstep, so that simulated time keeps pace with wall time while the nodes keep up and
 stretches, instead of running samples uncompensated, while they do not (a job beside the
 nodes, e.g. an adaptation attempt, then costs what it costs on a machine, in sample time,
-and never corrupts the loop). The physics is `twin.DigitalTwin`, one sample per step.
+and never corrupts the loop). The physics is `twin.DigitalTwin` or
+`twin.arm_twin.ArmDigitalTwin`, one sample per step.
 
 Time: with `publish_clock` the twin is the simulation's clock, as Gazebo or Isaac Sim are:
 it publishes each sample's instant on /clock before the sample, so nodes run with
@@ -40,14 +45,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from builtin_interfaces.msg import Time
-from geometry_msgs.msg import PoseStamped, Vector3Stamped
-from nav_msgs.msg import Path
+from geometry_msgs.msg import Vector3Stamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rosgraph_msgs.msg import Clock as ClockMessage
-from sensor_msgs.msg import JointState
+from rclpy.timer import Timer
 
 from lompr_predictor.monitoring import (
     LatencyRecorder,
@@ -56,26 +57,32 @@ from lompr_predictor.monitoring import (
     latency_values,
     rejection_values,
 )
-from lompr_predictor.robot.description import MEASURED_JOINTS, load_robot_description
 from lompr_predictor.robot.paths import PATH_KINDS
 from lompr_predictor.ros.common import run_node
-from lompr_predictor.ros.node_base import (
-    COMMAND_INPUT_QOS,
-    OUTPUT_QOS,
-    Endpoint,
-    FrameSettings,
-    NodeBase,
-    node_help,
-)
+from lompr_predictor.ros.node_base import FrameSettings, NodeBase, node_help
 from lompr_predictor.ros.parameters import parameter
-from lompr_predictor.stamps import ns_to_sec_nanosec, stamp_to_ns
+from lompr_predictor.ros.twin_outputs import (
+    COMPENSATION,
+    ENDPOINTS,
+    PROGRAMS_OF,
+    ROBOTS,
+    TwinOutputs,
+    make_twin,
+    twin_path,
+)
+from lompr_predictor.stamps import stamp_to_ns
+from lompr_predictor.twin.arm_programs import PROGRAMS as ARM_PROGRAMS
 from lompr_predictor.twin.compensation import CompensationSchedule, OffsetDrop
-from lompr_predictor.twin.digital_twin import DigitalTwin, TwinSamples
-from lompr_predictor.twin.parameters import load_twin_parameters
 from lompr_predictor.twin.run_log import RunLog, write_run_log
 
 NODE_NAME = 'twin_node'
 MODES = ('realtime', 'lockstep', 'paced')
+
+
+def _path_problem(path: str) -> str | None:
+    """Why `path` names no program of any machine (`twin_path` checks it is the robot's)."""
+    known = PATH_KINDS + ARM_PROGRAMS
+    return None if path in ('', *known) else f'must be empty or one of {", ".join(known)}'
 
 
 @dataclass(frozen=True)
@@ -83,13 +90,22 @@ class TwinNodeSettings(FrameSettings):
     """The node's parameters: one field each (after the shared `FrameSettings`),
     declared by `NodeBase.declare_settings`."""
 
+    robot: str = parameter(
+        'lompr', 'the machine: lompr (the LOMPR, commanded in tool tips: publishes the '
+        'reference pose) or arm (the serial 6-joint arm, commanded in joints: publishes the '
+        'nominal commanded joints on command_topic for kinematics_node to turn into the '
+        'reference, applies each offset through the joints; its frame is arm_base, set '
+        'frame_id)', choices=ROBOTS, read_only=True)
     robot_description_file: str = parameter(
-        '', 'URDF of the robot; empty: the packaged nominal LOMPR description', read_only=True)
-    twin_parameters_file: str = parameter(
-        '', 'twin physics YAML overriding the packaged config/twin.yaml; empty: defaults',
+        '', "URDF of the robot; empty: the packaged one (the nominal LOMPR's or the arm's)",
         read_only=True)
-    path: str = parameter('spiral', 'path the robot runs, pass after pass',
-                          choices=PATH_KINDS, read_only=True)
+    twin_parameters_file: str = parameter(
+        '', 'LOMPR twin physics YAML overriding the packaged config/twin.yaml; empty: '
+        "defaults (the arm's physics: always its defaults)", read_only=True)
+    path: str = parameter(
+        '', 'path the robot runs, pass after pass: for lompr one of '
+        f'{", ".join(PROGRAMS_OF["lompr"])}; for arm one of {", ".join(PROGRAMS_OF["arm"])}; '
+        "empty: the robot's first", read_only=True, check=_path_problem)
     seed: int = parameter(0, 'random seed of the twin (tolerances, drift, noise, the random path)',
                           minimum=0, maximum=2 ** 31 - 1, read_only=True)
     passes: int = parameter(0, 'passes to run before stopping; 0: run until shut down',
@@ -113,9 +129,10 @@ class TwinNodeSettings(FrameSettings):
     clock_topic: str = parameter('/clock', 'rosgraph_msgs/Clock output (publish_clock)',
                                  read_only=True)
     wait_for_subscribers: int = parameter(
-        0, 'run no sample until the joint state and reference outputs each have this many '
-        'subscriptions matched (and, in lockstep, the compensation input a publisher): a '
-        'simulator started before its nodes loses no sample; 0: start at once', minimum=0,
+        0, 'run no sample until the joint state and the command (reference or commanded '
+        'joints) outputs each have this many subscriptions matched (and, in lockstep, the '
+        'compensation input a publisher): a simulator started before its nodes loses no '
+        'sample; 0: start at once', minimum=0,
         maximum=1000, read_only=True)
     run_log: str = parameter(
         '', 'if set, the .npz file every sample run is written to once the passes (samples) '
@@ -141,7 +158,10 @@ class TwinNodeSettings(FrameSettings):
         maximum=0.05, read_only=True)
     joint_state_topic: str = parameter('joint_states', 'JointState output', read_only=True)
     reference_topic: str = parameter('lompr/reference', 'PoseStamped output: nominal '
-                                     'commanded tool tip', read_only=True)
+                                     'commanded tool tip (robot lompr)', read_only=True)
+    command_topic: str = parameter(
+        'joint_commands', 'JointState output: nominal commanded joints, without the '
+        "compensation's joint offset (robot arm)", read_only=True)
     compensation_topic: str = parameter('lompr/compensation', 'Vector3Stamped input: '
                                         'feedforward offset for the instant in its stamp',
                                         read_only=True)
@@ -159,39 +179,21 @@ class TwinNodeSettings(FrameSettings):
         'preview_samples samples, each pose stamped with its instant', read_only=True)
 
 
-JOINT_STATES = Endpoint('publisher', JointState, 'joint_state_topic', OUTPUT_QOS,
-                        'measured joints')
-REFERENCE = Endpoint('publisher', PoseStamped, 'reference_topic', OUTPUT_QOS, 'reference')
-TRUE_ERROR = Endpoint('publisher', Vector3Stamped, 'true_error_topic', OUTPUT_QOS,
-                      'true error')
-PLANT_ERROR = Endpoint('publisher', Vector3Stamped, 'plant_error_topic', OUTPUT_QOS,
-                       'plant error')
-#: Reliable: in lockstep each offset lets the twin run one more sample.
-COMPENSATION = Endpoint('subscription', Vector3Stamped, 'compensation_topic',
-                        COMMAND_INPUT_QOS, 'compensation')
-#: Reliable; a node's time source subscribes best effort, depth 1 (rclpy, rclcpp).
-CLOCK = Endpoint('publisher', ClockMessage, 'clock_topic',
-                 QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE), 'clock')
-REFERENCE_PREVIEW = Endpoint('publisher', Path, 'reference_preview_topic', OUTPUT_QOS,
-                             'reference preview')
-ENDPOINTS = (JOINT_STATES, REFERENCE, REFERENCE_PREVIEW, TRUE_ERROR, PLANT_ERROR,
-             COMPENSATION, CLOCK)
-
-
 class TwinNode(NodeBase[TwinNodeSettings], Node):
     """The digital twin as a ROS node. Extra keyword arguments go to `rclpy.node.Node`."""
 
     def __init__(self, node_name: str = NODE_NAME, **node_kwargs: Any) -> None:
         super().__init__(node_name, **node_kwargs)
         settings = self.declare_settings(TwinNodeSettings)
-        description = load_robot_description(settings.robot_description_file or None)
-        params = load_twin_parameters(settings.twin_parameters_file or None)
-        self.twin = DigitalTwin(description, params, seed=settings.seed, path=settings.path)
-        period = params.sample_period
-        self.total_samples = settings.samples or settings.passes * len(self.twin.cycle) or None
+        #: the path run: the parameter, or the robot's first if it is empty
+        self.path = twin_path(settings.robot, settings.path)
+        self.twin = make_twin(settings.robot, self.path, settings.seed,
+                              settings.robot_description_file, settings.twin_parameters_file)
+        self.total_samples = (settings.samples or settings.passes * self.twin.pass_samples
+                              or None)
         self.schedule = CompensationSchedule(
             self.twin.epoch_ns, self.twin.period_ns,
-            timeout_samples=int(settings.compensation_timeout / period),
+            timeout_samples=int(settings.compensation_timeout / self.twin.sample_period),
             max_offset=settings.max_compensation)
         self.ignored_compensations = 0
         self._rejected_at_last_report = 0
@@ -199,42 +201,42 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
         self.sample_rate = self.rate_meter(settings.rate_window)
         self._last_step = time.monotonic()
         self._last_answered = False
-        self.log = RunLog()  # kept only for a bounded run that writes it (run_log)
+        # kept only for a bounded run that writes it (run_log)
+        self.log = RunLog(len(self.twin.joint_names))
         self._logging = bool(settings.run_log) and self.total_samples is not None
         self._audience = settings.wait_for_subscribers == 0
-        steady = Clock(clock_type=ClockType.STEADY_TIME)
-
-        self._joint_publisher = self.advertise(JOINT_STATES)
-        self._reference_publisher = self.advertise(REFERENCE)
-        self._true_error_publisher = self.advertise(TRUE_ERROR)
-        self._plant_error_publisher = self.advertise(PLANT_ERROR)
+        self.outputs = TwinOutputs(self, self.twin, frame=settings.frame,
+                                   preview_samples=settings.preview_samples,
+                                   publish_clock=settings.publish_clock)
         self._compensation_subscription = self.subscribe(COMPENSATION, self.on_compensation)
-        self._clock_publisher = self.advertise(CLOCK) if settings.publish_clock else None
-        self._preview_publisher = (self.advertise(REFERENCE_PREVIEW)
-                                   if settings.preview_samples else None)
         #: paced: a tick found the next sample's offset missing; its arrival runs the sample
         self._waiting = False
-        if settings.mode == 'realtime':  # the twin as the clock paces itself on wall time
-            self._timer = self.start_timer(period / settings.speed_factor, 'step', self.step,
-                                           clock=steady if settings.publish_clock else None)
-        elif settings.mode == 'paced':
-            self._timer = self.start_timer(period / settings.speed_factor, 'paced step',
-                                           self._on_paced_timer, clock=steady)
-        else:
-            self._timer = self.start_timer(settings.lockstep_timeout / 4.0, 'lockstep timer',
-                                           self._on_lockstep_timer, clock=steady)
+        self._timer = self._start_stepping()
         self._diagnostics = self.start_diagnostics(
-            settings.diagnostics_topic, settings.diagnostics_period,
-            hardware_id=self.twin.description.name)
+            settings.diagnostics_topic, settings.diagnostics_period, hardware_id=self.twin.name)
         self._diagnostics.add('simulation', self.simulation_status)
         self._diagnostics.add('compensation', self.compensation_status)
         self.get_logger().info(
-            f'twin: {settings.path}, {self.total_samples or "endless"} samples, seed '
-            f'{settings.seed}, {settings.mode}'
+            f'twin: {settings.robot} {self.path}, {self.total_samples or "endless"} samples, '
+            f'seed {settings.seed}, {settings.mode}'
             + (f' x{settings.speed_factor:g}' if settings.mode != 'lockstep' else '')
             + (f' (timeout {settings.lockstep_timeout:g} s)' if settings.mode != 'realtime'
                else '')
             + (f', publishing {settings.clock_topic}' if settings.publish_clock else ''))
+
+    def _start_stepping(self) -> Timer:
+        """The timer of the mode: a sample per tick (realtime), or a check per tick whether
+        the next one may run (paced, lockstep)."""
+        settings = self.settings
+        period = self.twin.sample_period / settings.speed_factor
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        if settings.mode == 'realtime':  # the twin as the clock paces itself on wall time
+            return self.start_timer(period, 'step', self.step,
+                                    clock=steady if settings.publish_clock else None)
+        if settings.mode == 'paced':
+            return self.start_timer(period, 'paced step', self._on_paced_timer, clock=steady)
+        return self.start_timer(settings.lockstep_timeout / 4.0, 'lockstep timer',
+                                self._on_lockstep_timer, clock=steady)
 
     @property
     def finished(self) -> bool:
@@ -275,11 +277,9 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
         """Whether the nodes `wait_for_subscribers` asks for are there (once true, true)."""
         if not self._audience:
             need = self.settings.wait_for_subscribers
-            self._audience = (
-                self._joint_publisher.get_subscription_count() >= need
-                and self._reference_publisher.get_subscription_count() >= need
-                and (self.settings.mode == 'realtime'
-                     or self._compensation_subscription.get_publisher_count() >= 1))
+            self._audience = self.outputs.listened(need) and (
+                self.settings.mode == 'realtime'
+                or self._compensation_subscription.get_publisher_count() >= 1)
             if self._audience:
                 self.get_logger().info('twin: the nodes are there, starting')
         return self._audience
@@ -299,7 +299,7 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
             self.log.add(samples, answered)
         else:
             self._count(answered)
-        self._publish(samples)
+        self.outputs.publish(samples)
         self._last_step = time.monotonic()
         self.sample_rate.tick()
         if self.finished:
@@ -319,70 +319,24 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
     def run_document(self) -> dict[str, object]:
         """The run's settings and the offsets' counters, as the run log keeps them."""
         settings, twin, schedule = self.settings, self.twin, self.schedule
-        return {'path': settings.path, 'seed': settings.seed, 'mode': settings.mode,
-                'sample_period': twin.params.sample_period, 'epoch_ns': twin.epoch_ns,
-                'cycle': len(twin.cycle), 'offsets_applied': schedule.applied,
+        return {'robot': settings.robot, 'path': self.path, 'seed': settings.seed,
+                'mode': settings.mode, 'sample_period': twin.sample_period,
+                'epoch_ns': twin.epoch_ns, 'joint_names': list(twin.joint_names),
+                'cycle': twin.pass_samples, 'offsets_applied': schedule.applied,
                 'samples_without_offset': schedule.missing,
                 'offsets_dropped': schedule.rejected.counts(),
                 'ignored_compensations': self.ignored_compensations}
 
-    def _publish(self, samples: TwinSamples) -> None:
-        stamp = self._stamp(int(samples.stamps[0]))
-        if self._clock_publisher is not None:  # the sample's instant, before the sample
-            self._clock_publisher.publish(ClockMessage(clock=stamp))
-        joints = JointState()
-        joints.header.stamp = stamp
-        joints.name = list(MEASURED_JOINTS)
-        joints.position = [float(v) for v in samples.joints.measured[0]]
-        self._joint_publisher.publish(joints)
-        reference = PoseStamped()
-        reference.header.stamp = stamp
-        reference.header.frame_id = self.settings.frame
-        position = reference.pose.position
-        position.x, position.y, position.z = (float(v) for v in samples.reference[0])
-        reference.pose.orientation.w = 1.0  # tool axis along the robot frame's +Z (down)
-        self._reference_publisher.publish(reference)
-        if self._preview_publisher is not None:
-            self._preview_publisher.publish(self._preview(stamp))
-        for publisher, error in ((self._true_error_publisher, samples.error_true[0]),
-                                 (self._plant_error_publisher, samples.plant_error_true[0])):
-            out = Vector3Stamped()
-            out.header.stamp = stamp
-            out.header.frame_id = self.settings.frame
-            out.vector.x, out.vector.y, out.vector.z = (float(v) for v in error)
-            publisher.publish(out)
-
-    def _preview(self, stamp: Time) -> Path:
-        """The planned reference of the samples after the one just run, as a Path made at
-        that sample's instant."""
-        stamps, positions = self.twin.planned(self.settings.preview_samples)
-        preview = Path()
-        preview.header.stamp = stamp
-        preview.header.frame_id = self.settings.frame
-        for ns, xyz in zip(stamps.tolist(), positions.tolist(), strict=True):
-            pose = PoseStamped()
-            pose.header.stamp = self._stamp(ns)
-            pose.header.frame_id = self.settings.frame
-            pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = xyz
-            pose.pose.orientation.w = 1.0
-            preview.poses.append(pose)
-        return preview
-
-    @staticmethod
-    def _stamp(ns: int) -> Time:
-        sec, nanosec = ns_to_sec_nanosec(ns)
-        return Time(sec=sec, nanosec=nanosec)
-
     def simulation_status(self) -> Status:
         """Diagnostics of the simulation: samples, pass, rate, step time."""
         twin = self.twin
-        expected = (1.0 / twin.params.sample_period * self.settings.speed_factor
+        expected = (1.0 / twin.sample_period * self.settings.speed_factor
                     if self.settings.mode == 'realtime' else None)
         rate = self.sample_rate.rate()
         values: dict[str, object] = {
             'samples_published': twin.next_index,
-            'pass': twin.next_index // len(twin.cycle),
-            'simulated_time_s': round(twin.next_index * twin.params.sample_period, 3),
+            'pass': twin.next_index // twin.pass_samples,
+            'simulated_time_s': round(twin.next_index * twin.sample_period, 3),
             'sample_rate_hz': round(rate, 3),
             'mode': self.settings.mode,
             **latency_values('step_time', self.step_time.summary()),

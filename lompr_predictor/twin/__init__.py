@@ -3,6 +3,8 @@
 - `parameters`: `TwinParameters` from YAML (`config/twin.yaml` holds the documented defaults).
 - `plant`: `TwinPlant.advance(commanded tips)` -> commanded/actual/measured joints.
 - `digital_twin`: `DigitalTwin.step(count, compensation)`: path + plant + true tool tip.
+- `arm`, `arm_programs`, `arm_plant`: the serial arm, a second machine; `arm_twin`:
+  `ArmDigitalTwin`, the arm as a sample stream, its compensation applied in joint space.
 - `simulation`: `simulate(...)` whole passes offline, errors, irreducible level.
 - `faults`: drop, duplicate, reorder, NaN and spike messages of a recording.
 - `compensation`: offsets queued by the instant they are for, dropped when late or stale.

@@ -13,10 +13,11 @@ recording depends only on its parameters and seed.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
-from lompr_predictor.robot.description import RobotDescription
+from lompr_predictor.robot.description import MEASURED_JOINTS, RobotDescription
 from lompr_predictor.robot.kinematics import ForwardKinematics, batch_forward_kinematics
 from lompr_predictor.robot.paths import PathCycle, build_cycle
 from lompr_predictor.stamps import NS_PER_SECOND, period_ns
@@ -53,8 +54,80 @@ class TwinSamples:
         return self.tip - self.reference - self.compensation
 
 
+class JointBlock(Protocol):
+    """The joints of a block of samples, as a live twin reports them."""
+
+    @property
+    def measured(self) -> np.ndarray:
+        """(n, J) what the encoders report [rad or m]."""
+
+
+class SampleBlock(Protocol):
+    """A block of samples of any machine's twin (`TwinSamples`, `arm_twin.ArmTwinSamples`):
+    what the live node publishes and its run log keeps."""
+
+    @property
+    def stamps(self) -> np.ndarray: ...
+
+    @property
+    def reference(self) -> np.ndarray: ...
+
+    @property
+    def compensation(self) -> np.ndarray: ...
+
+    @property
+    def joints(self) -> JointBlock: ...
+
+    @property
+    def error_true(self) -> np.ndarray: ...
+
+    @property
+    def plant_error_true(self) -> np.ndarray: ...
+
+
+class LiveTwin(Protocol):
+    """A machine's twin as a sample stream (`DigitalTwin`, `arm_twin.ArmDigitalTwin`): what
+    the live node runs."""
+
+    epoch_ns: int
+    period_ns: int
+    next_index: int
+
+    @property
+    def name(self) -> str:
+        """The machine's name (its URDF's robot name)."""
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        """The measured joints' names, in column order."""
+
+    @property
+    def sample_period(self) -> float:
+        """[s]"""
+
+    @property
+    def pass_samples(self) -> int:
+        """Samples of one pass of the path."""
+
+    @property
+    def tool_quaternion(self) -> tuple[float, float, float, float]:
+        """The commanded tool orientation (x, y, z, w) in the base frame."""
+
+    def stamps(self, start: int, count: int) -> np.ndarray: ...
+
+    def index_of(self, stamp_ns: int) -> int: ...
+
+    def planned(self, count: int) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def step(self, count: int = 1, compensation: np.ndarray | None = None) -> SampleBlock: ...
+
+
 class DigitalTwin:
     """The LOMPR running a path pass after pass under the twin's error physics."""
+
+    joint_names = MEASURED_JOINTS
+    #: The tool axis along the robot frame's +Z (down): the identity.
+    tool_quaternion = (0.0, 0.0, 0.0, 1.0)
 
     def __init__(self, description: RobotDescription, params: TwinParameters, *, seed: int,
                  machine_seed: int | None = None, path: str = 'spiral',
@@ -70,6 +143,18 @@ class DigitalTwin:
         self.period_ns = period_ns(params.sample_period)
         self.next_index = 0
         self._fk = ForwardKinematics(description)
+
+    @property
+    def name(self) -> str:
+        return self.description.name
+
+    @property
+    def sample_period(self) -> float:
+        return self.params.sample_period
+
+    @property
+    def pass_samples(self) -> int:
+        return len(self.cycle)
 
     def stamps(self, start: int, count: int) -> np.ndarray:
         """(count,) int64 stamps [ns] of samples start .. start+count-1."""

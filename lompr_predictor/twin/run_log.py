@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from lompr_predictor.files import atomic_file
-from lompr_predictor.twin.digital_twin import TwinSamples
+from lompr_predictor.twin.digital_twin import SampleBlock
 
 RUN_LOG_FORMAT = 1
 
@@ -30,7 +30,9 @@ RUN_LOG_FORMAT = 1
 class RunLog:
     """The samples of a live run (module docstring)."""
 
-    def __init__(self) -> None:
+    def __init__(self, joint_count: int = 5) -> None:
+        """`joint_count`: the machine's measured joints (the LOMPR's five by default)."""
+        self.joint_count = joint_count
         self._stamps: list[int] = []
         self._rows: dict[str, list[np.ndarray]] = {
             'reference': [], 'joints': [], 'true_error': [], 'plant_error': [], 'offset': []}
@@ -41,7 +43,7 @@ class RunLog:
     def __len__(self) -> int:
         return len(self._stamps)
 
-    def add(self, samples: TwinSamples, answered: bool) -> None:
+    def add(self, samples: SampleBlock, answered: bool) -> None:
         """One sample the twin ran (`samples` of length 1)."""
         index = len(self._stamps)
         if answered and self.first_answered is None:
@@ -58,9 +60,10 @@ class RunLog:
         self._answered.append(answered)
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """`stamps` (N,) int64 ns, `reference` (N, 3), `joints` (N, 5) measured,
+        """`stamps` (N,) int64 ns, `reference` (N, 3), `joints` (N, joint_count) measured,
         `true_error`, `plant_error`, `offset` (N, 2) m, `answered` (N,) bool."""
-        widths = {'reference': 3, 'joints': 5, 'true_error': 2, 'plant_error': 2, 'offset': 2}
+        widths = {'reference': 3, 'joints': self.joint_count, 'true_error': 2,
+                  'plant_error': 2, 'offset': 2}
         arrays = {name: np.array(rows, dtype=float).reshape(-1, widths[name])
                   for name, rows in self._rows.items()}
         return {'stamps': np.array(self._stamps, dtype=np.int64), **arrays,
