@@ -16,7 +16,8 @@ default a temporary one; never the repository): the measured joints on their own
 instants on /joint_states, the commanded joints (q0 + the trapezoid integral of gen_dq over
 gen_time) on their grid on /joint_commands, stamped from EPOCH_NS. Then per horizon and
 preview it runs `lompr train` (the venv's, --quiet, the default budget unless --trials;
-the test part is the default: the chronologically last 10 %) and reads its report.json.
+the test part is the default: the chronologically last 10 %) and reads its report.json. A
+failed training leaves its rows empty, its message under the table and the exit code 1.
 
 It prints the commands it ran and one table: per run (h, K) and axis the test RMSE [um] of
 every model in the report and its ratio to persistence on the same windows, and the wall
@@ -49,13 +50,6 @@ COMMAND_TOPIC = '/joint_commands'
 HORIZONS = (1, 25)
 PERSISTENCE = 'persistence'
 AXES = ('x', 'y')
-#: `lompr train --gap-factor` of the bench. The measurement instants are 0.7-2.1 ms apart
-#: (median 1 ms) and the cleaning drops ~300 single-sample spikes (the stamps' jitter times
-#: the speed: 0.2-0.3 mm); the package's 2.5 periods then split the run at most removed
-#: spikes (101 segments, median 88 samples), and the machine map of h = 25, which fits on
-#: the error 625 samples later in the same segment, finds none. 5 periods split it only at
-#: its four 8-9 ms holes. `--gap-factor 2.5` gives the package's default.
-GAP_FACTOR = 5.0
 
 
 @dataclass(frozen=True)
@@ -128,8 +122,7 @@ def train_command(bag: Path, report: Path, horizon: int, preview: int,
                '--report', str(report), '--horizon', str(horizon),
                '--robot-description', str(args.data / 'panda.urdf'), '--tip-frame', TIP_FRAME,
                '--joint-names', ','.join(JOINTS), '--joint-topic', JOINT_TOPIC,
-               '--command-topic', COMMAND_TOPIC, '--gap-factor', f'{args.gap_factor:g}',
-               '--quiet']
+               '--command-topic', COMMAND_TOPIC, '--quiet']
     if preview:
         command += ['--preview', str(preview)]
     if args.trials is not None:
@@ -137,8 +130,7 @@ def train_command(bag: Path, report: Path, horizon: int, preview: int,
     return command
 
 
-def train(bag: Path, work: Path, horizon: int, preview: int,
-          args: argparse.Namespace) -> Run:
+def train(bag: Path, work: Path, horizon: int, preview: int, args: argparse.Namespace) -> Run:
     """Run `lompr train` for one horizon and preview (a fresh report folder) and read its
     report; the command's output goes to train.log in the report folder."""
     report = work / f'h{horizon}_k{preview}'
@@ -200,7 +192,8 @@ def table_rows(runs: list[Run], names: list[str]) -> tuple[list[str], list[list[
     """The table's head and rows: per run and axis, every model's cell and the wall time."""
     head = ['h', 'K', 'axis', *(SHORT.get(name, name) for name in names), 'train s']
     rows = [[str(run.horizon), str(run.preview), axis.upper(),
-             *(cell(run, name, axis) for name in names), f'{run.seconds:.0f}']
+             *(cell(run, name, axis) for name in names),
+             f'{run.seconds:.0f}' + (' failed' if run.failure else '')]
             for run in runs for axis in AXES]
     return head, rows
 
@@ -263,10 +256,6 @@ def arguments() -> argparse.Namespace:
                              'temporary folder, removed at the end); not in the repository')
     parser.add_argument('--trials', type=int, default=None,
                         help="tuning trials per training (default: lompr train's budget)")
-    parser.add_argument('--gap-factor', type=float, default=GAP_FACTOR,
-                        help="lompr train --gap-factor (default %(default)s: the package's "
-                             '2.5 splits this irregularly stamped run at the removed spikes; '
-                             'see GAP_FACTOR)')
     parser.add_argument('--out', type=Path, default=None, help='also write the table here '
                                                                '(Markdown)')
     return parser.parse_args()
@@ -305,8 +294,7 @@ def main() -> int:
                   else "lompr train's default")
         title = (f'Franka Emika Panda (Gaz et al. 2019), tool tip {TIP_FRAME}: test RMSE [um] '
                  f'(ratio to persistence), chronologically last 10 %; budget: {budget}; '
-                 f'--gap-factor {args.gap_factor:g}; all runs {time.perf_counter() - started:.0f}'
-                 ' s wall')
+                 f'all runs {time.perf_counter() - started:.0f} s wall')
         report_all(runs, summary, title, args.out)
     return 1 if any(run.failure for run in runs) else 0
 

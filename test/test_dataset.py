@@ -30,6 +30,8 @@ from lompr_predictor.data.cleaning import (
     hampel_outliers,
     implausible_error,
     interpolate_reference,
+    missing_step_ns,
+    replace_spikes,
     sanitise_stream,
     segment_bounds,
 )
@@ -204,10 +206,17 @@ def test_clean_stitches_bags_and_counts_every_fault(description: RobotDescriptio
     assert counts['segments'] == 3  # the gap, and where the second bag begins
     np.testing.assert_array_equal(data.recordings[1:, 0], data.segments[1:2, 0])
     assert counts['no_reference'] == 1  # the last joint sample lies after the last reference
-    assert counts['kept'] == 800 - 20 - 1 - 1 - 1
+    assert counts['kept'] == 800 - 20 - 1 - 1  # the spike's sample kept, its value replaced
     expected = {int(s): e for s, e in zip(j.stamps, error, strict=False)}
-    assert np.isin(j.stamps[[100, 500, 799]], data.stamps, invert=True).all()
-    np.testing.assert_allclose(data.error, [expected[int(s)] for s in data.stamps], atol=1e-9)
+    assert np.isin(j.stamps[[100, 799]], data.stamps, invert=True).all()
+    glitch = int(np.searchsorted(data.stamps, j.stamps[500]))
+    assert data.stamps[glitch] == j.stamps[500]
+    # replaced by the mean of its neighbours (equally spaced): the error, not the glitch
+    np.testing.assert_allclose(data.error[glitch], 0.5 * (data.error[glitch - 1]
+                                                          + data.error[glitch + 1]), atol=1e-15)
+    others = np.arange(len(data)) != glitch
+    np.testing.assert_allclose(data.error[others],
+                               [expected[int(s)] for s in data.stamps[others]], atol=1e-9)
     assert data.stamps[0] == EPOCH_NS and (np.diff(data.stamps) > 0).all()
 
 
@@ -341,3 +350,32 @@ def test_an_error_no_machine_makes_is_implausible(radius: float, error: tuple[fl
     if not plausible:
         assert f'{np.hypot(*error) * 1e3:.3g} mm (RMS) from the reference' in why
         assert f'commanded path ({radius * 1e3:.3g} mm RMS)' in why and '--joint-names' in why
+
+
+def test_a_stream_whose_stamps_jitter_is_not_read_as_samples_missing() -> None:
+    """Stamps 1 ms apart give the rule of 1.5 periods; stamps that jitter between 0.8 and
+    2.0 ms (a real robot's driver) lift it just past their own 99.9th percentile step, so
+    that only a longer step (3.5 ms: a sample missing) splits the run."""
+    period = 1_000_000
+    regular = np.arange(5000, dtype=np.int64) * period
+    segments = np.array([[0, 5000]])
+    assert missing_step_ns(regular, segments, period) == 1.5 * period
+    rng = np.random.default_rng(2)
+    steps = rng.choice([800_000, 1_000_000, 1_200_000], 5000, p=[0.3, 0.4, 0.3])
+    steps[rng.choice(5000, 40, replace=False)] = 2_000_000  # 0.8 % of long steps
+    steps[2500] = 3_500_000
+    jittery = np.concatenate([[0], np.cumsum(steps)])
+    threshold = missing_step_ns(jittery, np.array([[0, len(jittery)]]), period)
+    assert threshold == 1.05 * 2_000_000
+    np.testing.assert_array_equal(segment_bounds(jittery, threshold),
+                                  [[0, 2501], [2501, len(jittery)]])
+
+
+def test_a_spike_is_replaced_by_its_neighbours_interpolation() -> None:
+    values = np.array([[0.0, 1.0], [1.0, 2.0], [9.0, -7.0], [3.0, 4.0], [4.0, 5.0]])
+    spikes = np.array([False, False, True, False, False])
+    np.testing.assert_array_equal(replace_spikes(values, spikes),
+                                  [[0, 1], [1, 2], [2, 3], [3, 4], [4, 5]])
+    two = np.array([False, True, True, False, False])
+    np.testing.assert_allclose(replace_spikes(values, two)[1:3], [[1.0, 2.0], [2.0, 3.0]])
+    assert replace_spikes(values, np.zeros(5, dtype=bool)) is values

@@ -15,7 +15,8 @@ The paper's pre-processing, done so that every dropped sample is counted by reas
    (reference + compensation) (docs/interface.md, the error: a bag recorded with
    compensation on trains on what the plant does, not on what the offsets left); a gap
    longer than `gap_factor` sample periods splits the data into segments; a Hampel filter,
-   per segment, rejects spikes of the error.
+   per segment, finds spikes of the error, each replaced by its neighbours' interpolation
+  (`replace_spikes`).
 """
 
 from __future__ import annotations
@@ -37,6 +38,10 @@ HAMPEL_THRESHOLD = 6.0  # spike when |e - median| > threshold * robust sigma
 MAD_TO_SIGMA = 1.4826  # MAD of a Gaussian times this is its standard deviation
 NEIGHBOUR_AGREEMENT = 0.5  # a spike's neighbours differ by less than this times its excursion
 MISSING_SAMPLE_FACTOR = 1.5  # a step longer than this many periods means a sample is missing
+#: ... unless the stream's own steps are that long this often: its jitter, not a sample
+#: missing (`missing_step_ns`); a regular stream's quantile is its period.
+JITTER_QUANTILE = 0.999
+JITTER_MARGIN = 1.05
 #: An offset applies to the sample within this many periods of its stamp (as a controller
 #: refuses one stamped between two sample instants, `twin.compensation`).
 OFFSET_TOLERANCE = 0.25
@@ -97,12 +102,11 @@ class CleanData:
 
     def regular_runs(self) -> np.ndarray:
         """(R, 2) [start, end) row ranges sampled without a missing sample: the segments,
-        split again where one sample is missing (a step over `MISSING_SAMPLE_FACTOR`
-        periods, below the gap rule), so that every window and its target span exactly the
-        time they stand for."""
+        split again where one sample is missing (`missing_step_ns`, below the gap rule), so
+        that every window and its target span the time they stand for."""
+        missing = missing_step_ns(self.stamps, self.segments, self.sample_period * 1e9)
         return np.concatenate([
-            start + segment_bounds(self.stamps[start:end] - self.stamps[start],
-                                   MISSING_SAMPLE_FACTOR * self.sample_period * 1e9)
+            start + segment_bounds(self.stamps[start:end] - self.stamps[start], missing)
             for start, end in self.segments] or [np.zeros((0, 2), dtype=np.int64)])
 
     def features(self, preview: int = 0) -> np.ndarray:
@@ -117,6 +121,17 @@ class CleanData:
                 seconds, self.error[start:end], self.reference[start:end], coordinates),
                 preview)
         return rows
+
+
+def missing_step_ns(stamps: np.ndarray, segments: np.ndarray, period_ns: float) -> float:
+    """The step [ns] beyond which a sample counts as missing: `MISSING_SAMPLE_FACTOR`
+    periods, or for a stream whose stamps jitter more than that (a real robot's, stamped
+    when its driver read the sample) just beyond its own `JITTER_QUANTILE` step, so that its
+    ordinary jitter is not read as samples missing."""
+    steps = np.concatenate([np.diff(stamps[start:end]) for start, end in segments]
+                           or [np.zeros(0)])
+    jitter = float(np.quantile(steps, JITTER_QUANTILE)) if len(steps) else 0.0
+    return max(MISSING_SAMPLE_FACTOR * period_ns, JITTER_MARGIN * jitter)
 
 
 def sanitise_stream(
@@ -361,15 +376,30 @@ def clean_recordings(
     segments = segment_bounds(stamps, max_step)
     spikes = hampel_outliers(error, segments, config.hampel_half_window, config.hampel_threshold)
     counts['spike'] = int(spikes.sum())
-    stamps, error, aligned = stamps[~spikes], error[~spikes], aligned[~spikes]
+    error = replace_spikes(error, spikes)
     bag_rows = recording_rows(stamps, ordered)
     segments = split_at(segment_bounds(stamps, max_step), bag_rows[1:, 0])
     counts['kept'] = len(stamps)
     counts['segments'] = len(segments)
     return CleanData(stamps=stamps, error=error, reference=aligned, segments=segments,
                      sample_period=period * 1e-9, chain=chain, counts=counts,
-                     recording_rows=bag_rows,
-                     compensation=None if compensation is None else compensation[~spikes])
+                     recording_rows=bag_rows, compensation=compensation)
+
+
+def replace_spikes(values: np.ndarray, spikes: np.ndarray) -> np.ndarray:
+    """(N, K) `values` with each row of `spikes` replaced by the linear interpolation of the
+    rows beside it that are none: the sample was there, its value was not the machine's, and
+    keeping the sample keeps the stream regular (a dropped one would read as a missing
+    sample and split the windows; on a real recording whose stamps jitter, a spike each few
+    hundred samples cut it into pieces too short for a window). A segment's first and last
+    rows are never spikes (`hampel_outliers`), so no value is carried across a gap."""
+    if not spikes.any():
+        return values
+    rows = np.arange(len(values))
+    out = values.copy()
+    for column in range(values.shape[1]):
+        out[spikes, column] = np.interp(rows[spikes], rows[~spikes], values[~spikes, column])
+    return out
 
 
 def split_at(segments: np.ndarray, rows: np.ndarray) -> np.ndarray:

@@ -372,7 +372,11 @@ def _machine_map(config: TrainingConfig, problem: LearningProblem, data: CleanDa
     if not config.machine_map:
         return None
     training = problem.split.training_rows()[:len(data)]
-    return fit_machine_map(problem, data.reference[training], chain)
+    try:
+        return fit_machine_map(problem, data.reference[training], chain)
+    except ValueError as err:  # the recordings' runs: too short for the horizon's pairs
+        msg = f'{err}; record longer runs without gaps, or train without it (--no-machine-map)'
+        raise DataError(msg) from err
 
 
 def _run_study(config: TrainingConfig, problem: LearningProblem,
