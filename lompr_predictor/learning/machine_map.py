@@ -314,18 +314,8 @@ class MachineMap(nn.Module):
         samples (`local_deviations`). Returns `fit_rms`. The module docstring says why two
         fits, and why on changes."""
         basis = self.basis(rows)
-        changes = lag_changes(basis, error, instants, self.fit_lags)
-        # a lag longer than the recording's runs allow is left out (a high rate makes the
-        # longer lags many samples), the horizon's own never
-        kept = [k for k, (design, _) in enumerate(changes) if len(design) >= design.shape[2]]
-        if not kept or kept[0] != 0:
-            design = changes[0][0]
-            msg = (f'the machine map needs at least {design.shape[2]} instants with every '
-                   f'feature now and {self.fit_lags[0]} samples later in the same run, got '
-                   f'{len(design)}')
-            raise ValueError(msg)
-        self.fit_lags = tuple(self.fit_lags[k] for k in kept)
-        changes = [changes[k] for k in kept]
+        self.fit_lags, changes = usable_lags(
+            self.fit_lags, lag_changes(basis, error, instants, self.fit_lags))
         weights = [1.0 / max(float(np.sqrt(np.mean(target ** 2))), 1e-15)
                    for _, target in changes]
         coefficients = _least_squares(
@@ -409,6 +399,20 @@ def lag_changes(basis: np.ndarray, error: np.ndarray, instants: np.ndarray,
         usable = np.isfinite(design).all(axis=(1, 2)) & np.isfinite(target).all(axis=1)
         changes.append((design[usable], target[usable]))
     return changes
+
+
+def usable_lags(lags: tuple[int, ...], changes: list[tuple[np.ndarray, np.ndarray]]
+                ) -> tuple[tuple[int, ...], list[tuple[np.ndarray, np.ndarray]]]:
+    """The lags (and their `lag_changes`) with at least as many pairs as the map has
+    coefficients: a lag longer than the recording's runs allow is left out (a high rate
+    makes the longer lags many samples), the horizon's own never (`ValueError`)."""
+    kept = [k for k, (design, _) in enumerate(changes) if len(design) >= design.shape[2]]
+    if not kept or kept[0] != 0:
+        design = changes[0][0]
+        msg = (f'the machine map needs at least {design.shape[2]} instants with every '
+               f'feature now and {lags[0]} samples later in the same run, got {len(design)}')
+        raise ValueError(msg)
+    return tuple(lags[k] for k in kept), [changes[k] for k in kept]
 
 
 def local_deviations(values: np.ndarray, instants: np.ndarray, window: int) -> np.ndarray:
