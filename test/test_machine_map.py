@@ -74,18 +74,20 @@ def _rows(count: int, seed: int = 0, preview: int = 0) -> np.ndarray:
 
 
 def _known_map(features: tuple[str, ...], horizon: int = 1, preview: int = 0) -> MachineMap:
-    machine_map = MachineMap(features, horizon, preview, 0.04, JACOBIAN,
-                             0.02 * np.asarray(FRICTION_SCALES))
-    rng = np.random.default_rng(7)
+    return _with_random_coefficients(
+        MachineMap(features, horizon, preview, 0.04, JACOBIAN, 0.02 * np.asarray(FRICTION_SCALES)),
+        seed=7)
+
+
+def _with_random_coefficients(machine_map: MachineMap, seed: int) -> MachineMap:
+    """`machine_map` with every coefficient of both fits drawn at random (1e-5 m scale)."""
+    rng = np.random.default_rng(seed)
     with torch.no_grad():
-        machine_map.branch_coefficients.copy_(torch.from_numpy(
-            rng.normal(0.0, 1e-5, machine_map.branch_coefficients.shape)))
-        machine_map.posture_coefficients.copy_(torch.from_numpy(
-            rng.normal(0.0, 1e-5, machine_map.posture_coefficients.shape)))
-        machine_map.level_branch_coefficients.copy_(torch.from_numpy(
-            rng.normal(0.0, 1e-5, machine_map.branch_coefficients.shape)))
-        machine_map.level_posture_coefficients.copy_(torch.from_numpy(
-            rng.normal(0.0, 1e-5, machine_map.posture_coefficients.shape)))
+        for coefficients in (machine_map.branch_coefficients,
+                             machine_map.posture_coefficients,
+                             machine_map.level_branch_coefficients,
+                             machine_map.level_posture_coefficients):
+            coefficients.copy_(torch.from_numpy(rng.normal(0.0, 1e-5, coefficients.shape)))
     return machine_map
 
 
@@ -233,14 +235,10 @@ def test_without_actuator_coordinates_the_map_acts_in_the_tools_axes() -> None:
     form is fitted back to 1e-9 m."""
     tool = base_features(())
     assert motion_columns(tool) == (('ref_vx', 'ref_vy'), ('ref_ax', 'ref_ay'))
-    truth = MachineMap(tool, 1, 0, 0.004, speed_scales=0.02 * np.asarray(FRICTION_SCALES))
+    truth = _with_random_coefficients(
+        MachineMap(tool, 1, 0, 0.004, speed_scales=0.02 * np.asarray(FRICTION_SCALES)), seed=3)
     np.testing.assert_array_equal(truth.jacobian.numpy(), np.eye(2))
     rng = np.random.default_rng(3)
-    with torch.no_grad():
-        truth.branch_coefficients.copy_(torch.from_numpy(
-            rng.normal(0.0, 1e-5, truth.branch_coefficients.shape)))
-        truth.posture_coefficients.copy_(torch.from_numpy(
-            rng.normal(0.0, 1e-5, truth.posture_coefficients.shape)))
     rows = np.zeros((4000, len(tool)))
     for name, scale in (('ref_x', 0.2), ('ref_y', 0.2), ('ref_vx', 0.05), ('ref_vy', 0.05),
                         ('ref_ax', 0.2), ('ref_ay', 0.2)):

@@ -4,7 +4,6 @@ scored, and run through kinematics_node -> predictor_node against the offline mo
 
 from __future__ import annotations
 
-import argparse
 import json
 import re
 from pathlib import Path
@@ -16,8 +15,8 @@ from model_helpers import LinearWindowModel, metadata
 from robots import ARM_URDF, AXIS_URDF, arm_joints, arm_tip, write_urdf
 from ros_helpers import RosHarness, set_stamp, stamp_ns, xy
 from sensor_msgs.msg import JointState
+from trainer_data import FAST, run_cli
 
-from lompr_predictor.cli import evaluate, train
 from lompr_predictor.data.bags import (
     COMMAND_TOPIC,
     BagError,
@@ -93,19 +92,6 @@ def test_a_joint_beyond_its_limit_in_a_command_is_counted_not_used(
     data = clean_recordings([recording], load_chain(RobotSpec(arm_urdf, 'base', 'flange')))
     assert data.counts['command_fk_invalid'] == 1
     assert data.counts['kept'] == 100  # the reference is interpolated over the one missing
-
-
-def run_cli(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser()
-    subparsers = parser.add_subparsers()
-    train.add_parser(subparsers)
-    evaluate.add_parser(subparsers)
-    args = parser.parse_args(argv)
-    return int(args.run(args))
-
-
-FAST = ['--trials', '2', '--max-epochs', '2', '--window', '8', '--horizon', '2', '--quiet',
-        '--batch-sizes', '500', '--hidden-units', '4,8', '--workers', '1', '--restarts', '1']
 
 
 def test_a_one_joint_axis_trains_and_predicts_its_y_as_zero(tmp_path: Path) -> None:

@@ -9,10 +9,17 @@ from typing import Any
 
 import pytest
 from model_helpers import save_linear
-from trainer_data import lissajous_reference, synthetic_recording, truncate_bag, write_synthetic_bag
+from trainer_data import (
+    FAST,
+    lissajous_reference,
+    synthetic_recording,
+    truncate_bag,
+    write_synthetic_bag,
+)
+from trainer_data import run_cli as run
 
-from lompr_predictor.cli import evaluate, train
 from lompr_predictor.cli import main as lompr_main
+from lompr_predictor.cli import train
 from lompr_predictor.data.bags import write_recording
 from lompr_predictor.data.features import FEATURES, HISTORY, feature_names
 from lompr_predictor.errors import LomprError
@@ -21,18 +28,6 @@ from lompr_predictor.learning.model_file import (
     load_model,
 )
 from lompr_predictor.robot.description import RobotDescription
-
-FAST = ['--trials', '2', '--max-epochs', '2', '--window', '8', '--horizon', '2', '--quiet',
-        '--batch-sizes', '500', '--hidden-units', '4,8', '--workers', '1', '--restarts', '1']
-
-
-def run(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser()
-    subparsers = parser.add_subparsers()
-    train.add_parser(subparsers)
-    evaluate.add_parser(subparsers)
-    args = parser.parse_args(argv)
-    return args.run(args)
 
 
 @pytest.fixture(scope='module')

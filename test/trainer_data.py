@@ -2,14 +2,20 @@
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 import numpy as np
 
+from lompr_predictor.cli import evaluate, train
 from lompr_predictor.data.bags import JointSamples, Recording, ReferenceSamples, write_recording
 from lompr_predictor.robot.description import MEASURED_JOINTS, LomprGeometry
 from lompr_predictor.robot.kinematics import inverse_kinematics
 
+#: `lompr train` options of a training that takes seconds (tests of the command, not of
+#: what it learns).
+FAST = ['--trials', '2', '--max-epochs', '2', '--window', '8', '--horizon', '2', '--quiet',
+        '--batch-sizes', '500', '--hidden-units', '4,8', '--workers', '1', '--restarts', '1']
 PERIOD_NS = 40_000_000
 EPOCH_NS = 1_700_000_000 * 1_000_000_000
 
@@ -76,3 +82,14 @@ def truncate_bag(bag: Path) -> Path:
     data = storage.read_bytes()
     storage.write_bytes(data[:len(data) // 2])
     return storage
+
+
+def run_cli(argv: list[str]) -> int:
+    """`lompr train` or `lompr evaluate` with `argv` in this process, as the command line
+    runs it (its exceptions not turned into exit codes)."""
+    parser = argparse.ArgumentParser()
+    subparsers = parser.add_subparsers()
+    train.add_parser(subparsers)
+    evaluate.add_parser(subparsers)
+    args = parser.parse_args(argv)
+    return int(args.run(args))

@@ -34,11 +34,11 @@ from lompr_predictor.twin.arm_programs import (
     ArmWorkspace,
     program_joints,
 )
-from lompr_predictor.twin.digital_twin import EPOCH_NS
+from lompr_predictor.twin.digital_twin import EPOCH_NS, SampleGrid, TipErrors
 
 
 @dataclass(frozen=True)
-class ArmTwinSamples:
+class ArmTwinSamples(TipErrors):
     """A block of the arm twin's samples (the arm's `digital_twin.TwinSamples`)."""
 
     index: np.ndarray  # (n,) sample numbers from the start of the run
@@ -50,18 +50,8 @@ class ArmTwinSamples:
     joints: ArmPlantOutput  # commanded (nominal + offset), actual, measured joints
     tip: np.ndarray  # (n, 3) true tool tip, FK of the actual joints [m]
 
-    @property
-    def error_true(self) -> np.ndarray:
-        """(n, 3) where the tool really was minus the reference (the error the loop fights)."""
-        return self.tip - self.reference
 
-    @property
-    def plant_error_true(self) -> np.ndarray:
-        """(n, 3) actual - (reference + compensation): the plant's own error."""
-        return self.tip - self.reference - self.compensation
-
-
-class ArmDigitalTwin:
+class ArmDigitalTwin(SampleGrid):
     """The serial arm running a program pass after pass under its error physics."""
 
     def __init__(self, model: pin.Model | str | Path | None = None,
@@ -110,14 +100,6 @@ class ArmDigitalTwin:
         """The programs' tool orientation, tool down (`arm_programs.TOOL_DOWN`)."""
         x, y, z, w = pin.Quaternion(TOOL_DOWN).coeffs()
         return float(x), float(y), float(z), float(w)
-
-    def stamps(self, start: int, count: int) -> np.ndarray:
-        """(count,) int64 stamps [ns] of samples start .. start+count-1."""
-        return self.epoch_ns + self.period_ns * np.arange(start, start + count, dtype=np.int64)
-
-    def index_of(self, stamp_ns: int) -> int:
-        """Sample number whose stamp is nearest `stamp_ns`."""
-        return round((int(stamp_ns) - self.epoch_ns) / self.period_ns)
 
     def planned(self, count: int) -> tuple[np.ndarray, np.ndarray]:
         """The next `count` samples as planned, not yet run: (count,) stamps [ns] and

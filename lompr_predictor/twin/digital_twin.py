@@ -32,16 +32,28 @@ EPOCH_NS = 1_700_000_000 * NS_PER_SECOND
 SINGLE_SAMPLE_FK_MAX = 8
 
 
-@dataclass(frozen=True)
-class TwinSamples:
-    """A block of twin samples."""
+class SampleGrid:
+    """A twin's samples on its simulated clock: sample k at `epoch_ns` + k `period_ns`."""
 
-    index: np.ndarray  # (n,) sample numbers from the start of the run
-    stamps: np.ndarray  # (n,) int64 [ns] on the simulated clock
-    reference: np.ndarray  # (n, 3) nominal (uncompensated) commanded tool tip [m]
-    compensation: np.ndarray  # (n, 3) offset applied to the command [m]
-    joints: PlantOutput
-    tip: np.ndarray  # (n, 3) true tool tip, FK of the actual joints [m]
+    epoch_ns: int
+    period_ns: int
+
+    def stamps(self, start: int, count: int) -> np.ndarray:
+        """(count,) int64 stamps [ns] of samples start .. start+count-1."""
+        return self.epoch_ns + self.period_ns * np.arange(start, start + count, dtype=np.int64)
+
+    def index_of(self, stamp_ns: int) -> int:
+        """Sample number whose stamp is nearest `stamp_ns`."""
+        return round((int(stamp_ns) - self.epoch_ns) / self.period_ns)
+
+
+class TipErrors:
+    """The errors of a block of samples of any twin, from its true tool tips, references and
+    the offsets applied (each (n, 3) [m])."""
+
+    tip: np.ndarray
+    reference: np.ndarray
+    compensation: np.ndarray
 
     @property
     def error_true(self) -> np.ndarray:
@@ -52,6 +64,18 @@ class TwinSamples:
     def plant_error_true(self) -> np.ndarray:
         """(n, 3) actual - (reference + compensation): the plant's own error."""
         return self.tip - self.reference - self.compensation
+
+
+@dataclass(frozen=True)
+class TwinSamples(TipErrors):
+    """A block of twin samples."""
+
+    index: np.ndarray  # (n,) sample numbers from the start of the run
+    stamps: np.ndarray  # (n,) int64 [ns] on the simulated clock
+    reference: np.ndarray  # (n, 3) nominal (uncompensated) commanded tool tip [m]
+    compensation: np.ndarray  # (n, 3) offset applied to the command [m]
+    joints: PlantOutput
+    tip: np.ndarray  # (n, 3) true tool tip, FK of the actual joints [m]
 
 
 class JointBlock(Protocol):
@@ -122,7 +146,7 @@ class LiveTwin(Protocol):
     def step(self, count: int = 1, compensation: np.ndarray | None = None) -> SampleBlock: ...
 
 
-class DigitalTwin:
+class DigitalTwin(SampleGrid):
     """The LOMPR running a path pass after pass under the twin's error physics."""
 
     joint_names = MEASURED_JOINTS
@@ -155,14 +179,6 @@ class DigitalTwin:
     @property
     def pass_samples(self) -> int:
         return len(self.cycle)
-
-    def stamps(self, start: int, count: int) -> np.ndarray:
-        """(count,) int64 stamps [ns] of samples start .. start+count-1."""
-        return self.epoch_ns + self.period_ns * np.arange(start, start + count, dtype=np.int64)
-
-    def index_of(self, stamp_ns: int) -> int:
-        """Sample number whose stamp is nearest `stamp_ns`."""
-        return round((int(stamp_ns) - self.epoch_ns) / self.period_ns)
 
     def planned(self, count: int) -> tuple[np.ndarray, np.ndarray]:
         """The next `count` samples as planned, not yet run: (count,) stamps [ns] and
