@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -135,10 +137,11 @@ def test_a_one_joint_axis_trains_and_predicts_its_y_as_zero(tmp_path: Path) -> N
     assert evaluated['models']['model']['metrics']['y']['rmse_um'] == 0.0
 
 
-def serial_model(path: Path, urdf: Path, window: int = 4, horizon: int = 3) -> Path:
+def serial_model(path: Path, urdf: Path, window: int = 4, horizon: int = 3, *,
+                 base: str = 'base', tip: str = 'flange') -> Path:
     """A linear model of a serial chain's rows (the tool's columns): the last error plus
-    1 ms of the reference's velocity, bound to `urdf`'s planar arm."""
-    chain = load_chain(RobotSpec(urdf, 'base', 'flange'))
+    1 ms of the reference's velocity, bound to `urdf`'s chain from `base` to `tip`."""
+    chain = load_chain(RobotSpec(urdf, base, tip))
     features = feature_names(0, chain.actuators)
     weight = np.zeros((window, len(features), 2))
     weight[-1, 0, 0] = weight[-1, 1, 1] = 1.0
@@ -150,27 +153,63 @@ def serial_model(path: Path, urdf: Path, window: int = 4, horizon: int = 3) -> P
     return path
 
 
+@dataclass(frozen=True)
+class Machine:
+    """A test machine: its URDF, frames, recording and tool tips by hand."""
+
+    urdf: str
+    base: str
+    tip: str
+    recording: Callable[[int, float], Recording]
+    tip_of: Callable[[np.ndarray], np.ndarray]
+
+
+def axis_recording(samples: int, noise: float = 0.0) -> Recording:
+    """The one-joint axis's carriage `LAG` behind its command."""
+    stamps = T0 + np.round(np.arange(samples) * PERIOD * 1e9).astype(np.int64)
+    t = np.arange(samples) * PERIOD
+    command = 0.2 * np.sin(2 * np.pi * t / 3.0)
+    measured = 0.2 * np.sin(2 * np.pi * (t - LAG) / 3.0)
+    measured += noise * np.random.default_rng(0).standard_normal(samples)
+    return Recording(joints=JointSamples(stamps, measured[:, None], ('x',)),
+                     reference=no_reference(),
+                     commands=JointSamples(stamps, command[:, None], ('x',)))
+
+
+def axis_tip(joints: np.ndarray) -> np.ndarray:
+    """(N, 3) the axis's tool: x along the bed, 0.15 m above it."""
+    x = np.asarray(joints, dtype=float)[:, 0]
+    return np.column_stack([x, np.zeros(len(x)), np.full(len(x), 0.15)])
+
+
+MACHINES = {'arm': Machine(ARM_URDF, 'base', 'flange', arm_recording, arm_tip),
+            'axis': Machine(AXIS_URDF, 'bed', 'tool', axis_recording, axis_tip)}
+
+
 @pytest.mark.ros
-def test_the_arm_through_both_nodes_gives_the_offline_predictions(
-        ros: RosHarness, tmp_path: Path, arm_urdf: Path) -> None:
-    """kinematics_node solves the measured and the commanded joints of the arm (poses to
-    1e-9 m against the kinematics by hand), predictor_node answers every sample as the
-    offline model does on the trainer's rows (to 1e-9 m)."""
+@pytest.mark.parametrize('name', sorted(MACHINES))
+def test_a_machine_through_both_nodes_gives_the_offline_predictions(
+        ros: RosHarness, tmp_path: Path, name: str) -> None:
+    """kinematics_node solves the measured and the commanded joints of an arm and of a
+    single axis (poses to 1e-9 m against the kinematics by hand), predictor_node answers
+    every sample as the offline model does on the trainer's rows (to 1e-9 m)."""
     from rclpy.parameter import Parameter
 
     from lompr_predictor.ros.kinematics_node import KinematicsNode
     from lompr_predictor.ros.predictor_node import PredictorNode
 
-    model_path = serial_model(tmp_path / 'arm.pt', arm_urdf)
-    robot = {'robot_description_file': str(arm_urdf), 'base_frame': 'base',
-             'tip_frame': 'flange', 'frame_id': 'base'}
+    machine = MACHINES[name]
+    urdf = write_urdf(tmp_path, f'{name}.urdf', machine.urdf)
+    model_path = serial_model(tmp_path / 'model.pt', urdf, base=machine.base, tip=machine.tip)
+    robot = {'robot_description_file': str(urdf), 'base_frame': machine.base,
+             'tip_frame': machine.tip, 'frame_id': machine.base}
     kinematics = ros.add(KinematicsNode(context=ros.context, parameter_overrides=[
         Parameter(name, value=value) for name, value in
         {**robot, 'command_topic': 'joint_commands', 'diagnostics_period': 0.1}.items()]))
     predictor = ros.add(PredictorNode(context=ros.context, parameter_overrides=[
         Parameter(name, value=value) for name, value in
-        {'model_path': str(model_path), 'robot_description_file': str(arm_urdf),
-         'frame_id': 'base', 'compensation_enabled': False, 'guard_enabled': False,
+        {'model_path': str(model_path), 'robot_description_file': str(urdf),
+         'frame_id': machine.base, 'compensation_enabled': False, 'guard_enabled': False,
          'stale_periods': 1e6, 'late_tolerance': 60.0}.items()]))
     poses = ros.collect('/lompr/end_pose', PoseStamped, 1000)
     references = ros.collect('/lompr/reference', PoseStamped, 1000)
@@ -180,13 +219,14 @@ def test_the_arm_through_both_nodes_gives_the_offline_predictions(
     for publisher in (measured_out, commanded_out):
         ros.wait_for_subscribers(publisher)
     ros.wait_for_publishers('/lompr/predicted_error')
-    recording = arm_recording(40, noise=1e-6)
+    recording = machine.recording(40, 1e-6)
     assert recording.commands is not None
+    names = ['other', *reversed(recording.joints.names)]  # matched by name, others ignored
     for k, stamp in enumerate(recording.joints.stamps):
         for publisher, joints in ((commanded_out, recording.commands),
                                   (measured_out, recording.joints)):
-            message = JointState(name=list(reversed(ARM_JOINTS)),  # matched by name
-                                 position=joints.positions[k][::-1].tolist())
+            message = JointState(name=names,
+                                 position=[7.0, *joints.positions[k][::-1].tolist()])
             set_stamp(message, int(stamp))
             publisher.publish(message)
         answered = k + 1
@@ -194,13 +234,15 @@ def test_the_arm_through_both_nodes_gives_the_offline_predictions(
                                    predictor.pose_rate.total) >= answered,  # noqa: B023
                        what=f'sample {k}')
     assert kinematics.rejected.total == 0 and kinematics.commands.rejected.total == 0
-    assert {message.header.frame_id for message in poses + references} == {'base'}
+    assert {message.header.frame_id for message in poses + references} == {machine.base}
     np.testing.assert_allclose([[p.pose.position.x, p.pose.position.y, p.pose.position.z]
-                                for p in poses], arm_tip(recording.joints.positions), atol=1e-9)
-    np.testing.assert_allclose([[p.pose.position.x, p.pose.position.y, p.pose.position.z]
-                                for p in references], arm_tip(recording.commands.positions),
+                                for p in poses], machine.tip_of(recording.joints.positions),
                                atol=1e-9)
-    data = clean_recordings([recording], load_chain(RobotSpec(arm_urdf, 'base', 'flange')))
+    np.testing.assert_allclose([[p.pose.position.x, p.pose.position.y, p.pose.position.z]
+                                for p in references],
+                               machine.tip_of(recording.commands.positions), atol=1e-9)
+    data = clean_recordings([recording],
+                            load_chain(RobotSpec(urdf, machine.base, machine.tip)))
     ends = np.arange(4 + HISTORY - 1, len(data))
     offline = predict_rows(load_model(model_path).module, data.features(), ends, 4)
     ros.spin_until(lambda: len(predictions) >= len(ends), what='every prediction')
