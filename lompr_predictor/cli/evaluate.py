@@ -11,19 +11,24 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from lompr_predictor.cli.common import add_data_arguments, bag_inputs, robot_spec
 from lompr_predictor.cli.validation import existing_path, output_directory
+from lompr_predictor.data.bags import BagSource
+from lompr_predictor.data.cleaning import CleanData
 from lompr_predictor.data.features import TARGETS
-from lompr_predictor.data.loading import load_clean_data
+from lompr_predictor.data.loading import BagInputs, load_clean_data
 from lompr_predictor.data.problem import LearningProblem, Split
 from lompr_predictor.errors import LomprError
 from lompr_predictor.learning.report import base_report, irreducible_fields, write_report
 from lompr_predictor.robot.chain import description_sha256, load_chain, spec_with_model
 from lompr_predictor.threads import set_torch_threads
+
+if TYPE_CHECKING:  # the model file's module loads torch, which `lompr --help` never does
+    from lompr_predictor.learning.model_file import ModelMetadata
 
 
 class EvaluationError(LomprError):
@@ -70,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
         fit_baselines,
         score_test_part,
     )
-    from lompr_predictor.learning.model_file import PERIOD_TOLERANCE, load_model
+    from lompr_predictor.learning.model_file import load_model
     from lompr_predictor.learning.models import offline_predictions
     from lompr_predictor.scoring.guard_replay import replay_model_guard
 
@@ -80,12 +85,7 @@ def run(args: argparse.Namespace) -> int:
         'targets': TARGETS, 'robot_description_sha256': description_sha256(args.robot_description)})
     meta = model.metadata
     inputs = bag_inputs(args, args.bags)
-    data, sources = load_clean_data(inputs, load_chain(spec_with_model(robot_spec(args),
-                                                                       meta.robot)))
-    if abs(data.sample_period - meta.sample_period) > PERIOD_TOLERANCE * meta.sample_period:
-        msg = (f'the recordings are sampled every {data.sample_period * 1e3:.3g} ms, the model '
-               f'{args.model} was trained at {meta.sample_period * 1e3:.3g} ms')
-        raise EvaluationError(msg)
+    data, sources = _recordings(args, inputs, meta)
     offline = offline_predictions(model.module, data, meta.window, meta.horizon, meta.preview)
     if len(offline.ends) == 0:
         msg = f'no window of {meta.window} samples plus horizon {meta.horizon} in the recordings'
@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
         split=Split(train=ends[:0], validation=ends[:0], test=ends,
                     parts=np.array([[0, 0, 0, len(data)]])),
         error_low=np.array(norm['error_low']), error_high=np.array(norm['error_high']),
-        preview=meta.preview)
+        preview=meta.preview, actuators=data.chain.actuators)
     baselines = fit_baselines(problem, FitContext(), (PERSISTENCE,))
     guarded = replay_model_guard(meta, offline.stamps, offline.actual, offline.predicted,
                                  offline.last_error, offline.newest_rows, prior=offline.prior,
@@ -119,3 +119,18 @@ def run(args: argparse.Namespace) -> int:
                  predictions=scored.predictions)
     print(f'report in {args.report}')
     return 0
+
+
+def _recordings(args: argparse.Namespace, inputs: BagInputs, meta: ModelMetadata
+                ) -> tuple[CleanData, list[BagSource]]:
+    """The bags read and cleaned for the robot the model was trained for (the options'
+    URDF, the frames and joints the options leave open the model file's), at its rate."""
+    from lompr_predictor.learning.model_file import PERIOD_TOLERANCE
+
+    data, sources = load_clean_data(inputs, load_chain(spec_with_model(robot_spec(args),
+                                                                       meta.robot)))
+    if abs(data.sample_period - meta.sample_period) > PERIOD_TOLERANCE * meta.sample_period:
+        msg = (f'the recordings are sampled every {data.sample_period * 1e3:.3g} ms, the model '
+               f'{args.model} was trained at {meta.sample_period * 1e3:.3g} ms')
+        raise EvaluationError(msg)
+    return data, sources

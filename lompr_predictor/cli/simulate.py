@@ -87,6 +87,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                              'path generator with look-ahead publishes it (default: 0, none)')
     parser.add_argument('--no-plot', dest='plot', action='store_false',
                         help='skip lompr_error.png (the error over time and radius)')
+    _add_fault_arguments(parser)
+    parser.set_defaults(run=run)
+
+
+def _add_fault_arguments(parser: argparse.ArgumentParser) -> None:
+    """The faults `lompr simulate` injects into the LOMPR's recording."""
     faults = parser.add_argument_group('faults (to test the consumers; logged in the ground truth)')
     faults.add_argument('--gaps', type=non_negative_int, default=0, help='runs of dropped messages')
     faults.add_argument('--gap-length', type=positive_int, default=10,
@@ -103,7 +109,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help='spike offset [m or rad] (default 1e-3)')
     faults.add_argument('--fault-topic', choices=FAULT_TOPICS, default='joint_states',
                         help='stream(s) the faults hit (default joint_states)')
-    parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
