@@ -50,15 +50,13 @@ def newest_row(older: Sample, previous: Sample, newest: Sample) -> tuple[float, 
     """The last row of `feature_rows` over three consecutive samples (`Sample`), with the
     stamps as `stamps.seconds_since` the first: the same floating-point operations, so bit
     for bit the same row."""
-    s1 = previous[0]
-    s2, ex, ey = newest[0], newest[1], newest[2]
-    t1 = (s1 - older[0]) * 1e-9  # seconds_since: integer difference first, then to seconds
-    dt2 = (s2 - older[0]) * 1e-9 - t1  # np.diff of the seconds (the first step is t1 - 0.0)
-    coordinates = range(3, len(newest))
-    velocity = [(newest[k] - previous[k]) / dt2 for k in coordinates]
-    acceleration = [(v - (previous[k] - older[k]) / t1) / dt2
-                    for v, k in zip(velocity, coordinates, strict=True)]
-    return (ex, ey, newest[3], newest[4], velocity[0], velocity[1],
+    t1 = (previous[0] - older[0]) * 1e-9  # seconds_since: integer difference, then seconds
+    dt2 = (newest[0] - older[0]) * 1e-9 - t1  # np.diff of the seconds (the first step is t1)
+    before, last, now = older[3:], previous[3:], newest[3:]
+    velocity = [(c2 - c1) / dt2 for c1, c2 in zip(last, now, strict=True)]
+    acceleration = [(v - (c1 - c0) / t1) / dt2
+                    for v, c0, c1 in zip(velocity, before, last, strict=True)]
+    return (newest[1], newest[2], now[0], now[1], velocity[0], velocity[1],
             acceleration[0], acceleration[1], *velocity[2:], *acceleration[2:])
 
 
