@@ -319,3 +319,31 @@ def test_lompr_train_refuses_a_robot_named_wrong_in_one_line_writing_nothing(
     assert len(error.splitlines()) == 1
     assert re.search(message, error), error
     assert not model.exists() and not report.exists()
+
+
+def test_runs_too_short_for_the_maps_horizon_are_a_one_line_data_error(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Runs of 50 samples hold windows of 8 with a horizon of 25, but no pair of window ends
+    25 samples apart: the machine map cannot be fitted, and the trainer says so in one line
+    (exit 2), naming the way out, before anything is written."""
+    from lompr_predictor.cli import main as lompr_main
+
+    urdf = write_urdf(tmp_path, 'axis.urdf', AXIS_URDF)
+    full = axis_recording(4000)
+    keep = (np.arange(4000) % 60) < 50  # a gap of 10 samples after every 50
+    assert full.commands is not None
+    bag = write_recording(tmp_path / 'short', Recording(
+        joints=JointSamples(full.joints.stamps[keep], full.joints.positions[keep], ('x',)),
+        reference=no_reference(),
+        commands=JointSamples(full.commands.stamps[keep], full.commands.positions[keep],
+                              ('x',))))
+    at = FAST.index('--horizon')
+    fast = FAST[:at] + FAST[at + 2:]
+    assert lompr_main(['train', str(bag), '--out', str(tmp_path / 'm.pt'), '--report',
+                       str(tmp_path / 'r'), '--robot-description', str(urdf), '--tip-frame',
+                       'tool', '--command-topic', COMMAND_TOPIC, '--horizon', '25',
+                       *fast]) == 2
+    error = capsys.readouterr().err.strip()
+    assert len(error.splitlines()) == 1, error
+    assert 'the machine map needs at least' in error and '--no-machine-map' in error
+    assert not (tmp_path / 'm.pt').exists()
