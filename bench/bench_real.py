@@ -1,6 +1,7 @@
 """Real-data bench: how the trainer's models predict a real Franka Emika Panda's tool-tip error.
 
     python bench/bench_real.py [--trials N] [--work DIR] [--data DIR] [--out FILE.md]
+                               [--held-out 0.1]
 
 What it measures: the X/Y tracking error of `panda_hand` (the forward kinematics of the
 measured joints minus that of the commanded ones, `panda.urdf`) of a real Panda following
@@ -87,9 +88,11 @@ def stamps_ns(times: np.ndarray) -> np.ndarray:
     return EPOCH_NS + np.round(times * NS_PER_SECOND).astype(np.int64)
 
 
-def write_bag(data: Path, bag: Path) -> dict[str, float]:
-    """The Panda's recording as a bag of a robot commanded in joints at `bag`; a summary
-    (samples, duration, joint error) to print."""
+def write_bag(data: Path, bag: Path, part: tuple[float, float] = (0.0, 1.0)
+              ) -> dict[str, float]:
+    """The Panda's recording as a bag of a robot commanded in joints at `bag` (the `part`
+    of it, as fractions of its duration, the command a sample wider each side so that it
+    brackets the measurements); a summary (samples, duration, joint error) to print."""
     from lompr_predictor.data.bags import JointSamples, Recording, no_reference, write_recording
 
     joints = len(JOINTS)
@@ -102,6 +105,13 @@ def write_bag(data: Path, bag: Path) -> dict[str, float]:
     if len(measured) != len(measured_time) or len(commanded) != len(command_time):
         msg = f'{data}: the times and the rows of the positions or velocities differ in count'
         raise ValueError(msg)
+    start, end = (measured_time[0] + fraction * (measured_time[-1] - measured_time[0])
+                  for fraction in part)
+    inside = (measured_time >= start) & (measured_time <= end)
+    measured_time, measured = measured_time[inside], measured[inside]
+    first = max(int(np.searchsorted(command_time, start)) - 1, 0)
+    last = int(np.searchsorted(command_time, end)) + 1
+    command_time, commanded = command_time[first:last], commanded[first:last]
     write_recording(bag, Recording(
         joints=JointSamples(stamps_ns(measured_time), measured, JOINTS),
         reference=no_reference(),
@@ -258,17 +268,49 @@ def arguments() -> argparse.Namespace:
                         help="tuning trials per training (default: lompr train's budget)")
     parser.add_argument('--out', type=Path, default=None, help='also write the table here '
                                                                '(Markdown)')
+    parser.add_argument('--held-out', type=float, default=0.0, metavar='F',
+                        help='train on the recording without its last fraction F and score '
+                             'the models without the preview on that part with lompr '
+                             'evaluate, their live guard too (default 0: train on it all)')
     return parser.parse_args()
 
 
 def run_all(work: Path, args: argparse.Namespace) -> tuple[list[Run], dict[str, float]]:
-    """Write the bag into `work`, then train every horizon and preview on it."""
+    """Write the bag into `work` (with --held-out, without its last part, written as a bag
+    of its own), then train every horizon and preview on it."""
     bag = work / 'panda_bag'
-    summary = write_bag(args.data, bag)
+    summary = write_bag(args.data, bag, (0.0, 1.0 - args.held_out))
+    if args.held_out:
+        write_bag(args.data, work / 'held_out_bag', (1.0 - args.held_out, 1.0))
     print(f'bag written: {bag}', flush=True)
     runs = [train(bag, work, horizon, preview, args)
             for horizon in HORIZONS for preview in (0, horizon)]
     return runs, summary
+
+
+def evaluate_held_out(work: Path, runs: list[Run], args: argparse.Namespace) -> str:
+    """`lompr evaluate` of each model without the preview on the held-out bag: RMSE X / Y
+    [um] of persistence, the model, and the model as the node publishes it (its live
+    guard), as text lines."""
+    lines = ['held-out part (lompr evaluate): persistence | model | model + live guard, '
+             'RMSE X / Y um (ratio to persistence)']
+    for run in runs:
+        if run.preview or run.failure:
+            continue
+        folder = work / f'h{run.horizon}_k0'
+        command = [lompr(), 'evaluate', str(folder / 'model.pt'), str(work / 'held_out_bag'),
+                   '--report', str(folder / 'held_out'), '--robot-description',
+                   str(args.data / 'panda.urdf'), '--command-topic', COMMAND_TOPIC]
+        print('$ ' + shlex.join(command), flush=True)
+        subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
+        models = json.loads((folder / 'held_out' / 'report.json').read_text())['models']
+        rmse = {name: [models[name]['metrics'][axis]['rmse_um'] for axis in AXES]
+                for name in (PERSISTENCE, 'model', 'model_guarded')}
+        lines.append(f'h {run.horizon}: ' + ' | '.join(
+            '{:.1f} / {:.1f} ({:.2f} / {:.2f})'.format(
+                *values, *(v / p for v, p in zip(values, rmse[PERSISTENCE], strict=True)))
+            for values in rmse.values()))
+    return '\n'.join(lines)
 
 
 def main() -> int:
@@ -296,6 +338,8 @@ def main() -> int:
                  f'(ratio to persistence), chronologically last 10 %; budget: {budget}; '
                  f'all runs {time.perf_counter() - started:.0f} s wall')
         report_all(runs, summary, title, args.out)
+        if args.held_out:
+            print(evaluate_held_out(work, runs, args))
     return 1 if any(run.failure for run in runs) else 0
 
 
