@@ -296,6 +296,12 @@ def test_lompr_simulate_records_the_twin_arm_as_a_robot_commanded_in_joints(
     assert ('--path spiral is not a program of the arm: one of circle, raster, figure8'
             in capsys.readouterr().err)
     assert not (tmp_path / 'refused').exists()
+    # the LOMPR twin's options are refused with the arm, not left unapplied
+    assert lompr_main(['simulate', '--robot', 'arm', '--gaps', '3', '--preset', 'worn',
+                       '--out', str(tmp_path / 'refused')]) == 2
+    assert ("--preset, --gaps: the LOMPR twin's, not the arm's"
+            in capsys.readouterr().err)
+    assert not (tmp_path / 'refused').exists()
 
 
 @pytest.mark.parametrize(('robot', 'message'), [

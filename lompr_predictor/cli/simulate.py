@@ -41,6 +41,10 @@ from lompr_predictor.twin.simulation import error_summary, irreducible_rmse, sim
 
 #: The machines the twin simulates.
 ROBOTS = ('lompr', 'arm')
+#: Options of the LOMPR twin alone (its presets, parameters, preview and faults), refused
+#: with the arm rather than left unapplied.
+LOMPR_ONLY = ('preset', 'params', 'preview', 'gaps', 'duplicates', 'out_of_order', 'nans',
+              'spikes')
 #: What the arm's recording holds beside its bag: the run's true tool-tip error.
 ARM_TRUTH_JSON = 'arm_ground_truth.json'
 
@@ -123,6 +127,11 @@ def run(args: argparse.Namespace) -> int:
                f'{", ".join(programs)}')
         raise LomprError(msg)
     if args.robot == 'arm':
+        lompr_only = [f'--{name.replace("_", "-")}' for name in LOMPR_ONLY
+                      if getattr(args, name) not in (None, 0, False)]
+        if lompr_only:
+            msg = f'{", ".join(lompr_only)}: the LOMPR twin\'s, not the arm\'s'
+            raise LomprError(msg)
         return _simulate_arm(args, started)
     params = load_twin_parameters(args.params, preset=args.preset)
     description = load_robot_description(args.robot_description)
