@@ -193,6 +193,7 @@ def test_renamed_joints_and_bad_joint_names_parameter(
     node = wiring.node
     assert node.set_parameters([Parameter('warm_start_max_gap', value=2.0)])[0].successful
     assert node.settings.warm_start_max_gap == 2.0
+    assert node.limits.warm_start_max_gap == 2.0  # what each sample is judged by, taken
     assert not node.set_parameters([Parameter('frame_id', value='base')])[0].successful
     assert node.settings.frame_id == ROBOT_FRAME
     with pytest.raises(InvalidParameterValueException, match='needs distinct, non-empty'):

@@ -241,10 +241,11 @@ class SerialChain(KinematicChain):
         return (np.array([slot[2] for slot in self._slots]),
                 np.array([slot[3] for slot in self._slots]))
 
-    def configuration(self, joints: Sequence[float]) -> np.ndarray:
+    def configuration(self, joints: Sequence[float], q: np.ndarray | None = None) -> np.ndarray:
         """Pinocchio's q for measured joint values, checked: `NonFiniteJointError` or
-        `JointLimitError` naming the joint."""
-        q = pin.neutral(self.model)
+        `JointLimitError` naming the joint; written into `q` if given (a stream's buffer:
+        no allocation a sample), whose other coordinates stay neutral."""
+        q = pin.neutral(self.model) if q is None else q
         for name, value, (index, unbounded, lower, upper) in zip(
                 self.joints, joints, self._slots, strict=True):
             value = float(value)
@@ -303,12 +304,14 @@ class SerialSolver:
     def __init__(self, chain: SerialChain) -> None:
         self._chain = chain
         self._data = chain.model.createData()
+        self._q = pin.neutral(chain.model)  # written in place each sample
         self.last_iterations = 0  # no iterations: Pinocchio's placements in closed form
 
     def solve(self, joints: Sequence[float]) -> ToolPose:
         """The tool pose for the measured joints; `NonFiniteJointError` or `JointLimitError`
         naming the joint."""
-        placement = self._chain.tip_placement(self._data, self._chain.configuration(joints))
+        placement = self._chain.tip_placement(self._data,
+                                              self._chain.configuration(joints, self._q))
         return ToolPose(placement.translation.copy(),
                         pin.Quaternion(placement.rotation).coeffs().copy())
 

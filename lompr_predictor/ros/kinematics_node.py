@@ -150,6 +150,7 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
         super().__init__(node_name, **node_kwargs)
         settings = self.declare_settings(KinematicsNodeSettings)
         #: The robot: the URDF's chain from base to tip, its measured joints.
+        self.limits = self.stream_limits(settings)
         self.chain = load_chain(RobotSpec(settings.robot_description_file or None,
                                           settings.base_frame, settings.tip_frame,
                                           settings.joint_names))
@@ -184,11 +185,16 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
             f'{self.chain.base_frame} -> {self.chain.tip_frame}, sha256 '
             f'{self.chain.sha256[:16]})')
 
-    @property
-    def limits(self) -> StreamLimits:
-        """The stamps' rules of every joint stream, from the parameters."""
-        return StreamLimits(period_ns(self.settings.max_future_stamp),
-                            self.settings.warm_start_max_gap)
+    @staticmethod
+    def stream_limits(settings: KinematicsNodeSettings) -> StreamLimits:
+        """The stamps' rules of every joint stream, from the parameters (kept in `limits`,
+        made again when they change: no conversion a sample)."""
+        return StreamLimits(period_ns(settings.max_future_stamp), settings.warm_start_max_gap)
+
+    def apply_settings(self, previous: KinematicsNodeSettings, changed: frozenset[str]) -> None:
+        """Take the stamps' rules changed at run time."""
+        del previous, changed
+        self.limits = self.stream_limits(self.settings)
 
     def on_joint_state(self, data: bytes) -> None:
         """Publish the end pose of one serialized JointState (the subscription takes it raw:
