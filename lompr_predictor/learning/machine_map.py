@@ -20,7 +20,10 @@ v_i and acceleration a_i along the reference, `data.features`):
 - J (2 x 3): tool-tip X, Y per unit branch length, `kinematics.tool_branch_jacobian`
   averaged over the training poses (the robot description's kinematics, not fitted); a
   chain without actuator coordinates along the tool tip (a serial chain, `robot.chain`) has
-  the same terms in the tool's own x, y (J the identity, v and a the tool's);
+  the same terms in the tool's own x, y (J the identity, v and a the tool's): per joint
+  through the Jacobian at each configuration would predict better
+  (docs/lab/serial_map.md), but needs the commanded joints in every row, which the
+  predictor reads as a tool pose;
 - c_v, c_a, c_k (one per branch each): the branch's length error per unit of its motion, the
   inner sum being the branch's own error (servo lag, friction);
 - s_k: friction speed scales, `FRICTION_SCALES` times the training rows' RMS branch speed, so
@@ -318,7 +321,7 @@ class MachineMap(nn.Module):
             self.fit_lags, lag_changes(basis, error, instants, self.fit_lags))
         weights = [1.0 / max(float(np.sqrt(np.mean(target ** 2))), 1e-15)
                    for _, target in changes]
-        coefficients = _least_squares(
+        coefficients = least_squares(
             np.vstack([weight * lag_design.reshape(-1, lag_design.shape[2])
                        for weight, (lag_design, _) in zip(weights, changes, strict=True)]),
             np.concatenate([weight * lag_target.reshape(-1)
@@ -327,7 +330,7 @@ class MachineMap(nn.Module):
         design, target = (local_deviations(values, instants, self.level_window)
                           for values in (basis, np.asarray(error, dtype=float)))
         usable = np.isfinite(design).all(axis=(1, 2)) & np.isfinite(target).all(axis=1)
-        self._set_coefficients(_least_squares(design[usable].reshape(-1, design.shape[2]),
+        self._set_coefficients(least_squares(design[usable].reshape(-1, design.shape[2]),
                                               target[usable].reshape(-1)),
                                basis, error, instants, levels=True)
         horizon_design, horizon_target = changes[0]
@@ -435,7 +438,7 @@ def local_deviations(values: np.ndarray, instants: np.ndarray, window: int) -> n
         return picked - (sums[high] - sums[low]) / (counts[high] - counts[low])
 
 
-def _least_squares(design: np.ndarray, target: np.ndarray) -> np.ndarray:
+def least_squares(design: np.ndarray, target: np.ndarray) -> np.ndarray:
     """The coefficients of design (M, C) @ c = target (M,), each column scaled to unit mean
     square and `RIDGE` added (a column that never varies stays at zero)."""
     scale = np.sqrt(np.mean(design ** 2, axis=0))
