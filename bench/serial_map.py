@@ -5,7 +5,10 @@ arm's Jacobian?
 
 What it measures: the map prior alone (the plant error now plus the change the fitted map
 predicts over the horizon, `learning.machine_map.map_prior`), its RMSE over persistence's on
-the same instants, 1 and 25 samples ahead, per axis X / Y. The maps are fitted as the trainer
+the same instants, 1 and 25 samples ahead, per axis X / Y, for the predicted instant read
+two ways: from the commanded motion there (`plan`: a perfect plan of the joints, which a
+preview of tool poses is not), and extrapolated from the row as the trainer's map does
+without a preview (`none`). The maps are fitted as the trainer
 fits them (least squares on the error's changes over 1, 5 and 25 horizons, each lag weighted
 alike, `learning.machine_map`), on one program, and scored on the last 10 % of it and on
 another program the fit never saw (what a shop's next program is). Forms compared, each with
@@ -41,13 +44,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_real import DEFAULT_DATA, JOINTS, TIP_FRAME, integrate_command, read_matrix
 
-from lompr_predictor.learning.machine_map import (
-    FIT_LAGS,
-    FRICTION_SCALES,
-    consecutive_pairs,
-    lag_changes,
-    least_squares,
-)
+from lompr_predictor.learning.machine_map import FIT_LAGS, FRICTION_SCALES
+from lompr_predictor.learning.map_fit import consecutive_pairs, lag_changes, least_squares
 from lompr_predictor.robot.chain import SerialChain
 from lompr_predictor.twin.arm import BASE_FRAME, joint_names, load_arm_model, simulate_arm
 from lompr_predictor.twin.arm import TIP_FRAME as ARM_TIP
@@ -110,34 +108,42 @@ def through(jacobians: np.ndarray, terms: list[np.ndarray]) -> np.ndarray:
 
 
 class Bases:
-    """Every compared form's basis (N, 2, C) for one program; the friction speed scales
-    come from the program the maps are fitted on (`fitted_on`)."""
+    """Every compared form's basis (N, 2, C) for one program, at its rows or at the instant
+    `lead` seconds after each (`forms`); the friction speed scales come from the program the
+    maps are fitted on (`fitted_on`)."""
 
     def __init__(self, motion: Motion, fitted_on: Bases | None = None) -> None:
-        tips, _ = motion.chain.tool_positions(motion.commanded)
+        self.tips, _ = motion.chain.tool_positions(motion.commanded)
         measured, _ = motion.chain.tool_positions(motion.measured)
-        self.error = (measured - tips)[:, :2]
-        tool_v, tool_a = differences(motion.seconds, tips[:, :2])
-        joint_v, joint_a = differences(motion.seconds, motion.commanded)
-        self.jacobians, gravity = jacobians_and_gravity(motion.chain, motion.commanded)
+        self.error = (measured - self.tips)[:, :2]
+        self.tool = differences(motion.seconds, self.tips[:, :2])
+        self.joint = differences(motion.seconds, motion.commanded)
+        self.jacobians, self.gravity = jacobians_and_gravity(motion.chain, motion.commanded)
         if fitted_on is None:
             scales = np.asarray(FRICTION_SCALES)
-            self.tool_scales = np.sqrt(np.nanmean(tool_v ** 2)) * scales
-            self.joint_scales = np.sqrt(np.nanmean(joint_v ** 2, axis=0)) * scales[:, None]
-            self.mean_jacobian = self.jacobians[:round(TRAIN_SHARE * len(tips))].mean(axis=0)
+            self.tool_scales = np.sqrt(np.nanmean(self.tool[0] ** 2)) * scales
+            self.joint_scales = np.sqrt(np.nanmean(self.joint[0] ** 2, axis=0)) * scales[:, None]
+            self.mean_jacobian = self.jacobians[:round(TRAIN_SHARE * len(self.tips))].mean(axis=0)
         else:
             self.tool_scales, self.joint_scales = fitted_on.tool_scales, fitted_on.joint_scales
             self.mean_jacobian = fitted_on.mean_jacobian
-        eye = np.eye(2)
+
+    def forms(self, lead: float = 0.0) -> dict[str, np.ndarray]:
+        """Each form's basis at the rows, or extrapolated `lead` seconds beyond each as the
+        trainer's map does without a plan (velocities at constant acceleration, the
+        position at the tool's velocity, the Jacobian and gravity of the row)."""
+        (tool_v, tool_a), (joint_v, joint_a) = self.tool, self.joint
+        tool_v, joint_v = tool_v + lead * tool_a, joint_v + lead * joint_a
+        position = self.tips[:, :2] + lead * self.tool[0]
         tool = [tool_v, tool_a, *(np.tanh(tool_v / s) for s in self.tool_scales)]
         joint = [joint_v, joint_a, *(np.tanh(joint_v / s) for s in self.joint_scales)]
-        posture = posture_block(tips)
-        self.forms: dict[str, np.ndarray] = {
-            'tool': np.concatenate([through(eye, tool), posture], 2),
+        posture = posture_block(position)
+        return {
+            'tool': np.concatenate([through(np.eye(2), tool), posture], 2),
             'joint, mean J': np.concatenate([through(self.mean_jacobian, joint), posture], 2),
             'joint, J(q)': np.concatenate([through(self.jacobians, joint), posture], 2),
             'joint, J(q) + gravity': np.concatenate(
-                [through(self.jacobians, [*joint, gravity]), posture], 2),
+                [through(self.jacobians, [*joint, self.gravity]), posture], 2),
             'joint lag, J(q)': np.concatenate(
                 [through(self.jacobians, joint[:2]), posture], 2)}
 
@@ -154,12 +160,14 @@ def fit(basis: np.ndarray, error: np.ndarray, instants: np.ndarray, horizon: int
                         for w, (_, target) in zip(weights, changes, strict=True)]))
 
 
-def prior_ratio(basis: np.ndarray, error: np.ndarray, coefficients: np.ndarray,
+def prior_ratio(rows: np.ndarray, ahead: np.ndarray | None, error: np.ndarray,
                 instants: np.ndarray, horizon: int) -> np.ndarray:
-    """(2,) the prior's RMSE over persistence's, per axis, at `instants`."""
+    """(2,) the prior's RMSE over persistence's, per axis, at `instants`: the map's values
+    at the rows (N, 2) and at the predicted instant from each row (`ahead`; None: the row
+    `horizon` later, a perfect plan)."""
     first = consecutive_pairs(instants, horizon)
-    values = basis @ coefficients
-    prior = error[first] + values[first + horizon] - values[first]
+    later = rows[first + horizon] if ahead is None else ahead[first]
+    prior = error[first] + later - rows[first]
     truth, persistence = error[first + horizon], error[first]
     usable = np.isfinite(prior).all(axis=1) & np.isfinite(truth).all(axis=1)
 
@@ -170,23 +178,28 @@ def prior_ratio(basis: np.ndarray, error: np.ndarray, coefficients: np.ndarray,
 
 
 def compare(name: str, fitted: Motion, scored: Motion | None) -> list[str]:
-    """Table rows: per horizon, each form's prior ratio X / Y on `scored` (None: the last
-    part of `fitted`)."""
+    """Table rows: per horizon, with a perfect plan and without one, each form's prior
+    ratio X / Y on `scored` (None: the last part of `fitted`)."""
     train = Bases(fitted)
     cut = round(TRAIN_SHARE * len(fitted.seconds))
     fit_instants = np.arange(2, cut)
     test = train if scored is None else Bases(scored, fitted_on=train)
     test_instants = (np.arange(cut + 2, len(fitted.seconds)) if scored is None
                      else np.arange(2, len(scored.seconds)))
+    period = float(np.median(np.diff(fitted.seconds)))
+    fitted_forms, test_forms = train.forms(), test.forms()
     rows = []
     for horizon in HORIZONS:
-        cells = []
-        for form, basis in train.forms.items():
-            ratio = prior_ratio(test.forms[form], test.error,
-                                fit(basis, train.error, fit_instants, horizon),
-                                test_instants, horizon)
-            cells.append(f'{ratio[0]:.3g} / {ratio[1]:.3g}')
-        rows.append(f'| {name} | {horizon} | ' + ' | '.join(cells) + ' |')
+        test_ahead = test.forms(horizon * period)
+        for plan in ('plan', 'none'):
+            cells = []
+            for form, basis in fitted_forms.items():
+                coefficients = fit(basis, train.error, fit_instants, horizon)
+                cells.append('{:.3g} / {:.3g}'.format(*prior_ratio(
+                    test_forms[form] @ coefficients,
+                    None if plan == 'plan' else test_ahead[form] @ coefficients,
+                    test.error, test_instants, horizon)))
+            rows.append(f'| {name} | {horizon} | {plan} | ' + ' | '.join(cells) + ' |')
     return rows
 
 
@@ -231,8 +244,8 @@ def main() -> int:
     forms = ('tool', 'joint, mean J', 'joint, J(q)', 'joint, J(q) + gravity',
              'joint lag, J(q)')
     print('map prior RMSE / persistence RMSE, X / Y (below 1: the map helps)')
-    print('| fitted on -> scored on | h | ' + ' | '.join(forms) + ' |')
-    print('|---|---|' + '---|' * len(forms))
+    print('| fitted on -> scored on | h | plan | ' + ' | '.join(forms) + ' |')
+    print('|---|---|---|' + '---|' * len(forms))
     for name, fitted, scored in cases:
         for line in compare(name, fitted(), scored()):
             print(line, flush=True)

@@ -15,14 +15,12 @@ from lompr_predictor.data.problem import build_problem, train_test_problem
 from lompr_predictor.learning.machine_map import (
     FRICTION_SCALES,
     LEVEL_WINDOW_SECONDS,
-    POSTURE_TERMS,
     MachineMap,
-    consecutive_pairs,
     fit_machine_map,
-    local_deviations,
     motion_columns,
     speed_scales,
 )
+from lompr_predictor.learning.map_fit import POSTURE_TERMS, consecutive_pairs, local_deviations
 from lompr_predictor.learning.map_prior import PredictionWithPrior, prediction_with_prior
 from lompr_predictor.learning.model_file import script_module
 from lompr_predictor.learning.models import NoChangeNet, PredictorModule, predict_rows

@@ -83,7 +83,7 @@ class Plant:
         ns = start + k * PERIOD_NS
         if clock:
             self.set_clock(ns)
-        received = self.node.pose_rate.total + self.node.reference_rate.total
+        received = self.node.inputs.pose_rate.total + self.node.inputs.reference_rate.total
         xy = (0.01 + 1e-3 * k, 0.02 + 1e-3 * k)
         reference, pose = PoseStamped(), PoseStamped()
         reference.header.frame_id = pose.header.frame_id = ROBOT_FRAME
@@ -94,7 +94,8 @@ class Plant:
         self.references.publish(reference)
         self.poses.publish(pose)
         self.ros.spin_until(
-            lambda: self.node.pose_rate.total + self.node.reference_rate.total >= received + 2,
+            lambda: (self.node.inputs.pose_rate.total
+                     + self.node.inputs.reference_rate.total) >= received + 2,
             what=f'sample {k} taken')
 
     def status(self, name: str) -> dict[str, Any] | None:
@@ -134,7 +135,7 @@ def test_transitions_through_the_lifecycle_services(ros: RosHarness, tmp_path: P
     for k in range(NEEDED):
         plant.sample(k)
     ros.spin_for(0.2)
-    assert plant.compensations == [] and node.dropped_inactive == 2 * NEEDED
+    assert plant.compensations == [] and node.inputs.dropped_inactive == 2 * NEEDED
     assert plant.transition(Transition.TRANSITION_ACTIVATE) and plant.state() == 'active'
     for k in range(NEEDED, 2 * NEEDED + 1):  # a new window, then two answers
         plant.sample(k)

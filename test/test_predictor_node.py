@@ -142,7 +142,7 @@ class Wiring:
 
     def received(self) -> int:
         """Messages the node has taken (end poses and references)."""
-        return int(self.node.pose_rate.total + self.node.reference_rate.total)
+        return int(self.node.inputs.pose_rate.total + self.node.inputs.reference_rate.total)
 
     def wait_received(self, total: int, what: str) -> None:
         self.ros.spin_until(lambda: self.received() >= total, what=what)
@@ -549,7 +549,7 @@ def test_the_pipeline_hands_its_end_poses_over_in_process(
         ref.pose.position.x, ref.pose.position.y = map(float,
                                                        recording.reference.positions[k, :2])
         reference.publish(ref)
-        ros.spin_until(lambda: predictor.reference_rate.total > k,  # noqa: B023
+        ros.spin_until(lambda: predictor.inputs.reference_rate.total > k,  # noqa: B023
                        what=f'reference {k}')
         msg = JointState(name=list(MEASURED_JOINTS),
                          position=recording.joints.positions[k].tolist())
@@ -560,7 +560,7 @@ def test_the_pipeline_hands_its_end_poses_over_in_process(
     np.testing.assert_allclose(xy(compensations), [[7e-6, -3e-6]] * 2)
     assert [stamp_ns(c) for c in compensations] == [
         recording.joints.stamps[k] + HORIZON * PERIOD_NS for k in (NEEDED - 1, NEEDED)]
-    assert predictor.pose_rate.total == NEEDED + 1  # each end pose once, by the call
+    assert predictor.inputs.pose_rate.total == NEEDED + 1  # each end pose once, by the call
     # each node's callbacks in its own rows (the time apart: test_monitoring)
     assert predictor.callback_times.rows['end pose'].total == NEEDED + 1
     assert kinematics.callback_times.rows['joint states'].total == NEEDED + 1
@@ -665,9 +665,9 @@ def test_a_preview_model_reads_the_planned_path_and_counts_a_bad_one(
             set_stamp(pose, T0 + j * PERIOD_NS)
             pose.pose.position.x, pose.pose.position.y = 0.01 + 1e-3 * j, 0.02 + 1e-3 * j
             msg.poses.append(pose)
-        received = wiring.node.preview_rate.total
+        received = wiring.node.inputs.preview_rate.total
         plans.publish(msg)
-        ros.spin_until(lambda: wiring.node.preview_rate.total > received, what='a preview')
+        ros.spin_until(lambda: wiring.node.inputs.preview_rate.total > received, what='a preview')
 
     for k in range(NEEDED + 2):
         plan(k)

@@ -231,7 +231,7 @@ def test_a_machine_through_both_nodes_gives_the_offline_predictions(
             publisher.publish(message)
         answered = k + 1
         ros.spin_until(lambda: min(len(poses), len(references),
-                                   predictor.pose_rate.total) >= answered,  # noqa: B023
+                                   predictor.inputs.pose_rate.total) >= answered,  # noqa: B023
                        what=f'sample {k}')
     assert kinematics.rejected.total == 0 and kinematics.commands.rejected.total == 0
     assert {message.header.frame_id for message in poses + references} == {machine.base}

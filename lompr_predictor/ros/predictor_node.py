@@ -22,7 +22,6 @@ from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackRet
 
 from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import LatencyRecorder
-from lompr_predictor.online.alignment import DropReason
 from lompr_predictor.online.guard import LiveGuard
 from lompr_predictor.online.inference import Backend
 from lompr_predictor.online.model_loader import (
@@ -35,7 +34,6 @@ from lompr_predictor.online.model_loader import (
 )
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_status import Lifecycle, ModelHistory
-from lompr_predictor.online.preview import PreviewDrop
 from lompr_predictor.online.sample_store import SampleStoreError
 from lompr_predictor.online.stage_timing import StageHistograms, time_stages
 from lompr_predictor.robot.chain import description_sha256
@@ -49,6 +47,7 @@ from lompr_predictor.ros.predictor_diagnostics import (
     PredictorMeters,
     PredictorReadings,
 )
+from lompr_predictor.ros.predictor_inputs import PredictorInputs
 from lompr_predictor.ros.predictor_outputs import OutputPublisher
 from lompr_predictor.ros.predictor_settings import (
     COMPENSATION,
@@ -56,26 +55,12 @@ from lompr_predictor.ros.predictor_settings import (
     ENDPOINTS,
     HASH_HINT,
     PREDICTED_ERROR,
-    REFERENCE,
-    REFERENCE_PREVIEW,
     PredictorNodeSettings,
 )
 from lompr_predictor.ros.predictor_store import NodeSampleStore
-from lompr_predictor.ros.wire import (
-    WireError,
-    frame_field,
-    pose_frame_id,
-    pose_in_frame,
-    read_path,
-    read_pose_stamped,
-)
-from lompr_predictor.stamps import Stamp
 from lompr_predictor.threads import set_torch_threads
 
 NODE_NAME = 'predictor_node'
-#: How a pose in another frame is dropped and named, by input.
-READ_END_POSE = (DropReason.WRONG_FRAME, 'end pose')
-READ_REFERENCE = (DropReason.REFERENCE_WRONG_FRAME, 'reference')
 #: How the fallback model is verified, for a refusal message (its own sidecar: `HASH_HINT`'s
 #: model_sha256 pins model_path only).
 FALLBACK_HASH_HINT = ('predictor_node: the fallback model is verified by its own sidecar '
@@ -105,24 +90,22 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self._candidate: ReadyModel | None = None  # accepted, swapped in by apply_settings
         self.adapted: SwapInBackground | None = None  # an adaptation's swap, prepared (inherits)
         self.history = ModelHistory()
-        self.dropped_inactive = 0  # samples received while not active
         self.end_pose_in_process = False  # end poses by `read_end_pose` (pipeline), not topic
-        self.read_end_pose = self.guard(END_POSE.what, self.on_end_pose)
         self.clock_jumps_back = 0
         self._clock_started = False
-        self.pose_rate = self.rate_meter(settings.rate_window)
-        self.reference_rate = self.rate_meter(settings.rate_window)
-        self.preview_rate = self.rate_meter(settings.rate_window)
-        self._frame_field = frame_field(settings.frame)  # the inputs' frame (read-only)
         self.outputs = OutputPublisher(settings.frame, self.rate_meter(settings.rate_window),
                                        LatencyRecorder(settings.latency_samples),
                                        self.warn_throttled)
+        self.inputs = PredictorInputs(
+            settings.frame, self._active_core, self.outputs.publish, self.warn_throttled,
+            lambda: self.rate_meter(settings.rate_window))
+        self.read_end_pose = self.guard(END_POSE.what, self.inputs.on_end_pose)
         self.diagnostics = PredictorDiagnostics(
             self.start_diagnostics(settings.diagnostics_topic, settings.diagnostics_period,
                                    hardware_id=robot_name(settings.robot_description_file
                                                           or None)),
-            PredictorMeters(self.pose_rate, self.reference_rate, self.preview_rate,
-                            self.outputs), self.readings)
+            PredictorMeters(self.inputs.pose_rate, self.inputs.reference_rate,
+                            self.inputs.preview_rate, self.outputs), self.readings)
         # backward jumps (a simulator reset), a change of time source (its start: staleness timer)
         self._jump_handle = self.get_clock().create_jump_callback(
             JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1),
@@ -142,6 +125,10 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
     @property
     def configured(self) -> bool:
         return self._core is not None
+
+    def _active_core(self) -> OnlinePredictor | None:
+        """The core while configured and active (what the inputs feed), else None."""
+        return self._core if self.active else None
 
     def start(self) -> None:
         """Configure and activate if `autostart` (`ManagedNode.autostart`)."""
@@ -213,11 +200,8 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             time_stages(self._core, StageHistograms(self.callback_times))
         self.outputs.attach(self.own(self.advertise(PREDICTED_ERROR)),
                             self.own(self.advertise(COMPENSATION)))
-        if not self.end_pose_in_process:
-            self.own(self.subscribe(END_POSE, self.on_end_pose, raw=True))
-        self.own(self.subscribe(REFERENCE, self.on_reference, raw=True))
-        if self._core.preview:
-            self.own(self.subscribe(REFERENCE_PREVIEW, self.on_reference_preview, raw=True))
+        for endpoint, callback in self.inputs.endpoints(self._core, self.end_pose_in_process):
+            self.own(self.subscribe(endpoint, callback, raw=True))
         stale_after = self._core.stream.stale_after
         self.own(self.start_timer(min(max(stale_after / 4, 0.005), 0.5), 'staleness check',
                                   self.on_stale_timer))
@@ -254,53 +238,6 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             self.sample_store = None
 
     # -- callbacks (run through NodeBase.guard: a failure aborts the core) -----------------
-
-    def on_end_pose(self, msg: bytes) -> None:
-        """One serialized PoseStamped (raw: `wire`); in another frame: dropped, counted."""
-        self._on_pose(msg, reference=False)
-
-    def on_reference(self, msg: bytes) -> None:
-        """One serialized reference PoseStamped; in another frame: dropped, counted."""
-        self._on_pose(msg, reference=True)
-
-    def _on_pose(self, msg: bytes, *, reference: bool) -> None:
-        start = time.perf_counter()
-        (self.reference_rate if reference else self.pose_rate).tick()
-        if self._core is None or not self.active:
-            self.dropped_inactive += 1
-            return
-        if not self._in_frame(msg, *(READ_REFERENCE if reference else READ_END_POSE)):
-            return
-        sec, nanosec, x, y, z = read_pose_stamped(msg)
-        stamp = Stamp(sec, nanosec)
-        self.outputs.publish(self._core.add_reference(stamp, x, y, z) if reference
-                             else self._core.add_pose(stamp, x, y), start)
-
-    def _in_frame(self, msg: bytes, reason: DropReason, what: str) -> bool:
-        """Whether a pose is in the node's frame; if not, counted and said (throttled)."""
-        if pose_in_frame(msg, self._frame_field):
-            return True
-        self.core.dropped.add(reason)
-        self.warn_throttled(reason, f'{what} in frame {pose_frame_id(msg)!r} dropped: this node '
-                                    f'works in {self.settings.frame!r} (frame_id, frame_prefix)')
-        return False
-
-    def on_reference_preview(self, msg: bytes) -> None:
-        """One serialized planned path: refused whole (counted, never a fault) if unreadable,
-        in another frame or, by the core, with a non-finite pose or stamps not increasing."""
-        self.preview_rate.tick()
-        if self._core is None or not self.active:
-            self.dropped_inactive += 1
-            return
-        try:
-            plan = read_path(msg, self.settings.frame)
-        except WireError:
-            self._core.plan.dropped.add(PreviewDrop.UNREADABLE)
-            return
-        if plan is None:
-            self._core.plan.dropped.add(PreviewDrop.WRONG_FRAME)
-            return
-        self._core.add_preview(*plan)
 
     def on_stale_timer(self) -> None:
         """Runs on the node's clock: under simulated time only while that time advances."""
@@ -381,7 +318,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             'use_sim_time': bool(self.get_parameter('use_sim_time').value),
             'clock_s': round(self.clock_seconds(), 6),
             'clock_jumps_back': self.clock_jumps_back,
-            'dropped_inactive': self.dropped_inactive}
+            'dropped_inactive': self.inputs.dropped_inactive}
         return PredictorReadings(
             Lifecycle(self.lifecycle_state, settings.autostart, self.configure_error),
             settings, self._core, self.model_guard, self.history, clock_values,
