@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lompr_predictor.learning.metrics import axis_metrics, ratios, table_metrics
+from lompr_predictor.learning.metrics import (
+    axis_metrics,
+    ratios,
+    standing_text,
+    standings,
+    table_metrics,
+)
 
 
 def test_pointwise_metrics_by_hand() -> None:
@@ -60,3 +66,27 @@ def test_table_uses_stamps_from_the_first_and_ratios() -> None:
     half = ratios(table, {'x': {k: 2 * v for k, v in table['x'].items()},
                           'y': {k: 2 * v for k, v in table['y'].items()}})
     assert all(v == pytest.approx(0.5) for axis in half.values() for v in axis.values())
+
+
+def _models(**rmse: tuple[float, float]) -> dict[str, dict[str, dict[str, dict[str, float]]]]:
+    return {name: {'metrics': {'x': {'rmse_um': x}, 'y': {'rmse_um': y}}}
+            for name, (x, y) in rmse.items()}
+
+
+def test_standings_name_the_leader_and_the_bo_lstms_margin_by_hand() -> None:
+    """Per axis: the leader of all models, the best baseline (the BO-LSTM's own fallback is
+    not one) and the BO-LSTM's RMSE over it minus 1; a tie is 0."""
+    models = _models(persistence=(10.0, 4.0), ridge=(5.0, 2.0), hgb=(6.0, 2.0),
+                     bo_lstm=(5.5, 1.5), bo_lstm_generalist=(4.0, 3.0))
+    table = standings(models)
+    assert table['x'] == {'leader': 'bo_lstm_generalist', 'best_baseline': 'ridge',
+                          'best_baseline_rmse_um': 5.0, 'bo_lstm_rmse_um': 5.5,
+                          'bo_lstm_vs_best_baseline': pytest.approx(0.1)}
+    assert table['y']['leader'] == 'bo_lstm' and table['y']['best_baseline'] == 'ridge'
+    assert table['y']['bo_lstm_vs_best_baseline'] == pytest.approx(-0.25)
+    assert standing_text('x', table['x'], {'ridge': 'Ridge'}) == (
+        'X: Ridge leads, the BO-LSTM 10.0 % behind it')
+    assert standing_text('y', table['y'], {}) == 'Y: the BO-LSTM leads, 25.0 % below ridge'
+    tie = standings(_models(persistence=(0.0, 1.0), bo_lstm=(0.0, 0.5)))['x']
+    assert tie['bo_lstm_vs_best_baseline'] == 0.0
+    assert standing_text('x', tie, {}) == 'X: the BO-LSTM ties persistence'

@@ -106,6 +106,23 @@ def test_model_status_reports_the_model_and_its_history(core: OnlinePredictor) -
     assert (refused.level, refused.message) == (Level.WARN, 'last reload refused: bad file')
 
 
+def test_model_status_says_where_the_model_lost_to_a_baseline(tmp_path: Path) -> None:
+    """A model that trailed a baseline on its test part says so in its status (and every
+    axis's standing is a value); one that led adds nothing to the summary."""
+    standing = {'x': {'leader': 'ridge', 'best_baseline': 'ridge', 'best_baseline_rmse_um': 2.0,
+                      'bo_lstm_rmse_um': 2.2, 'bo_lstm_vs_best_baseline': 0.1},
+                'y': {'leader': 'bo_lstm', 'best_baseline': 'hgb', 'best_baseline_rmse_um': 4.0,
+                      'bo_lstm_rmse_um': 3.0, 'bo_lstm_vs_best_baseline': -0.25}}
+    model = load_model(save_constant(tmp_path / 's.pt', window=WINDOW, standing=standing))
+    core = OnlinePredictor(model, stream(), CompensationLimits(1e-3, 1e-3, True),
+                           clock=FakeClock().ns)
+    status = model_status(ACTIVE, '', core, ModelHistory())
+    assert status.level == Level.OK
+    assert status.message == (f'linear {model.sha256[:12]}, horizon 3 (on its test part X: '
+                              'ridge leads, the BO-LSTM 10.0 % behind it)')
+    assert status.values['test_part.y'] == 'Y: the BO-LSTM leads, 25.0 % below hgb'
+
+
 def test_input_status_from_waiting_to_filling_to_full(core: OnlinePredictor,
                                                       clock: FakeClock) -> None:
     quiet = input_status(ACTIVE, core, rates(clock, 0), new_faults=0)

@@ -24,6 +24,7 @@ from lompr_predictor.data.bags import write_recording
 from lompr_predictor.data.features import FEATURES, HISTORY, feature_names
 from lompr_predictor.errors import LomprError
 from lompr_predictor.files import file_sha256
+from lompr_predictor.learning.metrics import standings
 from lompr_predictor.learning.model_file import (
     load_model,
 )
@@ -176,17 +177,16 @@ def test_rmse_is_given_as_a_multiple_of_the_twins_irreducible_level(tmp_path: Pa
         'irreducible_rmse_um': None, 'rmse_to_irreducible': None}  # no level at that horizon
 
 
-def test_a_bo_lstm_that_does_not_beat_ridge_is_warned_about() -> None:
-    def metrics(rmse: float) -> dict[str, dict[str, float]]:
-        return {'x': {'rmse_um': rmse}, 'y': {'rmse_um': 1.0}}
+def test_a_bo_lstm_behind_a_baseline_is_warned_about() -> None:
+    def models(bo_lstm_x: float) -> dict[str, Any]:
+        return {name: {'metrics': {'x': {'rmse_um': x}, 'y': {'rmse_um': 1.0}}}
+                for name, x in (('bo_lstm', bo_lstm_x), ('ridge', 1.5), ('hgb', 1.6))}
 
-    report: dict[str, Any] = {'models': {'bo_lstm': {'metrics': metrics(2.0)},
-                         'ridge': {'metrics': metrics(1.5)}},
-              'bo_lstm_beats': {'ridge': {'x': {'rmse_um': False}, 'y': {'rmse_um': True}}}}
-    warning = train.ridge_warning(report)
-    assert warning is not None and 'does not beat the ridge' in warning and 'X 2 vs 1.5' in warning
-    report['bo_lstm_beats']['ridge']['x']['rmse_um'] = True
-    assert train.ridge_warning(report) is None
+    report: dict[str, Any] = {'standings': standings(models(2.0))}
+    assert train.standing_warning(report) == (
+        'warning: on the test part X: ridge leads, the BO-LSTM 33.3 % behind it; see report.md')
+    assert train.standing_warning({'standings': standings(models(1.4))}) is None
+    assert train.standing_warning({}) is None  # a report without standings: nothing said
 
 
 @pytest.mark.parametrize(('extra', 'message'), [

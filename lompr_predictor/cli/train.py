@@ -47,6 +47,7 @@ from lompr_predictor.cli.validation import (
     yes_no,
 )
 from lompr_predictor.errors import LomprError
+from lompr_predictor.learning.metrics import standing_text
 from lompr_predictor.learning.options import (
     FINE_TUNE_EPOCHS,
     OptionError,
@@ -229,7 +230,7 @@ def _run(args: argparse.Namespace) -> int:
         result = train_predictor(config)
         write_outputs(config, result)
         print(summary_line(result.report))
-        warning = ridge_warning(result.report)
+        warning = standing_warning(result.report)
         if warning:
             print(warning, file=sys.stderr)
     print(f'model written to {config.model_path}; report in {config.report_dir}')
@@ -266,20 +267,12 @@ def fine_tuning_line(report: dict[str, Any]) -> str:
             + f'; test RMSE parent -> fine-tuned: {rmse}')
 
 
-def ridge_warning(report: dict[str, Any]) -> str | None:
-    """A warning line when the BO-LSTM's test RMSE is not below the ridge baseline's on some
-    axis: the network then learned no more than a linear filter."""
-    beaten = report.get('bo_lstm_beats', {}).get('ridge')
-    if not beaten:
+def standing_warning(report: dict[str, Any]) -> str | None:
+    """A warning line where the BO-LSTM's test RMSE trails the best baseline's on some axis
+    (`metrics.standings`): the network then learned less than that baseline."""
+    behind = [standing_text(axis, entry, {}) for axis, entry in report.get('standings',
+                                                                           {}).items()
+              if entry['bo_lstm_vs_best_baseline'] > 0]
+    if not behind:
         return None
-    models = report['models']
-    lost = [axis for axis, metrics in beaten.items() if not metrics['rmse_um']
-            and models['bo_lstm']['metrics'][axis]['rmse_um']
-            != models['ridge']['metrics'][axis]['rmse_um']]  # equal: an axis without error
-    if not lost:
-        return None
-    figures = ', '.join(f"{axis.upper()} {models['bo_lstm']['metrics'][axis]['rmse_um']:.3g} "
-                        f"vs {models['ridge']['metrics'][axis]['rmse_um']:.3g} um"
-                        for axis in lost)
-    return (f'warning: the BO-LSTM does not beat the ridge baseline on the test part '
-            f'(RMSE {figures}); see report.md')
+    return f'warning: on the test part {"; ".join(behind)}; see report.md'

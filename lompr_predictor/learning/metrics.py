@@ -1,4 +1,5 @@
-"""The seed paper's Table 1 metrics (docs/interface.md, metrics), per axis.
+"""The seed paper's Table 1 metrics (docs/interface.md, metrics), per axis, and who leads by
+them (`standings`).
 
 For a prediction p and the actual error a on the test window, with the training range
 [low, high] of the error on that axis:
@@ -23,6 +24,8 @@ import numpy as np
 from lompr_predictor.data.features import TARGETS
 from lompr_predictor.stamps import seconds_since
 
+#: The trained model's keys in a report: what it is compared with is every other model.
+OWN_MODELS = ('bo_lstm', 'bo_lstm_generalist')
 METRIC_NAMES = ('mse_pct', 'rmse_pct', 'mae_pct', 'mse_um2', 'rmse_um', 'mae_um',
                 'iae', 'ise', 'itae', 'itse')
 
@@ -82,3 +85,33 @@ def ratios(metrics: dict[str, dict[str, float]],
     return {axis: {name: (value / baseline[axis][name] if baseline[axis][name] else None)
                    for name, value in values.items()}
             for axis, values in metrics.items()}
+
+
+def standings(models: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """Per axis, where the BO-LSTM stands on the test part by RMSE: the model that leads
+    (of all), the best baseline (every model but the BO-LSTM and its own fallback,
+    `OWN_MODELS`) and the BO-LSTM's RMSE over that baseline's, minus 1 (negative: it leads
+    by that share; 0: a tie, as on an axis the error has no part in)."""
+    out: dict[str, dict[str, Any]] = {}
+    for axis in TARGETS:
+        rmse = {name: float(entry['metrics'][axis]['rmse_um'])
+                for name, entry in models.items()}
+        baselines = {name: value for name, value in rmse.items() if name not in OWN_MODELS}
+        best = min(baselines, key=lambda name: baselines[name])
+        ours, theirs = rmse['bo_lstm'], baselines[best]
+        out[axis] = {'leader': min(rmse, key=lambda name: rmse[name]),
+                     'best_baseline': best, 'best_baseline_rmse_um': theirs,
+                     'bo_lstm_rmse_um': ours,
+                     'bo_lstm_vs_best_baseline': ours / theirs - 1.0 if theirs > 0 else 0.0}
+    return out
+
+
+def standing_text(axis: str, standing: Mapping[str, Any], labels: Mapping[str, str]) -> str:
+    """One line on where the BO-LSTM stands on `axis` (`standings`), models by `labels`."""
+    share = standing['bo_lstm_vs_best_baseline']
+    best = labels.get(standing['best_baseline'], standing['best_baseline'])
+    if share < 0:
+        return f'{axis.upper()}: the BO-LSTM leads, {-100 * share:.1f} % below {best}'
+    if share == 0:
+        return f'{axis.upper()}: the BO-LSTM ties {best}'
+    return f'{axis.upper()}: {best} leads, the BO-LSTM {100 * share:.1f} % behind it'

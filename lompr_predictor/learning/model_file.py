@@ -121,6 +121,9 @@ class ModelMetadata:
     #: the robot's chain it was trained for (`chain.KinematicChain.metadata`: kind, frames,
     #: joints; empty: the LOMPR, as in files written before it existed)
     robot: Mapping[str, Any] = field(default_factory=dict)
+    #: per axis, where the model stood on its test part against the best baseline
+    #: (`report.standings`; empty: not known, as in files written before it existed)
+    standing: Mapping[str, Any] = field(default_factory=dict)
     format_version: int = FORMAT_VERSION
 
     def to_json(self) -> str:

@@ -61,7 +61,7 @@ from lompr_predictor.learning.baselines import (
 from lompr_predictor.learning.envelope import fit_envelope
 from lompr_predictor.learning.machine_map import MachineMap, fit_machine_map
 from lompr_predictor.learning.map_prior import PredictionWithCandidates, is_paired
-from lompr_predictor.learning.metrics import ratios
+from lompr_predictor.learning.metrics import ratios, standings
 from lompr_predictor.learning.model_file import (
     ExportedModule,
     ModelMetadata,
@@ -201,7 +201,7 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     report = _report(config, problem, data, sources, models, tuned)
     scoring_seconds = time.perf_counter() - scoring_started
     metadata = _model_metadata(config, problem, tuned, machine_map, chain, trained_on,
-                               models['bo_lstm']['metrics'])
+                               models['bo_lstm']['metrics'], standings(models))
     total = time.perf_counter() - started
     # where the time went; write_outputs adds writing_seconds
     report['timings'] = {'read_clean_fk_seconds': read_seconds,
@@ -234,7 +234,8 @@ def network_predictions(module: Any, problem: LearningProblem) -> dict[str, np.n
 
 def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tuned,
                     machine_map: MachineMap | None, chain: KinematicChain,
-                    trained_on: list[BagSource], test_metrics: dict[str, Any]) -> ModelMetadata:
+                    trained_on: list[BagSource], test_metrics: dict[str, Any],
+                    standing: dict[str, Any]) -> ModelMetadata:
     """The metadata the model file carries (docs/interface.md, the model file)."""
     return ModelMetadata(
         features=problem.features, preview=problem.preview, window=problem.window,
@@ -257,7 +258,7 @@ def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tu
         training_bags=tuple({'path': str(Path(s.path).resolve()), 'sha256': s.sha256}
                             for s in trained_on if not s.skipped_reason),
         seed=config.seed, library_versions=library_versions(),
-        test_metrics=test_metrics,
+        test_metrics=test_metrics, standing=standing,
         machine_map=machine_map.metadata() if machine_map is not None else {},
         envelope=fit_envelope(problem.rows[problem.split.training_rows()],
                               problem.features).to_metadata())
@@ -453,6 +454,7 @@ def _report(config: TrainingConfig, problem: LearningProblem, data: CleanData,
         ratios_to_bp=ratios(models['bo_lstm']['metrics'], models['bp']['metrics']),
         bo_lstm_beats={name: beats(models['bo_lstm']['metrics'], models[name]['metrics'])
                        for name in models if name != 'bo_lstm'},
+        standings=standings(models),
         training_time_ratio_lstm_to_bp=(tuned.training_seconds / bp_seconds
                                         if bp_seconds else None),
         tuning_time_ratio_to_bp=tuned.tuning_seconds / bp_seconds if bp_seconds else None,

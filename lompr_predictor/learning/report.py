@@ -28,7 +28,7 @@ from lompr_predictor.data.cleaning import CleanData, CleaningConfig
 from lompr_predictor.data.features import TARGETS
 from lompr_predictor.data.problem import LearningProblem
 from lompr_predictor.files import write_atomic, write_json
-from lompr_predictor.learning.metrics import METRIC_NAMES
+from lompr_predictor.learning.metrics import METRIC_NAMES, standing_text
 from lompr_predictor.plots import pyplot, save_figure
 
 GROUND_TRUTH_JSON = 'lompr_ground_truth.json'
@@ -115,6 +115,7 @@ def markdown(report: Mapping[str, Any]) -> str:
                                           'each recording')
                 + ').' if report['command'] == 'train' else
                 f"scored on all {report['split']['test']} windows of the recordings."), '']
+    lines += _standing_lines(report)
     lines += _metric_tables(report)
     lines += _training_lines(report)
     lines += _tuning_lines(report.get('tuning'))
@@ -130,6 +131,16 @@ def markdown(report: Mapping[str, Any]) -> str:
     lines += [f"- skipped bag {b['path']}: {b['skipped_reason']}" for b in skipped]
     lines += ['', f'![prediction vs actual on the test window]({PREDICTION_PLOT})', '']
     return '\n'.join(lines)
+
+
+def _standing_lines(report: Mapping[str, Any]) -> list[str]:
+    """report.md's lines on who leads per axis (`standings`; none in an evaluate report)."""
+    standing = report.get('standings')
+    if not standing:
+        return []
+    labels = {name: model_label(name, entry) for name, entry in report['models'].items()}
+    return ['## Who leads (test part, RMSE)', '',
+            *(f'- {standing_text(axis, standing[axis], labels)}' for axis in TARGETS), '']
 
 
 def _metric_tables(report: Mapping[str, Any]) -> list[str]:

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lompr_predictor.learning.metrics import standing_text
 from lompr_predictor.learning.model_file import Verification
 from lompr_predictor.monitoring import (
     LatencySummary,
@@ -107,9 +108,16 @@ def model_status(lifecycle: Lifecycle, model_path: str, core: OnlinePredictor | 
         'inference_backend': core.primary.backend.name,
         'inference_backend_why': text(history.backend_why),
     })
+    standing = {axis: standing_text(axis, entry, {})
+                for axis, entry in metadata.standing.items()}
+    values.update({f'test_part.{axis}': line for axis, line in standing.items()})
     if history.reload_error is not None:
         return Status(Level.WARN, f'last reload refused: {history.reload_error}', values)
     summary = f'{metadata.model_type} {model.sha256[:12]}, horizon {metadata.horizon}'
+    behind = [line for axis, line in standing.items()
+              if metadata.standing[axis]['bo_lstm_vs_best_baseline'] > 0]
+    if behind:  # the network lost to a baseline where it was tested: said, not hidden
+        summary += f' (on its test part {"; ".join(behind)})'
     if not lifecycle.active:
         return Status(Level.WARN, f'{lifecycle.state} (not publishing): {summary}', values)
     if history.backend_why is not None:
