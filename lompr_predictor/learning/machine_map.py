@@ -89,16 +89,8 @@ class MachineMap(MapFit, nn.Module):
     predicting `horizon` samples ahead with a preview of `preview` samples at
     `sample_period` [s]. Coefficients zero until `fit`."""
 
-    if TYPE_CHECKING:  # the buffers, for the type checker only (see `models.PredictorModule`)
-        jacobian: torch.Tensor
-        scales: torch.Tensor
-        branch_coefficients: torch.Tensor
-        posture_coefficients: torch.Tensor
-        level_branch_coefficients: torch.Tensor
-        level_posture_coefficients: torch.Tensor
-        position_columns: torch.Tensor
-        velocity_columns: torch.Tensor
-        acceleration_columns: torch.Tensor
+    if TYPE_CHECKING:  # the buffers `MapFit` does not declare, for the type checker only
+        # (see `models.PredictorModule`)
         ahead_position_columns: torch.Tensor
         ahead_tool_velocity_columns: torch.Tensor
         ahead_velocity_columns: torch.Tensor
