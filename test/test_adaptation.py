@@ -65,6 +65,16 @@ def test_a_candidate_must_beat_the_model_in_force_by_the_margin() -> None:
     assert decide({**scores, 'bo_lstm': float('nan')}, 0.0)[0] == REFUSED
 
 
+def test_with_no_margin_a_candidate_equal_to_the_model_in_force_is_refused() -> None:
+    """A candidate that scores as its parent (its weights kept) is no new model: refused at
+    margin 0, which accepts any strictly better one."""
+    scores = {'bo_lstm': 10e-6, 'parent': 10e-6, 'persistence': 20e-6}
+    decision, why = decide(scores, 0.0)
+    assert decision == REFUSED
+    assert why == "10.000 um RMS, not below 1 x the model in force's 10.000 um"
+    assert decide({**scores, 'bo_lstm': 9.999e-6}, 0.0)[0] == ACCEPTED
+
+
 def test_an_attempt_is_due_after_a_period_of_the_clock_and_a_whole_data_window(
         tmp_path: Path) -> None:
     runs = Adaptation(settings(tmp_path, minutes=0.1, period=30.0))

@@ -97,10 +97,12 @@ def held_out_scores(result: TrainingResult) -> dict[str, float]:
 
 
 def decide(scores: Mapping[str, float], margin: float) -> tuple[str, str]:
-    """(decision, why): accepted only if the candidate's RMS is at most (1 - margin) times
-    the model in force's; persistence's is named in the reason, not required."""
+    """(decision, why): accepted only if the candidate's RMS is below the model in force's
+    and at most (1 - margin) times it (with a margin of 0 a candidate that only equals it,
+    its parent's weights kept, would be swapped in again and again); persistence's is named
+    in the reason, not required."""
     candidate, in_force = scores[CANDIDATE], scores[IN_FORCE]
-    if not candidate <= (1.0 - margin) * in_force:
+    if not (candidate < in_force and candidate <= (1.0 - margin) * in_force):
         return REFUSED, (f'{candidate * 1e6:.3f} um RMS, not below {1.0 - margin:g} x '
                          f"the model in force's {in_force * 1e6:.3f} um")
     return ACCEPTED, (f'{candidate * 1e6:.3f} um RMS against {in_force * 1e6:.3f} '
