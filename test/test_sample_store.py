@@ -21,9 +21,11 @@ from lompr_predictor.data.bags import bag_sha256, read_recording, write_recordin
 from lompr_predictor.data.cleaning import CleaningConfig
 from lompr_predictor.data.loading import BagInputs, load_clean_data
 from lompr_predictor.learning.model_file import load_model
+from lompr_predictor.monitoring import Level
 from lompr_predictor.online import sample_store
 from lompr_predictor.online.alignment import AlignedSample
 from lompr_predictor.online.predictor import OnlinePredictor
+from lompr_predictor.online.predictor_status import Lifecycle, store_status
 from lompr_predictor.online.sample_store import (
     COPY_MARGIN,
     SampleStore,
@@ -232,8 +234,12 @@ def test_a_write_that_fails_says_why(tmp_path: Path) -> None:
     store = SampleStore(capacity=100, window_ns=10**15)
     fill(store, range(10))
     (tmp_path / 'file').write_text('')
+    unmade = StoreExport(tmp_path / 'file' / 'bags', 'lompr_base')
     with pytest.raises(OSError):  # the folder cannot be made
-        StoreExport(tmp_path / 'file' / 'bags', 'lompr_base').start(store, {})
+        unmade.start(store, {})
+    assert unmade.state.failed == 1 and 'Not a directory' in unmade.state.last_error
+    status = store_status(Lifecycle('active', True, None), 1.0, store, unmade)
+    assert status.level == Level.WARN and 'the last write failed' in status.message
     export = StoreExport(tmp_path / 'bags', 'lompr_base')
     os.ftruncate(store.fd, 32)  # the child finds no ring behind the descriptor
     export.start(store, {})

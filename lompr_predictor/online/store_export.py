@@ -72,15 +72,19 @@ class StoreExport:
         if not store.held:
             msg = 'the sample store holds no sample yet'
             raise StoreExportError(msg)
-        self.folder.mkdir(parents=True, exist_ok=True)
-        out = self._new_bag_path()
-        command = [sys.executable, '-m', WRITER_MODULE, '--fd', str(store.fd), '--out',
-                   str(out), '--window-ns', str(store.window_ns), '--frame', self.frame_id,
-                   '--info', json.dumps(info)]
-        process = subprocess.Popen(
-            command, pass_fds=(store.fd,), stdin=subprocess.DEVNULL,
-            stdout=subprocess.DEVNULL, stderr=None if detached else subprocess.PIPE,
-            start_new_session=True)
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            out = self._new_bag_path()
+            command = [sys.executable, '-m', WRITER_MODULE, '--fd', str(store.fd), '--out',
+                       str(out), '--window-ns', str(store.window_ns), '--frame',
+                       self.frame_id, '--info', json.dumps(info)]
+            process = subprocess.Popen(
+                command, pass_fds=(store.fd,), stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL, stderr=None if detached else subprocess.PIPE,
+                start_new_session=True)
+        except OSError as err:  # a write that could not start failed as much as one that did
+            self.state.last_error, self.state.failed = str(err), self.state.failed + 1
+            raise
         if not detached:
             self._process = process
             self.state.writing, self.state.started = str(out), time.monotonic()
