@@ -15,9 +15,12 @@ import pytest
 from adaptation_data import other_plant, train_parent
 
 from lompr_predictor.learning import model_file
+from lompr_predictor.learning.fine_tuning import FineTuneError
 from lompr_predictor.learning.model_file import ModelFileError, load_model, sidecar_path
-from lompr_predictor.online import adaptation
+from lompr_predictor.monitoring import Level
+from lompr_predictor.online import adaptation, adaptation_attempt
 from lompr_predictor.online.adaptation import (
+    CANNOT_ADAPT,
     GRAPH_NAME,
     WORK_PREFIX,
     Adaptation,
@@ -135,6 +138,45 @@ def test_each_attempt_is_logged_and_a_refused_swap_is_a_failure(tmp_path: Path) 
     status = runs.status(20 * 10**9)
     assert status.message == 'attempt 3 refused: no'
     assert status.values['last_decision'] == 'refused' and status.values['swaps'] == 1
+
+
+def test_a_model_that_cannot_be_fine_tuned_is_said_once_and_waited_out(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An attempt on a model the fine-tuning cannot take (here: not a BO-LSTM) ends with
+    'cannot adapt' and why; then no attempt is due while that model is in force, and one
+    is again for another model."""
+    def not_a_bo_lstm(samples: object, request: AttemptRequest) -> dict[str, object]:
+        raise FineTuneError(f'model {request.parent}: --init fine-tunes a BO-LSTM (model_type '
+                            "lstm), this one is 'linear'")
+
+    monkeypatch.setattr(adaptation_attempt, 'attempt', not_a_bo_lstm)
+    store = SampleStore.for_minutes(0.1, 0.04)
+    work = tmp_path / 'work'
+    work.mkdir()
+    request = {'parent': 'm.pt', 'parent_sha256': 'ab', 'models_folder': str(tmp_path),
+               'work_folder': str(work), 'margin': 0.05, 'max_epochs': 2}
+    try:
+        for k in range(150):
+            store.observe(_sample(k), (0.0, 0.0), None)
+        assert adaptation_attempt.main(['--fd', str(store.fd), '--window-ns', str(10**10),
+                                        '--request', json.dumps(request)]) == 0
+        document = json.loads((work / 'result.json').read_text())
+        assert document['decision'] == CANNOT_ADAPT and "this one is 'linear'" in document[
+            'reason'] and document['parent_sha256'] == 'ab'
+        runs = Adaptation(settings(tmp_path, minutes=0.1, period=30.0))
+        second = 10**9
+        assert not runs.due(0, store, 0.04, 'ab')  # the period starts
+        assert runs.due(30 * second, store, 0.04, 'ab')
+        runs.settle(AttemptOutcome(1, 30 * second, 40 * second, document), None, 'm.pt',
+                    40 * second)
+        assert runs.state.cannot_adapt == 'ab'
+        assert not runs.due(100 * second, store, 0.04, 'ab')  # that model: never again
+        assert runs.due(100 * second, store, 0.04, 'cd')  # another model in force
+        status = runs.status(100 * second)
+        assert status.level == Level.WARN and status.message.startswith(
+            'attempt 1 cannot adapt: model m.pt: --init fine-tunes a BO-LSTM')
+    finally:
+        store.close()
 
 
 def test_a_killed_attempt_is_a_failure_and_leaves_no_work_folder(

@@ -53,6 +53,10 @@ STDERR_NAME = 'stderr.txt'
 MODEL_GLOB = 'adapted-*.pt'
 #: Decisions (the attempt's `accepted` and `refused`, and one that did not end).
 ACCEPTED, REFUSED, FAILED = 'accepted', 'refused', 'failed'
+#: The decision of an attempt whose model in force cannot be fine-tuned at all (not a
+#: BO-LSTM, its network not rebuildable): no attempt runs again until another model is in
+#: force.
+CANNOT_ADAPT = 'cannot adapt'
 
 
 @dataclass(frozen=True)
@@ -118,6 +122,7 @@ class AdaptationState:
     swaps: int = 0
     running_pid: int = 0  # 0: none
     error: str = ''  # why the node could not start or record an attempt ('' : it could)
+    cannot_adapt: str = ''  # sha256 of a model found not adaptable ('' : none)
     last: dict[str, Any] = field(default_factory=dict)  # the last attempt's log entry
 
 
@@ -134,11 +139,14 @@ class Adaptation:
         self._work: Path | None = None
         self._started_ns: int | None = None  # the node's clock at the last start
 
-    def due(self, now_ns: int, store: SampleStore, sample_period: float) -> bool:
-        """Whether an attempt should start now: none running, a period of the node's clock
-        passed since the last one started (or since the first call; a clock that went back
-        starts the period afresh), the store holding a whole data window."""
-        if self._process is not None:
+    def due(self, now_ns: int, store: SampleStore, sample_period: float,
+            model_sha256: str = '') -> bool:
+        """Whether an attempt should start now: none running, the model in force (its
+        `model_sha256`) not one found not adaptable, a period of the node's clock passed
+        since the last one started (or since the first call; a clock that went back starts
+        the period afresh), the store holding a whole data window."""
+        if self._process is not None or (model_sha256
+                                         and model_sha256 == self.state.cannot_adapt):
             return False
         started = self._started_ns
         if started is None or now_ns < started:
@@ -201,6 +209,8 @@ class Adaptation:
             decision = FAILED
             outcome.document['reason'] = f'not swapped in: {swap_error}'
         state = self.state
+        if decision == CANNOT_ADAPT:  # said once; the node waits for another model
+            state.cannot_adapt = str(outcome.document.get('parent_sha256', ''))
         counter = {ACCEPTED: 'accepted', REFUSED: 'refused'}.get(decision, 'failed')
         setattr(state, counter, getattr(state, counter) + 1)
         state.swaps += decision == ACCEPTED
@@ -262,7 +272,7 @@ class Adaptation:
         if not last:
             return Status(Level.OK, running or 'waiting for the first attempt', values)
         summary = f'attempt {last["attempt"]} {last["decision"]}: {last.get("reason", "")}'
-        return Status(Level.WARN if last['decision'] == FAILED else Level.OK,
+        return Status(Level.WARN if last['decision'] in (FAILED, CANNOT_ADAPT) else Level.OK,
                       f'{running}; last: {summary}' if running else summary, values)
 
     def _remove_work_folders(self) -> None:

@@ -50,7 +50,14 @@ import numpy as np
 
 from lompr_predictor.errors import LomprError
 from lompr_predictor.files import file_sha256, write_atomic, write_json
-from lompr_predictor.online.adaptation import GRAPH_NAME, GRAPH_OUTPUTS_NAME, RESULT_JSON
+from lompr_predictor.online.adaptation import (
+    ACCEPTED,
+    CANNOT_ADAPT,
+    GRAPH_NAME,
+    GRAPH_OUTPUTS_NAME,
+    REFUSED,
+    RESULT_JSON,
+)
 from lompr_predictor.online.sample_store import StoredSamples, read_ring
 from lompr_predictor.robot.chain import RobotSpec
 from lompr_predictor.threads import CoreUse, set_torch_threads
@@ -61,8 +68,6 @@ if TYPE_CHECKING:  # imported by `attempt`, once the process runs at its lower p
 
 #: New model files are named this, then the UTC time and a number.
 MODEL_PREFIX = 'adapted-'
-#: The decisions an attempt ends with (the node adds 'failed' for one that did not end).
-ACCEPTED, REFUSED = 'accepted', 'refused'
 #: The predictions scored against each other (`fine_tune_predictor`'s names).
 CANDIDATE, IN_FORCE, PERSISTENCE = 'bo_lstm', 'parent', 'persistence'
 
@@ -208,11 +213,17 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help='the sample time to learn from, back from the newest [ns]')
     parser.add_argument('--request', required=True, help='the AttemptRequest as JSON')
     args = parser.parse_args(argv)
+    from lompr_predictor.learning.fine_tuning import FineTuneError
+
     try:
         with CoreUse() as use:
             set_torch_threads(1)
             request = AttemptRequest(**json.loads(args.request))
-            document = attempt(read_ring(args.fd, args.window_ns), request)
+            try:
+                document = attempt(read_ring(args.fd, args.window_ns), request)
+            except FineTuneError as err:  # the model, not the data: no attempt can do better
+                document = {'decision': CANNOT_ADAPT, 'reason': str(err),
+                            'parent': request.parent, 'parent_sha256': request.parent_sha256}
         write_json(Path(request.work_folder) / RESULT_JSON, {**document, 'cpu': use.summary()})
     except (LomprError, OSError, ValueError, TypeError) as err:
         print(err, file=sys.stderr)

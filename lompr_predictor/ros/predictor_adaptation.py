@@ -116,7 +116,8 @@ class NodeAdaptation:
         now = node.clock_ns()
         store = self._store.store
         if (node.active and self._swapping is None
-                and self.adaptation.due(now, store, node.sample_period)):
+                and self.adaptation.due(now, store, node.sample_period,
+                                        node.core.model.sha256)):
             self.adaptation.start(store, self._in_force(), self._store.provenance(), now)
             node.get_logger().info(
                 f'adaptation attempt {self.adaptation.state.attempts} started (pid '
