@@ -254,19 +254,22 @@ def test_a_folder_it_cannot_write_is_a_warning_never_a_callback_failure(
 
 
 @pytest.mark.slow
-def test_an_attempt_that_fails_leaves_the_model_in_force(
+def test_a_model_that_cannot_be_adapted_is_said_once_and_kept_in_force(
         ros: RosHarness, tmp_path: Path) -> None:
+    """A model the fine-tuning cannot take (not a BO-LSTM): one attempt says why, none
+    follows while it is in force, and it keeps compensating."""
     in_force = constant(tmp_path / 'c.pt')
     wiring = adapting(ros, in_force, tmp_path / 'models', adaptation_period=1.0)
     wiring.run(0, 160)  # more than the 6 s data window
-    status = wait_status(wiring, lambda s: s.get('last_decision') == 'failed',
-                         'a failed attempt', timeout=120.0)
+    status = wait_status(wiring, lambda s: s.get('last_decision') == 'cannot adapt',
+                         'an attempt that cannot adapt', timeout=120.0)
     assert status['_level'] == DiagnosticStatus.WARN
     assert 'fine-tunes a BO-LSTM' in status['last_reason'], status['last_reason']
     before = len(wiring.compensations)
-    wiring.run(160, 10)
-    wiring.ros.spin_until(lambda: len(wiring.compensations) >= before + 10, what='outputs')
+    wiring.run(160, 100)  # 4 s of the clock: four periods
+    wiring.ros.spin_until(lambda: len(wiring.compensations) >= before + 100, what='outputs')
     assert wiring.node.core.model.path == str(in_force)
+    assert wait_status(wiring, lambda s: True, 'a status')['attempts'] == '1'
 
 
 @pytest.fixture(scope='module')
