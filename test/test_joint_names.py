@@ -67,6 +67,27 @@ def test_two_branches_swapped_are_refused_as_an_implausible_error(
     assert not (tmp_path / 'm.pt').exists() and not list((tmp_path / 'r').glob('trials/*'))
 
 
+@pytest.mark.faults
+def test_evaluate_refuses_two_branches_swapped_as_train_does(
+        renamed: tuple[Path, Recording], tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """A model trained with the right names, scored with two branches swapped: one line
+    naming the likely causes, exit 2, no report (was: millimetre 'errors' reported)."""
+    bag, _ = renamed
+    names = ','.join(RENAMED)
+    model = tmp_path / 'm.pt'
+    assert main(['train', str(bag), '--out', str(model), '--report', str(tmp_path / 'r'),
+                 *FAST, '--joint-names', names]) == 0
+    capsys.readouterr()
+    swapped = ','.join((RENAMED[1], RENAMED[0], *RENAMED[2:]))
+    code = main(['evaluate', str(model), str(bag), '--report', str(tmp_path / 'scored'),
+                 '--quiet', '--joint-names', swapped])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert 'of the extent of the commanded path' in err and '--joint-names' in err
+    assert not (tmp_path / 'scored' / 'report.json').exists()
+
+
 def test_joint_names_must_name_five_distinct_joints(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(['train', 'bag', '--out', 'm.pt', '--report', 'r', '--joint-names',
                  'b1,b2,b3,c_axis']) == 2
