@@ -1,6 +1,6 @@
 """Processes that stop when told: child processes stopped the way `ros2 launch` stops them
 (SIGINT, then SIGTERM, then SIGKILL: `stop_processes`), and a command that stops on SIGTERM
-as on Ctrl-C (`stop_on_signals`).
+as on Ctrl-C (`stop_on_signals`), and a child that ends with its parent (`end_with_parent`).
 
 A process that hangs instead says where: one that called `dump_tracebacks_on_signal` (every
 node executable) writes each thread's Python traceback to its stderr on `TRACEBACK_SIGNAL`,
@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import faulthandler
+import os
 import signal
 import subprocess
 import sys
@@ -160,3 +161,27 @@ def stop_on_signals() -> Iterator[None]:
         for number, handler in previous.items():
             signal.signal(number, handler)
         _stopped_by = outer
+
+
+#: Seconds between a child's looks at whether its parent still runs (`end_with_parent`).
+PARENT_CHECK_PERIOD = 0.25
+#: The exit code of a child that ended because its parent had ended.
+PARENT_GONE_EXIT = 3
+
+
+def end_with_parent(period: float = PARENT_CHECK_PERIOD) -> threading.Thread:
+    """End this process (at once, `PARENT_GONE_EXIT`) once the process that started it has
+    ended, whatever ended it: a daemon thread that looks every `period` seconds whether this
+    process was handed to another parent. For a child in its own session (no signal of the
+    parent's group reaches it) whose work is worth nothing without its parent: a node
+    killed with SIGKILL leaves no orphan working on, nor its output behind."""
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(period)
+        os._exit(PARENT_GONE_EXIT)
+
+    thread = threading.Thread(target=watch, name='end-with-parent', daemon=True)
+    thread.start()
+    return thread

@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 
@@ -177,3 +178,42 @@ def test_a_command_stopped_inside_library_code_says_it_was_stopped(
     assert cli.main(['work']) == 128 + signal.SIGTERM
     assert capsys.readouterr().err == 'lompr work: stopped by SIGTERM\n'
 
+
+
+def test_a_child_that_ends_with_its_parent_ends_when_the_parent_is_killed(
+        tmp_path: Path) -> None:
+    """A parent starts a child in its own session (no signal of the parent's reaches it)
+    that calls `end_with_parent` and would sleep a minute; the parent is killed with
+    SIGKILL: the child ends too (within seconds; it would sleep on a minute)."""
+    child_pid = tmp_path / 'child.pid'
+    child = ('import os, pathlib, time; from lompr_predictor.processes import end_with_parent; '
+             f'end_with_parent(0.05); pathlib.Path({str(child_pid)!r}).write_text('
+             'str(os.getpid())); time.sleep(60)')
+    parent = subprocess.Popen([sys.executable, '-c', (
+        'import subprocess, sys, time; '
+        f'subprocess.Popen([sys.executable, "-c", {child!r}], start_new_session=True); '
+        'time.sleep(60)')])
+    try:
+        deadline = time.monotonic() + 30
+        while not child_pid.exists() or not child_pid.read_text():
+            assert time.monotonic() < deadline, 'the child did not start'
+            time.sleep(0.05)
+        pid = int(child_pid.read_text())
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait()
+        gone_by = time.monotonic() + 5
+        while _running(pid) and time.monotonic() < gone_by:
+            time.sleep(0.05)
+        assert not _running(pid), 'the child outlived its parent'
+    finally:
+        parent.kill()
+        parent.wait()
+
+
+def _running(pid: int) -> bool:
+    """Whether process `pid` runs (an exited one not yet reaped, a zombie, does not)."""
+    try:
+        state = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()[0]
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+    return state != 'Z'

@@ -28,7 +28,8 @@ The outcome is one JSON document (`result.json` in the attempt's work folder, wr
 atomically last), which the node reads once the process has ended: the decision, the scores,
 the new file and the cores the attempt used (`threads.CoreUse`: in all, and the most of any
 second; a process beside the nodes must never take more than one). Nothing else of the
-attempt outlives it: the bag and the work folder are the node's to delete. The node never
+attempt outlives it: the bag and the work folder are the node's to delete, and the attempt
+ends with the node's process however that ends (`processes.end_with_parent`). The node never
 imports this module (nor the trainer it loads).
 """
 
@@ -59,6 +60,7 @@ from lompr_predictor.online.adaptation import (
     RESULT_JSON,
 )
 from lompr_predictor.online.sample_store import StoredSamples, read_ring
+from lompr_predictor.processes import end_with_parent
 from lompr_predictor.robot.chain import RobotSpec
 from lompr_predictor.threads import CoreUse, set_torch_threads
 
@@ -213,6 +215,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help='the sample time to learn from, back from the newest [ns]')
     parser.add_argument('--request', required=True, help='the AttemptRequest as JSON')
     args = parser.parse_args(argv)
+    end_with_parent()  # a node killed outright leaves no attempt writing a model for nobody
     from lompr_predictor.learning.fine_tuning import FineTuneError
 
     try:
