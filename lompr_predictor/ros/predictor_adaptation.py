@@ -84,6 +84,8 @@ class NodeAdaptation:
         self.adaptation = Adaptation(node.settings.adaptation)
         #: An accepted attempt whose model is being prepared, and the preparation.
         self._swapping: tuple[AttemptOutcome, SwapInBackground] | None = None
+        #: the store's restarts (sample time gone back) when the running attempt started
+        self._restarts_at_start = 0
         tick = min(CHECK_PERIOD, max(node.settings.adaptation_period / 4, 0.05))
         node.own(node.start_timer(tick, 'adaptation', self.on_timer))
 
@@ -119,6 +121,7 @@ class NodeAdaptation:
                 and self.adaptation.due(now, store, node.sample_period,
                                         node.core.model.sha256)):
             self.adaptation.start(store, self._in_force(), self._store.provenance(), now)
+            self._restarts_at_start = store.restarts
             node.get_logger().info(
                 f'adaptation attempt {self.adaptation.state.attempts} started (pid '
                 f'{self.adaptation.state.running_pid}) on {store.held_seconds:.1f} s of samples')
@@ -133,6 +136,9 @@ class NodeAdaptation:
         beside the sample path (swapped in by a later tick); any other outcome is
         recorded now."""
         running = self._node.running
+        if outcome.decision == FAILED and self._store.store.restarts != self._restarts_at_start:
+            outcome.document['reason'] = ('the sample time went back while it ran (a simulator '
+                                          f"reset?): {outcome.document.get('reason', '')}")
         if outcome.decision != ACCEPTED:
             self._settle(outcome, None)
         elif running is None or outcome.document.get('parent_sha256') != running.model.sha256:
