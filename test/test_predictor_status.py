@@ -251,3 +251,22 @@ def test_a_model_unproven_for_a_whole_window_is_a_warning() -> None:
     assert late.values['state_x'] == late.values['state_y'] == 'persistence'
     assert late.values['reason_x'] == late.values['reason_y'] == 'unproven'
     assert late.values['model_to_persistence_x'] == pytest.approx(0.97, abs=0.005)
+
+
+def test_a_change_beyond_the_trained_range_is_not_published_as_a_prediction(
+        tmp_path: Path, clock: FakeClock) -> None:
+    """The model trained on errors within +-1 um predicts X 30 um away from the plant error
+    now (-20 against +10 um) and Y 3 um away: X is handed on as persistence (the error
+    now), counted on the prediction status; Y, within twice the range, as predicted."""
+    range_1um = {'error_low': [-1e-6, -1e-6], 'error_high': [1e-6, 1e-6]}
+    model = load_model(save_constant(tmp_path / 'jump.pt', (-20e-6, 3e-6), window=WINDOW,
+                                     normalisation=range_1um))
+    core = OnlinePredictor(model, stream(), CompensationLimits(1e-3, 1e-3, False),
+                           clock=clock.ns)  # shadow mode: the fed plant error stays 10 um
+    samples = 3 * (WINDOW + HISTORY)
+    feed(core, clock, samples)
+    assert core.plausible.implausible > 0
+    last_instant = T0 + (samples - 1 + model.metadata.horizon) * PERIOD_NS
+    assert core.gate.prediction_for(last_instant) == pytest.approx((1e-5, 3e-6), abs=1e-15)
+    status = prediction_status(ACTIVE, core, LIMITS, NO_LATENCY, 25.0, new_overruns=0)
+    assert status.values['implausible_predictions'] == core.plausible.implausible

@@ -38,7 +38,7 @@ from lompr_predictor.online.model_slot import (
 from lompr_predictor.online.offset import XY, ZERO, CompensationLimits, OffsetGate, Output
 from lompr_predictor.online.predictor_counts import PredictorCounts
 from lompr_predictor.online.preview import Planned, PlannedPath, PlanReader, PreviewDrop
-from lompr_predictor.online.sample_units import LiveAccuracy, SampleUnit
+from lompr_predictor.online.sample_units import LiveAccuracy, PlausibleChange, SampleUnit
 from lompr_predictor.online.timing import OverrunGuard
 from lompr_predictor.robot.chain import KinematicChain, load_chain
 from lompr_predictor.stamps import StampLike, period_ns
@@ -93,7 +93,8 @@ class OnlinePredictor:
         self.gate = OffsetGate(limits, period)
         #: RMS of truth - prediction over the last predicted instants (`rms()`).
         self.accuracy = LiveAccuracy(stream.accuracy_samples)
-        self._units: tuple[SampleUnit, ...] = (self.accuracy, *units)
+        self.plausible = PlausibleChange()  # the last word before the offset gate
+        self._units: tuple[SampleUnit, ...] = (self.accuracy, *units, self.plausible)
         self.faults = RejectionCounter(FaultReason)
         self.last_fault: FaultReason | None = None
         self.overrun = OverrunGuard(self._lead_ns, period_ns(stream.late_tolerance))

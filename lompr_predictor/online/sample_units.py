@@ -71,3 +71,52 @@ class LiveAccuracy:
             return np.full(2, np.nan), 0
         residuals = np.column_stack((self._x, self._y))
         return np.sqrt(np.mean(residuals ** 2, axis=0)), len(residuals)
+
+
+#: How many times the error's training range (per axis, the model file's normalisation) a
+#: predicted change over the horizon may span before it is no prediction of this machine: a
+#: change larger than every error the model was trained on is an extrapolation (a jump of
+#: the reference, a frame mix-up), never a correction to apply.
+PLAUSIBLE_RANGES = 2.0
+
+
+class PlausibleChange:
+    """A `SampleUnit` last in the chain, before the offset gate: on an axis where the
+    model predicts the error to change by more than `PLAUSIBLE_RANGES` times its training
+    range over the horizon, persistence (the plant error the window ends at) is handed on
+    instead, and counted (`implausible`). A model file without the range passes as it is."""
+
+    def __init__(self) -> None:
+        self.implausible = 0
+        self._last: XY | None = None
+        self._limits: tuple[float, float] | None = None
+        self._metadata: object = None
+
+    def observe(self, sample: AlignedSample, error: XY, published: XY | None) -> None:
+        del sample, published
+        self._last = error
+
+    def revise(self, instant_ns: int, prediction: XY, slot: ModelSlot) -> XY | None:
+        del instant_ns
+        last, limits = self._last, self._limits_of(slot)
+        if last is None or limits is None:
+            return prediction
+        x = prediction[0] if abs(prediction[0] - last[0]) <= limits[0] else last[0]
+        y = prediction[1] if abs(prediction[1] - last[1]) <= limits[1] else last[1]
+        if (x, y) != prediction:
+            self.implausible += 1
+            return x, y
+        return prediction
+
+    def clear(self) -> None:
+        self._last = None
+
+    def _limits_of(self, slot: ModelSlot) -> tuple[float, float] | None:
+        """The largest plausible change per axis [m] for the slot's model (kept per model)."""
+        metadata = slot.model.metadata
+        if metadata is not self._metadata:
+            self._metadata = metadata
+            low, high = (metadata.normalisation.get(key) for key in ('error_low', 'error_high'))
+            self._limits = None if low is None or high is None else (
+                PLAUSIBLE_RANGES * (high[0] - low[0]), PLAUSIBLE_RANGES * (high[1] - low[1]))
+        return self._limits
