@@ -67,27 +67,34 @@ def install_prefix(root: Path) -> Path:
     return root
 
 
-def start_launch(prefix: Path, launch_file: str, *arguments: str) -> subprocess.Popen[str]:
-    """`ros2 launch` of `<prefix>/share/<package>/launch/<launch_file>` with `arguments`
-    (NAME:=VALUE) as a process of its own (its own session: stop it with SIGINT, as a user
-    stops ros2 launch), stdout and stderr merged and piped; the package found in `prefix`,
-    the ROS packages in this virtual environment."""
+#: How `main` is told to run as `ros2 launch` or as `ros2 launch --noninteractive`.
+INTERACTIVE, NONINTERACTIVE = 'interactive', 'noninteractive'
+
+
+def start_launch(prefix: Path, launch_file: str, *arguments: str,
+                 noninteractive: bool = False) -> subprocess.Popen[str]:
+    """`ros2 launch` (with `noninteractive`: `ros2 launch --noninteractive`) of
+    `<prefix>/share/<package>/launch/<launch_file>` with `arguments` (NAME:=VALUE) as a
+    process group of its own (its own session: stop it with SIGINT to the group, as a
+    terminal's Ctrl-C does), stdout and stderr merged and piped; the package found in
+    `prefix`, the ROS packages in this virtual environment."""
     environment = dict(os.environ, PYTHONUNBUFFERED='1',
                        AMENT_PREFIX_PATH=os.pathsep.join((str(prefix), sys.prefix)))
     path = prefix / 'share' / PACKAGE / 'launch' / launch_file
     return subprocess.Popen(
-        [sys.executable, __file__, str(path), *arguments], env=environment,
+        [sys.executable, __file__, NONINTERACTIVE if noninteractive else INTERACTIVE,
+         str(path), *arguments], env=environment,
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
 
 
 def main(argv: list[str]) -> int:
     """What `ros2 launch` runs (ros2launch's `launch_a_launch_file`), for `argv` = the
-    launch file's path and its arguments."""
+    mode (`INTERACTIVE` or `NONINTERACTIVE`), the launch file's path and its arguments."""
     import launch
     from launch.launch_description_sources import AnyLaunchDescriptionSource
 
-    path, arguments = argv[0], argv[1:]
-    service = launch.LaunchService(argv=arguments)
+    mode, path, arguments = argv[0], argv[1], argv[2:]
+    service = launch.LaunchService(argv=arguments, noninteractive=mode == NONINTERACTIVE)
     service.include_launch_description(launch.LaunchDescription([
         launch.actions.IncludeLaunchDescription(
             AnyLaunchDescriptionSource(path),

@@ -8,6 +8,7 @@ LOMPR_REQUIRE_LAUNCH), where that fails them."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -39,6 +40,9 @@ NODES = ('kinematics_node', 'predictor_node', 'twin_node')
 #: Seconds the launched nodes get to start (three processes importing torch, rclpy and
 #: Pinocchio on a loaded 2-core machine) and answer.
 START_TIMEOUT = 120.0
+#: Seconds `ros2 launch` may take to end on SIGINT, its nodes with it (each stops in a
+#: fraction of a second; launch's own SIGTERM to them comes only after 5 s).
+SIGINT_STOP = 3.0
 
 
 @pytest.fixture(scope='module')
@@ -60,18 +64,38 @@ def model(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @contextmanager
-def launched(prefix: Path, *arguments: str) -> Iterator[subprocess.Popen[str]]:
+def launched(prefix: Path, *arguments: str, noninteractive: bool = False
+             ) -> Iterator[subprocess.Popen[str]]:
     """`ros2 launch lompr_predictor lompr.launch.xml ARGUMENTS` while the block runs, then
-    stopped as a user stops it (SIGINT); its output is echoed to the test's stderr."""
-    process = start_launch(prefix, LAUNCH, *arguments)
+    stopped as a user stops it: Ctrl-C in its terminal (SIGINT to the whole process group),
+    or with `noninteractive` (`ros2 launch --noninteractive`, as a service runs it) SIGINT
+    to launch alone, which it then forwards. It must end within `SIGINT_STOP` seconds, its
+    nodes stopping on that SIGINT, not on launch's SIGTERM 5 s later; its output is echoed
+    to the test's stderr."""
+    process = start_launch(prefix, LAUNCH, *arguments, noninteractive=noninteractive)
+    ran = False
     try:
         yield process
+        ran = process.poll() is None
     finally:
-        stopped = stop_processes([process])[0]
+        stopping = time.monotonic()
+        if process.poll() is None:
+            if noninteractive:
+                process.send_signal(signal.SIGINT)
+            else:
+                os.killpg(process.pid, signal.SIGINT)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            process.wait(SIGINT_STOP)
+        took = time.monotonic() - stopping
+        stopped = stop_processes([process])[0]  # what is left: SIGINT, SIGTERM, SIGKILL
         sys.stderr.write(f'ros2 launch {" ".join(arguments)} exited with '
-                         f'{stopped.returncode}, its output:\n{stopped.stdout}\n')
-        if stopped.signal in (signal.SIGTERM, signal.SIGKILL):  # nodes may be left behind
+                         f'{stopped.returncode} {took:.1f} s after SIGINT, its output:\n'
+                         f'{stopped.stdout}\n')
+        if stopped.signal is not None:  # nodes may be left behind
             os.killpg(process.pid, signal.SIGKILL)
+    if ran:
+        assert stopped.signal is None and took < SIGINT_STOP, (
+            f'ros2 launch took {took:.1f} s to stop on SIGINT and needed {stopped.signal!r}')
 
 
 def parameters(ros: RosHarness, node: str, names: list[str]) -> dict[str, Any]:
@@ -184,3 +208,14 @@ def test_a_missing_params_file_stops_the_launch_naming_it(prefix: Path) -> None:
     assert 'File not found: /missing/site.yaml' in output
     assert 'process started' not in output
     assert time.monotonic() - started < START_TIMEOUT
+
+
+def test_launched_noninteractive_a_sigint_to_launch_alone_stops_every_node(
+        ros: RosHarness, prefix: Path, model: Path) -> None:
+    """As a service or a script runs it (`ros2 launch --noninteractive`), a SIGINT sent to
+    launch alone is forwarded to the nodes, which stop on it (`launched` checks the time);
+    an interactive launch assumes the terminal's Ctrl-C reached them and leaves them to its
+    SIGTERM 5 s later (docs/interface.md, stopping)."""
+    with launched(prefix, 'namespace:=cell1', 'twin:=true', f'model_path:={model}',
+                  noninteractive=True) as process:
+        wait_for_nodes(ros, process)
