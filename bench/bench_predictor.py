@@ -473,7 +473,7 @@ def _drive(kinematics: Any, predictor: Any,
     # deserialisation inside the callbacks (raw subscriptions, `ros/wire.py`), looked up
     # in the node modules' namespaces at each call
     kinematics_module = sys.modules[type(kinematics).__module__]
-    predictor_module = sys.modules[type(predictor).__module__]
+    predictor_module = sys.modules[type(predictor.inputs).__module__]  # its input reader
     stages.wrap(kinematics_module, 'read_joint_state', 'receive joint state')
     stages.wrap(predictor_module, 'read_pose_stamped', 'receive poses')
     stages.wrap(kinematics.measured.solver, 'solve', 'forward kinematics')
