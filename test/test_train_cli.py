@@ -121,7 +121,10 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
         assert guard['hand_backs'] >= guard['hand_overs']  # each hand-over follows a hand-back
         assert rmse['model_guarded'] <= 1.05 * max(rmse['model'], rmse['persistence'],
                                                    rmse['model_prior'])
-    assert '## Live guard' in (scored / 'report.md').read_text()
+    scored_text = (scored / 'report.md').read_text()
+    assert '## Live guard' in scored_text
+    assert 'None' not in scored_text  # an evaluation has no sidecar to name
+    assert f"sha256 `{evaluation['model_sha256']}` (pin it on" in scored_text
     assert evaluation['split']['test'] == 1200 - 2 - 8 + 1 - 2
 
 
