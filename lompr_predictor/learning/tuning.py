@@ -37,6 +37,7 @@ from tqdm import tqdm
 from lompr_predictor.learning.space import DEFAULT_TRIALS
 from lompr_predictor.learning.storage import StudyError, StudyStorage, fail_and_retry
 from lompr_predictor.processes import stop_signal
+from lompr_predictor.progress import progress_bar
 
 #: Trial states that count toward the budget.
 SPENT = (TrialState.COMPLETE, TrialState.PRUNED)
@@ -396,7 +397,7 @@ class StudyProgress:
 
     def __enter__(self) -> StudyProgress:
         if self._enabled:
-            self._bar = tqdm(total=study_slots(self._study), desc='tuning', unit='trial')
+            self._bar = progress_bar(total=study_slots(self._study), desc='tuning', unit='trial')
             self.update()
             self._thread.start()
         return self

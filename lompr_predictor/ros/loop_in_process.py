@@ -24,6 +24,7 @@ from rclpy.task import Future
 from sensor_msgs.msg import JointState
 from tqdm import tqdm
 
+from lompr_predictor.progress import progress_bar
 from lompr_predictor.robot.description import MEASURED_JOINTS
 from lompr_predictor.ros import kinematics_node, predictor_node, twin_node
 from lompr_predictor.ros.common import events_executor, spin_until
@@ -163,8 +164,8 @@ class _Loop:
         if not spin_until(self.executor, matched, DISCOVERY_TIMEOUT):
             msg = f'the closed-loop nodes did not discover each other in {DISCOVERY_TIMEOUT} s'
             raise ClosedLoopError(msg)
-        self._bar = tqdm(total=self.total, desc=label, unit='sample', disable=not progress,
-                         leave=True)
+        self._bar = progress_bar(total=self.total, desc=label, unit='sample',
+                                 enabled=progress, leave=True)
         self.executor.add_node(self.twin)
 
     def _on_sample(self, index: int) -> None:

@@ -37,6 +37,7 @@ from lompr_predictor.online.predictor_counts import (
     read_counts,
 )
 from lompr_predictor.processes import Stopped, stop_processes
+from lompr_predictor.progress import progress_bar
 from lompr_predictor.robot.paths import build_cycle
 from lompr_predictor.ros import predictor_node
 from lompr_predictor.ros.common import events_executor
@@ -72,8 +73,8 @@ def run_processes(settings: LoopSettings, horizon: int, progress: bool,
         watch = _Watch(loop_commands(settings, horizon, params.sample_period, run_log),
                        Path(folder), round(params.sample_period * 1e9), loop_domain_id())
         watched = watch.run(run_log, total, settings.wall_timeout,
-                            tqdm(total=total, desc=label, unit='sample', disable=not progress,
-                                 leave=True), label)
+                            progress_bar(total=total, desc=label, unit='sample',
+                                         enabled=progress, leave=True), label)
         arrays, document = read_run_log(run_log)
     count = len(arrays['stamps'])
     counts = loop_counts(
