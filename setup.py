@@ -54,6 +54,7 @@ setup(
             'predictor_node = lompr_predictor.ros.predictor_node:main',
             'lompr_pipeline = lompr_predictor.ros.pipeline:main',
             'twin_node = lompr_predictor.ros.twin_node:main',
+            'command_compensator_node = lompr_predictor.ros.command_compensator_node:main',
             'lompr = lompr_predictor.cli:main',
         ],
     },

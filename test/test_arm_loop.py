@@ -91,12 +91,14 @@ def _rms_um(error: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(error[:, :2] ** 2, axis=1)))) * 1e6
 
 
-@pytest.mark.ros
-def test_the_arm_loop_applies_every_offset_through_the_joints_and_cuts_the_error(
-        ros: RosHarness, tmp_path: Path) -> None:
-    def overrides(values: dict[str, object]) -> list[Parameter]:
-        return [Parameter(name, value=value) for name, value in values.items()]
+def overrides(values: dict[str, object]) -> list[Parameter]:
+    return [Parameter(name, value=value) for name, value in values.items()]
 
+
+def start_arm_loop(ros: RosHarness, tmp_path: Path, run_log: Path,
+                   **twin_parameters: object) -> tuple[PredictorNode, TwinNode]:
+    """kinematics_node, predictor_node (persistence one sample ahead) and twin_node (robot
+    arm, lockstep, `SAMPLES` of `PROGRAM`, its run written to `run_log`) on `ros`."""
     urdf, frame = str(arm_description_path()), {'frame_id': BASE_FRAME}
     model = persistence_arm_model(tmp_path / 'persistence.pt')
     ros.add(KinematicsNode(context=ros.context, parameter_overrides=overrides({
@@ -107,17 +109,24 @@ def test_the_arm_loop_applies_every_offset_through_the_joints_and_cuts_the_error
         'compensation_enabled': True, 'guard_enabled': False,
         # the twin's stamps are its simulated clock's, judged here on wall time
         'stale_periods': 250.0, 'late_tolerance': 10.0, **frame})))
-    offsets = ros.collect('/lompr/compensation', Vector3Stamped, 1000)
     ros.spin_until(lambda: (ros.node.count_subscribers('/lompr/end_pose') >= 1
                             and ros.node.count_subscribers('/lompr/reference') >= 1),
                    what='the predictor matched to the kinematics')
-    run_log = tmp_path / 'run.npz'
     twin = ros.add(TwinNode(context=ros.context, parameter_overrides=overrides({
         'robot': 'arm', 'path': PROGRAM, 'seed': SEED, 'mode': 'lockstep',
         'samples': SAMPLES, 'run_log': str(run_log), 'wait_for_subscribers': 1,
         # nothing answers the first samples (the predictor fills its rows): wait briefly;
         # once it answers, wait long, so a loaded machine lets no sample through
-        'lockstep_timeout': 0.2, 'answer_timeout': 10.0, **frame})))
+        'lockstep_timeout': 0.2, 'answer_timeout': 10.0, **frame, **twin_parameters})))
+    return predictor, twin
+
+
+@pytest.mark.ros
+def test_the_arm_loop_applies_every_offset_through_the_joints_and_cuts_the_error(
+        ros: RosHarness, tmp_path: Path) -> None:
+    offsets = ros.collect('/lompr/compensation', Vector3Stamped, 1000)
+    run_log = tmp_path / 'run.npz'
+    predictor, twin = start_arm_loop(ros, tmp_path, run_log)
     ros.spin_until(run_log.exists, timeout=120.0, what=f'{SAMPLES} samples of the loop')
     arrays, document = read_run_log(run_log)
     assert (document['robot'], document['path'], document['joint_names']) == (
@@ -157,3 +166,61 @@ def test_the_arm_loop_applies_every_offset_through_the_joints_and_cuts_the_error
     # of um (without friction or without the servo, the RMS would be a few um). Still well
     # under a third.
     assert without > 100.0 and with_compensation < without / 3.0
+
+
+@pytest.mark.ros
+def test_the_arm_loop_through_the_command_compensator_equals_the_twins_own(
+        tmp_path: Path) -> None:
+    """The same loop with the offsets applied by command_compensator_node (the twin sends
+    each nominal command ahead and runs the compensated one that comes back) instead of by
+    the twin itself: every command from the predictor's first answer on is compensated, and
+    the true error is the loop's own (its RMS within 1 %)."""
+    from lompr_predictor.ros.command_compensator_node import CommandCompensatorNode
+
+    runs = {}
+    for through in (False, True):
+        ros = RosHarness()
+        try:
+            run_log = tmp_path / f'run_{through}.npz'
+            compensator = None
+            if through:
+                compensator = ros.add(CommandCompensatorNode(
+                    context=ros.context, parameter_overrides=overrides({
+                        'robot_description_file': str(arm_description_path()),
+                        'base_frame': BASE_FRAME, 'tip_frame': TIP_FRAME})))
+            _, twin = start_arm_loop(ros, tmp_path, run_log, **(
+                {'compensated_command_topic': 'joint_commands_compensated'} if through else {}))
+            ros.spin_until(run_log.exists, timeout=120.0, what=f'{SAMPLES} samples')
+            runs[through] = read_run_log(run_log)
+            if compensator is not None:
+                assert twin.commands is not None
+                core = compensator.core
+                first = int(runs[through][1]['first_answered'])
+                print(f'command path: {core.outcomes.counts()}, twin: {twin.commands.values()}')
+                assert core.outcomes['compensated'] >= 0.999 * (SAMPLES - first)
+                assert core.outcomes['compensated'] + core.outcomes['no_offset'] == SAMPLES
+                assert twin.commands.unanswered <= 1 and core.clamped == 0
+        finally:
+            ros.shutdown()
+    (own, own_document), (path, path_document) = runs[False], runs[True]
+    assert path_document['unanswered_after_first'] == 0
+    settled = slice(max(own_document['first_answered'],
+                        path_document['first_answered']) + 10, SAMPLES)
+    rms_own, rms_through = (_rms_um(run['true_error'][settled]) for run in (own, path))
+    print(f'arm loop ({PROGRAM}): XY true error RMS {rms_own:.4f} um (twin applies the '
+          f'offsets), {rms_through:.4f} um (through command_compensator_node); largest '
+          f'difference {np.max(np.abs(own["true_error"] - path["true_error"])) * 1e6:.2e} um')
+    assert abs(rms_through - rms_own) <= 0.01 * rms_own
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize(('robot', 'mode'), [('lompr', 'lockstep'), ('arm', 'realtime')])
+def test_a_command_path_is_refused_for_the_lompr_and_in_realtime(
+        ros: RosHarness, robot: str, mode: str) -> None:
+    from lompr_predictor.ros.twin_outputs import TwinChoiceError
+
+    with pytest.raises(TwinChoiceError, match=(
+            r'^compensated_command_topic needs robot arm \(commanded in joints\) in lockstep '
+            f'or paced mode, got robot {robot} in {mode} mode$')):
+        TwinNode(context=ros.context, parameter_overrides=overrides({
+            'robot': robot, 'mode': mode, 'compensated_command_topic': 'compensated'}))

@@ -16,7 +16,8 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = 'lompr_predictor'
-EXECUTABLES = ('kinematics_node', 'predictor_node', 'twin_node', 'lompr')
+EXECUTABLES = ('kinematics_node', 'predictor_node', 'twin_node', 'command_compensator_node',
+               'lompr')
 #: A Fast DDS participant can hang at exit: every process started here has a kill timeout.
 PROCESS_TIMEOUT = 30.0
 

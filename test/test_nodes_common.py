@@ -303,7 +303,8 @@ def _flatten(prefix: str, tree: dict[str, Any]) -> dict[str, Any]:
     return flat
 
 
-@pytest.mark.parametrize('node', ['kinematics_node', 'predictor_node'])
+@pytest.mark.parametrize('node', ['kinematics_node', 'predictor_node',
+                                  'command_compensator_node'])
 def test_parameter_files_hold_the_declared_defaults(node: str) -> None:
     """config/<node>.yaml lists every parameter with the default of its one declaration, and
     no qos_overrides: their keys are resolved topic names, which would name the root
@@ -315,7 +316,8 @@ def test_parameter_files_hold_the_declared_defaults(node: str) -> None:
 
     module = importlib.import_module(f'lompr_predictor.ros.{node}')
     settings_type = {'kinematics_node': 'KinematicsNodeSettings',
-                     'predictor_node': 'PredictorNodeSettings'}[node]
+                     'predictor_node': 'PredictorNodeSettings',
+                     'command_compensator_node': 'CommandCompensatorSettings'}[node]
     specs = parameter_specs(getattr(module, settings_type))
     path = Path(__file__).parents[1] / 'lompr_predictor' / 'config' / f'{node}.yaml'
     values = _flatten('', yaml.safe_load(path.read_text())[f'/**/{node}']['ros__parameters'])

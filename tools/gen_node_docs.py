@@ -24,6 +24,8 @@ SETTINGS_CLASSES = {
     'kinematics_node': 'lompr_predictor.ros.kinematics_node:KinematicsNodeSettings',
     'predictor_node': 'lompr_predictor.ros.predictor_settings:PredictorNodeSettings',
     'twin_node': 'lompr_predictor.ros.twin_node:TwinNodeSettings',
+    'command_compensator_node':
+        'lompr_predictor.ros.command_compensator_node:CommandCompensatorSettings',
 }
 DOCS = Path(__file__).resolve().parents[1] / 'docs' / 'nodes.md'
 

@@ -35,6 +35,10 @@ steady (wall) clock. Without it, a realtime twin runs on its node's clock (an ex
 /clock under use_sim_time), and lockstep waits on the steady clock. `wait_for_subscribers`
 holds the first sample until the nodes are there; `run_log` writes every sample the twin
 ran (`twin.run_log`) when its passes are done.
+
+A robot commanded in joints through a command path (`compensated_command_topic`, the arm in
+lockstep or paced mode): the nominal command of a sample goes out ahead of it and the
+sample runs with the compensated command that comes back (`twin_command_path`).
 """
 
 from __future__ import annotations
@@ -61,17 +65,20 @@ from lompr_predictor.robot.paths import PATH_KINDS
 from lompr_predictor.ros.common import run_node
 from lompr_predictor.ros.node_base import FrameSettings, NodeBase, node_help
 from lompr_predictor.ros.parameters import parameter
+from lompr_predictor.ros.twin_command_path import COMPENSATED_COMMANDS, CommandRequests
 from lompr_predictor.ros.twin_outputs import (
     COMPENSATION,
     ENDPOINTS,
     PROGRAMS_OF,
     ROBOTS,
+    TwinChoiceError,
     TwinOutputs,
     make_twin,
     twin_path,
 )
 from lompr_predictor.stamps import stamp_to_ns
 from lompr_predictor.twin.arm_programs import PROGRAMS as ARM_PROGRAMS
+from lompr_predictor.twin.arm_twin import ArmDigitalTwin
 from lompr_predictor.twin.compensation import CompensationSchedule, OffsetDrop
 from lompr_predictor.twin.run_log import RunLog, write_run_log
 
@@ -165,6 +172,13 @@ class TwinNodeSettings(FrameSettings):
     compensation_topic: str = parameter('lompr/compensation', 'Vector3Stamped input: '
                                         'feedforward offset for the instant in its stamp',
                                         read_only=True)
+    compensated_command_topic: str = parameter(
+        '', 'robot arm, lockstep or paced: JointState input of the compensated commanded '
+        "joints (command_compensator_node's output_topic): a sample's nominal command goes "
+        'out on command_topic once its offset came (or the wait is over), and the sample '
+        'runs with the compensated command for its instant (the nominal one after '
+        'lockstep_timeout without); empty: the twin applies the offsets itself',
+        read_only=True)
     true_error_topic: str = parameter('lompr/twin/true_error', 'Vector3Stamped debug '
                                       'output: true tool tip - reference [m]', read_only=True)
     plant_error_topic: str = parameter('lompr/twin/plant_error', 'Vector3Stamped debug '
@@ -209,6 +223,8 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
                                    preview_samples=settings.preview_samples,
                                    publish_clock=settings.publish_clock)
         self._compensation_subscription = self.subscribe(COMPENSATION, self.on_compensation)
+        #: the command path outside the twin (compensated_command_topic), if any
+        self.commands = self._command_path()
         #: paced: a tick found the next sample's offset missing; its arrival runs the sample
         self._waiting = False
         self._timer = self._start_stepping()
@@ -223,6 +239,26 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
             + (f' (timeout {settings.lockstep_timeout:g} s)' if settings.mode != 'realtime'
                else '')
             + (f', publishing {settings.clock_topic}' if settings.publish_clock else ''))
+
+    def _command_path(self) -> CommandRequests | None:
+        """The arm's command path (`compensated_command_topic`), refused in one line for
+        the LOMPR (commanded in tool tips) and in realtime mode (nothing waits for it)."""
+        settings = self.settings
+        if not settings.compensated_command_topic:
+            return None
+        if not isinstance(self.twin, ArmDigitalTwin) or settings.mode == 'realtime':
+            raise TwinChoiceError('compensated_command_topic needs robot arm (commanded in '
+                                  'joints) in lockstep or paced mode, got robot '
+                                  f'{settings.robot} in {settings.mode} mode')
+        return CommandRequests(self, self.twin, self.outputs, self.step)
+
+    def _advance(self) -> None:
+        """The next sample, or with a command path its nominal command (the compensated one
+        coming back runs it)."""
+        if self.commands is None:
+            self.step()
+        elif not self.finished and self.audience_ready():
+            self.commands.request(self.twin.next_index)
 
     def _start_stepping(self) -> Timer:
         """The timer of the mode: a sample per tick (realtime), or a check per tick whether
@@ -254,14 +290,14 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
         if ((mode == 'lockstep' or (mode == 'paced' and self._waiting))
                 and self.schedule.has(self.twin.next_index)):
             self._waiting = False
-            self.step()
+            self._advance()
 
     def _on_paced_timer(self) -> None:
         """A tick of the paced mode: the next sample if its offset is there (or it has
         waited its timeout), else wait for it (`on_compensation` runs it)."""
         if self.schedule.has(self.twin.next_index):
             self._waiting = False
-            self.step()
+            self._advance()
             return
         self._waiting = True
         self._on_lockstep_timer()
@@ -270,8 +306,10 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
         settings = self.settings
         timeout = (settings.answer_timeout if self._last_answered and settings.answer_timeout
                    else settings.lockstep_timeout)
-        if time.monotonic() - self._last_step >= timeout:
-            self.step()
+        if self.commands is not None and self.commands.overdue(settings.lockstep_timeout):
+            self.step()  # no compensated command came: the nominal one
+        elif time.monotonic() - self._last_step >= timeout:
+            self._advance()
 
     def audience_ready(self) -> bool:
         """Whether the nodes `wait_for_subscribers` asks for are there (once true, true)."""
@@ -292,14 +330,16 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
         missing, stale = schedule.missing, schedule.rejected[OffsetDrop.STALE]
         with self.step_time.measure():
             offset = schedule.take(self.twin.next_index)
-            samples = self.twin.step(1, offset[None])
-        answered = schedule.missing == missing and schedule.rejected[OffsetDrop.STALE] == stale
+            samples = (self.twin.step(1, offset[None]) if self.commands is None
+                       else self.commands.step(offset))
+        answered = (schedule.missing == missing and schedule.rejected[OffsetDrop.STALE] == stale
+                    and (self.commands is None or self.commands.last_answered))
         self._last_answered = answered
         if self._logging:
             self.log.add(samples, answered)
         else:
             self._count(answered)
-        self.outputs.publish(samples)
+        self.outputs.publish(samples, command=self.commands is None)
         self._last_step = time.monotonic()
         self.sample_rate.tick()
         if self.finished:
@@ -361,6 +401,7 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
             'unanswered_after_first': self.log.unanswered_after_first,
             'pending': schedule.pending, 'ignored_total': self.ignored_compensations,
             **rejection_values(schedule.rejected),
+            **(self.commands.values() if self.commands is not None else {}),
         }
         new_rejections = schedule.rejected.total - self._rejected_at_last_report
         self._rejected_at_last_report = schedule.rejected.total
@@ -374,7 +415,8 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
 def main(argv: Sequence[str] | None = None) -> int:
     """Console script `twin_node` (`ros2 run lompr_predictor twin_node`)."""
     return run_node(lambda context: TwinNode(context=context),
-                    parameters_help=node_help(TwinNodeSettings, ENDPOINTS),
+                    parameters_help=node_help(TwinNodeSettings,
+                                              (*ENDPOINTS, COMPENSATED_COMMANDS)),
                     description=__doc__.split('\n', 1)[0], argv=argv)
 
 

@@ -119,15 +119,16 @@ class TwinOutputs:
         return (self.joints.get_subscription_count() >= count
                 and self.command.get_subscription_count() >= count)
 
-    def publish(self, samples: SampleBlock) -> None:
-        """The messages of a block's first sample (module docstring)."""
+    def publish(self, samples: SampleBlock, *, command: bool = True) -> None:
+        """The messages of a block's first sample (module docstring); `command` false: not
+        its command, which went out ahead (`publish_joint_command`)."""
         stamp = stamp_message(int(samples.stamps[0]))
         if self.clock is not None:  # the sample's instant, before the sample
             self.clock.publish(ClockMessage(clock=stamp))
         self.joints.publish(self._joint_state(stamp, samples.joints.measured[0]))
-        if isinstance(samples, ArmTwinSamples):
+        if command and isinstance(samples, ArmTwinSamples):
             self.command.publish(self._joint_state(stamp, samples.commanded[0]))
-        else:
+        elif command:
             self.command.publish(self._pose(stamp, samples.reference[0].tolist()))
         if self.preview is not None:
             self.preview.publish(self._preview(stamp))
@@ -138,6 +139,11 @@ class TwinOutputs:
             out.header.frame_id = self.frame
             out.vector.x, out.vector.y, out.vector.z = (float(v) for v in error)
             publisher.publish(out)
+
+    def publish_joint_command(self, stamp_ns: int, joints: Any) -> None:
+        """The arm's nominal commanded joints for the instant `stamp_ns`, sent ahead of
+        their sample (a command path outside the twin compensates them)."""
+        self.command.publish(self._joint_state(stamp_message(stamp_ns), joints))
 
     def _joint_state(self, stamp: Time, positions: Any) -> JointState:
         message = JointState()

@@ -101,15 +101,22 @@ class ArmDigitalTwin(SampleGrid):
         x, y, z, w = pin.Quaternion(TOOL_DOWN).coeffs()
         return float(x), float(y), float(z), float(w)
 
+    def nominal_joints(self, index: int) -> np.ndarray:
+        """(6,) the nominal commanded joints [rad] of sample `index` (its program's IK)."""
+        return self.pass_joints[index % self.pass_samples]
+
     def planned(self, count: int) -> tuple[np.ndarray, np.ndarray]:
         """The next `count` samples as planned, not yet run: (count,) stamps [ns] and
         (count, 3) nominal commanded tool tips [m] (the reference preview)."""
         rows = np.arange(self.next_index, self.next_index + count) % self.pass_samples
         return self.stamps(self.next_index, count), self.pass_tips[rows]
 
-    def step(self, count: int = 1, compensation: np.ndarray | None = None) -> ArmTwinSamples:
+    def step(self, count: int = 1, compensation: np.ndarray | None = None,
+             joint_offset: np.ndarray | None = None) -> ArmTwinSamples:
         """Run the next `count` samples; `compensation` (count, 2 or 3) [m] is the tool
-        offset of each (its X, Y applied through the joints; a Z is not applied)."""
+        offset of each (its X, Y applied through the joints; a Z is not applied), or, with
+        `joint_offset` ((count, 6) [rad]: a command path outside the twin made it), the
+        offset recorded for it."""
         start = self.next_index
         rows = np.arange(start, start + count) % self.pass_samples
         nominal = self.pass_joints[rows]
@@ -117,8 +124,9 @@ class ArmDigitalTwin(SampleGrid):
         if compensation is not None:
             given = np.atleast_2d(np.asarray(compensation, dtype=float))
             offset[:, :2] = np.broadcast_to(given[:, :2], (count, 2))
-        joint_offset = tool_offset_to_joints(self.chain, TIP_FRAME, nominal, offset[:, :2],
-                                             self.damping)
+        if joint_offset is None:
+            joint_offset = tool_offset_to_joints(self.chain, TIP_FRAME, nominal, offset[:, :2],
+                                                 self.damping)
         joints = self.plant.advance(nominal + joint_offset)
         self.next_index += count
         return ArmTwinSamples(

@@ -1,0 +1,115 @@
+"""command_compensator_node on ROS: the twin arm's commands and the predictor's offsets in,
+the compensated JointState and the forward controller's Float64MultiArray out; bad input
+passed unchanged and counted on /diagnostics; the LOMPR refused at configure."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import Vector3Stamped
+from rclpy.parameter import Parameter
+from ros_helpers import RosHarness, latest_status, set_stamp, stamp_ns
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+
+from lompr_predictor.online.command_compensation import CommandPathError
+from lompr_predictor.robot.chain import SerialChain, load_chain
+from lompr_predictor.ros.command_compensator_node import CommandCompensatorNode
+from lompr_predictor.twin.arm import arm_description_path, arm_spec
+
+pytestmark = pytest.mark.ros
+
+PERIOD_NS = 4_000_000
+T0 = 1_700_000_000_000_000_000
+Q = (2.90554713, -1.18873611, 1.90415391, -2.28621412, -1.57079633, -0.23604553)
+#: The offset of each instant; instant 2 has none.
+OFFSETS = {0: (1e-4, 0.0), 1: (0.0, -2e-4), 3: (-1.5e-4, 1e-4), 4: (2e-4, 2e-4)}
+
+
+def node_parameters(**extra: Any) -> list[Parameter]:
+    values = {'robot_description_file': str(arm_description_path()),
+              'base_frame': 'arm_base', 'tip_frame': 'tool0', 'diagnostics_period': 0.1,
+              **extra}
+    return [Parameter(name, value=value) for name, value in values.items()]
+
+
+def offset(k: int, xy: tuple[float, float], frame: str = 'arm_base') -> Vector3Stamped:
+    msg = Vector3Stamped()
+    msg.header.frame_id = frame
+    msg.vector.x, msg.vector.y = xy
+    set_stamp(msg, T0 + k * PERIOD_NS)
+    return msg
+
+
+def command(k: int, names: list[str], positions: list[float]) -> JointState:
+    msg = JointState(name=names, position=positions, velocity=[0.5] * len(names))
+    set_stamp(msg, T0 + k * PERIOD_NS)
+    return msg
+
+
+def test_commands_come_out_compensated_on_both_topics(ros: RosHarness) -> None:
+    chain = load_chain(arm_spec())
+    assert isinstance(chain, SerialChain)
+    order = list(reversed(chain.joint_names))
+    node = ros.add(CommandCompensatorNode(context=ros.context, parameter_overrides=node_parameters(
+        controller_joints=order)))
+    assert node.lifecycle_state == 'active'
+    states = ros.collect('/joint_commands_compensated', JointState, 100)
+    arrays = ros.collect('/forward_position_controller/commands', Float64MultiArray, 100)
+    diagnostics = ros.collect('/diagnostics', DiagnosticArray, 100)
+    offsets_out = ros.node.create_publisher(Vector3Stamped, '/lompr/compensation', 100)
+    commands_out = ros.node.create_publisher(JointState, '/joint_commands', 100)
+    for publisher in (offsets_out, commands_out):
+        ros.wait_for_subscribers(publisher)
+    ros.wait_for_publishers('/forward_position_controller/commands')
+    for k, xy in OFFSETS.items():
+        offsets_out.publish(offset(k, xy))
+    offsets_out.publish(offset(2, (1e-4, 0.0), frame='world'))  # dropped: not the arm's frame
+    ros.spin_until(lambda: node.offset_rate.total == len(OFFSETS) + 1, what='the offsets')
+    names = ['gripper', *chain.joint_names]
+    for k in range(5):
+        commands_out.publish(command(k, names, [0.04, *Q]))
+    commands_out.publish(command(5, names, [0.04, *Q[:3], math.nan, *Q[4:]]))  # bad input
+    ros.spin_until(lambda: len(states) == 6 and len(arrays) == 5, what='every answer')
+    assert [stamp_ns(m) for m in states] == [T0 + k * PERIOD_NS for k in range(6)]
+    assert all(list(m.name) == names and m.velocity[0] == 0.5 for m in states)
+    base = chain.tool_positions(np.array([Q]))[0][0]
+    for k in range(5):
+        joints = np.array(states[k].position[1:])
+        assert states[k].position[0] == 0.04
+        np.testing.assert_array_equal(arrays[k].data, joints[::-1])  # the controller's order
+        moved = chain.tool_positions(joints[None])[0][0] - base
+        np.testing.assert_allclose(moved[:2], OFFSETS.get(k, (0.0, 0.0)), rtol=0, atol=1e-7)
+    assert tuple(states[2].position[1:]) == Q  # no offset: the command, bit for bit
+    assert math.isnan(states[5].position[4])  # bad: passed unchanged, not to the controller
+    ros.spin_until(lambda: (latest_status(diagnostics, f'{node.get_name()}: command path')
+                            or {}).get('passed_total') == '6', what='the counts')
+    status = latest_status(diagnostics, f'{node.get_name()}: command path')
+    assert status is not None
+    assert {key: status[key] for key in ('commands.compensated', 'commands.no_offset',
+                                         'commands.non_finite', 'bad_input_total', 'clamped',
+                                         'offsets_dropped.wrong_frame')} == {
+        'commands.compensated': '4', 'commands.no_offset': '1', 'commands.non_finite': '1',
+        'bad_input_total': '1', 'clamped': '0', 'offsets_dropped.wrong_frame': '1'}
+    assert status['last_problem'].endswith('passed unchanged: non-finite joint(s) '
+                                           'wrist_1_joint')
+
+
+def test_the_lompr_is_refused_at_configure_in_one_line(ros: RosHarness) -> None:
+    with pytest.raises(CommandPathError, match=r'^robot description .*lompr\.urdf is the LOMPR '
+                                               'closed chain, commanded in tool tips'):
+        CommandCompensatorNode(context=ros.context)
+
+
+def test_unknown_controller_joints_are_refused_at_configure(ros: RosHarness) -> None:
+    node = ros.add(CommandCompensatorNode(context=ros.context, parameter_overrides=(
+        node_parameters(autostart=False, controller_joints=['gripper']))))
+    assert node.lifecycle_state == 'unconfigured'
+    node.trigger_configure()
+    assert node.lifecycle_state == 'unconfigured'
+    assert node.configure_error is not None
+    assert node.configure_error.startswith('controller joint(s) gripper: each must be one of')
