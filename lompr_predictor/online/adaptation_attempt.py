@@ -214,8 +214,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--window-ns', type=int, required=True,
                         help='the sample time to learn from, back from the newest [ns]')
     parser.add_argument('--request', required=True, help='the AttemptRequest as JSON')
+    parser.add_argument('--parent-pid', type=int, default=None,
+                        help='the node that started the attempt, which it ends with '
+                             "(default: this process's parent as it reads it, after imports "
+                             'that a node killed meanwhile does not wait for)')
     args = parser.parse_args(argv)
-    end_with_parent()  # a node killed outright leaves no attempt writing a model for nobody
+    # a node killed outright, even while this process still imported, leaves no attempt
+    # writing a model for nobody
+    end_with_parent(parent=args.parent_pid)
     from lompr_predictor.learning.fine_tuning import FineTuneError
 
     try:
