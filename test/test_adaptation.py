@@ -81,6 +81,18 @@ def test_with_no_margin_a_candidate_equal_to_the_model_in_force_is_refused() -> 
     assert decide({**scores, 'bo_lstm': 9.999e-6}, 0.0)[0] == ACCEPTED
 
 
+def test_the_model_in_force_s_weights_kept_are_refused_whatever_rounding_scores() -> None:
+    """No epoch improved on the parent's weights: the candidate is the model in force,
+    though scored as a rebuilt module its RMS may come out a rounding below the file's;
+    refused even at margin 0, where the same weights, other numbers, are accepted."""
+    rounding = {'bo_lstm': 10e-6 * (1 - 1e-15), 'parent': 10e-6, 'persistence': 20e-6}
+    decision, why = decide(rounding, 0.0, kept_parent=True)
+    assert decision == REFUSED
+    assert why == ("the fine-tuning kept the model in force's weights (no epoch improved on "
+                   'them): the same model')
+    assert decide(rounding, 0.0)[0] == ACCEPTED
+
+
 def test_an_attempt_is_due_after_a_period_of_the_clock_and_a_whole_data_window(
         tmp_path: Path) -> None:
     runs = Adaptation(settings(tmp_path, minutes=0.1, period=30.0))
