@@ -169,13 +169,20 @@ PARENT_CHECK_PERIOD = 0.25
 PARENT_GONE_EXIT = 3
 
 
-def end_with_parent(period: float = PARENT_CHECK_PERIOD) -> threading.Thread:
+def end_with_parent(period: float = PARENT_CHECK_PERIOD,
+                    parent: int | None = None) -> threading.Thread:
     """End this process (at once, `PARENT_GONE_EXIT`) once the process that started it has
     ended, whatever ended it: a daemon thread that looks every `period` seconds whether this
     process was handed to another parent. For a child in its own session (no signal of the
     parent's group reaches it) whose work is worth nothing without its parent: a node
-    killed with SIGKILL leaves no orphan working on, nor its output behind."""
-    parent = os.getppid()
+    killed with SIGKILL leaves no orphan working on, nor its output behind. `parent`: the
+    pid the parent gave the child (its own), so that a parent that ended before this call
+    (while the child imported its libraries: seconds) ends the child at once; None: the
+    parent this process has now."""
+    if parent is None:
+        parent = os.getppid()
+    elif os.getppid() != parent:
+        os._exit(PARENT_GONE_EXIT)
 
     def watch() -> None:
         while os.getppid() == parent:

@@ -7,6 +7,8 @@ from __future__ import annotations
 import json
 import os
 import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -44,6 +46,7 @@ from lompr_predictor.online.inference import (
     warm_up_windows,
 )
 from lompr_predictor.online.sample_store import SampleStore
+from lompr_predictor.processes import PARENT_GONE_EXIT
 from lompr_predictor.robot.description import RobotDescription
 
 SETTINGS = AdaptationSettings(minutes=0.1, period=30.0, margin=0.1, folder='', keep=2,
@@ -76,6 +79,18 @@ def test_with_no_margin_a_candidate_equal_to_the_model_in_force_is_refused() -> 
     assert decision == REFUSED
     assert why == "10.000 um RMS, not below 1 x the model in force's 10.000 um"
     assert decide({**scores, 'bo_lstm': 9.999e-6}, 0.0)[0] == ACCEPTED
+
+
+def test_the_model_in_force_s_weights_kept_are_refused_whatever_rounding_scores() -> None:
+    """No epoch improved on the parent's weights: the candidate is the model in force,
+    though scored as a rebuilt module its RMS may come out a rounding below the file's;
+    refused even at margin 0, where the same weights, other numbers, are accepted."""
+    rounding = {'bo_lstm': 10e-6 * (1 - 1e-15), 'parent': 10e-6, 'persistence': 20e-6}
+    decision, why = decide(rounding, 0.0, kept_parent=True)
+    assert decision == REFUSED
+    assert why == ("the fine-tuning kept the model in force's weights (no epoch improved on "
+                   'them): the same model')
+    assert decide(rounding, 0.0)[0] == ACCEPTED
 
 
 def test_an_attempt_is_due_after_a_period_of_the_clock_and_a_whole_data_window(
@@ -177,6 +192,36 @@ def test_a_model_that_cannot_be_fine_tuned_is_said_once_and_waited_out(
             'attempt 1 cannot adapt: model m.pt: --init fine-tunes a BO-LSTM')
     finally:
         store.close()
+
+
+def test_an_attempt_is_told_its_node_and_ends_at_once_without_it(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The node gives the attempt its pid (`--parent-pid`); an attempt whose parent is not
+    that process any more (the node killed outright while the attempt still imported) ends
+    before any work, instead of watching its new parent and writing a model for nobody."""
+    monkeypatch.setattr(adaptation, 'ATTEMPT_MODULE', 'this_module_says_its_arguments')
+    (tmp_path / 'this_module_says_its_arguments.py').write_text(
+        'import json, sys\n'
+        f'open({str(tmp_path / "argv.json")!r}, "w").write(json.dumps(sys.argv[1:]))\n')
+    monkeypatch.setenv('PYTHONPATH', os.pathsep.join([str(tmp_path),
+                                                      os.environ.get('PYTHONPATH', '')]))
+    runs = Adaptation(settings(tmp_path / 'models'))
+    store = SampleStore.for_minutes(0.1, 0.04)
+    try:
+        runs.start(store, ModelInForce('m.pt', 'ab', None, 'lompr_base'), {}, 0)
+        deadline = time.monotonic() + 30
+        while runs.poll(1) is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        argv = json.loads((tmp_path / 'argv.json').read_text())
+        assert argv[argv.index('--parent-pid') + 1] == str(os.getpid())
+    finally:
+        runs.close()
+        store.close()
+    orphan = subprocess.run(  # its parent is this test, not the pid it is given
+        [sys.executable, '-m', 'lompr_predictor.online.adaptation_attempt', '--fd', '0',
+         '--window-ns', '1', '--request', '{}', '--parent-pid', '1'], capture_output=True,
+        timeout=60, check=False)
+    assert orphan.returncode == PARENT_GONE_EXIT and not orphan.stderr, orphan.stderr
 
 
 def test_a_killed_attempt_is_a_failure_and_leaves_no_work_folder(

@@ -88,6 +88,24 @@ def test_evaluate_refuses_two_branches_swapped_as_train_does(
     assert not (tmp_path / 'scored' / 'report.json').exists()
 
 
+@pytest.mark.faults
+def test_evaluate_closed_loop_refuses_two_branches_swapped_too(
+        renamed: tuple[Path, Recording], tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """lompr evaluate --closed-loop reads the joints of every bag as train does: the same
+    wrong mapping is the same one line and exit 2, not reduction figures of millimetre
+    "errors"; the right names score."""
+    bag, _ = renamed
+    swapped = ','.join((RENAMED[1], RENAMED[0], *RENAMED[2:]))
+    code = main(['evaluate', '--closed-loop', str(bag), str(bag), '--report',
+                 str(tmp_path / 'loops'), '--quiet', '--joint-names', swapped])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert 'lompr evaluate: error: ' in err and 'of the extent of the commanded path' in err
+    assert main(['evaluate', '--closed-loop', str(bag), str(bag), '--report',
+                 str(tmp_path / 'loops'), '--quiet', '--joint-names', ','.join(RENAMED)]) == 0
+
+
 def test_joint_names_must_name_five_distinct_joints(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(['train', 'bag', '--out', 'm.pt', '--report', 'r', '--joint-names',
                  'b1,b2,b3,c_axis']) == 2

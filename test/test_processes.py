@@ -210,6 +210,37 @@ def test_a_child_that_ends_with_its_parent_ends_when_the_parent_is_killed(
         parent.wait()
 
 
+def test_a_child_whose_parent_ended_before_it_asked_ends_at_once(tmp_path: Path) -> None:
+    """The parent killed while the child still imports (an adaptation attempt takes seconds
+    to): the child, told its parent's pid, ends at once when it asks, instead of watching
+    the process it was handed to (init, or a subreaper) forever and writing its output."""
+    written = tmp_path / 'written'
+    child = ('import os, pathlib, sys, time; time.sleep(1.0); '
+             'from lompr_predictor.processes import end_with_parent; '
+             'end_with_parent(0.05, parent=int(sys.argv[1])); '
+             f'pathlib.Path({str(written)!r}).write_text("by an orphan"); time.sleep(60)')
+    errors = tmp_path / 'stderr.txt'
+    parent = subprocess.Popen([sys.executable, '-c', (
+        'import os, subprocess, sys, time; '
+        f'c = subprocess.Popen([sys.executable, "-c", {child!r}, str(os.getpid())], '
+        f'start_new_session=True, stderr=open({str(errors)!r}, "w")); '
+        'print(c.pid, flush=True); time.sleep(60)')],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert parent.stdout is not None
+        pid = int(parent.stdout.readline())
+        os.kill(parent.pid, signal.SIGKILL)  # before the child's second of imports is over
+        parent.wait()
+        gone_by = time.monotonic() + 10
+        while _running(pid) and time.monotonic() < gone_by:
+            time.sleep(0.05)
+        assert not _running(pid), 'the child outlived its parent'
+        assert not written.exists() and errors.read_text() == ''  # ended, not failed
+    finally:
+        parent.kill()
+        parent.wait()
+
+
 def _running(pid: int) -> bool:
     """Whether process `pid` runs (an exited one not yet reaped, a zombie, does not)."""
     try:

@@ -18,7 +18,7 @@ import numpy as np
 from lompr_predictor.cli.common import add_data_arguments, bag_inputs, robot_spec
 from lompr_predictor.cli.validation import existing_path, output_directory
 from lompr_predictor.data.bags import BagSource
-from lompr_predictor.data.cleaning import CleanData, implausible_error
+from lompr_predictor.data.cleaning import CleanData
 from lompr_predictor.data.features import TARGETS
 from lompr_predictor.data.loading import BagInputs, load_clean_data
 from lompr_predictor.data.problem import LearningProblem, Split
@@ -129,9 +129,6 @@ def _recordings(args: argparse.Namespace, inputs: BagInputs, meta: ModelMetadata
 
     data, sources = load_clean_data(inputs, load_chain(spec_with_model(robot_spec(args),
                                                                        meta.robot)))
-    why = implausible_error(data)  # the joints named wrong, as `lompr train` refuses them
-    if why:
-        raise EvaluationError(why)
     if abs(data.sample_period - meta.sample_period) > PERIOD_TOLERANCE * meta.sample_period:
         msg = (f'the recordings are sampled every {data.sample_period * 1e3:.3g} ms, the model '
                f'{args.model} was trained at {meta.sample_period * 1e3:.3g} ms')

@@ -7,9 +7,20 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from lompr_predictor.data.bags import BagSource, BagTopics, read_bags
-from lompr_predictor.data.cleaning import CleanData, CleaningConfig, clean_recordings
+from lompr_predictor.data.cleaning import (
+    CleanData,
+    CleaningConfig,
+    clean_recordings,
+    implausible_error,
+)
+from lompr_predictor.errors import LomprError
 from lompr_predictor.robot.chain import KinematicChain
 from lompr_predictor.robot.description import ROBOT_FRAME
+
+
+class ImplausibleDataError(LomprError):
+    """The recordings' error is no machine's: the joints are mapped wrong (names swapped,
+    another order or unit) or the description is another robot's."""
 
 
 @dataclass(frozen=True)
@@ -29,8 +40,15 @@ def load_clean_data(inputs: BagInputs,
                     chain: KinematicChain) -> tuple[CleanData, list[BagSource]]:
     """Read the bags whole (`bags.read_bags`, the joints by the chain's `joint_names`) and
     clean them (`cleaning.clean_recordings`); the sources list every bag, used or
-    skipped."""
+    skipped. `ImplausibleDataError` (one line) when their error is no machine's
+    (`cleaning.implausible_error`): every command reading joints (train, evaluate, with
+    --closed-loop too) refuses a wrong mapping before it trains on, scores or compares
+    millimetres of kinematics as an error."""
     recordings, sources = read_bags(inputs.bags, topics=inputs.topics,
                                     skip_bad=inputs.skip_bad, joint_names=chain.joint_names,
                                     frame=inputs.frame)
-    return clean_recordings(recordings, chain, inputs.cleaning), sources
+    data = clean_recordings(recordings, chain, inputs.cleaning)
+    why = implausible_error(data)
+    if why:
+        raise ImplausibleDataError(why)
+    return data, sources

@@ -38,7 +38,7 @@ import optuna
 import torch
 
 from lompr_predictor.data.bags import BagSource, BagTopics
-from lompr_predictor.data.cleaning import CleanData, implausible_error
+from lompr_predictor.data.cleaning import CleanData
 from lompr_predictor.data.features import TARGETS
 from lompr_predictor.data.loading import load_clean_data
 from lompr_predictor.data.problem import (
@@ -288,7 +288,7 @@ def write_outputs(config: TrainingConfig, result: TrainingResult) -> str:
 
 class DataError(LomprError):
     """The recordings cannot make the learning problem (too short for the window, horizon,
-    preview or split, or an error no machine makes)."""
+    preview or split)."""
 
 
 def read_problem(config: TrainingConfig, chain: KinematicChain
@@ -306,11 +306,8 @@ def read_problem(config: TrainingConfig, chain: KinematicChain
 def _problem(data: CleanData, test: CleanData | None, config: TrainingConfig) -> LearningProblem:
     """The learning problem: `data` split chronologically, or trained (and validated) on
     `data` and tested on `test`; `DataError` (one line, before any training) when the
-    recordings are too short for it or their error is no machine's."""
-    for part in (data, test):
-        why = '' if part is None else implausible_error(part)
-        if why:
-            raise DataError(why)
+    recordings are too short for it (an error no machine makes is refused as they are read,
+    `loading.load_clean_data`)."""
     try:
         if test is None:
             return build_problem(data, config.window, config.horizon, preview=config.preview,

@@ -170,7 +170,8 @@ class Adaptation:
                    'robot_description': model.robot_description, 'frame': model.frame,
                    'seed': self.state.attempts, 'info': info}
         command = [sys.executable, '-m', ATTEMPT_MODULE, '--fd', str(store.fd), '--window-ns',
-                   str(self.window_ns), '--request', json.dumps(request)]
+                   str(self.window_ns), '--request', json.dumps(request),
+                   '--parent-pid', str(os.getpid())]
         with (work / STDERR_NAME).open('wb') as stderr:
             self._process = subprocess.Popen(command, pass_fds=(store.fd,),
                                              stdin=subprocess.DEVNULL,

@@ -103,12 +103,19 @@ def held_out_scores(result: TrainingResult) -> dict[str, float]:
             for name in (CANDIDATE, IN_FORCE, PERSISTENCE)}
 
 
-def decide(scores: Mapping[str, float], margin: float) -> tuple[str, str]:
+def decide(scores: Mapping[str, float], margin: float,
+           kept_parent: bool = False) -> tuple[str, str]:
     """(decision, why): accepted only if the candidate's RMS is below the model in force's
     and at most (1 - margin) times it (with a margin of 0 a candidate that only equals it,
-    its parent's weights kept, would be swapped in again and again); persistence's is named
-    in the reason, not required."""
+    its parent's weights kept, would be swapped in again and again), and it is not the
+    model in force's weights unchanged (`kept_parent`: no epoch improved on them and the map
+    was kept; scored as a rebuilt module against the file's, its RMS can differ from its
+    parent's by rounding alone, either way); persistence's is named in the reason, not
+    required."""
     candidate, in_force = scores[CANDIDATE], scores[IN_FORCE]
+    if kept_parent:
+        return REFUSED, ("the fine-tuning kept the model in force's weights (no epoch "
+                         'improved on them): the same model')
     if not (candidate < in_force and candidate <= (1.0 - margin) * in_force):
         return REFUSED, (f'{candidate * 1e6:.3f} um RMS, not below {1.0 - margin:g} x '
                          f"the model in force's {in_force * 1e6:.3f} um")
@@ -149,19 +156,7 @@ def attempt(samples: StoredSamples, request: AttemptRequest) -> dict[str, Any]:
     result document. `LomprError` (one line) when the samples cannot make a fine-tuning."""
     from lompr_predictor.data.loading import BagInputs
     from lompr_predictor.learning.fine_tuning import fine_tune_predictor, parent_settings
-    from lompr_predictor.learning.map_prior import with_prior
-    from lompr_predictor.learning.model_file import (
-        ModelFileError,
-        export_onnx,
-        load_model,
-        write_model,
-    )
     from lompr_predictor.learning.pipeline import TrainingConfig
-    from lompr_predictor.online.inference import (
-        TorchScriptBackend,
-        reference_outputs,
-        warm_up_windows,
-    )
     from lompr_predictor.online.store_bag import write_store_bag
 
     started = time.perf_counter()
@@ -181,7 +176,8 @@ def attempt(samples: StoredSamples, request: AttemptRequest) -> dict[str, Any]:
                f'{tuning["parent_sha256"][:16]}, in force {request.parent_sha256[:16]})')
         raise LomprError(msg)
     scores = held_out_scores(result)
-    decision, why = decide(scores, request.margin)
+    decision, why = decide(scores, request.margin, kept_parent=bool(
+        tuning['kept_the_parent_weights'] and tuning['machine_map']['decision'] == 'kept'))
     document: dict[str, Any] = {
         'decision': decision, 'reason': why, 'parent': request.parent,
         'parent_sha256': request.parent_sha256,
@@ -191,19 +187,41 @@ def attempt(samples: StoredSamples, request: AttemptRequest) -> dict[str, Any]:
         'epochs': tuning['epochs'], 'best_epoch': tuning['best_epoch'], 'data': data,
         'model_path': '', 'model_sha256': ''}
     if decision == ACCEPTED:
-        path = new_model_path(Path(request.models_folder))
-        digest = write_model(path, result.module, adapted_metadata(result.metadata, data))
+        path, digest = write_accepted(result, data, request)
         document.update(model_path=str(path), model_sha256=digest)
-        written = load_model(path, sha256=digest)
-        # a module the exporter cannot take is served as the node's backend choice says
-        with contextlib.suppress(ModelFileError):
-            write_atomic(work / GRAPH_NAME, export_onnx(written, with_prior(written)))
-            outputs = io.BytesIO()
-            np.save(outputs, reference_outputs(TorchScriptBackend(written),
-                                               warm_up_windows(written)))
-            write_atomic(work / GRAPH_OUTPUTS_NAME, outputs.getvalue())
     document['seconds'] = time.perf_counter() - started
     return document
+
+
+def write_accepted(result: TrainingResult, data: Mapping[str, Any],
+                   request: AttemptRequest) -> tuple[Path, str]:
+    """Write an accepted candidate into the models folder, and its ONNX graph and reference
+    outputs into the work folder (module docstring); its path and sha256."""
+    from lompr_predictor.learning.map_prior import with_prior
+    from lompr_predictor.learning.model_file import (
+        ModelFileError,
+        export_onnx,
+        load_model,
+        write_model,
+    )
+    from lompr_predictor.online.inference import (
+        TorchScriptBackend,
+        reference_outputs,
+        warm_up_windows,
+    )
+
+    work = Path(request.work_folder)
+    path = new_model_path(Path(request.models_folder))
+    digest = write_model(path, result.module, adapted_metadata(result.metadata, data))
+    written = load_model(path, sha256=digest)
+    # a module the exporter cannot take is served as the node's backend choice says
+    with contextlib.suppress(ModelFileError):
+        write_atomic(work / GRAPH_NAME, export_onnx(written, with_prior(written)))
+        outputs = io.BytesIO()
+        np.save(outputs, reference_outputs(TorchScriptBackend(written),
+                                           warm_up_windows(written)))
+        write_atomic(work / GRAPH_OUTPUTS_NAME, outputs.getvalue())
+    return path, digest
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -214,8 +232,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('--window-ns', type=int, required=True,
                         help='the sample time to learn from, back from the newest [ns]')
     parser.add_argument('--request', required=True, help='the AttemptRequest as JSON')
+    parser.add_argument('--parent-pid', type=int, default=None,
+                        help='the node that started the attempt, which it ends with '
+                             "(default: this process's parent as it reads it, after imports "
+                             'that a node killed meanwhile does not wait for)')
     args = parser.parse_args(argv)
-    end_with_parent()  # a node killed outright leaves no attempt writing a model for nobody
+    # a node killed outright, even while this process still imported, leaves no attempt
+    # writing a model for nobody
+    end_with_parent(parent=args.parent_pid)
     from lompr_predictor.learning.fine_tuning import FineTuneError
 
     try:
