@@ -16,7 +16,7 @@ setup(
         (f'share/{PACKAGE}', ['package.xml']),
         (f'share/{PACKAGE}/description', glob(f'{PACKAGE}/description/*.urdf')),
         (f'share/{PACKAGE}/config', glob(f'{PACKAGE}/config/*.yaml')),
-        (f'share/{PACKAGE}/launch', glob('launch/*.launch.xml')),
+        (f'share/{PACKAGE}/launch', glob('launch/*.launch.xml') + glob('launch/*.launch.py')),
         (f'share/{PACKAGE}/config/presets', glob(f'{PACKAGE}/config/presets/*.yaml')),
         (f'share/{PACKAGE}/rviz', glob('rviz/*.rviz')),
     ],

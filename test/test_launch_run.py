@@ -21,7 +21,7 @@ from typing import Any
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
-from launch_helpers import REQUIRE_VARIABLE, install_prefix, launch_missing, start_launch
+from launch_helpers import installed_or_skipped, start_launch
 from model_helpers import save_linear
 from rcl_interfaces.srv import GetParameters
 from rclpy.parameter import parameter_value_to_python
@@ -45,12 +45,7 @@ START_TIMEOUT = 120.0
 def prefix(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The package installed into a prefix as colcon installs it; the launch packages must
     be importable (else skipped, or failed in CI)."""
-    missing = launch_missing()
-    if missing:
-        if os.environ.get(REQUIRE_VARIABLE):
-            pytest.fail(f'{missing}; {REQUIRE_VARIABLE} is set (CI): they must be there')
-        pytest.skip(missing)
-    return install_prefix(tmp_path_factory.mktemp('install'))
+    return installed_or_skipped(tmp_path_factory.mktemp('install'))
 
 
 @pytest.fixture(scope='module')
@@ -184,3 +179,19 @@ def test_a_missing_params_file_stops_the_launch_naming_it(prefix: Path) -> None:
     assert 'File not found: /missing/site.yaml' in output
     assert 'process started' not in output
     assert time.monotonic() - started < START_TIMEOUT
+
+
+def test_on_sim_time_the_twin_is_the_clock_and_data_flows(
+        ros: RosHarness, prefix: Path, model: Path) -> None:
+    """twin:=true use_sim_time:=true: the twin publishes /clock, so the nodes on sim time
+    are not left waiting for one."""
+    predictions = ros.collect(f'{NAMESPACE}/lompr/predicted_error', Vector3Stamped, 1000)
+    with launched(prefix, 'namespace:=cell1', 'twin:=true', 'use_sim_time:=true',
+                  f'model_path:={model}') as process:
+        wait_for_nodes(ros, process)
+        ros.spin_until(lambda: len(predictions) >= 10, START_TIMEOUT,
+                       "predicted errors on the twin's clock")
+        sim_time = parameters(ros, 'predictor_node', ['use_sim_time'])
+        clock = parameters(ros, 'twin_node', ['publish_clock', 'use_sim_time'])
+    assert sim_time == {'use_sim_time': True}
+    assert clock == {'publish_clock': True, 'use_sim_time': False}
