@@ -48,6 +48,21 @@ def bags(tmp_path_factory: pytest.TempPathFactory, description: RobotDescription
     return out
 
 
+def test_off_a_terminal_training_writes_a_plain_line_per_stage(
+        tmp_path: Path, bags: list[Path], capsys: pytest.CaptureFixture[str]) -> None:
+    """stderr a log file (not a terminal): no bar redrawn with carriage returns, one line
+    per stage: the tuning's trials, each model's epochs."""
+    loud = [option for option in FAST if option != '--quiet']
+    assert run(['train', str(bags[0]), '--out', str(tmp_path / 'model.pt'), '--report',
+                str(tmp_path / 'report'), *loud]) == 0
+    err = capsys.readouterr().err
+    assert '\r' not in err
+    stages = [line.split(' in ')[0] for line in err.splitlines() if ' in ' in line]
+    # the trials asked for and the restart's, each trial's and each final model's epochs
+    assert 'tuning: 3/3 trial' in stages
+    assert {'trial 0: 2/2 epoch', 'generalist: 2/2 epoch', 'BP: 2/2 epoch'} <= set(stages)
+
+
 def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[Path]) -> None:
     model, report = tmp_path / 'model.pt', tmp_path / 'report'
     level = ['--error-levels', 'yes']  # the network sees the error level too

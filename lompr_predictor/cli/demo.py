@@ -41,6 +41,7 @@ from lompr_predictor.errors import LomprError
 from lompr_predictor.files import write_json
 from lompr_predictor.learning.options import MAX_EPOCHS, TrainingConfig
 from lompr_predictor.learning.space import DEFAULT_RESTARTS, SearchSpace
+from lompr_predictor.progress import progress_bar
 from lompr_predictor.robot.description import RobotDescription, load_robot_description
 from lompr_predictor.robot.paths import PATH_KINDS, build_cycle
 from lompr_predictor.scheduling import lower_priority
@@ -251,7 +252,7 @@ def _record_and_train(args: argparse.Namespace, budget: dict[str, int], out: Pat
               f'{out / "training_bags"}')
     for path, bag in zip(args.train_paths, bags, strict=True):
         cycle = len(build_cycle(path, params.path, params.sample_period))
-        with tqdm(total=budget['train_passes'] * cycle, unit='sample', desc=path) as bar:
+        with progress_bar(total=budget['train_passes'] * cycle, unit='sample', desc=path) as bar:
             sim = simulate(description, params, passes=budget['train_passes'],
                            seed=args.seed, path=path, progress=bar.update)
         write_simulation(bag, sim, params, description.sha256)

@@ -7,7 +7,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from lompr_predictor.cli.validation import (
     finite_float,
@@ -19,6 +18,7 @@ from lompr_predictor.cli.validation import (
 from lompr_predictor.data.bags import COMMAND_TOPIC, STORAGES, write_recording
 from lompr_predictor.errors import LomprError
 from lompr_predictor.files import write_json
+from lompr_predictor.progress import progress_bar
 from lompr_predictor.robot.description import load_robot_description
 from lompr_predictor.robot.paths import PATH_KINDS, build_cycle
 from lompr_predictor.twin.arm import (
@@ -139,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
                        out_of_order=args.out_of_order, nans=args.nans, spikes=args.spikes,
                        spike_size=args.spike_size, topic=args.fault_topic)
     cycle = len(build_cycle(args.path, params.path, params.sample_period))
-    with tqdm(total=args.passes * cycle, unit='sample', desc='simulate') as bar:
+    with progress_bar(total=args.passes * cycle, unit='sample', desc='simulate') as bar:
         sim = simulate(description, params, passes=args.passes, seed=args.seed,
                        machine_seed=args.machine_seed, path=args.path, progress=bar.update)
     out = write_simulation(args.out, sim, params, description.sha256, storage=args.storage,

@@ -22,7 +22,6 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
-from tqdm import tqdm
 
 from lompr_predictor.data.problem import LearningProblem, minmax_range
 from lompr_predictor.learning.machine_map import MachineMap
@@ -38,6 +37,7 @@ from lompr_predictor.learning.models import (
     with_map_residuals,
 )
 from lompr_predictor.learning.options import TrainSettings
+from lompr_predictor.progress import progress_bar
 
 #: The paper's BP trains with its own budget (min-max inputs, plateau schedule).
 BP_MAX_EPOCHS = 100
@@ -270,10 +270,10 @@ def train_network(
         record.start_loss = data.validation_loss(module.net)
         record.best = record.start_loss if math.isfinite(record.start_loss) else math.inf
     started = time.perf_counter()
-    epochs = tqdm(range(1, settings.max_epochs + 1), desc=label or model_type, unit='epoch',
-                  leave=False, disable=not progress)
-    _fit(module.net, schedule, data, record, epochs, settings,
-         np.random.default_rng(settings.seed), trial, prune=prune)
+    with progress_bar(range(1, settings.max_epochs + 1), desc=label or model_type,
+                      unit='epoch', leave=False, disable=not progress) as epochs:
+        _fit(module.net, schedule, data, record, epochs, settings,
+             np.random.default_rng(settings.seed), trial, prune=prune)
     seconds = time.perf_counter() - started
     module.net.load_state_dict(record.best_state)
     module.eval()

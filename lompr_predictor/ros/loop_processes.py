@@ -29,7 +29,6 @@ from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
-from tqdm import tqdm
 
 from lompr_predictor.online.predictor_counts import (
     CountsMissingError,
@@ -37,6 +36,7 @@ from lompr_predictor.online.predictor_counts import (
     read_counts,
 )
 from lompr_predictor.processes import Stopped, stop_processes
+from lompr_predictor.progress import ProgressBar, progress_bar
 from lompr_predictor.robot.paths import build_cycle
 from lompr_predictor.ros import predictor_node
 from lompr_predictor.ros.common import events_executor
@@ -72,8 +72,8 @@ def run_processes(settings: LoopSettings, horizon: int, progress: bool,
         watch = _Watch(loop_commands(settings, horizon, params.sample_period, run_log),
                        Path(folder), round(params.sample_period * 1e9), loop_domain_id())
         watched = watch.run(run_log, total, settings.wall_timeout,
-                            tqdm(total=total, desc=label, unit='sample', disable=not progress,
-                                 leave=True), label)
+                            progress_bar(total=total, desc=label, unit='sample',
+                                         disable=not progress), label)
         arrays, document = read_run_log(run_log)
     count = len(arrays['stamps'])
     counts = loop_counts(
@@ -189,7 +189,7 @@ class _Watch:
                             'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
         self.processes: dict[str, subprocess.Popen[bytes]] = {}
 
-    def run(self, run_log: Path, total: int, wall_timeout: float, bar: tqdm,
+    def run(self, run_log: Path, total: int, wall_timeout: float, bar: ProgressBar,
             label: str) -> _Watched:
         """Start the processes and wait until the twin has written `run_log` (a process
         that exits before, or `wall_timeout` seconds, is a `ClosedLoopError`); stop them."""
