@@ -22,7 +22,8 @@ def test_off_a_terminal_each_stage_is_one_plain_line(capsys: pytest.CaptureFixtu
         samples.update(150)
         samples.refresh()
     lines = capsys.readouterr().err.splitlines()
-    assert [line.split(' in ')[0] for line in lines] == ['lstm: 3/3 epoch', 'simulate: 250/250 sample']
+    assert [line.split(' in ')[0] for line in lines] == [
+        'lstm: 3/3 epoch', 'simulate: 250/250 sample']
     assert lines[0].endswith(' s (validation=0.167)') and '\r' not in ''.join(lines)
 
 

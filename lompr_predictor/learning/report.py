@@ -121,9 +121,11 @@ def markdown(report: Mapping[str, Any]) -> str:
     lines += _fine_tuning_lines(report.get('fine_tuning'))
     lines += _guard_lines(report.get('guard'))
     if report.get('model_sha256'):
+        sidecar = report.get('model_sha256_file')
         lines += ['', f"Model file `{report.get('model_file')}`, sha256 "
-                      f"`{report['model_sha256']}` (also in `{report.get('model_sha256_file')}`; "
-                      'pin it on the predictor node with `model_sha256`).']
+                      f"`{report['model_sha256']}` ("
+                      + (f'also in `{sidecar}`; ' if sidecar else '')
+                      + 'pin it on the predictor node with `model_sha256`).']
     lines += ['', '## Data', '']
     lines += [f'- {key}: {value}' for key, value in report['counts'].items()]
     skipped = [b for b in report['bags'] if b.get('skipped_reason')]
