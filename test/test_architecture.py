@@ -9,6 +9,7 @@ ROS message packages.
 from __future__ import annotations
 
 import ast
+import itertools
 import re
 import subprocess
 import sys
@@ -329,3 +330,27 @@ def test_package_xml_and_setup_py_name_the_same_package() -> None:
                                          arguments['maintainer'],
                                          arguments['maintainer_email'])
     assert maintainer.text == 'lompr_predictor maintainers'
+
+
+def test_the_changelog_is_by_release_one_short_line_a_change() -> None:
+    """CHANGELOG.rst as ROS packages keep it (catkin_generate_changelog, bloom): a section
+    per release, `Forthcoming` first, each change one `* ` line; the history is in docs/."""
+    lines = (ROOT / 'CHANGELOG.rst').read_text().splitlines()
+    assert lines[1] == 'Changelog for package lompr_predictor' and not (
+        ROOT / 'CHANGELOG.md').exists()
+    titles = [(title, rule) for title, rule in itertools.pairwise(lines)
+              if rule and set(rule) == {'-'}]
+    assert titles[0][0] == 'Forthcoming'
+    for title, rule in titles:
+        assert len(rule) == len(title)
+        assert title == 'Forthcoming' or re.fullmatch(r'\d+\.\d+\.\d+ \(\d{4}-\d\d-\d\d\)', title)
+    changes = [line for line in lines[lines.index('Forthcoming'):]
+               if line and line not in dict(titles) and set(line) != {'-'}]
+    assert changes and all(line.startswith('* ') and len(line) <= 100 for line in changes)
+
+
+def test_every_local_link_of_the_docs_leads_to_a_file() -> None:
+    for page in [ROOT / 'README.md', *sorted((ROOT / 'docs').glob('*.md'))]:
+        for target in re.findall(r'\]\(([^)#\s]+)', page.read_text()):
+            if not target.startswith(('http://', 'https://', 'mailto:')):
+                assert (page.parent / target).exists(), f'{page.name}: {target}'
