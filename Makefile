@@ -56,6 +56,7 @@ test-fast: venv launch-wheels  # everything but the slow tests (closed loops, co
 lint: venv
 	$(VENV)/bin/ruff check lompr_predictor test bench tools
 	$(VENV)/bin/mypy
+	$(VENV)/bin/python tools/spdx_headers.py --check
 
 demo: venv
 	$(VENV)/bin/lompr demo

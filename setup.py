@@ -16,21 +16,22 @@ setup(
         (f'share/{PACKAGE}', ['package.xml']),
         (f'share/{PACKAGE}/description', glob(f'{PACKAGE}/description/*.urdf')),
         (f'share/{PACKAGE}/config', glob(f'{PACKAGE}/config/*.yaml')),
-        (f'share/{PACKAGE}/launch', glob('launch/*.launch.xml')),
+        (f'share/{PACKAGE}/launch', glob('launch/*.launch.xml') + glob('launch/*.launch.py')),
         (f'share/{PACKAGE}/config/presets', glob(f'{PACKAGE}/config/presets/*.yaml')),
         (f'share/{PACKAGE}/rviz', glob('rviz/*.rviz')),
     ],
     python_requires='>=3.11',
     # What the nodes need: requirements.txt pins the exact versions for a pip install; a ROS
-    # install gets them through package.xml and rosdep. torch is pinned here too: a looser
-    # requirement pulls a multi-GB CUDA build.
+    # install gets them through package.xml and rosdep. torch, which they need too, is an
+    # install step of its own (README, Install; `make venv`): from PyPI, Linux gets its CUDA
+    # build (GBs), so `pip install .` must not ask for it; its CPU build comes from PyTorch's
+    # index, the version requirements.txt pins.
     install_requires=[
         'setuptools',
         'numpy',
         'scipy',
         'pin',
         'rosbags',
-        'torch==2.13.0',
         'onnxruntime==1.32.0',
         'onnx==1.23.2',
         'pyyaml',
@@ -43,7 +44,7 @@ setup(
         'test': ['pytest', 'hypothesis'],
     },
     zip_safe=True,
-    maintainer='LOMPR predictor maintainers',
+    maintainer='lompr_predictor maintainers',
     maintainer_email='lompr-maintainers@lompr.dev',
     description='Predicts and compensates the end-trajectory error of the LOMPR '
                 '(BO-LSTM, Jin et al. 2022) as ROS 2 nodes and offline tools.',

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Benchmark: online adaptation in closed loop, on a plant the model was not trained for
 (or, with --trained, on the one it was).
 

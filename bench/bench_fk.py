@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Forward kinematics speed against its targets; prints figures and PASS/FAIL.
 
 - single: `ForwardKinematics.solve` as the kinematics node calls it, one sample after the

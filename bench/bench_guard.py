@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Benchmark: what the live guard and its envelope check cost per sample.
 
     python bench/bench_guard.py [--samples 20000] [--block 500] [--rate 1000]

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Benchmark: the live guard in closed loop, on a plant the model was not trained for.
 
     python bench/bench_guard_loop.py --model MODEL.pt [--path grid] [--preset worn]

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Predictor speed against its targets; prints figures, a profile and a PASS/FAIL table.
 
 The model is the trainer's exported form at its default size and in its default form:

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """What the reference preview costs per sample at 1 kHz: the predictor's core and the Path read.
 
     python bench/bench_preview.py [--samples N] [--preview K]

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Real-data bench: how the trainer's models predict a real Franka Emika Panda's tool-tip error.
 
     python bench/bench_real.py [--trials N] [--work DIR] [--data DIR] [--out FILE.md]

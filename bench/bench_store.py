@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Benchmark: what the predictor node's sample store costs per sample, and writing it.
 
     python bench/bench_store.py [--samples 20000] [--block 500] [--rate 1000]

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Benchmark of the offline trainer against its targets, on the twin's physics presets.
 
     python bench/bench_train.py [--presets P ...] [--horizons 1 25] [--bags DIR]

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Benchmark: does a trained model hold on programs it was not trained on?
 
     python bench/bench_transfer.py [--presets P ...] [--programs K ...] [--horizons 1 5]

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Digital twin speed against its targets; prints figures and PASS/FAIL.
 
 - step: `DigitalTwin.step(1, offset)` as twin_node calls it in a closed loop (IK, plant,

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Benchmark: two or more model files' inference side by side, as the predictor serves it.
 
     python bench/compare_models.py --write PATH     # this checkout's timing model, as a file

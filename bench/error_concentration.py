@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Where a trained model loses to the boosted trees: the test samples that carry the gap.
 
     python bench/error_concentration.py MODEL --train-bags DIR --test-bags DIR [--top N]

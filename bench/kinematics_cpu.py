@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Benchmark: CPU time per sample of one kinematics process at 1 kHz, node or relay.
 
     python bench/kinematics_cpu.py node     # the kinematics_node executable

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Without a preview, what does the machine map's prior miss of the next sample, and why?
 
     python bench/map_extrapolation.py TRAIN_BAG... --test-bag BAG [--horizon 1]

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """What each of the twin's programs asks of the machine, from recordings of them.
 
     python bench/path_programs.py DIR [DIR ...]

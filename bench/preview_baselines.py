@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Would a reference preview help? The report's baselines with and without the trainer's preview.
 
     python bench/preview_baselines.py [--presets P ...] [--horizons 1 25] [--bags DIR]

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The transport floor of `bench_predictor.py`: the nodes' topics, QoS and executor, no work.
 
 `relay_chain.py kinematics` relays /joint_states to /lompr/end_pose, `relay_chain.py

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Which machine map for a serial arm: its terms in the tool's axes, or per joint through the
 arm's Jacobian?
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Soak: 1 kHz through kinematics_node and predictor_node for minutes; memory, answers, faults.
 
 Streams joint states and references at 1 kHz (the spiral, as `bench_predictor.py` does, horizon

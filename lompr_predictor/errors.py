@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """One error hierarchy for lompr_predictor, each error carrying the fields a caller needs.
 
 Every failure the package reports on purpose is a `LomprError`, so a node or the command

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Files: atomic writes (bags, model files, reports, plots), JSON documents, sha256 digests.
 
 Everything is written beside its final path under a hidden name and renamed into place, so

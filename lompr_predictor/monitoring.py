@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Small ROS-free measuring pieces every node reports through /diagnostics.
 
 - `RejectionCounter`: how many inputs were dropped, by reason.

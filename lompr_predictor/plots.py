@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Figures as PNG files: one way to get pyplot (the headless Agg backend) and to save a figure.
 
 matplotlib is imported on first use, so modules that can plot stay cheap to import.

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Processes that stop when told: child processes stopped the way `ros2 launch` stops them
 (SIGINT, then SIGTERM, then SIGKILL: `stop_processes`), and a command that stops on SIGTERM
 as on Ctrl-C (`stop_on_signals`), and a child that ends with its parent (`end_with_parent`).

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """How this process shares the CPUs: a lower priority for training, and what a node asks for
 (a nice value, a real-time priority, the CPUs it runs on).
 

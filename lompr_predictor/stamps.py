@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Time stamps: integer nanoseconds everywhere inside the package, (sec, nanosec) on messages.
 
 Stamps are kept as int nanoseconds since the epoch: float64 seconds cannot hold a present-day

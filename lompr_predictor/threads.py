@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Thread counts of the numeric libraries, set once by an entry point (a CLI command, a node's
 `main`, a bench), never by library code: torch's intra-op thread count is process-wide, so
 the last caller would win for everyone. Also how many cores a process may use, which sets

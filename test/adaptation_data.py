@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A model trained on one plant and the samples of another, for the adaptation tests: what
 a predictor node's store would hold on a machine its model was not trained for."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Shared test fixtures. ROS isolation is set before anything imports rclpy."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The one fake clock of the tests: seconds that move only when a test moves them."""
 
 from __future__ import annotations

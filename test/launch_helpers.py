@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Running the launch file as `ros2 launch` runs it, in tests.
 
 `ros2 launch PKG FILE ARGS` is ros2launch's `launch_a_launch_file`: a `LaunchService` that
@@ -13,13 +14,17 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import runpy
 import shutil
 import subprocess
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 from unittest import mock
+
+import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = 'lompr_predictor'
@@ -37,6 +42,19 @@ def launch_missing() -> str:
         return (f'the ROS 2 launch packages are not installed ({err}): make launch-wheels '
                 'installs them from ../shared/wheels')
     return ''
+
+
+def installed_or_skipped(root: Path) -> Path:
+    """The package installed at `root` (`install_prefix`) if the launch packages can run it;
+    else the test is skipped with the reason, or failed in CI."""
+    import pytest
+
+    missing = launch_missing()
+    if missing:
+        if os.environ.get(REQUIRE_VARIABLE):
+            pytest.fail(f'{missing}; {REQUIRE_VARIABLE} is set (CI): they must be there')
+        pytest.skip(missing)
+    return install_prefix(root)
 
 
 def setup_arguments() -> dict[str, Any]:
@@ -85,6 +103,74 @@ def start_launch(prefix: Path, launch_file: str, *arguments: str,
         [sys.executable, __file__, NONINTERACTIVE if noninteractive else INTERACTIVE,
          str(path), *arguments], env=environment,
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+
+
+@dataclass
+class Described:
+    """A node a launch would start: its command line and the parameters rcl would give it
+    (its params files' sections that match it, in order, then its -p overrides)."""
+
+    package: str
+    executable: str
+    name: str
+    namespace: str
+    arguments: list[str] = field(default_factory=list)
+    parameters: dict[str, Any] = field(default_factory=dict)
+    remaps: list[tuple[str, str]] = field(default_factory=list)
+
+
+def _matches(key: str, name: str, namespace: str) -> bool:
+    """Whether a params file key applies to the node `namespace`/`name` (rcl's wildcards)."""
+    pattern = key if key.startswith('/') else f'/{key}'
+    regex = re.escape(pattern).replace(r'/\*\*', '(/.*)?').replace(r'\*', '[^/]*')
+    return re.fullmatch(regex, f"{namespace.rstrip('/')}/{name}") is not None
+
+
+def _described(package: str, executable: str, cmd: list[str]) -> Described:
+    """A node's description from its command line after the executable."""
+    split = cmd.index('--ros-args') if '--ros-args' in cmd else len(cmd)
+    node = Described(package, executable, executable, '/', cmd[:split])
+    ros, overrides = cmd[split + 1:], []
+    for flag, value in zip(ros[::2], ros[1::2], strict=True):
+        if flag == '-r' and value.startswith(('__node:=', '__ns:=')):
+            setattr(node, 'name' if value.startswith('__node') else 'namespace',
+                    value.split(':=', 1)[1])
+        elif flag == '-r':
+            source, target = value.split(':=', 1)
+            node.remaps.append((source, target))
+        elif flag == '-p':
+            overrides.append(value.split(':=', 1))
+        elif flag == '--params-file':
+            for key, section in yaml.safe_load(Path(value).read_text()).items():
+                if _matches(key, node.name, node.namespace):
+                    node.parameters.update(section['ros__parameters'])
+    node.parameters.update({name: yaml.safe_load(value) for name, value in overrides})
+    return node
+
+
+def describe(prefix: Path, launch_file: str, *arguments: str) -> list[Described]:
+    """The nodes `ros2 launch <package> <launch_file> ARGUMENTS` would start, in order, with
+    their parameters, none of them started (so packages this machine lacks, such as rviz2,
+    are described too); the package found in `prefix`."""
+    import launch
+    from launch.actions.execute_local import ExecuteLocal
+    from launch.utilities import normalize_to_list_of_substitutions, perform_substitutions
+    from launch_ros.actions import Node
+
+    nodes: list[Described] = []
+
+    def record(action: ExecuteLocal, context: launch.LaunchContext) -> None:
+        assert isinstance(action, Node), action
+        package, executable, *cmd = (
+            perform_substitutions(context, normalize_to_list_of_substitutions(part))
+            for part in (action.node_package, action.node_executable, *action.cmd[1:]))
+        nodes.append(_described(package, executable, cmd))
+
+    path = prefix / 'share' / PACKAGE / 'launch' / launch_file
+    with mock.patch.object(ExecuteLocal, 'execute', record), mock.patch.dict(
+            os.environ, AMENT_PREFIX_PATH=os.pathsep.join((str(prefix), sys.prefix))):
+        assert main([str(path), *arguments]) == 0
+    return nodes
 
 
 def main(argv: list[str]) -> int:

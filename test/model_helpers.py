@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Small, exact model files for predictor tests: fixed linear maps of the window.
 
 They honour the model-file contract (float64 (B, window, features) raw SI -> (B, 2) m) and

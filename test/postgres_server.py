@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A throwaway PostgreSQL server for tests that need a real RDB storage (Optuna studies
 shared by several worker processes).
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Robot descriptions for the tests of machines other than the LOMPR: a one-joint axis and a
 small serial arm, written here so that their kinematics can be computed by hand."""
 

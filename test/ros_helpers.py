@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Launch-free ROS test helpers: one context, one executor, wait with deadlines.
 
 Use through the `ros` fixture of conftest.py:

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Online adaptation without ROS: the decision, when an attempt is due, the log, the models
 kept, an attempt process that dies, and one attempt fine-tuning a model on another plant's
 samples (accepted and written, or refused and nothing written)."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The layering of docs/architecture.md, enforced: who may import whom, and what stays light.
 
 Layers, lowest first: the base modules at the package top (errors, files, plots, stamps,
@@ -9,6 +10,7 @@ ROS message packages.
 from __future__ import annotations
 
 import ast
+import itertools
 import re
 import subprocess
 import sys
@@ -17,6 +19,7 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / 'lompr_predictor'
+ROOT = PACKAGE.parent
 LAYERS = ('base', 'robot', 'data', 'twin', 'learning', 'online', 'scoring', 'ros', 'cli')
 #: Top-level modules of ROS client libraries and message packages.
 ROS_MODULES = {'rclpy', 'rcl_interfaces', 'builtin_interfaces', 'std_msgs', 'sensor_msgs',
@@ -293,3 +296,62 @@ def test_the_circle_check_sees_a_circle(tmp_path: Path) -> None:
     ros = f'{PACKAGE.name}.ros'
     assert graph[f'{ros}.alone'] == {f'{ros}.diagnostics'}
     assert import_circles(graph) == [[f'{ros}.diagnostics', f'{ros}.node']]
+
+
+def test_pip_install_never_asks_for_torch_and_the_torch_step_pins_requirements_version() -> None:
+    """`pip install .` would get PyPI's CUDA build of torch: setup.py does not ask for it;
+    the explicit step (README, Makefile's TORCH) installs the version requirements.txt
+    pins, from PyTorch's CPU index."""
+    from launch_helpers import setup_arguments
+
+    arguments = setup_arguments()
+    every = [arguments['install_requires'], *arguments['extras_require'].values()]
+    assert not [name for names in every for name in names
+                if name.split('=')[0].strip('<>~!') == 'torch']
+    (pin,) = [line for line in (ROOT / 'requirements.txt').read_text().splitlines()
+              if line.startswith('torch==')]
+    assert f'pip install {pin} --index-url https://download.pytorch.org/whl/cpu' in (
+        ROOT / 'README.md').read_text()
+    assert "sed -n 's/^\\(torch==[^ ]*\\).*/\\1/p' requirements.txt" in (
+        ROOT / 'Makefile').read_text()
+
+
+def test_package_xml_and_setup_py_name_the_same_package() -> None:
+    """One version, license and maintainer, whichever tool reads them (bloom, pip)."""
+    import xml.etree.ElementTree as ElementTree
+
+    from launch_helpers import setup_arguments
+
+    arguments = setup_arguments()
+    root = ElementTree.parse(ROOT / 'package.xml').getroot()
+    maintainer = root.find('maintainer')
+    assert maintainer is not None
+    assert (root.findtext('version'), root.findtext('license'), maintainer.text,
+            maintainer.get('email')) == (arguments['version'], arguments['license'],
+                                         arguments['maintainer'],
+                                         arguments['maintainer_email'])
+    assert maintainer.text == 'lompr_predictor maintainers'
+
+
+def test_the_changelog_is_by_release_one_short_line_a_change() -> None:
+    """CHANGELOG.rst as ROS packages keep it (catkin_generate_changelog, bloom): a section
+    per release, `Forthcoming` first, each change one `* ` line; the history is in docs/."""
+    lines = (ROOT / 'CHANGELOG.rst').read_text().splitlines()
+    assert lines[1] == 'Changelog for package lompr_predictor' and not (
+        ROOT / 'CHANGELOG.md').exists()
+    titles = [(title, rule) for title, rule in itertools.pairwise(lines)
+              if rule and set(rule) == {'-'}]
+    assert titles[0][0] == 'Forthcoming'
+    for title, rule in titles:
+        assert len(rule) == len(title)
+        assert title == 'Forthcoming' or re.fullmatch(r'\d+\.\d+\.\d+ \(\d{4}-\d\d-\d\d\)', title)
+    changes = [line for line in lines[lines.index('Forthcoming'):]
+               if line and line not in dict(titles) and set(line) != {'-'}]
+    assert changes and all(line.startswith('* ') and len(line) <= 100 for line in changes)
+
+
+def test_every_local_link_of_the_docs_leads_to_a_file() -> None:
+    for page in [ROOT / 'README.md', *sorted((ROOT / 'docs').glob('*.md'))]:
+        for target in re.findall(r'\]\(([^)#\s]+)', page.read_text()):
+            if not target.startswith(('http://', 'https://', 'mailto:')):
+                assert (page.parent / target).exists(), f'{page.name}: {target}'

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The serial arm's closed loop, live: twin_node (robot arm, lockstep) -> kinematics_node
 (measured and commanded joints -> end pose and reference) -> predictor_node -> the offset,
 applied by the twin through the joints. And the joint offsets themselves against Pinocchio.

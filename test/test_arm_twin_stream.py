@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The serial arm's twin as a sample stream (`twin.arm_twin.ArmDigitalTwin`): block sizes
 change no number, no compensation is `simulate_arm`, and an offset applied through the joints
 moves the true tool tip by itself (to first order)."""

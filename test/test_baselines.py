@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The baselines behind one seam (`learning/baselines.py`): what the report iterates."""
 
 from __future__ import annotations

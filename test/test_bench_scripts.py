@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The benchmark and analysis scripts still import: they are not run by the suite (speed goals are
 measured by running them, not by timed tests), so an API change would otherwise go
 unnoticed until someone wants the figures."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The robot as a chain (`robot.chain`): the LOMPR's closed chain chosen from its
 description, any serial chain solved by Pinocchio against kinematics by hand, and every way a
 user's robot can be named wrong refused in one line."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The closed loop on the twin through the real nodes, its scoring, and `lompr evaluate
 --closed-loop` on its recordings.
 

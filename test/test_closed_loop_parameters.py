@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Both closed-loop modes (one process, three processes) give the nodes the same
 parameters, apart from what each mode sets for itself, and count a run alike."""
 

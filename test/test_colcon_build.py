@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """colcon builds the package into a temporary prefix, and the executables are found
 through the ament index as `ros2 run lompr_predictor <name>` finds them, and start."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The command path's core: commanded joints of the twin arm compensated by the offsets for
 their instants (the tool tip moves by the offset), passed unchanged without one or as bad
 input, offsets matched by stamp, stale and late ones dropped, joints bounded and clamped."""

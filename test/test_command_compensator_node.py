@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """command_compensator_node on ROS: the twin arm's commands and the predictor's offsets in,
 the compensated JointState and the forward controller's Float64MultiArray out; bad input
 passed unchanged and counted on /diagnostics; the LOMPR refused at configure."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Recordings made with compensation on: the trainer and `lompr evaluate` read the offsets
 recorded on /lompr/compensation and learn the plant error, tool tip - (reference + offset)
 (docs/interface.md, the error); a bag without the topic reads as before (no offset)."""

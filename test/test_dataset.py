@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Reading and cleaning rules of the trainer, one by one, on hand-made arrays and bags."""
 
 from __future__ import annotations

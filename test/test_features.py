@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """data.features: the branch velocity and acceleration columns against hand-computed ones."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Atomic writes: the final path holds the old content or the whole new one, never a part,
 and a failed write leaves no staging file or directory behind."""
 

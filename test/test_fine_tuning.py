@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """`lompr train --init MODEL`: a trained model fine-tuned on recordings of another plant, its
 parent checked (robot, window, horizon, preview), kept (normalisation; the machine map
 unless refitting it makes its prior better) and named (the report, `parent_sha256`)."""

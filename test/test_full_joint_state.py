@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Every joint of the URDF for robot_state_publisher: the passive joints from the forward
 kinematics close each UPS branch (its rod end meets its platform anchor), and
 kinematics_node publishes them only when asked to."""

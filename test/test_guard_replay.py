@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The guard replayed offline publishes what the predictor node's guard publishes online."""
 
 from __future__ import annotations

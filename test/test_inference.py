@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Inference backends: ONNX Runtime agrees with TorchScript on a trained LSTM, and every way
 it cannot serve falls back to TorchScript with the reason (or, asked for by name, fails in
 one line)."""

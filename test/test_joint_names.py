@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A robot whose joints are named otherwise: `lompr train --joint-names` and `lompr evaluate
 --joint-names` read its bags, and the nodes run with the same names (the same order rules as
 kinematics_node's joint_names); a bag matching no names is one line listing those it has."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Forward/inverse kinematics against the contract geometry, to 1e-9 m."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """kinematics_node in the test process: IK joints in, the same poses out to 1e-9 m; bad
 inputs dropped, counted by reason in /diagnostics, and the node keeps answering."""
 

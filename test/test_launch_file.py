@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """launch/lompr.launch.xml and rviz/lompr.rviz name only what the package has: executables,
 parameters, files, arguments (test_launch_run.py runs the launch file)."""
 
@@ -10,16 +11,20 @@ from xml.etree import ElementTree
 
 import pytest
 import yaml
+from launch_helpers import Described, describe, installed_or_skipped
 from rcl_interfaces.msg import Log
 from ros_helpers import RosHarness, start_executable, stop_process
 from test_node_docs import load_tool
 
+from lompr_predictor.errors import LomprError
 from lompr_predictor.robot.description import CELL_FRAME
 from lompr_predictor.ros.common import ROSOUT_QOS
+from lompr_predictor.ros.launch_site import root_link, site_parameters
 from lompr_predictor.ros.parameters import parameter_specs
 
 ROOT = Path(__file__).resolve().parents[1]
 LAUNCH = ROOT / 'launch' / 'lompr.launch.xml'
+VIEW = ROOT / 'launch' / 'lompr_view.launch.py'
 RVIZ = ROOT / 'rviz' / 'lompr.rviz'
 PACKAGE_SHARE = '$(find-pkg-share lompr_predictor)/'
 #: Parameters every rclpy node has.
@@ -27,6 +32,24 @@ NODE_PARAMETERS = {'use_sim_time'}
 #: Arguments that are not node parameters (the others default to empty: not given).
 LAUNCH_ONLY = {'namespace': '', 'params_file': '', 'use_sim_time': 'false', 'twin': 'false',
                'rviz': 'false'}
+ARM = ROOT / 'lompr_predictor' / 'description' / 'arm6.urdf'
+#: Every node parameter's argument given, as a site would give them.
+EVERY_ARGUMENT = ('namespace:=cell1', 'twin:=true', 'rviz:=true', 'model_path:=/m/model.pt',
+                  'joint_names:=[b1, b2, b3, c, a]', 'compensation_enabled:=true',
+                  'publish_full_joint_state:=true', f'robot_description_file:={ARM}',
+                  'frame_prefix:=cell1/', 'base_frame:=base', 'tip_frame:=tool',
+                  'command_topic:=joint_commands', 'autostart:=false')
+
+
+@pytest.fixture(scope='module')
+def prefix(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The package installed as colcon installs it (the launch packages must be there)."""
+    return installed_or_skipped(tmp_path_factory.mktemp('install'))
+
+
+def described(prefix: Path, *arguments: str) -> dict[str, Described]:
+    """The nodes the launch file starts with `arguments`, by name (none started)."""
+    return {node.name: node for node in describe(prefix, 'lompr.launch.xml', *arguments)}
 
 
 def console_scripts() -> set[str]:
@@ -59,64 +82,122 @@ def lompr_nodes() -> list[ElementTree.Element]:
     return [node for node in launch_root().iter('node') if node.get('pkg') == 'lompr_predictor']
 
 
-def parameters_reaching(node: ElementTree.Element) -> set[str]:
-    """The names of the set_parameter actions in scope of `node`: those before it in each
-    group that holds it (a group scopes them, as launch does)."""
-    root = launch_root()
-    parents = {child: parent for parent in root.iter() for child in parent}
-    target = next(n for n in root.iter('node') if n.get('name') == node.get('name'))
-    names: set[str] = set()
-    inner = target
-    while inner in parents:
-        outer = parents[inner]
-        for child in outer:
-            if child is inner:
-                break
-            if child.tag == 'set_parameter':
-                names.add(str(child.get('name')))
-        inner = outer
-    return names
-
-
 def test_setup_py_installs_the_launch_file_and_the_rviz_config() -> None:
     setup = (ROOT / 'setup.py').read_text()
-    assert "(f'share/{PACKAGE}/launch', glob('launch/*.launch.xml'))" in setup
+    assert ("(f'share/{PACKAGE}/launch', glob('launch/*.launch.xml') + "
+            "glob('launch/*.launch.py'))") in setup
     assert "(f'share/{PACKAGE}/rviz', glob('rviz/*.rviz'))" in setup
 
 
 def test_every_executable_is_a_console_script_or_a_declared_package() -> None:
-    nodes = list(launch_root().iter('node'))
     assert [node.get('exec') for node in lompr_nodes()] == [
         'kinematics_node', 'predictor_node', 'twin_node']
     assert {node.get('exec') for node in lompr_nodes()} <= console_scripts()
     package_xml = ElementTree.parse(ROOT / 'package.xml').getroot()
     depends = {element.text for element in package_xml.iter('exec_depend')}
-    others = {node.get('pkg') for node in nodes} - {'lompr_predictor'}
+    others = set(re.findall(r"package='(\w+)'", VIEW.read_text()))
     assert others == {'robot_state_publisher', 'rviz2'}
     assert others | {'ros2launch', 'launch', 'launch_ros', 'launch_xml'} <= depends
 
 
-def test_every_parameter_is_declared_by_the_nodes_it_reaches() -> None:
+def test_every_node_gets_its_own_parameters_and_no_other_nodes(prefix: Path) -> None:
+    """Every argument given: each node receives only parameters it declares, each argument
+    reaches the nodes it names, and robot_state_publisher and rviz2 get none of ours."""
     generator = load_tool('gen_node_docs')
-    for node in lompr_nodes():
-        declared = set(parameter_specs(generator.settings_class(node.get('exec')))) | (
-            NODE_PARAMETERS)
-        reaching = parameters_reaching(node)
-        assert reaching - declared == set(), f"{node.get('exec')} has no {reaching - declared}"
-    kinematics, predictor, twin = (parameters_reaching(node) for node in lompr_nodes())
-    assert {'joint_names', 'publish_full_joint_state'} <= kinematics - predictor - twin
-    assert {'model_path', 'compensation_enabled'} <= predictor - kinematics - twin
+    nodes = described(prefix, *EVERY_ARGUMENT)
+    assert list(nodes) == ['kinematics_node', 'predictor_node', 'twin_node',
+                           'robot_state_publisher', 'rviz2']
+    for name in ('kinematics_node', 'predictor_node', 'twin_node'):
+        declared = set(parameter_specs(generator.settings_class(name))) | NODE_PARAMETERS
+        received = set(nodes[name].parameters)
+        assert received - declared == set(), f'{name} gets {received - declared}'
+        assert nodes[name].namespace == '/cell1'
+    kinematics, predictor = nodes['kinematics_node'].parameters, nodes['predictor_node'].parameters
+    assert {name: kinematics[name] for name in (
+        'joint_names', 'publish_full_joint_state', 'base_frame', 'tip_frame', 'command_topic',
+        'frame_prefix', 'robot_description_file')} == {
+        'joint_names': ['b1', 'b2', 'b3', 'c', 'a'], 'publish_full_joint_state': True,
+        'base_frame': 'base', 'tip_frame': 'tool', 'command_topic': 'joint_commands',
+        'frame_prefix': 'cell1/', 'robot_description_file': str(ARM)}
+    assert {name: predictor[name] for name in (
+        'model_path', 'compensation_enabled', 'autostart', 'base_frame', 'tip_frame')} == {
+        'model_path': '/m/model.pt', 'compensation_enabled': True, 'autostart': False,
+        'base_frame': 'base', 'tip_frame': 'tool'}
+    assert 'joint_names' not in predictor and 'model_path' not in kinematics
+    assert set(nodes['robot_state_publisher'].parameters) == {
+        'robot_description', 'frame_prefix', 'use_sim_time'}
+    assert set(nodes['rviz2'].parameters) == {'use_sim_time'}
+
+
+def test_every_node_follows_use_sim_time_and_the_twin_is_then_the_clock(prefix: Path) -> None:
+    for sim_time in (True, False):
+        nodes = described(prefix, 'twin:=true', 'rviz:=true',
+                          f'use_sim_time:={str(sim_time).lower()}')
+        assert nodes['twin_node'].parameters['publish_clock'] is sim_time
+        assert 'use_sim_time' not in nodes['twin_node'].parameters  # paced on the wall clock
+        assert all(nodes[name].parameters['use_sim_time'] is sim_time for name in (
+            'kinematics_node', 'predictor_node', 'robot_state_publisher', 'rviz2'))
+
+
+def test_the_site_file_reaches_robot_state_publisher_and_rviz(
+        prefix: Path, tmp_path: Path) -> None:
+    """Frame prefix and URDF set only in the site's file: robot_state_publisher draws that
+    URDF with that prefix, rviz2 fixes the URDF's root with it; an argument given wins."""
+    site = tmp_path / 'site.yaml'
+    site.write_text(f"""
+/**/kinematics_node:
+  ros__parameters:
+    robot_description_file: {ARM}
+    frame_prefix: cell1/
+/**/predictor_node:
+  ros__parameters:
+    frame_prefix: cell1/
+""")
+    nodes = described(prefix, 'rviz:=true', f'params_file:={site}')
+    publisher, viewer = nodes['robot_state_publisher'], nodes['rviz2']
+    assert publisher.parameters['robot_description'] == ARM.read_text()
+    assert publisher.parameters['frame_prefix'] == 'cell1/'
+    assert viewer.arguments[2:] == ['-f', 'cell1/arm_base']
+    assert nodes['kinematics_node'].parameters['frame_prefix'] == 'cell1/'
+    assert nodes['predictor_node'].parameters['frame_prefix'] == 'cell1/'
+    given = described(prefix, 'rviz:=true', f'params_file:={site}', 'frame_prefix:=cell2/')
+    assert given['robot_state_publisher'].parameters['frame_prefix'] == 'cell2/'
+    assert given['rviz2'].arguments[2:] == ['-f', 'cell2/arm_base']
+    assert given['kinematics_node'].parameters['frame_prefix'] == 'cell2/'
+
+
+def test_site_parameters_follow_rcl_keys_and_bad_files_are_one_line(tmp_path: Path) -> None:
+    site = tmp_path / 'site.yaml'
+    site.write_text("""
+/**:
+  ros__parameters: {frame_prefix: a/, hardware_id: h}
+/cell1/kinematics_node:
+  ros__parameters: {frame_prefix: b/}
+/**/predictor_node:
+  ros__parameters: {frame_prefix: c/}
+""")
+    assert site_parameters(str(site), 'cell1') == {'frame_prefix': 'b/', 'hardware_id': 'h'}
+    assert site_parameters(str(site), '/cell2') == {'frame_prefix': 'a/', 'hardware_id': 'h'}
+    assert site_parameters(str(site), '', 'predictor_node')['frame_prefix'] == 'c/'
+    assert site_parameters('') == {}
+    site.write_text('- a list\n')
+    with pytest.raises(LomprError, match=f'^params_file {site}: not a mapping of node names$'):
+        site_parameters(str(site))
+    with pytest.raises(LomprError, match='2 root links, needs one'):
+        root_link('<robot name="r"><link name="a"/><link name="b"/></robot>', 'r.urdf')
+    assert root_link((ROOT / 'lompr_predictor/description/lompr.urdf').read_text(),
+                     'lompr.urdf') == CELL_FRAME
 
 
 def test_every_variable_is_an_argument_and_every_argument_is_used() -> None:
     root = launch_root()
-    arguments = {arg.get('name') for arg in root.iter('arg')}
+    arguments = {arg.get('name') for arg in root.findall('arg')}
     defined = arguments | {let.get('name') for let in root.iter('let')}
     text = LAUNCH.read_text()
     used = set(re.findall(r'\$\(var ([a-z_]+)\)', text))
     assert used <= defined, used - defined
     assert arguments <= used, arguments - used
-    assert all(arg.get('description') for arg in root.iter('arg'))
+    assert all(arg.get('description') for arg in root.findall('arg'))
 
 
 def test_an_argument_left_out_leaves_the_files_value() -> None:
@@ -124,7 +205,7 @@ def test_an_argument_left_out_leaves_the_files_value() -> None:
     params file is not overridden by defaults); list values are YAML lists, never split with
     value-sep (which launch_xml applies before substituting)."""
     root = launch_root()
-    defaults = {arg.get('name'): arg.get('default') for arg in root.iter('arg')}
+    defaults = {arg.get('name'): arg.get('default') for arg in root.findall('arg')}
     assert {name: defaults[name] for name in LAUNCH_ONLY} == LAUNCH_ONLY
     given = {name for name, default in defaults.items() if name not in LAUNCH_ONLY}
     assert all(defaults[name] == '' for name in given)
@@ -133,7 +214,7 @@ def test_an_argument_left_out_leaves_the_files_value() -> None:
                                            "'$(var not_given)')"}
     assert given <= conditional, given - conditional
     assert 'value-sep' not in LAUNCH.read_text()
-    assert 'YAML list' in next(arg for arg in root.iter('arg')
+    assert 'YAML list' in next(arg for arg in root.findall('arg')
                                if arg.get('name') == 'joint_names').get('description', '')
 
 
@@ -142,7 +223,10 @@ def test_every_packaged_file_exists_and_params_files_fit_the_nodes() -> None:
     text = LAUNCH.read_text()
     references = re.findall(r'\$\(find-pkg-share lompr_predictor\)/[\w/.]+', text)
     assert {Path(reference).name for reference in references} >= {
-        'kinematics_node.yaml', 'predictor_node.yaml', 'lompr.urdf', 'lompr.rviz'}
+        'kinematics_node.yaml', 'predictor_node.yaml', 'lompr_view.launch.py'}
+    references += [f'{PACKAGE_SHARE}{folder}/{name}' for folder, name in re.findall(
+        r"share / '(\w+)' / '([\w.]+)'", VIEW.read_text())]
+    assert {Path(reference).name for reference in references} >= {'lompr.urdf', 'lompr.rviz'}
     for reference in [*references, f'{PACKAGE_SHARE}config/lompr.yaml']:
         path = installed_file(reference)
         assert path.is_file(), f'{reference}: no {path}'
@@ -156,28 +240,22 @@ def test_every_packaged_file_exists_and_params_files_fit_the_nodes() -> None:
             assert names <= declared, f'{path.name}: {node} has no {names - declared}'
 
 
-def test_rviz_draws_the_robot_from_the_full_joint_state() -> None:
-    """rviz:=true: robot_state_publisher gets the URDF as a string and the kinematics node's
-    full joint state (forced on); rviz2 the shipped config, its fixed frame prefixed."""
+def test_rviz_draws_the_robot_from_the_full_joint_state(prefix: Path) -> None:
+    """rviz:=true: robot_state_publisher gets the packaged URDF as a string and the
+    kinematics node's full joint state (forced on); rviz2 the shipped config, fixed on the
+    URDF's root."""
     generator = load_tool('gen_node_docs')
     kinematics = parameter_specs(generator.settings_class('kinematics_node'))
-    root = launch_root()
-    group = next(group for group in root.iter('group') if group.get('if') == '$(var rviz)')
-    publisher, viewer = group.findall('node')
-    assert publisher.get('exec') == 'robot_state_publisher'
-    (description,) = publisher.findall('param')
-    assert (description.get('name'), description.get('type')) == ('robot_description', 'str')
-    assert 'description/lompr.urdf' in str(description.get('value'))
-    (remap,) = publisher.findall('remap')
-    assert (remap.get('from'), remap.get('to')) == (
-        'joint_states', kinematics['full_joint_state_topic'].default)
-    forced = [element for element in root.iter('set_parameter')
-              if element.get('if') == '$(var rviz)']
-    assert [(e.get('name'), e.get('value')) for e in forced] == [
-        ('publish_full_joint_state', 'true')]
-    assert viewer.get('exec') == 'rviz2'
-    assert viewer.get('args') == (f'-d {PACKAGE_SHARE}rviz/lompr.rviz '
-                                  f'-f $(var frame_prefix){CELL_FRAME}')
+    nodes = described(prefix, 'rviz:=true', 'publish_full_joint_state:=false')
+    assert 'robot_state_publisher' not in described(prefix)
+    publisher, viewer = nodes['robot_state_publisher'], nodes['rviz2']
+    assert publisher.parameters == {
+        'robot_description': (ROOT / 'lompr_predictor/description/lompr.urdf').read_text(),
+        'frame_prefix': '', 'use_sim_time': False}
+    assert nodes['kinematics_node'].parameters['publish_full_joint_state'] is True
+    assert publisher.remaps == [('joint_states', kinematics['full_joint_state_topic'].default)]
+    assert viewer.arguments == ['-d', str(prefix / 'share/lompr_predictor/rviz/lompr.rviz'),
+                                '-f', CELL_FRAME]
 
 
 def test_the_rviz_config_shows_the_cell_and_the_topics_of_the_nodes() -> None:

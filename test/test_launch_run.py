@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """launch/lompr.launch.xml run as `ros2 launch` runs it (`launch_helpers`): the nodes it
 starts live in the namespace and data flows from joint_states to predicted_error; a site's
 params file overrides the packaged defaults and is overridden only by arguments given.
@@ -22,7 +23,7 @@ from typing import Any
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
-from launch_helpers import REQUIRE_VARIABLE, install_prefix, launch_missing, start_launch
+from launch_helpers import installed_or_skipped, start_launch
 from model_helpers import save_linear
 from rcl_interfaces.srv import GetParameters
 from rclpy.parameter import parameter_value_to_python
@@ -49,12 +50,7 @@ SIGINT_STOP = 3.0
 def prefix(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The package installed into a prefix as colcon installs it; the launch packages must
     be importable (else skipped, or failed in CI)."""
-    missing = launch_missing()
-    if missing:
-        if os.environ.get(REQUIRE_VARIABLE):
-            pytest.fail(f'{missing}; {REQUIRE_VARIABLE} is set (CI): they must be there')
-        pytest.skip(missing)
-    return install_prefix(tmp_path_factory.mktemp('install'))
+    return installed_or_skipped(tmp_path_factory.mktemp('install'))
 
 
 @pytest.fixture(scope='module')
@@ -219,3 +215,19 @@ def test_launched_noninteractive_a_sigint_to_launch_alone_stops_every_node(
     with launched(prefix, 'namespace:=cell1', 'twin:=true', f'model_path:={model}',
                   noninteractive=True) as process:
         wait_for_nodes(ros, process)
+
+
+def test_on_sim_time_the_twin_is_the_clock_and_data_flows(
+        ros: RosHarness, prefix: Path, model: Path) -> None:
+    """twin:=true use_sim_time:=true: the twin publishes /clock, so the nodes on sim time
+    are not left waiting for one."""
+    predictions = ros.collect(f'{NAMESPACE}/lompr/predicted_error', Vector3Stamped, 1000)
+    with launched(prefix, 'namespace:=cell1', 'twin:=true', 'use_sim_time:=true',
+                  f'model_path:={model}') as process:
+        wait_for_nodes(ros, process)
+        ros.spin_until(lambda: len(predictions) >= 10, START_TIMEOUT,
+                       "predicted errors on the twin's clock")
+        sim_time = parameters(ros, 'predictor_node', ['use_sim_time'])
+        clock = parameters(ros, 'twin_node', ['publish_clock', 'use_sim_time'])
+    assert sim_time == {'use_sim_time': True}
+    assert clock == {'publish_clock': True, 'use_sim_time': False}

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The machine map: its kinematics, its least squares, its place in the model, and that what
 it learns on one program holds on another (the twin's spiral -> grid)."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Table 1 metrics against values computed by hand on known signals."""
 
 from __future__ import annotations

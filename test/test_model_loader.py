@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """online.model_loader: a model file loaded, checked and warmed up, or the reason why not;
 a swap prepared beside the sample path."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Models, training and the model file: export -> load -> same predictions, refusals."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Counters, rate meter, latency percentiles and log throttle, driven by a fake clock."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Two robots on one network: both nodes started in a namespace with a params file keyed
 /**/<node>: move their relative topics into it and take the file's parameters; their
 diagnostics are named as diagnostic_updater names them (the node's name, or with

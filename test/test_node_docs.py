@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """docs/nodes.md holds the parameter tables the nodes' declarations generate."""
 
 from __future__ import annotations

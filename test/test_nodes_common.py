@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The shared ROS layer: settings from one declaration, the node base (plain and lifecycle
 node), QoS overrides, the callback-exception policy, diagnostics, run_node."""
 

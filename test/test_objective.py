@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The tuning objective: trains a trial, keeps its checkpoint, skips a repeated point, and
 gives a trial's model back from its checkpoint or by training it again."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """OnlinePredictor (ROS-free): offline parity, alignment by stamp, plant error, safety."""
 
 from __future__ import annotations

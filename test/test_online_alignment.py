@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """online.alignment alone: poses aligned with the reference by stamp, faults in their place."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """online.faults alone: interval rules and staleness, on a fake clock."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The live guard: the model compensates an axis only while it beats its fallbacks there (its
 map prior, persistence), and not while its inputs lie outside what it was trained on."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """online.offset alone: clamp, step limit, schedule by instant, cancel, shadow mode."""
 
 from __future__ import annotations

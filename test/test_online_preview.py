@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The reference preview online: the plan by stamp, and OnlinePredictor with a preview model
 (offline parity, missing, stale and contradicted plans)."""
 

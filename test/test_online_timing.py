@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """online.timing through the core: a slow model publishes nothing late, builds no backlog
 and is not stopped by one stall."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """online.window alone: the rolling feature rows equal the offline ones."""
 
 from __future__ import annotations

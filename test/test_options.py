@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The trainer's options declared once (`learning/options.py`): one declaration gives the
 flag, the default, the check, the metadata and the study's definition."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The paired model: the tuned specialist and the generalist trained at its point, joined
 into one module whose prediction is the first's and whose prior is the second's."""
 

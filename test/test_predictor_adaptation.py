@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The predictor node's online adaptation over ROS: off by default (nothing started, the
 outputs as before), the store sized for it, a model that fails verification or comes from
 another parent never swapped in, the sample path answering with the model in force while an

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """predictor_node as a managed node, and on simulated time: transitions driven through the
 lifecycle services, the configure failure path, staleness counted on /clock, a clock that
 goes back (a simulator reset)."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """predictor_node in the test process: bag replay parity with the offline pipeline, safety
 over the topics, model refusal and run-time swaps, diagnostics."""
 

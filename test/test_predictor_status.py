@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The predictor node's /diagnostics statuses, built without ROS from a real core."""
 
 from __future__ import annotations

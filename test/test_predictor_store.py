@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The predictor node's sample store over ROS: off by default, the `~/write_samples` service
 writing what the node saw (with the offsets it had in force) as a bag, its status on
 /diagnostics, the write when the node shuts down, and a store that cannot be allocated."""

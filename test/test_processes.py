@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Stopping child processes: SIGINT, then SIGTERM, then SIGKILL, all processes at once; and a
 command stopped by SIGINT or SIGTERM alike."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The `qos` status compares like with like: a default-QoS peer on every endpoint is OK, a
 best-effort publisher into a reliable subscription is WARN."""
 

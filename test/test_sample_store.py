@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The predictor node's sample store, ROS-free: the ring (its order, window, restarts and a
 reader racing its writer), the store as a unit of the core, the bag it is written as and the
 child process that writes it."""

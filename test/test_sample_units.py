@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The chain of units the core hands every aligned sample and prediction: the live accuracy,
 and units plugged in from outside (a persistence stand-in, one that withholds, a recorder)."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """How a process shares the CPUs: a training below its caller's priority, a node's nice
 value, SCHED_FIFO priority and CPUs applied to every thread, and a refusal in one line
 naming the parameter. Each change runs in a child process (it would stay with pytest's)."""

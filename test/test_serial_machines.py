@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Machines other than the LOMPR, end to end: a serial arm and a one-joint axis, recorded as a
 robot commanded in joints records (measured and commanded JointState), cleaned, trained,
 scored, and run through kinematics_node -> predictor_node against the offline model."""

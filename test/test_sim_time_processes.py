@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The executables driven by an external simulator, as Gazebo, Isaac Sim or a
 hardware-in-the-loop rig drives ROS nodes: `kinematics_node` and `predictor_node` in their
 own processes with `use_sim_time:=true`, and a plant written here that publishes /clock,

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """`lompr simulate`: the bag, its ground truth, the injected faults."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The cores a process used (`CoreUse`): in all and the most of any interval, on driven
 clocks, and a real thread of its own around one busy thread."""
 

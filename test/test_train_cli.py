@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """`lompr train` / `lompr evaluate` end to end on small synthetic bags."""
 
 from __future__ import annotations
@@ -47,6 +48,21 @@ def bags(tmp_path_factory: pytest.TempPathFactory, description: RobotDescription
                     recording.reference.positions, recording.reference.orientations))
         out.append(write_recording(folder / f'bag{i}', recording, storage=storage))
     return out
+
+
+def test_off_a_terminal_training_writes_a_plain_line_per_stage(
+        tmp_path: Path, bags: list[Path], capsys: pytest.CaptureFixture[str]) -> None:
+    """stderr a log file (not a terminal): no bar redrawn with carriage returns, one line
+    per stage: the tuning's trials, each model's epochs."""
+    loud = [option for option in FAST if option != '--quiet']
+    assert run(['train', str(bags[0]), '--out', str(tmp_path / 'model.pt'), '--report',
+                str(tmp_path / 'report'), *loud]) == 0
+    err = capsys.readouterr().err
+    assert '\r' not in err
+    stages = [line.split(' in ')[0] for line in err.splitlines() if ' in ' in line]
+    # the trials asked for and the restart's, each trial's and each final model's epochs
+    assert 'tuning: 3/3 trial' in stages
+    assert {'trial 0: 2/2 epoch', 'generalist: 2/2 epoch', 'BP: 2/2 epoch'} <= set(stages)
 
 
 def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[Path]) -> None:
@@ -126,6 +142,10 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
     assert 'None' not in scored_text  # an evaluation has no sidecar to name
     assert f"sha256 `{evaluation['model_sha256']}` (pin it on" in scored_text
     assert evaluation['split']['test'] == 1200 - 2 - 8 + 1 - 2
+    # the hash file evaluate checked the model against, named as train names it
+    sidecar = str(model.resolve()) + '.sha256'
+    assert evaluation['model_sha256_file'] == content['model_sha256_file'] == sidecar
+    assert f'(also in `{sidecar}`; pin it' in (scored / 'report.md').read_text()
 
 
 @pytest.mark.faults

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Bayesian tuning: finds a toy objective's best point; an interrupted study resumes."""
 
 from __future__ import annotations

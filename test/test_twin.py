@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The twin's error physics, parameters and stepping (ROS-free)."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The serial arm's twin: its URDF against the UR5e's DH kinematics, the programs' IK, each
 error source against its hand-computed value, block invariance, seeds, the error's size."""
 

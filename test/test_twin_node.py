@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """twin_node, launch-free: rclpy in the test process, own context per test (`ros` fixture)."""
 
 from __future__ import annotations

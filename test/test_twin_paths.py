@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The twin's programs: the paper's Eq. 29, continuity of the passes and their returns,
 bounded accelerations and jerks, reachability; the random program's draws."""
 

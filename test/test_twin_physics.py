@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The twin's backlash, Stribeck friction and thermal growth, the machine seed, and the
 irreducible level of every random source, against hand-computed values."""
 

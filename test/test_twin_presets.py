@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Twin presets: packaged, loadable, what they say they are, selectable from the CLI."""
 
 from __future__ import annotations

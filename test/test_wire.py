@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The wire codec of the 1 kHz path against rclpy's own serialization."""
 
 from __future__ import annotations

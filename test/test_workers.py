@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Tuning with several workers: exact budget across processes, a dead
 worker's trial failed and its point run again, one study shared by separate commands through
 PostgreSQL, settings checked on joining, bad options refused in one line."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Synthetic recordings for the trainer's tests: a known error, put into joints by IK."""
 
 from __future__ import annotations

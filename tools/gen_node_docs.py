@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Writes the parameter tables of docs/nodes.md from the nodes' settings declarations.
 
     python tools/gen_node_docs.py           # rewrite docs/nodes.md

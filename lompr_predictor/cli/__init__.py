@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """`lompr`: the command line of lompr_predictor (docs/interface.md, executables).
 
 Each subcommand lives in its own module of this package and exposes

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Options and steps the subcommands share: which bags and how to clean them, threads, the
 priority of a training."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """`lompr demo`: the whole system on the digital twin, from recording to a cancelled error.
 
 1. records training passes of the twin without compensation on each of the training

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """`lompr evaluate MODEL BAG_DIR... --report DIR`: score a trained model on new recordings.
 
 The bags are read and cleaned as for training; every window of the new data is scored
@@ -75,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
         fit_baselines,
         score_test_part,
     )
-    from lompr_predictor.learning.model_file import load_model
+    from lompr_predictor.learning.model_file import load_model, sidecar_path
     from lompr_predictor.learning.models import offline_predictions
     from lompr_predictor.scoring.guard_replay import replay_model_guard
 
@@ -112,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
     report = base_report('evaluate', problem, data, sources, inputs.cleaning)
     report.update(
         models=models, model_file=str(Path(args.model).resolve()), model_sha256=model.sha256,
+        model_sha256_file=str(sidecar_path(args.model).resolve()),  # what load_model checked
         model_test_metrics=meta.test_metrics, guard=guarded.summary(),
         **irreducible_fields(models, sources, meta.horizon),
         timings={'total_seconds': time.perf_counter() - started})

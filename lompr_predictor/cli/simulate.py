@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """`lompr simulate`: run the digital twin and write one rosbag2 directory with ground truth."""
 
 from __future__ import annotations

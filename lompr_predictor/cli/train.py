@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """`lompr train BAG_DIR... --out MODEL.pt --report DIR`: the offline trainer.
 
 Reads and cleans the bags, tunes the LSTM's batch size, hidden units and learning rate with

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Argument checks of the command line, run by argparse before any work starts.
 
 Every function here is an argparse `type=`: it gets the text of one argument and returns the

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """rosbag2 recordings of the LOMPR topics, read and written with `rosbags` (no ROS install).
 
 A `Recording` is what one bag holds of the interface's topics (docs/interface.md, topics), as

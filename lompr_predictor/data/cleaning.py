@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """From rosbag2 recordings to clean, gap-free error samples (ROS-free).
 
 The paper's pre-processing, done so that every dropped sample is counted by reason

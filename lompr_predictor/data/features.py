@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The model's input features: one definition for the offline trainer and the online node.
 
 A model sees a window of `window` consecutive samples, each a row of `FEATURES`, and

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Which recordings a run reads and how it cleans them, and the read-then-clean step itself:
 what `lompr train` and `lompr evaluate` share before their data diverge.
 """

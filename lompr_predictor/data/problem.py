@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Learning windows of clean data: which windows exist, the chronological split, ranges.
 
 - `window_ends`: windows of `window` rows whose last row and predicted row (`horizon`

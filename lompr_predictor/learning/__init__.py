@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Learning: models, training, Bayesian tuning, metrics, reports and the model file.
 
 ROS-free; the training pipeline (`pipeline.train_predictor`) is what `lompr train`, the demo

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The baselines a trained model is scored against, behind one seam: a `Baseline` has a
 `name` (its key in the report), a `label` (its name in report.md and the plots) and
 `fit(problem, context)`, which returns something that predicts any window ends (`Fitted`),

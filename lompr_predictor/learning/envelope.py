@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The trained envelope: the ranges of the inputs a model was trained on, carried in its
 metadata, so that the predictor knows when a sample lies outside what training saw.
 

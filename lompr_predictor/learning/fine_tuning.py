@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Fine-tuning a trained model on new recordings: `lompr train --init MODEL`, the offline form
 of adaptation (a model trained on one machine, or on the machine as it was, learning the
 machine as it is now from a few recordings of it).

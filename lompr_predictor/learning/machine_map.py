@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The machine map: the plant error that the commanded motion and posture explain, in the
 form the robot's kinematics give it; fitted by least squares on the error's changes over the
 horizon and a few times it (`MachineMap.fit`), the prior of the BO-LSTM, and fitted again on

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The machine map's least squares: its basis, the fit on the error's changes and on its
 course, the misfit, and what a model file records of it (`MapFit`, mixed into
 `machine_map.MachineMap`); the helpers that pair a recording's instants over the fit's lags.

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The model's prior beside its prediction: what a model predicts from the machine alone,
 which the live guard scores as the third candidate beside the model and persistence.
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The seed paper's Table 1 metrics (docs/interface.md, metrics), per axis, and who leads by
 them (`standings`).
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The model file (docs/interface.md): one TorchScript file carrying `metadata.json`.
 
 Export and load live here and only here, so that the serialisation format (TorchScript

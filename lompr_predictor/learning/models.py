@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The predictors: BO-LSTM, the paper's BP (MLP) baseline, persistence, and the scripted
 wrapper that meets the model-file contract (`model_file.py`).
 

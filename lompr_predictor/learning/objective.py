@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The tuning study's objective: train one network at a trial's point, keep its checkpoint.
 
 `NetworkObjective` is a plain value (the study, the learning problem, the search space, the

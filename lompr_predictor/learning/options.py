@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The trainer's options, each declared once: `TrainingConfig`, whose fields are at once the
 library's settings, `lompr train`'s flags, their checks and what the model file records.
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The paired model (`lompr train`'s default, network inputs 'paired'): the tuned network
 that reads every feature and, beside it, one that reads the machine map's residuals alone.
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The offline training pipeline as one library call: what `lompr train` runs.
 
 `train_predictor(config)` reads and cleans the bags (`data.loading`), cuts the learning

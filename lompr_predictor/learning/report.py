@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The training / evaluation report: `report.json`, `report.md` and PNG plots in one folder.
 
 `report.json` holds everything (counts, metrics per model and axis, ratios, times, the

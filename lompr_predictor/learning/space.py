@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The hyperparameter search space of the tuning study, the default budget and heartbeat.
 
 Kept apart from `tuning.py` (which needs Optuna) so that the command line can show and

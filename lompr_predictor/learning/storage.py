@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Where tuning studies live, and what several worker processes sharing one need from it.
 
 A study's storage is named by one string, `--storage`:

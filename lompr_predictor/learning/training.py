@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Training loop: one function, `train_network`, for the LSTM (in tuning and at the end) and
 the paper's BP baseline alike, so their training times compare like for like.
 
@@ -270,10 +271,10 @@ def train_network(
         record.start_loss = data.validation_loss(module.net)
         record.best = record.start_loss if math.isfinite(record.start_loss) else math.inf
     started = time.perf_counter()
-    epochs = progress_bar(range(1, settings.max_epochs + 1), desc=label or model_type,
-                          unit='epoch', leave=False, enabled=progress)
-    _fit(module.net, schedule, data, record, epochs, settings,
-         np.random.default_rng(settings.seed), trial, prune=prune)
+    with progress_bar(range(1, settings.max_epochs + 1), desc=label or model_type,
+                      unit='epoch', leave=False, disable=not progress) as epochs:
+        _fit(module.net, schedule, data, record, epochs, settings,
+             np.random.default_rng(settings.seed), trial, prune=prune)
     seconds = time.perf_counter() - started
     module.net.load_state_dict(record.best_state)
     module.eval()

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Bayesian tuning with Optuna (the paper's BO): studies, their budget, and the trials any
 number of workers run on one study.
 
@@ -32,12 +33,11 @@ import optuna
 from optuna.distributions import BaseDistribution
 from optuna.exceptions import UpdateFinishedTrialError
 from optuna.trial import FrozenTrial, TrialState
-from tqdm import tqdm
 
 from lompr_predictor.learning.space import DEFAULT_TRIALS
 from lompr_predictor.learning.storage import StudyError, StudyStorage, fail_and_retry
 from lompr_predictor.processes import stop_signal
-from lompr_predictor.progress import progress_bar
+from lompr_predictor.progress import ProgressBar, progress_bar
 
 #: Trial states that count toward the budget.
 SPENT = (TrialState.COMPLETE, TrialState.PRUNED)
@@ -392,12 +392,13 @@ class StudyProgress:
                  interval: float = 1.0) -> None:
         self._study, self._enabled, self._interval = study, enabled, interval
         self._stop = threading.Event()
-        self._bar: tqdm[Any] | None = None
+        self._bar: ProgressBar | None = None
         self._thread = threading.Thread(target=self._run, daemon=True, name='progress')
 
     def __enter__(self) -> StudyProgress:
         if self._enabled:
-            self._bar = progress_bar(total=study_slots(self._study), desc='tuning', unit='trial')
+            self._bar = progress_bar(total=study_slots(self._study), desc='tuning',
+                                     unit='trial')
             self.update()
             self._thread.start()
         return self

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Tuning workers on this machine: N processes working on one study.
 
 `tune(study_spec, study, storage, make_objective, workers=N)` runs the study's remaining

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The predictor node's ROS-free core: stamp alignment, model slots, bounded offset.
 
 `predictor.OnlinePredictor` composes `input_stamps` (message stamps to ns), `alignment`

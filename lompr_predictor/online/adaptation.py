@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Online adaptation, the node's side (ROS-free): when an attempt is due, starting it as a
 child process, collecting its outcome, the log, and the models kept.
 

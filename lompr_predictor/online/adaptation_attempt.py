@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """One adaptation attempt, the child process the predictor node starts (`adaptation`).
 
 `python -m lompr_predictor.online.adaptation_attempt --fd N --request JSON` runs below the

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Alignment by stamp: each pose gets the reference interpolated to its own stamp.
 
 The measured tool tip and the reference may come at different instants and rates, and in

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Commanded joints compensated by the predictor's tool-tip offsets: the command path of a
 robot commanded in joints (a ros2_control robot).
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """When the input stream is not what the model was trained on: the fault rules.
 
 A fault empties the window and cancels the offset in force (`offset.OffsetGate.cancel`);

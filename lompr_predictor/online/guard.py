@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The live guard: the model compensates only while it does better than its fallbacks.
 
 A learned model can be wrong on a program or a machine it was not trained on, and then its

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Inference backends: the network of a loaded model on one window, per sample (ROS-free).
 
 The model file stays the TorchScript file `model_file.load_model` opened and verified. For

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The stamps of the predictor core's inputs as integer nanoseconds (ROS-free).
 
 An input's stamp is an integer (ns, trusted: the caller made it) or a message stamp,

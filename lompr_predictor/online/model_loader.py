@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Load a model file for online use: read it under a hash policy, check it against the
 configuration, warm it up and choose what runs its network (`inference.select_backend`).
 One entry point, `load_ready_model`, so that configuring a node

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A model slot: one model served on its own window of feature rows (ROS-free).
 
 The predictor core (`predictor.OnlinePredictor`) holds one slot for its model and, for a

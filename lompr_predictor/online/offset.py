@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The offset gate: the one place the published offset is bounded, scheduled and cancelled.
 
 Safety rules (docs/safety.md, docs/nodes.md):

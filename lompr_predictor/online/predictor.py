@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Online error prediction and a bounded compensation offset, sample by sample (ROS-free).
 
 `OnlinePredictor` is the predictor node's core. It composes parts that each do one job and

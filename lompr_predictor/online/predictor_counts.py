@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """What the predictor core counted, as one snapshot, and its form on /diagnostics.
 
 `OnlinePredictor.counts()` makes a `PredictorCounts`; the node's statuses write it as

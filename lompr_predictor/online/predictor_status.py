@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The predictor node's /diagnostics statuses (model, inputs, prediction, guard) as pure functions
 of what the node holds, so that their levels and values are tested without ROS. The core's
 counters go in as its snapshot (`predictor_counts.status_counts`), so that they read back

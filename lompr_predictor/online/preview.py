@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The planned reference of the coming instants (docs/interface.md, topics, reference preview).
 
 `PlannedPath` keeps the newest planned tool-tip position per instant, aligned by stamp and

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The node's store of its own stream: the aligned samples of the last minutes (ROS-free).
 
 What a model would learn the machine it runs on from: every aligned sample the predictor

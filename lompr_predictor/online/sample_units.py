@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Units the predictor core hands every aligned sample and every prediction (ROS-free).
 
 The core (`predictor.OnlinePredictor`) keeps a chain of `SampleUnit`s, the live accuracy

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Timing the stages of the predictor core's input calls, from outside the core (ROS-free).
 
 `time_stages(core, timer)` wraps, on that one core object, its two input calls (`begin`)

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A sample store as a rosbag2 directory that `lompr train` reads, written by a child process.
 
 `python -m lompr_predictor.online.store_bag --fd N --out DIR ...` is what the predictor node

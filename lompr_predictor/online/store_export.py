@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The node's sample store written as a bag by a child process, one at a time (ROS-free).
 
 `StoreExport` starts `python -m lompr_predictor.online.store_bag` (`store_bag`) with the

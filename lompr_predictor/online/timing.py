@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The overrun policy, on the node's clock (ROS-free, integer nanoseconds).
 
 An output is for the instant stamp + lead (lead = horizon x sample period); it is late when,

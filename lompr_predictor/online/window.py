@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The rolling window of feature rows the model reads, sample by sample.
 
 The rows are those of `data.features.feature_rows`, the function the trainer uses, so a

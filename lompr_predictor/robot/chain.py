@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The robot as the package sees it: a URDF, a base frame, a tip frame and the measured
 joints, whatever the machine (docs/interface.md, the robot).
 

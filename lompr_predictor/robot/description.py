@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The LOMPR robot description: load the URDF with Pinocchio and extract its geometry.
 
 The URDF is the only place the geometry lives (docs/interface.md, the robot). This module

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A tool-tip offset turned into joint offsets, for a robot commanded in joints.
 
 A controller that takes joint commands cannot add a tool-tip offset to its command: it adds

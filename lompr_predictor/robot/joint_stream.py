@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A stream of joint states turned into tool poses, one message after another (ROS-free).
 
 What the kinematics node does with each JointState, measured or commanded, apart from the

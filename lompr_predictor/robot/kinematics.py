@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Forward and inverse kinematics of the LOMPR (docs/interface.md, the robot).
 
 Four entry points, one per use:

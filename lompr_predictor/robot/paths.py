@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The LOMPR's processing paths (docs/interface.md, paths), sampled every 40 ms.
 
 Six programs run on the mirror (a disk of radius 0.200 m at z = 1.097 m):

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The closed loop on the digital twin through the real nodes, in one process or as three
 processes on simulated time, so that a model is scored on the true tool-tip error it leaves.
 

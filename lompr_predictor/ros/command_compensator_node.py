@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """command_compensator_node: commanded joints + the predictor's offsets -> compensated joints.
 
 The command path of a robot commanded in joints (a ros2_control robot): a managed (lifecycle)

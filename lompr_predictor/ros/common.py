@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Thin ROS helpers the lompr nodes share (the node base itself is `node_base.NodeBase`).
 
 - `DiagnosticsPublisher`: a DiagnosticArray on /diagnostics about once a second, one status

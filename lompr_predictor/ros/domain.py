@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A private DDS domain for a test session, a bench or the demo's cross-process loop.
 
 The ID comes from `domain_coordinator` (the ROS 2 test tools' coordinator: a domain is

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """kinematics_node: measured joints (/joint_states) -> tool-tip pose (/lompr/end_pose).
 
 A thin node: it matches the robot's joints by name and solves their forward kinematics

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The closed loop in one process (`closed_loop`): the twin, kinematics and predictor nodes
 on one executor and private topic names, with a collector node that keeps every sample.
 
@@ -22,9 +23,8 @@ from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 from sensor_msgs.msg import JointState
-from tqdm import tqdm
 
-from lompr_predictor.progress import progress_bar
+from lompr_predictor.progress import ProgressBar, progress_bar
 from lompr_predictor.robot.description import MEASURED_JOINTS
 from lompr_predictor.ros import kinematics_node, predictor_node, twin_node
 from lompr_predictor.ros.common import events_executor, spin_until
@@ -145,7 +145,7 @@ class _Loop:
         self.total = int(self.twin.total_samples or 0)
         self.collector = _Collector(context, topics, self.lompr, self.total, self._on_sample)
         self.switched_off_at: int | None = None
-        self._bar: tqdm | None = None
+        self._bar: ProgressBar | None = None
 
     def start(self, progress: bool, label: str) -> None:
         """Spin the other nodes until every endpoint is matched, then start the twin."""
@@ -165,7 +165,7 @@ class _Loop:
             msg = f'the closed-loop nodes did not discover each other in {DISCOVERY_TIMEOUT} s'
             raise ClosedLoopError(msg)
         self._bar = progress_bar(total=self.total, desc=label, unit='sample',
-                                 enabled=progress, leave=True)
+                                 disable=not progress)
         self.executor.add_node(self.twin)
 
     def _on_sample(self, index: int) -> None:

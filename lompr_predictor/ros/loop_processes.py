@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The closed loop as three processes (`closed_loop`): twin_node, kinematics_node and
 predictor_node started as their executables on a private ROS domain and the twin's
 simulated time (/clock), as a simulator drives real nodes.
@@ -29,7 +30,6 @@ from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
-from tqdm import tqdm
 
 from lompr_predictor.online.predictor_counts import (
     CountsMissingError,
@@ -37,7 +37,7 @@ from lompr_predictor.online.predictor_counts import (
     read_counts,
 )
 from lompr_predictor.processes import Stopped, stop_processes
-from lompr_predictor.progress import progress_bar
+from lompr_predictor.progress import ProgressBar, progress_bar
 from lompr_predictor.robot.paths import build_cycle
 from lompr_predictor.ros import predictor_node
 from lompr_predictor.ros.common import events_executor
@@ -74,7 +74,7 @@ def run_processes(settings: LoopSettings, horizon: int, progress: bool,
                        Path(folder), round(params.sample_period * 1e9), loop_domain_id())
         watched = watch.run(run_log, total, settings.wall_timeout,
                             progress_bar(total=total, desc=label, unit='sample',
-                                         enabled=progress, leave=True), label)
+                                         disable=not progress), label)
         arrays, document = read_run_log(run_log)
     count = len(arrays['stamps'])
     counts = loop_counts(
@@ -190,7 +190,7 @@ class _Watch:
                             'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
         self.processes: dict[str, subprocess.Popen[bytes]] = {}
 
-    def run(self, run_log: Path, total: int, wall_timeout: float, bar: tqdm,
+    def run(self, run_log: Path, total: int, wall_timeout: float, bar: ProgressBar,
             label: str) -> _Watched:
         """Start the processes and wait until the twin has written `run_log` (a process
         that exits before, or `wall_timeout` seconds, is a `ClosedLoopError`); stop them."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """What both modes of the closed loop share (`closed_loop`): the settings of a run, what a
 run returns, the parameters both give the nodes and how both count a run.
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """What a managed (lifecycle) lompr node adds to rclpy's `LifecycleNode`: its state read
 from rclpy's state machine (the node keeps none of its own), the transitions as two hooks
 (`stop_output`, `release`) around what `configure` made, an autostart that raises why

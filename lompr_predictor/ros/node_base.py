@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """What every lompr node shares: settings, endpoints, one callback-exception policy,
 diagnostics.
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A node's parameters from one declaration: the fields of its frozen settings dataclass.
 
     @dataclass(frozen=True)

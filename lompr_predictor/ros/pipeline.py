@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """lompr_pipeline: the kinematics and predictor nodes in one process, on one executor.
 
 The lowest-latency way to run them: one interpreter, one executor, no second process to

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The predictor node's online adaptation on ROS: a timer of the node's clock that starts
 attempts when due, collects them, and swaps an accepted model in.
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The predictor node's /diagnostics statuses: the pure builders of
 `online.predictor_status` fed with what the node hands over, and the counts since the last
 report that their warnings are about.

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The predictor node's input messages turned into calls of its core (`OnlinePredictor`).
 
 Three streams, each read without deserialising (`wire`): the measured tool tip, the

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """predictor_node: end poses + reference -> predicted error and a bounded compensation offset.
 
 A managed (lifecycle) node over `online.OnlinePredictor`: end poses and references in, every

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The predictor node's two outputs: every `Output` of the core as serialized
 Vector3Stamped messages (no message object per output) on /lompr/predicted_error and
 /lompr/compensation, with the rate and latency of the answered samples."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The predictor node's parameters, as one frozen snapshot (`NodeBase.declare_settings`),
 and its endpoints, whose topics are parameters."""
 
@@ -54,8 +55,8 @@ class PredictorNodeSettings(FrameSettings):
         'empty, the MODEL.sha256 file lompr train writes beside it; false (development '
         'only): load an unverified file', read_only=True)
     compensation_enabled: bool = parameter(
-        True, "publish the offset (the interface's default); false: shadow mode, predictions "
-        'go on and every offset is zero (the launch file and the site template start so)')
+        False, 'true: publish the offset; false (every entry point starts so, until the site '
+        'switches it on): shadow mode, predictions go on and every offset is zero')
     max_compensation: float = parameter(
         5e-4, 'largest offset [m] (XY norm); the offset is clamped to it', minimum=0.0,
         maximum=0.01)

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The predictor node's sample store on ROS: the service that writes it as a bag, the write
 when the node lets it go, and what it records of where the samples came from.
 

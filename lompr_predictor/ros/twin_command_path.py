@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """twin_node's arm commanded through a command path (`compensated_command_topic`).
 
 A robot commanded in joints gets its compensation from a command path outside it

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """twin_node: the live digital twin of a machine, a stand-in for the robot's controller.
 
 `robot` chooses the machine (`twin_outputs`): the LOMPR, whose controller is commanded in

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """twin_node's machine and what it publishes of each sample.
 
 `make_twin` builds the twin the `robot` parameter names: the LOMPR (`twin.DigitalTwin`, one

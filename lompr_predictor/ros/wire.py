@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The few messages of the 1 kHz path read from and written to their wire form directly.
 
 rclpy turns every message it takes into Python objects (a PoseStamped is five of them,

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The live guard replayed on recorded predictions: what the predictor node would publish.
 
 Offline a model is scored as it is; online the live guard (`online.guard`) hands an axis to

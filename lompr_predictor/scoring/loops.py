@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Scoring of compensation runs (ROS-free): how much of the tool-tip error a compensator removes.
 
 A run is an (N, 2) X/Y error [m] per sample of one loop (no compensation, the persistence

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The LOMPR digital twin (ROS-free): error physics, path runs, recordings with ground truth.
 
 - `parameters`: `TwinParameters` from YAML (`config/twin.yaml` holds the documented defaults).

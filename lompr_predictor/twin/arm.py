@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The serial arm's twin: a program's commanded joints through the arm's plant, with the
 tool tip where the commanded and the actual joints put it.
 

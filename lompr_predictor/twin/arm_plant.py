@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The serial arm's plant: commanded joints -> actual and measured joints.
 
 The error physics acts per joint, in joint space, as the LOMPR twin's (`plant.py`) does on

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The serial arm's programs: tool-tip paths on a horizontal plane, and their joints.
 
 Each program is a closed path of the tool tip (`tool0`) on the plane z = `height` of the

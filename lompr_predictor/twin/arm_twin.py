@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The serial arm's twin as a sample stream: program, joint-space compensation, plant, true
 tool tip (the arm's `digital_twin.DigitalTwin`).
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Compensation offsets waiting for their instant, as a real controller keeps them.
 
 An offset is stamped with the sample instant it is for (docs/interface.md, the error). The

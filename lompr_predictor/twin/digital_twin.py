@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The digital twin as a sample stream: path, compensation, plant, true tool tip.
 
 `DigitalTwin.step(count, compensation)` runs the next `count` samples of the endless path:

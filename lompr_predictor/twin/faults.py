@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Faults injected into a recorded message stream, to test its consumers.
 
 Each fault hits chosen messages of one stream (stamps plus a row of values per message) and

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Parameters of the digital twin, read from YAML (`config/twin.yaml` holds the defaults).
 
 Parameters are layered: the packaged defaults, then optionally a preset (a packaged override

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The twin's plant: commanded tool-tip positions -> actual and measured joints.
 
 The error physics acts in joint space, as in the seed paper's Eq. 1-5: the actual branch

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A picture of a twin run: the error over time and against the path radius (PNG, Agg)."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A twin run as a rosbag2 directory, with its ground truth inside the same directory.
 
 The bag holds `/joint_states` (the measured joints by name, `MEASURED_JOINTS`) and

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A live twin run, sample by sample, as the twin itself saw it (ROS-free).
 
 `RunLog` keeps, for every sample the twin ran: its stamp, the reference, the measured

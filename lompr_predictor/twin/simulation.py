@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Offline runs of the twin: whole passes, their errors, the irreducible level, ground truth.
 
 `simulate` runs the twin without compensation for a number of passes and returns every
