@@ -49,7 +49,7 @@ the longer ones. Why a second fit for what the networks read: fitted on changes,
 weighs the fast part of the error (the lag-1 changes), and what it leaves of the error's
 course through a program is the path's, which a network trained on one program learns and
 gets wrong on another; fitted on that course (within a minute, so that heat and drift stay
-out) it leaves less of the path (docs/results.md, "Two fits of the map").
+out) it leaves less of the path (docs/lab/programs_transfer.md, "Two fits of the map").
 
 The map is a TorchScript-able module: the exported model computes it from the raw window,
 so the node runs the same numbers as the trainer.

@@ -170,7 +170,7 @@ def network_columns(features: Sequence[str] = FEATURES, relative_errors: bool = 
     a `PairedNet` reads `paired_columns`; the level is the error's alone, not the map
     residual's: the residual's level carries what the residual map leaves of the machine's
     slow state, which a network validated on one recording learns and its next run does not
-    repeat (docs/results.md, "In distribution: the level the first network reads").
+    repeat (docs/lab/programs_transfer.md, "In distribution: the level the first network reads").
     'machine' (needs a map): the map residuals alone, relative, then with `error_level`
     again as they are: what the map leaves of the error is the machine's drift, noise and
     unmodelled dynamics, while the raw error and the motion columns also tell where the path

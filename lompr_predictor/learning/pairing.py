@@ -19,7 +19,7 @@ window's last row only, never their level, even where the tuned point gives the 
 error level: what the map leaves of the error's level carries the machine's slow state
 (heat, drift), which differs between programs and days, and read as input it took the
 generalist to 2.9 / 4.2x persistence on a held-out program of the warming machine
-(docs/results.md, "The map fitted on the error's changes"). Fine-tuning (`lompr train
+(docs/lab/programs_transfer.md, "The map fitted on the error's changes"). Fine-tuning (`lompr train
 --init`, online adaptation) trains both together, each on its own output.
 """
 

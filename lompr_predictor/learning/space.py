@@ -110,7 +110,8 @@ PAPER_SPACE = SearchSpace()
 #: the LSTM reads (the short ones: the default study's budget cannot afford long ones) and
 #: whether the network also sees the window's error level (`models.PredictorModule`: it
 #: helps under a slow drift, costs a little elsewhere, and the validation loss ranks the
-#: two as the test does, so the study chooses). The measurements are in docs/results.md.
+#: two as the test does, so the study chooses). The measurements are in
+#: docs/lab/training_presets.md.
 DEFAULT_SPACE = SearchSpace(batch_sizes=(128, 256, 512), hidden_units=(16, 32, 64),
                             learning_rates=(0.003, 0.01, 0.02),
                             weight_decays=(0.0, 1e-3, 1e-2), lstm_steps=(5, 10),
