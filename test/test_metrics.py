@@ -82,7 +82,9 @@ def test_standings_name_the_leader_and_the_bo_lstms_margin_by_hand() -> None:
     table = standings(models)
     assert table['x'] == {'leader': 'bo_lstm_generalist', 'best_baseline': 'ridge',
                           'best_baseline_rmse_um': 5.0, 'bo_lstm_rmse_um': 5.5,
-                          'bo_lstm_vs_best_baseline': pytest.approx(0.1)}
+                          'bo_lstm_vs_best_baseline': pytest.approx(0.1),
+                          'published': 'bo_lstm', 'published_rmse_um': 5.5,
+                          'published_vs_best_baseline': pytest.approx(0.1)}
     assert table['y']['leader'] == 'bo_lstm' and table['y']['best_baseline'] == 'ridge'
     assert table['y']['bo_lstm_vs_best_baseline'] == pytest.approx(-0.25)
     assert standing_text('x', table['x'], {'ridge': 'Ridge'}) == (
@@ -91,3 +93,21 @@ def test_standings_name_the_leader_and_the_bo_lstms_margin_by_hand() -> None:
     tie = standings(_models(persistence=(0.0, 1.0), bo_lstm=(0.0, 0.5)))['x']
     assert tie['bo_lstm_vs_best_baseline'] == 0.0
     assert standing_text('x', tie, {}) == 'X: the BO-LSTM ties persistence'
+
+
+def test_standings_say_what_each_axis_publishes_and_that_trees_cannot_be_exported() -> None:
+    """An axis published by the ridge: its test RMSE against the best baseline, said in the
+    line; where boosted trees lead what is published, the line says they cannot be
+    exported."""
+    models = _models(persistence=(10.0, 4.0), ridge=(5.0, 2.0), hgb=(4.0, 2.5),
+                     bo_lstm=(5.5, 2.2))
+    table = standings(models, {'x': 'ridge', 'y': 'ridge'})
+    assert table['x']['published'] == 'ridge' and table['x']['published_rmse_um'] == 5.0
+    assert table['x']['published_vs_best_baseline'] == pytest.approx(0.25)
+    assert table['y']['published_vs_best_baseline'] == 0.0
+    assert standing_text('x', table['x'], {'ridge': 'Ridge', 'hgb': 'HGB'}) == (
+        'X: HGB leads, the BO-LSTM 37.5 % behind it; Ridge published (lower validation '
+        'RMSE), 25.0 % behind HGB; HGB cannot be exported to TorchScript')
+    assert standing_text('y', table['y'], {'ridge': 'Ridge'}) == (
+        'Y: Ridge leads, the BO-LSTM 10.0 % behind it; Ridge published (lower validation '
+        'RMSE), as good as Ridge')

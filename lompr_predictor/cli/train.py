@@ -231,6 +231,7 @@ def _run(args: argparse.Namespace) -> int:
         result = train_predictor(config)
         write_outputs(config, result)
         print(summary_line(result.report))
+        print(published_line(result.report))
         warning = standing_warning(result.report)
         if warning:
             print(warning, file=sys.stderr)
@@ -254,6 +255,14 @@ def summary_line(report: dict[str, Any]) -> str:
             f"{tuning.get('epochs_run', 0)} epochs in all, "
             f"{tuning['trials_failed']} failed), {tuning['trials_run_now']} run now by "
             f"{len(tuning['local_workers'])} workers here; {split}")
+
+
+def published_line(report: dict[str, Any]) -> str:
+    """What the model file publishes per axis and why (`publishing.choose`)."""
+    labels = {'bo_lstm': 'the BO-LSTM', 'ridge': 'the ridge'}
+    return 'published: ' + '; '.join(
+        f"{axis.upper()} {labels.get(entry['model'], entry['model'])} ({entry['why']})"
+        for axis, entry in report['published'].items())
 
 
 def fine_tuning_line(report: dict[str, Any]) -> str:

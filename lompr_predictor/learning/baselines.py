@@ -47,6 +47,7 @@ from lompr_predictor.learning.models import (
     predict_rows,
 )
 from lompr_predictor.learning.options import MAX_EPOCHS, TrainSettings
+from lompr_predictor.learning.publishing import RidgeModule, rmse_um
 from lompr_predictor.learning.training import BP_MAX_EPOCHS, BP_PATIENCE, train_network
 from lompr_predictor.stamps import seconds_since
 
@@ -76,6 +77,9 @@ class Fitted:
 
     predict: Callable[[np.ndarray], np.ndarray]
     details: dict[str, Any] = field(default_factory=dict)
+    #: the same predictor as a raw-SI module of the model file's contract, where it has one
+    #: (the ridge: `publishing.RidgeModule`), which `lompr train` may publish
+    module: RidgeModule | None = None
 
 
 class Baseline(Protocol):
@@ -176,12 +180,11 @@ class Ridge:
         def standard(x: np.ndarray) -> np.ndarray:
             return (x - centre) / scale
 
-        scores = {}
-        for alpha in RIDGE_ALPHAS:
-            fitted = RidgeRegression(alpha=alpha).fit(standard(train_x), train_y)
-            scores[alpha] = float(np.mean((fitted.predict(standard(validation_x))
-                                           - validation_y) ** 2))
-        alpha = min(scores, key=lambda a: scores[a])
+        fits = {alpha: RidgeRegression(alpha=alpha).fit(standard(train_x), train_y)
+                for alpha in RIDGE_ALPHAS}
+        validation = {alpha: fitted.predict(standard(validation_x))
+                      for alpha, fitted in fits.items()}
+        alpha = min(validation, key=lambda a: float(np.mean((validation[a] - validation_y) ** 2)))
         fit_x, fit_y = _fit_parts(problem)
         model = RidgeRegression(alpha=alpha).fit(standard(fit_x), fit_y * 1e6)
 
@@ -189,9 +192,14 @@ class Ridge:
             change = model.predict(standard(flat_windows(problem, ends))) * 1e-6
             return problem.error[ends] + change
 
-        return Fitted(predict=predict, details={
+        module = RidgeModule(centre, scale, model.coef_, model.intercept_,
+                             error_columns(problem.features), len(problem.features))
+        return Fitted(predict=predict, module=module, details={
             'training_seconds': time.perf_counter() - started,
             'hyperparameters': {'alpha': alpha, 'alphas_tried': list(RIDGE_ALPHAS)},
+            # of the fit on the training part alone, at the penalty chosen: what
+            # `publishing.choose` compares with the network's
+            'validation_rmse_um': rmse_um(validation[alpha] * 1e-6, validation_y * 1e-6),
             'target': RESIDUAL_TARGET})
 
 

@@ -78,8 +78,10 @@ class PredictionWithCandidates(nn.Module):
 
 
 def is_paired(module: Any) -> bool:
-    """Whether a model's module (scripted or not) runs a `models.PairedNet`."""
-    return hasattr(getattr(module, 'net', None), 'generalist')
+    """Whether a model's module (scripted or not) runs a `models.PairedNet`, itself or as
+    the network of a `publishing.PublishedModule` (which says so in `paired`)."""
+    return bool(getattr(module, 'paired', False)) or hasattr(getattr(module, 'net', None),
+                                                              'generalist')
 
 
 def prediction_with_prior(module: Any) -> nn.Module | None:

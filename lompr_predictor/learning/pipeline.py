@@ -53,7 +53,9 @@ from lompr_predictor.errors import LomprError
 from lompr_predictor.learning.baselines import (
     BP,
     RESIDUAL_TARGET,
+    RIDGE,
     FitContext,
+    FittedBaseline,
     ScoredPredictions,
     beats,
     fit_baselines,
@@ -81,6 +83,13 @@ from lompr_predictor.learning.options import (
     study_options,
 )
 from lompr_predictor.learning.pairing import paired_module, train_generalist
+from lompr_predictor.learning.publishing import (
+    NETWORK,
+    Publication,
+    choose,
+    published_module,
+    rmse_um,
+)
 from lompr_predictor.learning.report import (
     base_report,
     irreducible_fields,
@@ -199,10 +208,11 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
                                      config.inputs.cleaning.gap_factor)
     models['bo_lstm'].update(training_seconds=tuned.training_seconds,
                              hyperparameters=tuned.params, target=RESIDUAL_TARGET)
-    report = _report(config, problem, data, sources, models, tuned)
+    publication = _publication(tuned.module, baselines[RIDGE.name], problem)
+    report = _report(config, problem, data, sources, models, tuned, publication)
     scoring_seconds = time.perf_counter() - scoring_started
     metadata = _model_metadata(config, problem, tuned, machine_map, chain, trained_on,
-                               models['bo_lstm']['metrics'], standings(models))
+                               models, publication, baselines[RIDGE.name])
     total = time.perf_counter() - started
     # where the time went; write_outputs adds writing_seconds
     report['timings'] = {'read_clean_fk_seconds': read_seconds,
@@ -218,8 +228,20 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     if config.test_inputs is not None:
         report['test_part'] = 'every window of the test bags: ' + ', '.join(
             config.test_inputs.bags)
-    return TrainingResult(module=tuned.module, metadata=metadata, report=report,
+    module = published_module(tuned.module, baselines[RIDGE.name].fitted.module, publication)
+    return TrainingResult(module=script_module(module), metadata=metadata, report=report,
                           test_part=scored)
+
+
+def _publication(network: Any, ridge: FittedBaseline,
+                 problem: LearningProblem) -> Publication:
+    """Per axis, the BO-LSTM or the ridge, by their RMSE on the validation part
+    (`publishing.choose`)."""
+    validation = problem.split.validation
+    actual = problem.error[validation + problem.horizon]
+    network_rmse = rmse_um(predict_rows(network, problem.rows, validation, problem.window),
+                           actual)
+    return choose({NETWORK: network_rmse, RIDGE.name: ridge.fitted.details['validation_rmse_um']})
 
 
 def network_predictions(module: Any, problem: LearningProblem) -> dict[str, np.ndarray]:
@@ -235,9 +257,16 @@ def network_predictions(module: Any, problem: LearningProblem) -> dict[str, np.n
 
 def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tuned,
                     machine_map: MachineMap | None, chain: KinematicChain,
-                    trained_on: list[BagSource], test_metrics: dict[str, Any],
-                    standing: dict[str, Any]) -> ModelMetadata:
-    """The metadata the model file carries (docs/interface.md, the model file)."""
+                    trained_on: list[BagSource], models: dict[str, dict[str, Any]],
+                    publication: Publication, ridge: FittedBaseline) -> ModelMetadata:
+    """The metadata the model file carries (docs/interface.md, the model file); the test
+    metrics are the BO-LSTM's, the standing says what each axis publishes."""
+    published = ({'published': dict(publication.choice),
+                  'ridge': {**ridge.fitted.details['hyperparameters'],
+                            'input': 'the flattened window, error columns relative to its '
+                                     'last row, then the last error, standardised',
+                            'target': RESIDUAL_TARGET}}
+                 if publication.model_type != 'lstm' else {})
     return ModelMetadata(
         features=problem.features, preview=problem.preview, window=problem.window,
         horizon=problem.horizon,
@@ -245,7 +274,7 @@ def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tu
         normalisation=normalisation_metadata(tuned.module, problem.error_low,
                                              problem.error_high, NORMALISATION['lstm'],
                                              problem.features),
-        model_type='lstm',
+        model_type=publication.model_type,
         hyperparameters={**tuned.params,  # every one, tuned or fixed (`SearchSpace.suggest`)
                          'architecture': ('two networks (every feature; the map residuals '
                                           'alone), each ' if is_paired(tuned.module) else '')
@@ -254,12 +283,13 @@ def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tu
                                          + (', on the machine map' if machine_map else ''),
                          'optimiser': 'AdamW, cosine learning-rate decay over max_epochs',
                          **recorded_options(config),
-                         'cleaning': vars(config.inputs.cleaning)},
+                         'cleaning': vars(config.inputs.cleaning), **published},
         robot_description_sha256=chain.sha256, robot=chain.metadata(),
         training_bags=tuple({'path': str(Path(s.path).resolve()), 'sha256': s.sha256}
                             for s in trained_on if not s.skipped_reason),
         seed=config.seed, library_versions=library_versions(),
-        test_metrics=test_metrics, standing=standing,
+        test_metrics=models['bo_lstm']['metrics'],
+        standing=standings(models, publication.choice),
         machine_map=machine_map.metadata() if machine_map is not None else {},
         envelope=fit_envelope(problem.rows[problem.split.training_rows()],
                               problem.features).to_metadata())
@@ -444,7 +474,7 @@ def _tune(config: TrainingConfig, problem: LearningProblem, machine_map: Machine
 
 def _report(config: TrainingConfig, problem: LearningProblem, data: CleanData,
             sources: list[BagSource], models: dict[str, dict[str, Any]],
-            tuned: _Tuned) -> dict[str, Any]:
+            tuned: _Tuned, publication: Publication) -> dict[str, Any]:
     report = base_report('train', problem, data, sources, config.inputs.cleaning)
     bp_seconds = models[BP.name]['training_seconds']
     report.update(
@@ -452,7 +482,8 @@ def _report(config: TrainingConfig, problem: LearningProblem, data: CleanData,
         ratios_to_bp=ratios(models['bo_lstm']['metrics'], models['bp']['metrics']),
         bo_lstm_beats={name: beats(models['bo_lstm']['metrics'], models[name]['metrics'])
                        for name in models if name != 'bo_lstm'},
-        standings=standings(models),
+        standings=standings(models, publication.choice),
+        published=publication.report(),
         training_time_ratio_lstm_to_bp=(tuned.training_seconds / bp_seconds
                                         if bp_seconds else None),
         tuning_time_ratio_to_bp=tuned.tuning_seconds / bp_seconds if bp_seconds else None,

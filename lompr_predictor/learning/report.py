@@ -142,8 +142,13 @@ def _standing_lines(report: Mapping[str, Any]) -> list[str]:
     if not standing:
         return []
     labels = {name: model_label(name, entry) for name, entry in report['models'].items()}
+    published = report.get('published', {})
     return ['## Who leads (test part, RMSE)', '',
-            *(f'- {standing_text(axis, standing[axis], labels)}' for axis in TARGETS), '']
+            *(f'- {standing_text(axis, standing[axis], labels)}' for axis in TARGETS), '',
+            *(['Published, per axis the model of the lower RMSE on the validation part: '
+               + '; '.join(f"{axis.upper()} {labels.get(entry['model'], entry['model'])} "
+                           f"({entry['why']})" for axis, entry in published.items()), '']
+              if published else [])]
 
 
 def _metric_tables(report: Mapping[str, Any]) -> list[str]:
