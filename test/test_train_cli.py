@@ -107,7 +107,14 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
                        'error_x', 'error_y']
     assert len(loaded.metadata.normalisation['feature_centre']) == len(FEATURES) + 4
     assert loaded.metadata.hyperparameters['network_inputs'] == 'paired'
-    generalist = loaded.module.net.machine_columns.tolist()
+    # each axis publishes the model of the lower validation RMSE: here, two epochs on a
+    # smooth error, the ridge on both (the network is then inside the file beside it)
+    assert {axis: entry['model'] for axis, entry in content['published'].items()} == {
+        'x': 'ridge', 'y': 'ridge'} == {axis: entry['published'] for axis, entry
+                                        in loaded.metadata.standing.items()}
+    assert loaded.metadata.model_type == 'ridge'
+    assert 'Published, per axis' in (report / 'report.md').read_text()
+    generalist = loaded.module.network.net.machine_columns.tolist()
     assert [columns[k] for k in generalist] == ['map_residual_x - last row',
                                                 'map_residual_y - last row']
     assert set(loaded.metadata.machine_map['branch_coefficients']) >= {'velocity',
