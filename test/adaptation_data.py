@@ -32,7 +32,7 @@ def train_parent(folder: Path, description: RobotDescription) -> Path:
     model = folder / 'parent.pt'
     assert lompr_main(['train', str(write_recording(folder / 'a', recording)), '--out',
                        str(model), '--report', str(folder / 'report_a'), *FAST,
-                       '--network-inputs', 'machine']) == 0
+                       '--network-inputs', 'machine', '--publish', 'bo_lstm']) == 0
     return model
 
 

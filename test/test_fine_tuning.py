@@ -56,7 +56,8 @@ def trained_parent(folder: Path, description: RobotDescription,
                                         reference=reference)
     model = folder / 'parent.pt'
     assert lompr_main(['train', str(write_recording(folder / 'a', trained_on)), '--out',
-                       str(model), '--report', str(folder / 'report_a'), *FAST, *options]) == 0
+                       str(model), '--report', str(folder / 'report_a'), *FAST, *options,
+                       '--publish', 'bo_lstm']) == 0  # a BO-LSTM to fine-tune
     lag = EXTRA_LAG * np.gradient(reference[:, :2], 0.04, axis=0)
     other, _ = synthetic_recording(description.geometry, SAMPLES, noise=2e-7, seed=1,
                                    reference=reference, offset=lag)

@@ -208,7 +208,8 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
                                      config.inputs.cleaning.gap_factor)
     models['bo_lstm'].update(training_seconds=tuned.training_seconds,
                              hyperparameters=tuned.params, target=RESIDUAL_TARGET)
-    publication = _publication(tuned.module, baselines[RIDGE.name], problem)
+    publication = _publication(tuned.module, baselines[RIDGE.name], problem,
+                               config.publish == NETWORK)
     report = _report(config, problem, data, sources, models, tuned, publication)
     scoring_seconds = time.perf_counter() - scoring_started
     metadata = _model_metadata(config, problem, tuned, machine_map, chain, trained_on,
@@ -233,15 +234,16 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
                           test_part=scored)
 
 
-def _publication(network: Any, ridge: FittedBaseline,
-                 problem: LearningProblem) -> Publication:
+def _publication(network: Any, ridge: FittedBaseline, problem: LearningProblem,
+                 network_only: bool) -> Publication:
     """Per axis, the BO-LSTM or the ridge, by their RMSE on the validation part
     (`publishing.choose`)."""
     validation = problem.split.validation
     actual = problem.error[validation + problem.horizon]
     network_rmse = rmse_um(predict_rows(network, problem.rows, validation, problem.window),
                            actual)
-    return choose({NETWORK: network_rmse, RIDGE.name: ridge.fitted.details['validation_rmse_um']})
+    return choose({NETWORK: network_rmse,
+                   RIDGE.name: ridge.fitted.details['validation_rmse_um']}, network_only)
 
 
 def network_predictions(module: Any, problem: LearningProblem) -> dict[str, np.ndarray]:

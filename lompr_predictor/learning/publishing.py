@@ -139,11 +139,14 @@ class Publication:
                 for axis in TARGETS}
 
 
-def choose(validation_rmse_um: Mapping[str, Mapping[str, float]]) -> Publication:
+def choose(validation_rmse_um: Mapping[str, Mapping[str, float]],
+           network_only: bool = False) -> Publication:
     """Per axis the ridge where its validation RMSE is strictly below the network's, else
-    the network (module docstring)."""
+    the network (module docstring); the network on every axis if `network_only` (a model
+    to fine-tune)."""
     network, ridge = validation_rmse_um[NETWORK], validation_rmse_um[RIDGE]
-    choice = {axis: RIDGE if ridge[axis] < network[axis] else NETWORK for axis in TARGETS}
+    choice = {axis: RIDGE if ridge[axis] < network[axis] and not network_only else NETWORK
+              for axis in TARGETS}
     return Publication(choice=choice, validation_rmse_um={
         name: {axis: float(values[axis]) for axis in TARGETS}
         for name, values in validation_rmse_um.items()})
