@@ -17,28 +17,22 @@ import numpy as np
 import pytest
 from adaptation_data import other_plant, train_parent
 
-from lompr_predictor.learning import model_file
-from lompr_predictor.learning.fine_tuning import FineTuneError
-from lompr_predictor.learning.model_file import ModelFileError, load_model, sidecar_path
-from lompr_predictor.monitoring import Level
-from lompr_predictor.online import adaptation, adaptation_attempt
-from lompr_predictor.online.adaptation import (
-    CANNOT_ADAPT,
+from lompr_predictor.adaptation import attempt as adaptation_attempt
+from lompr_predictor.adaptation import scheduler as adaptation
+from lompr_predictor.adaptation.attempt import AttemptRequest, attempt, decide
+from lompr_predictor.adaptation.outcome import AttemptOutcome, AttemptResult, Decision
+from lompr_predictor.adaptation.scheduler import (
     GRAPH_NAME,
     WORK_PREFIX,
     Adaptation,
     AdaptationSettings,
-    AttemptOutcome,
     ModelInForce,
     read_graph,
 )
-from lompr_predictor.online.adaptation_attempt import (
-    ACCEPTED,
-    REFUSED,
-    AttemptRequest,
-    attempt,
-    decide,
-)
+from lompr_predictor.learning import model_file
+from lompr_predictor.learning.fine_tuning import FineTuneError
+from lompr_predictor.learning.model_file import ModelFileError, load_model, sidecar_path
+from lompr_predictor.monitoring import Level
 from lompr_predictor.online.alignment import AlignedSample
 from lompr_predictor.online.inference import (
     TorchScriptBackend,
@@ -60,16 +54,16 @@ def settings(folder: Path, **changes: object) -> AdaptationSettings:
 
 def test_a_candidate_must_beat_the_model_in_force_by_the_margin() -> None:
     scores = {'bo_lstm': 8e-6, 'parent': 10e-6, 'persistence': 20e-6}
-    assert decide(scores, 0.2)[0] == ACCEPTED
+    assert decide(scores, 0.2)[0] == Decision.ACCEPTED
     decision, why = decide(scores, 0.25)  # 8 > 0.75 x 10
-    assert decision == REFUSED
+    assert decision == Decision.REFUSED
     assert why == "8.000 um RMS, not below 0.75 x the model in force's 10.000 um"
     # worse than persistence but better than the model in force: a step on the way (the
     # live guard answers with persistence meanwhile)
     decision, why = decide({**scores, 'persistence': 5e-6}, 0.05)
-    assert decision == ACCEPTED
+    assert decision == Decision.ACCEPTED
     assert why == '8.000 um RMS against 10.000 (in force) and 5.000 (persistence)'
-    assert decide({**scores, 'bo_lstm': float('nan')}, 0.0)[0] == REFUSED
+    assert decide({**scores, 'bo_lstm': float('nan')}, 0.0)[0] == Decision.REFUSED
 
 
 def test_with_no_margin_a_candidate_equal_to_the_model_in_force_is_refused() -> None:
@@ -77,9 +71,9 @@ def test_with_no_margin_a_candidate_equal_to_the_model_in_force_is_refused() -> 
     margin 0, which accepts any strictly better one."""
     scores = {'bo_lstm': 10e-6, 'parent': 10e-6, 'persistence': 20e-6}
     decision, why = decide(scores, 0.0)
-    assert decision == REFUSED
+    assert decision == Decision.REFUSED
     assert why == "10.000 um RMS, not below 1 x the model in force's 10.000 um"
-    assert decide({**scores, 'bo_lstm': 9.999e-6}, 0.0)[0] == ACCEPTED
+    assert decide({**scores, 'bo_lstm': 9.999e-6}, 0.0)[0] == Decision.ACCEPTED
 
 
 def test_the_model_in_force_s_weights_kept_are_refused_whatever_rounding_scores() -> None:
@@ -88,10 +82,10 @@ def test_the_model_in_force_s_weights_kept_are_refused_whatever_rounding_scores(
     refused even at margin 0, where the same weights, other numbers, are accepted."""
     rounding = {'bo_lstm': 10e-6 * (1 - 1e-15), 'parent': 10e-6, 'persistence': 20e-6}
     decision, why = decide(rounding, 0.0, kept_parent=True)
-    assert decision == REFUSED
+    assert decision == Decision.REFUSED
     assert why == ("the fine-tuning kept the model in force's weights (no epoch improved on "
                    'them): the same model')
-    assert decide(rounding, 0.0)[0] == ACCEPTED
+    assert decide(rounding, 0.0)[0] == Decision.ACCEPTED
 
 
 def test_an_attempt_is_due_after_a_period_of_the_clock_and_a_whole_data_window(
@@ -132,15 +126,15 @@ def test_old_models_are_deleted_beyond_the_number_kept_never_the_one_in_force(
 def test_each_attempt_is_logged_and_a_refused_swap_is_a_failure(tmp_path: Path) -> None:
     runs = Adaptation(settings(tmp_path))
     tmp_path.mkdir(exist_ok=True)
-    accepted = {'decision': 'accepted', 'reason': 'better', 'model_path': 'x.pt',
-                'model_sha256': 'ab', 'scores_um': {'bo_lstm': 1.0, 'parent': 2.0,
-                                                    'persistence': 3.0}}
-    runs.settle(AttemptOutcome(1, 5 * 10**9, 8 * 10**9, dict(accepted)), None, 'x.pt',
-                9 * 10**9)
-    runs.settle(AttemptOutcome(2, 9 * 10**9, 11 * 10**9, dict(accepted)), 'sha256 mismatch',
-                'x.pt', 12 * 10**9)
-    refused = {'decision': 'refused', 'reason': 'no'}
-    runs.settle(AttemptOutcome(3, 12 * 10**9, 15 * 10**9, refused), None, 'x.pt', 15 * 10**9)
+    accepted = AttemptResult.from_json({
+        'decision': 'accepted', 'reason': 'better', 'model_path': 'x.pt', 'model_sha256': 'ab',
+        'scores_um': {'bo_lstm': 1.0, 'parent': 2.0, 'persistence': 3.0}})
+    second = 10**9
+    runs.settle(AttemptOutcome(1, 5 * second, 8 * second, accepted), None, 'x.pt', 9 * second)
+    runs.settle(AttemptOutcome(2, 9 * second, 11 * second, accepted), 'sha256 mismatch',
+                'x.pt', 12 * second)
+    refused = AttemptResult.from_json({'decision': 'refused', 'reason': 'no'})
+    runs.settle(AttemptOutcome(3, 12 * second, 15 * second, refused), None, 'x.pt', 15 * second)
     lines = [json.loads(line) for line in (tmp_path / 'adaptation.jsonl').read_text()
              .splitlines()]
     assert [(e['attempt'], e['decision'], e['swapped']) for e in lines] == [
@@ -161,7 +155,7 @@ def test_a_model_that_cannot_be_fine_tuned_is_said_once_and_waited_out(
     """An attempt on a model the fine-tuning cannot take (here: not a BO-LSTM) ends with
     'cannot adapt' and why; then no attempt is due while that model is in force, and one
     is again for another model."""
-    def not_a_bo_lstm(samples: object, request: AttemptRequest) -> dict[str, object]:
+    def not_a_bo_lstm(samples: object, request: AttemptRequest) -> AttemptResult:
         raise FineTuneError(f'model {request.parent}: --init fine-tunes a BO-LSTM (model_type '
                             "lstm), this one is 'linear'")
 
@@ -176,14 +170,14 @@ def test_a_model_that_cannot_be_fine_tuned_is_said_once_and_waited_out(
             store.observe(_sample(k), (0.0, 0.0), None)
         assert adaptation_attempt.main(['--fd', str(store.fd), '--window-ns', str(10**10),
                                         '--request', json.dumps(request)]) == 0
-        document = json.loads((work / 'result.json').read_text())
-        assert document['decision'] == CANNOT_ADAPT and "this one is 'linear'" in document[
-            'reason'] and document['parent_sha256'] == 'ab'
+        result = AttemptResult.read(work / 'result.json')
+        assert result is not None and result.decision is Decision.CANNOT_ADAPT
+        assert "this one is 'linear'" in result.reason and result.parent_sha256 == 'ab'
         runs = Adaptation(settings(tmp_path, minutes=0.1, period=30.0))
         second = 10**9
         assert not runs.due(0, store, 0.04, 'ab')  # the period starts
         assert runs.due(30 * second, store, 0.04, 'ab')
-        runs.settle(AttemptOutcome(1, 30 * second, 40 * second, document), None, 'm.pt',
+        runs.settle(AttemptOutcome(1, 30 * second, 40 * second, result), None, 'm.pt',
                     40 * second)
         assert runs.state.cannot_adapt == 'ab'
         assert not runs.due(100 * second, store, 0.04, 'ab')  # that model: never again
@@ -219,7 +213,7 @@ def test_an_attempt_is_told_its_node_and_ends_at_once_without_it(
         runs.close()
         store.close()
     orphan = subprocess.run(  # its parent is this test, not the pid it is given
-        [sys.executable, '-m', 'lompr_predictor.online.adaptation_attempt', '--fd', '0',
+        [sys.executable, '-m', 'lompr_predictor.adaptation.attempt', '--fd', '0',
          '--window-ns', '1', '--request', '{}', '--parent-pid', '1'], capture_output=True,
         timeout=60, check=False)
     assert orphan.returncode == PARENT_GONE_EXIT and not orphan.stderr, orphan.stderr
@@ -245,7 +239,7 @@ def test_a_killed_attempt_is_a_failure_and_leaves_no_work_folder(
             time.sleep(0.05)
         assert outcome is not None and outcome.decision == 'failed'
         assert (outcome.started_clock_ns, outcome.ended_clock_ns) == (0, 7 * 10**9)
-        assert outcome.document['reason'] == 'the attempt process was killed by signal 9'
+        assert outcome.result.reason == 'the attempt process was killed by signal 9'
         assert runs.state.running_pid == 0
         assert not list((tmp_path / 'models').glob(WORK_PREFIX + '*'))
     finally:
@@ -265,9 +259,10 @@ def parent(tmp_path_factory: pytest.TempPathFactory, description: RobotDescripti
 
 @pytest.mark.slow
 @pytest.mark.parametrize(('margin', 'decision', 'exportable'),
-                         [(0.05, ACCEPTED, True), (0.9, REFUSED, True), (0.05, ACCEPTED, False)])
+                         [(0.05, Decision.ACCEPTED, True), (0.9, Decision.REFUSED, True),
+                          (0.05, Decision.ACCEPTED, False)])
 def test_an_attempt_writes_a_better_model_and_only_a_better_one(
-        parent: Path, tmp_path: Path, margin: float, decision: str, exportable: bool,
+        parent: Path, tmp_path: Path, margin: float, decision: Decision, exportable: bool,
         monkeypatch: pytest.MonkeyPatch) -> None:
     if not exportable:  # the model is still written; the node exports or falls back itself
         def refuse(*args: object) -> bytes:
@@ -277,22 +272,22 @@ def test_an_attempt_writes_a_better_model_and_only_a_better_one(
     samples = other_plant(900)
     models, work = tmp_path / 'models', tmp_path / 'work'
     work.mkdir()
-    document = attempt(samples, AttemptRequest(
+    result = attempt(samples, AttemptRequest(
         parent=str(parent), parent_sha256=loaded.sha256, models_folder=str(models),
         work_folder=str(work), margin=margin, max_epochs=6, info={'node': '/predictor_node'}))
-    scores = document['scores_um']
-    assert document['decision'] == decision, document
+    scores = result.scores_um
+    assert result.decision == decision, result
     # the parent does not know the new lag; the fine-tuned model learned it
     assert scores['bo_lstm'] < 0.5 * scores['parent'], scores
-    assert document['data']['samples'] == 900 and document['data']['span_seconds'] == (
+    assert result.data['samples'] == 900 and result.data['span_seconds'] == (
         pytest.approx(899 * 0.04))
-    if decision == REFUSED:
-        assert not models.exists() and document['model_path'] == ''
+    if decision == Decision.REFUSED:
+        assert not models.exists() and result.model_path == ''
         assert not (work / GRAPH_NAME).exists()
-        assert document['reason'].startswith(f'{scores["bo_lstm"]:.3f} um RMS, not below 0.1 x')
+        assert result.reason.startswith(f'{scores["bo_lstm"]:.3f} um RMS, not below 0.1 x')
         return
-    written = load_model(document['model_path'])  # verified by its sidecar
-    assert written.sha256 == document['model_sha256']
+    written = load_model(result.model_path)  # verified by its sidecar
+    assert written.sha256 == result.model_sha256
     if not exportable:
         assert not (work / GRAPH_NAME).exists()
         return
@@ -302,7 +297,7 @@ def test_an_attempt_writes_a_better_model_and_only_a_better_one(
     assert graph is not None and graph.outputs is not None
     np.testing.assert_array_equal(graph.outputs, reference_outputs(
         TorchScriptBackend(written), warm_up_windows(written)))
-    swapped = load_model(document['model_path'], sha256=written.sha256, compile_now=False)
+    swapped = load_model(result.model_path, sha256=written.sha256, compile_now=False)
     backend, why = select_backend(swapped, 'onnxruntime', graph)
     assert why is None and backend.name == 'onnxruntime' and 'module' not in vars(swapped)
     meta = written.metadata
@@ -312,7 +307,7 @@ def test_an_attempt_writes_a_better_model_and_only_a_better_one(
     assert data['first_stamp_ns'] == int(samples.stamps[0])
     assert data['last_stamp_ns'] == int(samples.stamps[-1])
     assert meta.training_bags[0]['path'] == 'sample store of /predictor_node'
-    assert np.isfinite(document['seconds'])
+    assert np.isfinite(result.seconds)
 
 
 class _Host:
@@ -353,12 +348,12 @@ def test_an_attempt_that_failed_across_a_reset_of_the_sample_time_names_it(
     try:
         runs = NodeAdaptation(host, node_store)  # type: ignore[arg-type]
         failed = {'decision': 'failed', 'reason': 'the machine map needs 120 instants'}
-        runs._collect(AttemptOutcome(1, 0, 10**9, dict(failed)))
+        runs._collect(AttemptOutcome(1, 0, 10**9, AttemptResult.from_json(failed)))
         assert runs.adaptation.state.last['reason'] == 'the machine map needs 120 instants'
         store.observe(_sample(10), (0.0, 0.0), None)
         store.observe(_sample(0), (0.0, 0.0), None)  # back in sample time: a restart
         assert store.restarts == 1
-        runs._collect(AttemptOutcome(2, 0, 10**9, dict(failed)))
+        runs._collect(AttemptOutcome(2, 0, 10**9, AttemptResult.from_json(failed)))
         assert runs.adaptation.state.last['reason'] == (
             'the sample time went back while it ran (a simulator reset?): the machine map '
             'needs 120 instants')

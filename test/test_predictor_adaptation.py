@@ -25,9 +25,10 @@ from rclpy.parameter import Parameter
 from ros_helpers import RosHarness, set_stamp, xy
 from test_predictor_node import HORIZON, WINDOW, Wiring
 
+from lompr_predictor.adaptation.outcome import AttemptOutcome, AttemptResult
+from lompr_predictor.adaptation.scheduler import LOG_NAME, WORK_PREFIX
 from lompr_predictor.learning.model_file import load_model
 from lompr_predictor.online import model_loader
-from lompr_predictor.online.adaptation import LOG_NAME, WORK_PREFIX, AttemptOutcome
 from lompr_predictor.online.alignment import AlignedSample
 from lompr_predictor.online.guard import GuardState, LiveGuard
 from lompr_predictor.online.inference import ExportedGraph
@@ -89,9 +90,9 @@ def collect(wiring: Wiring, outcome: AttemptOutcome) -> dict[str, Any]:
 
 def accepted_outcome(number: int, parent_sha256: str, model: Path) -> AttemptOutcome:
     """An attempt that wrote `model` from the model whose digest is `parent_sha256`."""
-    return AttemptOutcome(number, 0, 0, {
+    return AttemptOutcome(number, 0, 0, AttemptResult.from_json({
         'decision': 'accepted', 'reason': 'better', 'parent_sha256': parent_sha256,
-        'model_path': str(model), 'model_sha256': load_model(model).sha256})
+        'model_path': str(model), 'model_sha256': load_model(model).sha256}))
 
 
 def wait_status(wiring: Wiring, condition: Any, what: str, timeout: float = 30.0

@@ -2,8 +2,8 @@
 """The predictor node's online adaptation on ROS: a timer of the node's clock that starts
 attempts when due, collects them, and swaps an accepted model in.
 
-The attempts and their bookkeeping are ROS-free (`online.adaptation`, the child process
-`online.adaptation_attempt`); this is the node's side. An accepted model is made ready
+The attempts and their bookkeeping are ROS-free (`adaptation.scheduler`, the child process
+`adaptation.attempt`); this is the node's side. An accepted model is made ready
 beside the sample path (`model_loader.SwapInBackground`: the node's own verification, the
 check against the running model and the warm-up of every swap), then swapped in by setting
 `model_path` and `model_sha256` (the digest the attempt wrote, so the bytes loaded are
@@ -22,14 +22,9 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.parameter import Parameter
 from rclpy.timer import Timer
 
+from lompr_predictor.adaptation.outcome import AttemptOutcome, Decision
+from lompr_predictor.adaptation.scheduler import Adaptation, ModelInForce
 from lompr_predictor.monitoring import Level, Status
-from lompr_predictor.online.adaptation import (
-    ACCEPTED,
-    FAILED,
-    Adaptation,
-    AttemptOutcome,
-    ModelInForce,
-)
 from lompr_predictor.online.model_loader import ReadyModel, SwapInBackground
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.ros.predictor_settings import PredictorNodeSettings
@@ -137,12 +132,13 @@ class NodeAdaptation:
         beside the sample path (swapped in by a later tick); any other outcome is
         recorded now."""
         running = self._node.running
-        if outcome.decision == FAILED and self._store.store.restarts != self._restarts_at_start:
-            outcome.document['reason'] = ('the sample time went back while it ran (a simulator '
-                                          f"reset?): {outcome.document.get('reason', '')}")
-        if outcome.decision != ACCEPTED:
+        restarted = self._store.store.restarts != self._restarts_at_start
+        if outcome.decision is Decision.FAILED and restarted:
+            outcome.with_reason('the sample time went back while it ran (a simulator reset?): '
+                                f'{outcome.result.reason}')
+        if outcome.decision is not Decision.ACCEPTED:
             self._settle(outcome, None)
-        elif running is None or outcome.document.get('parent_sha256') != running.model.sha256:
+        elif running is None or outcome.result.parent_sha256 != running.model.sha256:
             self._settle(outcome, self._changed())
         else:
             path, digest = outcome.model
@@ -181,7 +177,7 @@ class NodeAdaptation:
         self.adaptation.settle(outcome, swap_error, node.core.model.path, node.clock_ns())
         entry = self.adaptation.state.last
         text = f'adaptation attempt {entry["attempt"]} {entry["decision"]}: {entry["reason"]}'
-        if entry['decision'] == FAILED:
+        if entry['decision'] == Decision.FAILED:
             node.get_logger().warning(text)
         else:
             node.get_logger().info(text)

@@ -9,8 +9,8 @@ from dataclasses import dataclass, fields
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from nav_msgs.msg import Path
 
+from lompr_predictor.adaptation.scheduler import AdaptationSettings
 from lompr_predictor.learning.model_file import check_sha256_text
-from lompr_predictor.online.adaptation import AdaptationSettings
 from lompr_predictor.online.faults import StreamSettings
 from lompr_predictor.online.guard import DEFAULT_GUARD, GuardSettings
 from lompr_predictor.online.inference import Backend

@@ -1,7 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
-"""One adaptation attempt, the child process the predictor node starts (`adaptation`).
+"""One adaptation attempt, the child process the predictor node starts (`scheduler`).
 
-`python -m lompr_predictor.online.adaptation_attempt --fd N --request JSON` runs below the
+`python -m lompr_predictor.adaptation.attempt --fd N --request JSON` runs below the
 node's priority and on one CPU (the node lowers it as it starts, `scheduling.lower_job`:
 whatever threads its libraries start), on one torch thread: it reads the newest data
 window of the node's sample store through the ring's inherited descriptor
@@ -50,16 +50,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from lompr_predictor.adaptation.outcome import AttemptResult, Decision
+from lompr_predictor.adaptation.scheduler import GRAPH_NAME, GRAPH_OUTPUTS_NAME, RESULT_JSON
 from lompr_predictor.errors import LomprError
 from lompr_predictor.files import file_sha256, write_atomic, write_json
-from lompr_predictor.online.adaptation import (
-    ACCEPTED,
-    CANNOT_ADAPT,
-    GRAPH_NAME,
-    GRAPH_OUTPUTS_NAME,
-    REFUSED,
-    RESULT_JSON,
-)
 from lompr_predictor.online.sample_store import StoredSamples, read_ring
 from lompr_predictor.processes import end_with_parent
 from lompr_predictor.robot.chain import RobotSpec
@@ -105,7 +99,7 @@ def held_out_scores(result: TrainingResult) -> dict[str, float]:
 
 
 def decide(scores: Mapping[str, float], margin: float,
-           kept_parent: bool = False) -> tuple[str, str]:
+           kept_parent: bool = False) -> tuple[Decision, str]:
     """(decision, why): accepted only if the candidate's RMS is below the model in force's
     and at most (1 - margin) times it (with a margin of 0 a candidate that only equals it,
     its parent's weights kept, would be swapped in again and again), and it is not the
@@ -115,12 +109,12 @@ def decide(scores: Mapping[str, float], margin: float,
     required."""
     candidate, in_force = scores[CANDIDATE], scores[IN_FORCE]
     if kept_parent:
-        return REFUSED, ("the fine-tuning kept the model in force's weights (no epoch "
+        return Decision.REFUSED, ("the fine-tuning kept the model in force's weights (no epoch "
                          'improved on them): the same model')
     if not (candidate < in_force and candidate <= (1.0 - margin) * in_force):
-        return REFUSED, (f'{candidate * 1e6:.3f} um RMS, not below {1.0 - margin:g} x '
+        return Decision.REFUSED, (f'{candidate * 1e6:.3f} um RMS, not below {1.0 - margin:g} x '
                          f"the model in force's {in_force * 1e6:.3f} um")
-    return ACCEPTED, (f'{candidate * 1e6:.3f} um RMS against {in_force * 1e6:.3f} '
+    return Decision.ACCEPTED, (f'{candidate * 1e6:.3f} um RMS against {in_force * 1e6:.3f} '
                       f'(in force) and {scores[PERSISTENCE] * 1e6:.3f} (persistence)')
 
 
@@ -152,9 +146,9 @@ def adapted_metadata(metadata: ModelMetadata, data: Mapping[str, Any]) -> ModelM
         hyperparameters={**metadata.hyperparameters, 'fine_tuning': {**tuning, 'data': data}})
 
 
-def attempt(samples: StoredSamples, request: AttemptRequest) -> dict[str, Any]:
+def attempt(samples: StoredSamples, request: AttemptRequest) -> AttemptResult:
     """Fine-tune, score, decide, and write the model if accepted (module docstring); the
-    result document. `LomprError` (one line) when the samples cannot make a fine-tuning."""
+    result. `LomprError` (one line) when the samples cannot make a fine-tuning."""
     from lompr_predictor.data.loading import BagInputs
     from lompr_predictor.learning.fine_tuning import fine_tune_predictor, parent_settings
     from lompr_predictor.learning.pipeline import TrainingConfig
@@ -179,19 +173,17 @@ def attempt(samples: StoredSamples, request: AttemptRequest) -> dict[str, Any]:
     scores = held_out_scores(result)
     decision, why = decide(scores, request.margin, kept_parent=bool(
         tuning['kept_the_parent_weights'] and tuning['machine_map']['decision'] == 'kept'))
-    document: dict[str, Any] = {
-        'decision': decision, 'reason': why, 'parent': request.parent,
-        'parent_sha256': request.parent_sha256,
-        'scores_um': {name: value * 1e6 for name, value in scores.items()},
-        'held_out_seconds': float(result.test_part.seconds[-1]) if len(
-            result.test_part.seconds) else 0.0,
-        'epochs': tuning['epochs'], 'best_epoch': tuning['best_epoch'], 'data': data,
-        'model_path': '', 'model_sha256': ''}
-    if decision == ACCEPTED:
-        path, digest = write_accepted(result, data, request)
-        document.update(model_path=str(path), model_sha256=digest)
-    document['seconds'] = time.perf_counter() - started
-    return document
+    path, digest = '', ''
+    if decision is Decision.ACCEPTED:
+        written, digest = write_accepted(result, data, request)
+        path = str(written)
+    seconds = result.test_part.seconds
+    return AttemptResult(
+        decision, why, request.parent, request.parent_sha256,
+        scores_um={name: value * 1e6 for name, value in scores.items()},
+        held_out_seconds=float(seconds[-1]) if len(seconds) else 0.0,
+        epochs=tuning['epochs'], best_epoch=tuning['best_epoch'], data=data,
+        model_path=path, model_sha256=digest, seconds=time.perf_counter() - started)
 
 
 def write_accepted(result: TrainingResult, data: Mapping[str, Any],
@@ -248,11 +240,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             set_torch_threads(1)
             request = AttemptRequest(**json.loads(args.request))
             try:
-                document = attempt(read_ring(args.fd, args.window_ns), request)
+                result = attempt(read_ring(args.fd, args.window_ns), request)
             except FineTuneError as err:  # the model, not the data: no attempt can do better
-                document = {'decision': CANNOT_ADAPT, 'reason': str(err),
-                            'parent': request.parent, 'parent_sha256': request.parent_sha256}
-        write_json(Path(request.work_folder) / RESULT_JSON, {**document, 'cpu': use.summary()})
+                result = AttemptResult(Decision.CANNOT_ADAPT, str(err), request.parent,
+                                       request.parent_sha256)
+        write_json(Path(request.work_folder) / RESULT_JSON,
+                   dataclasses.replace(result, cpu=use.summary()).to_json())
     except (LomprError, OSError, ValueError, TypeError) as err:
         print(err, file=sys.stderr)
         return 1

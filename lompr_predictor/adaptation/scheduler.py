@@ -2,13 +2,13 @@
 """Online adaptation, the node's side (ROS-free): when an attempt is due, starting it as a
 child process, collecting its outcome, the log, and the models kept.
 
-An attempt (`adaptation_attempt`, run with `python -m`: the node's process never loads the
+An attempt (`attempt`, run with `python -m`: the node's process never loads the
 trainer) fine-tunes the model in force on the newest data window of the sample store and
 writes a new model file only if it scores better by the margin. `Adaptation` decides when
 one is due (a period of sample time since the last one started, and a store that holds a
 whole data window: the node's clock, so simulated time counts as the samples do), starts
 it with the store ring's descriptor (the node's cost is starting a process; the child reads
-the ring while the node writes on), and collects how it ended (`poll`): its document, or,
+the ring while the node writes on), and collects how it ended (`poll`): its result (`outcome`), or,
 for a process that died or was killed, why. The node then swaps an accepted model in
 through its own verification (the hot swap of `model_path`, prepared beside the sample
 path) and hands the swap's outcome to `settle`, which appends the attempt to the log
@@ -33,31 +33,26 @@ from typing import Any
 
 import numpy as np
 
+from lompr_predictor.adaptation.outcome import AttemptOutcome, AttemptResult, Decision
 from lompr_predictor.monitoring import Level, Status
 from lompr_predictor.online.inference import ExportedGraph
 from lompr_predictor.online.sample_store import NS_PER_MINUTE, SampleStore, capacity_for
 from lompr_predictor.scheduling import lower_job
 
 #: The child's module (run with `-m`, never imported here: it loads the trainer).
-ATTEMPT_MODULE = 'lompr_predictor.online.adaptation_attempt'
+ATTEMPT_MODULE = 'lompr_predictor.adaptation.attempt'
 #: In the models folder: the log, and each attempt's work folder (prefix).
 LOG_NAME = 'adaptation.jsonl'
 WORK_PREFIX = '.attempt-'
 #: The attempt's document, an accepted model's ONNX graph and the outputs of its module on
 #: the warm-up batch (`inference.ExportedGraph`), and its stderr, in its work folder
-#: (`adaptation_attempt`).
+#: (`attempt`).
 RESULT_JSON = 'result.json'
 GRAPH_NAME = 'candidate.onnx'
 GRAPH_OUTPUTS_NAME = 'candidate_outputs.npy'
 STDERR_NAME = 'stderr.txt'
-#: Adapted model files (`adaptation_attempt.new_model_path`).
+#: Adapted model files (`attempt.new_model_path`).
 MODEL_GLOB = 'adapted-*.pt'
-#: Decisions (the attempt's `accepted` and `refused`, and one that did not end).
-ACCEPTED, REFUSED, FAILED = 'accepted', 'refused', 'failed'
-#: The decision of an attempt whose model in force cannot be fine-tuned at all (not a
-#: BO-LSTM, its network not rebuildable): no attempt runs again until another model is in
-#: force.
-CANNOT_ADAPT = 'cannot adapt'
 
 
 @dataclass(frozen=True)
@@ -88,28 +83,6 @@ class ModelInForce:
     sha256: str
     robot_description: str | None  # URDF file; None: the packaged one
     frame: str
-
-
-@dataclass
-class AttemptOutcome:
-    """How one attempt ended: its document (decision, reason, scores, new model), or
-    `failed` and why."""
-
-    number: int
-    started_clock_ns: int  # the node's clock when it started...
-    ended_clock_ns: int  # ... and when its end was seen
-    document: dict[str, Any]
-    graph: ExportedGraph | None = None  # an accepted model's, exported by the attempt
-
-    @property
-    def decision(self) -> str:
-        return str(self.document.get('decision', FAILED))
-
-    @property
-    def model(self) -> tuple[str, str]:
-        """(path, sha256) of the model it wrote ('' , '' : none)."""
-        return str(self.document.get('model_path', '')), str(self.document.get('model_sha256',
-                                                                               ''))
 
 
 @dataclass
@@ -190,15 +163,14 @@ class Adaptation:
         process, work = self._process, self._work
         if process is None or work is None or process.poll() is None:
             return None
-        document = _read_document(work / RESULT_JSON)
-        if document is None:
-            document = {'decision': FAILED, 'reason': _why_it_failed(process.returncode, work)}
-        graph = read_graph(work) if document['decision'] == ACCEPTED else None
+        result = AttemptResult.read(work / RESULT_JSON)
+        if result is None:
+            result = AttemptResult.failed(_why_it_failed(process.returncode, work))
+        graph = read_graph(work) if result.decision is Decision.ACCEPTED else None
         self._process = self._work = None
         self.state.running_pid = 0
         shutil.rmtree(work, ignore_errors=True)
-        return AttemptOutcome(self.state.attempts, self._started_ns or 0, now_ns, document,
-                              graph)
+        return AttemptOutcome(self.state.attempts, self._started_ns or 0, now_ns, result, graph)
 
     def settle(self, outcome: AttemptOutcome, swap_error: str | None, in_force: str,
                now_ns: int) -> None:
@@ -206,22 +178,21 @@ class Adaptation:
         accepted model was not swapped in (None: it was, or there was none to swap); the log
         line; the models kept (`in_force`, the model file the node runs, is never
         deleted)."""
-        decision = outcome.decision
-        if decision == ACCEPTED and swap_error is not None:
-            decision = FAILED
-            outcome.document['reason'] = f'not swapped in: {swap_error}'
-        state = self.state
-        if decision == CANNOT_ADAPT:  # said once; the node waits for another model
-            state.cannot_adapt = str(outcome.document.get('parent_sha256', ''))
-        counter = {ACCEPTED: 'accepted', REFUSED: 'refused'}.get(decision, 'failed')
+        if outcome.decision is Decision.ACCEPTED and swap_error is not None:
+            outcome.with_reason(f'not swapped in: {swap_error}', Decision.FAILED)
+        decision, state = outcome.decision, self.state
+        if decision is Decision.CANNOT_ADAPT:  # said once; the node waits for another model
+            state.cannot_adapt = outcome.result.parent_sha256
+        counter = {Decision.ACCEPTED: 'accepted', Decision.REFUSED: 'refused'}.get(decision,
+                                                                                  'failed')
         setattr(state, counter, getattr(state, counter) + 1)
-        state.swaps += decision == ACCEPTED
+        state.swaps += decision is Decision.ACCEPTED
         entry = {'attempt': outcome.number,
                  'time_utc': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
                  'clock_started_s': outcome.started_clock_ns * 1e-9,
                  'clock_ended_s': outcome.ended_clock_ns * 1e-9,
                  'clock_settled_s': now_ns * 1e-9,  # the model swapped in, or not
-                 **outcome.document, 'decision': decision, 'swapped': decision == ACCEPTED}
+                 **outcome.result.to_json(), 'swapped': decision is Decision.ACCEPTED}
         state.last = entry
         with self.log_path.open('a', encoding='utf-8') as log:
             log.write(json.dumps(entry, sort_keys=True) + '\n')
@@ -274,7 +245,8 @@ class Adaptation:
         if not last:
             return Status(Level.OK, running or 'waiting for the first attempt', values)
         summary = f'attempt {last["attempt"]} {last["decision"]}: {last.get("reason", "")}'
-        return Status(Level.WARN if last['decision'] in (FAILED, CANNOT_ADAPT) else Level.OK,
+        trouble = last['decision'] in (Decision.FAILED, Decision.CANNOT_ADAPT)
+        return Status(Level.WARN if trouble else Level.OK,
                       f'{running}; last: {summary}' if running else summary, values)
 
     def _remove_work_folders(self) -> None:
@@ -298,15 +270,6 @@ def _process_alive(pid: str) -> bool:
     except PermissionError:  # another user's process
         return True
     return True
-
-
-def _read_document(path: Path) -> dict[str, Any] | None:
-    """The attempt's result document, None if it wrote none."""
-    try:
-        document = json.loads(path.read_text(encoding='utf-8'))
-    except (OSError, ValueError):
-        return None
-    return document if isinstance(document, dict) else None
 
 
 def read_graph(work: Path) -> ExportedGraph | None:
