@@ -26,7 +26,7 @@ def test_a_result_goes_through_its_document_unchanged(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(('document', 'reason'), [
     ([1, 2], 'the attempt wrote no result document'),
-    ({'reason': 'x'}, "the attempt wrote an unknown decision None"),
+    ({'reason': 'x'}, 'the attempt wrote an unknown decision None'),
     ({'decision': 'maybe'}, "the attempt wrote an unknown decision 'maybe'"),
     ({'decision': 'refused'}, 'the attempt wrote an unreadable result: '),
 ])
