@@ -17,21 +17,16 @@ beside it, into the models folder; its metadata names the model it came from
 (`parent_sha256`) and the data it learned (`hyperparameters.fine_tuning.data`: the node,
 the samples and the sample time they span).
 
-An accepted model's ONNX graph (`model_file.export_onnx` of the file as written, with its
-priors, as the node's backend exports it) goes beside the document (`candidate.onnx`), with
-what the file's own TorchScript module gives on the backends' warm-up batch
-(`candidate_outputs.npy`): the node's swap takes the graph instead of exporting in its own
-process, where an export would hold the interpreter from the sample path for most of half a
-second, and checks it against those outputs as it checks its own export against its module,
-whose compile (tens of milliseconds holding the interpreter) it then need not run.
+An accepted model's ONNX graph (`model_file.export_onnx`, with its priors) goes beside the
+result (`candidate.onnx`), with what the file's TorchScript module gives on the backends'
+warm-up batch (`candidate_outputs.npy`): the node's swap takes the graph instead of holding
+its interpreter for an export, and checks it against those outputs.
 
-The outcome is one JSON document (`result.json` in the attempt's work folder, written
-atomically last), which the node reads once the process has ended: the decision, the scores,
-the new file and the cores the attempt used (`threads.CoreUse`: in all, and the most of any
-second; a process beside the nodes must never take more than one). Nothing else of the
-attempt outlives it: the bag and the work folder are the node's to delete, and the attempt
-ends with the node's process however that ends (`processes.end_with_parent`). The node never
-imports this module (nor the trainer it loads).
+The outcome is one `outcome.AttemptResult` (`result.json` in the work folder, written
+atomically last, with the cores the attempt used: `threads.CoreUse`), which the node reads
+once the process has ended. Nothing else of the attempt outlives it: the work folder is the
+node's to delete, and the attempt ends with the node's process however that ends
+(`processes.end_with_parent`). The node never imports this module (nor the trainer).
 """
 
 from __future__ import annotations
