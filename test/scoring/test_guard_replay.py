@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_online_guard import HORIZON, LEAD, PERIOD, _run, _settings, _walk
+from guard_streams import HORIZON, LEAD, PERIOD, guard_rules, random_walk, run_guard
 
 from lompr_predictor.online.guard import GuardState, LiveGuard
 from lompr_predictor.scoring.guard_replay import ANSWERING, replay_guard
@@ -23,11 +23,11 @@ def test_replay_publishes_what_the_guard_publishes_sample_by_sample() -> None:
     """A model better than persistence, then worse on X for a while, then better again: the
     replay hands to the model, over and back at the same instants as the guard fed in the
     node's order (a sample's truth, then the prediction from its window)."""
-    truth = _walk(900, seed=11)
+    truth = random_walk(900, seed=11)
     model_error = np.random.default_rng(12).normal(0.0, 0.3e-6, truth.shape)
     model_error[100:400, 0] = 4e-6
-    settings = _settings(window_instants=40, min_scored=20, dwell_instants=30)
-    online = _run(LiveGuard(settings, LEAD, PERIOD), truth, model_error)[:-HORIZON]
+    settings = guard_rules(window_instants=40, min_scored=20, dwell_instants=30)
+    online = run_guard(LiveGuard(settings, LEAD, PERIOD), truth, model_error)[:-HORIZON]
     replay = replay_guard(LiveGuard(settings, LEAD, PERIOD), *_instants(truth, model_error))
     np.testing.assert_array_equal(replay.published, online)
     assert replay.hand_overs == (1, 0) and replay.hand_backs == (2, 1)
@@ -44,10 +44,10 @@ def test_a_gap_forgets_the_predictions_awaiting_their_truth() -> None:
     """Two runs 10 s apart: the predictions of the first run's last instants never meet a
     truth, the second run's are scored from its own truths on, and the live scores carry
     over (a model worse on X is still held back right after the gap)."""
-    truth = _walk(600, seed=13)
+    truth = random_walk(600, seed=13)
     model_error = np.zeros_like(truth)
     model_error[:, 0] = 5e-6
-    settings = _settings(min_scored=20, dwell_instants=10)
+    settings = guard_rules(min_scored=20, dwell_instants=10)
     first = _instants(truth[:300], model_error[:300])
     second = _instants(truth[300:], model_error[300:], start_ns=310 * PERIOD + 10**10)
     guard = LiveGuard(settings, LEAD, PERIOD)
@@ -61,10 +61,10 @@ def test_a_gap_forgets_the_predictions_awaiting_their_truth() -> None:
 
 
 def test_rows_outside_the_envelope_are_counted_and_held_back() -> None:
-    truth = _walk(300, seed=14)
+    truth = random_walk(300, seed=14)
     inside = np.ones(len(truth) - HORIZON, dtype=bool)
     inside[100:160] = False
-    settings = _settings(window_instants=10, envelope_fraction=0.5, dwell_instants=0)
+    settings = guard_rules(window_instants=10, envelope_fraction=0.5, dwell_instants=0)
     replay = replay_guard(LiveGuard(settings, LEAD, PERIOD),
                           *_instants(truth, np.zeros_like(truth)), inside)
     assert replay.outside_envelope == 60
@@ -81,13 +81,13 @@ def test_replay_with_a_prior_publishes_what_the_guard_publishes() -> None:
     """The model worse on X for a while, its prior better than persistence throughout: the
     replay hands X to the prior and back at the node's instants, and counts the prior's
     share."""
-    truth = _walk(900, seed=15)
+    truth = random_walk(900, seed=15)
     rng = np.random.default_rng(16)
     model_error = rng.normal(0.0, 0.2e-6, truth.shape)
     model_error[100:400, 0] = 4e-6
     prior_error = rng.normal(0.0, 0.5e-6, truth.shape)
-    settings = _settings(window_instants=40, min_scored=20, dwell_instants=30)
-    online = _run(LiveGuard(settings, LEAD, PERIOD), truth, model_error,
+    settings = guard_rules(window_instants=40, min_scored=20, dwell_instants=30)
+    online = run_guard(LiveGuard(settings, LEAD, PERIOD), truth, model_error,
                   prior_error=prior_error)[:-HORIZON]
     replay = replay_guard(LiveGuard(settings, LEAD, PERIOD), *_instants(truth, model_error),
                           prior=(truth + prior_error)[HORIZON:])

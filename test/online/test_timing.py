@@ -12,7 +12,7 @@ from typing import cast
 import pytest
 import torch
 from model_helpers import save_constant
-from test_online import HORIZON, PERIOD_NS, T0, WINDOW, Z, spiral_xy, stream
+from test_predictor import HORIZON, PERIOD_NS, T0, WINDOW, Z, spiral_xy, stream
 
 from lompr_predictor.learning.model_file import (
     ExportedModule,

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from fake_clock import FakeClock
 from model_helpers import save_constant
-from test_online import HORIZON, NEEDED, PERIOD_NS, WINDOW, feed, limits, spiral, stream
+from test_predictor import HORIZON, NEEDED, PERIOD_NS, WINDOW, feed, limits, spiral, stream
 
 from lompr_predictor.cli import main as lompr_main
 from lompr_predictor.data.bags import bag_sha256, read_recording, write_recording

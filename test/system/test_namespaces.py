@@ -22,7 +22,7 @@ from lompr_predictor.ros.predictor_node import PredictorNode
 
 pytestmark = pytest.mark.ros
 NAMESPACE = '/cell1'
-CONFIG = Path(__file__).resolve().parents[1] / 'lompr_predictor' / 'config'
+CONFIG = Path(__file__).resolve().parents[2] / 'lompr_predictor' / 'config'
 
 
 def test_both_nodes_in_a_namespace_with_a_params_file(ros: RosHarness, tmp_path: Path) -> None:

@@ -11,7 +11,7 @@ import pytest
 import torch
 from fake_clock import FakeClock
 from model_helpers import save_constant, save_linear
-from test_online import stream
+from test_predictor import stream
 
 from lompr_predictor.data.features import feature_names, feature_rows, with_preview
 from lompr_predictor.learning.model_file import LoadedModel, MetadataMismatchError, load_model

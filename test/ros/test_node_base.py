@@ -320,7 +320,7 @@ def test_parameter_files_hold_the_declared_defaults(node: str) -> None:
                      'predictor_node': 'PredictorNodeSettings',
                      'command_compensator_node': 'CommandCompensatorSettings'}[node]
     specs = parameter_specs(getattr(module, settings_type))
-    path = Path(__file__).parents[1] / 'lompr_predictor' / 'config' / f'{node}.yaml'
+    path = Path(__file__).parents[2] / 'lompr_predictor' / 'config' / f'{node}.yaml'
     values = _flatten('', yaml.safe_load(path.read_text())[f'/**/{node}']['ros__parameters'])
     assert values == {name: spec.ros_default for name, spec in specs.items()}
 

@@ -12,8 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_train_cli import FAST
-from trainer_data import lissajous_reference, synthetic_recording
+from trainer_data import FAST, lissajous_reference, synthetic_recording
 
 from lompr_predictor.cli import main as lompr_main
 from lompr_predictor.data.bags import read_recording, write_recording
@@ -239,7 +238,7 @@ def test_a_parent_that_does_not_fit_is_one_line(
 def test_another_robot_or_a_model_that_is_no_bo_lstm_is_refused(
         parent: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     model, bag = parent
-    urdf = Path(__file__).parents[1] / 'lompr_predictor' / 'description' / 'lompr.urdf'
+    urdf = Path(__file__).parents[2] / 'lompr_predictor' / 'description' / 'lompr.urdf'
     other = tmp_path / 'other.urdf'
     other.write_text(urdf.read_text().replace('<robot name="lompr"', '<robot name="lompr2"'))
     base = ['train', str(bag), '--out', str(tmp_path / 'm.pt'), '--report', str(tmp_path / 'r'),

@@ -15,7 +15,7 @@ import pytest
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 PACKAGE = 'lompr_predictor'
 EXECUTABLES = ('kinematics_node', 'predictor_node', 'twin_node', 'command_compensator_node',
                'lompr')

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from fake_clock import FakeClock
 from model_helpers import save_linear
-from test_online import (
+from test_predictor import (
     HORIZON,
     NEEDED,
     PERIOD_NS,

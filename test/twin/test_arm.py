@@ -105,7 +105,7 @@ def test_the_urdf_is_a_six_joint_arm_from_arm_base_to_tool0(model: pin.Model) ->
 def test_the_urdf_is_packaged_by_setup_py() -> None:
     path = arm_description_path()
     assert path.is_file()
-    setup = (Path(__file__).resolve().parents[1] / 'setup.py').read_text()
+    setup = (Path(__file__).resolve().parents[2] / 'setup.py').read_text()
     assert "'description/*.urdf'" in setup
     assert fnmatch.fnmatch(f'description/{path.name}', 'description/*.urdf')
 

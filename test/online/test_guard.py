@@ -13,75 +13,29 @@ from typing import Any
 
 import numpy as np
 import pytest
+from guard_streams import HORIZON, LEAD, PERIOD, guard_rules, random_walk, run_guard
 
 from lompr_predictor.learning.envelope import InputEnvelope, fit_envelope
 from lompr_predictor.online.alignment import AlignedSample
 from lompr_predictor.online.guard import (
     AxisStatus,
     GuardReason,
-    GuardSettings,
     GuardState,
     LiveGuard,
 )
-
-PERIOD = 40_000_000
-HORIZON = 2
-LEAD = HORIZON * PERIOD
-PERIOD_S = PERIOD * 1e-9
-
-
-def _settings(window_instants: float = 250, dwell_instants: float = 50,
-              **changes: object) -> GuardSettings:
-    """Rules of the guard with `changes`, its window and dwell given in instants of the
-    tests' stream (`PERIOD`)."""
-    rules: dict[str, object] = {'enabled': True, 'window': window_instants * PERIOD_S,
-                                'margin': 0.05, 'min_dwell': dwell_instants * PERIOD_S,
-                                'min_scored': 50, 'envelope_fraction': 0.2}
-    return GuardSettings(**{**rules, **changes})  # type: ignore[arg-type]
-
-
-def _run(guard: LiveGuard, truth: np.ndarray, model_error: np.ndarray,
-         inside: np.ndarray | None = None, prior_error: np.ndarray | None = None,
-         map_error: np.ndarray | None = None) -> np.ndarray:
-    """Feed a plant error series `truth` (N, 2); the model predicts each instant's truth plus
-    `model_error` (N, 2), its prior the truth plus `prior_error` (None: the model has
-    no prior), a paired model's map prior the truth plus `map_error` (None: none),
-    persistence the truth HORIZON samples before. Returns the published predictions (N,
-    2), NaN until the first."""
-    published = np.full_like(truth, np.nan)
-    for k in range(len(truth)):
-        stamp = k * PERIOD
-        error = (float(truth[k, 0]), float(truth[k, 1]))
-        guard.observe(AlignedSample(stamp, *error, 0.0, 0.0, 1.1), error, None)
-        if k + HORIZON < len(truth):
-            target = truth[k + HORIZON] + model_error[k + HORIZON]
-            prior, map_prior = (None if errors is None else
-                                tuple(map(float, truth[k + HORIZON] + errors[k + HORIZON]))
-                                for errors in (prior_error, map_error))
-            published[k] = guard.choose(stamp + LEAD, (float(target[0]), float(target[1])),
-                                        (float(truth[k, 0]), float(truth[k, 1])),
-                                        True if inside is None else bool(inside[k]),
-                                        prior, map_prior)  # type: ignore[arg-type]
-    return published
-
-
-def _walk(count: int, seed: int = 0) -> np.ndarray:
-    """A plant error that changes by 1 um per sample on average: persistence misses by
-    about sqrt(HORIZON) um."""
-    return np.cumsum(np.random.default_rng(seed).normal(0.0, 1e-6, (count, 2)), axis=0)
 
 
 def test_a_model_better_than_persistence_earns_both_axes_and_keeps_them() -> None:
     """Persistence answers until the first decision (`min_scored` scores, `min_dwell` from
     the start), then the model, better by far, on both axes to the end."""
-    settings = _settings(min_scored=50, dwell_instants=50)
+    settings = guard_rules(min_scored=50, dwell_instants=50)
     guard = LiveGuard(settings, LEAD, PERIOD)
     x, y = guard.status()
     assert x.state is y.state is GuardState.PERSISTENCE and guard.holding
     assert x.reason is y.reason is GuardReason.UNPROVEN
-    truth = _walk(600)
+    truth = random_walk(600)
     model_error = np.random.default_rng(1).normal(0.0, 0.2e-6, truth.shape)
-    published = _run(guard, truth, model_error)
+    published = run_guard(guard, truth, model_error)
     # scored from the instant HORIZON on: the first decision comes with the 50th score
     earned = settings.min_scored + HORIZON - 1
     np.testing.assert_array_equal(published[:earned], truth[:earned])
@@ -101,12 +55,12 @@ def test_an_axis_where_the_model_is_worse_stays_with_persistence() -> None:
     """X of the model misses by 5 um, Y by 0.2 um: X never earns control (the first
     decision names the reason), Y does; the published X is the last plant error
     (persistence's) throughout."""
-    settings = _settings(min_scored=50, dwell_instants=50)
+    settings = guard_rules(min_scored=50, dwell_instants=50)
     guard = LiveGuard(settings, LEAD, PERIOD)
-    truth = _walk(400, seed=2)
+    truth = random_walk(400, seed=2)
     model_error = np.random.default_rng(3).normal(0.0, 0.2e-6, truth.shape)
     model_error[:, 0] = 5e-6
-    published = _run(guard, truth, model_error)
+    published = run_guard(guard, truth, model_error)
     x, y = guard.status()
     assert x.state is GuardState.PERSISTENCE and x.reason is GuardReason.WORSE_THAN_PERSISTENCE
     assert y.state is GuardState.MODEL and y.reason is None
@@ -125,12 +79,12 @@ def test_a_model_within_the_margin_of_persistence_never_earns_control(
         ratio: float, reason: GuardReason) -> None:
     """A model whose every residual is `ratio` x persistence's, inside the margin: the
     model never answers; the reason says whether it is worse or only not better enough."""
-    settings = _settings(margin=0.05, min_scored=50, dwell_instants=50)
+    settings = guard_rules(margin=0.05, min_scored=50, dwell_instants=50)
     guard = LiveGuard(settings, LEAD, PERIOD)
-    truth = _walk(300, seed=7)
+    truth = random_walk(300, seed=7)
     model_error = np.zeros_like(truth)
     model_error[HORIZON:] = -ratio * (truth[HORIZON:] - truth[:-HORIZON])
-    published = _run(guard, truth, model_error)
+    published = run_guard(guard, truth, model_error)
     np.testing.assert_array_equal(published[:-HORIZON], truth[:-HORIZON])
     x, y = guard.status()
     assert x.state is y.state is GuardState.PERSISTENCE and x.reason is y.reason is reason
@@ -142,12 +96,12 @@ def test_hand_over_is_at_once_and_hand_back_needs_the_margin_and_the_dwell() -> 
     """Better, worse, better: the axis is handed over as soon as the model's weighted RMS
     exceeds persistence's (the dwell since it earned control has passed) and comes back
     once below (1 - margin) x persistence's and `min_dwell` has passed, not before."""
-    settings = _settings(window_instants=20, margin=0.1, min_scored=10, dwell_instants=100)
+    settings = guard_rules(window_instants=20, margin=0.1, min_scored=10, dwell_instants=100)
     guard = LiveGuard(settings, LEAD, PERIOD)
-    truth = _walk(1000, seed=4)
+    truth = random_walk(1000, seed=4)
     model_error = np.zeros_like(truth)
     model_error[300:600] = 6e-6  # far worse than persistence (~1.4 um)
-    published = _run(guard, truth, model_error)
+    published = run_guard(guard, truth, model_error)
     x, _ = guard.status()
     assert x.hand_overs == 1 and x.hand_backs == 2 and x.state is GuardState.MODEL
     from_model = published[:-HORIZON, 0] == (truth + model_error)[HORIZON:, 0]
@@ -167,14 +121,14 @@ def test_the_prior_answers_where_the_model_is_worse_and_it_is_better_than_persis
     """X of the model misses by 5 um, its prior by 0.3 um, persistence by ~1.4 um: X goes to
     the prior (its value published, the reason naming it); Y, where the model beats both,
     stays with the model."""
-    settings = _settings(min_scored=50, dwell_instants=50)
+    settings = guard_rules(min_scored=50, dwell_instants=50)
     guard = LiveGuard(settings, LEAD, PERIOD)
-    truth = _walk(400, seed=8)
+    truth = random_walk(400, seed=8)
     rng = np.random.default_rng(9)
     model_error = rng.normal(0.0, 0.1e-6, truth.shape)
     model_error[:, 0] = 5e-6
     prior_error = rng.normal(0.0, 0.3e-6, truth.shape)
-    published = _run(guard, truth, model_error, prior_error=prior_error)
+    published = run_guard(guard, truth, model_error, prior_error=prior_error)
     x, y = guard.status()
     assert x.state is GuardState.PRIOR and x.reason is GuardReason.WORSE_THAN_PRIOR
     assert y.state is GuardState.MODEL and x.hand_overs == y.hand_overs == 0
@@ -192,13 +146,13 @@ def test_of_a_paired_models_two_priors_the_better_live_answers() -> None:
     """The model misses by 5 um; its generalist (the prior) by 1.0 um on X and 0.3 um on Y,
     its map prior by 0.3 um on X and 1.0 um on Y, persistence by ~1.4 um: X is answered by
     the map prior, Y by the generalist, each the value published; both scored."""
-    guard = LiveGuard(_settings(min_scored=50, dwell_instants=50), LEAD, PERIOD)
-    truth = _walk(400, seed=8)
+    guard = LiveGuard(guard_rules(min_scored=50, dwell_instants=50), LEAD, PERIOD)
+    truth = random_walk(400, seed=8)
     rng = np.random.default_rng(11)
     model_error = np.full(truth.shape, 5e-6)
     prior_error = rng.normal(0.0, 1.0, truth.shape) * np.array([1.0e-6, 0.3e-6])
     map_error = rng.normal(0.0, 1.0, truth.shape) * np.array([0.3e-6, 1.0e-6])
-    published = _run(guard, truth, model_error, prior_error=prior_error, map_error=map_error)
+    published = run_guard(guard, truth, model_error, prior_error=prior_error, map_error=map_error)
     x, y = guard.status()
     assert x.state is y.state is GuardState.PRIOR
     assert x.reason is y.reason is GuardReason.WORSE_THAN_PRIOR
@@ -214,12 +168,12 @@ def test_a_model_better_than_persistence_but_worse_than_its_prior_is_handed_to_i
     """The model's network adds 0.6 um of misses to a prior that misses by 0.2 um, both far
     better than persistence: the prior takes both axes (what the network learned does not
     hold here)."""
-    guard = LiveGuard(_settings(min_scored=50, dwell_instants=50), LEAD, PERIOD)
-    truth = _walk(400, seed=10)
+    guard = LiveGuard(guard_rules(min_scored=50, dwell_instants=50), LEAD, PERIOD)
+    truth = random_walk(400, seed=10)
     rng = np.random.default_rng(11)
     prior_error = rng.normal(0.0, 0.2e-6, truth.shape)
     model_error = prior_error + rng.normal(0.0, 0.6e-6, truth.shape)
-    _run(guard, truth, model_error, prior_error=prior_error)
+    run_guard(guard, truth, model_error, prior_error=prior_error)
     x, y = guard.status()
     assert x.state is y.state is GuardState.PRIOR
     assert x.model_rms < x.persistence_rms and x.prior_rms < x.model_rms
@@ -230,9 +184,9 @@ def test_a_prior_no_better_than_persistence_is_passed_over_and_left_when_worse()
     persistence does (~1.4 um), so persistence answers (the prior must be better by the
     margin); then the prior misses by 0.2 um and takes over; then by 4 um and persistence
     takes back. Switches between the fallbacks are no hand-backs to the model."""
-    settings = _settings(window_instants=20, min_scored=10, dwell_instants=20)
+    settings = guard_rules(window_instants=20, min_scored=10, dwell_instants=20)
     guard = LiveGuard(settings, LEAD, PERIOD)
-    truth = _walk(900, seed=12)
+    truth = random_walk(900, seed=12)
     rng = np.random.default_rng(13)
     model_error = np.full_like(truth, 5e-6)
     prior_error = np.empty_like(truth)
@@ -258,12 +212,12 @@ def test_a_prior_no_better_than_persistence_is_passed_over_and_left_when_worse()
 
 
 def test_rows_outside_the_envelope_hold_the_model_back() -> None:
-    settings = _settings(window_instants=10, envelope_fraction=0.5, dwell_instants=0)
+    settings = guard_rules(window_instants=10, envelope_fraction=0.5, dwell_instants=0)
     guard = LiveGuard(settings, LEAD, PERIOD)
-    truth = _walk(200, seed=5)
+    truth = random_walk(200, seed=5)
     inside = np.ones(len(truth), dtype=bool)
     inside[100:150] = False
-    published = _run(guard, truth, np.zeros_like(truth), inside)
+    published = run_guard(guard, truth, np.zeros_like(truth), inside)
     held = published[:-HORIZON, 0] == truth[:-HORIZON, 0]
     # unproven until the first decision (the 50th score, instant 51), then the model
     earned = settings.min_scored + HORIZON - 1
@@ -275,10 +229,10 @@ def test_rows_outside_the_envelope_hold_the_model_back() -> None:
 
 
 def test_disabled_guard_publishes_the_model_and_still_reports() -> None:
-    guard = LiveGuard(_settings(enabled=False, min_scored=10, dwell_instants=10), LEAD, PERIOD)
-    truth = _walk(200, seed=6)
+    guard = LiveGuard(guard_rules(enabled=False, min_scored=10, dwell_instants=10), LEAD, PERIOD)
+    truth = random_walk(200, seed=6)
     model_error = np.full_like(truth, 5e-6)
-    published = _run(guard, truth, model_error)
+    published = run_guard(guard, truth, model_error)
     np.testing.assert_array_equal(published[:-HORIZON], (truth + model_error)[HORIZON:])
     assert guard.holding  # what the guard would do, for diagnostics
     assert guard.published_fallback == 0
@@ -290,14 +244,14 @@ def test_a_new_model_starts_unproven_and_an_adapted_one_inherits_the_choice() ->
     axes back on persistence, unproven, scores fresh. An adapted model (`inherit`): X stays
     with the model, Y with persistence for the reason it had, scores fresh; the first
     predictions after it are published accordingly."""
-    settings = _settings(min_scored=50, dwell_instants=50)
-    truth = _walk(300, seed=22)
+    settings = guard_rules(min_scored=50, dwell_instants=50)
+    truth = random_walk(300, seed=22)
     model_error = np.random.default_rng(23).normal(0.0, 0.2e-6, truth.shape)
     model_error[:, 1] = 5e-6
     guards = []
     for inherit in (False, True):
         guard = LiveGuard(settings, LEAD, PERIOD)
-        _run(guard, truth, model_error)
+        run_guard(guard, truth, model_error)
         assert guard.answering == (GuardState.MODEL, GuardState.PERSISTENCE)
         guard.restart(inherit=inherit)
         assert guard.scored == 0 and guard.holding
@@ -320,9 +274,9 @@ def test_a_new_model_starts_unproven_and_an_adapted_one_inherits_the_choice() ->
 
 def test_settings_are_checked() -> None:
     with pytest.raises(ValueError, match='margin'):
-        _settings(margin=1.0)
+        guard_rules(margin=1.0)
     with pytest.raises(ValueError, match='window'):
-        _settings(window_instants=0)
+        guard_rules(window_instants=0)
 
 
 def test_envelope_is_the_widened_training_range_of_the_motion_columns() -> None:
@@ -365,9 +319,9 @@ def _mixed_run(guard: LiveGuard) -> list[Any]:
         if k in {2500, 6000}:
             guard.clear()
         if k == 3000:
-            guard.settings = _settings(enabled=False, window_instants=40, dwell_instants=15)
+            guard.settings = guard_rules(enabled=False, window_instants=40, dwell_instants=15)
         if k == 3500:
-            guard.settings = _settings(window_instants=80, margin=0.2, dwell_instants=30)
+            guard.settings = guard_rules(window_instants=80, margin=0.2, dwell_instants=30)
         if rng.random() < 0.02:
             continue  # a dropped sample: its instant never meets its truth
         stamp = k * PERIOD
@@ -401,7 +355,7 @@ def test_decisions_on_a_long_mixed_stream_are_those_pinned() -> None:
     one method call per axis and sample, the envelope compared through `operator.le`; the
     hash taken over the statuses' fields of then): a faster guard, and the guard of a model
     without a prior, must decide alike."""
-    outcome = _mixed_run(LiveGuard(_settings(window_instants=60, dwell_instants=20), LEAD,
+    outcome = _mixed_run(LiveGuard(guard_rules(window_instants=60, dwell_instants=20), LEAD,
                                    PERIOD))
     held_x, held_y, scored, persisted = outcome[:4]  # before the new model
     assert held_x[0] is held_y[0] is GuardState.PERSISTENCE

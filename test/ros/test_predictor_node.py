@@ -66,7 +66,7 @@ PERIOD_NS = 40_000_000
 T0 = 1_000_000_000_000
 WINDOW, HORIZON = 4, 3
 NEEDED = WINDOW + HISTORY
-PARAMS_FILE = Path(__file__).parents[1] / 'lompr_predictor' / 'config' / 'predictor_node.yaml'
+PARAMS_FILE = Path(__file__).parents[2] / 'lompr_predictor' / 'config' / 'predictor_node.yaml'
 
 
 def spiral_recording(description: RobotDescription, samples: int,

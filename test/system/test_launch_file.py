@@ -1,6 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
 """launch/lompr.launch.xml and rviz/lompr.rviz name only what the package has: executables,
-parameters, files, arguments (test_launch_run.py runs the launch file)."""
+parameters, files, arguments (system/test_launch_run.py runs the launch file)."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from lompr_predictor.ros.common import ROSOUT_QOS
 from lompr_predictor.ros.launch_site import root_link, site_parameters
 from lompr_predictor.ros.parameters import parameter_specs
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 LAUNCH = ROOT / 'launch' / 'lompr.launch.xml'
 VIEW = ROOT / 'launch' / 'lompr_view.launch.py'
 RVIZ = ROOT / 'rviz' / 'lompr.rviz'

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fake_clock import FakeClock
+from guard_streams import HORIZON, LEAD, PERIOD, guard_rules, random_walk, run_guard
 from model_helpers import save_constant
-from test_online import stream
-from test_online_guard import HORIZON, LEAD, PERIOD, _run, _settings, _walk
+from test_predictor import stream
 
 from lompr_predictor.data.features import HISTORY
 from lompr_predictor.learning.model_file import load_model
@@ -233,14 +233,14 @@ def test_a_model_unproven_for_a_whole_window_is_a_warning() -> None:
     the guard status is OK while fewer than a window of instants were scored (the start of
     every model), WARN after, naming the axes; the state stays `persistence`, `unproven`."""
     window = 100  # instants
-    settings = _settings(window_instants=window, min_scored=10, dwell_instants=10)
-    truth = _walk(window + HORIZON + 20, seed=21)
+    settings = guard_rules(window_instants=window, min_scored=10, dwell_instants=10)
+    truth = random_walk(window + HORIZON + 20, seed=21)
     model_error = np.zeros_like(truth)
     model_error[HORIZON:] = -0.97 * (truth[HORIZON:] - truth[:-HORIZON])
     statuses = []
     for count in (window, len(truth)):  # scored: a window less HORIZON, then past it
         guard = LiveGuard(settings, LEAD, PERIOD)
-        _run(guard, truth[:count], model_error[:count])
+        run_guard(guard, truth[:count], model_error[:count])
         statuses.append(guard_status(ACTIVE, guard, envelope=False))
     early, late = statuses
     assert early.level is Level.OK

@@ -209,7 +209,7 @@ def test_too_many_faults_are_refused() -> None:
 
 
 def test_sample_bag_is_what_its_command_makes(description: RobotDescription) -> None:
-    bag = Path(__file__).resolve().parents[1] / 'bags' / 'twin_spiral_seed1_3passes'
+    bag = Path(__file__).resolve().parents[2] / 'bags' / 'twin_spiral_seed1_3passes'
     recording = read_recording(bag)
     truth, document = read_ground_truth(bag)
     assert (document['passes'], document['seed'], document['path']) == (3, 1, 'spiral')
