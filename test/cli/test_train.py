@@ -139,13 +139,13 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
                                                    rmse['model_prior'])
     scored_text = (scored / 'report.md').read_text()
     assert '## Live guard' in scored_text
-    assert 'None' not in scored_text  # an evaluation has no sidecar to name
-    assert f"sha256 `{evaluation['model_sha256']}` (pin it on" in scored_text
+    assert 'None' not in scored_text
     assert evaluation['split']['test'] == 1200 - 2 - 8 + 1 - 2
     # the hash file evaluate checked the model against, named as train names it
     sidecar = str(model.resolve()) + '.sha256'
     assert evaluation['model_sha256_file'] == content['model_sha256_file'] == sidecar
-    assert f'(also in `{sidecar}`; pin it' in (scored / 'report.md').read_text()
+    assert (f"sha256 `{evaluation['model_sha256']}` (also in `{sidecar}`; pin it"
+            in scored_text)
 
 
 @pytest.mark.faults
