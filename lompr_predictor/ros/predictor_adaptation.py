@@ -25,7 +25,8 @@ from rclpy.timer import Timer
 from lompr_predictor.adaptation.outcome import AttemptOutcome, Decision
 from lompr_predictor.adaptation.scheduler import Adaptation, ModelInForce
 from lompr_predictor.monitoring import Level, Status
-from lompr_predictor.online.model_loader import ReadyModel, SwapInBackground
+from lompr_predictor.online.model_loader import SwapInBackground
+from lompr_predictor.online.model_manager import ModelManager
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.ros.predictor_settings import PredictorNodeSettings
 from lompr_predictor.ros.predictor_store import NodeSampleStore
@@ -39,9 +40,7 @@ class AdaptationHost(Protocol):
 
     settings: PredictorNodeSettings
     sample_period: float
-    running: ReadyModel | None  # the model the core runs
-    #: Set while an adapted model is swapped in: the model prepared, and the guard's choice stays.
-    adapted: SwapInBackground | None
+    models: ModelManager  # the model running; an adapted one is offered to it
 
     @property
     def core(self) -> OnlinePredictor: ...
@@ -131,7 +130,7 @@ class NodeAdaptation:
         """An attempt that ended: an accepted model from the model in force is prepared
         beside the sample path (swapped in by a later tick); any other outcome is
         recorded now."""
-        running = self._node.running
+        running = self._node.models.running
         restarted = self._store.store.restarts != self._restarts_at_start
         if outcome.decision is Decision.FAILED and restarted:
             outcome.with_reason('the sample time went back while it ran (a simulator reset?): '
@@ -153,18 +152,18 @@ class NodeAdaptation:
             return
         self._swapping = None
         node = self._node
-        if node.running is not prepared.running:  # an operator's swap while it loaded
+        if node.models.running is not prepared.running:  # an operator's swap while it loaded
             self._settle(outcome, self._changed())
             return
-        # shown better than the model in force on the node's own recent samples, it keeps
-        # the live guard's choice of each axis (`LiveGuard.restart`)
-        node.adapted = prepared
+        # offered, the change of parameters takes the model prepared (and the guard keeps
+        # each axis's choice: `ModelManager`)
+        node.models.offer(prepared)
         try:
             result = node.set_parameters_atomically([
                 Parameter('model_path', value=prepared.path),
                 Parameter('model_sha256', value=prepared.sha256)])
         finally:
-            node.adapted = None
+            node.models.offer(None)
         self._settle(outcome, None if result.successful else result.reason)
 
     def _changed(self) -> str:

@@ -13,7 +13,6 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import replace
 from typing import Any
 
 from rclpy.clock import ClockChange, JumpThreshold, TimeJump
@@ -25,16 +24,10 @@ from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import LatencyRecorder
 from lompr_predictor.online.guard import LiveGuard
 from lompr_predictor.online.inference import Backend
-from lompr_predictor.online.model_loader import (
-    ModelRequest,
-    ReadyModel,
-    SwapInBackground,
-    expected_metadata,
-    load_ready_model,
-    prepare_swap,
-)
+from lompr_predictor.online.model_loader import ModelRequest, expected_metadata
+from lompr_predictor.online.model_manager import Configured, ModelManager, SwapOrigin
 from lompr_predictor.online.predictor import OnlinePredictor
-from lompr_predictor.online.predictor_status import Lifecycle, ModelHistory
+from lompr_predictor.online.predictor_status import Lifecycle
 from lompr_predictor.online.sample_store import SampleStoreError
 from lompr_predictor.online.stage_timing import StageHistograms, time_stages
 from lompr_predictor.robot.chain import description_sha256
@@ -87,10 +80,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self.sample_store: NodeSampleStore | None = None  # while configured, if one is kept
         self.adaptation: NodeAdaptation | None = None  # while configured, if enabled
         self.sample_period = 0.0  # [s] the parameter, else the first model's: later ones fit
-        self.running: ReadyModel | None = None  # the model the core runs
-        self._candidate: ReadyModel | None = None  # accepted, swapped in by apply_settings
-        self.adapted: SwapInBackground | None = None  # an adaptation's swap, prepared (inherits)
-        self.history = ModelHistory()
+        self.models = ModelManager()  # the model running, a change waiting, the history
         self.end_pose_in_process = False  # end poses by `read_end_pose` (pipeline), not topic
         self.clock_jumps_back = 0
         self._clock_started = False
@@ -167,23 +157,15 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             sha256 = description_sha256(settings.robot_description_file or None)
         except LomprError as err:
             return err
-        outcome = load_ready_model(ModelRequest(
+        loaded = self.models.configure(ModelRequest(
             settings.model_path, expected_metadata(sha256, settings.window, settings.horizon),
             settings.sample_period, settings.model_sha256, settings.verify_model_hash,
-            HASH_HINT, Backend(settings.inference_backend), settings.robot))
-        if outcome.ready is None:
-            return outcome.error
-        self.running = ready = outcome.ready
-        fallback = None
-        if settings.fallback_model_path and ready.model.metadata.preview:
-            fallback_outcome = load_ready_model(
-                ready.fallback_request(settings.fallback_model_path, FALLBACK_HASH_HINT))
-            if fallback_outcome.ready is None:
-                return fallback_outcome.error
-            fallback = fallback_outcome.ready
+            HASH_HINT, Backend(settings.inference_backend), settings.robot),
+            settings.fallback_model_path, FALLBACK_HASH_HINT)
+        if not isinstance(loaded, Configured):
+            return loaded
+        ready, fallback = loaded.model, loaded.fallback
         self.sample_period = ready.sample_period
-        self.history = replace(self.history, warm_up_seconds=ready.warm_up_seconds,
-                               backend_why=ready.backend_why)
         self.model_guard = LiveGuard.for_stream(settings.guard, ready.model.metadata.horizon,
                                                 self.sample_period)
         try:
@@ -222,7 +204,8 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self.destroy_owned()
         self.outputs.detach()
         self._let_go_store()
-        self._core = self.running = self._candidate = self.model_guard = None
+        self.models.release()
+        self._core = self.model_guard = None
 
     def destroy_node(self) -> None:
         self._jump_handle.unregister()
@@ -279,17 +262,12 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
     def validate_settings(self, changes: dict[str, Any]) -> str | None:
         """Configured: load, check and warm a new model beside the running one; refuse a
         bad one. Unconfigured: the next configure loads it."""
-        self._candidate = None
-        if self.running is None:
-            return None
         path = changes.get('model_path')
         sha256 = changes.get('model_sha256', '' if path is None else self.settings.model_sha256)
-        outcome = prepare_swap(self.running, path, sha256, self.adapted)
-        if outcome.error is not None and path is not None:
-            self.history = replace(self.history, reload_error=outcome.reason)
-            self.get_logger().error(f'model not swapped: {outcome.reason}')
-        self._candidate = outcome.ready
-        return outcome.reason
+        reason = self.models.validate(path, sha256)
+        if reason is not None and path is not None:
+            self.get_logger().error(f'model not swapped: {reason}')
+        return reason
 
     def apply_settings(self, previous: PredictorNodeSettings, changed: frozenset[str]) -> None:
         """Take accepted changes: new limits, the model validated in `validate_settings`."""
@@ -300,13 +278,12 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         outputs = self._core.set_limits(self.settings.limits)
         if self.active:
             self.outputs.publish(outputs, time.perf_counter())
-        candidate = self._candidate
-        if 'model_path' in changed and candidate is not None:
-            self._core.replace_model(candidate.model, candidate.backend)
-            self.model_guard.restart(inherit=self.adapted is not None)  # else it earns its place
-            self.running, self._candidate = candidate, None
-            self.history = replace(self.history, swaps=self.history.swaps + 1,
-                                   reload_error=None, backend_why=candidate.backend_why)
+        swap = self.models.take() if 'model_path' in changed else None
+        if swap is not None:
+            self._core.replace_model(swap.ready.model, swap.ready.backend)
+            # an adaptation's model was shown better than the one in force on this
+            # machine's samples: each axis keeps the guard's choice; any other earns its place
+            self.model_guard.restart(inherit=swap.origin is SwapOrigin.ADAPTATION)
             self.get_logger().info(f'model swapped: now {self._core.model.path} '
                                    f'(sha256 {self._core.model.sha256[:16]})')
 
@@ -322,7 +299,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             'dropped_inactive': self.inputs.dropped_inactive}
         return PredictorReadings(
             Lifecycle(self.lifecycle_state, settings.autostart, self.configure_error),
-            settings, self._core, self.model_guard, self.history, clock_values,
+            settings, self._core, self.model_guard, self.models.history, clock_values,
             self.callback_values(), self.sample_store, self.adaptation)
 
 

@@ -40,6 +40,7 @@ from lompr_predictor.online.inference import (
     select_backend,
     warm_up_windows,
 )
+from lompr_predictor.online.model_manager import ModelManager
 from lompr_predictor.online.sample_store import SampleStore
 from lompr_predictor.processes import PARENT_GONE_EXIT
 from lompr_predictor.robot.description import RobotDescription
@@ -320,7 +321,7 @@ class _Host:
 
         self.settings = dataclasses.replace(PredictorNodeSettings(), adaptation_enabled=True,
                                             adaptation_folder=str(folder))
-        self.running = None
+        self.models = ModelManager()
         self.core = type('Core', (), {'model': type('Model', (), {'path': 'm.pt'})()})()
         self.messages: list[str] = []
         self.get_logger = lambda: type('Log', (), {'warning': self.messages.append,

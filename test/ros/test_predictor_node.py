@@ -615,7 +615,7 @@ def test_the_node_refuses_an_unverified_model_at_start_and_reports_the_hash(
     # a hot swap to a file whose hash does not check out keeps the running model
     (result,) = node.set_parameters([Parameter('model_path', value=str(bare))])
     assert not result.successful and 'no hash to check it against' in result.reason
-    assert node.core.model.sha256 == digest and node.history.swaps == 0
+    assert node.core.model.sha256 == digest and node.models.history.swaps == 0
     node.destroy_node()
     loose = ros.add(PredictorNode(context=ros.context, node_name='loose', parameter_overrides=[
         Parameter('model_path', value=str(bare)), Parameter('verify_model_hash', value=False)]))
