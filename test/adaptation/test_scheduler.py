@@ -40,7 +40,6 @@ from lompr_predictor.online.inference import (
     select_backend,
     warm_up_windows,
 )
-from lompr_predictor.online.model_manager import ModelManager
 from lompr_predictor.online.sample_store import SampleStore
 from lompr_predictor.processes import PARENT_GONE_EXIT
 from lompr_predictor.robot.description import RobotDescription
@@ -309,55 +308,3 @@ def test_an_attempt_writes_a_better_model_and_only_a_better_one(
     assert data['last_stamp_ns'] == int(samples.stamps[-1])
     assert meta.training_bags[0]['path'] == 'sample store of /predictor_node'
     assert np.isfinite(result.seconds)
-
-
-class _Host:
-    """The least of a predictor node its adaptation reads (`AdaptationHost`)."""
-
-    def __init__(self, folder: Path) -> None:
-        import dataclasses
-
-        from lompr_predictor.ros.predictor_settings import PredictorNodeSettings
-
-        self.settings = dataclasses.replace(PredictorNodeSettings(), adaptation_enabled=True,
-                                            adaptation_folder=str(folder))
-        self.models = ModelManager()
-        self.core = type('Core', (), {'model': type('Model', (), {'path': 'm.pt'})()})()
-        self.messages: list[str] = []
-        self.get_logger = lambda: type('Log', (), {'warning': self.messages.append,
-                                                   'info': self.messages.append})()
-
-    def own(self, entity: object) -> object:
-        return entity
-
-    def start_timer(self, period: float, where: str, callback: object) -> None:
-        return None
-
-    def clock_ns(self) -> int:
-        return 10**9
-
-
-def test_an_attempt_that_failed_across_a_reset_of_the_sample_time_names_it(
-        tmp_path: Path) -> None:
-    """A failed attempt while the store restarted (the sample time went back: a simulator
-    reset) says so before its own reason; one without a restart says its reason alone."""
-    from lompr_predictor.ros.predictor_adaptation import NodeAdaptation
-
-    store = SampleStore.for_minutes(0.1, 0.04)
-    host = _Host(tmp_path)
-    node_store = type('Store', (), {'store': store})()
-    try:
-        runs = NodeAdaptation(host, node_store)  # type: ignore[arg-type]
-        failed = {'decision': 'failed', 'reason': 'the machine map needs 120 instants'}
-        runs._collect(AttemptOutcome(1, 0, 10**9, AttemptResult.from_json(failed)))
-        assert runs.adaptation.state.last['reason'] == 'the machine map needs 120 instants'
-        store.observe(_sample(10), (0.0, 0.0), None)
-        store.observe(_sample(0), (0.0, 0.0), None)  # back in sample time: a restart
-        assert store.restarts == 1
-        runs._collect(AttemptOutcome(2, 0, 10**9, AttemptResult.from_json(failed)))
-        assert runs.adaptation.state.last['reason'] == (
-            'the sample time went back while it ran (a simulator reset?): the machine map '
-            'needs 120 instants')
-        assert host.messages[-1].startswith('adaptation attempt 2 failed: the sample time')
-    finally:
-        store.close()

@@ -131,7 +131,7 @@ def test_transitions_through_the_lifecycle_services(ros: RosHarness, tmp_path: P
     assert node.set_parameters([Parameter('model_path', value=str(model))])[0].successful
     assert plant.transition(Transition.TRANSITION_CONFIGURE)
     assert plant.state() == 'inactive' and node.configured
-    assert node.models.history.warm_up_seconds > 0
+    assert node.runtime.models.history.warm_up_seconds > 0
     plant.connect()
     # inactive: input is taken and dropped, nothing is published
     for k in range(NEEDED):
