@@ -20,8 +20,8 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / 'lompr_predictor'
 ROOT = PACKAGE.parent
-LAYERS = ('base', 'robot', 'data', 'twin', 'learning', 'online', 'adaptation', 'scoring', 'ros',
-          'cli')
+LAYERS = ('base', 'robot', 'data', 'twin', 'learning', 'online', 'adaptation', 'runtime',
+          'scoring', 'ros', 'cli')
 #: Top-level modules of ROS client libraries and message packages.
 ROS_MODULES = {'rclpy', 'rcl_interfaces', 'builtin_interfaces', 'std_msgs', 'sensor_msgs',
                'geometry_msgs', 'nav_msgs', 'diagnostic_msgs', 'lifecycle_msgs',

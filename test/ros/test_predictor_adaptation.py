@@ -75,7 +75,7 @@ def collect(wiring: Wiring, outcome: AttemptOutcome) -> dict[str, Any]:
     """Hand the node an attempt's outcome as its timer does and wait until the attempt is
     recorded (an accepted model is swapped in by a later tick, once prepared); its log
     entry."""
-    adaptation = wiring.node.adaptation
+    adaptation = wiring.node.runtime.adaptation
     assert adaptation is not None
     state = adaptation.adaptation.state
 
@@ -83,7 +83,7 @@ def collect(wiring: Wiring, outcome: AttemptOutcome) -> dict[str, Any]:
         return state.accepted + state.refused + state.failed
 
     before = settled()
-    adaptation._collect(outcome)
+    adaptation.collect(outcome, wiring.node.clock_ns())
     wiring.ros.spin_until(lambda: settled() > before, what=f'attempt {outcome.number} settled')
     return state.last
 
@@ -109,15 +109,15 @@ def test_adaptation_is_off_by_default_and_changes_nothing(
     status = wait_status(wiring, lambda s: s, 'the adaptation status')
     assert status['_message'] == 'off (adaptation_enabled false)'
     assert status['_level'] == DiagnosticStatus.OK
-    assert wiring.node.adaptation is None and wiring.node.sample_store is None
+    assert wiring.node.runtime.adaptation is None and wiring.node.runtime.store is None
 
 
 def test_adaptation_sizes_the_store_to_its_data_window(ros: RosHarness, tmp_path: Path) -> None:
     wiring = adapting(ros, constant(tmp_path / 'c.pt'), tmp_path / 'models',
                       adaptation_minutes=0.5)
-    store = wiring.node.sample_store
-    assert store is not None and store.minutes == 0.5
-    assert store.store.capacity == capacity_for(0.5, 0.04) == 750
+    store = wiring.node.runtime.store
+    assert store is not None and wiring.node.settings.kept_minutes == 0.5
+    assert store.capacity == capacity_for(0.5, 0.04) == 750
     wiring.run(0, 3)
     status = wait_status(wiring, lambda s: s, 'the adaptation status')
     assert status['_message'] == 'waiting for the first attempt'
@@ -130,7 +130,7 @@ def test_a_model_that_fails_verification_or_has_another_parent_is_never_swapped_
     folder = tmp_path / 'models'
     wiring = adapting(ros, in_force, folder, guard_enabled=True)
     node = wiring.node
-    assert node.adaptation is not None
+    assert node.runtime.adaptation is not None
     parent = node.core.model.sha256
     candidate = constant(folder / 'adapted-20250101T000000Z-001.pt', (1e-6, 1e-6))
     outcome = accepted_outcome(1, parent, candidate)
@@ -145,23 +145,23 @@ def test_a_model_that_fails_verification_or_has_another_parent_is_never_swapped_
     entry = collect(wiring, accepted_outcome(2, 'f' * 64, candidate))
     assert node.core.model.path == str(in_force)
     assert 'the model in force changed during the attempt' in entry['reason']
-    assert node.model_guard is not None
-    _earn_x(node.model_guard)
+    assert node.runtime.guard is not None
+    _earn_x(node.runtime.guard)
     collect(wiring, accepted_outcome(3, parent, candidate))  # intact, from the model in force
     assert node.core.model.path == str(candidate) and node.settings.model_sha256 == digest
     # the adapted model keeps each axis's choice, scored afresh; an operator's swap does not
-    assert node.model_guard.answering == (GuardState.MODEL, GuardState.PERSISTENCE)
-    assert node.model_guard.scored == 0
+    assert node.runtime.guard.answering == (GuardState.MODEL, GuardState.PERSISTENCE)
+    assert node.runtime.guard.scored == 0
     log = [json.loads(line) for line in (folder / LOG_NAME).read_text().splitlines()]
     assert [(e['attempt'], e['decision'], e['swapped']) for e in log] == [
         (1, 'failed', False), (2, 'failed', False), (3, 'accepted', True)]
     status = wait_status(wiring, lambda s: s.get('swaps') == '1', 'the swap on /diagnostics')
     assert status['_message'] == 'attempt 3 accepted: better'
     assert status['failed'] == '2' and status['last_model'] == str(candidate)
-    _earn_x(node.model_guard)
+    _earn_x(node.runtime.guard)
     assert node.set_parameters_atomically([Parameter('model_path', value=str(in_force)),
                                            Parameter('model_sha256', value='')]).successful
-    assert node.model_guard.answering == (GuardState.PERSISTENCE, GuardState.PERSISTENCE)
+    assert node.runtime.guard.answering == (GuardState.PERSISTENCE, GuardState.PERSISTENCE)
 
 
 class HeldLoads:
@@ -187,10 +187,11 @@ def test_the_sample_path_answers_with_the_model_in_force_while_an_adapted_model_
     folder = tmp_path / 'models'
     wiring = adapting(ros, in_force, folder)
     node = wiring.node
-    assert node.adaptation is not None
+    assert node.runtime.adaptation is not None
     candidate = constant(folder / 'adapted-20250101T000000Z-001.pt', (1e-6, 1e-6))
     loads = HeldLoads(monkeypatch)
-    node.adaptation._collect(accepted_outcome(1, node.core.model.sha256, candidate))
+    node.runtime.adaptation.collect(accepted_outcome(1, node.core.model.sha256, candidate),
+                                    node.clock_ns())
     ros.spin_until(lambda: bool(loads.threads), what='the adapted model loading')
     wiring.run(0, 2 + HORIZON + 6)
     ros.spin_until(lambda: len(wiring.predictions) >= 6, what='answers during the load')
@@ -199,7 +200,7 @@ def test_the_sample_path_answers_with_the_model_in_force_while_an_adapted_model_
     np.testing.assert_allclose(xy(wiring.predictions), [[-10e-6, 5e-6]] * len(wiring.predictions))
     loads.release.set()
     ros.spin_until(lambda: node.core.model.path == str(candidate), what='the swap')
-    entry = node.adaptation.adaptation.state.last
+    entry = node.runtime.adaptation.adaptation.state.last
     assert entry['decision'] == 'accepted' and entry['swapped']
     assert entry['clock_settled_s'] >= entry['clock_ended_s']
 
@@ -210,19 +211,21 @@ def test_an_operators_swap_while_an_adapted_model_loads_wins(
     folder = tmp_path / 'models'
     wiring = adapting(ros, in_force, folder)
     node = wiring.node
-    assert node.adaptation is not None
+    assert node.runtime.adaptation is not None
     candidate = constant(folder / 'adapted-20250101T000000Z-001.pt', (1e-6, 1e-6))
     operators = constant(tmp_path / 'operators.pt', (2e-6, 2e-6))
     loads = HeldLoads(monkeypatch)
-    node.adaptation._collect(accepted_outcome(1, node.core.model.sha256, candidate))
+    node.runtime.adaptation.collect(accepted_outcome(1, node.core.model.sha256, candidate),
+                                    node.clock_ns())
     ros.spin_until(lambda: bool(loads.threads), what='the adapted model loading')
     loads.release.set()  # the operator's own load goes through at once
     assert node.set_parameters_atomically([Parameter('model_path', value=str(operators))]
                                           ).successful
-    ros.spin_until(lambda: node.adaptation is not None and node.adaptation._swapping is None,
+    adaptation = node.runtime.adaptation
+    ros.spin_until(lambda: adaptation is not None and not adaptation.swapping,
                    what='the adapted model settled')
     assert node.core.model.path == str(operators)
-    entry = node.adaptation.adaptation.state.last
+    entry = node.runtime.adaptation.adaptation.state.last
     assert entry['decision'] == 'failed' and not entry['swapped']
     assert entry['reason'] == ('not swapped in: the model in force changed during the attempt '
                                f'(now {operators})')
@@ -317,7 +320,7 @@ def test_a_killed_attempt_leaves_the_node_compensating_and_the_next_one_swaps_in
     cpu = log[-1]['cpu']
     assert cpu['cpu_seconds'] > 0 and 0 < cpu['mean_cores'] <= cpu['peak_cores'] <= 1.02, cpu
     node.trigger_shutdown()  # a running attempt is killed, its work folder deleted
-    assert node.adaptation is None and not list(folder.glob(WORK_PREFIX + '*'))
+    assert node.runtime.adaptation is None and not list(folder.glob(WORK_PREFIX + '*'))
 
 
 def _first(samples: StoredSamples, count: int) -> StoredSamples:

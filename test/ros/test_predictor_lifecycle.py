@@ -130,7 +130,8 @@ def test_transitions_through_the_lifecycle_services(ros: RosHarness, tmp_path: P
     # unconfigured, a new model_path is taken as is; configure loads and warms it up
     assert node.set_parameters([Parameter('model_path', value=str(model))])[0].successful
     assert plant.transition(Transition.TRANSITION_CONFIGURE)
-    assert plant.state() == 'inactive' and node.configured and node.history.warm_up_seconds > 0
+    assert plant.state() == 'inactive' and node.configured
+    assert node.runtime.models.history.warm_up_seconds > 0
     plant.connect()
     # inactive: input is taken and dropped, nothing is published
     for k in range(NEEDED):
@@ -227,15 +228,16 @@ def test_a_clock_going_back_empties_the_window_zeroes_once_and_is_counted(
 #: slow, in steps of Python code as the real ones are): it says 'configuring' when it starts.
 SLOW_CONFIGURE = """
 import sys, time
+from lompr_predictor.online import model_manager
 from lompr_predictor.ros import predictor_node
-load = predictor_node.load_ready_model
+load = model_manager.load_ready_model
 def slow_load(request):
     print('configuring', flush=True)
     end = time.monotonic() + 30.0
     while time.monotonic() < end:
         time.sleep(0.01)
     return load(request)
-predictor_node.load_ready_model = slow_load
+model_manager.load_ready_model = slow_load
 sys.exit(predictor_node.main(['predictor_node', *sys.argv[1:]]))
 """
 

@@ -280,7 +280,7 @@ def test_mismatched_model_is_refused_naming_the_field(ros: RosHarness, tmp_path:
                            sample_period=0.0401)
     node = PredictorNode(context=ros.context, parameter_overrides=[
         Parameter('model_path', value=str(jittered)), Parameter('sample_period', value=0.04)])
-    assert node.sample_period == 0.04
+    assert node.runtime.sample_period == 0.04
     node.destroy_node()
     other_robot = save_linear(tmp_path / 'r.pt', robot_sha256='0' * 64)
     with pytest.raises(MetadataMismatchError, match="'robot_description_sha256'"):
@@ -615,7 +615,7 @@ def test_the_node_refuses_an_unverified_model_at_start_and_reports_the_hash(
     # a hot swap to a file whose hash does not check out keeps the running model
     (result,) = node.set_parameters([Parameter('model_path', value=str(bare))])
     assert not result.successful and 'no hash to check it against' in result.reason
-    assert node.core.model.sha256 == digest and node.history.swaps == 0
+    assert node.core.model.sha256 == digest and node.runtime.models.history.swaps == 0
     node.destroy_node()
     loose = ros.add(PredictorNode(context=ros.context, node_name='loose', parameter_overrides=[
         Parameter('model_path', value=str(bare)), Parameter('verify_model_hash', value=False)]))

@@ -42,7 +42,7 @@ def test_the_store_is_off_by_default(ros: RosHarness, tmp_path: Path) -> None:
     status = wiring.latest('sample store')
     assert status['_message'] == 'off (store_minutes 0)' and status['_level'] == DiagnosticStatus.OK
     assert SERVICE not in dict(ros.node.get_service_names_and_types())
-    assert wiring.node.sample_store is None
+    assert wiring.node.runtime.store is None
 
 
 def test_the_service_writes_what_the_node_saw_and_had_in_force(
