@@ -1,52 +1,30 @@
 # SPDX-License-Identifier: Apache-2.0
 """What every lompr node shares: settings, endpoints, one callback-exception policy,
-diagnostics.
-
-`NodeBase` is a mixin placed before the rclpy class, so it serves a plain node and a
-managed one alike:
-
-    class KinematicsNode(NodeBase[KinematicsNodeSettings], Node): ...
-    class SomeManagedNode(NodeBase[Settings], LifecycleNode): ...   # rclpy.lifecycle
+diagnostics. `NodeBase` is a mixin placed before the rclpy class, so it serves a plain node
+and a managed one alike (`class KinematicsNode(NodeBase[KinematicsNodeSettings], Node)`).
 
 - Settings: `declare_settings(SettingsType)` declares every field of the frozen settings
-  dataclass as a parameter (`parameters.parameter`), sets `self.settings`, and from then on
-  validates each change (ranges and read_only by rclpy; choices, checks and the node's
-  `validate_settings` hook here) and applies an accepted one as a new frozen snapshot
-  (`apply_settings` hook, after `self.settings` is replaced). Every node's settings share
-  `StatusSettings` (its diagnostics), `SchedulingSettings` (its process's priority and
-  CPUs, applied by `common.run_node`) and `FrameSettings` (its frame).
-- Endpoints: an `Endpoint` names a publisher or subscription: kind, message type, the
-  settings field holding its topic, and its default QoS, chosen on purpose
-  (`SENSOR_INPUT_QOS`, `COMMAND_INPUT_QOS`, `OUTPUT_QOS`). `advertise` and `subscribe`
-  create it with rclpy's `QoSOverridingOptions`, so history, depth and reliability are
-  read-only parameters `qos_overrides.<topic>.<publisher|subscription>.<policy>`; a bad
-  override stops the node with one line (`QosOverrideError`). A lifecycle node gets a
-  lifecycle publisher.
+  dataclass as a parameter (`parameters.parameter`), validates each change (ranges and
+  read_only by rclpy; choices, checks and the node's `validate_settings` hook here) and
+  applies an accepted one as a new frozen snapshot (`apply_settings` hook). Every node's
+  settings share `StatusSettings`, `SchedulingSettings` (applied by `common.run_node`) and
+  `FrameSettings`.
+- Endpoints: an `Endpoint` names a publisher or subscription, its message type, the settings
+  field holding its topic and its default QoS, chosen on purpose; `advertise` and
+  `subscribe` make it with rclpy's `QoSOverridingOptions` (a bad override stops the node
+  with one line, `QosOverrideError`); a lifecycle node gets a lifecycle publisher. Each
+  counts incompatible-QoS events and warns instead of rclpy's log line (the `qos` status).
 - One callback-exception policy: every subscription, timer and parameter-change callback
-  runs through `guard`, which catches any exception, counts it (`callback_failures`,
-  `last_callback_failure`: `callback_values()` for a status), logs it throttled, and calls
-  the node's `on_callback_failure` hook (the predictor empties its window and cancels its
-  offset). A callback never ends the spin. `guard` also times each run
-  (`monitoring.CallbackTimes`, `callback_times`: wall and CPU time by callback, with the
-  throttled log calls and the process's garbage collections beside them; `run_node` adds
-  the executor's own work).
+  runs through `guard`, which catches any exception, counts it (`callback_values()`), logs
+  it throttled and calls the node's `on_callback_failure` hook (the predictor cancels its
+  offset); a callback never ends the spin. `guard` also times each run
+  (`monitoring.CallbackTimes`).
 - Diagnostics: `start_diagnostics(topic, period, hardware_id)` -> `DiagnosticsPublisher`,
-  with a `qos` status and a `callback timing` status of its own; the `hardware_id`
-  parameter, if set, replaces the node's default (the robot's name).
-- QoS events: every publisher and subscription made here (and the /diagnostics publisher)
-  counts incompatible-QoS events (a peer on its topic whose QoS cannot match: e.g. a
-  reliable subscriber of a best-effort publisher) instead of rclpy's default log line,
-  warns (throttled), and the node's `qos` status is WARN while such a peer is in the graph
-  or an event came since the last report (`incompatible_qos_total`, per endpoint, the last
-  policy).
-- `warn_throttled(key, text)`: one warning per key and `warning_throttle_period` (a settings
-  field of that name, if the node has one; else `DEFAULT_THROTTLE_PERIOD`).
+  with the `qos` and `callback timing` statuses of its own; `warn_throttled(key, text)`: one
+  warning per key and throttle period.
 - Time: every time a node reasons about is its own clock (`clock_seconds`, `clock_ns`: ROS
-  time, which follows /clock under `use_sim_time`): timers (`start_timer`), rates
-  (`rate_meter`), throttles, diagnostics; wall time only for latencies. Before the first
-  /clock message the clock reads 0.
-
-Thread counts are not set here (`threads.set_torch_threads` belongs to entry points).
+  time, /clock under `use_sim_time`): timers, rates, throttles, diagnostics; wall time only
+  for latencies. Thread counts are the entry points' (`threads.set_torch_threads`).
 """
 
 from __future__ import annotations
