@@ -39,37 +39,24 @@ from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar
 
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockChange, JumpThreshold, ROSClock, TimeJump
-from rclpy.event_handler import (
-    PublisherEventCallbacks,
-    QoSOfferedIncompatibleQoSInfo,
-    QoSRequestedIncompatibleQoSInfo,
-    SubscriptionEventCallbacks,
-)
 from rclpy.lifecycle import LifecycleNodeMixin
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
 from rclpy.qos import (
     HistoryPolicy,
-    QoSCompatibility,
-    QoSPolicyKind,
     QoSProfile,
     ReliabilityPolicy,
-    qos_check_compatible,
 )
 from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverridingOptions
 from rclpy.subscription import Subscription
 from rclpy.timer import Timer
-from rclpy.topic_endpoint_info import TopicEndpointInfo
 
 from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import (
     CallbackTimes,
-    Level,
     LogThrottle,
     RateMeter,
-    RejectionCounter,
-    Status,
 )
 from lompr_predictor.robot.description import ROBOT_FRAME
 from lompr_predictor.ros.common import USE_FQN, USE_FQN_PARAMETER, DiagnosticsPublisher
@@ -81,6 +68,7 @@ from lompr_predictor.ros.parameters import (
     settings_help,
 )
 from lompr_predictor.ros.parameters import declare_settings as declare_parameters
+from lompr_predictor.ros.qos_watch import QosWatch
 from lompr_predictor.scheduling import MAX_NICE, MIN_NICE, Scheduling, cpu_list_problem
 
 if TYPE_CHECKING:
@@ -240,11 +228,8 @@ class NodeBase(_NodeType, Generic[S]):
         self.last_callback_failure = ''
         self.log_throttle = LogThrottle(DEFAULT_THROTTLE_PERIOD, clock=self.clock_seconds)
         self._specs: dict[str, ParameterSpec] = {}
-        #: Incompatible-QoS events by endpoint ('<topic> <publisher|subscription>').
-        self.incompatible_qos = RejectionCounter()
-        self.last_incompatible_qos = ''
-        self._incompatible_at_last_report = 0
-        self._endpoints: list[Publisher | Subscription] = []
+        #: Incompatible-QoS events and peers of the endpoints made here (the `qos` status).
+        self.qos_watch = QosWatch(self, self.guard, self.warn_throttled)
         #: Wall and CPU time of every guarded callback, logging call and garbage collection.
         self.callback_times = CallbackTimes()
         gc.callbacks.append(self.callback_times.on_gc)
@@ -317,11 +302,10 @@ class NodeBase(_NodeType, Generic[S]):
         try:
             publisher = create(endpoint.msg_type, topic, copy.copy(endpoint.qos),
                                qos_overriding_options=QOS_OVERRIDING,
-                               event_callbacks=self.publisher_events(topic))
+                               event_callbacks=self.qos_watch.publisher_events(topic))
         except (InvalidQosOverridesError, RuntimeError) as err:
             raise self._qos_error(endpoint, topic, err) from err
-        self._endpoints.append(publisher)
-        return publisher
+        return self.qos_watch.watch(publisher)
 
     def subscribe(self, endpoint: Endpoint, callback: Callable[[Any], None], *,
                   raw: bool = False) -> Subscription:
@@ -332,85 +316,10 @@ class NodeBase(_NodeType, Generic[S]):
             subscription = self.create_subscription(
                 endpoint.msg_type, topic, self.guard(endpoint.what, callback),
                 copy.copy(endpoint.qos), qos_overriding_options=QOS_OVERRIDING, raw=raw,
-                event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self.guard(
-                    f'incompatible QoS on {topic}', self._incompatible_qos_handler(
-                        topic, 'subscription'))))
+                event_callbacks=self.qos_watch.subscription_events(topic))
         except (InvalidQosOverridesError, RuntimeError) as err:
             raise self._qos_error(endpoint, topic, err) from err
-        self._endpoints.append(subscription)
-        return subscription
-
-    def publisher_events(self, topic: str) -> PublisherEventCallbacks:
-        """Event callbacks of a publisher on `topic` that count incompatible QoS."""
-        return PublisherEventCallbacks(incompatible_qos=self.guard(
-            f'incompatible QoS on {topic}', self._incompatible_qos_handler(topic, 'publisher')))
-
-    def _incompatible_qos_handler(
-        self, topic: str, kind: str,
-    ) -> Callable[[QoSOfferedIncompatibleQoSInfo | QoSRequestedIncompatibleQoSInfo], None]:
-        peer = 'subscription requesting' if kind == 'publisher' else 'publisher offering'
-
-        def handle(event: QoSOfferedIncompatibleQoSInfo | QoSRequestedIncompatibleQoSInfo,
-                   ) -> None:
-            policy = QoSPolicyKind(event.last_policy_kind).name.lower()
-            self.incompatible_qos.add(f'{topic} {kind}', max(int(event.total_count_change), 1))
-            self.last_incompatible_qos = f'{topic} {kind}: {policy}'
-            self.warn_throttled(f'incompatible QoS {topic} {kind}', (
-                f"a {peer} incompatible QoS on {topic} cannot be matched with this node's "
-                f'{kind} (policy: {policy}); see qos_overrides.{topic}.{kind}.*'))
-        return handle
-
-    def incompatible_qos_peers(self) -> list[str]:
-        """Endpoints of this node with a peer in the graph whose QoS cannot match.
-
-        Both sides are compared as the graph reports them: the QoS a publisher is created
-        with leaves policies such as the deadline at "system default", which the middleware
-        fills in (infinite), so comparing it with a peer's reported QoS would see a deadline
-        the publisher lacks and warn about a peer that matches."""
-        live = {id(entity) for entity in (*self.publishers, *self.subscriptions)}
-        self._endpoints = [entity for entity in self._endpoints if id(entity) in live]
-        found = []
-        for topic, kind in dict.fromkeys(
-                (entity.topic_name, 'subscription' if isinstance(entity, Subscription)
-                 else 'publisher') for entity in self._endpoints):
-            publishers = self.get_publishers_info_by_topic(topic)
-            subscriptions = self.get_subscriptions_info_by_topic(topic)
-            ours, peers = ((subscriptions, publishers) if kind == 'subscription'
-                           else (publishers, subscriptions))
-            own = [info.qos_profile for info in ours if self._is_own(info)]
-            others = [info.qos_profile for info in peers if not self._is_own(info)]
-            if kind == 'subscription':
-                pairs = [(peer, mine) for peer in others for mine in own]
-            else:
-                pairs = [(mine, peer) for peer in others for mine in own]
-            bad = sum(qos_check_compatible(offered, requested)[0] == QoSCompatibility.ERROR
-                      for offered, requested in pairs)
-            if bad:
-                found.append(f'{topic} {kind} ({bad} peer(s))')
-        return found
-
-    def _is_own(self, info: TopicEndpointInfo) -> bool:
-        """Whether a graph endpoint belongs to this node."""
-        return (info.node_name == self.get_name()
-                and info.node_namespace == self.get_namespace())
-
-    def qos_status(self) -> Status:
-        """The node's `qos` diagnostic status: WARN while a peer with incompatible QoS is
-        in the graph or an incompatible-QoS event came since the last report."""
-        total = self.incompatible_qos.total
-        new_events, self._incompatible_at_last_report = (
-            total - self._incompatible_at_last_report, total)
-        peers = self.incompatible_qos_peers()
-        values: dict[str, object] = {
-            'incompatible_qos_total': total,
-            **{f'incompatible_qos.{key}': n for key, n in self.incompatible_qos.counts().items()},
-            'last_incompatible_qos': self.last_incompatible_qos,
-            'incompatible_peers_now': '; '.join(peers),
-        }
-        if peers or new_events:
-            where = '; '.join(peers) or self.last_incompatible_qos
-            return Status(Level.WARN, f'incompatible QoS: {where}', values)
-        return Status(Level.OK, 'every matched peer has compatible QoS', values)
+        return self.qos_watch.watch(subscription)
 
     def _qos_error(self, endpoint: Endpoint, topic: str, err: Exception) -> QosOverrideError:
         prefix = endpoint.parameter_prefix(topic)
@@ -494,9 +403,9 @@ class NodeBase(_NodeType, Generic[S]):
             self, topic, period, hardware_id=getattr(self.settings, 'hardware_id', '')
             or hardware_id, qos=copy.copy(DIAGNOSTICS_QOS),
             qos_overriding_options=QOS_OVERRIDING, guard=self.guard,
-            event_callbacks=self.publisher_events(topic))
-        self._endpoints.append(diagnostics.publisher)
-        diagnostics.add('qos', self.qos_status)
+            event_callbacks=self.qos_watch.publisher_events(topic))
+        self.qos_watch.watch(diagnostics.publisher)
+        diagnostics.add('qos', self.qos_watch.status)
         diagnostics.add('callback timing', self.callback_times.status)
         return diagnostics
 

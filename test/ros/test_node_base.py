@@ -351,15 +351,15 @@ def test_incompatible_qos_is_counted_and_warns_on_diagnostics(ros: Any, tmp_path
     model = save_constant(tmp_path / 'model.pt')
     node = ros.add(PredictorNode(context=ros.context, parameter_overrides=[
         Parameter('model_path', value=str(model))]))
-    assert node.qos_status().level == Level.OK
+    assert node.qos_watch.status().level == Level.OK
     # a subscriber asking for transient-local durability from a volatile publisher
     ros.node.create_subscription(Vector3Stamped, '/lompr/compensation', lambda _: None,
                                  QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
-    ros.spin_until(lambda: node.incompatible_qos.total > 0, what='an incompatible-QoS event')
-    status = node.qos_status()
+    ros.spin_until(lambda: node.qos_watch.incompatible.total > 0, what='an incompatible-QoS event')
+    status = node.qos_watch.status()
     assert status.level == Level.WARN and '/lompr/compensation publisher' in status.message
     assert status.values['incompatible_qos./lompr/compensation publisher'] >= 1
-    assert 'durability' in node.last_incompatible_qos
+    assert 'durability' in node.qos_watch.last
 
 
 FROZEN_HEAP_PROBE = """

@@ -42,10 +42,10 @@ def test_default_qos_peers_on_every_topic_are_ok(ros: RosHarness, tmp_path: Path
     assert all(s.topic_name for s in subscriptions)
     ros.spin_for(0.5)  # a real incompatibility raises its event within this
     for node in (predictor, kinematics):
-        status = node.qos_status()
+        status = node.qos_watch.status()
         assert status.level == Level.OK, status.message
         assert status.values['incompatible_peers_now'] == ''
-        assert node.incompatible_qos.total == 0
+        assert node.qos_watch.incompatible.total == 0
 
 
 def test_a_best_effort_publisher_into_a_reliable_subscription_warns(ros: RosHarness) -> None:
@@ -55,6 +55,6 @@ def test_a_best_effort_publisher_into_a_reliable_subscription_warns(ros: RosHarn
         depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
     ros.spin_until(lambda: kinematics.count_publishers('/joint_states') > 0,
                    what='the best-effort publisher in the graph')
-    status = kinematics.qos_status()
+    status = kinematics.qos_watch.status()
     assert status.level == Level.WARN
     assert '/joint_states subscription (1 peer(s))' in status.message
