@@ -36,7 +36,6 @@ class LoopSettings:
     path: str = 'spiral'
     seed: int = 0
     compensation_enabled: bool = True  # False: the predictor in shadow mode throughout
-    guard_enabled: bool = True  # the predictor's live guard (`online.guard`)
     switch_off_at: int | None = None  # sample from which compensation is switched off
     twin_parameters_file: str = ''  # empty: the packaged config/twin.yaml
     robot_description_file: str = ''  # empty: the packaged LOMPR description
@@ -46,8 +45,6 @@ class LoopSettings:
     #: ... and once it answers (the previous sample had its offset): a late answer is a
     #: loaded machine, which must not let a sample through uncompensated.
     answer_timeout: float = 2.0
-    max_compensation: float = 5e-4  # predictor clamp, XY norm [m]
-    max_compensation_step: float = 5e-5  # predictor step limit per sample [m]
     #: In one process the twin publishes no /clock, so the predictor's staleness counts
     #: wall time, which in lockstep is not sample time: only a real stall (this many periods,
     #: 10 s) should count as stale input. Across processes the nodes run on the twin's
@@ -66,8 +63,9 @@ class LoopSettings:
     #: Samples of its planned path the twin publishes with each sample (the reference
     #: preview); `run_closed_loop` sets it for a model that reads one (its K + 2).
     preview_samples: int = 0
-    #: Further parameters of the predictor and of the twin, by name (over the loop's own:
-    #: adaptation, or the twin in real time at a speed factor).
+    #: Further parameters of the predictor and of the twin, by name, over the loop's own
+    #: (the guard off, other offset bounds, adaptation; the twin in real time at a speed
+    #: factor): every other parameter is the node's own default, declared once there.
     predictor_parameters: Mapping[str, Any] = field(default_factory=dict)
     twin_parameters: Mapping[str, Any] = field(default_factory=dict)
     #: If > 0, kinematics_node and predictor_node run under SCHED_FIFO at this priority (their
@@ -133,9 +131,6 @@ def loop_parameters(settings: LoopSettings, horizon: int,
         'predictor_node': {
             **nodes, 'model_path': settings.model_path,
             'compensation_enabled': settings.compensation_enabled,
-            'guard_enabled': settings.guard_enabled,
-            'max_compensation': settings.max_compensation,
-            'max_compensation_step': settings.max_compensation_step,
             **settings.predictor_parameters},
         'twin_node': {
             **description, 'twin_parameters_file': settings.twin_parameters_file,

@@ -42,8 +42,9 @@ def command_parameters(command: list[str]) -> dict[str, str]:
     LoopSettings(model_path='m.pt', passes=2, lead_in_passes=0, path='grid', seed=7,
                  compensation_enabled=False, twin_parameters_file='twin.yaml',
                  robot_description_file='robot.urdf', lockstep_timeout=0.5,
-                 answer_timeout=3.0, max_compensation=1e-4, max_compensation_step=1e-5,
-                 samples=40),
+                 answer_timeout=3.0, samples=40,
+                 predictor_parameters={'max_compensation': 1e-4, 'max_compensation_step': 1e-5,
+                                       'guard_enabled': False}),
 ])
 def test_both_modes_give_the_nodes_the_same_parameters(settings: LoopSettings,
                                                        tmp_path: Path) -> None:
