@@ -16,8 +16,8 @@ Time is one clock, the caller's, in integer nanoseconds (the node's ROS clock, s
 under use_sim_time), read when an input call begins and again after each inference (the
 overrun policy judges the next sample by the latest reading); the caller reports its
 jumps. Every call returns the outputs to publish, in order. The counters come
-out as one snapshot (`counts`, `predictor_counts`); a profiler times the stages from outside
-(`stage_timing.time_stages` wraps the steps `stage_steps` lists).
+out as one snapshot (`counts`, `predictor_counts`); the benches time its stages from outside
+(bench/stage_timing.py).
 """
 
 from __future__ import annotations
@@ -216,17 +216,6 @@ class OnlinePredictor:
             step_limited=gate.step_limited, zeros_published=gate.zeros_published,
             reclamped=gate.reclamped, inference_skipped_late=overrun.inference_skipped_late,
             late_outputs_dropped=overrun.late_outputs_dropped)
-
-    def stage_steps(self) -> list[tuple[str, object, str]]:
-        """(stage, object, method name) of the call each of `stage_timing.STAGES` ends with,
-        in the order they run: what `stage_timing.time_stages` wraps."""
-        return [('stamp', self._stamps, 'pose_ns'), ('stamp', self._stamps, 'reference_ns'),
-                ('alignment', self._alignment, 'add_pose'),
-                ('alignment', self._alignment, 'add_reference'),
-                ('plant error', self, '_plant_error'), ('feature rows', self, '_feature_rows'),
-                ('overrun', self, '_in_time'),
-                *(('inference', slot, 'predict') for slot in self._slots),
-                ('offset gate', self, '_publish')]
 
     # -- the per-sample path --------------------------------------------------------------
 

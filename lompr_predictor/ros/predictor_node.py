@@ -27,7 +27,6 @@ from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import LatencyRecorder, Level
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_status import Lifecycle
-from lompr_predictor.online.stage_timing import StageHistograms, time_stages
 from lompr_predictor.robot.description import robot_name
 from lompr_predictor.ros.common import run_node
 from lompr_predictor.ros.managed import ManagedNode
@@ -154,8 +153,6 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         if error is not None:
             return error
         core = self.core
-        if settings.time_stages:
-            time_stages(core, StageHistograms(self.callback_times))
         self.outputs.attach(self.own(self.advertise(PREDICTED_ERROR)),
                             self.own(self.advertise(COMPENSATION)))
         for endpoint, callback in self.inputs.endpoints(core, self.end_pose_in_process):

@@ -123,10 +123,6 @@ class PredictorNodeSettings(FrameSettings):
         'from contending with the executor', minimum=1, maximum=256, read_only=True)
     latency_samples: int = parameter(1000, 'last latencies kept for the p50/p99',
                                      minimum=10, maximum=1_000_000, read_only=True)
-    time_stages: bool = parameter(
-        False, "also time each stage of the core (stamp, alignment, ..., offset gate) into "
-        "the 'callback timing' status, a few us per sample; the callbacks are always timed",
-        read_only=True)
     accuracy_samples: int = parameter(1000, 'last predicted instants the live RMS is over',
                                       minimum=1, maximum=10_000_000, read_only=True)
     inference_time_warn: float = parameter(

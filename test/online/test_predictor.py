@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+import sys
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -28,7 +29,6 @@ from lompr_predictor.online.faults import StreamSettings
 from lompr_predictor.online.inference import select_backend
 from lompr_predictor.online.offset import XY, CompensationLimits, OffsetGate, Output
 from lompr_predictor.online.predictor import OnlinePredictor
-from lompr_predictor.online.stage_timing import STAGES, time_stages
 from lompr_predictor.robot.chain import LomprChain
 from lompr_predictor.robot.description import RobotDescription, load_robot_description
 from lompr_predictor.robot.kinematics import VerticalToolBranches
@@ -643,6 +643,11 @@ class RecordingTimer:
 
 def test_the_stage_timer_hears_every_stage_of_a_predicting_sample_in_order(
         linear_model: LoadedModel) -> None:
+    """The benches' view of the core's stages (bench/stage_timing.py names the core's own
+    methods): every stage of a sample that predicts, in order."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / 'bench'))
+    from stage_timing import STAGES, time_stages
+
     stamps, reference, tips = spiral(NEEDED)
     core = OnlinePredictor(linear_model, stream(), limits(), clock=lambda: int(stamps[-1]))
     for i in range(NEEDED - 1):

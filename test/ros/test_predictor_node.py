@@ -47,7 +47,7 @@ from lompr_predictor.learning.model_file import (
     load_model,
 )
 from lompr_predictor.learning.models import predict_rows
-from lompr_predictor.monitoring import Level, parse_histogram
+from lompr_predictor.monitoring import Level
 from lompr_predictor.robot.chain import LomprChain
 from lompr_predictor.robot.description import (
     MEASURED_JOINTS,
@@ -767,22 +767,3 @@ def test_a_refused_fallback_names_how_to_verify_the_fallback(ros: Any, tmp_path:
     assert message.startswith(f'model {fallback}: ') and 'f.pt.sha256' in message
     assert 'model_sha256 pins model_path, not the fallback' in message
     assert 'model_sha256:=' not in message and 'pin its sha256' not in message
-
-
-def test_time_stages_puts_each_stage_of_the_core_on_the_callback_timing_status(
-        ros: RosHarness, tmp_path: Path) -> None:
-    """Every callback is timed (its runs on /diagnostics); with time_stages also each stage
-    of the core, one run per sample that reached it."""
-    model = save_constant(tmp_path / 'c.pt', (1e-5, 0.0), window=WINDOW, horizon=HORIZON)
-    wiring = Wiring(ros, model, time_stages=True)
-    wiring.run(0, NEEDED + 4)
-    ros.spin_until(lambda: len(wiring.compensations) == 5, what='5 offsets')
-    times = wiring.node.callback_times.rows
-    assert times['end pose'].total == NEEDED + 4 and times['reference'].total == NEEDED + 4
-    assert times['stage inference'].total == 5  # the samples of a full window
-    assert times['stage alignment'].total == 2 * (NEEDED + 4)  # both input calls
-    ros.spin_until(lambda: int((wiring.status('callback timing') or {}).get(
-        'end pose.runs', 0)) == NEEDED + 4, what='the callback timing status')
-    status = wiring.latest('callback timing')
-    assert float(status['stage inference.p99_us']) > 0
-    assert parse_histogram(status['end pose.histogram_ns'])

@@ -1,22 +1,21 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Timing the stages of the predictor core's input calls, from outside the core (ROS-free).
+"""The benches' profiler of the predictor core's stages, from outside the core.
 
 `time_stages(core, timer)` wraps, on that one core object, its two input calls (`begin`)
-and the call each stage ends with (`end(stage)`), as the core lists them
-(`OnlinePredictor.stage_steps`): the core holds no hook for a profiler and pays nothing
-when none listens. A stage runs from the input call's beginning or the previous stage's
-end, so the stages of an input call add up to the call. `StageHistograms` is the timer a
-node uses: each stage's wall time into a row 'stage <name>' of its `CallbackTimes`.
+and the call each stage ends with (`end(stage)`, `core_steps`): the core holds no hook for
+a profiler and pays nothing when none listens. A stage runs from the input call's beginning
+or the previous stage's end, so the stages of an input call add up to the call. The steps
+are the core's own methods and parts, named here: a rename there stops the profile with the
+name instead of leaving a stage out (`bench_predictor.py --parts profile`).
 """
 
 from __future__ import annotations
 
 import functools
-import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from typing import Any, Protocol
 
-from lompr_predictor.monitoring import CallbackTimes
+from lompr_predictor.online.predictor import OnlinePredictor
 
 #: The stages of an input call a `StageTimer` hears the end of, in the order they run:
 #: checking and converting the stamp, aligning pose and reference, the plant error (the
@@ -38,42 +37,23 @@ class StageTimer(Protocol):
         ...
 
 
-class StageHistograms:
-    """A `StageTimer` recording each stage's wall time into `times`, row 'stage <name>'
-    (a perf_counter_ns reading per stage, no CPU time: the callback's row has that)."""
-
-    def __init__(self, times: CallbackTimes) -> None:
-        self._times = times
-        self._rows = {stage: f'stage {stage}' for stage in STAGES}
-        self._last = 0
-
-    def begin(self) -> None:
-        self._last = time.perf_counter_ns()
-
-    def end(self, stage: str) -> None:
-        now = time.perf_counter_ns()
-        self._times.record(self._rows[stage], now - self._last)
-        self._last = now
+def core_steps(core: OnlinePredictor) -> list[tuple[str, object, str]]:
+    """(stage, object, method name) of the call each of `STAGES` ends with, in the order
+    they run."""
+    return [('stamp', core._stamps, 'pose_ns'), ('stamp', core._stamps, 'reference_ns'),
+            ('alignment', core._alignment, 'add_pose'),
+            ('alignment', core._alignment, 'add_reference'),
+            ('plant error', core, '_plant_error'), ('feature rows', core, '_feature_rows'),
+            ('overrun', core, '_in_time'),
+            *(('inference', slot, 'predict') for slot in core._slots),
+            ('offset gate', core, '_publish')]
 
 
-class StagedCore(Protocol):
-    """What `time_stages` needs of a core (`predictor.OnlinePredictor`): its input calls
-    and the steps that end its stages."""
-
-    def add_pose(self, *args: Any) -> Any: ...
-
-    def add_reference(self, *args: Any) -> Any: ...
-
-    def stage_steps(self) -> Iterable[tuple[str, object, str]]:
-        """(stage, object, method name): the method call each of `STAGES` ends with."""
-        ...
-
-
-def time_stages(core: StagedCore, timer: StageTimer) -> None:
+def time_stages(core: OnlinePredictor, timer: StageTimer) -> None:
     """From now on tell `timer` where each input call of `core` is (module docstring)."""
     for name in ('add_pose', 'add_reference'):
         _wrap(core, name, before=timer.begin)
-    for stage, owner, name in core.stage_steps():
+    for stage, owner, name in core_steps(core):
         if stage not in STAGES:
             msg = f'{type(owner).__name__}.{name} ends an unknown stage {stage!r}'
             raise ValueError(msg)
