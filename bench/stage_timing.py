@@ -45,7 +45,7 @@ def core_steps(core: OnlinePredictor) -> list[tuple[str, object, str]]:
             ('alignment', core._alignment, 'add_reference'),
             ('plant error', core, '_plant_error'), ('feature rows', core, '_feature_rows'),
             ('overrun', core, '_in_time'),
-            *(('inference', slot, 'predict') for slot in core._slots),
+            *(('inference', slot, 'predict') for slot in core.slots.all),
             ('offset gate', core, '_publish')]
 
 

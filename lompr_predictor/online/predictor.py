@@ -30,12 +30,7 @@ from lompr_predictor.online.alignment import AlignedSample, DropReason, Event, S
 from lompr_predictor.online.faults import FaultReason, StaleWatch, StreamRules, StreamSettings
 from lompr_predictor.online.inference import InferenceBackend
 from lompr_predictor.online.input_stamps import InputStamps
-from lompr_predictor.online.model_slot import (
-    ModelSlot,
-    check_fallback,
-    check_model,
-    check_replacement,
-)
+from lompr_predictor.online.model_slot import Fallback, ModelSlot, ModelSlots, check_model
 from lompr_predictor.online.offset import XY, ZERO, CompensationLimits, OffsetGate, Output
 from lompr_predictor.online.predictor_counts import PredictorCounts
 from lompr_predictor.online.preview import Planned, PlannedPath, PlanReader, PreviewDrop
@@ -43,9 +38,6 @@ from lompr_predictor.online.sample_units import LiveAccuracy, PlausibleChange, S
 from lompr_predictor.online.timing import OverrunGuard
 from lompr_predictor.robot.chain import KinematicChain, load_chain
 from lompr_predictor.stamps import StampLike, period_ns
-
-#: The fallback model and what runs it (None: TorchScript).
-Fallback = tuple[LoadedModel, InferenceBackend | None]
 
 
 class OnlinePredictor:
@@ -83,12 +75,8 @@ class OnlinePredictor:
         self.inference_time = LatencyRecorder(latency_samples)
         #: The model's slot; the fallback's (None without one) answers where the plan is
         #: missing, from its own window of the same samples.
-        self.primary = ModelSlot(model, backend, self.chain, self.inference_time)
-        self.fallback: ModelSlot | None = None
-        if fallback is not None:
-            check_fallback(fallback[0], self.chain, self.horizon)
-            self.fallback = ModelSlot(*fallback, self.chain, self.inference_time)
-        self._slots = tuple(slot for slot in (self.primary, self.fallback) if slot)
+        self.slots = ModelSlots(model, backend, fallback, self.chain, self.inference_time)
+        self.primary, self.fallback = self.slots.primary, self.slots.fallback
         #: The offsets published and their bounds, with their counters (change the bounds
         #: with `set_limits`).
         self.gate = OffsetGate(limits, period)
@@ -181,8 +169,7 @@ class OnlinePredictor:
                       backend: InferenceBackend | None = None) -> None:
         """Use `model` (run by `backend`, default TorchScript) from the next sample on; it
         must read the same window and horizon."""
-        check_replacement(self.model, model, self.chain)
-        self.primary.use(model, backend)
+        self.slots.replace(model, backend)
 
     # -- state for diagnostics ------------------------------------------------------------
 
@@ -204,7 +191,7 @@ class OnlinePredictor:
     @property
     def predictions_made(self) -> int:
         """Finite predictions of any slot."""
-        return sum(slot.predictions for slot in self._slots)
+        return self.slots.predictions
 
     def counts(self) -> PredictorCounts:
         """The counters as one snapshot (`predictor_counts`)."""
@@ -272,15 +259,8 @@ class OnlinePredictor:
             if reader.stale and not was_stale and self.fallback is None:
                 outputs += self.gate.cancel(PreviewDrop.MISSING,
                                             self._alignment.newest_pose_ns)
-        answering = None
-        for slot in self._slots:
-            if slot.window.push(sample.stamp_ns, error[0], error[1], sample.reference_x,
-                                sample.reference_y, sample.reference_z,
-                                planned) and answering is None:
-                answering = slot
-        if answering is not None:
-            answering.answers += 1
-        return answering
+        return self.slots.push(sample.stamp_ns, error, (sample.reference_x, sample.reference_y,
+                                                        sample.reference_z), planned)
 
     def _in_time(self, stamp_ns: int) -> bool:
         """Whether the sample is worth an inference (`timing.OverrunGuard.skip`) at the
@@ -323,8 +303,7 @@ class OnlinePredictor:
 
     def _clear(self) -> None:
         """Empty every window and clear the units."""
-        for slot in self._slots:
-            slot.window.clear()
+        self.slots.clear()
         for unit in self._units:
             unit.clear()
 
