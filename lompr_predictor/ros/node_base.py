@@ -55,6 +55,7 @@ from rclpy.timer import Timer
 from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import (
     CallbackTimes,
+    Level,
     LogThrottle,
     RateMeter,
 )
@@ -414,6 +415,17 @@ class NodeBase(_NodeType, Generic[S]):
         message = self.log_throttle.filter(key, text)
         if message is not None:
             self.callback_times.measure('logging', self.get_logger().warning, message)
+
+    def log_line(self, level: Level, text: str) -> None:
+        """Log `text` at `level` (a ROS-free part's line): a warning throttled per its
+        text, an error or information as it comes."""
+        # rclpy binds a severity to each line that logs: one line per severity
+        if level is Level.WARN:
+            self.warn_throttled(text, text)
+        elif level >= Level.ERROR:
+            self.get_logger().error(text)
+        else:
+            self.get_logger().info(text)
 
 
 def node_help(settings_type: type, endpoints: Sequence[Endpoint] = ()) -> list[str]:

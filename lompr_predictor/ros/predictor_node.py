@@ -24,7 +24,7 @@ from std_srvs.srv import Trigger
 
 from lompr_predictor.adaptation.driver import tick_period
 from lompr_predictor.errors import LomprError
-from lompr_predictor.monitoring import LatencyRecorder, Level
+from lompr_predictor.monitoring import LatencyRecorder
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_status import Lifecycle
 from lompr_predictor.robot.description import robot_name
@@ -42,6 +42,7 @@ from lompr_predictor.ros.predictor_settings import (
     COMPENSATION,
     END_POSE,
     ENDPOINTS,
+    FALLBACK_HASH_HINT,
     HASH_HINT,
     PREDICTED_ERROR,
     PredictorNodeSettings,
@@ -51,11 +52,6 @@ from lompr_predictor.runtime.predictor_runtime import PredictorRuntime, RuntimeH
 from lompr_predictor.threads import set_torch_threads
 
 NODE_NAME = 'predictor_node'
-#: How the fallback model is verified, for a refusal message (its own sidecar: `HASH_HINT`'s
-#: model_sha256 pins model_path only).
-FALLBACK_HASH_HINT = ('predictor_node: the fallback model is verified by its own sidecar '
-                      '(model_sha256 pins model_path, not the fallback), or for development '
-                      'only -p verify_model_hash:=false')
 
 
 class NotConfiguredError(LomprError):
@@ -75,10 +71,8 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self.runtime = PredictorRuntime(RuntimeHooks(
             self.clock_ns, self.get_fully_qualified_name,
             lambda: bool(self.get_parameter('use_sim_time').value), self._set_model,
-            self._log), HASH_HINT, FALLBACK_HASH_HINT)
+            self.log_line), HASH_HINT, FALLBACK_HASH_HINT)
         self.end_pose_in_process = False  # end poses by `read_end_pose` (pipeline), not topic
-        self.clock_jumps_back = 0
-        self._clock_started = False
         self.outputs = OutputPublisher(settings.frame, self.rate_meter(settings.rate_window),
                                        LatencyRecorder(settings.latency_samples),
                                        self.warn_throttled)
@@ -140,8 +134,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Start from an empty window; publish from now on."""
-        self.core.reset()
-        self._clock_started = self.get_clock().now().nanoseconds > 0
+        self.runtime.activate()
         self.get_logger().info('active: answering every sample')
         return super().on_activate(state)
 
@@ -195,46 +188,22 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
                                                  Parameter('model_sha256', value=sha256)])
         return None if result.successful else result.reason
 
-    def _log(self, level: Level, text: str) -> None:
-        """The runtime's line: a warning throttled (the adaptation's, each tick it fails)."""
-        # rclpy binds a severity to each line that logs: one line per severity
-        if level is Level.WARN:
-            self.warn_throttled('runtime', text)
-        elif level is Level.ERROR:
-            self.get_logger().error(text)
-        else:
-            self.get_logger().info(text)
-
     # -- callbacks (run through NodeBase.guard: a failure aborts the core) -----------------
 
     def on_stale_timer(self) -> None:
         """Runs on the node's clock: under simulated time only while that time advances."""
-        core = self.runtime.core
-        if core is None or not self.active:
-            return
-        if not self._clock_started:  # the first /clock came: idle time counts from now
-            self._clock_started = True
-            core.restart_staleness()
-            return
-        self.outputs.publish(core.check_stale(), time.perf_counter())
+        if self.active:
+            self.outputs.publish(self.runtime.check_stale(), time.perf_counter())
 
     def _on_clock_jump(self, jump: TimeJump) -> None:
         """The clock went back (a simulator reset) or changed source (use_sim_time set)."""
         changed = jump.clock_change in (ClockChange.ROS_TIME_ACTIVATED,
                                         ClockChange.ROS_TIME_DEACTIVATED)
-        if not changed and jump.delta.nanoseconds >= 0:
-            return
-        self.clock_jumps_back += 1
-        now_ns = self.get_clock().now().nanoseconds
-        self.warn_throttled('clock jump', (
-            f'the clock changed source (now {now_ns * 1e-9:.3f} s)' if changed else
-            f'the clock went back by {-jump.delta.nanoseconds * 1e-9:.3f} s to '
-            f'{now_ns * 1e-9:.3f} s (a simulator reset?)')
-            + ': window emptied, offset cancelled; output resumes once the window has '
-              'refilled')
-        if self.runtime.core is not None and self.active:
-            self.outputs.publish(self.runtime.core.clock_jumped_back(
-                None if changed else now_ns), time.perf_counter())
+        if changed or jump.delta.nanoseconds < 0:
+            text, outputs = self.runtime.clock_jumped(changed, -jump.delta.nanoseconds,
+                                                      self.active)
+            self.warn_throttled('clock jump', text)
+            self.outputs.publish(outputs, time.perf_counter())
 
     def on_callback_failure(self, where: str) -> None:
         """Empty the window and cancel the offset in force: nothing half-done is published."""
@@ -266,7 +235,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         clock_values: dict[str, object] = {
             'use_sim_time': bool(self.get_parameter('use_sim_time').value),
             'clock_s': round(self.clock_seconds(), 6),
-            'clock_jumps_back': self.clock_jumps_back,
+            'clock_jumps_back': self.runtime.clock_jumps_back,
             'dropped_inactive': self.inputs.dropped_inactive}
         return PredictorReadings(
             Lifecycle(self.lifecycle_state, settings.autostart, self.configure_error),

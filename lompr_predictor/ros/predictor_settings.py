@@ -289,3 +289,8 @@ ENDPOINTS = (END_POSE, REFERENCE, REFERENCE_PREVIEW, PREDICTED_ERROR, COMPENSATI
 #: How to pin or skip the model hash, for a refusal message.
 HASH_HINT = ('predictor_node: -p model_sha256:=<sha256>, or for development only '
              '-p verify_model_hash:=false')
+#: How the fallback model is verified, for a refusal message (its own sidecar: `HASH_HINT`'s
+#: model_sha256 pins model_path only).
+FALLBACK_HASH_HINT = ('predictor_node: the fallback model is verified by its own sidecar '
+                      '(model_sha256 pins model_path, not the fallback), or for development '
+                      'only -p verify_model_hash:=false')

@@ -129,6 +129,8 @@ class PredictorRuntime:
         self.store: SampleStore | None = None
         self.export: StoreExport | None = None
         self.adaptation: AdaptationDriver | None = None
+        self.clock_jumps_back = 0  # the node's clock went back or changed source
+        self._clock_started = False  # its clock had read a time (simulated: a /clock came)
 
     def configure(self, settings: RuntimeSettings) -> LomprError | None:
         """Load the description, the model (and its fallback), build the guard, the store,
@@ -164,6 +166,40 @@ class PredictorRuntime:
             chain=ready.chain, latency_samples=settings.latency_samples,
             units=(self.guard, *([self.store] if self.store else [])))
         return None
+
+    def activate(self) -> None:
+        """Start from an empty window (the node becomes active): idle time counts once its
+        clock reads a time (under simulated time, from the first /clock)."""
+        self._running_core().reset()
+        self._clock_started = self._hooks.clock_ns() > 0
+
+    def check_stale(self) -> list[Output]:
+        """The staleness timer (on the node's clock): a 'stale' fault once no sample was
+        used for the stale time; the first tick after the clock started restarts the
+        count instead (the time before a first /clock is no idle time)."""
+        core = self.core
+        if core is None:
+            return []
+        if not self._clock_started:
+            self._clock_started = True
+            core.restart_staleness()
+            return []
+        return core.check_stale()
+
+    def clock_jumped(self, changed: bool, back_by_ns: int, active: bool
+                     ) -> tuple[str, list[Output]]:
+        """The node's clock went back by `back_by_ns` (a simulator reset) or `changed` its
+        source: what to warn, and the outputs (the offset cancelled) if `active`."""
+        self.clock_jumps_back += 1
+        now_ns = self._hooks.clock_ns()
+        text = (f'the clock changed source (now {now_ns * 1e-9:.3f} s)' if changed else
+                f'the clock went back by {back_by_ns * 1e-9:.3f} s to {now_ns * 1e-9:.3f} s '
+                '(a simulator reset?)')
+        outputs = []
+        if self.core is not None and active:
+            outputs = self.core.clock_jumped_back(None if changed else now_ns)
+        return (text + ': window emptied, offset cancelled; output resumes once the window '
+                'has refilled'), outputs
 
     def validate(self, path: str | None, sha256: str) -> str | None:
         """Whether the model may become `path` (None: unchanged) pinned by `sha256`: None,
