@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Any
 
 import pytest
 from fake_clock import FakeClock
@@ -36,7 +37,7 @@ class Node:
         return self.runtime.validate(path, sha256)
 
 
-def settings(model: Path, **changes: object) -> PredictorNodeSettings:
+def settings(model: Path, **changes: Any) -> PredictorNodeSettings:
     return dataclasses.replace(PredictorNodeSettings(), model_path=str(model), **changes)
 
 
