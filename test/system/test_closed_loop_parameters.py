@@ -1,6 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
 """Both closed-loop modes (one process, three processes) give the nodes the same
-parameters, apart from what each mode sets for itself, and count a run alike."""
+parameters, on the twin's simulated time, and count a run alike."""
 
 from __future__ import annotations
 
@@ -13,22 +13,16 @@ pytest.importorskip('rclpy')
 
 from lompr_predictor.online.predictor_counts import PredictorCounts
 from lompr_predictor.ros.closed_loop import run_closed_loop
-from lompr_predictor.ros.loop_in_process import in_process_parameters, loop_topics
 from lompr_predictor.ros.loop_processes import loop_commands, ros_value
 from lompr_predictor.ros.loop_settings import (
     TWIN_COUNTS,
     ClosedLoopError,
     LoopSettings,
     loop_counts,
+    loop_parameters,
 )
 
 pytestmark = pytest.mark.ros
-
-#: What only one mode sets: private topics and a wall-time staleness and lateness in one
-#: process; simulated time, the twin's /clock and its run log across processes.
-IN_PROCESS_ONLY = {'stale_periods', 'late_tolerance'}
-PROCESSES_ONLY = {'use_sim_time', 'publish_clock', 'wait_for_subscribers', 'run_log'}
-
 
 def command_parameters(command: list[str]) -> dict[str, str]:
     """The `-p name:=value` pairs of a command line."""
@@ -48,16 +42,20 @@ def command_parameters(command: list[str]) -> dict[str, str]:
 ])
 def test_both_modes_give_the_nodes_the_same_parameters(settings: LoopSettings,
                                                        tmp_path: Path) -> None:
-    in_process = in_process_parameters(settings, 3, 0.04, loop_topics('/p'))
-    processes = loop_commands(settings, 3, 0.04, tmp_path / 'run.npz')
+    """One process takes `loop_parameters` as overrides, three processes as the commands'
+    -p pairs: the same, the nodes on the twin's /clock and the twin writing its run log."""
+    run_log = tmp_path / 'run.npz'
+    in_process = loop_parameters(settings, 3, 0.04, run_log)
+    processes = loop_commands(settings, 3, 0.04, run_log)
     assert set(in_process) == set(processes) == {'kinematics_node', 'predictor_node',
                                                  'twin_node'}
     for node, command in processes.items():
-        ours = {name: ros_value(value) for name, value in in_process[node].items()
-                if not name.endswith('_topic') and name not in IN_PROCESS_ONLY}
-        theirs = {name: value for name, value in command_parameters(command).items()
-                  if name not in PROCESSES_ONLY}
-        assert ours == theirs, node
+        assert command_parameters(command) == {
+            name: ros_value(value) for name, value in in_process[node].items()}, node
+    assert in_process['kinematics_node']['use_sim_time'] is True
+    assert in_process['predictor_node']['use_sim_time'] is True
+    assert in_process['twin_node']['publish_clock'] is True
+    assert in_process['twin_node']['run_log'] == str(run_log)
     twin = command_parameters(processes['twin_node'])
     assert twin['compensation_timeout'] == '1.0'  # (3 + 2) x 0.04 s, at least 1 s
     assert twin['passes'] == str(settings.lead_in_passes + settings.passes)
@@ -82,8 +80,6 @@ def test_a_long_horizon_lets_the_twin_wait_for_its_offset(tmp_path: Path) -> Non
     settings = LoopSettings(model_path='model.pt')
     twin = command_parameters(loop_commands(settings, 48, 0.04, tmp_path / 'r.npz')['twin_node'])
     assert float(twin['compensation_timeout']) == pytest.approx(2.0)  # (48 + 2) x 0.04 s
-    assert in_process_parameters(settings, 48, 0.04, loop_topics('/p'))['twin_node'][
-        'compensation_timeout'] == pytest.approx(2.0)
 
 
 def test_counts_are_named_alike_and_keep_the_modes_own() -> None:
