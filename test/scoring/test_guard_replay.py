@@ -88,7 +88,7 @@ def test_replay_with_a_prior_publishes_what_the_guard_publishes() -> None:
     prior_error = rng.normal(0.0, 0.5e-6, truth.shape)
     settings = guard_rules(window_instants=40, min_scored=20, dwell_instants=30)
     online = run_guard(LiveGuard(settings, LEAD, PERIOD), truth, model_error,
-                  prior_error=prior_error)[:-HORIZON]
+                       prior_error=prior_error)[:-HORIZON]
     replay = replay_guard(LiveGuard(settings, LEAD, PERIOD), *_instants(truth, model_error),
                           prior=(truth + prior_error)[HORIZON:])
     np.testing.assert_array_equal(replay.published, online)
@@ -106,3 +106,25 @@ def test_replay_with_a_prior_publishes_what_the_guard_publishes() -> None:
                                                    rel=1e-12)
     assert 0.3 < x['prior_fraction'] < 0.6
     assert replay.hand_overs == (1, 0) and replay.hand_backs == (2, 1)
+
+
+def test_replay_hands_on_persistence_where_the_node_finds_a_change_implausible() -> None:
+    """What the guard publishes meets the node's last check offline too: a predicted change
+    beyond the model's limit on an axis is persistence there, counted, the other axis kept."""
+    truth = random_walk(300, seed=21)
+    model_error = np.zeros_like(truth)
+    model_error[150, 0] = 5e-3  # one prediction 5 mm off on X
+    settings = guard_rules(window_instants=40, min_scored=20, dwell_instants=30, enabled=False)
+    stamps, actual, model, persistence = _instants(truth, model_error)
+    limits = (1e-3, 1e-3)  # 1 mm per axis over the horizon
+    replay = replay_guard(LiveGuard(settings, LEAD, PERIOD), stamps, actual, model,
+                          persistence, limits=limits)
+    jump = 150 - HORIZON
+    assert replay.implausible == 1 and replay.summary()['implausible_predictions'] == 1
+    assert replay.published[jump, 0] == persistence[jump, 0]
+    assert replay.published[jump, 1] == model[jump, 1]
+    others = np.arange(len(stamps)) != jump
+    np.testing.assert_array_equal(replay.published[others], model[others])
+    unchecked = replay_guard(LiveGuard(settings, LEAD, PERIOD), stamps, actual, model,
+                             persistence)
+    assert unchecked.implausible == 0 and unchecked.published[jump, 0] == model[jump, 0]
