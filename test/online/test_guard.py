@@ -356,7 +356,7 @@ def test_decisions_on_a_long_mixed_stream_are_those_pinned() -> None:
     hash taken over the statuses' fields of then): a faster guard, and the guard of a model
     without a prior, must decide alike."""
     outcome = _mixed_run(LiveGuard(guard_rules(window_instants=60, dwell_instants=20), LEAD,
-                                               PERIOD))
+                                   PERIOD))
     held_x, held_y, scored, persisted = outcome[:4]  # before the new model
     assert held_x[0] is held_y[0] is GuardState.PERSISTENCE
     assert held_x[1] is held_y[1] is GuardReason.OUTSIDE_ENVELOPE
