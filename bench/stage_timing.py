@@ -44,9 +44,9 @@ def core_steps(core: OnlinePredictor) -> list[tuple[str, object, str]]:
             ('alignment', core._alignment, 'add_pose'),
             ('alignment', core._alignment, 'add_reference'),
             ('plant error', core, '_plant_error'), ('feature rows', core, '_feature_rows'),
-            ('overrun', core, '_in_time'),
+            ('overrun', core._answers, 'worth_inferring'),
             *(('inference', slot, 'predict') for slot in core.slots.all),
-            ('offset gate', core, '_publish')]
+            ('offset gate', core._answers, 'publish')]
 
 
 def time_stages(core: OnlinePredictor, timer: StageTimer) -> None:

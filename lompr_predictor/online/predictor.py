@@ -6,8 +6,8 @@ are tested alone: the stamps of its inputs (`input_stamps`), the alignment by st
 (`alignment`), the fault rules (`faults`), a model slot per model (`model_slot`: the model,
 its window of feature rows and its runner), the plan of a model that reads the reference
 preview (`preview`), the chain of units that see every sample and prediction
-(`sample_units`, the live accuracy first), the overrun policy (`timing`) and the offset gate
-(`offset`). Per aligned sample it computes the plant error (docs/interface.md, the error),
+(`sample_units`, the live accuracy first), and the answer of an instant (`answers`: the
+units' revision, the overrun policy of `timing`, the offset gate of `offset`). Per aligned sample it computes the plant error (docs/interface.md, the error),
 pushes the rows of every slot's window, lets the first full slot (the model's, else the
 fallback's) predict and hands the prediction to the gate. Any fault empties the windows and
 cancels the offset in force.
@@ -27,6 +27,7 @@ from collections.abc import Callable, Sequence
 from lompr_predictor.learning.model_file import LoadedModel
 from lompr_predictor.monitoring import LatencyRecorder, RejectionCounter
 from lompr_predictor.online.alignment import AlignedSample, DropReason, Event, StampAlignment
+from lompr_predictor.online.answers import Answers
 from lompr_predictor.online.faults import FaultReason, StaleWatch, StreamRules, StreamSettings
 from lompr_predictor.online.inference import InferenceBackend
 from lompr_predictor.online.input_stamps import InputStamps
@@ -87,6 +88,7 @@ class OnlinePredictor:
         self.faults = RejectionCounter(FaultReason)
         self.last_fault: FaultReason | None = None
         self.overrun = OverrunGuard(self._lead_ns, period_ns(stream.late_tolerance))
+        self._answers = Answers(self._units, self.gate, self.overrun, self._lead_ns, clock)
 
     # -- inputs ---------------------------------------------------------------------------
 
@@ -220,13 +222,14 @@ class OnlinePredictor:
         """Append the outputs of one aligned sample to `outputs`."""
         error = self._plant_error(sample, outputs)
         slot = self._feature_rows(sample, error, outputs)
-        if slot is None or not self._in_time(sample.stamp_ns):
+        if slot is None or not self._answers.worth_inferring(sample.stamp_ns, self._now):
             return
         prediction = slot.predict()
         if prediction is None:
             outputs += self._fault(FaultReason.INFERENCE)
             return
-        self._publish(sample.stamp_ns, prediction, slot, outputs)
+        self._now = self._answers.publish(sample.stamp_ns, prediction, slot, self._now,
+                                          outputs)
 
     def _plant_error(self, sample: AlignedSample, outputs: list[Output]) -> XY:
         """The plant error at the sample's stamp, after the interval rules, shown to the
@@ -261,37 +264,6 @@ class OnlinePredictor:
                                             self._alignment.newest_pose_ns)
         return self.slots.push(sample.stamp_ns, error, (sample.reference_x, sample.reference_y,
                                                         sample.reference_z), planned)
-
-    def _in_time(self, stamp_ns: int) -> bool:
-        """Whether the sample is worth an inference (`timing.OverrunGuard.skip`) at the
-        clock's latest reading; an instant skipped gets no offset."""
-        if not self.overrun.skip(stamp_ns, self._now):
-            return True
-        self.overrun.inference_skipped_late += 1
-        self.gate.missed()
-        return False
-
-    def _publish(self, stamp_ns: int, prediction: XY, slot: ModelSlot,
-                 outputs: list[Output]) -> None:
-        """Append the output of a prediction from the window that ends at `stamp_ns`, as
-        the units revise it, unless it comes too late; the clock is read again."""
-        instant_ns = stamp_ns + self._lead_ns
-        kept: XY | None = prediction
-        for unit in self._units:
-            kept = unit.revise(instant_ns, prediction, slot)
-            if kept is None:
-                break
-            prediction = kept
-        overrun, started = self.overrun, self._now
-        ended = self._now = self._clock()
-        overrun.inference_took(started, ended)
-        if kept is None:
-            self.gate.missed()
-        elif overrun.late(stamp_ns, ended):
-            overrun.late_outputs_dropped += 1
-            self.gate.missed()
-        else:
-            outputs.append(self.gate.publish(instant_ns, prediction, stamp_ns))
 
     def _restart(self, stamp_ns: int | None, reason: DropReason) -> None:
         """Take the inputs as starting afresh at `stamp_ns` (None: anew), the waiting poses

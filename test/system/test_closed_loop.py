@@ -15,6 +15,7 @@ import json
 import re
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -205,18 +206,18 @@ def test_a_stall_of_the_one_process_loop_leaves_no_sample_without_its_offset(
     held up for 0.3 s of wall time (a collection of the process's heap under load) takes no
     sample time in lockstep, so with the predictor's default late tolerance (5 ms) the twin
     still gets every offset and the predictor drops none as late."""
-    from lompr_predictor.online.predictor import OnlinePredictor
+    from lompr_predictor.online.answers import Answers
 
-    publish = OnlinePredictor._publish
+    publish = Answers.publish
     calls = {'count': 0}
 
-    def stalled(self: OnlinePredictor, *args: object, **kwargs: object) -> None:
+    def stalled(self: Answers, *args: Any, **kwargs: Any) -> int:
         calls['count'] += 1
         if calls['count'] == 100:
             time.sleep(0.3)
-        publish(self, *args, **kwargs)  # type: ignore[arg-type]
+        return publish(self, *args, **kwargs)
 
-    monkeypatch.setattr(OnlinePredictor, '_publish', stalled)
+    monkeypatch.setattr(Answers, 'publish', stalled)
     model = fit_ridge_model(tmp_path / 'ridge.pt', description)
     run = run_closed_loop(LoopSettings(model_path=str(model), passes=1, lead_in_passes=0,
                                        samples=200, seed=LOOP_SEED, lockstep_timeout=0.05),
