@@ -223,6 +223,15 @@ def test_the_size_check_sees_a_long_function(tmp_path: Path) -> None:
         f'long: {MAX_FUNCTION_LINES + 2} lines (at most {MAX_FUNCTION_LINES})']
 
 
+#: The predictor node is an adapter of its ROS-free runtime: its module stays this short.
+MAX_PREDICTOR_NODE_LINES = 250
+
+
+def test_the_predictor_node_only_adapts_its_runtime() -> None:
+    lines = (PACKAGE / 'ros' / 'predictor_node.py').read_text(encoding='utf-8').splitlines()
+    assert len(lines) <= MAX_PREDICTOR_NODE_LINES
+
+
 #: The longest a module's docstring may be: what the module is for and why it is built so;
 #: the rest belongs on the docs' pages.
 MAX_MODULE_DOCSTRING_LINES = 30

@@ -7,10 +7,10 @@ are tested alone: the stamps of its inputs (`input_stamps`), the alignment by st
 its window of feature rows and its runner), the plan of a model that reads the reference
 preview (`preview`), the chain of units that see every sample and prediction
 (`sample_units`, the live accuracy first), and the answer of an instant (`answers`: the
-units' revision, the overrun policy of `timing`, the offset gate of `offset`). Per aligned sample it computes the plant error (docs/interface.md, the error),
-pushes the rows of every slot's window, lets the first full slot (the model's, else the
-fallback's) predict and hands the prediction to the gate. Any fault empties the windows and
-cancels the offset in force.
+units' revision, the overrun policy of `timing`, the offset gate of `offset`). Per aligned
+sample it computes the plant error (docs/interface.md, the error), pushes the rows of every
+slot's window, lets the first full slot (the model's, else the fallback's) predict and hands
+the prediction to the answer. Any fault empties the windows and cancels the offset in force.
 
 Time is one clock, the caller's, in integer nanoseconds (the node's ROS clock, simulated
 under use_sim_time), read when an input call begins and again after each inference (the

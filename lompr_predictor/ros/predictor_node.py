@@ -1,10 +1,9 @@
 # SPDX-License-Identifier: Apache-2.0
 """predictor_node: end poses + reference -> predicted error and a bounded compensation offset.
 
-A managed (lifecycle) node over `online.OnlinePredictor`: end poses and references in, every
-`Output` out on the predicted error and compensation topics. Loading a model and choosing
-what runs it (`online.model_loader`) and the /diagnostics statuses (`online.predictor_status`)
-are ROS-free; the lifecycle state is rclpy's. A sample is answered from its own callback,
+A managed (lifecycle) node that adapts the ROS-free predictor runtime
+(`runtime.predictor_runtime`: the models, the core, its store and adaptation) to ROS: its
+parameters, topics, service, timers and clock. A sample is answered from its own callback,
 never a timer, so a simulator that waits for the answer (lockstep) gets it.
 """
 
@@ -54,10 +53,6 @@ from lompr_predictor.threads import set_torch_threads
 NODE_NAME = 'predictor_node'
 
 
-class NotConfiguredError(LomprError):
-    """The core of a predictor node that is not configured was asked for."""
-
-
 class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode):
     """The predictor node (module docstring). `deferred`: leave the autostart to the
     caller's `start()` (an entry point sets the process's torch threads first). Extra
@@ -97,10 +92,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
     @property
     def core(self) -> OnlinePredictor:
         """The ROS-free predictor while the node is configured; else `NotConfiguredError`."""
-        if self.runtime.core is None:
-            msg = f'{self.get_name()} is {self.lifecycle_state}: no model, no core'
-            raise NotConfiguredError(msg)
-        return self.runtime.core
+        return self.runtime.running_core(f'{self.get_name()} ({self.lifecycle_state})')
 
     @property
     def configured(self) -> bool:
@@ -109,14 +101,6 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
     def _active_core(self) -> OnlinePredictor | None:
         """The core while configured and active (what the inputs feed), else None."""
         return self.runtime.core if self.active else None
-
-    def start(self) -> None:
-        """Configure and activate if `autostart` (`ManagedNode.autostart`)."""
-        if self.settings.autostart:
-            self.autostart()
-        else:
-            self.get_logger().info('autostart false: unconfigured, waiting for a lifecycle '
-                                   'manager (change_state configure, activate)')
 
     # -- lifecycle transitions ------------------------------------------------------------
 
@@ -232,11 +216,8 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
     def readings(self) -> PredictorReadings:
         """What the node holds now, for its statuses (`PredictorDiagnostics`)."""
         settings = self.settings
-        clock_values: dict[str, object] = {
-            'use_sim_time': bool(self.get_parameter('use_sim_time').value),
-            'clock_s': round(self.clock_seconds(), 6),
-            'clock_jumps_back': self.runtime.clock_jumps_back,
-            'dropped_inactive': self.inputs.dropped_inactive}
+        clock_values = {**self.runtime.clock_values(),
+                        'dropped_inactive': self.inputs.dropped_inactive}
         return PredictorReadings(
             Lifecycle(self.lifecycle_state, settings.autostart, self.configure_error),
             settings, self.runtime, clock_values, self.callback_values(), self.clock_ns())

@@ -38,6 +38,10 @@ from lompr_predictor.online.store_export import StoreExport
 from lompr_predictor.robot.chain import RobotSpec, description_sha256
 
 
+class NotConfiguredError(LomprError):
+    """The core of a predictor that is not configured was asked for."""
+
+
 class RuntimeSettings(Protocol):
     """The settings the runtime reads, read-only (a predictor node's parameters: each
     documented there, declared once)."""
@@ -170,7 +174,7 @@ class PredictorRuntime:
     def activate(self) -> None:
         """Start from an empty window (the node becomes active): idle time counts once its
         clock reads a time (under simulated time, from the first /clock)."""
-        self._running_core().reset()
+        self.running_core().reset()
         self._clock_started = self._hooks.clock_ns() > 0
 
     def check_stale(self) -> list[Output]:
@@ -200,6 +204,12 @@ class PredictorRuntime:
             outputs = self.core.clock_jumped_back(None if changed else now_ns)
         return (text + ': window emptied, offset cancelled; output resumes once the window '
                 'has refilled'), outputs
+
+    def clock_values(self) -> dict[str, object]:
+        """The node's clock as its statuses report it."""
+        return {'use_sim_time': self._hooks.use_sim_time(),
+                'clock_s': round(self._hooks.clock_ns() * 1e-9, 6),
+                'clock_jumps_back': self.clock_jumps_back}
 
     def validate(self, path: str | None, sha256: str) -> str | None:
         """Whether the model may become `path` (None: unchanged) pinned by `sha256`: None,
@@ -263,13 +273,13 @@ class PredictorRuntime:
 
     def in_force(self) -> ModelInForce:
         """The model file the core runs, for an adaptation attempt."""
-        model, settings = self._running_core().model, self._configured()
+        model, settings = self.running_core().model, self._configured()
         return ModelInForce(model.path, model.sha256, settings.robot_description_file or None,
                             settings.frame)
 
     def provenance(self) -> dict[str, Any]:
         """Where the store's samples come from, for the bag's `lompr_samples.json`."""
-        core = self._running_core()
+        core = self.running_core()
         return {'node': self._hooks.node_name(), 'model_path': core.model.path,
                 'model_sha256': core.model.sha256,
                 'robot_description_sha256': core.chain.sha256,
@@ -285,8 +295,9 @@ class PredictorRuntime:
             raise LomprError(msg)
         return self._settings
 
-    def _running_core(self) -> OnlinePredictor:
+    def running_core(self, who: str = 'the predictor') -> OnlinePredictor:
+        """The core; `NotConfiguredError` naming `who` while there is none."""
         if self.core is None:
-            msg = 'the predictor is not configured'
-            raise LomprError(msg)
+            msg = f'{who} is not configured: no model, no core'
+            raise NotConfiguredError(msg)
         return self.core
