@@ -28,9 +28,9 @@ from lompr_predictor.stamps import GAP_FACTOR
 
 
 @dataclass(frozen=True)
-class PredictorNodeSettings(FrameSettings):
-    """The node's parameters: one field each (after the shared `FrameSettings`),
-    declared by `NodeBase.declare_settings`."""
+class PredictorCoreSettings(FrameSettings):
+    """The parameters of the model, the inputs and the offset (after the shared
+    `FrameSettings`)."""
 
     autostart: bool = parameter(
         True, 'configure and activate at start, so that a plain `ros2 run` predicts (a model '
@@ -144,6 +144,29 @@ class PredictorNodeSettings(FrameSettings):
         'sample whose inference could only finish late gets none', minimum=0.0,
         maximum=3600.0, read_only=True)
 
+    def stream(self, sample_period: float) -> StreamSettings:
+        """The rules the input stream is held to, at `sample_period` [s] (the model's, or
+        the parameter's): every other field the parameter of the same name, so each is
+        declared once, here."""
+        return StreamSettings(sample_period=sample_period, **{
+            item.name: getattr(self, item.name) for item in fields(StreamSettings)
+            if item.name != 'sample_period'})
+
+    @property
+    def robot(self) -> RobotSpec:
+        """The robot the model must run for (what it leaves open: the model file's)."""
+        return RobotSpec(self.robot_description_file or None, self.base_frame, self.tip_frame)
+
+    @property
+    def limits(self) -> CompensationLimits:
+        return CompensationLimits(self.max_compensation, self.max_compensation_step,
+                                  self.compensation_enabled)
+
+
+@dataclass(frozen=True)
+class GuardParameters:
+    """The live guard's parameters (`online.guard`)."""
+
     guard_enabled: bool = parameter(
         DEFAULT_GUARD.enabled,
         'the live guard: per axis, the model publishes only while its live RMS beats its '
@@ -178,6 +201,17 @@ class PredictorNodeSettings(FrameSettings):
         "share of the recent feature rows outside the model's trained envelope (its "
         'metadata) above which the model is held back on both axes; 1: never for that',
         minimum=0.0, maximum=1.0, read_only=True)
+
+    @property
+    def guard(self) -> GuardSettings:
+        """The live guard's rules: each the parameter `guard_` + its name."""
+        return GuardSettings(**{item.name: getattr(self, f'guard_{item.name}')
+                                for item in fields(GuardSettings)})
+
+
+@dataclass(frozen=True)
+class AdaptationParameters:
+    """The sample store's and the online adaptation's parameters (`adaptation`)."""
 
     store_minutes: float = parameter(
         0.0, 'the sample store: the aligned samples of the last this many minutes of sample '
@@ -236,20 +270,6 @@ class PredictorNodeSettings(FrameSettings):
         'thread wants (where the cores are full, sched_fifo_priority keeps the nodes ahead); '
         'false: the normal policy, adaptation_nice below the node', read_only=True)
 
-    def stream(self, sample_period: float) -> StreamSettings:
-        """The rules the input stream is held to, at `sample_period` [s] (the model's, or
-        the parameter's): every other field the parameter of the same name, so each is
-        declared once, here."""
-        return StreamSettings(sample_period=sample_period, **{
-            item.name: getattr(self, item.name) for item in fields(StreamSettings)
-            if item.name != 'sample_period'})
-
-    @property
-    def guard(self) -> GuardSettings:
-        """The live guard's rules: each the parameter `guard_` + its name."""
-        return GuardSettings(**{item.name: getattr(self, f'guard_{item.name}')
-                                for item in fields(GuardSettings)})
-
     @property
     def adaptation(self) -> AdaptationSettings:
         """The adaptation's settings: each the parameter `adaptation_` + its name."""
@@ -264,15 +284,12 @@ class PredictorNodeSettings(FrameSettings):
             return max(self.store_minutes, self.adaptation_minutes)
         return self.store_minutes
 
-    @property
-    def robot(self) -> RobotSpec:
-        """The robot the model must run for (what it leaves open: the model file's)."""
-        return RobotSpec(self.robot_description_file or None, self.base_frame, self.tip_frame)
 
-    @property
-    def limits(self) -> CompensationLimits:
-        return CompensationLimits(self.max_compensation, self.max_compensation_step,
-                                  self.compensation_enabled)
+@dataclass(frozen=True)
+class PredictorNodeSettings(AdaptationParameters, GuardParameters, PredictorCoreSettings):
+    """The node's parameters, one field each, declared by `NodeBase.declare_settings` in
+    this order: the shared `FrameSettings`, the core's, the guard's, the store's and the
+    adaptation's."""
 
 
 END_POSE = Endpoint('subscription', PoseStamped, 'end_pose_topic', SENSOR_INPUT_QOS,
