@@ -253,6 +253,26 @@ def test_another_robot_or_a_model_that_is_no_bo_lstm_is_refused(
 
 
 @pytest.mark.faults
+def test_a_bo_lstm_that_does_not_record_its_hyperparameters_is_refused(
+        parent: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A BO-LSTM file without the hyperparameters it was trained with (a hand-made one):
+    one line saying so, as the adaptation's attempt then says once ('cannot adapt'), not a
+    KeyError deep in the training every period."""
+    model, bag = parent
+    loaded = load_model(model)
+    bare = tmp_path / 'bare.pt'
+    save_model(bare, loaded.module, dataclasses.replace(loaded.metadata, hyperparameters={
+        key: value for key, value in loaded.metadata.hyperparameters.items()
+        if key not in ('batch_size', 'learning_rate')}))
+    assert lompr_main(['train', str(bag), '--init', str(bare), '--out', str(tmp_path / 'm.pt'),
+                       '--report', str(tmp_path / 'r'), '--quiet']) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.endswith('does not record the hyperparameters it was trained with '
+                         '(batch_size, learning_rate), which a fine-tuning continues with')
+    assert not (tmp_path / 'm.pt').exists()
+
+
+@pytest.mark.faults
 def test_recordings_at_another_rate_are_refused(
         parent: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """The same bag with every stamp twice as far apart (80 ms, the parent's 40 ms)."""
