@@ -41,6 +41,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import copy
+import functools
 import hashlib
 import json
 import math
@@ -162,6 +163,7 @@ class ChaosMonitor(Node):
     def __init__(self, context: Context, capacity: int) -> None:
         super().__init__('lompr_chaos_monitor', context=context)
         self.clock_ns = 0
+        self.jumped_ns = 0
         self.segment = 0
         self.levels: dict[str, int] = {}
         self.events: list[tuple[float, str, int, str]] = []  # wall, status, level, message
@@ -170,7 +172,7 @@ class ChaosMonitor(Node):
         self.last: dict[str, Any] = {}
         self.publishers_ = {}
         for key, (topic, kind) in TOPICS.items():
-            self.create_subscription(kind, topic, lambda m, k=key: self.last.__setitem__(k, m),
+            self.create_subscription(kind, topic, functools.partial(self._keep, key),
                                      qos_profile_sensor_data)
             self.publishers_[key] = self.create_publisher(kind, topic, 10)
         self.clock = self.create_publisher(Clock, '/clock', 10)
@@ -181,8 +183,13 @@ class ChaosMonitor(Node):
         self.parameters = self.create_client(SetParameters, '/predictor_node/set_parameters')
         self.write = self.create_client(Trigger, '/predictor_node/write_samples')
 
+    def _keep(self, key: str, msg: Any) -> None:
+        self.last[key] = msg
+
     def _on_clock(self, msg: Clock) -> None:
-        self.clock_ns = max(self.clock_ns, stamp_to_ns(msg.clock))
+        stamp = stamp_to_ns(msg.clock)
+        if stamp != self.jumped_ns:  # the soak's own jump is not the twin's time
+            self.clock_ns = max(self.clock_ns, stamp)
 
     def _on_offset(self, msg: Vector3Stamped) -> None:
         if self.received < len(self.offsets):
@@ -218,7 +225,8 @@ class ChaosMonitor(Node):
         self.publishers_[key].publish(msg)
 
     def jump_clock(self) -> None:
-        sec, nanosec = ns_to_sec_nanosec(self.clock_ns + int(JUMP_SECONDS * 1e9))
+        self.jumped_ns = self.clock_ns + int(JUMP_SECONDS * 1e9)
+        sec, nanosec = ns_to_sec_nanosec(self.jumped_ns)
         self.clock.publish(Clock(clock=Time(sec=sec, nanosec=nanosec)))
 
 
@@ -458,7 +466,7 @@ def recovery(answered: np.ndarray, fault: Fault) -> int | None:
     if end is None or len(answered) < RECOVERED_SAMPLES:
         return None
     ok = np.convolve(answered.astype(int), np.ones(RECOVERED_SAMPLES, int), 'valid')
-    found = np.flatnonzero(ok[end:] == RECOVERED_SAMPLES) if end < len(ok) else []
+    found: Any = np.flatnonzero(ok[end:] == RECOVERED_SAMPLES) if end < len(ok) else []
     return end + int(found[0]) if len(found) else None
 
 
