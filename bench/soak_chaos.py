@@ -81,10 +81,14 @@ from lompr_predictor.ros.common import events_executor
 from lompr_predictor.ros.domain import isolate_ros_domain
 from lompr_predictor.ros.loop_processes import loop_commands
 from lompr_predictor.ros.loop_settings import LoopSettings
+from lompr_predictor.ros.predictor_settings import PredictorNodeSettings
 from lompr_predictor.stamps import ns_to_sec_nanosec, stamp_to_ns
 from lompr_predictor.threads import set_torch_threads
 from lompr_predictor.twin.digital_twin import EPOCH_NS
 from lompr_predictor.twin.run_log import read_run_log
+
+#: The predictor's declared bounds of its offset, which the soak checks every offset against.
+PREDICTOR = PredictorNodeSettings()
 
 PRESET = Path(__file__).resolve().parents[1] / 'lompr_predictor' / 'config' / 'presets'
 PERIOD = 0.004  # the highrate preset's sample period [s]
@@ -549,8 +553,8 @@ def summarise(chaos: Chaos, monitor: ChaosMonitor, orphans: list[int],
             'answered_in_time': int(answered.sum()),
             'quiet_samples': int(quiet.sum()), 'quiet_answered': int(answered[quiet].sum()),
             'outage_samples': int(outage.sum()),
-            'offsets': offset_checks(offsets, LoopSettings.max_compensation,
-                                     LoopSettings.max_compensation_step),
+            'offsets': offset_checks(offsets, PREDICTOR.max_compensation,
+                                     PREDICTOR.max_compensation_step),
             'rss_mb': {n: [chaos.rss[0][1][i], chaos.rss[-1][1][i]] for i, n in
                        enumerate(NODES)} if chaos.rss else {},
             'rss_growth_second_half_mb': growth, 'orphans': orphans,
