@@ -56,11 +56,16 @@ class Answers:
         overrun, gate = self._overrun, self._gate
         ended = self._clock()
         overrun.inference_took(started_ns, ended)
+        lateness = overrun.lateness_ns(stamp_ns, ended)
         if kept is None:
             gate.missed()
-        elif overrun.late(stamp_ns, ended):
+        elif lateness > overrun.tolerance_ns:
             overrun.late_outputs_dropped += 1
             gate.missed()
         else:
             outputs.append(gate.publish(instant_ns, prediction, stamp_ns))
+            if lateness <= 0:
+                overrun.outputs_in_time += 1
+            else:
+                overrun.outputs_after_instant += 1
         return ended

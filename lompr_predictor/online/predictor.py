@@ -204,7 +204,9 @@ class OnlinePredictor:
             predictions=self.predictions_made, clamped=gate.clamped,
             step_limited=gate.step_limited, zeros_published=gate.zeros_published,
             reclamped=gate.reclamped, inference_skipped_late=overrun.inference_skipped_late,
-            late_outputs_dropped=overrun.late_outputs_dropped)
+            late_outputs_dropped=overrun.late_outputs_dropped,
+            outputs_in_time=overrun.outputs_in_time,
+            outputs_after_instant=overrun.outputs_after_instant)
 
     # -- the per-sample path --------------------------------------------------------------
 

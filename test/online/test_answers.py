@@ -47,6 +47,18 @@ def test_a_prediction_in_time_is_revised_and_scheduled_for_its_instant() -> None
     assert len(outputs) == 1 and outputs[0].instant_ns == 10**9 + LEAD
     assert outputs[0].compensation == (-2e-6, 1e-6)  # halved by the unit, then negated
     assert overrun.late_outputs_dropped == 0
+    assert (overrun.outputs_in_time, overrun.outputs_after_instant) == (1, 0)
+
+
+def test_an_output_after_its_instant_but_within_the_tolerance_is_counted_so() -> None:
+    clock = [10**9]
+    step, overrun = answers(clock, Halve())
+    overrun.arrival(10**9, clock[0])
+    outputs: list[Output] = []
+    clock[0] += LEAD + TOLERANCE // 2  # after the instant, within the tolerance
+    step.publish(10**9, (4e-6, 0.0), SLOT, 10**9, outputs)
+    assert len(outputs) == 1
+    assert (overrun.outputs_in_time, overrun.outputs_after_instant) == (0, 1)
 
 
 def test_a_late_output_is_dropped_and_a_withheld_one_is_missed() -> None:

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from pathlib import Path
 
 import numpy as np
@@ -218,6 +220,13 @@ def test_counts_missing_from_the_statuses_are_named() -> None:
     written = {name: {key: str(value) for key, value in values.items()}
                for name, values in status_counts(counts).items()}
     assert read_counts(written) == counts and counts.overruns == 17
+    assert counts.in_time_share == 0.0  # 17 instants late or skipped, none in time
+    assert math.isnan(dataclasses.replace(counts, inference_skipped_late=0,
+                                          late_outputs_dropped=0).in_time_share)
+    timed = dataclasses.replace(counts, outputs_in_time=80, outputs_after_instant=3)
+    assert timed.in_time_share == 80 / (80 + 3 + 17)
+    assert read_counts({name: {key: str(value) for key, value in values.items()}
+                        for name, values in status_counts(timed).items()}) == timed
     with pytest.raises(CountsMissingError, match="no predictor status 'prediction'"):
         read_counts({INPUTS_STATUS: written[INPUTS_STATUS]})
     renamed = {**written[PREDICTION_STATUS], 'clamped': '4'}
