@@ -1010,7 +1010,8 @@ def report_end_to_end(load: str, job: contextlib.AbstractContextManager[Any],
 
 def end_to_end_rows(mode: str, rate: int, load: str, result: dict[str, Any],
                     floor: dict[str, Any]) -> list[Row]:
-    """Answered share and p99 of the nodes against their targets, the relays' p99 beside."""
+    """Answered and in-time shares and p99 of the nodes against their targets, the relays'
+    p99 beside."""
     rate_name = '1 kHz' if rate == 1000 else f'{rate} Hz'
     name = f'{mode}, {rate_name}{load}'
     if rate == 1000:
@@ -1019,9 +1020,13 @@ def end_to_end_rows(mode: str, rate: int, load: str, result: dict[str, Any],
     share = result['answered'] / result['answerable']
     answered = f'{result["answered"]}/{result["answerable"]}'
     p99 = result['p99']
+    in_time = (result['answered'] - result['late']) / result['answerable']
     rows = [Row(f'{name}: answered', f'>= {100 * ANSWERED_TARGET:g} %' if target else '',
                 f'{100 * share:.2f} % ({answered})',
                 share >= ANSWERED_TARGET if target else None),
+            Row(f'{name}: in time (before the instant, this clock)',
+                f'>= {100 * ANSWERED_TARGET:g} %' if target else '', f'{100 * in_time:.2f} %',
+                in_time >= ANSWERED_TARGET if target else None),
             Row(f'{name}: p99', f'<= {target:g} ms' if target else '', f'{p99:.2f} ms',
                 bool(p99 <= target) if target else None),
             Row(f'{name}: p99 of the relays (floor)', '', f'{floor["p99"]:.2f} ms', None)]
