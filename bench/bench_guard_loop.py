@@ -59,7 +59,8 @@ def main() -> int:
     settings = {'none': LoopSettings(**{**vars(base), 'compensation_enabled': False}),
                 'persistence': LoopSettings(**{**vars(base), 'model_path': str(persistence)}),
                 'guarded': base,
-                'unguarded': LoopSettings(**{**vars(base), 'guard_enabled': False})}
+                'unguarded': LoopSettings(**{**vars(base),
+                                             'predictor_parameters': {'guard_enabled': False}})}
     runs = {name: run_closed_loop(loop, progress=False) for name, loop in settings.items()}
     first = next(iter(runs.values()))
     errors = {name: run.true_error[run.scored] for name, run in runs.items()}

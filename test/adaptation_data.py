@@ -7,8 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from test_train_cli import FAST
-from trainer_data import EPOCH_NS, PERIOD_NS, lissajous_reference, synthetic_error
+from trainer_data import EPOCH_NS, FAST, PERIOD_NS, lissajous_reference, synthetic_error
 
 from lompr_predictor.cli import main as lompr_main
 from lompr_predictor.data.bags import write_recording

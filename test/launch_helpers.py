@@ -169,7 +169,7 @@ def describe(prefix: Path, launch_file: str, *arguments: str) -> list[Described]
     path = prefix / 'share' / PACKAGE / 'launch' / launch_file
     with mock.patch.object(ExecuteLocal, 'execute', record), mock.patch.dict(
             os.environ, AMENT_PREFIX_PATH=os.pathsep.join((str(prefix), sys.prefix))):
-        assert main([str(path), *arguments]) == 0
+        assert main([INTERACTIVE, str(path), *arguments]) == 0
     return nodes
 
 

@@ -25,8 +25,12 @@ LOAD = ('import importlib.util, sys; '
         'assert callable(module.main)')
 
 
-@pytest.mark.parametrize('script', sorted(BENCH.glob('*.py')),
-                         ids=lambda p: p.stem)
+#: The scripts (a module beside them, such as stage_timing, is imported by them).
+SCRIPTS = sorted(path for path in BENCH.glob('*.py')
+                 if "if __name__ == '__main__':" in path.read_text(encoding='utf-8'))
+
+
+@pytest.mark.parametrize('script', SCRIPTS, ids=lambda p: p.stem)
 def test_bench_script_imports(script: Path) -> None:
     # A subprocess: the scripts set thread and ROS environment variables when imported.
     result = subprocess.run([sys.executable, '-c', LOAD, str(script)], capture_output=True,
@@ -54,7 +58,8 @@ def test_predictor_bench_model_loads_and_runs_on_todays_features(tmp_path: Path)
 def test_predictor_bench_profile_times_every_stage_of_the_path() -> None:
     """A short profile through the real nodes: every stage of both nodes and the core is in
     the table (a renamed function or a silent stage stops the bench instead)."""
-    from lompr_predictor.online.stage_timing import STAGES
+    sys.path.insert(0, str(BENCH))
+    from stage_timing import STAGES
 
     result = subprocess.run(
         [sys.executable, str(BENCH / 'bench_predictor.py'), '--parts', 'profile',
@@ -127,3 +132,55 @@ def test_the_soak_tells_where_the_unanswered_instants_lie() -> None:
     assert holes == ("{'start': (1, 3), 'end': (1, 5), 'single': (1, 1), 'short': (1, 4), "
                      "'refill': (2, 56)}")
     assert nothing == "{'start': (1, 4)}"
+
+
+def test_the_chaos_soak_schedules_every_fault_and_checks_each_offset() -> None:
+    """The chaos soak's seeded schedule holds every fault kind once per round, in order, each
+    inside the run after the settling time, the same for the same seed; its offset check
+    finds a non-finite offset, one over the bound and a step over the slew limit between
+    consecutive instants only (not across a reset)."""
+    script = (
+        'import sys; sys.path.insert(0, sys.argv[1]); import numpy as np\n'
+        'from soak_chaos import KINDS, PERIOD, schedule, offset_checks\n'
+        'a, b = schedule(3, 7), schedule(3, 7)\n'
+        'assert [(f.kind, f.start) for f in a] == [(f.kind, f.start) for f in b]\n'
+        'assert sorted(f.kind for f in a) == sorted(KINDS)\n'
+        'starts = [f.start for f in a]\n'
+        'assert starts == sorted(starts) and 30 <= starts[0] and starts[-1] + a[-1].duration'
+        ' < 180\n'
+        'print(len(schedule(30, 7)))\n'
+        't = 1.7e9 + np.arange(6) * PERIOD\n'
+        'rows = np.zeros((6, 5)); rows[:, 1] = t; rows[:, 2] = 1e-5 * np.arange(6)\n'
+        'rows[3, 2] = 2e-4; rows[5, 0] = 1; rows[5, 2] = 4e-4\n'
+        'rows = np.vstack([rows, [1, t[0], np.nan, 0, 0], [0, t[0] - PERIOD, 6e-4, 0, 0]])\n'
+        'found = offset_checks(rows, 5e-4, 5e-5)\n'
+        'print(found["non_finite"], found["over_bound"], found["steps_over_limit"])')
+    result = subprocess.run([sys.executable, '-c', script, str(BENCH)], capture_output=True,
+                            text=True, timeout=120, check=False)
+    assert result.returncode == 0, result.stderr[-2000:]
+    rounds, counts = result.stdout.splitlines()[-2:]
+    assert rounds == str(2 * 15)  # 30 minutes: two rounds of 15 kinds
+    # steps: 0.6 mm -> 0 um at the first instant, 30 -> 200 um, 200 -> 40 um; not across the
+    # segments (0 -> 1) nor the NaN row's
+    assert counts == '1 1 3'
+
+
+@pytest.mark.slow
+def test_the_chaos_soak_runs_and_writes_its_report(tmp_path: Path) -> None:
+    """A minute of the chaos soak through the real nodes: it finishes, runs every sample,
+    injects every fault of its schedule and writes the schedule and the report."""
+    import json
+
+    out = tmp_path / 'chaos'
+    result = subprocess.run([sys.executable, str(BENCH / 'soak_chaos.py'), '--minutes', '1',
+                             '--out', str(out)], capture_output=True, text=True, timeout=600,
+                            check=False)
+    assert 'Traceback' not in result.stderr, result.stderr[-2000:]
+    assert result.returncode in (0, 1)  # 1: a target missed, on a loaded machine
+    report = json.loads((out / 'report.json').read_text())
+    assert report['samples_run'] == report['samples_planned'] == 15000
+    assert not report['stopped'] and report['targets']['completed']
+    scheduled = json.loads((out / 'schedule.json').read_text())
+    assert [f['kind'] for f in report['faults']] == [f['kind'] for f in scheduled]
+    assert all(f['started_wall'] is not None for f in report['faults'])
+    assert (out / 'report.txt').read_text().startswith('chaos soak, seed 0: 15000 of 15000')

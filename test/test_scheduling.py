@@ -183,7 +183,7 @@ def test_the_cpu_list_parameter_is_an_integer_array_unset_by_default(ros: RosHar
         KinematicsNode('twice', context=ros.context,
                        parameter_overrides=[Parameter('cpu_affinity', value=[1, 1])])
     with pytest.raises(ValueError, match='an empty array default needs the type of its items'):
-        ParameterSpec((), 'CPUs')
+        ParameterSpec(default=(), help='CPUs')
 
 
 def _threads(pid: int) -> list[tuple[int, set[int]]]:

@@ -61,7 +61,7 @@ def parameter_table(node: str) -> str:
     rows = ['| parameter | default | range or choices | read-only | description |',
             '|---|---|---|---|---|']
     for name, spec in parameter_specs(settings_class(node)).items():
-        description = spec.description.replace('|', '\\|')
+        description = spec.help.replace('|', '\\|')
         rows.append(f'| `{name}` | `{_value(spec.default)}` | {_constraint(spec)} | '
                     f'{"yes" if spec.read_only else ""} | {description} |')
     return '\n'.join(rows) + '\n'

@@ -19,7 +19,8 @@ From the training on, the demo runs `--nice` levels below the priority it starte
 
 The closed loops run in one process on one executor by default (about 3 s a pass,
 deterministic); --processes runs twin_node, kinematics_node and predictor_node as three
-processes on simulated time, the twin publishing /clock, as a simulator drives real nodes.
+processes; both on the twin's simulated time (it publishes /clock, as a simulator drives
+real nodes).
 
 Everything goes into one output directory (default runs/demo-<UTC time>/). The default
 budget takes about 2 minutes on 2 cores; --quick about 1.

@@ -115,7 +115,7 @@ def add_option_arguments(parser: argparse.ArgumentParser,
         elif spec.choices:
             parser.add_argument(flag, dest=name, default=None, help=text, choices=spec.choices)
         else:
-            kind = TEXT_TYPES[spec.kind] if spec.kind else int_at_least(spec.minimum or 0)
+            kind = TEXT_TYPES[spec.kind] if spec.kind else int_at_least(int(spec.minimum or 0))
             parser.add_argument(flag, dest=name, default=None, help=text, type=kind,
                                 metavar=spec.metavar)
 

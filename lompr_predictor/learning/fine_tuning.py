@@ -91,6 +91,10 @@ CHECK_TOLERANCE = 1e-9
 MAP_REFIT_GAIN = 0.1
 
 
+#: The hyperparameters a fine-tuning continues with: a model file must record them.
+TRAINED_WITH = ('batch_size', 'learning_rate', 'hidden')
+
+
 class FineTuneError(LomprError):
     """A model file cannot be fine-tuned (not a BO-LSTM, its network cannot be rebuilt, or
     the recordings are sampled at another rate)."""
@@ -113,6 +117,11 @@ def load_parent(path: str | Path, config: TrainingConfig, robot_sha256: str) -> 
     if parent.metadata.model_type != 'lstm':
         msg = (f'model {path}: --init fine-tunes a BO-LSTM (model_type lstm), this one is '
                f'{parent.metadata.model_type!r}')
+        raise FineTuneError(msg)
+    missing = [name for name in TRAINED_WITH if name not in parent.metadata.hyperparameters]
+    if missing:
+        msg = (f'model {path}: it does not record the hyperparameters it was trained with '
+               f'({", ".join(missing)}), which a fine-tuning continues with')
         raise FineTuneError(msg)
     return parent
 

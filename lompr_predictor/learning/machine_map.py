@@ -4,55 +4,27 @@ form the robot's kinematics give it; fitted by least squares on the error's chan
 horizon and a few times it (`MachineMap.fit`), the prior of the BO-LSTM, and fitted again on
 the error's course within a minute, what the BO-LSTM reads the error's residual of.
 
-Why. The error sources of this machine act per actuator: a branch's servo lags its commanded
-velocity and acceleration, its friction follows its direction of motion and speed, and its
-error reaches the tool tip through the robot's Jacobian; a static part (elastic sag, head and
-geometric errors) follows the posture. A network that reads the path's positions and
-velocities instead learns the path: trained on one program it predicted another worse than
-persistence. A map with the machine's structure has a few dozen coefficients, each a property
-of one actuator or of the posture, and what it learns on one program holds on the others
-(docs/training.md, "Programs"; docs/results.md has the figures).
+Why: the error sources act per actuator (a branch's servo lags its commanded velocity and
+acceleration, its friction follows its direction of motion) and reach the tool tip through
+the Jacobian; a static part follows the posture. A network that reads the path learns the
+path; a map with the machine's structure has a few dozen coefficients, each a property of one
+actuator or of the posture, and what it learns on one program holds on the others.
 
 For a feature row (the commanded tool tip x, y; per driven branch i its commanded velocity
 v_i and acceleration a_i along the reference, `data.features`):
 
     g = J (c_v v + c_a a + sum_k c_k tanh(v / s_k)) + P(x, y)
 
-- J (2 x 3): tool-tip X, Y per unit branch length, `kinematics.tool_branch_jacobian`
-  averaged over the training poses (the robot description's kinematics, not fitted); a
-  chain without actuator coordinates along the tool tip (a serial chain, `robot.chain`) has
-  the same terms in the tool's own x, y (J the identity, v and a the tool's): per joint
-  through the Jacobian at each configuration predicts better only with a plan of the
-  joints, which a preview of tool poses is not; extrapolated from the row it is worse on a
-  real arm (docs/lab/serial_map.md);
-- c_v, c_a, c_k (one per branch each): the branch's length error per unit of its motion, the
-  inner sum being the branch's own error (servo lag, friction);
-- s_k: friction speed scales, `FRICTION_SCALES` times the training rows' RMS branch speed, so
-  that a friction sign switching sharply or smoothly is in reach whatever the machine's feed;
-- P: a quadratic in x, y per axis (the posture's static error).
-
-How the model uses it (`models.PredictorModule`): the prior for the instant h samples after
-row t is e(t) + g(row t+h) - g(row t), the row t+h being the reference preview's where the
-model has one and row t's extrapolated at constant acceleration beyond what the preview
-covers; the network reads every row's map residual e - g' and predicts what the prior misses
-(the noise averaging and drift of the residual, non-linear effects the map lacks). g' is the
-residual map: the same basis with coefficients of a second fit, on the error's deviations
-from its mean over `LEVEL_WINDOW_SECONDS` (why two fits: below).
-
-Why g is fitted on changes and not levels: the prior uses g only through its change over
-the horizon, and a slow part of the error that the commanded motion does not explain (heat,
-drift, a recording's offset) changes little over seconds; fitted on levels, the least
-squares bends the coefficients towards it (on a machine that warms with its work the prior
-was then worse on programs it was not fitted on). Why lags beyond the horizon: the posture
-terms and the motion's slower parts change little within one horizon and are determined by
-the longer ones. Why a second fit for what the networks read: fitted on changes, the map
-weighs the fast part of the error (the lag-1 changes), and what it leaves of the error's
-course through a program is the path's, which a network trained on one program learns and
-gets wrong on another; fitted on that course (within a minute, so that heat and drift stay
-out) it leaves less of the path (docs/lab/programs_transfer.md, "Two fits of the map").
-
-The map is a TorchScript-able module: the exported model computes it from the raw window,
-so the node runs the same numbers as the trainer.
+J (2 x 3): tool-tip X, Y per unit branch length (`kinematics.tool_branch_jacobian`, averaged
+over the training poses; a serial chain has the same terms in the tool's own x, y, J the
+identity); c_v, c_a, c_k: per branch, its length error per unit of its motion; s_k: friction
+speed scales, `FRICTION_SCALES` times the rows' RMS branch speed; P: a quadratic in x, y per
+axis (the posture's static error). The prior for the instant h samples after row t is
+e(t) + g(row t+h) - g(row t) (row t+h from the reference preview, else extrapolated); the
+network reads every row's residual e - g' (g': the same basis fitted on the error's course
+within `LEVEL_WINDOW_SECONDS`). Why changes, why lags beyond the horizon, why a second fit:
+docs/training.md, "The machine map". A TorchScript-able module: the exported model computes
+it from the raw window, so the node runs the same numbers as the trainer.
 """
 
 from __future__ import annotations

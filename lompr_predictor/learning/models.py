@@ -3,31 +3,22 @@
 wrapper that meets the model-file contract (`model_file.py`).
 
 Networks work on normalised tensors: each feature column taken through an affine map chosen
-on the training windows (the LSTM: standardisation, mean and standard deviation; the paper's
-BP: min-max to [-1, 1]), the target likewise. `PredictorModule` wraps a network with those
-constants so that the exported module takes raw SI windows (float64, (B, window,
-features)) and returns the plant X/Y error [m] `horizon` samples after each window's last
-row. The input map is
-defined once, `normalise_windows`; the module applies it in float64, and training applies
-it to rows scaled once in float32 (`ScaledRows`, the same map by distributivity).
+on the training windows (the LSTM: standardisation; the BP: min-max to [-1, 1]), the target
+likewise. `PredictorModule` wraps a network with those constants so that the exported module
+takes raw SI windows (float64, (B, window, features)) and returns the plant X/Y error [m]
+`horizon` samples after each window's last row. The input map is defined once,
+`normalise_windows`; training applies it to rows scaled once in float32 (`ScaledRows`).
 
-Learning problem (recorded in the model metadata):
-- LSTM: the target is the *change* of the error over the horizon, e(t+h) - e(t)
-  (`residual=True`): persistence is the prior and the network learns what moves the error
-  away from it. With a machine map (`machine_map.py`, the default of `lompr train`) the prior
-  is persistence plus the change the map predicts from the commanded motion, e(t) + g(t+h) -
-  g(t), and the network also reads every row's map residual e - g' (g' the residual map:
-  the same basis fitted on the error's course within a minute, `MachineMap.fit`, where g
-  is fitted on its changes over the horizon and a few times it): the map carries what
-  transfers between programs (per actuator, through the kinematics), the network what the
-  map misses. The LSTM's last state goes through an MLP head, and the network adds a linear
-  "autoregressive highway" on the flattened window (as LSTNet does): the linear part carries
-  noise averaging and the linear extrapolation of the path, the LSTM and its head the
-  non-linear rest (friction and backlash switching at reversals, posture).
-  With 'paired' inputs (`lompr train`'s default) two such networks run side by side
-  (`PairedNet`): one reads every feature, the path's too, and learns what the programs it
-  was trained on do next (the model's prediction); the other reads the map's residuals
-  alone and holds on programs it was not trained on (the model's fallback, which the live
+- LSTM: the target is the change of the error over the horizon (`residual=True`), on a
+  prior: persistence, or with a machine map (`machine_map.py`, `lompr train`'s default)
+  persistence plus the change the map predicts, the network reading every row's map
+  residual: the map carries what transfers between programs, the network what it misses.
+  The LSTM's last state goes through an MLP head, beside a linear "autoregressive highway"
+  on the flattened window (as LSTNet): the linear part carries noise averaging and the
+  path's extrapolation, the LSTM the non-linear rest (friction and backlash at reversals).
+  With 'paired' inputs (the default) two networks run side by side (`PairedNet`): one reads
+  every feature and learns the programs it was trained on (the prediction); the other
+  reads the map's residuals alone and holds on programs it was not (the fallback the live
   guard publishes where the first does worse: `PredictorModule.candidates`).
 - BP: the paper's baseline, an MLP with one sigmoid hidden layer on the flattened window,
   predicting the error itself (`residual=False`).

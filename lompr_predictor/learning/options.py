@@ -30,6 +30,7 @@ from typing import Any
 
 from lompr_predictor.data.loading import BagInputs
 from lompr_predictor.data.problem import DEFAULT_HORIZON, DEFAULT_WINDOW
+from lompr_predictor.declarations import Declaration, declarations, declared
 from lompr_predictor.errors import LomprError
 from lompr_predictor.learning.space import (
     DEFAULT_RESTARTS,
@@ -61,8 +62,6 @@ EPOCH_WINDOWS = 20_000
 FINE_TUNE_EPOCHS = 30
 #: The trials' checkpoints in the report folder unless `checkpoints` names another.
 CHECKPOINT_FOLDER = 'trials'
-#: Key of the `OptionSpec` in a `TrainingConfig` field's metadata.
-SPEC_KEY = 'lompr_option'
 #: What a string option holds, for its check and its command-line type.
 TEXT_KINDS = ('text', 'output_file', 'output_folder', 'storage')
 #: How an option enters the study's definition: always, or only when it differs from its
@@ -80,19 +79,15 @@ class OptionError(LomprError, ValueError):
         self.names = tuple(names)
 
 
-@dataclass(frozen=True)
-class OptionSpec:
-    """One training option: its default, help (`{default}` in it is the default written
-    out), an integer's `minimum` or a string's `choices`, the `kind` of a string that is
-    neither (one of `TEXT_KINDS`), its command-line `flag` ('--' and the name with dashes
-    unless given; a switch that is on by default is `--no-...`) and `metavar`, whether the
-    model file records it (`recorded`) and how it defines the tuning study (`study`, one of
-    `STUDY_RULES`)."""
+@dataclass(frozen=True, kw_only=True)
+class OptionSpec(Declaration):
+    """One training option: a `Declaration` (its help: `{default}` in it is the default
+    written out; an integer's `minimum` or a string's `choices`), the `kind` of a string
+    that is neither (one of `TEXT_KINDS`), its command-line `flag` ('--' and the name with
+    dashes unless given; a switch that is on by default is `--no-...`) and `metavar`,
+    whether the model file records it (`recorded`) and how it defines the tuning study
+    (`study`, one of `STUDY_RULES`)."""
 
-    default: Any
-    help: str
-    minimum: int | None = None
-    choices: tuple[str, ...] = ()
     kind: str = ''
     flag: str = ''
     metavar: str | None = None
@@ -120,8 +115,9 @@ class OptionSpec:
         if self.minimum is not None and (isinstance(value, bool) or not isinstance(value, int)
                                          or value < self.minimum):
             return f'must be an integer >= {self.minimum}, got {value!r}'
-        if self.choices and value not in self.choices:
-            return f'must be one of {", ".join(self.choices)}, got {value!r}'
+        problem = self.choice_problem(value)
+        if problem:
+            return f'{problem}, got {value!r}'
         if self.kind and not str(value).strip():
             return 'must not be empty'
         return None
@@ -131,9 +127,9 @@ def option(default: Any, help: str, *, minimum: int | None = None,
            choices: Iterable[str] = (), kind: str = '', flag: str = '',
            metavar: str | None = None, recorded: bool = False, study: str = '') -> Any:
     """A `TrainingConfig` field that is a training option (module docstring)."""
-    spec = OptionSpec(default, help, minimum, tuple(choices), kind, flag, metavar, recorded,
-                      study)
-    return field(default=default, metadata={SPEC_KEY: spec})
+    return declared(OptionSpec(default=default, help=help, minimum=minimum,
+                               choices=tuple(choices), kind=kind, flag=flag, metavar=metavar,
+                               recorded=recorded, study=study))
 
 
 @dataclass(frozen=True)
@@ -247,8 +243,7 @@ class TrainingConfig:
 def option_specs(config_type: type = TrainingConfig) -> dict[str, OptionSpec]:
     """{field name: spec} of the training options of `config_type` (`TrainingConfig` or a
     subclass), in field order."""
-    return {item.name: item.metadata[SPEC_KEY] for item in dataclasses.fields(config_type)
-            if SPEC_KEY in item.metadata}
+    return declarations(config_type, OptionSpec, every=False)
 
 
 def flag_of(name: str, config_type: type = TrainingConfig) -> str:

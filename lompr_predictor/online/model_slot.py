@@ -6,7 +6,8 @@ model that reads the reference preview, one more for the fallback model that ans
 the plan is missing: the same part for both. As Pinocchio keeps the fixed model apart from
 the data of a run, a slot holds the model (its file, metadata and what runs its network,
 swapped in place by `use`) apart from what a run fills: the window of rows it reads
-(`window.FeatureWindow`, pushed by the core) and its counts.
+(`window.FeatureWindow`) and its counts. `ModelSlots` is the pair as the core holds it:
+every sample's row pushed to both windows, the first full one answering.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from lompr_predictor.learning.model_file import LoadedModel, MetadataMismatchErr
 from lompr_predictor.monitoring import LatencyRecorder
 from lompr_predictor.online.inference import InferenceBackend, Runner, TorchScriptBackend
 from lompr_predictor.online.offset import XY
-from lompr_predictor.online.window import FeatureWindow
+from lompr_predictor.online.window import FeatureWindow, Planned
 from lompr_predictor.robot.chain import KinematicChain
 
 
@@ -114,3 +115,52 @@ class ModelSlot:
             self.predictions += 1
             return x, y
         return None
+
+
+#: A fallback model and what runs it (None: TorchScript).
+Fallback = tuple[LoadedModel, InferenceBackend | None]
+
+
+class ModelSlots:
+    """The model's slot and, for a model that reads the reference preview, its fallback's
+    (module docstring): each its own window of the same samples; the first full answers."""
+
+    def __init__(self, model: LoadedModel, backend: InferenceBackend | None,
+                 fallback: Fallback | None, chain: KinematicChain,
+                 inference_time: LatencyRecorder) -> None:
+        self._chain = chain
+        self.primary = ModelSlot(model, backend, chain, inference_time)
+        self.fallback: ModelSlot | None = None
+        if fallback is not None:
+            check_fallback(fallback[0], chain, model.metadata.horizon)
+            self.fallback = ModelSlot(*fallback, chain, inference_time)
+        self.all = tuple(slot for slot in (self.primary, self.fallback) if slot)
+
+    def push(self, stamp_ns: int, error: XY, reference: tuple[float, float, float],
+             planned: Planned | None) -> ModelSlot | None:
+        """Push a sample's row into every window; the first slot whose window is full (the
+        model's, else the fallback's), None while none is."""
+        answering = None
+        for slot in self.all:
+            if slot.window.push(stamp_ns, error[0], error[1], *reference,
+                                planned) and answering is None:
+                answering = slot
+        if answering is not None:
+            answering.answers += 1
+        return answering
+
+    def replace(self, model: LoadedModel, backend: InferenceBackend | None = None) -> None:
+        """Serve `model` in the primary slot from the next sample on; it must read the same
+        window and horizon as the model it replaces."""
+        check_replacement(self.primary.model, model, self._chain)
+        self.primary.use(model, backend)
+
+    @property
+    def predictions(self) -> int:
+        """Finite predictions of any slot."""
+        return sum(slot.predictions for slot in self.all)
+
+    def clear(self) -> None:
+        """Empty every window."""
+        for slot in self.all:
+            slot.window.clear()

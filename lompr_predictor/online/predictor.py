@@ -6,18 +6,18 @@ are tested alone: the stamps of its inputs (`input_stamps`), the alignment by st
 (`alignment`), the fault rules (`faults`), a model slot per model (`model_slot`: the model,
 its window of feature rows and its runner), the plan of a model that reads the reference
 preview (`preview`), the chain of units that see every sample and prediction
-(`sample_units`, the live accuracy first), the overrun policy (`timing`) and the offset gate
-(`offset`). Per aligned sample it computes the plant error (docs/interface.md, the error),
-pushes the rows of every slot's window, lets the first full slot (the model's, else the
-fallback's) predict and hands the prediction to the gate. Any fault empties the windows and
-cancels the offset in force.
+(`sample_units`, the live accuracy first), and the answer of an instant (`answers`: the
+units' revision, the overrun policy of `timing`, the offset gate of `offset`). Per aligned
+sample it computes the plant error (docs/interface.md, the error), pushes the rows of every
+slot's window, lets the first full slot (the model's, else the fallback's) predict and hands
+the prediction to the answer. Any fault empties the windows and cancels the offset in force.
 
 Time is one clock, the caller's, in integer nanoseconds (the node's ROS clock, simulated
 under use_sim_time), read when an input call begins and again after each inference (the
 overrun policy judges the next sample by the latest reading); the caller reports its
 jumps. Every call returns the outputs to publish, in order. The counters come
-out as one snapshot (`counts`, `predictor_counts`); a profiler times the stages from outside
-(`stage_timing.time_stages` wraps the steps `stage_steps` lists).
+out as one snapshot (`counts`, `predictor_counts`); the benches time its stages from outside
+(bench/stage_timing.py).
 """
 
 from __future__ import annotations
@@ -27,15 +27,11 @@ from collections.abc import Callable, Sequence
 from lompr_predictor.learning.model_file import LoadedModel
 from lompr_predictor.monitoring import LatencyRecorder, RejectionCounter
 from lompr_predictor.online.alignment import AlignedSample, DropReason, Event, StampAlignment
+from lompr_predictor.online.answers import Answers
 from lompr_predictor.online.faults import FaultReason, StaleWatch, StreamRules, StreamSettings
 from lompr_predictor.online.inference import InferenceBackend
 from lompr_predictor.online.input_stamps import InputStamps
-from lompr_predictor.online.model_slot import (
-    ModelSlot,
-    check_fallback,
-    check_model,
-    check_replacement,
-)
+from lompr_predictor.online.model_slot import Fallback, ModelSlot, ModelSlots, check_model
 from lompr_predictor.online.offset import XY, ZERO, CompensationLimits, OffsetGate, Output
 from lompr_predictor.online.predictor_counts import PredictorCounts
 from lompr_predictor.online.preview import Planned, PlannedPath, PlanReader, PreviewDrop
@@ -43,9 +39,6 @@ from lompr_predictor.online.sample_units import LiveAccuracy, PlausibleChange, S
 from lompr_predictor.online.timing import OverrunGuard
 from lompr_predictor.robot.chain import KinematicChain, load_chain
 from lompr_predictor.stamps import StampLike, period_ns
-
-#: The fallback model and what runs it (None: TorchScript).
-Fallback = tuple[LoadedModel, InferenceBackend | None]
 
 
 class OnlinePredictor:
@@ -83,12 +76,8 @@ class OnlinePredictor:
         self.inference_time = LatencyRecorder(latency_samples)
         #: The model's slot; the fallback's (None without one) answers where the plan is
         #: missing, from its own window of the same samples.
-        self.primary = ModelSlot(model, backend, self.chain, self.inference_time)
-        self.fallback: ModelSlot | None = None
-        if fallback is not None:
-            check_fallback(fallback[0], self.chain, self.horizon)
-            self.fallback = ModelSlot(*fallback, self.chain, self.inference_time)
-        self._slots = tuple(slot for slot in (self.primary, self.fallback) if slot)
+        self.slots = ModelSlots(model, backend, fallback, self.chain, self.inference_time)
+        self.primary, self.fallback = self.slots.primary, self.slots.fallback
         #: The offsets published and their bounds, with their counters (change the bounds
         #: with `set_limits`).
         self.gate = OffsetGate(limits, period)
@@ -99,6 +88,7 @@ class OnlinePredictor:
         self.faults = RejectionCounter(FaultReason)
         self.last_fault: FaultReason | None = None
         self.overrun = OverrunGuard(self._lead_ns, period_ns(stream.late_tolerance))
+        self._answers = Answers(self._units, self.gate, self.overrun, self._lead_ns, clock)
 
     # -- inputs ---------------------------------------------------------------------------
 
@@ -181,8 +171,7 @@ class OnlinePredictor:
                       backend: InferenceBackend | None = None) -> None:
         """Use `model` (run by `backend`, default TorchScript) from the next sample on; it
         must read the same window and horizon."""
-        check_replacement(self.model, model, self.chain)
-        self.primary.use(model, backend)
+        self.slots.replace(model, backend)
 
     # -- state for diagnostics ------------------------------------------------------------
 
@@ -204,7 +193,7 @@ class OnlinePredictor:
     @property
     def predictions_made(self) -> int:
         """Finite predictions of any slot."""
-        return sum(slot.predictions for slot in self._slots)
+        return self.slots.predictions
 
     def counts(self) -> PredictorCounts:
         """The counters as one snapshot (`predictor_counts`)."""
@@ -215,18 +204,9 @@ class OnlinePredictor:
             predictions=self.predictions_made, clamped=gate.clamped,
             step_limited=gate.step_limited, zeros_published=gate.zeros_published,
             reclamped=gate.reclamped, inference_skipped_late=overrun.inference_skipped_late,
-            late_outputs_dropped=overrun.late_outputs_dropped)
-
-    def stage_steps(self) -> list[tuple[str, object, str]]:
-        """(stage, object, method name) of the call each of `stage_timing.STAGES` ends with,
-        in the order they run: what `stage_timing.time_stages` wraps."""
-        return [('stamp', self._stamps, 'pose_ns'), ('stamp', self._stamps, 'reference_ns'),
-                ('alignment', self._alignment, 'add_pose'),
-                ('alignment', self._alignment, 'add_reference'),
-                ('plant error', self, '_plant_error'), ('feature rows', self, '_feature_rows'),
-                ('overrun', self, '_in_time'),
-                *(('inference', slot, 'predict') for slot in self._slots),
-                ('offset gate', self, '_publish')]
+            late_outputs_dropped=overrun.late_outputs_dropped,
+            outputs_in_time=overrun.outputs_in_time,
+            outputs_after_instant=overrun.outputs_after_instant)
 
     # -- the per-sample path --------------------------------------------------------------
 
@@ -244,13 +224,14 @@ class OnlinePredictor:
         """Append the outputs of one aligned sample to `outputs`."""
         error = self._plant_error(sample, outputs)
         slot = self._feature_rows(sample, error, outputs)
-        if slot is None or not self._in_time(sample.stamp_ns):
+        if slot is None or not self._answers.worth_inferring(sample.stamp_ns, self._now):
             return
         prediction = slot.predict()
         if prediction is None:
             outputs += self._fault(FaultReason.INFERENCE)
             return
-        self._publish(sample.stamp_ns, prediction, slot, outputs)
+        self._now = self._answers.publish(sample.stamp_ns, prediction, slot, self._now,
+                                          outputs)
 
     def _plant_error(self, sample: AlignedSample, outputs: list[Output]) -> XY:
         """The plant error at the sample's stamp, after the interval rules, shown to the
@@ -283,46 +264,8 @@ class OnlinePredictor:
             if reader.stale and not was_stale and self.fallback is None:
                 outputs += self.gate.cancel(PreviewDrop.MISSING,
                                             self._alignment.newest_pose_ns)
-        answering = None
-        for slot in self._slots:
-            if slot.window.push(sample.stamp_ns, error[0], error[1], sample.reference_x,
-                                sample.reference_y, sample.reference_z,
-                                planned) and answering is None:
-                answering = slot
-        if answering is not None:
-            answering.answers += 1
-        return answering
-
-    def _in_time(self, stamp_ns: int) -> bool:
-        """Whether the sample is worth an inference (`timing.OverrunGuard.skip`) at the
-        clock's latest reading; an instant skipped gets no offset."""
-        if not self.overrun.skip(stamp_ns, self._now):
-            return True
-        self.overrun.inference_skipped_late += 1
-        self.gate.missed()
-        return False
-
-    def _publish(self, stamp_ns: int, prediction: XY, slot: ModelSlot,
-                 outputs: list[Output]) -> None:
-        """Append the output of a prediction from the window that ends at `stamp_ns`, as
-        the units revise it, unless it comes too late; the clock is read again."""
-        instant_ns = stamp_ns + self._lead_ns
-        kept: XY | None = prediction
-        for unit in self._units:
-            kept = unit.revise(instant_ns, prediction, slot)
-            if kept is None:
-                break
-            prediction = kept
-        overrun, started = self.overrun, self._now
-        ended = self._now = self._clock()
-        overrun.inference_took(started, ended)
-        if kept is None:
-            self.gate.missed()
-        elif overrun.late(stamp_ns, ended):
-            overrun.late_outputs_dropped += 1
-            self.gate.missed()
-        else:
-            outputs.append(self.gate.publish(instant_ns, prediction, stamp_ns))
+        return self.slots.push(sample.stamp_ns, error, (sample.reference_x, sample.reference_y,
+                                                        sample.reference_z), planned)
 
     def _restart(self, stamp_ns: int | None, reason: DropReason) -> None:
         """Take the inputs as starting afresh at `stamp_ns` (None: anew), the waiting poses
@@ -334,8 +277,7 @@ class OnlinePredictor:
 
     def _clear(self) -> None:
         """Empty every window and clear the units."""
-        for slot in self._slots:
-            slot.window.clear()
+        self.slots.clear()
         for unit in self._units:
             unit.clear()
 

@@ -25,7 +25,9 @@ PREDICTION_KEYS = (('predictions', 'predictions_total'), ('clamped', 'clamped_to
                    ('step_limited', 'step_limited_total'), ('zeros_published', 'zeros_published'),
                    ('reclamped', 'reclamped_total'),
                    ('inference_skipped_late', 'inference_skipped_late'),
-                   ('late_outputs_dropped', 'late_outputs_dropped'))
+                   ('late_outputs_dropped', 'late_outputs_dropped'),
+                   ('outputs_in_time', 'outputs_in_time'),
+                   ('outputs_after_instant', 'outputs_after_instant'))
 
 
 class CountsMissingError(LomprError):
@@ -45,11 +47,22 @@ class PredictorCounts:
     reclamped: int  # offsets re-issued after max_compensation was lowered
     inference_skipped_late: int  # samples whose output would have been late: no inference
     late_outputs_dropped: int  # inferences that finished too late to publish
+    #: Predictions published before their instant, and after it (within the tolerance),
+    #: judged on the node's clock (`timing.OverrunGuard.lateness_ns`).
+    outputs_in_time: int = 0
+    outputs_after_instant: int = 0
 
     @property
     def overruns(self) -> int:
         """Outputs late or skipped."""
         return self.inference_skipped_late + self.late_outputs_dropped
+
+    @property
+    def in_time_share(self) -> float:
+        """Of the instants a prediction was made or skipped for, the share whose offset was
+        published before its instant (NaN before any)."""
+        instants = self.outputs_in_time + self.outputs_after_instant + self.overruns
+        return self.outputs_in_time / instants if instants else float('nan')
 
 
 def status_counts(counts: PredictorCounts) -> dict[str, dict[str, object]]:

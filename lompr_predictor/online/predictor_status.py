@@ -207,6 +207,7 @@ def prediction_status(lifecycle: Lifecycle, core: OnlinePredictor | None,
     inference = core.inference_time.summary()
     rms, count = core.accuracy.rms()
     offset = core.gate.offset_in_force
+    counts = core.counts()
     values: dict[str, object] = {
         **latency_values('inference', inference),
         **latency_values('input_to_output', input_to_output),
@@ -215,10 +216,11 @@ def prediction_status(lifecycle: Lifecycle, core: OnlinePredictor | None,
         'accuracy_rms_y_um': round(float(rms[1]) * 1e6, 3),
         'accuracy_samples': count,
         'implausible_predictions': core.plausible.implausible,
+        'in_time_pct': round(100.0 * counts.in_time_share, 3),
         'compensation_enabled': limits.compensation_enabled,
         'offset_x_um': round(float(offset[0]) * 1e6, 3),
         'offset_y_um': round(float(offset[1]) * 1e6, 3),
-        **status_counts(core.counts())[PREDICTION_STATUS],
+        **status_counts(counts)[PREDICTION_STATUS],
     }
     mode = 'compensating' if limits.compensation_enabled else 'shadow mode'
     if not lifecycle.active:

@@ -19,6 +19,7 @@ from typing import Protocol
 
 import numpy as np
 
+from lompr_predictor.learning.model_file import ModelMetadata
 from lompr_predictor.online.alignment import AlignedSample
 from lompr_predictor.online.model_slot import ModelSlot
 from lompr_predictor.online.offset import XY
@@ -102,12 +103,9 @@ class PlausibleChange:
         last, limits = self._last, self._limits_of(slot)
         if last is None or limits is None:
             return prediction
-        x = prediction[0] if abs(prediction[0] - last[0]) <= limits[0] else last[0]
-        y = prediction[1] if abs(prediction[1] - last[1]) <= limits[1] else last[1]
-        if (x, y) != prediction:
-            self.implausible += 1
-            return x, y
-        return prediction
+        kept = plausible(prediction, last, limits)
+        self.implausible += kept != prediction
+        return kept
 
     def clear(self) -> None:
         self._last = None
@@ -117,7 +115,22 @@ class PlausibleChange:
         metadata = slot.model.metadata
         if metadata is not self._metadata:
             self._metadata = metadata
-            low, high = (metadata.normalisation.get(key) for key in ('error_low', 'error_high'))
-            self._limits = None if low is None or high is None else (
-                PLAUSIBLE_RANGES * (high[0] - low[0]), PLAUSIBLE_RANGES * (high[1] - low[1]))
+            self._limits = plausible_limits(metadata)
         return self._limits
+
+
+def plausible_limits(metadata: ModelMetadata) -> tuple[float, float] | None:
+    """The largest plausible change of the error over the horizon per axis [m] for a model
+    (`PLAUSIBLE_RANGES` times its training range); None for a file without the range."""
+    low, high = (metadata.normalisation.get(key) for key in ('error_low', 'error_high'))
+    if low is None or high is None:
+        return None
+    return PLAUSIBLE_RANGES * (high[0] - low[0]), PLAUSIBLE_RANGES * (high[1] - low[1])
+
+
+def plausible(prediction: XY, last: XY, limits: tuple[float, float]) -> XY:
+    """`prediction`, with persistence (`last`) on an axis where it changes by more than its
+    limit: the one rule of the node's chain and of the offline replay."""
+    x = prediction[0] if abs(prediction[0] - last[0]) <= limits[0] else last[0]
+    y = prediction[1] if abs(prediction[1] - last[1]) <= limits[1] else last[1]
+    return x, y

@@ -26,6 +26,8 @@ class OverrunGuard:
         self._inference_ns = 0  # the last inference's duration on the node's clock
         self.inference_skipped_late = 0
         self.late_outputs_dropped = 0
+        self.outputs_in_time = 0  # published before their instant
+        self.outputs_after_instant = 0  # published after it, within the tolerance
 
     def arrival(self, stamp_ns: int, now_ns: int) -> None:
         """A sample stamped `stamp_ns` arrived (its callback started) at `now_ns`."""

@@ -5,9 +5,10 @@ processes on simulated time, so that a model is scored on the true tool-tip erro
     twin_node (lockstep) --/joint_states--> kinematics_node --/lompr/end_pose--> predictor_node
     twin_node --/lompr/reference--> predictor_node --/lompr/compensation--> twin_node
 
-One module per mode around what both share (`loop_settings`): in one process the nodes
-share an executor on private topic names (`loop_in_process`); across processes they run on
-a private ROS domain, the twin publishes /clock and writes a run log (`loop_processes`).
+One module per mode around what both share (`loop_settings`, `loop_watch`): both run the
+nodes on a private ROS domain and the twin's simulated time (it publishes /clock and writes
+a run log); in one process the nodes share an executor (`loop_in_process`), across
+processes they are the executables (`loop_processes`).
 `persistence_model` writes the simplest compensator as a model file, run by the same node;
 `record_loop` writes a run as a bag with its truth.
 """

@@ -170,8 +170,7 @@ class CommandCompensatorNode(NodeBase[CommandCompensatorSettings], ManagedNode, 
         diagnostics = self.start_diagnostics(settings.diagnostics_topic,
                                              settings.diagnostics_period, hardware_id)
         diagnostics.add('command path', self.status)
-        if settings.autostart:
-            self.autostart()
+        self.start()
 
     # -- lifecycle --------------------------------------------------------------------------
 

@@ -63,7 +63,7 @@ def status_fields(name: str, hardware_id: str, status: Status) -> StatusFields:
 #: diagnostic_updater's parameter (its name, its default) choosing the status names' node part.
 USE_FQN_PARAMETER = 'diagnostic_updater.use_fqn'
 USE_FQN = ParameterSpec(
-    False, "diagnostic status names start with the node's fully qualified name "
+    default=False, help="diagnostic status names start with the node's fully qualified name "
     '(/cell1/predictor_node: model), as with diagnostic_updater; false: with its name '
     '(predictor_node: model)', read_only=True)
 

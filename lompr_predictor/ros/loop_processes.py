@@ -11,25 +11,15 @@ its offset had come: `LoopRun.answered`).
 
 from __future__ import annotations
 
-import functools
 import os
 import signal
 import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-
-import rclpy
-from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.context import Context
-from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rosgraph_msgs.msg import Clock
 
 from lompr_predictor.online.predictor_counts import (
     CountsMissingError,
@@ -39,9 +29,7 @@ from lompr_predictor.online.predictor_counts import (
 from lompr_predictor.processes import Stopped, stop_processes
 from lompr_predictor.progress import ProgressBar, progress_bar
 from lompr_predictor.robot.paths import build_cycle
-from lompr_predictor.ros import predictor_node
 from lompr_predictor.ros.common import events_executor
-from lompr_predictor.ros.domain import reserve_domain_id
 from lompr_predictor.ros.loop_settings import (
     ClosedLoopError,
     LoopRun,
@@ -49,8 +37,12 @@ from lompr_predictor.ros.loop_settings import (
     loop_counts,
     loop_parameters,
 )
-from lompr_predictor.stamps import stamp_to_ns
-from lompr_predictor.twin.digital_twin import EPOCH_NS
+from lompr_predictor.ros.loop_watch import (
+    LoopMonitor,
+    loop_context,
+    loop_domain_id,
+    loop_environment,
+)
 from lompr_predictor.twin.parameters import load_twin_parameters
 from lompr_predictor.twin.run_log import read_run_log
 
@@ -93,28 +85,6 @@ def run_processes(settings: LoopSettings, horizon: int, progress: bool,
         answered=arrays['answered'])
 
 
-@functools.cache
-def loop_domain_id() -> int:
-    """The private ROS domain of this process's cross-process loops (reserved once)."""
-    return reserve_domain_id()
-
-
-@contextmanager
-def _environment(values: dict[str, str]) -> Iterator[None]:
-    """`os.environ` with `values` set inside the block (rcl reads discovery settings from
-    the environment when a context is initialised)."""
-    saved = {name: os.environ.get(name) for name in values}
-    os.environ.update(values)
-    try:
-        yield
-    finally:
-        for name, value in saved.items():
-            if value is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = value
-
-
 def ros_value(value: Any) -> str:
     """A parameter value as `-p name:=value` writes it."""
     return str(value).lower() if isinstance(value, bool) else str(value)
@@ -124,39 +94,10 @@ def loop_commands(settings: LoopSettings, horizon: int, period: float,
                   run_log: Path) -> dict[str, list[str]]:
     """The three executables of a cross-process loop, as `python -m` commands (the same
     `main()` as the console scripts)."""
-    parameters = loop_parameters(settings, horizon, period)
-    own: dict[str, dict[str, Any]] = {
-        'kinematics_node': {'use_sim_time': True}, 'predictor_node': {'use_sim_time': True},
-        'twin_node': {'publish_clock': True, 'wait_for_subscribers': 1,
-                      'run_log': str(run_log)}}
     return {node: [sys.executable, '-m', f'lompr_predictor.ros.{node}', '--ros-args',
-                   *(item for name, value in {**shared, **own[node]}.items()
+                   *(item for name, value in values.items()
                      for item in ('-p', f'{name}:={ros_value(value)}'))]
-            for node, shared in parameters.items()}
-
-
-class _Monitor(Node):
-    """The parent's view of a cross-process loop: the twin's /clock (progress) and the
-    predictor's last /diagnostics statuses."""
-
-    def __init__(self, context: Context, period_ns: int) -> None:
-        super().__init__('lompr_loop_monitor', context=context)
-        self.period_ns = period_ns
-        self.samples = 0
-        self.statuses: dict[str, dict[str, str]] = {}
-        self.create_subscription(Clock, '/clock', self._on_clock,
-                                 QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
-        self.create_subscription(DiagnosticArray, '/diagnostics', self._diagnostics,
-                                 QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
-
-    def _on_clock(self, msg: Clock) -> None:
-        self.samples = (stamp_to_ns(msg.clock) - EPOCH_NS) // self.period_ns + 1
-
-    def _diagnostics(self, msg: DiagnosticArray) -> None:
-        for status in msg.status:
-            if status.name.startswith(f'{predictor_node.NODE_NAME}: '):
-                self.statuses[status.name.split(': ', 1)[1]] = {
-                    kv.key: kv.value for kv in status.values}
+            for node, values in loop_parameters(settings, horizon, period, run_log).items()}
 
 
 def _log_tail(path: Path, lines: int = 15) -> str:
@@ -178,7 +119,7 @@ class _Watched:
 
 class _Watch:
     """Starts the loop's processes (`commands`, by node name; their logs into `folder`) on
-    the ROS domain `domain`, and watches them from a node of its own (`_Monitor`)."""
+    the ROS domain `domain`, and watches them from a node of its own (`LoopMonitor`)."""
 
     def __init__(self, commands: dict[str, list[str]], folder: Path, period_ns: int,
                  domain: int) -> None:
@@ -186,19 +127,16 @@ class _Watch:
         self.logs = {name: folder / f'{name}.log' for name in commands}
         self.period_ns = period_ns
         self.domain = domain
-        self.environment = {'ROS_DOMAIN_ID': str(domain),
-                            'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
+        self.environment = loop_environment(domain)
         self.processes: dict[str, subprocess.Popen[bytes]] = {}
 
     def run(self, run_log: Path, total: int, wall_timeout: float, bar: ProgressBar,
             label: str) -> _Watched:
         """Start the processes and wait until the twin has written `run_log` (a process
         that exits before, or `wall_timeout` seconds, is a `ClosedLoopError`); stop them."""
-        context = Context()
-        with _environment(self.environment):
-            rclpy.init(context=context, args=[], domain_id=self.domain)
+        context = loop_context(self.domain)
         executor = events_executor(context)
-        monitor = _Monitor(context, self.period_ns)
+        monitor = LoopMonitor(context, self.period_ns)
         executor.add_node(monitor)
         started = time.monotonic()
         try:

@@ -2,16 +2,18 @@
 """What both modes of the closed loop share (`closed_loop`): the settings of a run, what a
 run returns, the parameters both give the nodes and how both count a run.
 
-Both modes run the twin in lockstep (the next sample runs once its offset arrived), give the
-nodes the same parameters (`loop_parameters`) and count a run alike (`loop_counts`: the
-twin's counters and the predictor's `PredictorCounts`, which one process takes from the core
-and three processes read back from /diagnostics), so they score alike.
+Both modes run the twin in lockstep (the next sample runs once its offset arrived) as the
+simulation's clock (/clock), give the nodes the same parameters (`loop_parameters`), read
+the run from the twin's run log, and count a run alike (`loop_counts`: the twin's counters
+and the predictor's `PredictorCounts`, which one process takes from the core and three
+processes read back from /diagnostics), so they score alike.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -36,7 +38,6 @@ class LoopSettings:
     path: str = 'spiral'
     seed: int = 0
     compensation_enabled: bool = True  # False: the predictor in shadow mode throughout
-    guard_enabled: bool = True  # the predictor's live guard (`online.guard`)
     switch_off_at: int | None = None  # sample from which compensation is switched off
     twin_parameters_file: str = ''  # empty: the packaged config/twin.yaml
     robot_description_file: str = ''  # empty: the packaged LOMPR description
@@ -46,28 +47,18 @@ class LoopSettings:
     #: ... and once it answers (the previous sample had its offset): a late answer is a
     #: loaded machine, which must not let a sample through uncompensated.
     answer_timeout: float = 2.0
-    max_compensation: float = 5e-4  # predictor clamp, XY norm [m]
-    max_compensation_step: float = 5e-5  # predictor step limit per sample [m]
-    #: In one process the twin publishes no /clock, so the predictor's staleness counts
-    #: wall time, which in lockstep is not sample time: only a real stall (this many periods,
-    #: 10 s) should count as stale input. Across processes the nodes run on the twin's
-    #: simulated time with the predictor's default staleness, and this is not used.
-    stale_periods: float = 250.0
-    #: Likewise the predictor's overrun policy there judges an output's lateness on wall
-    #: time: a stall of the one process (a collection of its heap under load) is no late
-    #: output of the loop's sample time, so only one this long [s] drops an output.
-    late_tolerance: float = 10.0
     wall_timeout: float = 1800.0  # a run that takes longer is stopped with an error
-    #: True: twin_node, kinematics_node and predictor_node as three processes on simulated
-    #: time (module docstring); False: one process, one executor.
+    #: True: twin_node, kinematics_node and predictor_node as three processes; False: one
+    #: process, one executor; both on the twin's simulated time (module docstring).
     processes: bool = False
     #: If not 0, stop after this many samples (a run shorter than lead-in + passes).
     samples: int = 0
     #: Samples of its planned path the twin publishes with each sample (the reference
     #: preview); `run_closed_loop` sets it for a model that reads one (its K + 2).
     preview_samples: int = 0
-    #: Further parameters of the predictor and of the twin, by name (over the loop's own:
-    #: adaptation, or the twin in real time at a speed factor).
+    #: Further parameters of the predictor and of the twin, by name, over the loop's own
+    #: (the guard off, other offset bounds, adaptation; the twin in real time at a speed
+    #: factor): every other parameter is the node's own default, declared once there.
     predictor_parameters: Mapping[str, Any] = field(default_factory=dict)
     twin_parameters: Mapping[str, Any] = field(default_factory=dict)
     #: If > 0, kinematics_node and predictor_node run under SCHED_FIFO at this priority (their
@@ -121,21 +112,19 @@ class LoopRun:
         return arrays, document
 
 
-def loop_parameters(settings: LoopSettings, horizon: int,
-                    period: float) -> dict[str, dict[str, Any]]:
-    """The parameters of the loop's three nodes that both modes set alike, by node name
-    (empty strings, the nodes' defaults, left out)."""
+def loop_parameters(settings: LoopSettings, horizon: int, period: float,
+                    run_log: Path) -> dict[str, dict[str, Any]]:
+    """The parameters of the loop's three nodes, by node name (empty strings, the nodes'
+    defaults, left out): both modes alike, the nodes on the twin's simulated time (its
+    /clock), the twin writing every sample into `run_log` when its passes are done."""
     description = {'robot_description_file': settings.robot_description_file}
     nodes = {**description, **({'sched_fifo_priority': settings.sched_fifo_priority}
                                if settings.sched_fifo_priority else {})}
     parameters: dict[str, dict[str, Any]] = {
-        'kinematics_node': nodes,
+        'kinematics_node': {**nodes, 'use_sim_time': True},
         'predictor_node': {
-            **nodes, 'model_path': settings.model_path,
+            **nodes, 'use_sim_time': True, 'model_path': settings.model_path,
             'compensation_enabled': settings.compensation_enabled,
-            'guard_enabled': settings.guard_enabled,
-            'max_compensation': settings.max_compensation,
-            'max_compensation_step': settings.max_compensation_step,
             **settings.predictor_parameters},
         'twin_node': {
             **description, 'twin_parameters_file': settings.twin_parameters_file,
@@ -146,6 +135,7 @@ def loop_parameters(settings: LoopSettings, horizon: int,
             'preview_samples': settings.preview_samples,
             # an offset is sent `horizon` samples ahead of its instant: let it wait that long
             'compensation_timeout': max(1.0, (horizon + 2) * period),
+            'publish_clock': True, 'wait_for_subscribers': 1, 'run_log': str(run_log),
             **settings.twin_parameters},
     }
     return {node: {name: value for name, value in values.items() if value != ''}

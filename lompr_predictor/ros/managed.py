@@ -36,7 +36,9 @@ class ConfigureError(LomprError):
 
 
 class ManagedNode(_LifecycleNodeType):
-    """Mix in before `LifecycleNode` (after `NodeBase`)."""
+    """Mix in before `LifecycleNode` (after `NodeBase`, whose settings have `autostart`)."""
+
+    settings: Any  # the node's settings snapshot (`NodeBase`)
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -65,6 +67,15 @@ class ManagedNode(_LifecycleNodeType):
             else:
                 self.destroy_timer(entity)
         self._owned = []
+
+    def start(self) -> None:
+        """Configure and activate if the node's `autostart` setting says so, else say that
+        it waits for a lifecycle manager."""
+        if self.settings.autostart:
+            self.autostart()
+        else:
+            self.get_logger().info('autostart false: unconfigured, waiting for a lifecycle '
+                                   'manager (change_state configure, activate)')
 
     def autostart(self) -> None:
         """Configure and activate; raise why not (a `LomprError`), or the KeyboardInterrupt

@@ -1,52 +1,30 @@
 # SPDX-License-Identifier: Apache-2.0
 """What every lompr node shares: settings, endpoints, one callback-exception policy,
-diagnostics.
-
-`NodeBase` is a mixin placed before the rclpy class, so it serves a plain node and a
-managed one alike:
-
-    class KinematicsNode(NodeBase[KinematicsNodeSettings], Node): ...
-    class SomeManagedNode(NodeBase[Settings], LifecycleNode): ...   # rclpy.lifecycle
+diagnostics. `NodeBase` is a mixin placed before the rclpy class, so it serves a plain node
+and a managed one alike (`class KinematicsNode(NodeBase[KinematicsNodeSettings], Node)`).
 
 - Settings: `declare_settings(SettingsType)` declares every field of the frozen settings
-  dataclass as a parameter (`parameters.parameter`), sets `self.settings`, and from then on
-  validates each change (ranges and read_only by rclpy; choices, checks and the node's
-  `validate_settings` hook here) and applies an accepted one as a new frozen snapshot
-  (`apply_settings` hook, after `self.settings` is replaced). Every node's settings share
-  `StatusSettings` (its diagnostics), `SchedulingSettings` (its process's priority and
-  CPUs, applied by `common.run_node`) and `FrameSettings` (its frame).
-- Endpoints: an `Endpoint` names a publisher or subscription: kind, message type, the
-  settings field holding its topic, and its default QoS, chosen on purpose
-  (`SENSOR_INPUT_QOS`, `COMMAND_INPUT_QOS`, `OUTPUT_QOS`). `advertise` and `subscribe`
-  create it with rclpy's `QoSOverridingOptions`, so history, depth and reliability are
-  read-only parameters `qos_overrides.<topic>.<publisher|subscription>.<policy>`; a bad
-  override stops the node with one line (`QosOverrideError`). A lifecycle node gets a
-  lifecycle publisher.
+  dataclass as a parameter (`parameters.parameter`), validates each change (ranges and
+  read_only by rclpy; choices, checks and the node's `validate_settings` hook here) and
+  applies an accepted one as a new frozen snapshot (`apply_settings` hook). Every node's
+  settings share `StatusSettings`, `SchedulingSettings` (applied by `common.run_node`) and
+  `FrameSettings`.
+- Endpoints: an `Endpoint` names a publisher or subscription, its message type, the settings
+  field holding its topic and its default QoS, chosen on purpose; `advertise` and
+  `subscribe` make it with rclpy's `QoSOverridingOptions` (a bad override stops the node
+  with one line, `QosOverrideError`); a lifecycle node gets a lifecycle publisher. Each
+  counts incompatible-QoS events and warns instead of rclpy's log line (the `qos` status).
 - One callback-exception policy: every subscription, timer and parameter-change callback
-  runs through `guard`, which catches any exception, counts it (`callback_failures`,
-  `last_callback_failure`: `callback_values()` for a status), logs it throttled, and calls
-  the node's `on_callback_failure` hook (the predictor empties its window and cancels its
-  offset). A callback never ends the spin. `guard` also times each run
-  (`monitoring.CallbackTimes`, `callback_times`: wall and CPU time by callback, with the
-  throttled log calls and the process's garbage collections beside them; `run_node` adds
-  the executor's own work).
+  runs through `guard`, which catches any exception, counts it (`callback_values()`), logs
+  it throttled and calls the node's `on_callback_failure` hook (the predictor cancels its
+  offset); a callback never ends the spin. `guard` also times each run
+  (`monitoring.CallbackTimes`).
 - Diagnostics: `start_diagnostics(topic, period, hardware_id)` -> `DiagnosticsPublisher`,
-  with a `qos` status and a `callback timing` status of its own; the `hardware_id`
-  parameter, if set, replaces the node's default (the robot's name).
-- QoS events: every publisher and subscription made here (and the /diagnostics publisher)
-  counts incompatible-QoS events (a peer on its topic whose QoS cannot match: e.g. a
-  reliable subscriber of a best-effort publisher) instead of rclpy's default log line,
-  warns (throttled), and the node's `qos` status is WARN while such a peer is in the graph
-  or an event came since the last report (`incompatible_qos_total`, per endpoint, the last
-  policy).
-- `warn_throttled(key, text)`: one warning per key and `warning_throttle_period` (a settings
-  field of that name, if the node has one; else `DEFAULT_THROTTLE_PERIOD`).
+  with the `qos` and `callback timing` statuses of its own; `warn_throttled(key, text)`: one
+  warning per key and throttle period.
 - Time: every time a node reasons about is its own clock (`clock_seconds`, `clock_ns`: ROS
-  time, which follows /clock under `use_sim_time`): timers (`start_timer`), rates
-  (`rate_meter`), throttles, diagnostics; wall time only for latencies. Before the first
-  /clock message the clock reads 0.
-
-Thread counts are not set here (`threads.set_torch_threads` belongs to entry points).
+  time, /clock under `use_sim_time`): timers, rates, throttles, diagnostics; wall time only
+  for latencies. Thread counts are the entry points' (`threads.set_torch_threads`).
 """
 
 from __future__ import annotations
@@ -61,28 +39,18 @@ from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar
 
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockChange, JumpThreshold, ROSClock, TimeJump
-from rclpy.event_handler import (
-    PublisherEventCallbacks,
-    QoSOfferedIncompatibleQoSInfo,
-    QoSRequestedIncompatibleQoSInfo,
-    SubscriptionEventCallbacks,
-)
 from rclpy.lifecycle import LifecycleNodeMixin
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
 from rclpy.qos import (
     HistoryPolicy,
-    QoSCompatibility,
-    QoSPolicyKind,
     QoSProfile,
     ReliabilityPolicy,
-    qos_check_compatible,
 )
 from rclpy.qos_overriding_options import InvalidQosOverridesError, QoSOverridingOptions
 from rclpy.subscription import Subscription
 from rclpy.timer import Timer
-from rclpy.topic_endpoint_info import TopicEndpointInfo
 
 from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import (
@@ -90,8 +58,6 @@ from lompr_predictor.monitoring import (
     Level,
     LogThrottle,
     RateMeter,
-    RejectionCounter,
-    Status,
 )
 from lompr_predictor.robot.description import ROBOT_FRAME
 from lompr_predictor.ros.common import USE_FQN, USE_FQN_PARAMETER, DiagnosticsPublisher
@@ -103,6 +69,7 @@ from lompr_predictor.ros.parameters import (
     settings_help,
 )
 from lompr_predictor.ros.parameters import declare_settings as declare_parameters
+from lompr_predictor.ros.qos_watch import QosWatch
 from lompr_predictor.scheduling import MAX_NICE, MIN_NICE, Scheduling, cpu_list_problem
 
 if TYPE_CHECKING:
@@ -262,11 +229,8 @@ class NodeBase(_NodeType, Generic[S]):
         self.last_callback_failure = ''
         self.log_throttle = LogThrottle(DEFAULT_THROTTLE_PERIOD, clock=self.clock_seconds)
         self._specs: dict[str, ParameterSpec] = {}
-        #: Incompatible-QoS events by endpoint ('<topic> <publisher|subscription>').
-        self.incompatible_qos = RejectionCounter()
-        self.last_incompatible_qos = ''
-        self._incompatible_at_last_report = 0
-        self._endpoints: list[Publisher | Subscription] = []
+        #: Incompatible-QoS events and peers of the endpoints made here (the `qos` status).
+        self.qos_watch = QosWatch(self, self.guard, self.warn_throttled)
         #: Wall and CPU time of every guarded callback, logging call and garbage collection.
         self.callback_times = CallbackTimes()
         gc.callbacks.append(self.callback_times.on_gc)
@@ -339,11 +303,10 @@ class NodeBase(_NodeType, Generic[S]):
         try:
             publisher = create(endpoint.msg_type, topic, copy.copy(endpoint.qos),
                                qos_overriding_options=QOS_OVERRIDING,
-                               event_callbacks=self.publisher_events(topic))
+                               event_callbacks=self.qos_watch.publisher_events(topic))
         except (InvalidQosOverridesError, RuntimeError) as err:
             raise self._qos_error(endpoint, topic, err) from err
-        self._endpoints.append(publisher)
-        return publisher
+        return self.qos_watch.watch(publisher)
 
     def subscribe(self, endpoint: Endpoint, callback: Callable[[Any], None], *,
                   raw: bool = False) -> Subscription:
@@ -354,85 +317,10 @@ class NodeBase(_NodeType, Generic[S]):
             subscription = self.create_subscription(
                 endpoint.msg_type, topic, self.guard(endpoint.what, callback),
                 copy.copy(endpoint.qos), qos_overriding_options=QOS_OVERRIDING, raw=raw,
-                event_callbacks=SubscriptionEventCallbacks(incompatible_qos=self.guard(
-                    f'incompatible QoS on {topic}', self._incompatible_qos_handler(
-                        topic, 'subscription'))))
+                event_callbacks=self.qos_watch.subscription_events(topic))
         except (InvalidQosOverridesError, RuntimeError) as err:
             raise self._qos_error(endpoint, topic, err) from err
-        self._endpoints.append(subscription)
-        return subscription
-
-    def publisher_events(self, topic: str) -> PublisherEventCallbacks:
-        """Event callbacks of a publisher on `topic` that count incompatible QoS."""
-        return PublisherEventCallbacks(incompatible_qos=self.guard(
-            f'incompatible QoS on {topic}', self._incompatible_qos_handler(topic, 'publisher')))
-
-    def _incompatible_qos_handler(
-        self, topic: str, kind: str,
-    ) -> Callable[[QoSOfferedIncompatibleQoSInfo | QoSRequestedIncompatibleQoSInfo], None]:
-        peer = 'subscription requesting' if kind == 'publisher' else 'publisher offering'
-
-        def handle(event: QoSOfferedIncompatibleQoSInfo | QoSRequestedIncompatibleQoSInfo,
-                   ) -> None:
-            policy = QoSPolicyKind(event.last_policy_kind).name.lower()
-            self.incompatible_qos.add(f'{topic} {kind}', max(int(event.total_count_change), 1))
-            self.last_incompatible_qos = f'{topic} {kind}: {policy}'
-            self.warn_throttled(f'incompatible QoS {topic} {kind}', (
-                f"a {peer} incompatible QoS on {topic} cannot be matched with this node's "
-                f'{kind} (policy: {policy}); see qos_overrides.{topic}.{kind}.*'))
-        return handle
-
-    def incompatible_qos_peers(self) -> list[str]:
-        """Endpoints of this node with a peer in the graph whose QoS cannot match.
-
-        Both sides are compared as the graph reports them: the QoS a publisher is created
-        with leaves policies such as the deadline at "system default", which the middleware
-        fills in (infinite), so comparing it with a peer's reported QoS would see a deadline
-        the publisher lacks and warn about a peer that matches."""
-        live = {id(entity) for entity in (*self.publishers, *self.subscriptions)}
-        self._endpoints = [entity for entity in self._endpoints if id(entity) in live]
-        found = []
-        for topic, kind in dict.fromkeys(
-                (entity.topic_name, 'subscription' if isinstance(entity, Subscription)
-                 else 'publisher') for entity in self._endpoints):
-            publishers = self.get_publishers_info_by_topic(topic)
-            subscriptions = self.get_subscriptions_info_by_topic(topic)
-            ours, peers = ((subscriptions, publishers) if kind == 'subscription'
-                           else (publishers, subscriptions))
-            own = [info.qos_profile for info in ours if self._is_own(info)]
-            others = [info.qos_profile for info in peers if not self._is_own(info)]
-            if kind == 'subscription':
-                pairs = [(peer, mine) for peer in others for mine in own]
-            else:
-                pairs = [(mine, peer) for peer in others for mine in own]
-            bad = sum(qos_check_compatible(offered, requested)[0] == QoSCompatibility.ERROR
-                      for offered, requested in pairs)
-            if bad:
-                found.append(f'{topic} {kind} ({bad} peer(s))')
-        return found
-
-    def _is_own(self, info: TopicEndpointInfo) -> bool:
-        """Whether a graph endpoint belongs to this node."""
-        return (info.node_name == self.get_name()
-                and info.node_namespace == self.get_namespace())
-
-    def qos_status(self) -> Status:
-        """The node's `qos` diagnostic status: WARN while a peer with incompatible QoS is
-        in the graph or an incompatible-QoS event came since the last report."""
-        total = self.incompatible_qos.total
-        new_events, self._incompatible_at_last_report = (
-            total - self._incompatible_at_last_report, total)
-        peers = self.incompatible_qos_peers()
-        values: dict[str, object] = {
-            'incompatible_qos_total': total,
-            **{f'incompatible_qos.{key}': n for key, n in self.incompatible_qos.counts().items()},
-            'last_incompatible_qos': self.last_incompatible_qos,
-            'incompatible_peers_now': '; '.join(peers),
-        }
-        if peers or new_events:
-            where = '; '.join(peers) or self.last_incompatible_qos
-            return Status(Level.WARN, f'incompatible QoS: {where}', values)
-        return Status(Level.OK, 'every matched peer has compatible QoS', values)
+        return self.qos_watch.watch(subscription)
 
     def _qos_error(self, endpoint: Endpoint, topic: str, err: Exception) -> QosOverrideError:
         prefix = endpoint.parameter_prefix(topic)
@@ -516,9 +404,9 @@ class NodeBase(_NodeType, Generic[S]):
             self, topic, period, hardware_id=getattr(self.settings, 'hardware_id', '')
             or hardware_id, qos=copy.copy(DIAGNOSTICS_QOS),
             qos_overriding_options=QOS_OVERRIDING, guard=self.guard,
-            event_callbacks=self.publisher_events(topic))
-        self._endpoints.append(diagnostics.publisher)
-        diagnostics.add('qos', self.qos_status)
+            event_callbacks=self.qos_watch.publisher_events(topic))
+        self.qos_watch.watch(diagnostics.publisher)
+        diagnostics.add('qos', self.qos_watch.status)
         diagnostics.add('callback timing', self.callback_times.status)
         return diagnostics
 
@@ -527,6 +415,17 @@ class NodeBase(_NodeType, Generic[S]):
         message = self.log_throttle.filter(key, text)
         if message is not None:
             self.callback_times.measure('logging', self.get_logger().warning, message)
+
+    def log_line(self, level: Level, text: str) -> None:
+        """Log `text` at `level` (a ROS-free part's line): a warning throttled per its
+        text, an error or information as it comes."""
+        # rclpy binds a severity to each line that logs: one line per severity
+        if level is Level.WARN:
+            self.warn_throttled(text, text)
+        elif level >= Level.ERROR:
+            self.get_logger().error(text)
+        else:
+            self.get_logger().info(text)
 
 
 def node_help(settings_type: type, endpoints: Sequence[Endpoint] = ()) -> list[str]:

@@ -8,8 +8,9 @@
 
     settings = declare_settings(node, Settings)   # a Settings instance, after overrides
 
-Each field carries its `ParameterSpec` (default, description, numeric range or string
-choices, read_only, an optional check) in its metadata, so the dataclass is at once the
+Each field carries its `ParameterSpec` (a `declarations.Declaration`: default, description,
+numeric range or string choices, an optional check; and read_only) in its metadata, so the
+dataclass is at once the
 parameter list (declared with a `ParameterDescriptor`: rclpy itself enforces the type, the
 range and read_only, and a bad override fails at start), the `--help` text
 (`settings_help`) and the snapshot the rest of the node reads instead of `get_parameter`.
@@ -19,9 +20,8 @@ by the node base (`node_base.NodeBase`) for every later change.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
@@ -29,8 +29,8 @@ from rclpy.exceptions import InvalidParameterValueException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-#: Key of the `ParameterSpec` in a settings field's metadata.
-SPEC_KEY = 'lompr_parameter'
+from lompr_predictor.declarations import Declaration, declarations, declared
+
 #: The parameter type of an array by the type of its items.
 ARRAY_TYPES = {bool: Parameter.Type.BOOL_ARRAY, int: Parameter.Type.INTEGER_ARRAY,
                float: Parameter.Type.DOUBLE_ARRAY, str: Parameter.Type.STRING_ARRAY}
@@ -38,33 +38,27 @@ ARRAY_TYPES = {bool: Parameter.Type.BOOL_ARRAY, int: Parameter.Type.INTEGER_ARRA
 S = TypeVar('S')
 
 
-@dataclass(frozen=True)
-class ParameterSpec:
-    """One ROS parameter: default (its type is the parameter's type; a tuple is an array),
-    description, a numeric range [minimum, maximum] or string choices, read_only,
-    `check(value)`, returning why a value is refused (None if it is fine), and for an array
-    whose default is empty the type of its items (`items`: rclpy cannot tell it from [])."""
+@dataclass(frozen=True, kw_only=True)
+class ParameterSpec(Declaration):
+    """One ROS parameter: a `Declaration` (its default's type is the parameter's type; a
+    tuple is an array; its help is the parameter's description), read_only, and for an
+    array whose default is empty the type of its items (`items`: rclpy cannot tell it from
+    [])."""
 
-    default: Any
-    description: str
-    minimum: float | None = None
-    maximum: float | None = None
-    choices: tuple[str, ...] = ()
     read_only: bool = False
-    check: Callable[[Any], str | None] | None = None
     items: type | None = None
 
     def __post_init__(self) -> None:
         if (self.minimum is None) != (self.maximum is None):
-            msg = f'{self.description!r}: give both minimum and maximum, or neither'
+            msg = f'{self.help!r}: give both minimum and maximum, or neither'
             raise ValueError(msg)
         if (self.default == ()) != (self.items in ARRAY_TYPES):
-            msg = (f'{self.description!r}: an empty array default needs the type of its items '
+            msg = (f'{self.help!r}: an empty array default needs the type of its items '
                    f'(one of {", ".join(t.__name__ for t in ARRAY_TYPES)}), and only it')
             raise ValueError(msg)
         numeric = isinstance(self.default, (int, float)) and not isinstance(self.default, bool)
         if self.minimum is not None and not numeric:
-            msg = f'{self.description!r}: a range needs a numeric default'
+            msg = f'{self.help!r}: a range needs a numeric default'
             raise ValueError(msg)
 
     @property
@@ -80,7 +74,7 @@ class ParameterSpec:
 
     def descriptor(self, name: str) -> ParameterDescriptor:
         descriptor = ParameterDescriptor(
-            name=name, description=self.description, read_only=self.read_only)
+            name=name, description=self.help, read_only=self.read_only)
         if self.minimum is not None and self.maximum is not None:
             if isinstance(self.default, int):
                 descriptor.integer_range = [IntegerRange(
@@ -94,9 +88,7 @@ class ParameterSpec:
 
     def problem(self, value: Any) -> str | None:
         """Why `value` is refused beyond what rclpy checks (choices, `check`); None if fine."""
-        if self.choices and value not in self.choices:
-            return f'must be one of {", ".join(self.choices)}'
-        return self.check(value) if self.check is not None else None
+        return self.choice_problem(value)
 
     def settings_value(self, value: Any) -> Any:
         """A parameter value as the settings field holds it (an array as a tuple; an unset
@@ -114,7 +106,7 @@ class ParameterSpec:
         else:
             bounds = ''
         flag = ', read-only' if self.read_only else ''
-        return f'  {name} (default {self.ros_default!r}{bounds}{flag}): {self.description}'
+        return f'  {name} (default {self.ros_default!r}{bounds}{flag}): {self.help}'
 
 
 def parameter(
@@ -123,22 +115,15 @@ def parameter(
     check: Callable[[Any], str | None] | None = None, items: type | None = None,
 ) -> Any:
     """A settings dataclass field that is also a ROS parameter (module docstring)."""
-    spec = ParameterSpec(default, description, minimum, maximum, tuple(choices), read_only,
-                         check, items)
-    return field(default=default, metadata={SPEC_KEY: spec})
+    return declared(ParameterSpec(default=default, help=description, minimum=minimum,
+                                  maximum=maximum, choices=tuple(choices), read_only=read_only,
+                                  check=check, items=items))
 
 
 def parameter_specs(settings_type: type) -> dict[str, ParameterSpec]:
     """{field name: spec} of a settings dataclass, in field order; every field must be a
     `parameter`."""
-    specs: dict[str, ParameterSpec] = {}
-    for item in dataclasses.fields(settings_type):
-        spec = item.metadata.get(SPEC_KEY)
-        if not isinstance(spec, ParameterSpec):
-            msg = f'{settings_type.__name__}.{item.name} is not declared with parameter()'
-            raise TypeError(msg)
-        specs[item.name] = spec
-    return specs
+    return declarations(settings_type, ParameterSpec)
 
 
 def declare_settings(node: Node, settings_type: type[S]) -> S:

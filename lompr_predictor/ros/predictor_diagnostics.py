@@ -13,23 +13,17 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from lompr_predictor.adaptation.driver import off_status
 from lompr_predictor.monitoring import RateMeter, Status
 from lompr_predictor.online import predictor_status
-from lompr_predictor.online.guard import LiveGuard
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_counts import INPUTS_STATUS, PREDICTION_STATUS
-from lompr_predictor.online.predictor_status import (
-    InputRates,
-    Lifecycle,
-    ModelHistory,
-    PredictionLimits,
-)
+from lompr_predictor.online.predictor_status import InputRates, Lifecycle, PredictionLimits
 from lompr_predictor.online.preview import PreviewDrop
 from lompr_predictor.ros.common import DiagnosticsPublisher
-from lompr_predictor.ros.predictor_adaptation import NodeAdaptation, off_status
 from lompr_predictor.ros.predictor_outputs import OutputPublisher
 from lompr_predictor.ros.predictor_settings import PredictorNodeSettings
-from lompr_predictor.ros.predictor_store import NodeSampleStore
+from lompr_predictor.runtime.predictor_runtime import PredictorRuntime
 
 
 @dataclass(frozen=True)
@@ -48,13 +42,14 @@ class PredictorReadings:
 
     lifecycle: Lifecycle
     settings: PredictorNodeSettings
-    core: OnlinePredictor | None  # None while unconfigured
-    guard: LiveGuard | None  # the core's live guard, None while unconfigured
-    history: ModelHistory
+    runtime: PredictorRuntime  # its core, guard, store and adaptation: None unconfigured
     clock_values: dict[str, object]  # the node's clock and the input dropped while inactive
     callback_values: dict[str, object]  # callback failures
-    sample_store: NodeSampleStore | None = None  # while configured with a store
-    adaptation: NodeAdaptation | None = None  # while configured with adaptation_enabled
+    clock_ns: int  # the node's clock now
+
+    @property
+    def core(self) -> OnlinePredictor | None:
+        return self.runtime.core
 
 
 class PredictorDiagnostics:
@@ -80,7 +75,7 @@ class PredictorDiagnostics:
     def model_status(self) -> Status:
         now = self._read()
         return predictor_status.model_status(now.lifecycle, now.settings.model_path, now.core,
-                                             now.history)
+                                             now.runtime.models.history)
 
     def input_status(self) -> Status:
         now, meters = self._read(), self._meters
@@ -121,20 +116,21 @@ class PredictorDiagnostics:
     def guard_status(self) -> Status:
         now = self._read()
         envelope = now.core is not None and bool(now.core.model.metadata.envelope)
-        return predictor_status.guard_status(now.lifecycle, now.guard, envelope)
+        return predictor_status.guard_status(now.lifecycle, now.runtime.guard, envelope)
 
     def store_status(self) -> Status:
         now = self._read()
-        node_store = now.sample_store
-        if node_store is None:
+        store, export = now.runtime.store, now.runtime.export
+        if store is None or export is None:
             return predictor_status.store_status(now.lifecycle, now.settings.kept_minutes,
                                                  None, None)
-        node_store.export.poll()  # a write that has finished: its outcome
-        return predictor_status.store_status(now.lifecycle, node_store.minutes,
-                                             node_store.store, node_store.export)
+        export.poll()  # a write that has finished: its outcome
+        return predictor_status.store_status(now.lifecycle, now.settings.kept_minutes, store,
+                                             export)
 
     def adaptation_status(self) -> Status:
         now = self._read()
-        if now.adaptation is None:
+        adaptation = now.runtime.adaptation
+        if adaptation is None:
             return off_status(now.settings.adaptation_enabled, now.lifecycle.state)
-        return now.adaptation.status()
+        return adaptation.status(now.clock_ns)

@@ -1,10 +1,9 @@
 # SPDX-License-Identifier: Apache-2.0
 """predictor_node: end poses + reference -> predicted error and a bounded compensation offset.
 
-A managed (lifecycle) node over `online.OnlinePredictor`: end poses and references in, every
-`Output` out on the predicted error and compensation topics. Loading a model and choosing
-what runs it (`online.model_loader`) and the /diagnostics statuses (`online.predictor_status`)
-are ROS-free; the lifecycle state is rclpy's. A sample is answered from its own callback,
+A managed (lifecycle) node that adapts the ROS-free predictor runtime
+(`runtime.predictor_runtime`: the models, the core, its store and adaptation) to ROS: its
+parameters, topics, service, timers and clock. A sample is answered from its own callback,
 never a timer, so a simulator that waits for the answer (lockstep) gets it.
 """
 
@@ -13,36 +12,24 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import replace
 from typing import Any
 
 from rclpy.clock import ClockChange, JumpThreshold, TimeJump
 from rclpy.context import Context
 from rclpy.duration import Duration
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.parameter import Parameter
+from std_srvs.srv import Trigger
 
+from lompr_predictor.adaptation.driver import tick_period
 from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import LatencyRecorder
-from lompr_predictor.online.guard import LiveGuard
-from lompr_predictor.online.inference import Backend
-from lompr_predictor.online.model_loader import (
-    ModelRequest,
-    ReadyModel,
-    SwapInBackground,
-    expected_metadata,
-    load_ready_model,
-    prepare_swap,
-)
 from lompr_predictor.online.predictor import OnlinePredictor
-from lompr_predictor.online.predictor_status import Lifecycle, ModelHistory
-from lompr_predictor.online.sample_store import SampleStoreError
-from lompr_predictor.online.stage_timing import StageHistograms, time_stages
-from lompr_predictor.robot.chain import description_sha256
+from lompr_predictor.online.predictor_status import Lifecycle
 from lompr_predictor.robot.description import robot_name
 from lompr_predictor.ros.common import run_node
 from lompr_predictor.ros.managed import ManagedNode
 from lompr_predictor.ros.node_base import NodeBase, node_help
-from lompr_predictor.ros.predictor_adaptation import NodeAdaptation
 from lompr_predictor.ros.predictor_diagnostics import (
     PredictorDiagnostics,
     PredictorMeters,
@@ -54,23 +41,16 @@ from lompr_predictor.ros.predictor_settings import (
     COMPENSATION,
     END_POSE,
     ENDPOINTS,
+    FALLBACK_HASH_HINT,
     HASH_HINT,
     PREDICTED_ERROR,
     PredictorNodeSettings,
 )
-from lompr_predictor.ros.predictor_store import NodeSampleStore
+from lompr_predictor.ros.predictor_store import WRITE_SERVICE, WriteSamples
+from lompr_predictor.runtime.predictor_runtime import PredictorRuntime, RuntimeHooks
 from lompr_predictor.threads import set_torch_threads
 
 NODE_NAME = 'predictor_node'
-#: How the fallback model is verified, for a refusal message (its own sidecar: `HASH_HINT`'s
-#: model_sha256 pins model_path only).
-FALLBACK_HASH_HINT = ('predictor_node: the fallback model is verified by its own sidecar '
-                      '(model_sha256 pins model_path, not the fallback), or for development '
-                      'only -p verify_model_hash:=false')
-
-
-class NotConfiguredError(LomprError):
-    """The core of a predictor node that is not configured was asked for."""
 
 
 class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode):
@@ -82,18 +62,12 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
                  **node_kwargs: Any) -> None:
         super().__init__(node_name, **node_kwargs)
         settings = self.declare_settings(PredictorNodeSettings)
-        self._core: OnlinePredictor | None = None  # while configured (`core`)
-        self.model_guard: LiveGuard | None = None  # the core's live guard, while configured
-        self.sample_store: NodeSampleStore | None = None  # while configured, if one is kept
-        self.adaptation: NodeAdaptation | None = None  # while configured, if enabled
-        self.sample_period = 0.0  # [s] the parameter, else the first model's: later ones fit
-        self.running: ReadyModel | None = None  # the model the core runs
-        self._candidate: ReadyModel | None = None  # accepted, swapped in by apply_settings
-        self.adapted: SwapInBackground | None = None  # an adaptation's swap, prepared (inherits)
-        self.history = ModelHistory()
+        #: What the node runs (ROS-free): the models, the core, its store and adaptation.
+        self.runtime = PredictorRuntime(RuntimeHooks(
+            self.clock_ns, self.get_fully_qualified_name,
+            lambda: bool(self.get_parameter('use_sim_time').value), self._set_model,
+            self.log_line), HASH_HINT, FALLBACK_HASH_HINT)
         self.end_pose_in_process = False  # end poses by `read_end_pose` (pipeline), not topic
-        self.clock_jumps_back = 0
-        self._clock_started = False
         self.outputs = OutputPublisher(settings.frame, self.rate_meter(settings.rate_window),
                                        LatencyRecorder(settings.latency_samples),
                                        self.warn_throttled)
@@ -118,26 +92,15 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
     @property
     def core(self) -> OnlinePredictor:
         """The ROS-free predictor while the node is configured; else `NotConfiguredError`."""
-        if self._core is None:
-            msg = f'{self.get_name()} is {self.lifecycle_state}: no model, no core'
-            raise NotConfiguredError(msg)
-        return self._core
+        return self.runtime.running_core(f'{self.get_name()} ({self.lifecycle_state})')
 
     @property
     def configured(self) -> bool:
-        return self._core is not None
+        return self.runtime.core is not None
 
     def _active_core(self) -> OnlinePredictor | None:
         """The core while configured and active (what the inputs feed), else None."""
-        return self._core if self.active else None
-
-    def start(self) -> None:
-        """Configure and activate if `autostart` (`ManagedNode.autostart`)."""
-        if self.settings.autostart:
-            self.autostart()
-        else:
-            self.get_logger().info('autostart false: unconfigured, waiting for a lifecycle '
-                                   'manager (change_state configure, activate)')
+        return self.runtime.core if self.active else None
 
     # -- lifecycle transitions ------------------------------------------------------------
 
@@ -155,65 +118,40 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Start from an empty window; publish from now on."""
-        self.core.reset()
-        self._clock_started = self.get_clock().now().nanoseconds > 0
+        self.runtime.activate()
         self.get_logger().info('active: answering every sample')
         return super().on_activate(state)
 
     def _configure(self) -> LomprError | None:
-        """Load the description and the model, build the core and the endpoints (or why not)."""
-        settings = self.settings
-        try:
-            sha256 = description_sha256(settings.robot_description_file or None)
-        except LomprError as err:
-            return err
-        outcome = load_ready_model(ModelRequest(
-            settings.model_path, expected_metadata(sha256, settings.window, settings.horizon),
-            settings.sample_period, settings.model_sha256, settings.verify_model_hash,
-            HASH_HINT, Backend(settings.inference_backend), settings.robot))
-        if outcome.ready is None:
-            return outcome.error
-        self.running = ready = outcome.ready
-        fallback = None
-        if settings.fallback_model_path and ready.model.metadata.preview:
-            fallback_outcome = load_ready_model(
-                ready.fallback_request(settings.fallback_model_path, FALLBACK_HASH_HINT))
-            if fallback_outcome.ready is None:
-                return fallback_outcome.error
-            fallback = fallback_outcome.ready
-        self.sample_period = ready.sample_period
-        self.history = replace(self.history, warm_up_seconds=ready.warm_up_seconds,
-                               backend_why=ready.backend_why)
-        self.model_guard = LiveGuard.for_stream(settings.guard, ready.model.metadata.horizon,
-                                                self.sample_period)
-        try:
-            store = self.sample_store = NodeSampleStore.configured(self, self.sample_period)
-        except SampleStoreError as err:
-            return err
-        self.adaptation = NodeAdaptation.configured(self, store)
-        self._core = OnlinePredictor(
-            ready.model, settings.stream(self.sample_period), settings.limits,
-            clock=self.clock_ns, backend=ready.backend,
-            fallback=(fallback.model, fallback.backend) if fallback else None,
-            chain=ready.chain, latency_samples=settings.latency_samples,
-            units=(self.model_guard, *([store.store] if store else [])))
-        if settings.time_stages:
-            time_stages(self._core, StageHistograms(self.callback_times))
+        """Configure the runtime (the model, the core, the store, the adaptation), then the
+        endpoints, services and timers (or why not)."""
+        settings, runtime = self.settings, self.runtime
+        error = runtime.configure(settings)
+        if error is not None:
+            return error
+        core = self.core
         self.outputs.attach(self.own(self.advertise(PREDICTED_ERROR)),
                             self.own(self.advertise(COMPENSATION)))
-        for endpoint, callback in self.inputs.endpoints(self._core, self.end_pose_in_process):
+        for endpoint, callback in self.inputs.endpoints(core, self.end_pose_in_process):
             self.own(self.subscribe(endpoint, callback, raw=True))
-        stale_after = self._core.stream.stale_after
+        if runtime.store is not None:
+            self.own(self.create_service(Trigger, WRITE_SERVICE,
+                                         WriteSamples(runtime, self.get_logger()).on_write))
+        if runtime.adaptation is not None:
+            self.own(self.start_timer(tick_period(settings.adaptation), 'adaptation',
+                                      lambda: runtime.tick_adaptation(self.active)))
+        stale_after = core.stream.stale_after
         self.own(self.start_timer(min(max(stale_after / 4, 0.005), 0.5), 'staleness check',
                                   self.on_stale_timer))
-        self.get_logger().info(f'{ready.describe()}; compensation '
+        assert runtime.models.running is not None
+        self.get_logger().info(f'{runtime.models.running.describe()}; compensation '
                                f'{"on" if settings.compensation_enabled else "off (shadow)"}')
         return None
 
     def stop_output(self) -> None:
         """Publish zeros for the offset in force while the publishers still publish."""
-        if self._core is not None:
-            zeros = self._core.reset()
+        if self.runtime.core is not None:
+            zeros = self.runtime.core.reset()
             self.outputs.publish(zeros, time.perf_counter())
             self.get_logger().info(f'deactivated: offset cancelled ({len(zeros)} zero(s))')
 
@@ -221,109 +159,68 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         """Destroy the endpoints and the timer, drop the core and the model."""
         self.destroy_owned()
         self.outputs.detach()
-        self._let_go_store()
-        self._core = self.running = self._candidate = self.model_guard = None
+        self.runtime.release()
 
     def destroy_node(self) -> None:
         self._jump_handle.unregister()
-        self._let_go_store()
+        self.runtime.release()
         super().destroy_node()
 
-    def _let_go_store(self) -> None:
-        """Stop the adaptation, write the store if `store_write_at_shutdown`, free it."""
-        if self.adaptation is not None:
-            self.adaptation.close()
-            self.adaptation = None
-        if self.sample_store is not None:
-            self.sample_store.let_go(self.settings.store_write_at_shutdown)
-            self.sample_store = None
+    def _set_model(self, path: str, sha256: str) -> str | None:
+        """Change the model as a user would (its parameters): None, or why refused."""
+        result = self.set_parameters_atomically([Parameter('model_path', value=path),
+                                                 Parameter('model_sha256', value=sha256)])
+        return None if result.successful else result.reason
 
     # -- callbacks (run through NodeBase.guard: a failure aborts the core) -----------------
 
     def on_stale_timer(self) -> None:
         """Runs on the node's clock: under simulated time only while that time advances."""
-        if self._core is None or not self.active:
-            return
-        if not self._clock_started:  # the first /clock came: idle time counts from now
-            self._clock_started = True
-            self._core.restart_staleness()
-            return
-        self.outputs.publish(self._core.check_stale(), time.perf_counter())
+        if self.active:
+            self.outputs.publish(self.runtime.check_stale(), time.perf_counter())
 
     def _on_clock_jump(self, jump: TimeJump) -> None:
         """The clock went back (a simulator reset) or changed source (use_sim_time set)."""
         changed = jump.clock_change in (ClockChange.ROS_TIME_ACTIVATED,
                                         ClockChange.ROS_TIME_DEACTIVATED)
-        if not changed and jump.delta.nanoseconds >= 0:
-            return
-        self.clock_jumps_back += 1
-        now_ns = self.get_clock().now().nanoseconds
-        self.warn_throttled('clock jump', (
-            f'the clock changed source (now {now_ns * 1e-9:.3f} s)' if changed else
-            f'the clock went back by {-jump.delta.nanoseconds * 1e-9:.3f} s to '
-            f'{now_ns * 1e-9:.3f} s (a simulator reset?)')
-            + ': window emptied, offset cancelled; output resumes once the window has '
-              'refilled')
-        if self._core is not None and self.active:
-            self.outputs.publish(self._core.clock_jumped_back(None if changed else now_ns),
-                                 time.perf_counter())
+        if changed or jump.delta.nanoseconds < 0:
+            text, outputs = self.runtime.clock_jumped(changed, -jump.delta.nanoseconds,
+                                                      self.active)
+            self.warn_throttled('clock jump', text)
+            self.outputs.publish(outputs, time.perf_counter())
 
     def on_callback_failure(self, where: str) -> None:
         """Empty the window and cancel the offset in force: nothing half-done is published."""
         del where
-        if self._core is not None and self.active:
-            self.outputs.publish(self._core.abort(), time.perf_counter())
+        if self.runtime.core is not None and self.active:
+            self.outputs.publish(self.runtime.core.abort(), time.perf_counter())
 
     # -- parameters (NodeBase hooks) -------------------------------------------------------
 
     def validate_settings(self, changes: dict[str, Any]) -> str | None:
         """Configured: load, check and warm a new model beside the running one; refuse a
         bad one. Unconfigured: the next configure loads it."""
-        self._candidate = None
-        if self.running is None:
-            return None
         path = changes.get('model_path')
         sha256 = changes.get('model_sha256', '' if path is None else self.settings.model_sha256)
-        outcome = prepare_swap(self.running, path, sha256, self.adapted)
-        if outcome.error is not None and path is not None:
-            self.history = replace(self.history, reload_error=outcome.reason)
-            self.get_logger().error(f'model not swapped: {outcome.reason}')
-        self._candidate = outcome.ready
-        return outcome.reason
+        return self.runtime.validate(path, sha256)
 
     def apply_settings(self, previous: PredictorNodeSettings, changed: frozenset[str]) -> None:
         """Take accepted changes: new limits, the model validated in `validate_settings`."""
         del previous
-        if self._core is None or self.model_guard is None:
-            return
-        self.model_guard.settings = self.settings.guard
-        outputs = self._core.set_limits(self.settings.limits)
+        outputs = self.runtime.apply(self.settings, 'model_path' in changed)
         if self.active:
             self.outputs.publish(outputs, time.perf_counter())
-        candidate = self._candidate
-        if 'model_path' in changed and candidate is not None:
-            self._core.replace_model(candidate.model, candidate.backend)
-            self.model_guard.restart(inherit=self.adapted is not None)  # else it earns its place
-            self.running, self._candidate = candidate, None
-            self.history = replace(self.history, swaps=self.history.swaps + 1,
-                                   reload_error=None, backend_why=candidate.backend_why)
-            self.get_logger().info(f'model swapped: now {self._core.model.path} '
-                                   f'(sha256 {self._core.model.sha256[:16]})')
 
     # -- diagnostics ------------------------------------------------------------------------
 
     def readings(self) -> PredictorReadings:
         """What the node holds now, for its statuses (`PredictorDiagnostics`)."""
         settings = self.settings
-        clock_values: dict[str, object] = {
-            'use_sim_time': bool(self.get_parameter('use_sim_time').value),
-            'clock_s': round(self.clock_seconds(), 6),
-            'clock_jumps_back': self.clock_jumps_back,
-            'dropped_inactive': self.inputs.dropped_inactive}
+        clock_values = {**self.runtime.clock_values(),
+                        'dropped_inactive': self.inputs.dropped_inactive}
         return PredictorReadings(
             Lifecycle(self.lifecycle_state, settings.autostart, self.configure_error),
-            settings, self._core, self.model_guard, self.history, clock_values,
-            self.callback_values(), self.sample_store, self.adaptation)
+            settings, self.runtime, clock_values, self.callback_values(), self.clock_ns())
 
 
 def build_entry_point(context: Context, end_poses_in_process_on: str | None = None,

@@ -9,8 +9,8 @@ from dataclasses import dataclass, fields
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from nav_msgs.msg import Path
 
+from lompr_predictor.adaptation.scheduler import AdaptationSettings
 from lompr_predictor.learning.model_file import check_sha256_text
-from lompr_predictor.online.adaptation import AdaptationSettings
 from lompr_predictor.online.faults import StreamSettings
 from lompr_predictor.online.guard import DEFAULT_GUARD, GuardSettings
 from lompr_predictor.online.inference import Backend
@@ -28,9 +28,9 @@ from lompr_predictor.stamps import GAP_FACTOR
 
 
 @dataclass(frozen=True)
-class PredictorNodeSettings(FrameSettings):
-    """The node's parameters: one field each (after the shared `FrameSettings`),
-    declared by `NodeBase.declare_settings`."""
+class PredictorCoreSettings(FrameSettings):
+    """The parameters of the model, the inputs and the offset (after the shared
+    `FrameSettings`)."""
 
     autostart: bool = parameter(
         True, 'configure and activate at start, so that a plain `ros2 run` predicts (a model '
@@ -123,10 +123,6 @@ class PredictorNodeSettings(FrameSettings):
         'from contending with the executor', minimum=1, maximum=256, read_only=True)
     latency_samples: int = parameter(1000, 'last latencies kept for the p50/p99',
                                      minimum=10, maximum=1_000_000, read_only=True)
-    time_stages: bool = parameter(
-        False, "also time each stage of the core (stamp, alignment, ..., offset gate) into "
-        "the 'callback timing' status, a few us per sample; the callbacks are always timed",
-        read_only=True)
     accuracy_samples: int = parameter(1000, 'last predicted instants the live RMS is over',
                                       minimum=1, maximum=10_000_000, read_only=True)
     inference_time_warn: float = parameter(
@@ -147,6 +143,29 @@ class PredictorNodeSettings(FrameSettings):
         "node's clock against the best-case input delay) before it is dropped as late; a "
         'sample whose inference could only finish late gets none', minimum=0.0,
         maximum=3600.0, read_only=True)
+
+    def stream(self, sample_period: float) -> StreamSettings:
+        """The rules the input stream is held to, at `sample_period` [s] (the model's, or
+        the parameter's): every other field the parameter of the same name, so each is
+        declared once, here."""
+        return StreamSettings(sample_period=sample_period, **{
+            item.name: getattr(self, item.name) for item in fields(StreamSettings)
+            if item.name != 'sample_period'})
+
+    @property
+    def robot(self) -> RobotSpec:
+        """The robot the model must run for (what it leaves open: the model file's)."""
+        return RobotSpec(self.robot_description_file or None, self.base_frame, self.tip_frame)
+
+    @property
+    def limits(self) -> CompensationLimits:
+        return CompensationLimits(self.max_compensation, self.max_compensation_step,
+                                  self.compensation_enabled)
+
+
+@dataclass(frozen=True)
+class GuardParameters:
+    """The live guard's parameters (`online.guard`)."""
 
     guard_enabled: bool = parameter(
         DEFAULT_GUARD.enabled,
@@ -182,6 +201,17 @@ class PredictorNodeSettings(FrameSettings):
         "share of the recent feature rows outside the model's trained envelope (its "
         'metadata) above which the model is held back on both axes; 1: never for that',
         minimum=0.0, maximum=1.0, read_only=True)
+
+    @property
+    def guard(self) -> GuardSettings:
+        """The live guard's rules: each the parameter `guard_` + its name."""
+        return GuardSettings(**{item.name: getattr(self, f'guard_{item.name}')
+                                for item in fields(GuardSettings)})
+
+
+@dataclass(frozen=True)
+class AdaptationParameters:
+    """The sample store's and the online adaptation's parameters (`adaptation`)."""
 
     store_minutes: float = parameter(
         0.0, 'the sample store: the aligned samples of the last this many minutes of sample '
@@ -240,20 +270,6 @@ class PredictorNodeSettings(FrameSettings):
         'thread wants (where the cores are full, sched_fifo_priority keeps the nodes ahead); '
         'false: the normal policy, adaptation_nice below the node', read_only=True)
 
-    def stream(self, sample_period: float) -> StreamSettings:
-        """The rules the input stream is held to, at `sample_period` [s] (the model's, or
-        the parameter's): every other field the parameter of the same name, so each is
-        declared once, here."""
-        return StreamSettings(sample_period=sample_period, **{
-            item.name: getattr(self, item.name) for item in fields(StreamSettings)
-            if item.name != 'sample_period'})
-
-    @property
-    def guard(self) -> GuardSettings:
-        """The live guard's rules: each the parameter `guard_` + its name."""
-        return GuardSettings(**{item.name: getattr(self, f'guard_{item.name}')
-                                for item in fields(GuardSettings)})
-
     @property
     def adaptation(self) -> AdaptationSettings:
         """The adaptation's settings: each the parameter `adaptation_` + its name."""
@@ -268,15 +284,12 @@ class PredictorNodeSettings(FrameSettings):
             return max(self.store_minutes, self.adaptation_minutes)
         return self.store_minutes
 
-    @property
-    def robot(self) -> RobotSpec:
-        """The robot the model must run for (what it leaves open: the model file's)."""
-        return RobotSpec(self.robot_description_file or None, self.base_frame, self.tip_frame)
 
-    @property
-    def limits(self) -> CompensationLimits:
-        return CompensationLimits(self.max_compensation, self.max_compensation_step,
-                                  self.compensation_enabled)
+@dataclass(frozen=True)
+class PredictorNodeSettings(AdaptationParameters, GuardParameters, PredictorCoreSettings):
+    """The node's parameters, one field each, declared by `NodeBase.declare_settings` in
+    this order: the shared `FrameSettings`, the core's, the guard's, the store's and the
+    adaptation's."""
 
 
 END_POSE = Endpoint('subscription', PoseStamped, 'end_pose_topic', SENSOR_INPUT_QOS,
@@ -293,3 +306,8 @@ ENDPOINTS = (END_POSE, REFERENCE, REFERENCE_PREVIEW, PREDICTED_ERROR, COMPENSATI
 #: How to pin or skip the model hash, for a refusal message.
 HASH_HINT = ('predictor_node: -p model_sha256:=<sha256>, or for development only '
              '-p verify_model_hash:=false')
+#: How the fallback model is verified, for a refusal message (its own sidecar: `HASH_HINT`'s
+#: model_sha256 pins model_path only).
+FALLBACK_HASH_HINT = ('predictor_node: the fallback model is verified by its own sidecar '
+                      '(model_sha256 pins model_path, not the fallback), or for development '
+                      'only -p verify_model_hash:=false')

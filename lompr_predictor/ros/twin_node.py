@@ -1,45 +1,24 @@
 # SPDX-License-Identifier: Apache-2.0
 """twin_node: the live digital twin of a machine, a stand-in for the robot's controller.
 
-`robot` chooses the machine (`twin_outputs`): the LOMPR, whose controller is commanded in
-tool tips, or the serial arm, commanded in joints. Publishes the measured joints
-(/joint_states) and the nominal command of each sample, stamped on the simulated clock: the
-LOMPR's commanded tool tip (/lompr/reference), the arm's commanded joints (`command_topic`;
-kinematics_node turns them into the reference). It applies the
-feedforward offsets of /lompr/compensation by stamp (docs/interface.md, the error), the arm's
-as the joint offset that moves its tool tip by the offset (`twin.arm_twin`): an offset is
-used at the instant it names, and dropped like a real controller drops it when it arrives
-after that instant, waited longer than `compensation_timeout`, is off the sample grid,
-non-finite or larger than `max_compensation`. For scoring it publishes, per sample, its true
-error (tool tip - reference) and its plant error (tool tip - reference - offset applied).
+`robot` chooses the machine (`twin_outputs`): the LOMPR, commanded in tool tips, or the
+serial arm, commanded in joints. Publishes the measured joints (/joint_states) and the
+nominal command of each sample on the simulated clock (the LOMPR's commanded tool tip on
+/lompr/reference, the arm's commanded joints on `command_topic`), with `preview_samples` K
+the path it will command for the next K samples, and for scoring its true and plant errors.
+It applies the offsets of /lompr/compensation by stamp as a real controller does
+(docs/interface.md, the error): at the instant each names, dropped when late, waited past
+`compensation_timeout`, off the sample grid, non-finite or over `max_compensation`; the
+arm's as the joint offset that moves its tool tip by it (`twin.arm_twin`), or through a
+command path (`compensated_command_topic`, `twin_command_path`).
 
-With `preview_samples` K > 0 it also publishes, with each sample, the path it will command
-for the next K samples (/lompr/reference_preview, docs/interface.md), as a path generator
-with look-ahead does: each pose stamped with the instant it is commanded for.
-
-Modes: `realtime` runs a sample every sample period divided by `speed_factor` (faster or
-slower than real time); `lockstep` runs the next sample as soon as its offset has arrived,
-or `lockstep_timeout` wall seconds after the previous sample without one (`answer_timeout`
-once the previous sample had its offset: an answer is expected), so a closed loop runs as
-fast as the nodes answer; `paced` is lockstep no faster than realtime: a sample every
-sample period divided by `speed_factor` at most, each waiting for its offset as in
-lockstep, so that simulated time keeps pace with wall time while the nodes keep up and
-stretches, instead of running samples uncompensated, while they do not (a job beside the
-nodes, e.g. an adaptation attempt, then costs what it costs on a machine, in sample time,
-and never corrupts the loop). The physics is `twin.DigitalTwin` or
-`twin.arm_twin.ArmDigitalTwin`, one sample per step.
-
-Time: with `publish_clock` the twin is the simulation's clock, as Gazebo or Isaac Sim are:
-it publishes each sample's instant on /clock before the sample, so nodes run with
-`use_sim_time:=true` (in their own processes) live on its time, and it paces itself on the
-steady (wall) clock. Without it, a realtime twin runs on its node's clock (an external
-/clock under use_sim_time), and lockstep waits on the steady clock. `wait_for_subscribers`
-holds the first sample until the nodes are there; `run_log` writes every sample the twin
-ran (`twin.run_log`) when its passes are done.
-
-A robot commanded in joints through a command path (`compensated_command_topic`, the arm in
-lockstep or paced mode): the nominal command of a sample goes out ahead of it and the
-sample runs with the compensated command that comes back (`twin_command_path`).
+Modes: `realtime` (a sample every period / `speed_factor`), `lockstep` (the next sample as
+soon as the offset has come, or after a timeout: a closed loop as fast as the nodes answer)
+and `paced` (lockstep no faster than realtime: sample time stretches instead of running
+samples uncompensated while the nodes cannot keep up). With `publish_clock` the twin is the
+simulation's clock, as Gazebo is: each sample's instant on /clock before the sample, for
+nodes on `use_sim_time`. The modes, the clock and every parameter at length: docs/twin.md,
+"Live: twin_node".
 """
 
 from __future__ import annotations

@@ -225,20 +225,7 @@ def evaluate_loop_bags(inputs: BagInputs, *, chain: KinematicChain,
     inputs = dataclasses.replace(inputs, cleaning=dataclasses.replace(inputs.cleaning,
                                                                       hampel_threshold=np.inf))
     bags = inputs.bags
-    if len(bags) < 2:
-        msg = 'closed-loop scoring needs the baseline bag and at least one compensated bag'
-        raise ValueError(msg)
-    names = [Path(bag).name or str(bag) for bag in bags]
-    if len(set(names)) != len(names):
-        names = [f'{k}:{name}' for k, name in enumerate(names)]
-    measured: dict[str, np.ndarray] = {}
-    stamps: dict[str, np.ndarray] = {}
-    truths = {}
-    period = np.inf  # [s] the shortest sample period among the bags
-    for name, bag in zip(names, bags, strict=False):
-        measured[name], stamps[name], truths[name], bag_period = _scored_bag(bag, chain,
-                                                                             inputs)
-        period = min(period, bag_period)
+    names, measured, stamps, truths, period = _read_loop_bags(inputs, chain)
     rows = common_instants(stamps, 0.5 * period * NS_PER_SECOND)
     measured = {name: error[rows[name]] for name, error in measured.items()}
     document: dict[str, Any] = {
@@ -264,13 +251,41 @@ def evaluate_loop_bags(inputs: BagInputs, *, chain: KinematicChain,
         errors = {name: a['true_error'][:count] for name, a in loop_arrays.items()}
     else:
         plotted, seconds, errors = document['measured'], stamps[names[0]][rows[names[0]]], measured
-    folder = Path(report)
+    document['text'] = '\n'.join(text)
+    _write_loop_report(Path(report), document, seconds, errors, plotted)
+    return document
+
+
+def _read_loop_bags(inputs: BagInputs, chain: KinematicChain) -> tuple[
+        list[str], dict[str, np.ndarray], dict[str, np.ndarray], dict[str, Any], float]:
+    """Each bag's name (made unique), measured error, stamps and truth beside it (None:
+    none), and the shortest sample period among them [s]."""
+    bags = inputs.bags
+    if len(bags) < 2:
+        msg = 'closed-loop scoring needs the baseline bag and at least one compensated bag'
+        raise ValueError(msg)
+    names = [Path(bag).name or str(bag) for bag in bags]
+    if len(set(names)) != len(names):
+        names = [f'{k}:{name}' for k, name in enumerate(names)]
+    measured: dict[str, np.ndarray] = {}
+    stamps: dict[str, np.ndarray] = {}
+    truths: dict[str, Any] = {}
+    period = np.inf
+    for name, bag in zip(names, bags, strict=False):
+        measured[name], stamps[name], truths[name], bag_period = _scored_bag(bag, chain,
+                                                                             inputs)
+        period = min(period, bag_period)
+    return names, measured, stamps, truths, period
+
+
+def _write_loop_report(folder: Path, document: dict[str, Any], seconds: np.ndarray,
+                       errors: dict[str, np.ndarray], plotted: Any) -> None:
+    """`closed_loop.json`, `.md` and the plot of a scored set of loops, into `folder`."""
     folder.mkdir(parents=True, exist_ok=True)
     plot_loops(folder / LOOP_PLOT, seconds_since(seconds), errors, plotted,
                title='Error in closed loop')
-    write_json(folder / 'closed_loop.json', document)
-    document['text'] = '\n'.join(text)
+    write_json(folder / 'closed_loop.json', {key: value for key, value in document.items()
+                                             if key != 'text'})
     write_atomic(folder / 'closed_loop.md', (
         '# Closed-loop evaluation\n\n```\n' + document['text'] + '\n```\n\n'
         f'![error in closed loop]({LOOP_PLOT})\n').encode())
-    return document

@@ -3,37 +3,25 @@
 
 The error physics acts in joint space, as in the seed paper's Eq. 1-5: the actual branch
 lengths and head angles deviate from the commanded ones, and the tool tip is wherever the
-forward kinematics of the actual joints puts it. Sources, each switchable (`SOURCES`):
-
-- servo: per branch, the closed loop of a position loop with velocity feedforward,
-  L/Lc = (kff s + Kp) / (tau s^2 + s + Kp), discretised with a first-order hold; its error
-  follows the commanded velocity and acceleration, with lag;
-- backlash: per branch, a play operator between the servo's output and the branch: where
-  the motion reverses, the branch stands until the play is taken up (`play_operator`);
-- friction: Stribeck (a breakaway peak decaying to the Coulomb level, which grows with the
-  branch's axial load, so with the posture; its sign change smoothed by tanh) plus viscous,
-  against the commanded branch velocity, divided by the servo's static stiffness
-  (`friction_force`);
-- elastic: each branch stretches by f L / EA under its share of the gravity load, f from the
-  static equilibrium of the platform in the commanded posture;
-- head: offsets, a once-per-revolution cyclic error of the primary axis, a scale error of
-  the secondary axis;
-- thermal: each branch grows, first order, towards an elongation proportional to its speed
-  (branches differ in how much: equal growth would only lift the tool along Z);
-- drift: a first-order Gauss-Markov growth of each branch length (process noise);
-- noise and quantisation: on the reported (measured) joint values only.
+forward kinematics of the actual joints puts it. Sources, each switchable (`SOURCES`;
+their equations and sizes: docs/twin.md): servo (a position loop with velocity
+feedforward, per branch), backlash (a play operator, `play_operator`), friction (Stribeck
+plus viscous against the commanded branch velocity, over the servo's stiffness,
+`friction_force`), elastic (each branch stretched by its share of the gravity load in the
+commanded posture), head (offsets, a cyclic error, a scale error), thermal (each branch
+growing towards an elongation proportional to its speed), drift (a first-order
+Gauss-Markov growth per branch), noise and quantisation (on the measured joints only).
 
 Everything but the drift and the measurement is a deterministic function of the commanded
 path's history (`PlantOutput.drift` is the only random part of the actual joints), which is
 what the twin's irreducible level rests on (`simulation.py`). The machine seed draws the
-per-branch tolerances (servo gains and time constants, play, thermal amplitude), the run
-seed the drift and the noise, so two runs of one machine differ in drift and noise only.
+per-branch tolerances, the run seed the drift and the noise, so two runs of one machine
+differ in drift and noise only.
 
-`TwinPlant.advance` takes any number of samples at once and carries every state (filter
-states, last command, drift, the primary head angle's winding) to the next call, so the
-offline recording (one call per pass) and the live closed loop (one sample per call, the
-compensation for it known just before) run the same code and give the same numbers. Each
-random stream has its own generator, so the block sizes do not change the draws.
+`TwinPlant.advance` takes any number of samples at once and carries every state to the next
+call, so the offline recording (one call per pass) and the live closed loop (one sample per
+call) run the same code and give the same numbers; each random stream has its own
+generator, so the block sizes do not change the draws.
 """
 
 from __future__ import annotations

@@ -3,36 +3,23 @@
 
 `simulate` runs the twin without compensation for a number of passes and returns every
 array a recording and its ground truth need. Three errors per sample, X/Y/Z [m]:
-
-- `error_measured` = FK(measured joints) - reference: what a consumer of the bag computes
-  and what the trainer learns and scores against;
-- `error_true` = FK(actual joints) - reference: where the tool really was;
-- `error_deterministic` = the true error without the drift: the part fixed by the commanded
-  path's history alone (servo, backlash, friction, elastic, head and thermal terms).
+`error_measured` = FK(measured joints) - reference (what the trainer learns and scores
+against), `error_true` = FK(actual joints) - reference (where the tool really was), and
+`error_deterministic` = the true error without the drift (fixed by the commanded path's
+history alone).
 
 The irreducible error is what no causal predictor can know: the measurement noise and
 quantisation at the predicted instant and the drift's innovations over the horizon.
 `irreducible_rmse(sim, h)` is the RMSE per axis, against the measured error, of the best
-h-step predictor (an oracle) that knows
-
-- the deterministic joints at t + h exactly (they follow from the commanded path up to
-  t + h, which the reference gives; backlash, friction switching and thermal growth
-  included, however non-linear),
-- the drift state at t, the instant it predicts from (the Gauss-Markov forecast decays by
-  exp(-h dt / tau); the innovations over the h samples, a Gaussian of variance
-  std^2 (1 - exp(-2 h dt / tau)) per branch, are unknown),
-- the noise's and the encoder's statistics: each joint's reading is predicted as its
-  expectation, E[quantise(mean + Gaussian)] over the unknown noise and drift innovations
-  (`expected_reading`). With noise well above the encoder step that is the mean itself and
-  the quantisation error is white; with a coarse step and little noise the reading is
-  nearly a function of the joint and mostly predictable, which this counts correctly.
-
-The predicted readings go through forward kinematics; the RMSE of the measured error about
-that prediction is the level. It is a lower bound for any causal predictor of the measured
-error, grows with the horizon as the drift's innovations accumulate, and is the RMS of the
-measurement noise itself (through FK) when the noise is the only random source.
-With `measured=False` the same oracle predicts the true error (no measurement at all): the
-floor of the tool's own error under compensation, the drift innovations alone.
+h-step predictor (an oracle) that knows the deterministic joints at t + h exactly, the drift
+state at t (its Gauss-Markov forecast; the innovations over the horizon unknown) and the
+noise's and the encoder's statistics (each reading predicted as its expectation,
+`expected_reading`: with noise well above the encoder step the mean itself, with a coarse
+step and little noise nearly a function of the joint). The predicted readings go through
+forward kinematics; the RMSE of the measured error about that prediction is the level, a
+lower bound for any causal predictor, growing with the horizon. With `measured=False` the
+same oracle predicts the true error: the floor of the tool's own error under compensation.
+The derivation: docs/twin.md, "Irreducible error".
 """
 
 from __future__ import annotations
