@@ -52,6 +52,7 @@ COMMAND_TOPIC = '/joint_commands'
 HORIZONS = (1, 25)
 PERSISTENCE = 'persistence'
 AXES = ('x', 'y')
+PUBLISHED = 'published'  # the column of what each axis publishes (its standing)
 
 
 @dataclass(frozen=True)
@@ -167,7 +168,8 @@ def train(bag: Path, work: Path, horizon: int, preview: int, args: argparse.Name
 #: Column heads of the models the report names so (else its label, else its name).
 SHORT = {'persistence': 'Persistence', 'bp': 'BP', 'ridge': 'Ridge', 'hgb': 'HGB',
          'ridge_no_preview': 'Ridge -K', 'hgb_no_preview': 'HGB -K',
-         'machine_map': 'Map prior', 'bo_lstm': 'BO-LSTM', 'bo_lstm_generalist': 'Generalist'}
+         'machine_map': 'Map prior', 'bo_lstm': 'BO-LSTM', 'bo_lstm_generalist': 'Generalist',
+         PUBLISHED: 'Published'}
 
 
 def model_names(runs: list[Run]) -> list[str]:
@@ -175,14 +177,16 @@ def model_names(runs: list[Run]) -> list[str]:
     names = [PERSISTENCE]
     for run in runs:
         names += [name for name in run.report.get('models', {}) if name not in names]
-    return names
+    return [*(name for name in names if name != PUBLISHED), PUBLISHED]
 
 
 def legend(runs: list[Run], names: list[str]) -> str:
     """What each column is: its head and the report's label of the model."""
     labels = {'bo_lstm': 'BO-LSTM (the tuned model)',
               'bo_lstm_generalist': "BO-LSTM on the machine map's residuals alone (a paired "
-                                    "model's fallback)"}
+                                    "model's fallback)",
+              PUBLISHED: "what the model file answers per axis (report.json's 'published': "
+                         'the mean of the candidates the validation part kept)'}
     labels.update({name: str(model['label']) for run in runs
                    for name, model in run.report.get('models', {}).items()
                    if model.get('label')})
@@ -192,9 +196,13 @@ def legend(runs: list[Run], names: list[str]) -> str:
 def cell(run: Run, name: str, axis: str) -> str:
     """'RMSE [um] (ratio to persistence)' of a model on one axis, '-' if not in the run."""
     models = run.report.get('models', {})
-    if name not in models:
+    standing = run.report.get('standings', {}).get(axis, {})
+    if name == PUBLISHED and 'published_rmse_um' in standing:
+        rmse = float(standing['published_rmse_um'])
+    elif name in models:
+        rmse = float(models[name]['metrics'][axis]['rmse_um'])
+    else:
         return '-'
-    rmse = float(models[name]['metrics'][axis]['rmse_um'])
     base = float(models[PERSISTENCE]['metrics'][axis]['rmse_um'])
     return f'{rmse:.1f} ({rmse / base:.2f})'
 

@@ -259,9 +259,11 @@ def summary_line(report: dict[str, Any]) -> str:
 
 def published_line(report: dict[str, Any]) -> str:
     """What the model file publishes per axis and why (`publishing.choose`)."""
-    labels = {'bo_lstm': 'the BO-LSTM', 'ridge': 'the ridge'}
+    from lompr_predictor.learning.publishing import LABELS  # torch: after a training only
+
     return 'published: ' + '; '.join(
-        f"{axis.upper()} {labels.get(entry['model'], entry['model'])} ({entry['why']})"
+        f"{axis.upper()} {' + '.join(LABELS[name] for name in entry['members'])}"
+        f"{' (equal weights)' if len(entry['members']) > 1 else ''} ({entry['why']})"
         for axis, entry in report['published'].items())
 
 

@@ -80,6 +80,9 @@ class Fitted:
     #: the same predictor as a raw-SI module of the model file's contract, where it has one
     #: (the ridge: `publishing.RidgeModule`), which `lompr train` may publish
     module: RidgeModule | None = None
+    #: (B, 2) [m] its prediction of the validation part as fitted on the training part
+    #: alone, where `lompr train` may publish it (what `publishing.choose` compares)
+    validation_prediction: np.ndarray | None = field(default=None, repr=False)
 
 
 class Baseline(Protocol):
@@ -194,11 +197,11 @@ class Ridge:
 
         module = RidgeModule(centre, scale, model.coef_, model.intercept_,
                              error_columns(problem.features), len(problem.features))
-        return Fitted(predict=predict, module=module, details={
+        return Fitted(predict=predict, module=module, validation_prediction=(
+            problem.error[split.validation] + validation[alpha] * 1e-6), details={
             'training_seconds': time.perf_counter() - started,
             'hyperparameters': {'alpha': alpha, 'alphas_tried': list(RIDGE_ALPHAS)},
-            # of the fit on the training part alone, at the penalty chosen: what
-            # `publishing.choose` compares with the network's
+            # of the fit on the training part alone, at the penalty chosen
             'validation_rmse_um': rmse_um(validation[alpha] * 1e-6, validation_y * 1e-6),
             'target': RESIDUAL_TARGET})
 

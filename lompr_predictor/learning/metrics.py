@@ -26,7 +26,7 @@ from lompr_predictor.data.features import TARGETS
 from lompr_predictor.stamps import seconds_since
 
 #: The trained model's keys in a report: what it is compared with is every other model.
-OWN_MODELS = ('bo_lstm', 'bo_lstm_generalist')
+OWN_MODELS = ('bo_lstm', 'bo_lstm_generalist', 'published')
 METRIC_NAMES = ('mse_pct', 'rmse_pct', 'mae_pct', 'mse_um2', 'rmse_um', 'mae_um',
                 'iae', 'ise', 'itae', 'itse')
 
@@ -91,9 +91,10 @@ def ratios(metrics: dict[str, dict[str, float]],
 def standings(models: Mapping[str, Any],
               published: Mapping[str, str] | None = None) -> dict[str, dict[str, Any]]:
     """Per axis, where the BO-LSTM stands on the test part by RMSE: the model that leads
-    (of all), the best baseline (every model but the BO-LSTM and its own fallback,
-    `OWN_MODELS`) and the BO-LSTM's RMSE over that baseline's, minus 1 (negative: it leads
-    by that share; 0: a tie, as on an axis the error has no part in); and the model the
+    (of all), the best baseline (every model but the BO-LSTM's own: its fallback, what it
+    publishes, `OWN_MODELS`) and the BO-LSTM's RMSE over that baseline's, minus 1
+    (negative: it leads by that share; 0: a tie, as on an axis the error has no part in);
+    and the model the
     axis publishes (`published`: axis -> its key, by default the BO-LSTM), with its RMSE
     over the best baseline's, minus 1."""
     out: dict[str, dict[str, Any]] = {}
@@ -118,6 +119,8 @@ def _share(ours: float, theirs: float) -> float:
     return ours / theirs - 1.0 if theirs > 0 else 0.0
 
 
+#: What `standing_text` calls a published model its caller has no label for.
+PUBLISHED_LABELS = {'published': 'the mean of the candidates kept'}
 #: Baselines that have no form a model file can hold (trees: no TorchScript).
 NOT_EXPORTABLE = ('hgb', 'hgb_no_preview')
 
@@ -136,7 +139,8 @@ def standing_text(axis: str, standing: Mapping[str, Any], labels: Mapping[str, s
     chosen = standing.get('published', 'bo_lstm')
     published_share = standing.get('published_vs_best_baseline', share)
     if chosen != 'bo_lstm':
-        text += (f'; {labels.get(chosen, chosen)} published (lower validation RMSE), '
+        label = labels.get(chosen) or PUBLISHED_LABELS.get(chosen, chosen)
+        text += (f"; {label} published (the validation part's choice), "
                  f'{_behind(published_share, best)}')
     if standing['best_baseline'] in NOT_EXPORTABLE and published_share > 0:
         text += f'; {best} cannot be exported to TorchScript'

@@ -43,7 +43,8 @@ from lompr_predictor.learning.space import (
 from lompr_predictor.robot.chain import RobotSpec
 from lompr_predictor.threads import MAX_DEFAULT_WORKERS, default_workers
 
-#: What `lompr train` may publish (`publishing.py`): the better per axis, or the network.
+#: What `lompr train` may publish (`publishing.py`): per axis the mean of the candidates
+#: kept, or the network alone.
 PUBLISH = ('best', 'bo_lstm')
 #: Defaults of the training loop (`training.train_network`).
 MAX_EPOCHS = 120  # the cosine schedule's length: the LSTM's best epoch is near its end
@@ -176,9 +177,10 @@ class TrainingConfig:
         "the map), 'machine' (the second alone) or 'all' (the first alone; the default "
         'with --no-machine-map)', choices=NETWORK_INPUTS, recorded=True)
     publish: str = option(
-        'best', "what the model file runs per axis: 'best' (the BO-LSTM or the ridge "
-        "baseline, whichever predicts the validation part better; a file with a ridge axis "
-        "is not fine-tuned) or 'bo_lstm' (the BO-LSTM on both; default {default})",
+        'best', "what the model file runs per axis: 'best' (the mean of the BO-LSTM, its "
+        "generalist and the ridge baseline, those the validation part cannot tell from "
+        "the best of them; a file that is not the BO-LSTM alone is not fine-tuned) or "
+        "'bo_lstm' (the BO-LSTM alone on both; default {default})",
         choices=PUBLISH, recorded=True)
     trials: int = option(DEFAULT_TRIALS, 'tuning budget: trials of the study, finished and '
                          'pruned ones counting (default {default})', minimum=1)

@@ -84,11 +84,13 @@ from lompr_predictor.learning.options import (
 )
 from lompr_predictor.learning.pairing import paired_module, train_generalist
 from lompr_predictor.learning.publishing import (
+    GENERALIST,
     NETWORK,
+    PUBLISHED,
     Publication,
     choose,
     published_module,
-    rmse_um,
+    published_predictions,
 )
 from lompr_predictor.learning.report import (
     base_report,
@@ -117,9 +119,6 @@ from lompr_predictor.learning.tuning import (
 from lompr_predictor.learning.workers import StudySpec, TuningRun, tune
 from lompr_predictor.robot.chain import LOMPR_KIND, KinematicChain, load_chain
 from lompr_predictor.threads import default_workers
-
-#: The report's key of a paired BO-LSTM's generalist (`models.PairedNet`).
-GENERALIST = 'bo_lstm_generalist'
 
 
 @dataclass(frozen=True)
@@ -203,13 +202,16 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     baselines = fit_baselines(problem, FitContext(config.settings, config.progress,
                                                   machine_map))
     scoring_started = time.perf_counter()
-    scored, models = score_test_part(problem, baselines,
-                                     network_predictions(tuned.module, problem),
+    publication = _publication(tuned.module, baselines[RIDGE.name], problem,
+                               config.publish == NETWORK)
+    predicted = network_predictions(tuned.module, problem)
+    if PUBLISHED in publication.report_keys:
+        predicted[PUBLISHED] = published_predictions(publication, {
+            **predicted, RIDGE.name: baselines[RIDGE.name].fitted.predict(problem.split.test)})
+    scored, models = score_test_part(problem, baselines, predicted,
                                      config.inputs.cleaning.gap_factor)
     models['bo_lstm'].update(training_seconds=tuned.training_seconds,
                              hyperparameters=tuned.params, target=RESIDUAL_TARGET)
-    publication = _publication(tuned.module, baselines[RIDGE.name], problem,
-                               config.publish == NETWORK)
     report = _report(config, problem, data, sources, models, tuned, publication)
     scoring_seconds = time.perf_counter() - scoring_started
     metadata = _model_metadata(config, problem, tuned, machine_map, chain, trained_on,
@@ -236,20 +238,23 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
 
 def _publication(network: Any, ridge: FittedBaseline, problem: LearningProblem,
                  network_only: bool) -> Publication:
-    """Per axis, the BO-LSTM or the ridge, by their RMSE on the validation part
-    (`publishing.choose`)."""
+    """Per axis, the candidates the validation part cannot tell from its best: the BO-LSTM,
+    its generalist (a paired network), the ridge (`publishing.choose`)."""
     validation = problem.split.validation
     actual = problem.error[validation + problem.horizon]
-    network_rmse = rmse_um(predict_rows(network, problem.rows, validation, problem.window),
-                           actual)
-    return choose({NETWORK: network_rmse,
-                   RIDGE.name: ridge.fitted.details['validation_rmse_um']}, network_only)
+    errors = {name: predicted - actual for name, predicted
+              in network_predictions(network, problem, validation).items()}
+    if ridge.fitted.validation_prediction is not None:
+        errors[RIDGE.name] = ridge.fitted.validation_prediction - actual
+    return choose(errors, network_only)
 
 
-def network_predictions(module: Any, problem: LearningProblem) -> dict[str, np.ndarray]:
-    """The trained BO-LSTM's predictions of the problem's test part (key 'bo_lstm'), and
-    with a paired network its generalist's (`GENERALIST`), from one call."""
-    test = problem.split.test
+def network_predictions(module: Any, problem: LearningProblem,
+                        ends: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The trained BO-LSTM's predictions of the windows ending at `ends` (by default the
+    test part's; key 'bo_lstm'), and with a paired network its generalist's
+    (`GENERALIST`), from one call."""
+    test = problem.split.test if ends is None else ends
     if not is_paired(module):
         return {'bo_lstm': predict_rows(module, problem.rows, test, problem.window)}
     three = predict_rows(PredictionWithCandidates(module), problem.rows, test, problem.window,
@@ -263,7 +268,8 @@ def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tu
                     publication: Publication, ridge: FittedBaseline) -> ModelMetadata:
     """The metadata the model file carries (docs/interface.md, the model file); the test
     metrics are the BO-LSTM's, the standing says what each axis publishes."""
-    published = ({'published': dict(publication.choice),
+    published = ({'published': {axis: list(members)
+                                for axis, members in publication.members.items()},
                   'ridge': {**ridge.fitted.details['hyperparameters'],
                             'input': 'the flattened window, error columns relative to its '
                                      'last row, then the last error, standardised',
@@ -291,7 +297,7 @@ def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tu
                             for s in trained_on if not s.skipped_reason),
         seed=config.seed, library_versions=library_versions(),
         test_metrics=models['bo_lstm']['metrics'],
-        standing=standings(models, publication.choice),
+        standing=standings(models, publication.published_keys),
         machine_map=machine_map.metadata() if machine_map is not None else {},
         envelope=fit_envelope(problem.rows[problem.split.training_rows()],
                               problem.features).to_metadata())
@@ -484,7 +490,7 @@ def _report(config: TrainingConfig, problem: LearningProblem, data: CleanData,
         ratios_to_bp=ratios(models['bo_lstm']['metrics'], models['bp']['metrics']),
         bo_lstm_beats={name: beats(models['bo_lstm']['metrics'], models[name]['metrics'])
                        for name in models if name != 'bo_lstm'},
-        standings=standings(models, publication.choice),
+        standings=standings(models, publication.published_keys),
         published=publication.report(),
         training_time_ratio_lstm_to_bp=(tuned.training_seconds / bp_seconds
                                         if bp_seconds else None),

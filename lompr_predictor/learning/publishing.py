@@ -1,25 +1,36 @@
 # SPDX-License-Identifier: Apache-2.0
-"""What `lompr train` publishes: per axis, the tuned BO-LSTM or the ridge baseline, whichever
-predicts that axis's validation part better, so that the model file is never knowingly worse
-than a plain linear filter of the window.
+"""What `lompr train` publishes: per axis, the equal-weight mean of the candidates the
+validation part cannot tell from the best of them (the tuned BO-LSTM, its generalist, the
+ridge baseline), so that the model file is never knowingly worse than a plain linear
+filter of the window and does not bet on a margin the validation part cannot show.
 
-Why. On recordings at a high rate a closed-form ridge over the window can beat the tuned
-network (docs/lab/learner_real_data.md); a node that then ran the network would compensate
-worse than a baseline the report names. The choice is made on the validation part, never
-the test part (that stays the honest score of what was chosen):
+Why. On recordings at a high rate a closed-form ridge over the window predicts about as
+well as the tuned network, and which of them leads changes from one part of a recording to
+the next (docs/lab/learner_real_data.md): choosing the one of the lower validation RMSE
+then publishes the network on margins of 0.2 % that the test part reverses, the network's
+validation RMSE being optimistic (its tuning and its early stopping both chose it on that
+part). The mean of predictors whose errors are alike in size but not the same is better than
+either; a predictor clearly worse on the validation part is left out (on the LOMPR twin the
+network alone is published). So, per axis:
 
-- the ridge's validation RMSE is that of its fit on the training part at the penalty the
-  validation part chose (`baselines.Ridge`), the network's that of the tuned network, which
-  was trained on the training part with the validation part stopping it;
-- an axis goes to the ridge only where its validation RMSE is strictly lower; the ridge
-  then published is the baseline the report scores (refitted on train + validation).
+- each candidate's squared error on the validation part (the ridge fitted on the training
+  part at the penalty the validation part chose, as `baselines.Ridge` reports it; the
+  networks as tuned);
+- the best by mean squared error; every other candidate kept unless the mean of its loss
+  difference to the best is positive at the one-sided 5 % level (`CRITICAL_T`), its standard
+  error from the means of about sqrt(n) consecutive blocks, since neighbouring errors of a
+  sampled signal are correlated (a Diebold-Mariano test; `loss_difference_t`);
+- the axis publishes the mean of those kept, with equal weights (weights fitted on the same
+  part would inherit its optimism); the ridge then run is the baseline the report scores
+  (refitted on train + validation).
 
 `RidgeModule` is the ridge baseline as a raw-SI module of the model file's contract (float64
 windows (B, window, features) -> (B, 2) error [m]); `PublishedModule` runs the network and the
-ridge and answers each axis with the chosen one, keeping the network's `candidates` (its
-generalist, the map prior) for the live guard. A model with a ridge axis is no BO-LSTM to
-fine-tune (`model_type`): the node's adaptation says it cannot adapt it.
-Boosted trees have no TorchScript form; where they lead, the report says so and by how much.
+ridge and answers each axis with its weights, keeping the network's `candidates` (its
+generalist, the map prior) for the live guard. A model that is not the network alone on
+both axes is no BO-LSTM to fine-tune (`model_type`): the node's adaptation says it cannot
+adapt it. Boosted trees have no TorchScript form; where they lead, the report says so and by
+how much.
 """
 
 from __future__ import annotations
@@ -34,8 +45,9 @@ from torch import nn
 
 from lompr_predictor.data.features import TARGETS
 
-#: The report's and the metadata's names of the two models an axis can publish.
-NETWORK, RIDGE = 'bo_lstm', 'ridge'
+#: The report's and the metadata's names of the candidates an axis can publish (the
+#: generalist: a paired BO-LSTM's second network, `models.PairedNet`).
+NETWORK, GENERALIST, RIDGE = 'bo_lstm', 'bo_lstm_generalist', 'ridge'
 
 
 class RidgeModule(nn.Module):
@@ -77,20 +89,21 @@ class RidgeModule(nn.Module):
 
 
 class PublishedModule(nn.Module):
-    """The network's module with the axes in `ridge_axes` answered by `ridge` (module
-    docstring): the same contract (`forward`), the same `candidates` after the first two
-    columns, so the node, its live guard and `lompr evaluate` run it as they run the
-    network."""
+    """The network's module with each axis answered by `weights` (2, 3) over the network's
+    prediction, its generalist's and `ridge`'s (module docstring): the same contract
+    (`forward`), the same `candidates` after the first two columns, so the node, its live
+    guard and `lompr evaluate` run it as they run the network."""
 
     if TYPE_CHECKING:  # for the type checker only (see `models.PredictorModule`)
-        ridge_axes: torch.Tensor
+        weights: torch.Tensor
 
-    def __init__(self, network: Any, ridge: RidgeModule, ridge_axes: Sequence[bool]) -> None:
-        """`network`: a `models.PredictorModule` or its scripted form."""
+    def __init__(self, network: Any, ridge: RidgeModule, weights: np.ndarray) -> None:
+        """`network`: a `models.PredictorModule` or its scripted form; `weights` (2, 3) in
+        the order of `MEMBERS`, zero on the generalist's column for an unpaired network."""
         super().__init__()
         self.network = network
         self.ridge = ridge
-        self.register_buffer('ridge_axes', torch.tensor(list(ridge_axes), dtype=torch.bool))
+        self.register_buffer('weights', torch.tensor(np.asarray(weights), dtype=torch.float64))
         self.use_map = bool(network.use_map)
         #: a paired network's candidates carry its generalist (`map_prior.is_paired`)
         self.paired = hasattr(getattr(network, 'net', None), 'generalist')
@@ -99,57 +112,131 @@ class PublishedModule(nn.Module):
         return self.candidates(windows)[:, :2]
 
     def candidates(self, windows: torch.Tensor) -> torch.Tensor:
-        """The network's `candidates` with its prediction replaced by the ridge's on the
-        ridge's axes."""
+        """The network's `candidates` with its prediction replaced by the weighted mean."""
         network = self.network.candidates(windows)
-        own = torch.where(self.ridge_axes, self.ridge(windows), network[:, :2])
+        weights = self.weights.to(windows.dtype)
+        own = weights[:, 0] * network[:, :2] + weights[:, 2] * self.ridge(windows)
+        if self.paired:
+            own = own + weights[:, 1] * network[:, 2:4]
         return torch.cat([own, network[:, 2:]], 1)
+
+
+#: The report's names of the candidates an axis can publish, in `PublishedModule`'s order.
+MEMBERS = (NETWORK, GENERALIST, RIDGE)
+#: The one-sided 5 % point of the standard normal: a candidate is left out only if its
+#: validation loss exceeds the best's by more than chance at that level.
+CRITICAL_T = 1.645
+#: The key under which the report scores a published mean (`Publication.published_key`).
+PUBLISHED = 'published'
+
+
+def loss_difference_t(difference: np.ndarray) -> float:
+    """The t statistic of the mean of a loss difference series: its mean over the standard
+    error of the means of ceil(sqrt(n)) long consecutive blocks (so that correlated
+    neighbours are not counted as independent evidence); 0 for a series of zeros, infinite
+    for a constant positive one, 0 with fewer than two blocks (nothing to tell)."""
+    n = len(difference)
+    length = int(np.ceil(np.sqrt(n)))
+    blocks = n // length if length else 0
+    if blocks < 2:
+        return 0.0
+    means = np.asarray(difference[:blocks * length], dtype=np.float64).reshape(
+        blocks, length).mean(axis=1)
+    mean, spread = float(means.mean()), float(means.std(ddof=1))
+    if spread == 0.0:
+        return 0.0 if mean == 0.0 else float(np.copysign(np.inf, mean))
+    return mean / (spread / np.sqrt(blocks))
 
 
 @dataclass(frozen=True)
 class Publication:
-    """Which model each axis publishes and why: the validation RMSE [um] of each
-    candidate per axis."""
+    """What each axis publishes and why: the candidates averaged per axis, each candidate's
+    validation RMSE [um] and t statistic against the axis's best (`loss_difference_t`)."""
 
-    choice: Mapping[str, str]  # axis -> NETWORK or RIDGE
+    members: Mapping[str, tuple[str, ...]]  # axis -> the candidates averaged
     validation_rmse_um: Mapping[str, Mapping[str, float]]  # model -> axis -> RMSE
+    t_statistic: Mapping[str, Mapping[str, float]]  # model -> axis -> t against the best
 
     @property
-    def ridge_axes(self) -> list[bool]:
-        return [self.choice[axis] == RIDGE for axis in TARGETS]
+    def weights(self) -> np.ndarray:
+        """(2, 3) equal weights of each axis's members, in `MEMBERS`' order."""
+        return np.array([[1.0 / len(self.members[axis]) if name in self.members[axis] else 0.0
+                          for name in MEMBERS] for axis in TARGETS])
 
     @property
     def model_type(self) -> str:
-        """The model file's `model_type`: 'lstm' (fine-tunable) only if no axis is the
-        ridge's."""
-        kinds = {self.choice[axis] for axis in TARGETS}
-        return 'lstm' if kinds == {NETWORK} else 'ridge' if kinds == {RIDGE} else 'lstm+ridge'
+        """The model file's `model_type`: 'lstm' (fine-tunable) only if every axis is the
+        network alone, 'ridge' if every axis is the ridge alone, else 'ensemble'."""
+        kinds = {self.members[axis] for axis in TARGETS}
+        return ('lstm' if kinds == {(NETWORK,)} else 'ridge' if kinds == {(RIDGE,)}
+                else 'ensemble')
+
+    def published_key(self, axis: str) -> str:
+        """The report's model key of what `axis` publishes: a single candidate's own, or
+        `PUBLISHED` for a mean."""
+        members = self.members[axis]
+        return members[0] if len(members) == 1 else PUBLISHED
+
+    @property
+    def published_keys(self) -> dict[str, str]:
+        """Per axis `published_key`."""
+        return {axis: self.published_key(axis) for axis in TARGETS}
+
+    @property
+    def report_keys(self) -> set[str]:
+        """The report's model keys of what the axes publish."""
+        return set(self.published_keys.values())
 
     def why(self, axis: str) -> str:
         """One line on the choice of `axis`."""
-        rmse = self.validation_rmse_um
-        return (f'validation RMSE BO-LSTM {rmse[NETWORK][axis]:.4g} um, ridge '
-                f'{rmse[RIDGE][axis]:.4g} um')
+        return 'validation RMSE ' + ', '.join(
+            f'{LABELS[name]} {rmse[axis]:.4g} um (t {self.t_statistic[name][axis]:.2f})'
+            for name, rmse in self.validation_rmse_um.items())
 
     def report(self) -> dict[str, dict[str, Any]]:
-        """Per axis: the model published, the validation RMSE of both, why."""
-        return {axis: {'model': self.choice[axis], 'why': self.why(axis),
+        """Per axis: the candidates averaged, the key the report scores them under, the
+        validation RMSE and t statistic of each, why."""
+        return {axis: {'members': list(self.members[axis]),
+                       'model': self.published_key(axis), 'why': self.why(axis),
                        'validation_rmse_um': {name: values[axis] for name, values
-                                              in self.validation_rmse_um.items()}}
+                                              in self.validation_rmse_um.items()},
+                       't_statistic': {name: values[axis] for name, values
+                                       in self.t_statistic.items()}}
                 for axis in TARGETS}
 
 
-def choose(validation_rmse_um: Mapping[str, Mapping[str, float]],
+#: The candidates' names in the report's lines.
+LABELS = {NETWORK: 'BO-LSTM', GENERALIST: 'its generalist', RIDGE: 'ridge'}
+
+
+def choose(validation_errors: Mapping[str, np.ndarray],
            network_only: bool = False) -> Publication:
-    """Per axis the ridge where its validation RMSE is strictly below the network's, else
-    the network (module docstring); the network on every axis if `network_only` (a model
-    to fine-tune)."""
-    network, ridge = validation_rmse_um[NETWORK], validation_rmse_um[RIDGE]
-    choice = {axis: RIDGE if ridge[axis] < network[axis] and not network_only else NETWORK
-              for axis in TARGETS}
-    return Publication(choice=choice, validation_rmse_um={
-        name: {axis: float(values[axis]) for axis in TARGETS}
-        for name, values in validation_rmse_um.items()})
+    """Per axis the candidates not worse than the best at `CRITICAL_T` (module docstring),
+    from each candidate's (B, 2) signed errors on the validation part [m]; the network on
+    every axis if `network_only` (a model to fine-tune)."""
+    squared = {name: (np.asarray(errors, dtype=np.float64) * 1e6) ** 2
+               for name, errors in validation_errors.items()}
+    members: dict[str, tuple[str, ...]] = {}
+    t_statistic: dict[str, dict[str, float]] = {name: {} for name in squared}
+    for i, axis in enumerate(TARGETS):
+        best = min(squared, key=lambda name: float(squared[name][:, i].mean()))
+        for name, values in squared.items():
+            t_statistic[name][axis] = (0.0 if name == best else
+                                       loss_difference_t(values[:, i] - squared[best][:, i]))
+        kept = tuple(name for name in MEMBERS if name in squared
+                     and t_statistic[name][axis] < CRITICAL_T)
+        members[axis] = (NETWORK,) if network_only else kept
+    return Publication(members=members, t_statistic=t_statistic, validation_rmse_um={
+        name: {axis: float(np.sqrt(values[:, i].mean())) for i, axis in enumerate(TARGETS)}
+        for name, values in squared.items()})
+
+
+def published_predictions(publication: Publication,
+                          predictions: Mapping[str, np.ndarray]) -> np.ndarray:
+    """(B, 2) the published model's predictions from its candidates' (`MEMBERS` keys)."""
+    weights = publication.weights
+    return sum((weights[:, j] * predictions[name] for j, name in enumerate(MEMBERS)
+                if weights[:, j].any()), start=np.zeros((1, len(TARGETS))))
 
 
 def rmse_um(predicted: np.ndarray, actual: np.ndarray) -> dict[str, float]:
@@ -160,8 +247,8 @@ def rmse_um(predicted: np.ndarray, actual: np.ndarray) -> dict[str, float]:
 
 def published_module(network: Any, ridge: RidgeModule | None,
                      publication: Publication) -> Any:
-    """The module to write: the network itself where every axis is the network's, else a
-    `PublishedModule`."""
-    if ridge is None or not any(publication.ridge_axes):
+    """The module to write: the network itself where every axis is the network's alone,
+    else a `PublishedModule`."""
+    if ridge is None or publication.model_type == 'lstm':
         return network
-    return PublishedModule(network, ridge, publication.ridge_axes)
+    return PublishedModule(network, ridge, publication.weights)

@@ -106,8 +106,16 @@ def test_standings_say_what_each_axis_publishes_and_that_trees_cannot_be_exporte
     assert table['x']['published_vs_best_baseline'] == pytest.approx(0.25)
     assert table['y']['published_vs_best_baseline'] == 0.0
     assert standing_text('x', table['x'], {'ridge': 'Ridge', 'hgb': 'HGB'}) == (
-        'X: HGB leads, the BO-LSTM 37.5 % behind it; Ridge published (lower validation '
-        'RMSE), 25.0 % behind HGB; HGB cannot be exported to TorchScript')
+        'X: HGB leads, the BO-LSTM 37.5 % behind it; Ridge published (the validation '
+        "part's choice), 25.0 % behind HGB; HGB cannot be exported to TorchScript")
     assert standing_text('y', table['y'], {'ridge': 'Ridge'}) == (
-        'Y: Ridge leads, the BO-LSTM 10.0 % behind it; Ridge published (lower validation '
-        'RMSE), as good as Ridge')
+        'Y: Ridge leads, the BO-LSTM 10.0 % behind it; Ridge published (the validation '
+        "part's choice), as good as Ridge")
+    # a mean of the candidates: its key in the report, said as what it is without a label
+    models['published'] = _models(published=(4.5, 1.9))['published']
+    mean = standings(models, {'x': 'published', 'y': 'published'})
+    assert mean['x']['best_baseline'] == 'hgb'  # what the model publishes is no baseline
+    assert mean['x']['published_vs_best_baseline'] == pytest.approx(0.125)
+    assert standing_text('y', mean['y'], {}) == (
+        'Y: ridge leads, the BO-LSTM 10.0 % behind it; the mean of the candidates kept '
+        "published (the validation part's choice), 5.0 % below ridge")

@@ -1,6 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
 """What `lompr train` publishes (`learning/publishing.py`): the ridge baseline as a model
-file's module, the per-axis choice on the validation part, a model file that publishes it."""
+file's module, the per-axis candidates kept on the validation part (the block t statistic
+by hand), a model file that publishes their mean."""
 
 from __future__ import annotations
 
@@ -23,10 +24,14 @@ from lompr_predictor.learning.models import (
     predict_rows,
 )
 from lompr_predictor.learning.publishing import (
+    GENERALIST,
     NETWORK,
+    PUBLISHED,
     PublishedModule,
     choose,
+    loss_difference_t,
     published_module,
+    published_predictions,
 )
 from lompr_predictor.learning.publishing import (
     RIDGE as RIDGE_KEY,
@@ -60,41 +65,72 @@ def test_the_ridge_module_predicts_as_the_ridge_baseline(problem: LearningProble
     assert set(fitted.details['validation_rmse_um']) == {'x', 'y'}
 
 
-def test_each_axis_publishes_the_model_of_the_lower_validation_rmse() -> None:
-    """By hand: X to the ridge (lower), Y to the network (a tie stays the network's)."""
-    publication = choose({NETWORK: {'x': 2.0, 'y': 1.0}, RIDGE_KEY: {'x': 1.5, 'y': 1.0}})
-    assert publication.choice == {'x': 'ridge', 'y': 'bo_lstm'}
-    assert publication.ridge_axes == [True, False]
-    assert publication.model_type == 'lstm+ridge'
-    assert publication.report()['x'] == {
-        'model': 'ridge', 'validation_rmse_um': {'bo_lstm': 2.0, 'ridge': 1.5},
-        'why': 'validation RMSE BO-LSTM 2 um, ridge 1.5 um'}
-    network = choose({NETWORK: {'x': 1.0, 'y': 1.0}, RIDGE_KEY: {'x': 1.5, 'y': 2.0}})
-    assert network.model_type == 'lstm'
-    assert published_module('network', None, network) == 'network'
-    assert choose({NETWORK: {'x': 3.0, 'y': 3.0},
-                   RIDGE_KEY: {'x': 1.0, 'y': 2.0}}).model_type == 'ridge'
+def test_the_loss_difference_t_statistic_by_hand() -> None:
+    """Nine values: three blocks of three, block means 2, 3, 4: t = 3 / (1 / sqrt 3); a
+    constant positive difference is infinite, zeros and a series of one block are 0."""
+    assert loss_difference_t(np.array([1, 2, 3, 2, 3, 4, 3, 4, 5.0])) == pytest.approx(
+        3 * np.sqrt(3), rel=1e-12)
+    assert loss_difference_t(np.full(16, 2.0)) == np.inf
+    assert loss_difference_t(np.zeros(16)) == 0.0
+    assert loss_difference_t(np.array([5.0, 1.0, 2.0])) == 0.0
+
+
+def test_each_axis_publishes_the_mean_of_the_candidates_the_validation_part_cannot_tell_apart(
+) -> None:
+    """By hand (errors in um, 100 samples: ten blocks of ten): on X the ridge's errors are
+    twice the network's everywhere (left out, t infinite); on Y its squared errors are the
+    network's times 1 + d, d per block +-0.5, +-0.2, +-0.4, +-0.1, +-0.3 (mean 0: t 0, the
+    same RMSE): X the network alone, Y the mean of both; the generalist, three times the
+    network's errors, is left out."""
+    ones = np.tile([1.0, -1.0], 50)
+    network = np.stack([ones, ones], 1) * 1e-6
+    d = np.repeat([0.5, -0.5, 0.2, -0.2, 0.4, -0.4, 0.1, -0.1, 0.3, -0.3], 10)
+    ridge = np.stack([2 * ones, ones * np.sqrt(1 + d)], 1) * 1e-6
+    publication = choose({NETWORK: network, GENERALIST: 3 * network, RIDGE_KEY: ridge})
+    assert publication.members == {'x': (NETWORK,), 'y': (NETWORK, RIDGE_KEY)}
+    assert publication.t_statistic[RIDGE_KEY]['x'] == np.inf
+    assert publication.t_statistic[GENERALIST] == {'x': np.inf, 'y': np.inf}
+    assert abs(publication.t_statistic[RIDGE_KEY]['y']) < 1e-9
+    assert abs(publication.t_statistic[NETWORK]['y']) < 1e-9
+    assert publication.validation_rmse_um[RIDGE_KEY] == pytest.approx({'x': 2.0, 'y': 1.0})
+    assert publication.weights.tolist() == [[1.0, 0.0, 0.0], [0.5, 0.0, 0.5]]
+    assert publication.published_keys == {'x': NETWORK, 'y': PUBLISHED}
+    assert publication.model_type == 'ensemble'
+    assert publication.report()['y']['members'] == [NETWORK, RIDGE_KEY]
+    assert 'its generalist 3 um (t inf)' in publication.report()['y']['why']
+    # the mean, by hand: X the network's, Y the mean of the network's and the ridge's
+    predictions = {NETWORK: np.array([[1.0, 2.0]]), GENERALIST: np.array([[9.0, 9.0]]),
+                   RIDGE_KEY: np.array([[3.0, 4.0]])}
+    assert published_predictions(publication, predictions).tolist() == [[1.0, 3.0]]
+    # a model to fine-tune publishes the network alone; so does a clearly better network
+    assert choose({NETWORK: network, RIDGE_KEY: ridge}, network_only=True).model_type == 'lstm'
+    alone = choose({NETWORK: network, RIDGE_KEY: 2 * network})
+    assert alone.model_type == 'lstm'
+    assert published_module('network', None, alone) == 'network'
+    assert choose({NETWORK: 2 * network, RIDGE_KEY: network}).model_type == 'ridge'
 
 
 def test_a_model_file_publishing_the_ridge_loads_and_evaluates(
         tmp_path: Path, problem: LearningProblem) -> None:
-    """A network (here persistence) with the ridge on X: the file loads (warm-up), predicts
-    X as the ridge and Y as the network, offline as the node would; fine-tuning refuses it
-    (the adaptation's 'cannot adapt')."""
+    """A network (here persistence) with the ridge on X and the mean of both on Y: the file
+    loads (warm-up), predicts X as the ridge and Y as the mean, offline as the node would;
+    fine-tuning refuses it (the adaptation's 'cannot adapt')."""
     fitted = RIDGE.fit(problem, FitContext())
     assert fitted.module is not None
-    module = PublishedModule(persistence_module(FEATURES), fitted.module, [True, False])
+    module = PublishedModule(persistence_module(FEATURES), fitted.module,
+                             np.array([[0.0, 0.0, 1.0], [0.5, 0.0, 0.5]]))
     path = save_model(tmp_path / 'm.pt', module, metadata(
-        window=4, horizon=3, model_type='lstm+ridge'))
+        window=4, horizon=3, model_type='ensemble'))
     loaded = load_model(path)
     ends = problem.split.test
     got = predict_rows(loaded.module, problem.rows, ends, 4)
     ridge = fitted.predict(ends)
     assert np.max(np.abs(got[:, 0] - ridge[:, 0])) <= 1e-9 * np.max(np.abs(ridge))
-    assert np.array_equal(got[:, 1], problem.error[ends, 1])
+    mean = (problem.error[ends, 1] + ridge[:, 1]) / 2
+    assert np.max(np.abs(got[:, 1] - mean)) <= 1e-9 * np.max(np.abs(ridge))
     assert loaded.module.candidates(torch.zeros((2, 4, len(FEATURES)),
                                                 dtype=torch.float64)).shape == (2, 2)
-    with pytest.raises(FineTuneError, match="this one is 'lstm\\+ridge'"):
+    with pytest.raises(FineTuneError, match="this one is 'ensemble'"):
         load_parent(path, _FineTuneConfig(),  # type: ignore[arg-type]
                     loaded.metadata.robot_description_sha256)
 
