@@ -252,11 +252,14 @@ def paced_stream(client: Any, samples: SerializedSamples, base_ns: int, count: i
     """Publish `count` samples `period` s apart from a thread (reference, then joint state,
     stamped base_ns + k period, row k modulo the rows given), `sent[k]` the wall time each
     joint state left; `step` (a spin of the caller's executor) runs here until the last;
-    `before(k, stamp_ns)`, if given, runs in the thread before sample k is published."""
+    `before(k, stamp_ns)`, if given, runs in the thread before sample k is published.
+    Sample k leaves when the system clock reads its stamp, as a driver stamps and sends a
+    measurement (the nodes then read the stamps as on their clock: `timing.OverrunGuard`);
+    stamps already past (a warm-up on old stamps) leave from now on at the period."""
     period_ns = round(period * 1e9)
 
     def publish() -> None:
-        t0 = time.perf_counter() + 0.1
+        t0 = time.perf_counter() + max(base_ns - time.time_ns(), 0) * 1e-9
         for k in range(count):
             delay = t0 + k * period - time.perf_counter()
             if delay > 0:
@@ -630,6 +633,8 @@ NODE_LATE_TOLERANCE_MS = 1e3 * PredictorNodeSettings().late_tolerance
 #: after the instant (within the tolerance), skipped or dropped by its overrun policy.
 OVERRUN_STATUS = 'predictor_node: prediction'
 OVERRUN_COUNTERS = ('outputs_after_instant', 'inference_skipped_late', 'late_outputs_dropped')
+#: How long after the call the timed stream's first sample is stamped (and leaves).
+LEAD_IN_NS = 100_000_000
 #: Seconds for a status that the nodes made after the last sample to arrive.
 DIAGNOSTICS_WAIT = 1.3
 
@@ -786,7 +791,7 @@ def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path | None,
         overruns_before = dict(client.overruns)
         cpu_before = [cpu_seconds(p.pid) for p in processes]
         client_before = time.process_time()
-        base_ns = time.time_ns()
+        base_ns = time.time_ns() + LEAD_IN_NS
         run(base_ns, samples, record=True)
         cpu_used = [cpu_seconds(p.pid) - c for p, c in zip(processes, cpu_before, strict=True)]
         client_used = time.process_time() - client_before
