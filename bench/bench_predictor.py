@@ -252,11 +252,14 @@ def paced_stream(client: Any, samples: SerializedSamples, base_ns: int, count: i
     """Publish `count` samples `period` s apart from a thread (reference, then joint state,
     stamped base_ns + k period, row k modulo the rows given), `sent[k]` the wall time each
     joint state left; `step` (a spin of the caller's executor) runs here until the last;
-    `before(k, stamp_ns)`, if given, runs in the thread before sample k is published."""
+    `before(k, stamp_ns)`, if given, runs in the thread before sample k is published.
+    Sample k leaves when the system clock reads its stamp, as a driver stamps and sends a
+    measurement (the nodes then read the stamps as on their clock: `timing.OverrunGuard`);
+    stamps already past (a warm-up on old stamps) leave from now on at the period."""
     period_ns = round(period * 1e9)
 
     def publish() -> None:
-        t0 = time.perf_counter() + 0.1
+        t0 = time.perf_counter() + max(base_ns - time.time_ns(), 0) * 1e-9
         for k in range(count):
             delay = t0 + k * period - time.perf_counter()
             if delay > 0:
@@ -585,7 +588,8 @@ class Client(Node):
         self.reference = self.create_publisher(PoseStamped, '/lompr/reference', 100)
         self.arrivals: dict[int, float] = {}
         self.timing: dict[str, dict[str, str]] = {}
-        #: The predictor's counters of outputs it knew were late (`OVERRUN_COUNTERS`).
+        #: The predictor's counters of instants it knew it answered late
+        #: (`OVERRUN_COUNTERS`).
         self.overruns: dict[str, int] = {}
         self.create_subscription(Vector3Stamped, '/lompr/compensation', self._on_offset, 1000,
                                  raw=True)
@@ -625,9 +629,12 @@ TIMING_STATUS = 'callback timing'
 #: The predictor's default `late_tolerance` [ms]: how far past its instant an output may come
 #: before the node's overrun policy drops it (when it sees the delay).
 NODE_LATE_TOLERANCE_MS = 1e3 * PredictorNodeSettings().late_tolerance
-#: The predictor's status that counts the samples its overrun policy judged late.
+#: The predictor's status that counts the instants it knew it answered late: published
+#: after the instant (within the tolerance), skipped or dropped by its overrun policy.
 OVERRUN_STATUS = 'predictor_node: prediction'
-OVERRUN_COUNTERS = ('inference_skipped_late', 'late_outputs_dropped')
+OVERRUN_COUNTERS = ('outputs_after_instant', 'inference_skipped_late', 'late_outputs_dropped')
+#: How long after the call the timed stream's first sample is stamped (and leaves).
+LEAD_IN_NS = 100_000_000
 #: Seconds for a status that the nodes made after the last sample to arrive.
 DIAGNOSTICS_WAIT = 1.3
 
@@ -784,7 +791,7 @@ def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path | None,
         overruns_before = dict(client.overruns)
         cpu_before = [cpu_seconds(p.pid) for p in processes]
         client_before = time.process_time()
-        base_ns = time.time_ns()
+        base_ns = time.time_ns() + LEAD_IN_NS
         run(base_ns, samples, record=True)
         cpu_used = [cpu_seconds(p.pid) - c for p, c in zip(processes, cpu_before, strict=True)]
         client_used = time.process_time() - client_before
@@ -974,11 +981,11 @@ def report_end_to_end(load: str, job: contextlib.AbstractContextManager[Any],
     rows: list[Row] = []
     print(f'\nend to end{load or ", no training job"} (late: answers after their instant '
           "on this process's clock, +tol: of those, later than the predictor's "
-          f'late_tolerance ({NODE_LATE_TOLERANCE_MS:g} ms) past it; known: samples the '
-          "predictor's overrun policy itself judged late (inferences skipped, outputs "
-          'dropped); CPU us per sample: kinematics / predictor process, or the one process, '
-          'and this bench\'s client; chain "relays": the same topics, QoS and executor '
-          'without work, the transport floor):')
+          f'late_tolerance ({NODE_LATE_TOLERANCE_MS:g} ms) past it; known: instants the '
+          "predictor itself counted late (offsets published after the instant, inferences "
+          'skipped, outputs dropped); CPU us per sample: kinematics / predictor process, '
+          'or the one process, and this bench\'s client; chain "relays": the same topics, '
+          'QoS and executor without work, the transport floor):')
     print(f'{"mode":14s} {"chain":7s} {"executor":15s} {"rate":>6s} {"answered":>15s} '
           f'{"share":>7s} {"p50 ms":>7s} {"p99 ms":>7s} {"max ms":>7s} {"late":>5s} '
           f'{"+tol":>5s} {"known":>5s}  CPU us  client')

@@ -9,7 +9,10 @@ up a real-time policy inherited from whoever started it. A node may ask for more
 (`apply_scheduling`: the nodes' `nice`, `sched_fifo_priority` and `cpu_affinity`
 parameters, as ros2_control's controller manager offers): a negative nice or SCHED_FIFO
 needs CAP_SYS_NICE (root) or a resource limit allowing it; where the kernel refuses,
-`SchedulingError` names the setting, says why and what would permit it.
+`SchedulingError` names the setting, says why and what would permit it. A node that asks
+only where the system allows it (`scheduling_required` false, as the launch file does) runs
+on without what was refused, and its `scheduling` status on /diagnostics says what
+(`SchedulingOutcome`).
 
 On Linux nice values, policies and affinities belong to threads: each change is made to
 every thread the process has (/proc/self/task: the middleware's and the executor's
@@ -25,6 +28,7 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, fields
 
 from lompr_predictor.errors import LomprError
+from lompr_predictor.monitoring import Level, Status
 
 #: `lompr train --nice`'s default: a training a node shares two cores with lets it run first.
 TRAINING_NICE = 10
@@ -51,6 +55,15 @@ class Scheduling:
     nice: int = 0  # added to every thread's nice value (as `nice -n`); 0 keeps it
     sched_fifo_priority: int = 0  # 1-99: SCHED_FIFO at this priority; 0: the policy kept
     cpu_affinity: tuple[int, ...] = ()  # the CPUs to run on; (): those allowed now
+    #: False: a setting the kernel refuses is left out (`apply_scheduling` returns why)
+    scheduling_required: bool = True
+
+    def asked(self) -> str:
+        """What is asked, in words ('' for nothing)."""
+        parts = ([f'nice {self.nice:+d}'] if self.nice else []) + (
+            [f'SCHED_FIFO {self.sched_fifo_priority}'] if self.sched_fifo_priority else []) + (
+            [f'CPUs {list(self.cpu_affinity)}'] if self.cpu_affinity else [])
+        return ', '.join(parts)
 
 
 def cpu_list_problem(cpus: Iterable[int]) -> str | None:
@@ -192,16 +205,57 @@ def _set_fifo(priority: int) -> None:
         raise SchedulingError(setting, priority, msg) from None
 
 
-def apply_scheduling(scheduling: Scheduling) -> None:
+def apply_scheduling(scheduling: Scheduling) -> tuple[SchedulingError, ...]:
     """Apply what `scheduling` asks to every thread of this process: the CPUs first (a
     real-time thread should not start on the wrong one), then the nice value, then the
-    policy. `SchedulingError` at the first refusal."""
-    if scheduling.cpu_affinity:
-        _set_affinity(tuple(scheduling.cpu_affinity))
-    if scheduling.nice:
-        _renice(scheduling.nice, 'nice')
-    if scheduling.sched_fifo_priority:
-        _set_fifo(scheduling.sched_fifo_priority)
+    policy. `SchedulingError` at the first refusal where `scheduling_required`; else every
+    setting is tried and the refusals are returned (the process runs without them)."""
+    steps: list[tuple[object, Callable[[], None]]] = [
+        (scheduling.cpu_affinity, lambda: _set_affinity(tuple(scheduling.cpu_affinity))),
+        (scheduling.nice, lambda: _renice(scheduling.nice, 'nice')),
+        (scheduling.sched_fifo_priority, lambda: _set_fifo(scheduling.sched_fifo_priority))]
+    refused = []
+    for wanted, step in steps:
+        if not wanted:
+            continue
+        try:
+            step()
+        except SchedulingError as err:
+            if scheduling.scheduling_required:
+                raise
+            refused.append(err)
+    return tuple(refused)
+
+
+@dataclass(frozen=True)
+class SchedulingOutcome:
+    """What a process asked (`asked`) and what the kernel refused of it (`refused`): a
+    node's `scheduling` status."""
+
+    asked: Scheduling = Scheduling()
+    refused: tuple[SchedulingError, ...] = ()
+
+    def status(self) -> Status:
+        """WARN naming each refusal (the process runs without it), else OK saying what
+        the process runs with; the current policy and CPUs as values."""
+        policy = os.sched_getscheduler(0) if hasattr(os, 'sched_getscheduler') else None
+        values: dict[str, object] = {
+            'asked': self.asked.asked() or 'nothing',
+            'policy': POLICY_NAMES.get(policy, str(policy)),
+            'cpus': str(sorted(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity')
+                        else []),
+            'refused': len(self.refused)}
+        if self.refused:
+            return Status(Level.WARN, 'refused, running without it: ' + '; '.join(
+                str(err) for err in self.refused), values)
+        return Status(Level.OK, self.asked.asked() or 'the normal policy (nothing asked)',
+                      values)
+
+
+#: The names of Linux's scheduling policies, for the status.
+POLICY_NAMES = {getattr(os, name): name for name in
+                ('SCHED_OTHER', 'SCHED_FIFO', 'SCHED_RR', 'SCHED_BATCH', 'SCHED_IDLE')
+                if hasattr(os, name)}
 
 
 def shared_scheduling(asked: Mapping[str, Scheduling]) -> Scheduling:

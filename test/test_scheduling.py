@@ -18,9 +18,11 @@ from typing import TYPE_CHECKING
 import pytest
 from ros_helpers import start_executable, stop_process
 
+from lompr_predictor.monitoring import Level
 from lompr_predictor.scheduling import (
     Scheduling,
     SchedulingError,
+    SchedulingOutcome,
     lower_job,
     shared_scheduling,
 )
@@ -146,6 +148,31 @@ def test_what_needs_privileges_is_refused_with_what_would_permit_it(code: str,
     assert re.match(message, str(refused.get('error'))), refused
 
 
+def test_a_refusal_where_not_required_is_returned_and_the_rest_applied() -> None:
+    """Without CAP_SYS_NICE, nice +1 and SCHED_FIFO 20 not required: the nice value is
+    applied to every thread, SCHED_FIFO refused and returned, the normal policy kept."""
+    base = os.nice(0)
+    code = ('refused = apply_scheduling(Scheduling(nice=1, sched_fifo_priority=20, '
+            'scheduling_required=False)); '
+            "assert [e.setting for e in refused] == ['sched_fifo_priority'], refused")
+    applied = probe(code, tuple(unprivileged()))
+    assert applied['nice'] == [min(base + 1, 19)] and applied['policy'] == [os.SCHED_OTHER]
+
+
+def test_the_scheduling_status_names_each_refusal_or_says_what_runs() -> None:
+    asked = Scheduling(nice=1, sched_fifo_priority=20, scheduling_required=False)
+    refused = SchedulingOutcome(asked, (SchedulingError('sched_fifo_priority', 20, 'no'),))
+    status = refused.status()
+    assert (status.level, status.message) == (
+        Level.WARN, 'refused, running without it: sched_fifo_priority 20: no')
+    assert status.values['asked'] == 'nice +1, SCHED_FIFO 20' and status.values['refused'] == 1
+    nothing = SchedulingOutcome().status()
+    assert (nothing.level, nothing.message) == (Level.OK, 'the normal policy (nothing asked)')
+    assert nothing.values['policy'] == 'SCHED_OTHER'
+    pinned = SchedulingOutcome(Scheduling(cpu_affinity=(0,))).status()
+    assert (pinned.level, pinned.message) == (Level.OK, 'CPUs [0]')
+
+
 def test_cpus_the_process_cannot_have_are_refused_and_the_cpus_it_had_kept() -> None:
     allowed = sorted(os.sched_getaffinity(0))
     missing = os.cpu_count() or 1  # CPU numbers start at 0: one past the last
@@ -231,3 +258,55 @@ def test_a_refused_scheduling_parameter_stops_the_executable_in_one_line(
     errors = [text for text in result.stderr.splitlines() if ': error: ' in text]
     assert result.returncode == 2 and len(errors) == 1 and errors[0].startswith(line), (
         result.stderr)
+
+
+PACKAGED_PARAMETERS = (Path(__file__).parents[1] / 'lompr_predictor' / 'config'
+                       / 'kinematics_node.yaml')
+
+
+@pytest.mark.slow
+def test_the_packaged_parameters_ask_for_real_time_where_the_system_allows_it() -> None:
+    """kinematics_node with its packaged parameters (the launch file's): without
+    CAP_SYS_NICE it runs on under the normal policy and says that SCHED_FIFO 40 was refused;
+    with it (root here), every thread runs under SCHED_FIFO."""
+    base = os.nice(0)
+    command = [*unprivileged(), sys.executable, '-m', 'lompr_predictor.ros.kinematics_node',
+               '--ros-args', '--params-file', str(PACKAGED_PARAMETERS), '-p', 'nice:=1']
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True)
+    try:
+        deadline = time.monotonic() + 60
+        # the nice value is applied just before the policy: once it is, the policy was tried
+        while not (threads := _threads(process.pid)) or any(
+                nice != min(base + 1, 19) for nice, _ in threads):
+            assert process.poll() is None and time.monotonic() < deadline, threads
+            time.sleep(0.2)
+        time.sleep(1.0)
+        assert process.poll() is None  # still running: the refusal did not stop it
+    finally:
+        code, errors = stop_process(process)
+    assert code == 0, errors
+    assert ('refused, running without it: sched_fifo_priority 40: SCHED_FIFO needs '
+            'CAP_SYS_NICE') in errors
+    if may_raise_priority():
+        privileged = start_executable('kinematics_node', '--params-file',
+                                      str(PACKAGED_PARAMETERS))
+        try:
+            deadline = time.monotonic() + 60
+            while _policies(privileged.pid) != {os.SCHED_FIFO}:
+                assert privileged.poll() is None and time.monotonic() < deadline
+                time.sleep(0.2)
+        finally:
+            code, errors = stop_process(privileged)
+        assert code == 0, errors
+
+
+def _policies(pid: int) -> set[int]:
+    """The scheduling policies of the threads of process `pid`."""
+    found = set()
+    for task in Path(f'/proc/{pid}/task').iterdir():
+        try:
+            found.add(os.sched_getscheduler(int(task.name)))
+        except OSError:
+            continue  # a thread that ended meanwhile
+    return found

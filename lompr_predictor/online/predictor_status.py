@@ -197,6 +197,12 @@ def preview_status(lifecycle: Lifecycle, core: OnlinePredictor | None, rate: Rat
                   values)
 
 
+#: How `in_time_pct` reads an instant (`timing.OverrunGuard.same_clock`).
+LATENESS_READING = {True: "on the node's clock (the stamps are on it)",
+                    False: 'against the best-case input delay (the stamps are on another '
+                           'clock)', None: 'no sample yet'}
+
+
 def prediction_status(lifecycle: Lifecycle, core: OnlinePredictor | None,
                       limits: PredictionLimits, input_to_output: LatencySummary,
                       output_rate_hz: float, new_overruns: int) -> Status:
@@ -217,6 +223,7 @@ def prediction_status(lifecycle: Lifecycle, core: OnlinePredictor | None,
         'accuracy_samples': count,
         'implausible_predictions': core.plausible.implausible,
         'in_time_pct': round(100.0 * counts.in_time_share, 3),
+        'in_time_judged': LATENESS_READING[core.overrun.same_clock],
         'compensation_enabled': limits.compensation_enabled,
         'offset_x_um': round(float(offset[0]) * 1e6, 3),
         'offset_y_um': round(float(offset[1]) * 1e6, 3),

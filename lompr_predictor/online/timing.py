@@ -2,16 +2,29 @@
 """The overrun policy, on the node's clock (ROS-free, integer nanoseconds).
 
 An output is for the instant stamp + lead (lead = horizon x sample period); it is late when,
-on the node's clock, that instant has passed by more than a tolerance, judged against the
-best-case input delay: delay that builds up behind inferences counts, delay while the node
-waits for input does not (it cannot be told from a slow clock). A sample whose output
-would be late gets no inference, so a backlog behind a slow model is skipped to the newest
-sample; an inference that finishes late publishes nothing. A sample that did not queue is
-always inferred, so one stall cannot stop the node. The estimate restarts when a stamp or
-the clock goes backwards.
+on the node's clock, that instant has passed by more than a tolerance. How the instant is
+read depends on where the stamps come from:
+
+- stamps on the node's clock (a driver stamping with ROS time, a simulator's /clock): the
+  smallest delay seen since the last restart lies between minus the tolerance and
+  `SAME_CLOCK_NS`. The instant is then read as it is: every delay counts, a wait for the
+  CPU before the callback ran included, so what the node counts late is what a receiver on
+  the same clock sees late (less the transport after publishing);
+- stamps on another clock (a bag replayed without /clock, a recording's epoch): judged
+  against the best-case input delay, so that delay that builds up behind inferences counts
+  and delay while the node waits for input does not (it cannot be told from a slow clock).
+
+A sample whose output would be late gets no inference, so a backlog behind a slow model is
+skipped to the newest sample; an inference that finishes late publishes nothing. A sample
+that did not queue is always inferred, so one stall cannot stop the node. The estimate
+restarts when a stamp or the clock goes backwards.
 """
 
 from __future__ import annotations
+
+#: The largest smallest delay [ns] still read as transport and scheduling on one clock:
+#: far above a cell's (micro- to milliseconds), far below the offset of another clock.
+SAME_CLOCK_NS = 1_000_000_000
 
 
 class OverrunGuard:
@@ -21,6 +34,7 @@ class OverrunGuard:
         self.lead_ns = lead_ns
         self.tolerance_ns = tolerance_ns
         self._offset: int | None = None  # best-case node time - stamp
+        self._floor: int | None = None  # the smallest node time - stamp since the restart
         self._idle_since: int | None = None  # node time at which the last inference ended
         self._last_stamp: int | None = None
         self._inference_ns = 0  # the last inference's duration on the node's clock
@@ -39,18 +53,28 @@ class OverrunGuard:
             idle_since = None
         self._last_stamp = stamp_ns
         delay = now_ns - stamp_ns
+        self._floor = delay if self._floor is None else min(self._floor, delay)
         offset = self._offset
         if offset is None or idle_since is None:
             self._offset = delay
         else:
             self._offset = min(delay, offset + max(now_ns - idle_since, 0))
 
+    @property
+    def same_clock(self) -> bool | None:
+        """Whether the stamps are read as on the node's clock (module docstring); None
+        before any sample."""
+        if self._floor is None:
+            return None
+        return -self.tolerance_ns <= self._floor <= SAME_CLOCK_NS
+
     def lateness_ns(self, stamp_ns: int, now_ns: int) -> int:
         """How far past its instant the output of the sample stamped `stamp_ns` would be if
         published at `now_ns` (negative: in time); 0 before any estimate."""
         if self._offset is None:
             return 0
-        return now_ns - stamp_ns - self._offset - self.lead_ns
+        offset = 0 if self.same_clock else self._offset
+        return now_ns - stamp_ns - offset - self.lead_ns
 
     def late(self, stamp_ns: int, now_ns: int) -> bool:
         """Whether the output of that sample, published at `now_ns`, would come after its
@@ -76,5 +100,6 @@ class OverrunGuard:
     def restart(self) -> None:
         """Forget the estimate (stamps or the clock went back)."""
         self._offset = None
+        self._floor = None
         self._idle_since = None
         self._last_stamp = None

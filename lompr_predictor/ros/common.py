@@ -46,7 +46,12 @@ from lompr_predictor.monitoring import CallbackTimes, Level, Status
 from lompr_predictor.processes import dump_tracebacks_on_signal
 from lompr_predictor.ros.parameters import ParameterSpec
 from lompr_predictor.ros.wire import StatusFields, diagnostic_array
-from lompr_predictor.scheduling import Scheduling, apply_scheduling, shared_scheduling
+from lompr_predictor.scheduling import (
+    Scheduling,
+    SchedulingOutcome,
+    apply_scheduling,
+    shared_scheduling,
+)
 
 #: How long another thread of a node's process (a model prepared for a swap, a store export)
 #: keeps the interpreter once the executor asks for it [s]. Python's 5 ms is more than a
@@ -393,6 +398,19 @@ def _spin_timed(executor: Executor, context: Context, stop: StopRequest,
                 node_times.record(EXECUTOR_ROW, each, each * callbacks, runs=callbacks)
 
 
+def _schedule(nodes: Sequence[Node]) -> None:
+    """Apply the scheduling the nodes ask for their process (`process_scheduling`); what
+    the kernel refused (where not required) is logged once and kept on each node for its
+    `scheduling` status."""
+    asked = process_scheduling(nodes)
+    outcome = SchedulingOutcome(asked, apply_scheduling(asked))
+    for node in nodes:
+        if hasattr(node, 'scheduling_outcome'):  # a `node_base.NodeBase`
+            node.scheduling_outcome = outcome
+    if outcome.refused and nodes:
+        nodes[0].get_logger().warning(outcome.status().message)
+
+
 def _spin(node_factory: Callable[[Context], Node | Sequence[Node]], executor_name: str,
           stop: StopRequest, prog: str) -> int:
     """Build the node(s) on the default context and spin them until Ctrl-C, shutdown or a
@@ -406,7 +424,7 @@ def _spin(node_factory: Callable[[Context], Node | Sequence[Node]], executor_nam
         with stop.while_starting():
             built = node_factory(context)
             nodes = [built] if isinstance(built, Node) else list(built)
-            apply_scheduling(process_scheduling(nodes))
+            _schedule(nodes)
         executor = make_executor(executor_name, context)
         for node in nodes:
             executor.add_node(node)

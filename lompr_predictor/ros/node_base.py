@@ -70,7 +70,13 @@ from lompr_predictor.ros.parameters import (
 )
 from lompr_predictor.ros.parameters import declare_settings as declare_parameters
 from lompr_predictor.ros.qos_watch import QosWatch
-from lompr_predictor.scheduling import MAX_NICE, MIN_NICE, Scheduling, cpu_list_problem
+from lompr_predictor.scheduling import (
+    MAX_NICE,
+    MIN_NICE,
+    Scheduling,
+    SchedulingOutcome,
+    cpu_list_problem,
+)
 
 if TYPE_CHECKING:
     from _typeshed import DataclassInstance
@@ -114,7 +120,8 @@ class StatusSettings:
 class SchedulingSettings(StatusSettings):
     """`StatusSettings` and how the node's process is scheduled (`scheduling.py`), applied
     once its node(s) are built (`common.run_node`); a setting the platform or the process's
-    privileges refuse stops the executable with one line naming it (exit code 2)."""
+    privileges refuse stops the executable with one line naming it (exit code 2), or with
+    `scheduling_required` false is left out and said on the `scheduling` status."""
 
     nice: int = parameter(
         0, "added at start to the nice value of the node's process (as nice -n): negative "
@@ -127,6 +134,11 @@ class SchedulingSettings(StatusSettings):
     cpu_affinity: tuple[int, ...] = parameter(
         (), 'CPUs the process runs on, e.g. [1] (a core kept free of other work); empty: '
         'those it may use at start', read_only=True, check=cpu_list_problem, items=int)
+    scheduling_required: bool = parameter(
+        True, 'true: a nice, sched_fifo_priority or cpu_affinity the system refuses stops the '
+        'executable (exit code 2); false: the node runs without it and its scheduling '
+        "status on /diagnostics says what was refused (the launch file's choice)",
+        read_only=True)
 
     @property
     def scheduling(self) -> Scheduling:
@@ -233,6 +245,9 @@ class NodeBase(_NodeType, Generic[S]):
         self.qos_watch = QosWatch(self, self.guard, self.warn_throttled)
         #: Wall and CPU time of every guarded callback, logging call and garbage collection.
         self.callback_times = CallbackTimes()
+        #: What the process asked of the kernel and what it refused (`common.run_node` sets
+        #: it once the nodes are built; the `scheduling` status).
+        self.scheduling_outcome = SchedulingOutcome()
         gc.callbacks.append(self.callback_times.on_gc)
 
     # -- hooks a node overrides ---------------------------------------------------------
@@ -408,6 +423,7 @@ class NodeBase(_NodeType, Generic[S]):
         self.qos_watch.watch(diagnostics.publisher)
         diagnostics.add('qos', self.qos_watch.status)
         diagnostics.add('callback timing', self.callback_times.status)
+        diagnostics.add('scheduling', lambda: self.scheduling_outcome.status())
         return diagnostics
 
     def warn_throttled(self, key: str, text: str) -> None:

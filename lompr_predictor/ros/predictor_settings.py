@@ -139,8 +139,9 @@ class PredictorCoreSettings(FrameSettings):
         'dropped (not checked while the clock reads 0: sim time before the first /clock)',
         minimum=0.0, maximum=1e9, read_only=True)
     late_tolerance: float = parameter(
-        0.005, 'seconds an output may come after the instant it is for (judged on the '
-        "node's clock against the best-case input delay) before it is dropped as late; a "
+        0.005, "seconds an output may come after the instant it is for (on the node's "
+        'clock: as stamped where the stamps are on it, else against the best-case input '
+        'delay) before it is dropped as late; a '
         'sample whose inference could only finish late gets none', minimum=0.0,
         maximum=3600.0, read_only=True)
 

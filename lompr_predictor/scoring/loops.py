@@ -153,7 +153,8 @@ def plot_loops(path: str | Path, seconds: np.ndarray, errors: Mapping[str, np.nd
     ax.xaxis.get_major_locator().set_params(integer=True)
     ax.set_ylabel('RMS per pass, worse axis (um)')
     ax.grid(alpha=0.3, which='both')
-    ax.legend(loc='upper left', fontsize='small')
+    if ax.get_legend_handles_labels()[0]:  # a loop too short for a scored pass draws none
+        ax.legend(loc='upper left', fontsize='small')
     if title:
         axes[0].set_title(title)
     figure.tight_layout()

@@ -166,6 +166,9 @@ def test_prediction_status_counts_predictions_and_the_offset(core: OnlinePredict
     values = status.values
     assert values['predictions_total'] == 3 and values['output_rate_hz'] == 25.0
     assert values['compensation_enabled'] is True
+    # stamps of 2023 on a clock at 100 s: another clock, read against the best-case delay
+    assert values['in_time_judged'] == ('against the best-case input delay (the stamps are '
+                                        'on another clock)')
     # the offset in force is minus the prediction, grown by at most the step limit
     assert (values['offset_x_um'], values['offset_y_um']) == (20.0, -5.0)
     assert core.counts().overruns == 0

@@ -1,6 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
 """online.timing through the core: a slow model publishes nothing late, builds no backlog
-and is not stopped by one stall."""
+and is not stopped by one stall; and the guard alone: an instant read on the node's clock
+when the stamps are on it (a wait for the CPU counts), else against the best-case delay."""
 
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from lompr_predictor.learning.model_file import (
 )
 from lompr_predictor.online.offset import CompensationLimits, Output
 from lompr_predictor.online.predictor import OnlinePredictor
+from lompr_predictor.online.timing import OverrunGuard
 
 # -- faults: a slow model skips to the newest sample instead of building a backlog ---------
 
@@ -98,3 +100,57 @@ def test_one_stall_does_not_stop_the_answers(tmp_path: Path) -> None:
                  if not o.reason and o.sample_stamp_ns > T0 + 60 * PERIOD_NS]
     assert len(late_part) == 120 - 61  # every sample after the stall's backlog is answered
     assert core.overrun.late_outputs_dropped == 1 and core.overrun.inference_skipped_late > 0
+
+
+# -- the overrun guard itself: which clock an instant is read on --------------------------
+
+LEAD, TOLERANCE, MS = 5_000_000, 5_000_000, 1_000_000
+
+
+def idle_then_waited(clock_offset_ns: int) -> tuple[OverrunGuard, int, int]:
+    """Ten samples 1 ms apart arriving 1 ms after their stamps (plus `clock_offset_ns`, the
+    node's clock ahead of the stamps'), each inferred in 0.1 ms; then 100 ms of silence and
+    a sample whose callback ran 30 ms after its stamp (it waited for the CPU): the guard, the
+    last stamp and the node time after that sample's arrival."""
+    guard = OverrunGuard(LEAD, TOLERANCE)
+    for k in range(10):
+        stamp = T0 + k * MS
+        guard.arrival(stamp, stamp + MS + clock_offset_ns)
+        guard.inference_took(stamp + MS + clock_offset_ns, stamp + MS + clock_offset_ns + MS // 10)
+    stamp = T0 + 110 * MS
+    now = stamp + 30 * MS + clock_offset_ns
+    guard.arrival(stamp, now)
+    return guard, stamp, now
+
+
+def test_on_the_nodes_clock_a_wait_for_the_cpu_counts_as_late() -> None:
+    """Stamps on the node's clock: the 30 ms wait puts the output 25 ms past its instant
+    (30 ms - the 5 ms lead), late beyond the 5 ms tolerance, though the node was idle."""
+    guard, stamp, now = idle_then_waited(0)
+    assert guard.same_clock is True
+    assert guard.lateness_ns(stamp, now) == 25 * MS
+    assert guard.late(stamp, now) and guard.skip(stamp, now)
+
+
+@pytest.mark.parametrize('clock_offset_ns', [10**15, -20 * MS])
+def test_stamps_on_another_clock_are_judged_against_the_best_case_delay(
+        clock_offset_ns: int) -> None:
+    """A recording's epoch (the node 11.6 days ahead) or a node clock 20 ms behind the
+    stamps (beyond the tolerance): the same wait is read as input delay while the node was
+    idle, the output in time by its lead."""
+    guard, stamp, now = idle_then_waited(clock_offset_ns)
+    assert guard.same_clock is False
+    assert guard.lateness_ns(stamp, now) == -LEAD
+    assert not guard.late(stamp, now)
+
+
+def test_a_restart_forgets_which_clock_the_stamps_were_on() -> None:
+    """Stamps going back (a bag looped) restart the estimate: no reading before the next
+    sample, then the new stamps' own."""
+    guard, stamp, now = idle_then_waited(10**15)
+    guard.arrival(T0, now + MS)  # back to the first stamp, on the node's clock now
+    assert guard.same_clock is False  # its delay is 10**15 + ...: still another clock
+    guard.restart()
+    assert guard.same_clock is None and guard.lateness_ns(stamp, now) == 0
+    guard.arrival(T0, T0 + MS)
+    assert guard.same_clock is True
