@@ -260,13 +260,12 @@ def test_a_refused_scheduling_parameter_stops_the_executable_in_one_line(
         result.stderr)
 
 
-PACKAGED_PARAMETERS = (Path(__file__).parents[1] / 'lompr_predictor' / 'config'
-                       / 'kinematics_node.yaml')
+PACKAGED_PARAMETERS = Path(__file__).parents[1] / 'lompr_predictor' / 'config' / 'realtime.yaml'
 
 
 @pytest.mark.slow
 def test_the_packaged_parameters_ask_for_real_time_where_the_system_allows_it() -> None:
-    """kinematics_node with its packaged parameters (the launch file's): without
+    """kinematics_node with config/realtime.yaml (the launch file's): without
     CAP_SYS_NICE it runs on under the normal policy and says that SCHED_FIFO 40 was refused;
     with it (root here), every thread runs under SCHED_FIFO."""
     base = os.nice(0)
