@@ -10,7 +10,10 @@ import numpy as np
 
 from lompr_predictor.cli import evaluate, train
 from lompr_predictor.data.bags import JointSamples, Recording, ReferenceSamples, write_recording
-from lompr_predictor.robot.description import MEASURED_JOINTS, LomprGeometry
+from lompr_predictor.data.cleaning import clean_recordings
+from lompr_predictor.data.problem import LearningProblem, build_problem
+from lompr_predictor.robot.chain import LomprChain
+from lompr_predictor.robot.description import MEASURED_JOINTS, LomprGeometry, RobotDescription
 from lompr_predictor.robot.kinematics import inverse_kinematics
 
 #: `lompr train` options of a training that takes seconds (tests of the command, not of
@@ -69,6 +72,16 @@ def synthetic_recording(geometry: LomprGeometry, samples: int, *, noise: float =
         reference=ReferenceSamples(stamps=stamps, positions=reference,
                                    orientations=np.tile([0.0, 0.0, 0.0, 1.0], (samples, 1))))
     return recording, error
+
+
+def lissajous_problem(description: RobotDescription, samples: int, window: int,
+                      horizon: int) -> LearningProblem:
+    """The learning problem of a synthetic LOMPR recording along the Lissajous reference
+    (noise 0.2 um): what the baselines' and the publishing tests fit."""
+    recording, _ = synthetic_recording(description.geometry, samples, noise=2e-7,
+                                       reference=lissajous_reference(samples))
+    return build_problem(clean_recordings([recording], LomprChain(description)),
+                         window=window, horizon=horizon)
 
 
 def write_synthetic_bag(path: Path, geometry: LomprGeometry, samples: int, *, noise: float = 2e-7,

@@ -8,11 +8,10 @@ from typing import Any
 
 import numpy as np
 import pytest
-from trainer_data import lissajous_reference, synthetic_recording
+from trainer_data import lissajous_problem
 
-from lompr_predictor.data.cleaning import clean_recordings
 from lompr_predictor.data.features import TARGETS
-from lompr_predictor.data.problem import LearningProblem, build_problem
+from lompr_predictor.data.problem import LearningProblem
 from lompr_predictor.learning.baselines import (
     BASELINES,
     MAP_PRIOR,
@@ -26,16 +25,12 @@ from lompr_predictor.learning.baselines import (
 )
 from lompr_predictor.learning.metrics import METRIC_NAMES
 from lompr_predictor.learning.report import markdown
-from lompr_predictor.robot.chain import LomprChain
 from lompr_predictor.robot.description import RobotDescription
 
 
 @pytest.fixture(scope='module')
 def problem(description: RobotDescription) -> LearningProblem:
-    recording, _ = synthetic_recording(description.geometry, 2000, noise=2e-7,
-                                       reference=lissajous_reference(2000))
-    return build_problem(clean_recordings([recording], LomprChain(description)), window=10,
-                         horizon=5)
+    return lissajous_problem(description, 2000, window=10, horizon=5)
 
 
 @dataclass(frozen=True)

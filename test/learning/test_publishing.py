@@ -11,11 +11,10 @@ import numpy as np
 import pytest
 import torch
 from model_helpers import metadata
-from trainer_data import lissajous_reference, synthetic_recording
+from trainer_data import lissajous_problem
 
-from lompr_predictor.data.cleaning import clean_recordings
 from lompr_predictor.data.features import FEATURES
-from lompr_predictor.data.problem import LearningProblem, build_problem
+from lompr_predictor.data.problem import LearningProblem
 from lompr_predictor.learning.baselines import RIDGE, FitContext
 from lompr_predictor.learning.fine_tuning import FineTuneError, load_parent
 from lompr_predictor.learning.model_file import load_model, save_model, script_module
@@ -36,16 +35,12 @@ from lompr_predictor.learning.publishing import (
 from lompr_predictor.learning.publishing import (
     RIDGE as RIDGE_KEY,
 )
-from lompr_predictor.robot.chain import LomprChain
 from lompr_predictor.robot.description import RobotDescription
 
 
 @pytest.fixture(scope='module')
 def problem(description: RobotDescription) -> LearningProblem:
-    recording, _ = synthetic_recording(description.geometry, 1500, noise=2e-7,
-                                       reference=lissajous_reference(1500))
-    return build_problem(clean_recordings([recording], LomprChain(description)), window=4,
-                         horizon=3)
+    return lissajous_problem(description, 1500, window=4, horizon=3)
 
 
 def test_the_ridge_module_predicts_as_the_ridge_baseline(problem: LearningProblem) -> None:
