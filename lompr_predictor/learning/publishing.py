@@ -1,36 +1,25 @@
 # SPDX-License-Identifier: Apache-2.0
-"""What `lompr train` publishes: per axis, the equal-weight mean of the candidates the
-validation part cannot tell from the best of them (the tuned BO-LSTM, its generalist, the
-ridge baseline), so that the model file is never knowingly worse than a plain linear
-filter of the window and does not bet on a margin the validation part cannot show.
+"""What `lompr train` publishes: per axis, the equal-weight mean of the candidates (the tuned
+BO-LSTM, its generalist, the ridge baseline) that the validation part cannot tell from the best
+of them, so that the model file does not bet on a margin the data cannot show.
 
-Why. On recordings at a high rate a closed-form ridge over the window predicts about as
-well as the tuned network, and which of them leads changes from one part of a recording to
-the next (docs/lab/learner_real_data.md): choosing the one of the lower validation RMSE
-then publishes the network on margins of 0.2 % that the test part reverses, the network's
-validation RMSE being optimistic (its tuning and its early stopping both chose it on that
-part). The mean of predictors whose errors are alike in size but not the same is better than
-either; a predictor clearly worse on the validation part is left out (on the LOMPR twin the
-network alone is published). So, per axis:
+Why (docs/training.md, docs/lab/learner_real_data.md): at high rates a closed-form ridge over
+the window predicts about as well as the network, and which leads changes along a recording;
+the network's validation RMSE is optimistic (its tuning and early stopping chose it there).
+The mean of predictors alike in size but not in their errors beats each; one clearly worse
+is left out (on the LOMPR twin the network alone is published). Per axis (`choose`): each
+candidate's squared error on the validation part (the ridge as fitted on the training part,
+`baselines.Ridge`); the best by mean; every other kept unless its loss difference to the best
+is positive at the one-sided 5 % level (`CRITICAL_T`; a Diebold-Mariano t whose standard
+error comes from block means, `loss_difference_t`, since neighbouring errors are correlated);
+equal weights (weights fitted on that part would inherit its optimism). The test part stays
+the honest score of what was chosen.
 
-- each candidate's squared error on the validation part (the ridge fitted on the training
-  part at the penalty the validation part chose, as `baselines.Ridge` reports it; the
-  networks as tuned);
-- the best by mean squared error; every other candidate kept unless the mean of its loss
-  difference to the best is positive at the one-sided 5 % level (`CRITICAL_T`), its standard
-  error from the means of about sqrt(n) consecutive blocks, since neighbouring errors of a
-  sampled signal are correlated (a Diebold-Mariano test; `loss_difference_t`);
-- the axis publishes the mean of those kept, with equal weights (weights fitted on the same
-  part would inherit its optimism); the ridge then run is the baseline the report scores
-  (refitted on train + validation).
-
-`RidgeModule` is the ridge baseline as a raw-SI module of the model file's contract (float64
-windows (B, window, features) -> (B, 2) error [m]); `PublishedModule` runs the network and the
-ridge and answers each axis with its weights, keeping the network's `candidates` (its
-generalist, the map prior) for the live guard. A model that is not the network alone on
-both axes is no BO-LSTM to fine-tune (`model_type`): the node's adaptation says it cannot
-adapt it. Boosted trees have no TorchScript form; where they lead, the report says so and by
-how much.
+`RidgeModule` is the ridge as a raw-SI module of the model file's contract; `PublishedModule`
+answers each axis with its weights over the network, its generalist and the ridge, keeping the
+network's `candidates` for the live guard. A file that is not the network alone is not
+fine-tuned (`model_type`; the node's adaptation says it cannot adapt it). Boosted trees have
+no TorchScript form: where they lead, the report says so.
 """
 
 from __future__ import annotations
