@@ -228,6 +228,29 @@ class Status:
     values: Mapping[str, object] = field(default_factory=lambda: MappingProxyType({}))
 
 
+class HeldEvent:
+    """A problem that happened once and is over by itself (a refused model change, a failed
+    write, a failed adaptation attempt): its status shows it as a WARN for a hold time of
+    the node's clock from when it first saw it, then in its values only. Without the hold a
+    status would either miss a short problem between two reports or keep saying an old one
+    until the next success, long after the node recovered."""
+
+    def __init__(self) -> None:
+        self._marker: object = None
+        self._seen_ns = 0
+
+    def shown(self, marker: object, now_ns: int, hold: float) -> bool:
+        """Whether the problem `marker` names (None: there is none; another value: a new
+        one) is still within `hold` seconds of when it was first seen; a clock that went
+        back (a simulator reset) starts the hold again."""
+        if marker is None:
+            self._marker = None
+            return False
+        if marker != self._marker or now_ns < self._seen_ns:
+            self._marker, self._seen_ns = marker, now_ns
+        return now_ns - self._seen_ns < hold * 1e9
+
+
 def latency_values(prefix: str, summary: LatencySummary) -> dict[str, object]:
     """Key-values `<prefix>_p50_us`, `_p99_us`, `_max_us`, `_samples` of a summary."""
     return {
