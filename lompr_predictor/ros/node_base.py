@@ -1,7 +1,8 @@
 # SPDX-License-Identifier: Apache-2.0
 """What every lompr node shares: settings, endpoints, one callback-exception policy,
 diagnostics. `NodeBase` is a mixin placed before the rclpy class, so it serves a plain node
-and a managed one alike (`class KinematicsNode(NodeBase[KinematicsNodeSettings], Node)`).
+and a managed one alike (`class TwinNode(NodeBase[TwinNodeSettings], Node)`,
+`class KinematicsNode(NodeBase[...], ManagedNode, LifecycleNode)`).
 
 - Settings: `declare_settings(SettingsType)` declares every field of the frozen settings
   dataclass as a parameter (`parameters.parameter`), validates each change (ranges and

@@ -115,10 +115,10 @@ def test_every_node_gets_its_own_parameters_and_no_other_nodes(prefix: Path) -> 
     kinematics, predictor = nodes['kinematics_node'].parameters, nodes['predictor_node'].parameters
     assert {name: kinematics[name] for name in (
         'joint_names', 'publish_full_joint_state', 'base_frame', 'tip_frame', 'command_topic',
-        'frame_prefix', 'robot_description_file')} == {
+        'frame_prefix', 'robot_description_file', 'autostart')} == {
         'joint_names': ['b1', 'b2', 'b3', 'c', 'a'], 'publish_full_joint_state': True,
         'base_frame': 'base', 'tip_frame': 'tool', 'command_topic': 'joint_commands',
-        'frame_prefix': 'cell1/', 'robot_description_file': str(ARM)}
+        'frame_prefix': 'cell1/', 'robot_description_file': str(ARM), 'autostart': False}
     assert {name: predictor[name] for name in (
         'model_path', 'compensation_enabled', 'autostart', 'base_frame', 'tip_frame')} == {
         'model_path': '/m/model.pt', 'compensation_enabled': True, 'autostart': False,
@@ -325,3 +325,20 @@ def test_a_start_up_error_is_also_on_rosout(ros: RosHarness) -> None:
     (log,) = [log for log in logs if log.name == 'cell1.predictor_node']
     assert code == 2 and log.level == Log.ERROR
     assert 'model /missing/model.pt' in log.msg and log.msg in stderr
+
+
+def test_the_lifecycle_manager_configuration_brings_up_the_launched_nodes_in_order(
+        prefix: Path) -> None:
+    """config/lifecycle_manager.yaml (nav2_lifecycle_manager) names the nodes the launch
+    file starts with autostart:=false, kinematics first, each a managed node, without the
+    bond our Python nodes cannot offer."""
+    generator = load_tool('gen_node_docs')
+    manager = yaml.safe_load((ROOT / 'lompr_predictor' / 'config' /
+                              'lifecycle_manager.yaml').read_text())
+    settings = manager['lifecycle_manager']['ros__parameters']
+    assert settings['node_names'] == ['kinematics_node', 'predictor_node']
+    assert settings['bond_timeout'] == 0.0 and settings['autostart'] is True
+    nodes = described(prefix, 'autostart:=false')
+    for name in settings['node_names']:
+        assert 'autostart' in parameter_specs(generator.settings_class(name))
+        assert nodes[name].parameters['autostart'] is False
