@@ -718,7 +718,8 @@ def node_commands(mode: str, model: Path, period: float, executor: str = EXECUTO
     """The command lines of the chain `mode` names, through the node executables (under
     SCHED_FIFO at `sched_fifo` if > 0: each node's `sched_fifo_priority`)."""
     bin_dir = Path(sys.executable).parent
-    both = [f'sched_fifo_priority:={sched_fifo}'] if sched_fifo else []
+    both = ['callback_histograms:=true',  # what `timing_rows` reads
+            *([f'sched_fifo_priority:={sched_fifo}'] if sched_fifo else [])]
     predictor = [f'model_path:={model}', f'sample_period:={period}',
                  'compensation_enabled:=true', *both]
     spin = ['--executor', executor]

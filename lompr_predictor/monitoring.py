@@ -410,9 +410,9 @@ class CallbackTimes:
                         time.perf_counter_ns() - self._gc_started)
             self._gc_started = 0
 
-    def values(self) -> dict[str, object]:
+    def values(self, histograms: bool = False) -> dict[str, object]:
         """Key-values of every row for a status: runs, mean wall and CPU, p50 / p99 / p99.9
-        / max [us], and the histogram (`DurationHistogram.text`)."""
+        / max [us], and with `histograms` the histogram (`DurationHistogram.text`)."""
         values: dict[str, object] = {}
         for row, histogram in sorted(self.rows.items()):
             runs = histogram.total
@@ -424,13 +424,15 @@ class CallbackTimes:
                              strict=True):
                 values[f'{row}.p{q:g}_us'] = round(ns * 1e-3, 2)
             values[f'{row}.max_us'] = round(histogram.max_ns * 1e-3, 2)
-            values[f'{row}.histogram_ns'] = histogram.text()
+            if histograms:
+                values[f'{row}.histogram_ns'] = histogram.text()
         return values
 
-    def status(self) -> Status:
-        """The 'callback timing' status: always OK, for reading (docs/speed.md)."""
+    def status(self, histograms: bool = False) -> Status:
+        """The 'callback timing' status: always OK, for reading (docs/speed.md); the
+        histograms only with `histograms` (a bench's measurement, not an operator's)."""
         slowest = max(self.rows.items(), key=lambda item: item[1].max_ns, default=None)
         message = ('nothing timed yet' if slowest is None else
                    f'{len(self.rows)} kinds of work timed; longest run: {slowest[0]}, '
                    f'{slowest[1].max_ns * 1e-3:.0f} us')
-        return Status(Level.OK, message, self.values())
+        return Status(Level.OK, message, self.values(histograms))

@@ -230,7 +230,10 @@ def test_callback_times_rows_measure_wall_and_cpu_and_nested_runs_count_once() -
     assert times.measured_cpu_ns == sum(times.cpu_ns[row]
                                         for row in ('work', 'idle', 'outer', 'failing'))
     assert values['outer.cpu_mean_us'] >= values['logging.cpu_mean_us']
-    assert parse_histogram(str(values['work.histogram_ns'])) != {}
+    assert 'work.histogram_ns' not in values  # an operator's status: percentiles only
+    with_histograms = times.values(histograms=True)  # a bench's
+    assert parse_histogram(str(with_histograms['work.histogram_ns'])) != {}
+    assert with_histograms['work.p99_us'] == values['work.p99_us']
 
 
 def test_work_run_apart_is_out_of_the_run_it_is_called_from(
