@@ -61,6 +61,7 @@ from lompr_predictor.ros.node_base import (
     node_help,
 )
 from lompr_predictor.ros.parameters import parameter
+from lompr_predictor.ros.robot_description import DescriptionTopic, waiting_for
 from lompr_predictor.ros.wire import PoseStampedWriter, WireError, read_joint_state
 from lompr_predictor.stamps import period_ns
 
@@ -83,7 +84,13 @@ class KinematicsNodeSettings(FrameSettings):
 
     robot_description_file: str = parameter(
         '', "URDF of the robot (its calibrated geometry): the LOMPR's closed chain or any "
-        'serial chain; empty: the packaged nominal LOMPR description', read_only=True)
+        'serial chain; empty: robot_description_topic if set, else the packaged nominal '
+        'LOMPR description', read_only=True)
+    robot_description_topic: str = parameter(
+        '', 'std_msgs/String topic the robot description comes on, as robot_state_publisher '
+        'publishes it (transient local), used when robot_description_file is empty: '
+        'configure waits for it (with autostart the node configures when it comes); empty: '
+        'off', read_only=True)
     base_frame: str = parameter(
         '', "URDF frame the tool pose is expressed in; empty: the URDF's root (the LOMPR: "
         'its robot frame)', read_only=True)
@@ -182,8 +189,13 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], ManagedNode, LifecycleNod
         self._pose_writer = PoseStampedWriter(settings.frame)
         #: The commanded joints' path (None without `command_topic`, or unconfigured).
         self.commands: CommandPath | None = None
+        #: The robot description's topic, when the node reads it there (else None).
+        self.description = (DescriptionTopic(self, self.start_when_ready) if
+                            settings.robot_description_topic
+                            and not settings.robot_description_file else None)
         try:
-            hardware_id = robot_name(settings.robot_description_file or None)
+            hardware_id = '' if self.description else robot_name(
+                settings.robot_description_file or None)
         except LomprError:
             hardware_id = ''  # configure says why the description cannot be read
         self._diagnostics = self.start_diagnostics(
@@ -192,7 +204,11 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], ManagedNode, LifecycleNod
         self._diagnostics.add('forward kinematics', self.kinematics_status)
         if settings.command_topic:
             self._diagnostics.add('commanded joints', self.commands_status)
-        self.start()
+        if self.description is None:
+            self.start()
+        else:  # it starts when the description comes
+            self.get_logger().info(f'waiting for the robot description on '
+                                   f'{self.description.topic}')
 
     # -- lifecycle --------------------------------------------------------------------------
 
@@ -211,8 +227,9 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], ManagedNode, LifecycleNod
 
     def _configure(self) -> None:
         settings = self.settings
-        chain = load_chain(RobotSpec(settings.robot_description_file or None,
-                                     settings.base_frame, settings.tip_frame,
+        source = (self.description.text() if self.description else
+                  settings.robot_description_file or None)
+        chain = load_chain(RobotSpec(source, settings.base_frame, settings.tip_frame,
                                      settings.joint_names))
         self.chain = chain
         self.measured = JointStream(chain, chain.joint_names, self.solve_time)
@@ -354,10 +371,11 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], ManagedNode, LifecycleNod
             'output_rate_hz': round(self.output_rate.rate(), 3),
             'published_total': self.output_rate.total,
             'configure_error': self.configure_error or '',
+            **(self.description.values() if self.description else {}),
         }
         if chain is None or measured is None:
             return Status(Level.ERROR if self.configure_error else Level.WARN,
-                          f'unconfigured: {self.configure_error or "waiting for configure"}',
+                          f'unconfigured: {self.configure_error or waiting_for(self.description)}',
                           values)
         values.update({
             'warm_start_resets': measured.warm_start_resets,

@@ -321,3 +321,34 @@ def test_a_lifecycle_manager_brings_it_up_and_down(
     assert 'cannot parse robot description' in (refused.node.configure_error or '')
     ros.spin_until(lambda: (refused.status('forward kinematics') or {}).get('_level')
                    == DiagnosticStatus.ERROR, what='the configure error on /diagnostics')
+
+
+def test_the_robot_description_can_come_on_a_topic(
+        ros: RosHarness, description: RobotDescription) -> None:
+    """With robot_description_topic and no file the node waits unconfigured for the URDF
+    robot_state_publisher shares (transient local), then configures on it and answers: the
+    same text as the packaged file, the same sha256."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import String
+
+    from lompr_predictor.robot.description import default_description_path
+
+    wiring = Wiring(ros, robot_description_topic='robot_description')
+    node = wiring.node
+    assert node.lifecycle_state == 'unconfigured'
+    ros.spin_until(lambda: (wiring.status('forward kinematics') or {}).get('_message')
+                   == 'unconfigured: waiting for the robot description on /robot_description',
+                   what='the node waiting for its description')
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    publisher = ros.node.create_publisher(String, 'robot_description', latched)
+    publisher.publish(String(data=default_description_path().read_text(encoding='utf-8')))
+    ros.spin_until(lambda: node.active, what='configured and active on the description')
+    assert node.chain is not None and node.chain.sha256 == description.sha256
+    assert node.chain.source == 'topic /robot_description'
+    wiring.discover()
+    joints = inverse_kinematics(description.geometry, KNOWN_TIPS[:1]).joints
+    wiring.publish([joint_state(30.0, joints[0])])
+    ros.spin_until(lambda: len(wiring.poses) == 1, what='an end pose')
+    position = wiring.poses[0].pose.position
+    np.testing.assert_allclose([position.x, position.y, position.z], KNOWN_TIPS[0], atol=1e-9)
