@@ -31,7 +31,7 @@ PACKAGE_SHARE = '$(find-pkg-share lompr_predictor)/'
 NODE_PARAMETERS = {'use_sim_time'}
 #: Arguments that are not node parameters (the others default to empty: not given).
 LAUNCH_ONLY = {'namespace': '', 'params_file': '', 'use_sim_time': 'false', 'twin': 'false',
-               'rviz': 'false'}
+               'command_path': 'false', 'rviz': 'false'}
 ARM = ROOT / 'lompr_predictor' / 'description' / 'arm6.urdf'
 #: Every node parameter's argument given, as a site would give them.
 EVERY_ARGUMENT = ('namespace:=cell1', 'twin:=true', 'rviz:=true', 'model_path:=/m/model.pt',
@@ -342,3 +342,27 @@ def test_the_lifecycle_manager_configuration_brings_up_the_launched_nodes_in_ord
     for name in settings['node_names']:
         assert 'autostart' in parameter_specs(generator.settings_class(name))
         assert nodes[name].parameters['autostart'] is False
+
+
+def test_the_command_path_runs_the_compensator_and_the_twin_arm_through_it(
+        prefix: Path) -> None:
+    """command_path:=true adds command_compensator_node with the robot's arguments (its own
+    parameters only); with twin:=true robot:=arm the twin runs the compensated commands."""
+    generator = load_tool('gen_node_docs')
+    nodes = described(prefix, 'twin:=true', 'robot:=arm', 'command_path:=true',
+                      f'robot_description_file:={ARM}', 'base_frame:=arm_base',
+                      'tip_frame:=tool0', 'command_topic:=joint_commands', 'autostart:=false')
+    assert list(nodes) == ['kinematics_node', 'predictor_node', 'command_compensator_node',
+                           'twin_node']
+    compensator = nodes['command_compensator_node'].parameters
+    declared = set(parameter_specs(generator.settings_class('command_compensator_node')))
+    assert set(compensator) - declared - NODE_PARAMETERS == set()
+    assert {name: compensator[name] for name in (
+        'robot_description_file', 'base_frame', 'tip_frame', 'command_topic', 'autostart')} == {
+        'robot_description_file': str(ARM), 'base_frame': 'arm_base', 'tip_frame': 'tool0',
+        'command_topic': 'joint_commands', 'autostart': False}
+    twin = nodes['twin_node'].parameters
+    assert (twin['robot'], twin['command_topic'], twin['compensated_command_topic']) == (
+        'arm', 'joint_commands', compensator['output_topic'])
+    assert 'compensated_command_topic' not in described(prefix, 'twin:=true')['twin_node'] \
+        .parameters  # without the command path the twin applies the offsets itself
