@@ -215,8 +215,8 @@ LATENESS_READING = {True: "on the node's clock (the stamps are on it)",
 def prediction_status(lifecycle: Lifecycle, core: OnlinePredictor | None,
                       limits: PredictionLimits, input_to_output: LatencySummary,
                       output_rate_hz: float, new_overruns: int) -> Status:
-    """Predictions and offsets: latencies, live accuracy, limits hit, overruns
-    (`new_overruns` since the last report)."""
+    """Predictions and offsets: latencies, live accuracy, limits hit, outputs after their
+    instant or skipped (`new_overruns` since the last report)."""
     if core is None:
         return Status(Level.WARN, lifecycle.state, lifecycle.values())
     inference = core.inference_time.summary()
@@ -242,9 +242,9 @@ def prediction_status(lifecycle: Lifecycle, core: OnlinePredictor | None,
     if not lifecycle.active:
         mode = f'{lifecycle.state}, not publishing'
     if new_overruns:
-        return Status(Level.WARN, f'{mode}; {new_overruns} outputs late or skipped since the '
-                                  'last report (overrun: inference slower than the input)',
-                      values)
+        return Status(Level.WARN, f'{mode}; {new_overruns} outputs after their instant or '
+                                  'skipped since the last report (the input came late, or '
+                                  'the inference was slower than it)', values)
     if inference.samples and inference.p99 > limits.inference_time_warn:
         return Status(Level.WARN, f'{mode}; inference p99 {inference.p99 * 1e6:.0f} us over '
                                   f'{limits.inference_time_warn * 1e6:.0f} us', values)

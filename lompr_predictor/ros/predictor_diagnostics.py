@@ -114,7 +114,8 @@ class PredictorDiagnostics:
         now, outputs = self._read(), self._meters.outputs
         new_overruns = 0
         if now.core is not None:
-            overruns = now.core.counts().overruns
+            counts = now.core.counts()  # an offset after its instant is as late for its user
+            overruns = counts.overruns + counts.outputs_after_instant
             new_overruns, self._overruns_at_last_report = (
                 overruns - self._overruns_at_last_report, overruns)
         settings = now.settings
@@ -147,4 +148,7 @@ class PredictorDiagnostics:
         adaptation = now.runtime.adaptation
         if adaptation is None:
             return off_status(now.settings.adaptation_enabled, now.lifecycle.state)
+        # an attempt that ended meanwhile (killed, done) is said in this status, not a
+        # timer tick later: as the store's status collects its write
+        now.runtime.tick_adaptation(now.lifecycle.active)
         return adaptation.status(now.clock_ns, now.settings.status_hold)

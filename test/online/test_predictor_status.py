@@ -198,7 +198,7 @@ def test_prediction_status_counts_predictions_and_the_offset(core: OnlinePredict
     assert core.counts().overruns == 0
     late = prediction_status(ACTIVE, core, LIMITS, NO_LATENCY, 25.0, new_overruns=2)
     assert late.level == Level.WARN and late.message.startswith(
-        'compensating; 2 outputs late or skipped since the last report')
+        'compensating; 2 outputs after their instant or skipped since the last report')
     slow = prediction_status(ACTIVE, core, PredictionLimits(False, 1e-12, 0.0), NO_LATENCY,
                              25.0, 0)
     assert slow.level == Level.WARN and slow.message.startswith('shadow mode; inference p99 ')

@@ -231,7 +231,7 @@ def node_command(node: str, values: dict[str, object]) -> list[str]:
               for item in ('-p', f'{name}:={ros_value(value)}'))]
 
 
-def arm_processes(tmp_path: Path, run_log: Path) -> dict[str, list[str]]:
+def arm_processes(tmp_path: Path, run_log: Path) -> dict[str, dict[str, object]]:
     """The arm's loop through the command path as four processes on the twin's /clock:
     the twin paced at 250 Hz (lockstep, never faster than real time) sending its nominal
     commands ahead, kinematics_node, predictor_node (persistence one sample ahead) and

@@ -91,7 +91,7 @@ def test_setup_py_installs_the_launch_file_and_the_rviz_config() -> None:
 
 def test_every_executable_is_a_console_script_or_a_declared_package() -> None:
     assert [node.get('exec') for node in lompr_nodes()] == [
-        'kinematics_node', 'predictor_node', 'twin_node']
+        'kinematics_node', 'predictor_node', 'command_compensator_node', 'twin_node']
     assert {node.get('exec') for node in lompr_nodes()} <= console_scripts()
     package_xml = ElementTree.parse(ROOT / 'package.xml').getroot()
     depends = {element.text for element in package_xml.iter('exec_depend')}
