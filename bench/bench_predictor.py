@@ -167,16 +167,20 @@ def timing_module(sample_period: float, horizon: int, preview: int = 0) -> Predi
                            features=features, machine_map=machine_map, inputs='paired')
 
 
-def default_model(path: Path, sample_period: float, horizon: int, preview: int = 0) -> Path:
+def default_model(path: Path, sample_period: float, horizon: int, preview: int = 0, *,
+                  fine_tunable: bool = False) -> Path:
     """A default-size LSTM predictor on a machine map (`timing_module`) saved as a model
-    file: the node serves its map prior beside the prediction, as for `lompr train`'s."""
+    file: the node serves its map prior beside the prediction, as for `lompr train`'s.
+    `fine_tunable`: it records the hyperparameters a fine-tuning continues with, so that an
+    adaptation attempt trains it (else each says once that it cannot)."""
     module = timing_module(sample_period, horizon, preview)
+    trained_with = {'batch_size': 64, 'learning_rate': 1e-3} if fine_tunable else {}
     metadata = ModelMetadata(
         features=feature_names(preview), preview=preview, window=WINDOW, horizon=horizon,
         sample_period=sample_period,
         targets=TARGETS, normalisation={}, model_type='lstm',
         hyperparameters={'hidden': HIDDEN, 'network_inputs': 'paired', 'error_level': True,
-                         'note': 'untrained, for timing only'},
+                         'note': 'untrained, for timing only', **trained_with},
         robot_description_sha256=load_robot_description().sha256, training_bags=(), seed=0,
         library_versions={'torch': torch.__version__},
         machine_map=module.machine_map.metadata())
@@ -714,7 +718,8 @@ def node_commands(mode: str, model: Path, period: float, executor: str = EXECUTO
     """The command lines of the chain `mode` names, through the node executables (under
     SCHED_FIFO at `sched_fifo` if > 0: each node's `sched_fifo_priority`)."""
     bin_dir = Path(sys.executable).parent
-    both = [f'sched_fifo_priority:={sched_fifo}'] if sched_fifo else []
+    both = ['callback_histograms:=true',  # what `timing_rows` reads
+            *([f'sched_fifo_priority:={sched_fifo}'] if sched_fifo else [])]
     predictor = [f'model_path:={model}', f'sample_period:={period}',
                  'compensation_enabled:=true', *both]
     spin = ['--executor', executor]

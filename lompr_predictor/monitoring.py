@@ -228,6 +228,29 @@ class Status:
     values: Mapping[str, object] = field(default_factory=lambda: MappingProxyType({}))
 
 
+class HeldEvent:
+    """A problem that happened once and is over by itself (a refused model change, a failed
+    write, a failed adaptation attempt): its status shows it as a WARN for a hold time of
+    the node's clock from when it first saw it, then in its values only. Without the hold a
+    status would either miss a short problem between two reports or keep saying an old one
+    until the next success, long after the node recovered."""
+
+    def __init__(self) -> None:
+        self._marker: object = None
+        self._seen_ns = 0
+
+    def shown(self, marker: object, now_ns: int, hold: float) -> bool:
+        """Whether the problem `marker` names (None: there is none; another value: a new
+        one) is still within `hold` seconds of when it was first seen; a clock that went
+        back (a simulator reset) starts the hold again."""
+        if marker is None:
+            self._marker = None
+            return False
+        if marker != self._marker or now_ns < self._seen_ns:
+            self._marker, self._seen_ns = marker, now_ns
+        return now_ns - self._seen_ns < hold * 1e9
+
+
 def latency_values(prefix: str, summary: LatencySummary) -> dict[str, object]:
     """Key-values `<prefix>_p50_us`, `_p99_us`, `_max_us`, `_samples` of a summary."""
     return {
@@ -387,9 +410,9 @@ class CallbackTimes:
                         time.perf_counter_ns() - self._gc_started)
             self._gc_started = 0
 
-    def values(self) -> dict[str, object]:
+    def values(self, histograms: bool = False) -> dict[str, object]:
         """Key-values of every row for a status: runs, mean wall and CPU, p50 / p99 / p99.9
-        / max [us], and the histogram (`DurationHistogram.text`)."""
+        / max [us], and with `histograms` the histogram (`DurationHistogram.text`)."""
         values: dict[str, object] = {}
         for row, histogram in sorted(self.rows.items()):
             runs = histogram.total
@@ -401,13 +424,15 @@ class CallbackTimes:
                              strict=True):
                 values[f'{row}.p{q:g}_us'] = round(ns * 1e-3, 2)
             values[f'{row}.max_us'] = round(histogram.max_ns * 1e-3, 2)
-            values[f'{row}.histogram_ns'] = histogram.text()
+            if histograms:
+                values[f'{row}.histogram_ns'] = histogram.text()
         return values
 
-    def status(self) -> Status:
-        """The 'callback timing' status: always OK, for reading (docs/speed.md)."""
+    def status(self, histograms: bool = False) -> Status:
+        """The 'callback timing' status: always OK, for reading (docs/speed.md); the
+        histograms only with `histograms` (a bench's measurement, not an operator's)."""
         slowest = max(self.rows.items(), key=lambda item: item[1].max_ns, default=None)
         message = ('nothing timed yet' if slowest is None else
                    f'{len(self.rows)} kinds of work timed; longest run: {slowest[0]}, '
                    f'{slowest[1].max_ns * 1e-3:.0f} us')
-        return Status(Level.OK, message, self.values())
+        return Status(Level.OK, message, self.values(histograms))

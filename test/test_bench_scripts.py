@@ -154,15 +154,17 @@ def test_the_chaos_soak_schedules_every_fault_and_checks_each_offset() -> None:
         'rows[3, 2] = 2e-4; rows[5, 0] = 1; rows[5, 2] = 4e-4\n'
         'rows = np.vstack([rows, [1, t[0], np.nan, 0, 0], [0, t[0] - PERIOD, 6e-4, 0, 0]])\n'
         'found = offset_checks(rows, 5e-4, 5e-5)\n'
-        'print(found["non_finite"], found["over_bound"], found["steps_over_limit"])')
+        'print(found["non_finite"], found["over_bound"], found["steps_over_limit"],'
+        ' found["cancellations_over_limit"])')
     result = subprocess.run([sys.executable, '-c', script, str(BENCH)], capture_output=True,
                             text=True, timeout=120, check=False)
     assert result.returncode == 0, result.stderr[-2000:]
     rounds, counts = result.stdout.splitlines()[-2:]
     assert rounds == str(2 * 15)  # 30 minutes: two rounds of 15 kinds
-    # steps: 0.6 mm -> 0 um at the first instant, 30 -> 200 um, 200 -> 40 um; not across the
-    # segments (0 -> 1) nor the NaN row's
-    assert counts == '1 1 3'
+    # steps: 30 -> 200 um, 200 -> 40 um; not across the segments (0 -> 1) nor the NaN
+    # row's; 0.6 mm -> 0 at the first instant is a cancellation (the contract's "no
+    # offset"), counted apart
+    assert counts == '1 1 2 1'
 
 
 @pytest.mark.slow

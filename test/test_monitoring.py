@@ -16,6 +16,7 @@ from lompr_predictor import monitoring
 from lompr_predictor.monitoring import (
     CallbackTimes,
     DurationHistogram,
+    HeldEvent,
     LatencyRecorder,
     LatencySummary,
     Level,
@@ -229,7 +230,10 @@ def test_callback_times_rows_measure_wall_and_cpu_and_nested_runs_count_once() -
     assert times.measured_cpu_ns == sum(times.cpu_ns[row]
                                         for row in ('work', 'idle', 'outer', 'failing'))
     assert values['outer.cpu_mean_us'] >= values['logging.cpu_mean_us']
-    assert parse_histogram(str(values['work.histogram_ns'])) != {}
+    assert 'work.histogram_ns' not in values  # an operator's status: percentiles only
+    with_histograms = times.values(histograms=True)  # a bench's
+    assert parse_histogram(str(with_histograms['work.histogram_ns'])) != {}
+    assert with_histograms['work.p99_us'] == values['work.p99_us']
 
 
 def test_work_run_apart_is_out_of_the_run_it_is_called_from(
@@ -296,3 +300,16 @@ def test_latency_percentiles_are_numpys_to_the_bit() -> None:
         held = values[-capacity:]
         p50, p99 = np.percentile(held, [50.0, 99.0])
         assert recorder.summary() == (len(held), float(p50), float(p99), float(held.max()))
+
+
+def test_a_held_event_is_shown_for_its_hold_from_when_it_was_first_seen() -> None:
+    event, second = HeldEvent(), 1_000_000_000
+    assert not event.shown(None, 5 * second, hold=10.0)  # nothing happened
+    assert event.shown(1, 5 * second, hold=10.0)  # the first refusal, seen at 5 s
+    assert event.shown(1, 14 * second, hold=10.0)
+    assert not event.shown(1, 15 * second, hold=10.0)  # held 10 s: a value only now
+    assert event.shown(2, 16 * second, hold=10.0)  # another one: held again
+    assert event.shown(2, 3 * second, hold=10.0)  # the clock went back: held from there
+    assert not event.shown(2, 13 * second, hold=10.0)
+    assert not event.shown(None, 14 * second, hold=10.0)  # a success ended it
+    assert event.shown(2, 14 * second, hold=10.0)  # the same marker after it: a new one

@@ -80,7 +80,8 @@ class AdaptationDriver:
         try:
             self._step(now_ns, active)
         except OSError as err:
-            self.adaptation.state.error = f'{type(err).__name__}: {err}'
+            state = self.adaptation.state
+            state.error, state.errors = f'{type(err).__name__}: {err}', state.errors + 1
             self._hooks.log(Level.WARN, f'adaptation: {self.adaptation.state.error}')
 
     def _step(self, now_ns: int, active: bool) -> None:
@@ -153,9 +154,9 @@ class AdaptationDriver:
                         f'adaptation attempt {entry["attempt"]} {entry["decision"]}: '
                         f'{entry["reason"]}')
 
-    def status(self, now_ns: int) -> Status:
-        """The 'adaptation' diagnostic status."""
-        return self.adaptation.status(now_ns)
+    def status(self, now_ns: int, hold: float) -> Status:
+        """The 'adaptation' diagnostic status; a failed attempt a WARN for `hold` seconds."""
+        return self.adaptation.status(now_ns, hold)
 
     def close(self) -> None:
         """Kill a running attempt (the node lets its store go)."""

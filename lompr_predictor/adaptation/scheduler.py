@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from lompr_predictor.adaptation.outcome import AttemptOutcome, AttemptResult, Decision
-from lompr_predictor.monitoring import Level, Status
+from lompr_predictor.monitoring import HeldEvent, Level, Status
 from lompr_predictor.online.inference import ExportedGraph
 from lompr_predictor.online.sample_store import NS_PER_MINUTE, SampleStore, capacity_for
 from lompr_predictor.scheduling import lower_job
@@ -96,6 +96,7 @@ class AdaptationState:
     swaps: int = 0
     running_pid: int = 0  # 0: none
     error: str = ''  # why the node could not start or record an attempt ('' : it could)
+    errors: int = 0  # how often it could not
     cannot_adapt: str = ''  # sha256 of a model found not adaptable ('' : none)
     last: dict[str, Any] = field(default_factory=dict)  # the last attempt's log entry
 
@@ -112,6 +113,8 @@ class Adaptation:
         self._process: subprocess.Popen[bytes] | None = None
         self._work: Path | None = None
         self._started_ns: int | None = None  # the node's clock at the last start
+        self._failure = HeldEvent()  # the last attempt's failure, shown for a while
+        self._error = HeldEvent()  # the last start or record that failed, the same
 
     def due(self, now_ns: int, store: SampleStore, sample_period: float,
             model_sha256: str = '') -> bool:
@@ -222,8 +225,12 @@ class Adaptation:
         self.state.running_pid = 0
         self._remove_work_folders()
 
-    def status(self, clock_ns: int) -> Status:
-        """The 'adaptation' diagnostic status."""
+    def status(self, clock_ns: int, hold: float) -> Status:
+        """The 'adaptation' diagnostic status. An attempt that failed (killed, a folder it
+        could not write), or that the node could not start or record, is a WARN for `hold`
+        seconds of the node's clock, then a value until the next attempt (a start that
+        fails again is a new failure); one that says the model cannot be adapted stays a
+        WARN (the node waits for another model)."""
         state = self.state
         last = state.last
         values: dict[str, object] = {
@@ -238,14 +245,16 @@ class Adaptation:
         if self._started_ns is not None and self._process is None:
             wait = self.settings.period - (clock_ns - self._started_ns) * 1e-9
             values['next_attempt_in_s'] = round(max(0.0, wait), 3)
-        if state.error:
+        if self._error.shown(state.errors if state.error else None, clock_ns, hold):
             return Status(Level.WARN, f'cannot run an attempt: {state.error}', values)
         running = (f'attempt {state.attempts} running (pid {state.running_pid})'
                    if state.running_pid else '')
         if not last:
             return Status(Level.OK, running or 'waiting for the first attempt', values)
         summary = f'attempt {last["attempt"]} {last["decision"]}: {last.get("reason", "")}'
-        trouble = last['decision'] in (Decision.FAILED, Decision.CANNOT_ADAPT)
+        failed = self._failure.shown(last['attempt'] if last['decision'] == Decision.FAILED
+                                     else None, clock_ns, hold)
+        trouble = failed or last['decision'] == Decision.CANNOT_ADAPT
         return Status(Level.WARN if trouble else Level.OK,
                       f'{running}; last: {summary}' if running else summary, values)
 

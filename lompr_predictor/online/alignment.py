@@ -44,6 +44,12 @@ class DropReason(StrEnum):
     WRONG_FRAME = 'wrong_frame'
     REFERENCE_WRONG_FRAME = 'reference_wrong_frame'
 
+#: Drops that say a sender is wrong (another frame, stamps on another clock), not that a
+#: stream hiccuped: each raises the inputs status, as a fault does.
+SENDER_ERRORS = frozenset({DropReason.WRONG_FRAME, DropReason.REFERENCE_WRONG_FRAME,
+                           DropReason.BAD_STAMP, DropReason.REFERENCE_BAD_STAMP,
+                           DropReason.FUTURE_STAMP, DropReason.REFERENCE_FUTURE_STAMP})
+
 #: Poses kept waiting for a reference at or after their stamp; beyond, the oldest is dropped.
 MAX_PENDING_POSES = 1000
 #: References kept before the oldest pose that may still need one.

@@ -96,7 +96,8 @@ class ModelManager:
         adapted = offered is not None and offered.answers(running, path, sha256)
         outcome = prepare_swap(running, path, sha256, offered if adapted else None)
         if outcome.error is not None and path is not None:
-            self.history = replace(self.history, reload_error=outcome.reason)
+            self.history = replace(self.history, reload_error=outcome.reason,
+                                   refusals=self.history.refusals + 1)
         if outcome.ready is not None:
             self._candidate = Swap(outcome.ready, SwapOrigin.ADAPTATION if adapted
                                    else SwapOrigin.OPERATOR)

@@ -21,6 +21,7 @@ from lompr_predictor.monitoring import (
     latency_values,
     rejection_values,
 )
+from lompr_predictor.online.alignment import SENDER_ERRORS
 from lompr_predictor.online.guard import AXES, GuardReason, GuardState, LiveGuard
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_counts import (
@@ -56,6 +57,7 @@ class ModelHistory:
     swaps: int = 0
     warm_up_seconds: float = 0.0
     reload_error: str | None = None  # why the last swap was refused (None if none was)
+    refusals: int = 0  # changes refused since configure
     #: Why the network is not run by the preferred backend (None if it is).
     backend_why: str | None = None
 
@@ -87,8 +89,9 @@ def text(value: str | None) -> str:
 
 
 def model_status(lifecycle: Lifecycle, model_path: str, core: OnlinePredictor | None,
-                 history: ModelHistory) -> Status:
-    """The model in use (or why there is none)."""
+                 history: ModelHistory, *, refusal_shown: bool) -> Status:
+    """The model in use (or why there is none); a refused change a WARN while
+    `refusal_shown` (`monitoring.HeldEvent`: the model in use goes on), then a value."""
     values = lifecycle.values()
     if core is None:
         values['path'] = model_path
@@ -108,11 +111,12 @@ def model_status(lifecycle: Lifecycle, model_path: str, core: OnlinePredictor | 
         'warm_up_ms': round(history.warm_up_seconds * 1e3, 3),
         'inference_backend': core.primary.backend.name,
         'inference_backend_why': text(history.backend_why),
+        'refusals': history.refusals, 'last_refused': text(history.reload_error),
     })
     standing = {axis: standing_text(axis, entry, {})
                 for axis, entry in metadata.standing.items()}
     values.update({f'test_part.{axis}': line for axis, line in standing.items()})
-    if history.reload_error is not None:
+    if history.reload_error is not None and refusal_shown:
         return Status(Level.WARN, f'last reload refused: {history.reload_error}', values)
     summary = f'{metadata.model_type} {model.sha256[:12]}, horizon {metadata.horizon}'
     behind = [line for axis, line in standing.items()
@@ -130,9 +134,9 @@ def model_status(lifecycle: Lifecycle, model_path: str, core: OnlinePredictor | 
 
 
 def input_status(lifecycle: Lifecycle, core: OnlinePredictor | None, rates: InputRates,
-                 new_faults: int) -> Status:
-    """The input streams: rates, window fill, rejections and faults (`new_faults` since
-    the last report)."""
+                 new_faults: int, new_sender_errors: int) -> Status:
+    """The input streams: rates, window fill, rejections and faults (`new_faults` and
+    `new_sender_errors`, drops of `alignment.SENDER_ERRORS`, since the last report)."""
     if core is None:
         return Status(Level.WARN, lifecycle.state, {**lifecycle.values(), **rates.clock_values})
     window = core.primary.window
@@ -154,6 +158,11 @@ def input_status(lifecycle: Lifecycle, core: OnlinePredictor | None, rates: Inpu
     if new_faults:
         return Status(Level.WARN, f'{new_faults} faults since the last report (last: '
                                   f'{core.last_fault}); window {values["window_fill"]}', values)
+    if new_sender_errors:
+        wrong = ', '.join(f'{reason}: {n}' for reason, n in core.dropped.counts().items()
+                          if n and reason in SENDER_ERRORS)
+        return Status(Level.WARN, f'{new_sender_errors} inputs dropped since the last report '
+                                  f'as sent wrong (totals {wrong})', values)
     if not lifecycle.active:
         return Status(Level.WARN, f'{lifecycle.state}: input dropped', values)
     if window.fill < window.needed:
@@ -206,8 +215,8 @@ LATENESS_READING = {True: "on the node's clock (the stamps are on it)",
 def prediction_status(lifecycle: Lifecycle, core: OnlinePredictor | None,
                       limits: PredictionLimits, input_to_output: LatencySummary,
                       output_rate_hz: float, new_overruns: int) -> Status:
-    """Predictions and offsets: latencies, live accuracy, limits hit, overruns
-    (`new_overruns` since the last report)."""
+    """Predictions and offsets: latencies, live accuracy, limits hit, outputs after their
+    instant or skipped (`new_overruns` since the last report)."""
     if core is None:
         return Status(Level.WARN, lifecycle.state, lifecycle.values())
     inference = core.inference_time.summary()
@@ -233,9 +242,9 @@ def prediction_status(lifecycle: Lifecycle, core: OnlinePredictor | None,
     if not lifecycle.active:
         mode = f'{lifecycle.state}, not publishing'
     if new_overruns:
-        return Status(Level.WARN, f'{mode}; {new_overruns} outputs late or skipped since the '
-                                  'last report (overrun: inference slower than the input)',
-                      values)
+        return Status(Level.WARN, f'{mode}; {new_overruns} outputs after their instant or '
+                                  'skipped since the last report (the input came late, or '
+                                  'the inference was slower than it)', values)
     if inference.samples and inference.p99 > limits.inference_time_warn:
         return Status(Level.WARN, f'{mode}; inference p99 {inference.p99 * 1e6:.0f} us over '
                                   f'{limits.inference_time_warn * 1e6:.0f} us', values)
@@ -302,9 +311,10 @@ def guard_status(lifecycle: Lifecycle, guard: LiveGuard | None, envelope: bool) 
 
 
 def store_status(lifecycle: Lifecycle, minutes: float, store: SampleStore | None,
-                 export: StoreExport | None) -> Status:
+                 export: StoreExport | None, *, failure_shown: bool) -> Status:
     """The sample store (`online.sample_store`): its window, size and fill, and its writes
-    as bags (`online.store_export`). WARN while the last write failed."""
+    as bags (`online.store_export`). WARN while the last write failed and `failure_shown`
+    (`monitoring.HeldEvent`: the store goes on holding samples)."""
     if minutes <= 0:
         return Status(Level.OK, 'off (store_minutes 0)', {'store_minutes': minutes})
     if store is None or export is None:
@@ -319,7 +329,7 @@ def store_status(lifecycle: Lifecycle, minutes: float, store: SampleStore | None
         'last_error': state.last_error, 'bags_written': state.written,
         'write_failures': state.failed, 'last_write_seconds': round(state.last_seconds, 3)}
     held = f'{store.held} samples ({store.held_seconds:.1f} s of {60 * minutes:.0f} s)'
-    if state.last_error:
+    if state.last_error and failure_shown:
         return Status(Level.WARN, f'{held}; the last write failed: {state.last_error}', values)
     if state.writing:
         return Status(Level.OK, f'{held}; writing {state.writing}', values)

@@ -22,6 +22,7 @@ from typing import Any
 
 from lompr_predictor.errors import LomprError
 from lompr_predictor.online.sample_store import SampleStore
+from lompr_predictor.scheduling import TRAINING_NICE, lower_job
 
 #: The child's module (run with `-m`, never imported here: it loads the bag writer).
 WRITER_MODULE = 'lompr_predictor.online.store_bag'
@@ -86,6 +87,9 @@ class StoreExport:
         except OSError as err:  # a write that could not start failed as much as one that did
             self.state.last_error, self.state.failed = str(err), self.state.failed + 1
             raise
+        # below the node, as an adaptation attempt: a node under SCHED_FIFO would hand its
+        # policy down, and a bag written at the node's priority would hold a core from it
+        lower_job(process.pid, TRAINING_NICE, idle=False)
         if not detached:
             self._process = process
             self.state.writing, self.state.started = str(out), time.monotonic()

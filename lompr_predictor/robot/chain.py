@@ -66,12 +66,27 @@ _CONTINUOUS = {'JointModelRUBX', 'JointModelRUBY', 'JointModelRUBZ',
 
 
 @dataclass(frozen=True)
-class RobotSpec:
-    """What names a robot: its URDF (None: the packaged LOMPR description), the frame poses
-    are expressed in and the tool frame ('' each: the description's defaults) and the
-    measured joints (empty: the description's)."""
+class UrdfText:
+    """A URDF's text, where it came from and its sha256."""
 
-    description: str | Path | None = None
+    xml: str
+    source: str
+    sha256: str
+
+    @classmethod
+    def of(cls, xml: str, source: str) -> UrdfText:
+        """The text `xml` from `source` (a file, a topic), its sha256 computed: the same
+        text binds the same models wherever it comes from."""
+        return cls(xml, source, hashlib.sha256(xml.encode('utf-8')).hexdigest())
+
+
+@dataclass(frozen=True)
+class RobotSpec:
+    """What names a robot: its URDF (a file, its text as received, or None: the packaged
+    LOMPR description), the frame poses are expressed in and the tool frame ('' each: the
+    description's defaults) and the measured joints (empty: the description's)."""
+
+    description: str | Path | UrdfText | None = None
     base_frame: str = ''
     tip_frame: str = ''
     joint_names: tuple[str, ...] = ()
@@ -320,20 +335,11 @@ class SerialSolver:
         """Nothing to forget: each sample is solved on its own."""
 
 
-@dataclass(frozen=True)
-class UrdfText:
-    """A URDF's text, where it came from and its sha256."""
-
-    xml: str
-    source: str
-    sha256: str
-
-
 def load_chain(spec: RobotSpec = RobotSpec()) -> KinematicChain:
     """The chain `spec` names (module docstring); `RobotDescriptionError` in one line naming
     what is wrong."""
-    path = spec.description or default_description_path()
-    description_text = _read_urdf(path)
+    description_text = (spec.description if isinstance(spec.description, UrdfText)
+                        else _read_urdf(spec.description or default_description_path()))
     model = _build_model(description_text)
     if any(model.existJointName(name) for name in _LOMPR_MARKERS):
         return _lompr_chain(RobotDescription(description_text.xml, description_text.source),
@@ -348,8 +354,7 @@ def description_sha256(path: str | Path | None = None) -> str:
 
 
 def _read_urdf(path: str | Path) -> UrdfText:
-    xml = read_urdf(path)
-    return UrdfText(xml, str(path), hashlib.sha256(xml.encode('utf-8')).hexdigest())
+    return UrdfText.of(read_urdf(path), str(path))
 
 
 def _build_model(urdf: UrdfText) -> pin.Model:

@@ -37,7 +37,7 @@ from lompr_predictor.online.command_compensation import (
     CommandOutcome,
     CompensatorLimits,
 )
-from lompr_predictor.robot.chain import RobotSpec, load_chain
+from lompr_predictor.robot.chain import RobotSpec, UrdfText, load_chain
 from lompr_predictor.robot.description import robot_name
 from lompr_predictor.robot.joint_offsets import DEFAULT_DAMPING
 from lompr_predictor.ros.common import run_node
@@ -51,6 +51,7 @@ from lompr_predictor.ros.node_base import (
     node_help,
 )
 from lompr_predictor.ros.parameters import parameter
+from lompr_predictor.ros.robot_description import DescriptionTopic, waiting_for
 from lompr_predictor.stamps import NS_PER_SECOND, period_ns
 
 NODE_NAME = 'command_compensator_node'
@@ -72,9 +73,14 @@ class CommandCompensatorSettings(SchedulingSettings):
         'the executable, exit code 2); false: wait for a lifecycle manager (change_state)',
         read_only=True)
     robot_description_file: str = parameter(
-        '', 'URDF of the robot commanded in joints (a serial chain); empty: the packaged '
-        'LOMPR description, whose closed chain has no joint-space command path (refused)',
-        read_only=True)
+        '', 'URDF of the robot commanded in joints (a serial chain); empty: '
+        'robot_description_topic if set, else the packaged LOMPR description, whose closed '
+        'chain has no joint-space command path (refused)', read_only=True)
+    robot_description_topic: str = parameter(
+        '', 'std_msgs/String topic the robot description comes on, as robot_state_publisher '
+        'publishes it (transient local), used when robot_description_file is empty: '
+        'configure waits for it (with autostart the node configures when it comes); empty: '
+        'off', read_only=True)
     base_frame: str = parameter(
         '', "URDF frame the offsets are in (the predictor's frame_id); empty: the URDF's root",
         read_only=True)
@@ -120,10 +126,10 @@ class CommandCompensatorSettings(SchedulingSettings):
     warning_throttle_period: float = parameter(
         5.0, 'seconds between two warnings of the same kind', minimum=0.0, maximum=3600.0)
 
-    @property
-    def spec(self) -> RobotSpec:
-        return RobotSpec(self.robot_description_file or None, self.base_frame, self.tip_frame,
-                         self.joint_names)
+    def spec(self, description: UrdfText | None = None) -> RobotSpec:
+        """The robot: `description` as received on the topic, else the file's."""
+        return RobotSpec(description or self.robot_description_file or None, self.base_frame,
+                         self.tip_frame, self.joint_names)
 
     @property
     def limits(self) -> CompensatorLimits:
@@ -163,14 +169,23 @@ class CommandCompensatorNode(NodeBase[CommandCompensatorSettings], ManagedNode, 
         self._problems_at_last_report = 0
         self.command_rate = self.rate_meter(settings.rate_window)
         self.offset_rate = self.rate_meter(settings.rate_window)
+        #: The robot description's topic, when the node reads it there (else None).
+        self.description = (DescriptionTopic(self, self.start_when_ready) if
+                            settings.robot_description_topic
+                            and not settings.robot_description_file else None)
         try:
-            hardware_id = robot_name(settings.robot_description_file or None)
+            hardware_id = '' if self.description else robot_name(
+                settings.robot_description_file or None)
         except LomprError:
             hardware_id = ''  # configure says why the description cannot be read
         diagnostics = self.start_diagnostics(settings.diagnostics_topic,
                                              settings.diagnostics_period, hardware_id)
         diagnostics.add('command path', self.status)
-        self.start()
+        if self.description is None:
+            self.start()
+        else:  # it starts when the description comes
+            self.get_logger().info(f'waiting for the robot description on '
+                                   f'{self.description.topic}')
 
     # -- lifecycle --------------------------------------------------------------------------
 
@@ -189,7 +204,8 @@ class CommandCompensatorNode(NodeBase[CommandCompensatorSettings], ManagedNode, 
 
     def _configure(self) -> None:
         settings = self.settings
-        chain = load_chain(settings.spec)
+        chain = load_chain(settings.spec(self.description.text() if self.description
+                                         else None))
         core = CommandCompensator(chain, settings.limits,
                                   f'{settings.frame_prefix}{chain.base_frame}')
         self._order = core.joint_order(settings.controller_joints or chain.joint_names)
@@ -276,10 +292,11 @@ class CommandCompensatorNode(NodeBase[CommandCompensatorSettings], ManagedNode, 
             'offset_rate_hz': round(self.offset_rate.rate(), 3),
             'passed_total': self.published, 'dropped_inactive': self.dropped_inactive,
             **(self.core.counts() if self.core is not None else {}),
-            'last_problem': self.last_problem, **self.callback_values()}
+            'last_problem': self.last_problem, **self.callback_values(),
+            **(self.description.values() if self.description else {})}
         if self.core is None:
             return Status(Level.ERROR if self.configure_error else Level.WARN,
-                          f'unconfigured: {self.configure_error or "waiting for configure"}',
+                          f'unconfigured: {self.configure_error or waiting_for(self.description)}',
                           values)
         problems = sum(self.core.outcomes[reason] for reason in BAD_INPUT) + self.core.clamped
         new, self._problems_at_last_report = (problems - self._problems_at_last_report,

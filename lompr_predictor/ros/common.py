@@ -1,9 +1,9 @@
 # SPDX-License-Identifier: Apache-2.0
 """Thin ROS helpers the lompr nodes share (the node base itself is `node_base.NodeBase`).
 
-- `DiagnosticsPublisher`: a DiagnosticArray on /diagnostics about once a second, one status
-  per registered provider (the model of ros/diagnostics' diagnostic_updater), assembled a
-  status per timer tick.
+- `DiagnosticsPublisher`: each registered provider's status on /diagnostics about once a
+  second (the model of ros/diagnostics' diagnostic_updater), one status per timer tick, sent
+  as soon as it is read.
 - `spin_until`: spin an executor until a condition holds or a deadline passes.
 - `events_executor`: rclpy's `EventsExecutor` on a context; `make_executor` picks it or the
   `SingleThreadedExecutor` by name (`EXECUTORS`).
@@ -26,7 +26,7 @@ from pathlib import Path
 from types import FrameType
 
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import Log
 from rclpy.context import Context
 from rclpy.duration import Duration
@@ -45,7 +45,6 @@ from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import CallbackTimes, Level, Status
 from lompr_predictor.processes import dump_tracebacks_on_signal
 from lompr_predictor.ros.parameters import ParameterSpec
-from lompr_predictor.ros.wire import StatusFields, diagnostic_array
 from lompr_predictor.scheduling import (
     Scheduling,
     SchedulingOutcome,
@@ -59,10 +58,12 @@ from lompr_predictor.scheduling import (
 SWITCH_INTERVAL = 0.0005
 
 
-def status_fields(name: str, hardware_id: str, status: Status) -> StatusFields:
-    """A `Status` as the fields of a diagnostic_msgs/DiagnosticStatus (`wire`)."""
-    return (int(status.level), name, status.message, hardware_id,
-            [(str(k), str(v)) for k, v in status.values.items()])
+def status_message(name: str, hardware_id: str, status: Status) -> DiagnosticStatus:
+    """A `Status` as a diagnostic_msgs/DiagnosticStatus named `name`."""
+    return DiagnosticStatus(level=bytes([int(status.level)]), name=name,
+                            message=status.message, hardware_id=hardware_id,
+                            values=[KeyValue(key=str(k), value=str(v))
+                                    for k, v in status.values.items()])
 
 
 #: diagnostic_updater's parameter (its name, its default) choosing the status names' node part.
@@ -82,7 +83,7 @@ def status_prefix(node: Node, fully_qualified: bool = False) -> str:
 
 
 class DiagnosticsPublisher:
-    """Publishes one DiagnosticArray every `period` seconds with a status per provider.
+    """Publishes each provider's status every `period` seconds.
 
     A provider is a function returning a `Status`; it is called on the node's executor, so
     it may read the node's counters without locks. A provider that raises becomes an ERROR
@@ -92,10 +93,12 @@ class DiagnosticsPublisher:
     parameter is true (`status_prefix`); like diagnostic_updater's Updater, the publisher
     declares that parameter on its node.
 
-    The report is assembled a status at a time, one per tick of a timer that ticks once
-    per provider and once more to publish the array (serialized directly, `wire`): a report
-    of many key-values built in one callback would hold the samples queued behind it for
-    milliseconds. Its statuses are read within one period, and it is stamped when sent.
+    A timer ticks once per provider within the period; each tick reads the next provider
+    and sends its status at once, in a DiagnosticArray of its own stamped when read: a
+    report of every status built in one callback would hold the samples queued behind it
+    for milliseconds, and a status read at the start of a report but sent at its end would
+    show a fault up to two periods late instead of one. diagnostic_aggregator and rqt keep
+    the latest status by name, so one array per status reads as one per report.
     """
 
     def __init__(
@@ -116,7 +119,7 @@ class DiagnosticsPublisher:
         self._prefix = status_prefix(
             node, bool(node.get_parameter(USE_FQN_PARAMETER).value))
         self._providers: list[tuple[str, Callable[[], Status]]] = []
-        self._pending: list[StatusFields] = []  # the statuses of the report under way
+        self._next = 0  # the provider the next tick reads
         self._last_tick_ns = node.get_clock().now().nanoseconds
         self.period = period
         self.publisher = self._publisher = node.create_publisher(
@@ -128,32 +131,32 @@ class DiagnosticsPublisher:
     def add(self, name: str, provider: Callable[[], Status]) -> None:
         """Register a status provider under `name`."""
         self._providers.append((f'{self._prefix}: {name}', provider))
-        self._timer.timer_period_ns = round(self.period * 1e9 / (len(self._providers) + 1))
+        self._timer.timer_period_ns = round(self.period * 1e9 / len(self._providers))
 
     def step(self) -> None:
-        """One tick: the next provider's status, or, once every provider has given one,
-        the report sent. A tick that comes late takes the ticks it missed too (up to the
-        report): on simulated time a timer fires at most once per /clock step, and a
-        /clock coarser than the tick would otherwise stretch the report."""
+        """One tick: the next provider's status, sent. A tick that comes late takes the
+        ticks it missed too (up to one of each provider): on simulated time a timer fires
+        at most once per /clock step, and a /clock coarser than the tick would otherwise
+        stretch the period."""
+        if not self._providers:
+            return
         now = self._node.get_clock().now().nanoseconds
         missed = (now - self._last_tick_ns) // max(self._timer.timer_period_ns, 1)
         self._last_tick_ns = now
-        for _ in range(int(min(max(missed, 1), len(self._providers) + 1))):
-            index = len(self._pending)
-            if index < len(self._providers):
-                self._pending.append(self._status(*self._providers[index]))
-                continue
-            sec, nanosec = divmod(now, 1_000_000_000)
-            self._publisher.publish(diagnostic_array(sec, nanosec, self._pending))
-            self._pending = []
-            return
+        sec, nanosec = divmod(now, 1_000_000_000)
+        for _ in range(int(min(max(missed, 1), len(self._providers)))):
+            name, provider = self._providers[self._next]
+            self._next = (self._next + 1) % len(self._providers)
+            array = DiagnosticArray(status=[self._status(name, provider)])
+            array.header.stamp.sec, array.header.stamp.nanosec = sec, nanosec
+            self._publisher.publish(array)
 
-    def _status(self, name: str, provider: Callable[[], Status]) -> StatusFields:
+    def _status(self, name: str, provider: Callable[[], Status]) -> DiagnosticStatus:
         try:
             status = provider()
         except Exception as err:  # noqa: BLE001 - a failing provider is an ERROR status
             status = Status(Level.ERROR, f'status provider failed: {type(err).__name__}: {err}')
-        return status_fields(name, self._hardware_id, status)
+        return status_message(name, self._hardware_id, status)
 
 
 def spin_until(executor: Executor, condition: Callable[[], bool], timeout: float) -> bool:

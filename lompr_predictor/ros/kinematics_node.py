@@ -26,10 +26,12 @@ from typing import Any
 
 from geometry_msgs.msg import PoseStamped
 from rclpy.context import Context
-from rclpy.node import Node
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.publisher import Publisher
+from rclpy.subscription import Subscription
 from sensor_msgs.msg import JointState
 
-from lompr_predictor.errors import KinematicsError
+from lompr_predictor.errors import KinematicsError, LomprError
 from lompr_predictor.monitoring import (
     LatencyRecorder,
     Level,
@@ -38,7 +40,8 @@ from lompr_predictor.monitoring import (
     latency_values,
     rejection_values,
 )
-from lompr_predictor.robot.chain import RobotSpec, load_chain
+from lompr_predictor.robot.chain import KinematicChain, RobotSpec, load_chain
+from lompr_predictor.robot.description import robot_name
 from lompr_predictor.robot.joint_stream import (
     KINEMATICS_REASONS,
     JointStateDrop,
@@ -48,6 +51,7 @@ from lompr_predictor.robot.joint_stream import (
 )
 from lompr_predictor.robot.kinematics import ToolPose
 from lompr_predictor.ros.common import run_node
+from lompr_predictor.ros.managed import ManagedNode
 from lompr_predictor.ros.node_base import (
     OUTPUT_QOS,
     SENSOR_INPUT_QOS,
@@ -57,6 +61,7 @@ from lompr_predictor.ros.node_base import (
     node_help,
 )
 from lompr_predictor.ros.parameters import parameter
+from lompr_predictor.ros.robot_description import DescriptionTopic, waiting_for
 from lompr_predictor.ros.wire import PoseStampedWriter, WireError, read_joint_state
 from lompr_predictor.stamps import period_ns
 
@@ -79,7 +84,13 @@ class KinematicsNodeSettings(FrameSettings):
 
     robot_description_file: str = parameter(
         '', "URDF of the robot (its calibrated geometry): the LOMPR's closed chain or any "
-        'serial chain; empty: the packaged nominal LOMPR description', read_only=True)
+        'serial chain; empty: robot_description_topic if set, else the packaged nominal '
+        'LOMPR description', read_only=True)
+    robot_description_topic: str = parameter(
+        '', 'std_msgs/String topic the robot description comes on, as robot_state_publisher '
+        'publishes it (transient local), used when robot_description_file is empty: '
+        'configure waits for it (with autostart the node configures when it comes); empty: '
+        'off', read_only=True)
     base_frame: str = parameter(
         '', "URDF frame the tool pose is expressed in; empty: the URDF's root (the LOMPR: "
         'its robot frame)', read_only=True)
@@ -125,6 +136,10 @@ class KinematicsNodeSettings(FrameSettings):
         1.0, "a joint state stamped more than this many seconds ahead of the node's clock is "
         'rejected (not checked while the clock reads 0: sim time before the first /clock)',
         minimum=0.0, maximum=1e9)
+    autostart: bool = parameter(
+        True, 'configure and activate at start (a robot description that cannot be loaded '
+        'then stops the executable, exit code 2); false: start unconfigured and wait for a '
+        'lifecycle manager (change_state)', read_only=True)
 
 
 JOINT_STATES = Endpoint('subscription', JointState, 'joint_state_topic', SENSOR_INPUT_QOS,
@@ -139,9 +154,12 @@ REFERENCE = Endpoint('publisher', PoseStamped, 'reference_topic', OUTPUT_QOS,
 ENDPOINTS = (JOINT_STATES, END_POSE, FULL_JOINT_STATES, COMMANDS, REFERENCE)
 
 
-class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
+class KinematicsNode(NodeBase[KinematicsNodeSettings], ManagedNode, LifecycleNode):
     """Forward kinematics of every measured JointState (and, with `command_topic`, of every
-    commanded one), with diagnostics.
+    commanded one), with diagnostics. A managed node: configure loads the robot and makes
+    the endpoints, activate answers the joint states (one that comes before is counted as
+    dropped), cleanup lets the robot go; with `autostart` (default) it configures and
+    activates itself.
 
     Extra keyword arguments go to `rclpy.node.Node` (`context`, `parameter_overrides`,
     `namespace`, ...), so tests and one-process pipelines create it on their own context.
@@ -150,41 +168,94 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
     def __init__(self, node_name: str = NODE_NAME, **node_kwargs: Any) -> None:
         super().__init__(node_name, **node_kwargs)
         settings = self.declare_settings(KinematicsNodeSettings)
-        #: The robot: the URDF's chain from base to tip, its measured joints.
         self.limits = self.stream_limits(settings)
-        self.chain = load_chain(RobotSpec(settings.robot_description_file or None,
-                                          settings.base_frame, settings.tip_frame,
-                                          settings.joint_names))
+        #: The robot (the URDF's chain from base to tip) and its measured joints' stream,
+        #: while configured.
+        self.chain: KinematicChain | None = None
+        self.measured: JointStream | None = None
         self.solve_time = LatencyRecorder(settings.latency_samples)
-        self.measured = JointStream(self.chain, self.chain.joint_names, self.solve_time)
         self.rejected = RejectionCounter(JointStateDrop)
         self.input_rate = self.rate_meter(settings.rate_window)  # on the node's clock
         self.output_rate = self.rate_meter(settings.rate_window)
+        self.dropped_inactive = 0  # joint states received while not active
         self._rejected_at_last_report = 0
-
-        self._publisher = self.advertise(END_POSE)
+        self._publisher: Publisher | None = None
+        self._full_publisher: Publisher | None = None
+        self._subscription: Subscription | None = None
         #: Readers of the end pose in this process (the one-process pipeline's predictor),
         #: each called with the serialized end pose as published, outside this node's
         #: callback timing.
         self.end_pose_readers: list[Callable[[bytes], None]] = []
         self._pose_writer = PoseStampedWriter(settings.frame)
-        self._full_publisher = (self.advertise(FULL_JOINT_STATES)
-                                if settings.publish_full_joint_state else None)
-        self._subscription = self.subscribe(JOINT_STATES, self.on_joint_state, raw=True)
+        #: The commanded joints' path (None without `command_topic`, or unconfigured).
+        self.commands: CommandPath | None = None
+        #: The robot description's topic, when the node reads it there (else None).
+        self.description = (DescriptionTopic(self, self.start_when_ready) if
+                            settings.robot_description_topic
+                            and not settings.robot_description_file else None)
+        try:
+            hardware_id = '' if self.description else robot_name(
+                settings.robot_description_file or None)
+        except LomprError:
+            hardware_id = ''  # configure says why the description cannot be read
         self._diagnostics = self.start_diagnostics(
-            settings.diagnostics_topic, settings.diagnostics_period,
-            hardware_id=self.chain.name)
+            settings.diagnostics_topic, settings.diagnostics_period, hardware_id=hardware_id)
         self._diagnostics.add('joint states', self.input_status)
         self._diagnostics.add('forward kinematics', self.kinematics_status)
-        #: The commanded joints' path (None without `command_topic`).
-        self.commands = CommandPath(self) if settings.command_topic else None
-        if self.commands is not None:
-            self._diagnostics.add('commanded joints', self.commands.status)
+        if settings.command_topic:
+            self._diagnostics.add('commanded joints', self.commands_status)
+        if self.description is None:
+            self.start()
+        else:  # it starts when the description comes
+            self.get_logger().info(f'waiting for the robot description on '
+                                   f'{self.description.topic}')
+
+    # -- lifecycle --------------------------------------------------------------------------
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Load the robot and make the endpoints; a robot that cannot be loaded leaves the
+        node unconfigured with the reason (log, /diagnostics)."""
+        try:
+            self._configure()
+            error = None
+        except LomprError as err:
+            error = err
+        result = self.configured_as(error)
+        if result != TransitionCallbackReturn.SUCCESS:
+            return result
+        return super().on_configure(state)
+
+    def _configure(self) -> None:
+        settings = self.settings
+        source = (self.description.text() if self.description else
+                  settings.robot_description_file or None)
+        chain = load_chain(RobotSpec(source, settings.base_frame, settings.tip_frame,
+                                     settings.joint_names))
+        self.chain = chain
+        self.measured = JointStream(chain, chain.joint_names, self.solve_time)
+        self._publisher = self.own(self.advertise(END_POSE))
+        if settings.publish_full_joint_state:
+            self._full_publisher = self.own(self.advertise(FULL_JOINT_STATES))
+        self._subscription = self.own(self.subscribe(JOINT_STATES, self.on_joint_state,
+                                                     raw=True))
+        self.commands = CommandPath(self, chain) if settings.command_topic else None
         self.get_logger().info(
             f'forward kinematics of {settings.joint_state_topic} -> '
-            f'{settings.end_pose_topic} with {self.chain.source} ({self.chain.kind} chain '
-            f'{self.chain.base_frame} -> {self.chain.tip_frame}, sha256 '
-            f'{self.chain.sha256[:16]})')
+            f'{settings.end_pose_topic} with {chain.source} ({chain.kind} chain '
+            f'{chain.base_frame} -> {chain.tip_frame}, sha256 {chain.sha256[:16]})')
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Answer from here on, the warm start of the solves before forgotten."""
+        streams = [self.measured, self.commands.stream if self.commands else None]
+        for stream in streams:
+            if stream is not None:
+                stream.solver.reset()
+        return super().on_activate(state)
+
+    def release(self) -> None:
+        self.destroy_owned()
+        self.chain = self.measured = self.commands = None
+        self._publisher = self._full_publisher = self._subscription = None
 
     @staticmethod
     def stream_limits(settings: KinematicsNodeSettings) -> StreamLimits:
@@ -203,16 +274,20 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
         now_ns = self.clock_ns()
         now = now_ns * 1e-9  # clock_seconds, read once
         self.input_rate.tick(now)
-        answer = self.solve(self.measured, data, now_ns, self.rejected)
+        measured, publisher = self.measured, self._publisher
+        if measured is None or publisher is None or not self.active:
+            self.dropped_inactive += 1
+            return
+        answer = self.solve(measured, data, now_ns, self.rejected)
         if answer is None:
             return
         sec, nanosec, pose, joints = answer
         end_pose = self._pose_writer.pack(sec, nanosec, pose.position.tolist(),
                                           pose.quaternion.tolist())
-        self._publisher.publish(end_pose)
+        publisher.publish(end_pose)
         self.output_rate.tick(now)
         if self._full_publisher is not None:
-            self.publish_full_joint_state(sec, nanosec, joints)
+            self.publish_full_joint_state(measured, sec, nanosec, joints)
         for reader in self.end_pose_readers:
             self.callback_times.apart(reader, end_pose)
 
@@ -240,14 +315,16 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
     @property
     def end_pose_topic(self) -> str:
         """The resolved topic the end poses are published on."""
-        return self._publisher.topic_name
+        return self.resolve_topic_name(self.settings.end_pose_topic)
 
-    def publish_full_joint_state(self, sec: int, nanosec: int, joints: Sequence[float]) -> None:
-        """Every joint of the URDF for the sample just solved (`publish_full_joint_state`)."""
-        assert self._full_publisher is not None
+    def publish_full_joint_state(self, measured: JointStream, sec: int, nanosec: int,
+                                 joints: Sequence[float]) -> None:
+        """Every joint of the URDF for the sample `measured` just solved
+        (`publish_full_joint_state`)."""
+        assert self._full_publisher is not None and self.chain is not None
         message = JointState()
         message.header.stamp.sec, message.header.stamp.nanosec = sec, nanosec
-        names, positions = self.chain.all_joints(self.measured.solver, joints)
+        names, positions = self.chain.all_joints(measured.solver, joints)
         message.name, message.position = list(names), positions
         self._full_publisher.publish(message)
 
@@ -265,12 +342,17 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
         self._rejected_at_last_report = rejected
         silence = self.input_rate.seconds_since_last()
         values: dict[str, object] = {
+            'lifecycle_state': self.lifecycle_state,
             'input_rate_hz': round(self.input_rate.rate(), 3),
             'received_total': self.input_rate.total,
+            'dropped_inactive': self.dropped_inactive,
             **rejection_values(self.rejected),
             **self.callback_values(),
         }
         topic = self.settings.joint_state_topic
+        if not self.active:
+            return Status(Level.WARN, f'{self.lifecycle_state}: joint states not answered',
+                          values)
         if silence is None:
             return Status(Level.WARN, f'no joint states on {topic} for '
                                       f'{self.settings.rate_window:g} s', values)
@@ -283,16 +365,23 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
     def kinematics_status(self) -> Status:
         """Diagnostics of the FK: solve times, output rate, warm-start resets."""
         summary = self.solve_time.summary()
+        chain, measured = self.chain, self.measured
         values: dict[str, object] = {
             **latency_values('solve_time', summary),
             'output_rate_hz': round(self.output_rate.rate(), 3),
             'published_total': self.output_rate.total,
-            'warm_start_resets': self.measured.warm_start_resets,
-            'newton_iterations_last': self.measured.solver.last_iterations,
-            'robot_description': self.chain.source,
-            'robot_description_sha256': self.chain.sha256,
-            'chain': f'{self.chain.kind}: {self.chain.base_frame} -> {self.chain.tip_frame}',
+            'configure_error': self.configure_error or '',
+            **(self.description.values() if self.description else {}),
         }
+        if chain is None or measured is None:
+            return Status(Level.ERROR if self.configure_error else Level.WARN,
+                          f'unconfigured: {self.configure_error or waiting_for(self.description)}',
+                          values)
+        values.update({
+            'warm_start_resets': measured.warm_start_resets,
+            'newton_iterations_last': measured.solver.last_iterations,
+            'robot_description': chain.source, 'robot_description_sha256': chain.sha256,
+            'chain': f'{chain.kind}: {chain.base_frame} -> {chain.tip_frame}'})
         if summary.samples == 0:
             return Status(Level.OK, 'no joint state solved yet', values)
         timing = f'solve p50 {summary.p50 * 1e6:.1f} us, p99 {summary.p99 * 1e6:.1f} us'
@@ -301,6 +390,13 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], Node):
             return Status(Level.WARN, f'{timing} (over {limit:.0f} us)', values)
         return Status(Level.OK, timing, values)
 
+    def commands_status(self) -> Status:
+        """Diagnostics of the commanded joints (`command_topic`)."""
+        if self.commands is None:
+            return Status(Level.WARN, f'{self.lifecycle_state}: commanded joints not answered',
+                          {'lifecycle_state': self.lifecycle_state})
+        return self.commands.status()
+
 
 class CommandPath:
     """The commanded joints of a robot commanded in joints (`command_topic`): each one's
@@ -308,21 +404,26 @@ class CommandPath:
     reads them as it reads a path generator's reference; drops counted by reason, a status
     of their own."""
 
-    def __init__(self, node: KinematicsNode) -> None:
+    def __init__(self, node: KinematicsNode, chain: KinematicChain) -> None:
+        """Made by the node's configure on its `chain`; its endpoints are the node's to
+        release."""
         settings = node.settings
         self.node = node
-        self.stream = JointStream(node.chain, node.chain.joint_names,
+        self.stream = JointStream(chain, chain.joint_names,
                                   LatencyRecorder(settings.latency_samples))
         self.rejected = RejectionCounter(JointStateDrop)
         self.input_rate = node.rate_meter(settings.rate_window)
         self.writer = PoseStampedWriter(settings.frame)
-        self.publisher = node.advertise(REFERENCE)
-        node.subscribe(COMMANDS, self.on_command, raw=True)
+        self.publisher = node.own(node.advertise(REFERENCE))
+        node.own(node.subscribe(COMMANDS, self.on_command, raw=True))
 
     def on_command(self, data: bytes) -> None:
         """Publish the commanded tool pose of one serialized JointState."""
         now_ns = self.node.clock_ns()
         self.input_rate.tick(now_ns * 1e-9)
+        if not self.node.active:
+            self.node.dropped_inactive += 1
+            return
         answer = self.node.solve(self.stream, data, now_ns, self.rejected)
         if answer is not None:
             sec, nanosec, pose, _ = answer

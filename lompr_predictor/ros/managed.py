@@ -77,6 +77,15 @@ class ManagedNode(_LifecycleNodeType):
             self.get_logger().info('autostart false: unconfigured, waiting for a lifecycle '
                                    'manager (change_state configure, activate)')
 
+    def start_when_ready(self) -> None:
+        """`start` from a callback, once what the node waited for has come (its robot
+        description): a configure that fails leaves the node unconfigured, the reason
+        logged and on its status, where `autostart` would end the executable."""
+        if not self.settings.autostart or self.lifecycle_state != 'unconfigured':
+            return
+        if self.trigger_configure() == TransitionCallbackReturn.SUCCESS:
+            self.trigger_activate()
+
     def autostart(self) -> None:
         """Configure and activate; raise why not (a `LomprError`), or the KeyboardInterrupt
         of a stop request that came meanwhile, after destroying the node, so that an

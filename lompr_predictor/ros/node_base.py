@@ -1,7 +1,8 @@
 # SPDX-License-Identifier: Apache-2.0
 """What every lompr node shares: settings, endpoints, one callback-exception policy,
 diagnostics. `NodeBase` is a mixin placed before the rclpy class, so it serves a plain node
-and a managed one alike (`class KinematicsNode(NodeBase[KinematicsNodeSettings], Node)`).
+and a managed one alike (`class TwinNode(NodeBase[TwinNodeSettings], Node)`,
+`class KinematicsNode(NodeBase[...], ManagedNode, LifecycleNode)`).
 
 - Settings: `declare_settings(SettingsType)` declares every field of the frozen settings
   dataclass as a parameter (`parameters.parameter`), validates each change (ranges and
@@ -114,6 +115,9 @@ class StatusSettings:
     hardware_id: str = parameter(
         '', "hardware_id of the node's diagnostic statuses (the device they are about); "
         "empty: the name of the robot description's <robot>", read_only=True)
+    callback_histograms: bool = parameter(
+        False, "also publish each kind of work's duration histogram in the callback timing "
+        'status (what the benches read); false: its runs, means and percentiles only')
 
 
 @dataclass(frozen=True)
@@ -422,7 +426,8 @@ class NodeBase(_NodeType, Generic[S]):
             event_callbacks=self.qos_watch.publisher_events(topic))
         self.qos_watch.watch(diagnostics.publisher)
         diagnostics.add('qos', self.qos_watch.status)
-        diagnostics.add('callback timing', self.callback_times.status)
+        diagnostics.add('callback timing', lambda: self.callback_times.status(
+            bool(getattr(self.settings, 'callback_histograms', False))))
         diagnostics.add('scheduling', lambda: self.scheduling_outcome.status())
         return diagnostics
 

@@ -14,8 +14,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from lompr_predictor.adaptation.driver import off_status
-from lompr_predictor.monitoring import RateMeter, Status
+from lompr_predictor.monitoring import HeldEvent, RateMeter, Status
 from lompr_predictor.online import predictor_status
+from lompr_predictor.online.alignment import SENDER_ERRORS
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_counts import INPUTS_STATUS, PREDICTION_STATUS
 from lompr_predictor.online.predictor_status import InputRates, Lifecycle, PredictionLimits
@@ -64,6 +65,8 @@ class PredictorDiagnostics:
         self._faults_at_last_report = 0
         self._overruns_at_last_report = 0
         self._missing_at_last_report = 0
+        self._sender_errors_at_last_report = 0
+        self._refusal, self._write_failure = HeldEvent(), HeldEvent()
         publisher.add('model', self.model_status)
         publisher.add(INPUTS_STATUS, self.input_status)
         publisher.add('reference preview', self.preview_status)
@@ -74,19 +77,27 @@ class PredictorDiagnostics:
 
     def model_status(self) -> Status:
         now = self._read()
+        history = now.runtime.models.history
+        shown = self._refusal.shown(history.refusals if history.reload_error else None,
+                                    now.clock_ns, now.settings.status_hold)
         return predictor_status.model_status(now.lifecycle, now.settings.model_path, now.core,
-                                             now.runtime.models.history)
+                                             history, refusal_shown=shown)
 
     def input_status(self) -> Status:
         now, meters = self._read(), self._meters
-        new_faults = 0
+        new_faults = new_sender_errors = 0
         if now.core is not None:
             faults = now.core.faults.total
             new_faults, self._faults_at_last_report = (
                 faults - self._faults_at_last_report, faults)
+            sent_wrong = sum(n for reason, n in now.core.dropped.counts().items()
+                             if reason in SENDER_ERRORS)
+            new_sender_errors, self._sender_errors_at_last_report = (
+                sent_wrong - self._sender_errors_at_last_report, sent_wrong)
         rates = InputRates(meters.end_pose, meters.reference, now.settings.end_pose_topic,
                            now.settings.rate_window, now.clock_values, now.callback_values)
-        return predictor_status.input_status(now.lifecycle, now.core, rates, new_faults)
+        return predictor_status.input_status(now.lifecycle, now.core, rates, new_faults,
+                                             new_sender_errors)
 
     def preview_status(self) -> Status:
         now = self._read()
@@ -103,7 +114,8 @@ class PredictorDiagnostics:
         now, outputs = self._read(), self._meters.outputs
         new_overruns = 0
         if now.core is not None:
-            overruns = now.core.counts().overruns
+            counts = now.core.counts()  # an offset after its instant is as late for its user
+            overruns = counts.overruns + counts.outputs_after_instant
             new_overruns, self._overruns_at_last_report = (
                 overruns - self._overruns_at_last_report, overruns)
         settings = now.settings
@@ -123,14 +135,20 @@ class PredictorDiagnostics:
         store, export = now.runtime.store, now.runtime.export
         if store is None or export is None:
             return predictor_status.store_status(now.lifecycle, now.settings.kept_minutes,
-                                                 None, None)
+                                                 None, None, failure_shown=False)
         export.poll()  # a write that has finished: its outcome
+        state = export.state
+        shown = self._write_failure.shown(state.failed if state.last_error else None,
+                                          now.clock_ns, now.settings.status_hold)
         return predictor_status.store_status(now.lifecycle, now.settings.kept_minutes, store,
-                                             export)
+                                             export, failure_shown=shown)
 
     def adaptation_status(self) -> Status:
         now = self._read()
         adaptation = now.runtime.adaptation
         if adaptation is None:
             return off_status(now.settings.adaptation_enabled, now.lifecycle.state)
-        return adaptation.status(now.clock_ns)
+        # an attempt that ended meanwhile (killed, done) is said in this status, not a
+        # timer tick later: as the store's status collects its write
+        now.runtime.tick_adaptation(now.lifecycle.active)
+        return adaptation.status(now.clock_ns, now.settings.status_hold)

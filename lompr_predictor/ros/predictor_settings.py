@@ -134,6 +134,11 @@ class PredictorCoreSettings(FrameSettings):
         maximum=1.0)
     warning_throttle_period: float = parameter(
         5.0, 'seconds between two warnings of the same kind', minimum=0.0, maximum=3600.0)
+    status_hold: float = parameter(
+        10.0, "seconds of the node's clock a problem that is over by itself (a refused "
+        'model change, a failed write of the sample store, a failed adaptation attempt) '
+        'keeps its status at WARN; then the status is back to OK and the problem one of its '
+        'values', minimum=0.0, maximum=86_400.0)
     max_future_stamp: float = parameter(
         1.0, "an input stamped more than this many seconds ahead of the node's clock is "
         'dropped (not checked while the clock reads 0: sim time before the first /clock)',

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import functools
 import struct
-from collections.abc import Sequence
 from typing import Any
 
 from geometry_msgs.msg import PoseStamped
@@ -176,41 +175,6 @@ class Vector3StampedWriter(_StampedWriter):
 
     def pack(self, sec: int, nanosec: int, x: float, y: float, z: float = 0.0) -> bytes:
         return self._pack(sec, nanosec, x, y, z)
-
-
-#: One diagnostic_msgs/DiagnosticStatus: level, name, message, hardware_id, (key, value)s.
-StatusFields = tuple[int, str, str, str, Sequence[tuple[str, str]]]
-
-
-def diagnostic_array(sec: int, nanosec: int, statuses: Sequence[StatusFields]) -> bytes:
-    """A serialized diagnostic_msgs/DiagnosticArray stamped (sec, nanosec), no frame: a
-    report of a few hundred key-values, which as message objects costs the node's thread a
-    millisecond or more to build and convert."""
-    out = bytearray(CDR_LE)
-    out += _STAMP.pack(sec, nanosec)
-    _put_string(out, '')
-    out += bytes(-len(out) % 4)
-    out += _UINT32.pack(len(statuses))
-    for level, name, message, hardware_id, values in statuses:
-        out.append(level)
-        for text in (name, message, hardware_id):
-            _put_string(out, text)
-        out += bytes(-len(out) % 4)
-        out += _UINT32.pack(len(values))
-        for key, value in values:
-            _put_string(out, key)
-            _put_string(out, value)
-    return bytes(out)
-
-
-def _put_string(out: bytearray, text: str) -> None:
-    """Append a CDR string (4-byte aligned uint32 length with the NUL, bytes, NUL); the
-    encapsulation header's 4 bytes keep `len(out)`'s alignment that of the offsets."""
-    out += bytes(-len(out) % 4)
-    encoded = text.encode()
-    out += _UINT32.pack(len(encoded) + 1)
-    out += encoded
-    out.append(0)
 
 
 def read_path(data: bytes, frame_id: str) -> tuple[list[int], list[XYZ]] | None:

@@ -97,9 +97,24 @@ def test_each_attempt_is_logged_and_a_refused_swap_is_a_failure(tmp_path: Path) 
     assert [e['clock_settled_s'] for e in lines] == pytest.approx([9.0, 12.0, 15.0])
     state = runs.state
     assert (state.accepted, state.failed, state.refused, state.swaps) == (1, 1, 1, 1)
-    status = runs.status(20 * 10**9)
+    status = runs.status(20 * 10**9, hold=10.0)
     assert status.message == 'attempt 3 refused: no'
     assert status.values['last_decision'] == 'refused' and status.values['swaps'] == 1
+    killed = AttemptResult.failed('the attempt ended by signal 9 (SIGKILL)')
+    runs.settle(AttemptOutcome(4, 15 * second, 21 * second, killed), None, 'x.pt', 21 * second)
+    failed = runs.status(22 * second, hold=10.0)  # seen at 22 s: WARN until 32 s
+    assert (failed.level, failed.message) == (
+        Level.WARN, 'attempt 4 failed: the attempt ended by signal 9 (SIGKILL)')
+    assert runs.status(31 * second, hold=10.0).level == Level.WARN
+    over = runs.status(32 * second, hold=10.0)  # the node went on: a value only
+    assert over.level == Level.OK and over.values['last_decision'] == 'failed'
+    runs.state.error, runs.state.errors = 'NotADirectoryError: adaptation.jsonl', 1
+    unrecorded = runs.status(40 * second, hold=10.0)  # a log it could not write
+    assert (unrecorded.level, unrecorded.message) == (
+        Level.WARN, 'cannot run an attempt: NotADirectoryError: adaptation.jsonl')
+    assert runs.status(50 * second, hold=10.0).level == Level.OK
+    runs.state.errors = 2  # it failed again: shown again
+    assert runs.status(51 * second, hold=10.0).level == Level.WARN
 
 
 def test_a_model_that_cannot_be_fine_tuned_is_said_once_and_waited_out(
@@ -134,7 +149,7 @@ def test_a_model_that_cannot_be_fine_tuned_is_said_once_and_waited_out(
         assert runs.state.cannot_adapt == 'ab'
         assert not runs.due(100 * second, store, 0.04, 'ab')  # that model: never again
         assert runs.due(100 * second, store, 0.04, 'cd')  # another model in force
-        status = runs.status(100 * second)
+        status = runs.status(100 * second, hold=10.0)
         assert status.level == Level.WARN and status.message.startswith(
             'attempt 1 cannot adapt: model m.pt: --init fine-tunes a BO-LSTM')
     finally:

@@ -17,6 +17,7 @@ from test_predictor import stream
 from lompr_predictor.data.features import HISTORY
 from lompr_predictor.learning.model_file import load_model
 from lompr_predictor.monitoring import LatencySummary, Level, RateMeter, Status
+from lompr_predictor.online.alignment import DropReason
 from lompr_predictor.online.guard import LiveGuard
 from lompr_predictor.online.offset import CompensationLimits
 from lompr_predictor.online.predictor import OnlinePredictor
@@ -81,12 +82,13 @@ def rates(clock: FakeClock, poses: int) -> InputRates:
 
 def test_model_status_without_a_model_says_why() -> None:
     failed = Lifecycle('unconfigured', autostart=False, configure_error='no such file')
-    status = model_status(failed, 'm.pt', None, ModelHistory())
+    status = model_status(failed, 'm.pt', None, ModelHistory(), refusal_shown=True)
     assert status.level == Level.ERROR
     assert status.message == 'unconfigured: configure failed: no such file'
     assert status.values == {'lifecycle_state': 'unconfigured', 'autostart': False,
                              'configure_error': 'no such file', 'path': 'm.pt'}
-    waiting = model_status(Lifecycle('unconfigured', False, None), 'm.pt', None, ModelHistory())
+    waiting = model_status(Lifecycle('unconfigured', False, None), 'm.pt', None,
+                           ModelHistory(), refusal_shown=True)
     assert (waiting.level, waiting.message) == (
         Level.WARN, 'unconfigured: no model loaded (waiting for configure)')
 
@@ -94,7 +96,7 @@ def test_model_status_without_a_model_says_why() -> None:
 def test_model_status_reports_the_model_and_its_history(core: OnlinePredictor) -> None:
     model = core.model
     history = ModelHistory(swaps=2, warm_up_seconds=0.0123456)
-    status = model_status(ACTIVE, 'ignored.pt', core, history)
+    status = model_status(ACTIVE, 'ignored.pt', core, history, refusal_shown=True)
     assert status.level == Level.OK
     assert status.message == f'linear {model.sha256[:12]}, horizon 3'
     values = status.values
@@ -102,11 +104,18 @@ def test_model_status_reports_the_model_and_its_history(core: OnlinePredictor) -
     assert (values['sha256_verified_by'], values['window'], values['horizon'],
             values['sample_period_s'], values['swaps'], values['warm_up_ms']) == (
         'sidecar', WINDOW, 3, 0.04, 2, 12.346)
-    inactive = model_status(Lifecycle('inactive', True, None), '', core, history)
+    inactive = model_status(Lifecycle('inactive', True, None), '', core, history,
+                            refusal_shown=True)
     assert inactive.level == Level.WARN and inactive.message.startswith(
         'inactive (not publishing): linear ')
-    refused = model_status(ACTIVE, '', core, ModelHistory(reload_error='bad file'))
+    refused_history = ModelHistory(reload_error='bad file', refusals=1)
+    refused = model_status(ACTIVE, '', core, refused_history, refusal_shown=True)
     assert (refused.level, refused.message) == (Level.WARN, 'last reload refused: bad file')
+    # past its hold the refusal is a value: the model in use goes on, the status is back
+    held_over = model_status(ACTIVE, '', core, refused_history, refusal_shown=False)
+    assert (held_over.level, held_over.message) == (Level.OK, f'linear {model.sha256[:12]}, '
+                                                               'horizon 3')
+    assert (held_over.values['last_refused'], held_over.values['refusals']) == ('bad file', 1)
 
 
 def test_model_status_says_where_the_model_lost_to_a_baseline(tmp_path: Path) -> None:
@@ -119,7 +128,7 @@ def test_model_status_says_where_the_model_lost_to_a_baseline(tmp_path: Path) ->
     model = load_model(save_constant(tmp_path / 's.pt', window=WINDOW, standing=standing))
     core = OnlinePredictor(model, stream(), CompensationLimits(1e-3, 1e-3, True),
                            clock=FakeClock().ns)
-    status = model_status(ACTIVE, '', core, ModelHistory())
+    status = model_status(ACTIVE, '', core, ModelHistory(), refusal_shown=True)
     assert status.level == Level.OK
     assert status.message == (f'linear {model.sha256[:12]}, horizon 3 (on its test part X: '
                               'ridge leads, the BO-LSTM 10.0 % behind it)')
@@ -128,32 +137,47 @@ def test_model_status_says_where_the_model_lost_to_a_baseline(tmp_path: Path) ->
 
 def test_input_status_from_waiting_to_filling_to_full(core: OnlinePredictor,
                                                       clock: FakeClock) -> None:
-    quiet = input_status(ACTIVE, core, rates(clock, 0), new_faults=0)
+    quiet = input_status(ACTIVE, core, rates(clock, 0), new_faults=0, new_sender_errors=0)
     assert (quiet.level, quiet.message) == (Level.WARN, 'no end poses on /lompr/end_pose for 5 s')
     feed(core, clock, 3)
-    filling = input_status(ACTIVE, core, rates(clock, 3), new_faults=0)
+    filling = input_status(ACTIVE, core, rates(clock, 3), new_faults=0, new_sender_errors=0)
     assert (filling.level, filling.message) == (
         Level.WARN, f'filling the window 3/{WINDOW + HISTORY}')
     feed(core, clock, WINDOW + HISTORY, start=3)
-    full = input_status(ACTIVE, core, rates(clock, 25), new_faults=0)
+    full = input_status(ACTIVE, core, rates(clock, 25), new_faults=0, new_sender_errors=0)
     assert full.level == Level.OK and full.message == '25.0 Hz'
     assert full.values['end_poses_received'] == 25 and full.values['clock_s'] == 1.5
     assert full.values['window_fill'] == f'{WINDOW + HISTORY}/{WINDOW + HISTORY}'
     assert full.values['faults_total'] == 0 and full.values['callback_failures'] == 0
     core.add_pose(T0 + 99 * PERIOD_NS, float('nan'), 0.0)
-    faulty = input_status(ACTIVE, core, rates(clock, 25), new_faults=1)
+    faulty = input_status(ACTIVE, core, rates(clock, 25), new_faults=1, new_sender_errors=0)
     assert faulty.level == Level.WARN and faulty.message == (
         '1 faults since the last report (last: non_finite); window 0/'
         f'{WINDOW + HISTORY}')
     assert faulty.values['faults.non_finite'] == 1 and faulty.values['rejected.non_finite'] == 1
-    dropped = input_status(Lifecycle('inactive', True, None), core, rates(clock, 25), 0)
+    dropped = input_status(Lifecycle('inactive', True, None), core, rates(clock, 25), 0, 0)
     assert (dropped.level, dropped.message) == (Level.WARN, 'inactive: input dropped')
+
+
+def test_input_status_raises_inputs_sent_wrong(core: OnlinePredictor, clock: FakeClock) -> None:
+    """A pose in another frame is dropped without a fault; that a sender is wrong is a
+    WARN all the same, with the totals of such drops."""
+    feed(core, clock, WINDOW + HISTORY)
+    core.dropped.add(DropReason.WRONG_FRAME)
+    core.dropped.add(DropReason.WRONG_FRAME)
+    core.dropped.add(DropReason.DUPLICATE)  # a stream's hiccup, not a sender's mistake
+    wrong = input_status(ACTIVE, core, rates(clock, 25), new_faults=0, new_sender_errors=2)
+    assert (wrong.level, wrong.message) == (
+        Level.WARN, '2 inputs dropped since the last report as sent wrong (totals '
+                    'wrong_frame: 2)')
+    later = input_status(ACTIVE, core, rates(clock, 25), new_faults=0, new_sender_errors=0)
+    assert later.level == Level.OK and later.values['rejected.wrong_frame'] == 2
 
 
 def test_input_status_unconfigured_keeps_only_the_clock() -> None:
     meters = InputRates(RateMeter(), RateMeter(), '/e', 5.0, {'clock_s': 0.0},
                         {'callback_failures': 3})
-    status = input_status(Lifecycle('unconfigured', True, None), None, meters, 0)
+    status = input_status(Lifecycle('unconfigured', True, None), None, meters, 0, 0)
     assert (status.level, status.message) == (Level.WARN, 'unconfigured')
     assert 'callback_failures' not in status.values and status.values['clock_s'] == 0.0
 
@@ -174,7 +198,7 @@ def test_prediction_status_counts_predictions_and_the_offset(core: OnlinePredict
     assert core.counts().overruns == 0
     late = prediction_status(ACTIVE, core, LIMITS, NO_LATENCY, 25.0, new_overruns=2)
     assert late.level == Level.WARN and late.message.startswith(
-        'compensating; 2 outputs late or skipped since the last report')
+        'compensating; 2 outputs after their instant or skipped since the last report')
     slow = prediction_status(ACTIVE, core, PredictionLimits(False, 1e-12, 0.0), NO_LATENCY,
                              25.0, 0)
     assert slow.level == Level.WARN and slow.message.startswith('shadow mode; inference p99 ')
@@ -195,7 +219,7 @@ def test_prediction_status_warns_on_drift(core: OnlinePredictor, clock: FakeCloc
 
 
 def as_read_back(status: Status) -> dict[str, str]:
-    """A status's key-values as /diagnostics carries them (`ros.common.status_fields`)."""
+    """A status's key-values as /diagnostics carries them (`ros.common.status_message`)."""
     return {str(key): str(value) for key, value in status.values.items()}
 
 
@@ -210,7 +234,7 @@ def test_the_counts_written_read_back_as_the_cores(core: OnlinePredictor,
     counts = core.counts()
     assert counts.faults['non_finite'] == 1 and counts.dropped['duplicate'] == 1
     assert counts.predictions == 5 and sum(counts.faults.values()) == 1
-    statuses = {INPUTS_STATUS: as_read_back(input_status(ACTIVE, core, rates(clock, 10), 0)),
+    statuses = {INPUTS_STATUS: as_read_back(input_status(ACTIVE, core, rates(clock, 10), 0, 0)),
                 PREDICTION_STATUS: as_read_back(prediction_status(ACTIVE, core, LIMITS,
                                                                   NO_LATENCY, 25.0, 0))}
     assert read_counts(statuses) == counts

@@ -239,8 +239,12 @@ def test_a_write_that_fails_says_why(tmp_path: Path) -> None:
     with pytest.raises(OSError):  # the folder cannot be made
         unmade.start(store, {})
     assert unmade.state.failed == 1 and 'Not a directory' in unmade.state.last_error
-    status = store_status(Lifecycle('active', True, None), 1.0, store, unmade)
+    status = store_status(Lifecycle('active', True, None), 1.0, store, unmade,
+                          failure_shown=True)
     assert status.level == Level.WARN and 'the last write failed' in status.message
+    held_over = store_status(Lifecycle('active', True, None), 1.0, store, unmade,
+                             failure_shown=False)  # past its hold: the store holds samples
+    assert held_over.level == Level.OK and 'Not a directory' in str(held_over.values['last_error'])
     export = StoreExport(tmp_path / 'bags', 'lompr_base')
     os.ftruncate(store.fd, 32)  # the child finds no ring behind the descriptor
     export.start(store, {})

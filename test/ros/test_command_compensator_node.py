@@ -114,3 +114,21 @@ def test_unknown_controller_joints_are_refused_at_configure(ros: RosHarness) -> 
     assert node.lifecycle_state == 'unconfigured'
     assert node.configure_error is not None
     assert node.configure_error.startswith('controller joint(s) gripper: each must be one of')
+
+
+def test_the_arm_description_can_come_on_a_topic(ros: RosHarness) -> None:
+    """With robot_description_topic and no file the node waits for the arm's URDF as
+    robot_state_publisher shares it, then configures on it (the same chain as the file's)."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import String
+
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    publisher = ros.node.create_publisher(String, '/robot_description', latched)
+    publisher.publish(String(data=arm_description_path().read_text(encoding='utf-8')))
+    parameters = [p for p in node_parameters(robot_description_topic='/robot_description')
+                  if p.name != 'robot_description_file']
+    node = ros.add(CommandCompensatorNode(context=ros.context, parameter_overrides=parameters))
+    ros.spin_until(lambda: node.active, what='configured on the description received')
+    assert node.core is not None
+    assert node.core.chain.sha256 == load_chain(arm_spec()).sha256

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -13,6 +14,7 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from rclpy.exceptions import InvalidParameterValueException
+from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from ros_helpers import RosHarness, latest_status
 from sensor_msgs.msg import JointState
@@ -52,24 +54,29 @@ def stamp_of(msg: JointState | PoseStamped) -> tuple[int, int]:
 class Wiring:
     """A kinematics node plus the test's publisher and collectors, discovery done."""
 
-    def __init__(self, ros: RosHarness, **overrides: object) -> None:
+    def __init__(self, ros: RosHarness, name: str = 'kinematics_node',
+                 **overrides: object) -> None:
         parameters = {'diagnostics_period': 0.1, **overrides}
-        self.ros = ros
-        self.node = ros.add(KinematicsNode(context=ros.context, parameter_overrides=[
-            Parameter(name, value=value) for name, value in parameters.items()]))
+        self.ros, self.name = ros, name
+        self.node = ros.add(KinematicsNode(name, context=ros.context, parameter_overrides=[
+            Parameter(key, value=value) for key, value in parameters.items()]))
         self.poses: list[PoseStamped] = ros.collect('/lompr/end_pose', PoseStamped, 100)
         self.diagnostics: list[DiagnosticArray] = ros.collect('/diagnostics', DiagnosticArray)
         self.publisher = ros.node.create_publisher(JointState, '/joint_states', 100)
-        ros.wait_for_subscribers(self.publisher)
-        ros.wait_for_publishers('/lompr/end_pose')
+        if self.node.active:  # else its endpoints come with configure
+            self.discover()
+
+    def discover(self) -> None:
+        self.ros.wait_for_subscribers(self.publisher)
+        self.ros.wait_for_publishers('/lompr/end_pose')
 
     def publish(self, messages: Sequence[JointState]) -> None:
         for msg in messages:
             self.publisher.publish(msg)
 
     def status(self, name: str) -> dict[str, Any] | None:
-        """Key-values of the latest status `kinematics_node: <name>`, or None yet."""
-        return latest_status(self.diagnostics, f'kinematics_node: {name}')
+        """Key-values of the latest status `<node>: <name>`, or None yet."""
+        return latest_status(self.diagnostics, f'{self.name}: {name}')
 
 
 def test_known_poses_round_trip_with_same_stamp(
@@ -147,7 +154,10 @@ def test_bad_inputs_are_dropped_counted_and_next_good_answered(
     assert {reason: int(inputs[f'rejected.{reason}']) for reason in JointStateDrop} == {
         reason: expected.get(reason, 0) for reason in JointStateDrop}
     assert wiring.node.rejected.counts() == {r: expected.get(r, 0) for r in JointStateDrop}
-    # The 1.84 s gap between 10.16 and 12.00 restarted the warm start once.
+    # The 1.84 s gap between 10.16 and 12.00 restarted the warm start once (each status
+    # comes in its own array: the next forward kinematics status after the last sample).
+    ros.spin_until(lambda: (wiring.status('forward kinematics') or {}).get(
+        'published_total') == '3', what='diagnostics of the three solves')
     kinematics = wiring.status('forward kinematics')
     assert kinematics is not None and kinematics['warm_start_resets'] == '1'
 
@@ -244,7 +254,7 @@ def test_input_qos_is_overridable_by_parameters(ros: RosHarness) -> None:
     ros.spin_until(lambda: graph('subscription', '/joint_states') == [
         ReliabilityPolicy.RELIABLE], what='a reliable joint state subscription in the graph')
     assert graph('publisher', '/lompr/end_pose') == [ReliabilityPolicy.BEST_EFFORT]
-    assert node._subscription.qos_profile.depth == 5
+    assert node._subscription is not None and node._subscription.qos_profile.depth == 5
     assert not node.set_parameters([Parameter(
         'qos_overrides./joint_states.subscription.depth', value=50)])[0].successful
 
@@ -273,3 +283,72 @@ def test_duplicate_joint_names_and_impossible_stamps_are_rejected_and_counted(
                    what='one pose, four rejections')
     counts = wiring.node.rejected.counts()
     assert (counts['duplicate_joint'], counts['future_stamp'], counts['bad_stamp']) == (1, 1, 2)
+
+
+def test_a_lifecycle_manager_brings_it_up_and_down(
+        ros: RosHarness, description: RobotDescription, tmp_path: Path) -> None:
+    """With autostart false the node waits unconfigured (no endpoints, a WARN status);
+    configured but inactive its joint states are counted as dropped; activated it answers;
+    deactivated it drops again; cleaned up it lets the robot go; a robot that cannot be
+    loaded leaves it unconfigured with the reason at ERROR."""
+    wiring = Wiring(ros, autostart=False)
+    node = wiring.node
+    joints = inverse_kinematics(description.geometry, KNOWN_TIPS[:2]).joints
+    assert node.lifecycle_state == 'unconfigured' and node.chain is None
+    ros.spin_until(lambda: (wiring.status('joint states') or {}).get('_message')
+                   == 'unconfigured: joint states not answered', what='the unconfigured status')
+    assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    wiring.discover()
+    wiring.publish([joint_state(20.0, joints[0])])
+    ros.spin_until(lambda: node.dropped_inactive == 1, what='a joint state dropped')
+    assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    wiring.publish([joint_state(20.04, joints[1])])
+    ros.spin_until(lambda: len(wiring.poses) == 1, what='the end pose once active')
+    position = wiring.poses[0].pose.position
+    np.testing.assert_allclose([position.x, position.y, position.z], KNOWN_TIPS[1], atol=1e-9)
+    assert node.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
+    wiring.publish([joint_state(20.08, joints[0])])
+    ros.spin_until(lambda: node.dropped_inactive == 2, what='a joint state dropped again')
+    assert node.trigger_cleanup() == TransitionCallbackReturn.SUCCESS
+    assert node.chain is None and node.measured is None and len(wiring.poses) == 1
+
+    broken = tmp_path / 'broken.urdf'
+    broken.write_text('<robot name="broken"><link name="a"/>')
+    refused = Wiring(ros, 'refused_kinematics', autostart=False,
+                     robot_description_file=str(broken))
+    assert refused.node.trigger_configure() == TransitionCallbackReturn.FAILURE
+    assert refused.node.lifecycle_state == 'unconfigured'
+    assert 'cannot parse robot description' in (refused.node.configure_error or '')
+    ros.spin_until(lambda: (refused.status('forward kinematics') or {}).get('_level')
+                   == DiagnosticStatus.ERROR, what='the configure error on /diagnostics')
+
+
+def test_the_robot_description_can_come_on_a_topic(
+        ros: RosHarness, description: RobotDescription) -> None:
+    """With robot_description_topic and no file the node waits unconfigured for the URDF
+    robot_state_publisher shares (transient local), then configures on it and answers: the
+    same text as the packaged file, the same sha256."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import String
+
+    from lompr_predictor.robot.description import default_description_path
+
+    wiring = Wiring(ros, robot_description_topic='robot_description')
+    node = wiring.node
+    assert node.lifecycle_state == 'unconfigured'
+    ros.spin_until(lambda: (wiring.status('forward kinematics') or {}).get('_message')
+                   == 'unconfigured: waiting for the robot description on /robot_description',
+                   what='the node waiting for its description')
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    publisher = ros.node.create_publisher(String, 'robot_description', latched)
+    publisher.publish(String(data=default_description_path().read_text(encoding='utf-8')))
+    ros.spin_until(lambda: node.active, what='configured and active on the description')
+    assert node.chain is not None and node.chain.sha256 == description.sha256
+    assert node.chain.source == 'topic /robot_description'
+    wiring.discover()
+    joints = inverse_kinematics(description.geometry, KNOWN_TIPS[:1]).joints
+    wiring.publish([joint_state(30.0, joints[0])])
+    ros.spin_until(lambda: len(wiring.poses) == 1, what='an end pose')
+    position = wiring.poses[0].pose.position
+    np.testing.assert_allclose([position.x, position.y, position.z], KNOWN_TIPS[0], atol=1e-9)

@@ -266,8 +266,11 @@ def test_diagnostics_publisher_publishes_every_provider(ros: RosHarness) -> None
 
     diagnostics.add('broken', broken)
     arrays = ros.collect('/test_diagnostics', DiagnosticArray)
-    ros.spin_until(lambda: len(arrays) >= 2, what='two diagnostic arrays')
-    first, broken_status = arrays[0].status
+    ros.spin_until(lambda: len(arrays) >= 3, what='three diagnostic arrays')
+    # a status an array, sent as it is read, the providers in turn
+    assert [len(array.status) for array in arrays[:3]] == [1, 1, 1]
+    (first,), (broken_status,) = arrays[0].status, arrays[1].status
+    assert arrays[2].status[0].name == first.name
     assert first.name == 'common_test: input'
     assert first.level == DiagnosticStatus.WARN
     assert first.hardware_id == 'lompr'

@@ -8,7 +8,6 @@ import struct
 
 import numpy as np
 import pytest
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from nav_msgs.msg import Path
 from rclpy.serialization import deserialize_message, serialize_message
@@ -19,7 +18,6 @@ from lompr_predictor.ros.wire import (
     PoseStampedWriter,
     Vector3StampedWriter,
     WireError,
-    diagnostic_array,
     frame_field,
     pose_frame_id,
     pose_in_frame,
@@ -162,25 +160,6 @@ def test_a_preview_pose_stamped_with_nanosec_past_a_second_is_refused(
     plan = PlannedPath(max_step_ns=1e9, tolerance=1e-6)
     assert plan.add(stamps, positions) == PreviewDrop.BAD_STAMP
     assert plan.horizon_ns is None and plan.dropped['bad_stamp'] == 1
-
-
-def test_a_diagnostic_array_is_written_as_rclpy_serializes_it() -> None:
-    """Every field, empty strings and lists and text beyond ASCII among them, read back as
-    written, in as many bytes as rclpy's (whose padding bytes are not always zero)."""
-    statuses = [(1, 'predictor_node: inputs', '3 rejected (gap: 2)', 'lompr',
-                 [('rejected_total', '3'), ('clock_s', '12.5'), ('frame', 'lompr_base')]),
-                (0, 'predictor_node: store', '', '', []),
-                (2, 'x', 'Temperatur \u00fcber 80 \u00b0C', 'h', [('', ''), ('k', 'v' * 13)])]
-    expected = DiagnosticArray()
-    expected.header.stamp.sec, expected.header.stamp.nanosec = 1_700_000_000, 999_999_999
-    expected.status = [
-        DiagnosticStatus(level=bytes([level]), name=name, message=message,
-                         hardware_id=hardware, values=[KeyValue(key=k, value=v) for k, v in kv])
-        for level, name, message, hardware, kv in statuses]
-    data = diagnostic_array(1_700_000_000, 999_999_999, statuses)
-    assert len(data) == len(serialize_message(expected))
-    assert deserialize_message(data, DiagnosticArray) == expected
-    assert deserialize_message(diagnostic_array(0, 0, []), DiagnosticArray) == DiagnosticArray()
 
 
 def test_the_offset_leaves_before_the_prediction_of_the_same_instant() -> None:

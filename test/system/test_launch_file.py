@@ -31,7 +31,7 @@ PACKAGE_SHARE = '$(find-pkg-share lompr_predictor)/'
 NODE_PARAMETERS = {'use_sim_time'}
 #: Arguments that are not node parameters (the others default to empty: not given).
 LAUNCH_ONLY = {'namespace': '', 'params_file': '', 'use_sim_time': 'false', 'twin': 'false',
-               'rviz': 'false'}
+               'command_path': 'false', 'rviz': 'false'}
 ARM = ROOT / 'lompr_predictor' / 'description' / 'arm6.urdf'
 #: Every node parameter's argument given, as a site would give them.
 EVERY_ARGUMENT = ('namespace:=cell1', 'twin:=true', 'rviz:=true', 'model_path:=/m/model.pt',
@@ -91,7 +91,7 @@ def test_setup_py_installs_the_launch_file_and_the_rviz_config() -> None:
 
 def test_every_executable_is_a_console_script_or_a_declared_package() -> None:
     assert [node.get('exec') for node in lompr_nodes()] == [
-        'kinematics_node', 'predictor_node', 'twin_node']
+        'kinematics_node', 'predictor_node', 'command_compensator_node', 'twin_node']
     assert {node.get('exec') for node in lompr_nodes()} <= console_scripts()
     package_xml = ElementTree.parse(ROOT / 'package.xml').getroot()
     depends = {element.text for element in package_xml.iter('exec_depend')}
@@ -115,10 +115,10 @@ def test_every_node_gets_its_own_parameters_and_no_other_nodes(prefix: Path) -> 
     kinematics, predictor = nodes['kinematics_node'].parameters, nodes['predictor_node'].parameters
     assert {name: kinematics[name] for name in (
         'joint_names', 'publish_full_joint_state', 'base_frame', 'tip_frame', 'command_topic',
-        'frame_prefix', 'robot_description_file')} == {
+        'frame_prefix', 'robot_description_file', 'autostart')} == {
         'joint_names': ['b1', 'b2', 'b3', 'c', 'a'], 'publish_full_joint_state': True,
         'base_frame': 'base', 'tip_frame': 'tool', 'command_topic': 'joint_commands',
-        'frame_prefix': 'cell1/', 'robot_description_file': str(ARM)}
+        'frame_prefix': 'cell1/', 'robot_description_file': str(ARM), 'autostart': False}
     assert {name: predictor[name] for name in (
         'model_path', 'compensation_enabled', 'autostart', 'base_frame', 'tip_frame')} == {
         'model_path': '/m/model.pt', 'compensation_enabled': True, 'autostart': False,
@@ -325,3 +325,44 @@ def test_a_start_up_error_is_also_on_rosout(ros: RosHarness) -> None:
     (log,) = [log for log in logs if log.name == 'cell1.predictor_node']
     assert code == 2 and log.level == Log.ERROR
     assert 'model /missing/model.pt' in log.msg and log.msg in stderr
+
+
+def test_the_lifecycle_manager_configuration_brings_up_the_launched_nodes_in_order(
+        prefix: Path) -> None:
+    """config/lifecycle_manager.yaml (nav2_lifecycle_manager) names the nodes the launch
+    file starts with autostart:=false, kinematics first, each a managed node, without the
+    bond our Python nodes cannot offer."""
+    generator = load_tool('gen_node_docs')
+    manager = yaml.safe_load((ROOT / 'lompr_predictor' / 'config' /
+                              'lifecycle_manager.yaml').read_text())
+    settings = manager['lifecycle_manager']['ros__parameters']
+    assert settings['node_names'] == ['kinematics_node', 'predictor_node']
+    assert settings['bond_timeout'] == 0.0 and settings['autostart'] is True
+    nodes = described(prefix, 'autostart:=false')
+    for name in settings['node_names']:
+        assert 'autostart' in parameter_specs(generator.settings_class(name))
+        assert nodes[name].parameters['autostart'] is False
+
+
+def test_the_command_path_runs_the_compensator_and_the_twin_arm_through_it(
+        prefix: Path) -> None:
+    """command_path:=true adds command_compensator_node with the robot's arguments (its own
+    parameters only); with twin:=true robot:=arm the twin runs the compensated commands."""
+    generator = load_tool('gen_node_docs')
+    nodes = described(prefix, 'twin:=true', 'robot:=arm', 'command_path:=true',
+                      f'robot_description_file:={ARM}', 'base_frame:=arm_base',
+                      'tip_frame:=tool0', 'command_topic:=joint_commands', 'autostart:=false')
+    assert list(nodes) == ['kinematics_node', 'predictor_node', 'command_compensator_node',
+                           'twin_node']
+    compensator = nodes['command_compensator_node'].parameters
+    declared = set(parameter_specs(generator.settings_class('command_compensator_node')))
+    assert set(compensator) - declared - NODE_PARAMETERS == set()
+    assert {name: compensator[name] for name in (
+        'robot_description_file', 'base_frame', 'tip_frame', 'command_topic', 'autostart')} == {
+        'robot_description_file': str(ARM), 'base_frame': 'arm_base', 'tip_frame': 'tool0',
+        'command_topic': 'joint_commands', 'autostart': False}
+    twin = nodes['twin_node'].parameters
+    assert (twin['robot'], twin['command_topic'], twin['compensated_command_topic']) == (
+        'arm', 'joint_commands', compensator['output_topic'])
+    assert 'compensated_command_topic' not in described(prefix, 'twin:=true')['twin_node'] \
+        .parameters  # without the command path the twin applies the offsets itself
