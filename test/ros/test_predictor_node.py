@@ -644,7 +644,7 @@ def test_overruns_are_counted_on_diagnostics(ros: Any, tmp_path: Path) -> None:
     assert overrun.late_outputs_dropped + overrun.inference_skipped_late >= 3
     assert not [m for m in wiring.compensations if m.vector.x or m.vector.y]  # none late
     status = wiring.node.diagnostics.prediction_status()
-    assert status.level == Level.WARN and 'late or skipped' in status.message
+    assert status.level == Level.WARN and 'after their instant or skipped' in status.message
     assert status.values['late_outputs_dropped'] == overrun.late_outputs_dropped
 
 
