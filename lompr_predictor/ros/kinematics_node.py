@@ -215,15 +215,7 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], ManagedNode, LifecycleNod
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Load the robot and make the endpoints; a robot that cannot be loaded leaves the
         node unconfigured with the reason (log, /diagnostics)."""
-        try:
-            self._configure()
-            error = None
-        except LomprError as err:
-            error = err
-        result = self.configured_as(error)
-        if result != TransitionCallbackReturn.SUCCESS:
-            return result
-        return super().on_configure(state)
+        return self.configure_with(state, self._configure)
 
     def _configure(self) -> None:
         settings = self.settings

@@ -7,6 +7,7 @@ released when the node is destroyed."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from lifecycle_msgs.srv import ChangeState
@@ -120,6 +121,20 @@ class ManagedNode(_LifecycleNodeType):
         if not self._autostarting:
             self.get_logger().error(f'configure failed, staying unconfigured: {error}')
         return TransitionCallbackReturn.FAILURE
+
+    def configure_with(self, state: LifecycleState,
+                       make: Callable[[], None]) -> TransitionCallbackReturn:
+        """An `on_configure` that runs `make` (load what the node needs, make its
+        endpoints): a `LomprError` leaves the node unconfigured with the reason."""
+        try:
+            make()
+            error = None
+        except LomprError as err:
+            error = err
+        result = self.configured_as(error)
+        if result != TransitionCallbackReturn.SUCCESS:
+            return result
+        return super().on_configure(state)
 
     # -- hooks a node overrides ---------------------------------------------------------
 
