@@ -29,7 +29,6 @@ from rclpy.publisher import Publisher
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import Level, Status
 from lompr_predictor.online.command_compensation import (
     BAD_INPUT,
@@ -38,7 +37,6 @@ from lompr_predictor.online.command_compensation import (
     CompensatorLimits,
 )
 from lompr_predictor.robot.chain import RobotSpec, UrdfText, load_chain
-from lompr_predictor.robot.description import robot_name
 from lompr_predictor.robot.joint_offsets import DEFAULT_DAMPING
 from lompr_predictor.ros.common import run_node
 from lompr_predictor.ros.managed import ManagedNode
@@ -51,7 +49,12 @@ from lompr_predictor.ros.node_base import (
     node_help,
 )
 from lompr_predictor.ros.parameters import parameter
-from lompr_predictor.ros.robot_description import DescriptionTopic, waiting_for
+from lompr_predictor.ros.robot_description import (
+    description_topic,
+    hardware_id,
+    start_when_described,
+    waiting_for,
+)
 from lompr_predictor.stamps import NS_PER_SECOND, period_ns
 
 NODE_NAME = 'command_compensator_node'
@@ -170,22 +173,12 @@ class CommandCompensatorNode(NodeBase[CommandCompensatorSettings], ManagedNode, 
         self.command_rate = self.rate_meter(settings.rate_window)
         self.offset_rate = self.rate_meter(settings.rate_window)
         #: The robot description's topic, when the node reads it there (else None).
-        self.description = (DescriptionTopic(self, self.start_when_ready) if
-                            settings.robot_description_topic
-                            and not settings.robot_description_file else None)
-        try:
-            hardware_id = '' if self.description else robot_name(
-                settings.robot_description_file or None)
-        except LomprError:
-            hardware_id = ''  # configure says why the description cannot be read
+        self.description = description_topic(self, self.start_when_ready)
         diagnostics = self.start_diagnostics(settings.diagnostics_topic,
-                                             settings.diagnostics_period, hardware_id)
+                                             settings.diagnostics_period,
+                                             hardware_id(self, self.description))
         diagnostics.add('command path', self.status)
-        if self.description is None:
-            self.start()
-        else:  # it starts when the description comes
-            self.get_logger().info(f'waiting for the robot description on '
-                                   f'{self.description.topic}')
+        start_when_described(self, self.description)
 
     # -- lifecycle --------------------------------------------------------------------------
 

@@ -31,7 +31,7 @@ from rclpy.publisher import Publisher
 from rclpy.subscription import Subscription
 from sensor_msgs.msg import JointState
 
-from lompr_predictor.errors import KinematicsError, LomprError
+from lompr_predictor.errors import KinematicsError
 from lompr_predictor.monitoring import (
     LatencyRecorder,
     Level,
@@ -41,7 +41,6 @@ from lompr_predictor.monitoring import (
     rejection_values,
 )
 from lompr_predictor.robot.chain import KinematicChain, RobotSpec, load_chain
-from lompr_predictor.robot.description import robot_name
 from lompr_predictor.robot.joint_stream import (
     KINEMATICS_REASONS,
     JointStateDrop,
@@ -61,7 +60,12 @@ from lompr_predictor.ros.node_base import (
     node_help,
 )
 from lompr_predictor.ros.parameters import parameter
-from lompr_predictor.ros.robot_description import DescriptionTopic, waiting_for
+from lompr_predictor.ros.robot_description import (
+    description_topic,
+    hardware_id,
+    start_when_described,
+    waiting_for,
+)
 from lompr_predictor.ros.wire import PoseStampedWriter, WireError, read_joint_state
 from lompr_predictor.stamps import period_ns
 
@@ -190,25 +194,15 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], ManagedNode, LifecycleNod
         #: The commanded joints' path (None without `command_topic`, or unconfigured).
         self.commands: CommandPath | None = None
         #: The robot description's topic, when the node reads it there (else None).
-        self.description = (DescriptionTopic(self, self.start_when_ready) if
-                            settings.robot_description_topic
-                            and not settings.robot_description_file else None)
-        try:
-            hardware_id = '' if self.description else robot_name(
-                settings.robot_description_file or None)
-        except LomprError:
-            hardware_id = ''  # configure says why the description cannot be read
+        self.description = description_topic(self, self.start_when_ready)
         self._diagnostics = self.start_diagnostics(
-            settings.diagnostics_topic, settings.diagnostics_period, hardware_id=hardware_id)
+            settings.diagnostics_topic, settings.diagnostics_period,
+            hardware_id=hardware_id(self, self.description))
         self._diagnostics.add('joint states', self.input_status)
         self._diagnostics.add('forward kinematics', self.kinematics_status)
         if settings.command_topic:
             self._diagnostics.add('commanded joints', self.commands_status)
-        if self.description is None:
-            self.start()
-        else:  # it starts when the description comes
-            self.get_logger().info(f'waiting for the robot description on '
-                                   f'{self.description.topic}')
+        start_when_described(self, self.description)
 
     # -- lifecycle --------------------------------------------------------------------------
 

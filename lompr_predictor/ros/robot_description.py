@@ -13,8 +13,9 @@ from typing import Any
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
-from lompr_predictor.errors import RobotDescriptionError
+from lompr_predictor.errors import LomprError, RobotDescriptionError
 from lompr_predictor.robot.chain import UrdfText
+from lompr_predictor.robot.description import robot_name
 from lompr_predictor.ros.node_base import Endpoint, NodeBase
 
 #: robot_state_publisher's publisher of `robot_description`: the latest kept for late joiners.
@@ -64,3 +65,33 @@ def waiting_for(description: DescriptionTopic | None) -> str:
     if description is None or description.latest is not None:
         return 'waiting for configure'
     return f'waiting for the robot description on {description.topic}'
+
+
+def description_topic(node: NodeBase[Any], on_first: Callable[[], None]
+                      ) -> DescriptionTopic | None:
+    """The node's description topic if it reads its URDF there (`robot_description_topic`
+    set, no `robot_description_file`), else None."""
+    settings = node.settings
+    if settings.robot_description_topic and not settings.robot_description_file:
+        return DescriptionTopic(node, on_first)
+    return None
+
+
+def hardware_id(node: NodeBase[Any], description: DescriptionTopic | None) -> str:
+    """The name of the node's robot for its statuses' hardware_id: the file's <robot>; ''
+    when it comes on a topic, or the file cannot be read (configure says why)."""
+    if description is not None:
+        return ''
+    try:
+        return robot_name(node.settings.robot_description_file or None)
+    except LomprError:
+        return ''
+
+
+def start_when_described(node: Any, description: DescriptionTopic | None) -> None:
+    """Start a managed node now (`ManagedNode.start`), or, if its description comes on a
+    topic, say that it waits for it (it starts when the first one comes)."""
+    if description is None:
+        node.start()
+    else:
+        node.get_logger().info(f'waiting for the robot description on {description.topic}')
