@@ -22,7 +22,7 @@ from lompr_predictor.ros.parameters import ParameterSpec, parameter_specs
 
 #: Node name -> its settings dataclass ('module:Class'): the one place naming where they live.
 SETTINGS_CLASSES = {
-    'kinematics_node': 'lompr_predictor.ros.kinematics_node:KinematicsNodeSettings',
+    'kinematics_node': 'lompr_predictor.ros.kinematics_settings:KinematicsNodeSettings',
     'predictor_node': 'lompr_predictor.ros.predictor_settings:PredictorNodeSettings',
     'twin_node': 'lompr_predictor.ros.twin_node:TwinNodeSettings',
     'command_compensator_node':

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 from geometry_msgs.msg import PoseStamped
@@ -37,7 +36,6 @@ from lompr_predictor.monitoring import (
     Level,
     RejectionCounter,
     Status,
-    latency_values,
     rejection_values,
 )
 from lompr_predictor.robot.chain import KinematicChain, RobotSpec, load_chain
@@ -50,16 +48,20 @@ from lompr_predictor.robot.joint_stream import (
 )
 from lompr_predictor.robot.kinematics import ToolPose
 from lompr_predictor.ros.common import run_node
+from lompr_predictor.ros.kinematics_diagnostics import (
+    KinematicsDiagnostics,
+    KinematicsMeters,
+    KinematicsReadings,
+)
+from lompr_predictor.ros.kinematics_settings import KinematicsNodeSettings
 from lompr_predictor.ros.managed import ManagedNode
 from lompr_predictor.ros.node_base import (
     OUTPUT_QOS,
     SENSOR_INPUT_QOS,
     Endpoint,
-    FrameSettings,
     NodeBase,
     node_help,
 )
-from lompr_predictor.ros.parameters import parameter
 from lompr_predictor.ros.robot_description import (
     description_topic,
     hardware_id,
@@ -72,78 +74,6 @@ from lompr_predictor.stamps import period_ns
 NODE_NAME = 'kinematics_node'
 __all__ = ['KINEMATICS_REASONS', 'JointStateDrop', 'KinematicsNode', 'KinematicsNodeSettings',
            'main']
-
-
-def _joint_names_problem(names: tuple[str, ...]) -> str | None:
-    """Why `names` cannot name the measured joints (the chain checks which they must be)."""
-    if '' in names or len(set(names)) != len(names):
-        return 'needs distinct, non-empty names'
-    return None
-
-
-@dataclass(frozen=True)
-class KinematicsNodeSettings(FrameSettings):
-    """The node's parameters: one field each (after the shared `FrameSettings`),
-    declared by `NodeBase.declare_settings`."""
-
-    robot_description_file: str = parameter(
-        '', "URDF of the robot (its calibrated geometry): the LOMPR's closed chain or any "
-        'serial chain; empty: robot_description_topic if set, else the packaged nominal '
-        'LOMPR description', read_only=True)
-    robot_description_topic: str = parameter(
-        '', 'std_msgs/String topic the robot description comes on, as robot_state_publisher '
-        'publishes it (transient local), used when robot_description_file is empty: '
-        'configure waits for it (with autostart the node configures when it comes); empty: '
-        'off', read_only=True)
-    base_frame: str = parameter(
-        '', "URDF frame the tool pose is expressed in; empty: the URDF's root (the LOMPR: "
-        'its robot frame)', read_only=True)
-    tip_frame: str = parameter(
-        '', "URDF frame of the tool tip; empty: the LOMPR's tool_tip (another robot needs "
-        'it named)', read_only=True)
-    joint_names: tuple[str, ...] = parameter(
-        (), 'the measured joints, as they appear in the JointState: for a serial chain the '
-        "URDF's joints from base to tip (empty: all of them, in that order); for the LOMPR "
-        'the names of ups1, ups2, ups3, head_primary, head_secondary (in this order; empty: '
-        'these); other names in a message are ignored', read_only=True,
-        check=_joint_names_problem, items=str)
-    command_topic: str = parameter(
-        '', 'JointState of the commanded joints (a robot commanded in joints, as a '
-        'ros2_control robot is): their forward kinematics is published on reference_topic '
-        "with the command's stamp; empty: off", read_only=True)
-    reference_topic: str = parameter(
-        'lompr/reference', 'PoseStamped output of the commanded tool pose (with '
-        'command_topic)', read_only=True)
-    joint_state_topic: str = parameter('joint_states', 'JointState input topic (relative: '
-                                       "in the node's namespace)", read_only=True)
-    end_pose_topic: str = parameter('lompr/end_pose', 'PoseStamped output topic',
-                                    read_only=True)
-    publish_full_joint_state: bool = parameter(
-        False, 'also publish every joint of the URDF (the passive ones from the forward '
-        'kinematics) on full_joint_state_topic, for robot_state_publisher', read_only=True)
-    full_joint_state_topic: str = parameter(
-        'lompr/full_joint_states', 'JointState output of every joint (publish_full_joint_state)',
-        read_only=True)
-    warm_start_max_gap: float = parameter(
-        0.5, 'stamp gap [s] above which (or a stamp going backwards) forward kinematics '
-        'restarts from the nominal posture instead of extrapolating the last two solutions',
-        minimum=0.0, maximum=3600.0)
-    latency_samples: int = parameter(1000, 'last solve times kept for the p50/p99',
-                                     minimum=10, maximum=1_000_000, read_only=True)
-    solve_time_warn: float = parameter(
-        0.001, 'p99 solve time [s] above which the kinematics status is WARN',
-        minimum=1e-6, maximum=10.0)
-    warning_throttle_period: float = parameter(
-        5.0, 'seconds between two warnings of the same kind of rejected input',
-        minimum=0.0, maximum=3600.0)
-    max_future_stamp: float = parameter(
-        1.0, "a joint state stamped more than this many seconds ahead of the node's clock is "
-        'rejected (not checked while the clock reads 0: sim time before the first /clock)',
-        minimum=0.0, maximum=1e9)
-    autostart: bool = parameter(
-        True, 'configure and activate at start (a robot description that cannot be loaded '
-        'then stops the executable, exit code 2); false: start unconfigured and wait for a '
-        'lifecycle manager (change_state)', read_only=True)
 
 
 JOINT_STATES = Endpoint('subscription', JointState, 'joint_state_topic', SENSOR_INPUT_QOS,
@@ -182,7 +112,6 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], ManagedNode, LifecycleNod
         self.input_rate = self.rate_meter(settings.rate_window)  # on the node's clock
         self.output_rate = self.rate_meter(settings.rate_window)
         self.dropped_inactive = 0  # joint states received while not active
-        self._rejected_at_last_report = 0
         self._publisher: Publisher | None = None
         self._full_publisher: Publisher | None = None
         self._subscription: Subscription | None = None
@@ -195,14 +124,25 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], ManagedNode, LifecycleNod
         self.commands: CommandPath | None = None
         #: The robot description's topic, when the node reads it there (else None).
         self.description = description_topic(self, self.start_when_ready)
-        self._diagnostics = self.start_diagnostics(
+        diagnostics = self.start_diagnostics(
             settings.diagnostics_topic, settings.diagnostics_period,
             hardware_id=hardware_id(self, self.description))
-        self._diagnostics.add('joint states', self.input_status)
-        self._diagnostics.add('forward kinematics', self.kinematics_status)
-        if settings.command_topic:
-            self._diagnostics.add('commanded joints', self.commands_status)
+        meters = KinematicsMeters(self.solve_time, self.rejected, self.input_rate,
+                                  self.output_rate)
+        self.statuses = KinematicsDiagnostics(diagnostics, meters, self.readings,
+                                              commands=bool(settings.command_topic))
         start_when_described(self, self.description)
+
+    def readings(self) -> KinematicsReadings:
+        """What the statuses read at a report."""
+        commands = self.commands
+        return KinematicsReadings(
+            settings=self.settings, lifecycle_state=self.lifecycle_state, active=self.active,
+            configure_error=self.configure_error, waiting_for=waiting_for(self.description),
+            chain=self.chain, measured=self.measured, dropped_inactive=self.dropped_inactive,
+            description_values=self.description.values() if self.description else {},
+            callback_values=self.callback_values(),
+            commands=None if commands is None else commands.status)
 
     # -- lifecycle --------------------------------------------------------------------------
 
@@ -320,68 +260,6 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], ManagedNode, LifecycleNod
         what = 'end pose' if rejected is self.rejected else 'commanded pose'
         self.warn_throttled(f'{what} {reason}', f'no {what} for the joint state at '
                                                 f'{sec}.{nanosec:09d} ({reason}): {err}')
-
-    def input_status(self) -> Status:
-        """Diagnostics of /joint_states: rate, counts, rejections by reason."""
-        rejected = self.rejected.total
-        new_rejections = rejected - self._rejected_at_last_report
-        self._rejected_at_last_report = rejected
-        silence = self.input_rate.seconds_since_last()
-        values: dict[str, object] = {
-            'lifecycle_state': self.lifecycle_state,
-            'input_rate_hz': round(self.input_rate.rate(), 3),
-            'received_total': self.input_rate.total,
-            'dropped_inactive': self.dropped_inactive,
-            **rejection_values(self.rejected),
-            **self.callback_values(),
-        }
-        topic = self.settings.joint_state_topic
-        if not self.active:
-            return Status(Level.WARN, f'{self.lifecycle_state}: joint states not answered',
-                          values)
-        if silence is None:
-            return Status(Level.WARN, f'no joint states on {topic} for '
-                                      f'{self.settings.rate_window:g} s', values)
-        if new_rejections:
-            reasons = ', '.join(f'{r}: {n}' for r, n in self.rejected.counts().items() if n)
-            return Status(Level.WARN, f'{new_rejections} joint states rejected since the last '
-                                      f'report (totals {reasons})', values)
-        return Status(Level.OK, f'{values["input_rate_hz"]} Hz', values)
-
-    def kinematics_status(self) -> Status:
-        """Diagnostics of the FK: solve times, output rate, warm-start resets."""
-        summary = self.solve_time.summary()
-        chain, measured = self.chain, self.measured
-        values: dict[str, object] = {
-            **latency_values('solve_time', summary),
-            'output_rate_hz': round(self.output_rate.rate(), 3),
-            'published_total': self.output_rate.total,
-            'configure_error': self.configure_error or '',
-            **(self.description.values() if self.description else {}),
-        }
-        if chain is None or measured is None:
-            return Status(Level.ERROR if self.configure_error else Level.WARN,
-                          f'unconfigured: {self.configure_error or waiting_for(self.description)}',
-                          values)
-        values.update({
-            'warm_start_resets': measured.warm_start_resets,
-            'newton_iterations_last': measured.solver.last_iterations,
-            'robot_description': chain.source, 'robot_description_sha256': chain.sha256,
-            'chain': f'{chain.kind}: {chain.base_frame} -> {chain.tip_frame}'})
-        if summary.samples == 0:
-            return Status(Level.OK, 'no joint state solved yet', values)
-        timing = f'solve p50 {summary.p50 * 1e6:.1f} us, p99 {summary.p99 * 1e6:.1f} us'
-        if summary.p99 > self.settings.solve_time_warn:
-            limit = self.settings.solve_time_warn * 1e6
-            return Status(Level.WARN, f'{timing} (over {limit:.0f} us)', values)
-        return Status(Level.OK, timing, values)
-
-    def commands_status(self) -> Status:
-        """Diagnostics of the commanded joints (`command_topic`)."""
-        if self.commands is None:
-            return Status(Level.WARN, f'{self.lifecycle_state}: commanded joints not answered',
-                          {'lifecycle_state': self.lifecycle_state})
-        return self.commands.status()
 
 
 class CommandPath:
