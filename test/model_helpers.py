@@ -15,9 +15,21 @@ from typing import Any
 import numpy as np
 import torch
 
-from lompr_predictor.data.features import FEATURES, TARGETS
-from lompr_predictor.learning.model_file import ModelMetadata, save_model, sidecar_path
+from lompr_predictor.data.features import FEATURES, TARGETS, feature_names
+from lompr_predictor.learning.model_file import (
+    ModelMetadata,
+    library_versions,
+    save_model,
+    sidecar_path,
+)
+from lompr_predictor.learning.models import persistence_module
+from lompr_predictor.robot.chain import RobotSpec, load_chain
 from lompr_predictor.robot.description import load_robot_description
+from lompr_predictor.twin.arm import BASE_FRAME, arm_description_path
+from lompr_predictor.twin.arm_programs import TIP_FRAME
+
+#: [s] The twin arm's sample period (250 Hz).
+ARM_PERIOD = 0.004
 
 
 class LinearWindowModel(torch.nn.Module):
@@ -90,3 +102,16 @@ def write_sidecar(path: Path) -> Path:
     sidecar = sidecar_path(path)
     sidecar.write_text(f'{digest}  {path.name}\n')
     return sidecar
+
+
+def persistence_arm_model(path: Path, horizon: int = 1) -> Path:
+    """The persistence compensator as a model file of the arm's chain: its rows the serial
+    chain's columns, bound to the packaged arm URDF, frames arm_base -> tool0."""
+    chain = load_chain(RobotSpec(arm_description_path(), BASE_FRAME, TIP_FRAME))
+    features = feature_names(0, chain.actuators)
+    metadata = ModelMetadata(
+        features=features, window=1, horizon=horizon, sample_period=ARM_PERIOD, targets=TARGETS,
+        normalisation={}, model_type='persistence', hyperparameters={},
+        robot_description_sha256=chain.sha256, training_bags=(), seed=0,
+        library_versions=library_versions(), robot=chain.metadata())
+    return save_model(path, persistence_module(features), metadata)

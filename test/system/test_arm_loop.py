@@ -21,13 +21,11 @@ import numpy as np
 import pinocchio as pin
 import pytest
 from geometry_msgs.msg import Vector3Stamped
+from model_helpers import persistence_arm_model
 from rclpy.parameter import Parameter
 from ros_helpers import RosHarness, stamp_ns
 
-from lompr_predictor.data.features import TARGETS, feature_names
-from lompr_predictor.learning.model_file import ModelMetadata, library_versions, save_model
-from lompr_predictor.learning.models import persistence_module
-from lompr_predictor.robot.chain import RobotSpec, SerialChain, load_chain
+from lompr_predictor.robot.chain import SerialChain, load_chain
 from lompr_predictor.robot.joint_offsets import tool_offset_to_joints
 from lompr_predictor.ros.kinematics_node import KinematicsNode
 from lompr_predictor.ros.predictor_node import PredictorNode
@@ -40,7 +38,6 @@ from lompr_predictor.twin.run_log import read_run_log
 SEED = 5
 PROGRAM = 'figure8'
 SAMPLES = 400
-PERIOD = 0.004
 #: [s] How long the twin waits for a sample's answer before the loop's first answer. The
 #: loop's friction makes its ringing depend on the sample it closes at (the RMS of a run
 #: moves by a few % with it), so both runs wait long enough for every node to be matched
@@ -81,19 +78,6 @@ def test_the_joint_offset_moves_the_tool_tip_by_the_offset(program: str) -> None
     assert not tool_offset_to_joints(chain, TIP_FRAME, postures, np.zeros_like(offsets)).any()
     with pytest.raises(ValueError, match=r'offset_xy must be \(2,\) or \(N, 2\)'):
         tool_offset_to_joints(chain, TIP_FRAME, postures, offsets[:1])
-
-
-def persistence_arm_model(path: Path, horizon: int = 1) -> Path:
-    """The persistence compensator as a model file of the arm's chain: its rows the serial
-    chain's columns, bound to the packaged arm URDF, frames arm_base -> tool0."""
-    chain = load_chain(RobotSpec(arm_description_path(), BASE_FRAME, TIP_FRAME))
-    features = feature_names(0, chain.actuators)
-    metadata = ModelMetadata(
-        features=features, window=1, horizon=horizon, sample_period=PERIOD, targets=TARGETS,
-        normalisation={}, model_type='persistence', hyperparameters={},
-        robot_description_sha256=chain.sha256, training_bags=(), seed=0,
-        library_versions=library_versions(), robot=chain.metadata())
-    return save_model(path, persistence_module(features), metadata)
 
 
 def _rms_um(error: np.ndarray) -> float:

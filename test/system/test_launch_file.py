@@ -362,7 +362,11 @@ def test_the_command_path_runs_the_compensator_and_the_twin_arm_through_it(
         'robot_description_file': str(ARM), 'base_frame': 'arm_base', 'tip_frame': 'tool0',
         'command_topic': 'joint_commands', 'autostart': False}
     twin = nodes['twin_node'].parameters
-    assert (twin['robot'], twin['command_topic'], twin['compensated_command_topic']) == (
-        'arm', 'joint_commands', compensator['output_topic'])
+    assert (twin['robot'], twin['command_topic'], twin['compensated_command_topic'],
+            twin['mode']) == ('arm', 'joint_commands', compensator['output_topic'], 'paced')
+    # the poses and offsets are labelled with the arm's base frame, the compensator's frame
+    assert {name: nodes[name].parameters['frame_id'] for name in (
+        'kinematics_node', 'predictor_node', 'twin_node')} == dict.fromkeys(
+        ('kinematics_node', 'predictor_node', 'twin_node'), 'arm_base')
     assert 'compensated_command_topic' not in described(prefix, 'twin:=true')['twin_node'] \
         .parameters  # without the command path the twin applies the offsets itself

@@ -20,18 +20,22 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
 from launch_helpers import installed_or_skipped, start_launch
-from model_helpers import save_linear
+from model_helpers import persistence_arm_model, save_linear
 from rcl_interfaces.srv import GetParameters
 from rclpy.parameter import parameter_value_to_python
 from ros_helpers import RosHarness
 from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
 
 from lompr_predictor.processes import stop_processes
 from lompr_predictor.robot.description import ROBOT_FRAME
+from lompr_predictor.twin.arm import BASE_FRAME, arm_description_path
+from lompr_predictor.twin.arm_programs import TIP_FRAME
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
@@ -103,12 +107,13 @@ def parameters(ros: RosHarness, node: str, names: list[str]) -> dict[str, Any]:
             for name, value in zip(names, response.values, strict=True)}
 
 
-def wait_for_nodes(ros: RosHarness, process: subprocess.Popen[str]) -> None:
-    """Until every node of the launch is in the graph, in the namespace."""
+def wait_for_nodes(ros: RosHarness, process: subprocess.Popen[str],
+                   nodes: tuple[str, ...] = NODES) -> None:
+    """Until every node of the launch (`nodes`) is in the graph, in the namespace."""
     def started() -> bool:
         assert process.poll() is None, 'ros2 launch ended'
         found = set(ros.node.get_node_names_and_namespaces())
-        return all((name, NAMESPACE) in found for name in NODES)
+        return all((name, NAMESPACE) in found for name in nodes)
 
     ros.spin_until(started, START_TIMEOUT, 'the launched nodes in /cell1')
 
@@ -231,3 +236,35 @@ def test_on_sim_time_the_twin_is_the_clock_and_data_flows(
         clock = parameters(ros, 'twin_node', ['publish_clock', 'use_sim_time'])
     assert sim_time == {'use_sim_time': True}
     assert clock == {'publish_clock': True, 'use_sim_time': False}
+
+
+def test_the_command_path_closes_the_twin_arms_loop_through_the_compensator(
+        ros: RosHarness, prefix: Path, tmp_path: Path) -> None:
+    """The launch file's example of a robot commanded in joints, run: the twin arm's nominal
+    commands go through command_compensator_node, which sends each back compensated by the
+    predictor's offset (as JointState and as a forward position controller's array, the same
+    positions), and the twin runs them."""
+    arm_model = persistence_arm_model(tmp_path / 'arm_model.pt')
+    nominal = ros.collect(f'{NAMESPACE}/joint_commands', JointState, 5000)
+    compensated = ros.collect(f'{NAMESPACE}/joint_commands_compensated', JointState, 5000)
+    forward = ros.collect(f'{NAMESPACE}/forward_position_controller/commands',
+                          Float64MultiArray, 5000)
+    with launched(prefix, 'namespace:=cell1', 'twin:=true', 'robot:=arm', 'command_path:=true',
+                  'use_sim_time:=true', f'robot_description_file:={arm_description_path()}',
+                  f'base_frame:={BASE_FRAME}', f'tip_frame:={TIP_FRAME}',
+                  'command_topic:=joint_commands', f'model_path:={arm_model}',
+                  'compensation_enabled:=true') as process:
+        wait_for_nodes(ros, process, (*NODES, 'command_compensator_node'))
+        ros.spin_until(lambda: len(compensated) >= 200 and len(forward) >= 200, START_TIMEOUT,
+                       'compensated commands of the twin arm')
+        mode = parameters(ros, 'twin_node', ['mode'])
+    assert mode == {'mode': 'paced'}
+    commanded = {stamp_ns(msg): np.array(msg.position) for msg in nominal}
+    steps = np.array([np.array(msg.position) - commanded[stamp_ns(msg)]
+                      for msg in compensated if stamp_ns(msg) in commanded])
+    assert len(steps) >= 100 and np.isfinite(steps).all()
+    # the offsets move the joints, by far less than a milliradian each
+    assert np.count_nonzero(np.abs(steps).max(axis=1) > 0.0) >= 50
+    assert np.abs(steps).max() < 1e-3
+    arrays = {tuple(msg.data) for msg in forward}
+    assert sum(tuple(msg.position) in arrays for msg in compensated) >= 100
