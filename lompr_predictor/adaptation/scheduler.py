@@ -34,9 +34,11 @@ from typing import Any
 import numpy as np
 
 from lompr_predictor.adaptation.outcome import AttemptOutcome, AttemptResult, Decision
+from lompr_predictor.files import write_atomic
 from lompr_predictor.monitoring import HeldEvent, Level, Status
 from lompr_predictor.online.inference import ExportedGraph
 from lompr_predictor.online.sample_store import NS_PER_MINUTE, SampleStore, capacity_for
+from lompr_predictor.robot.chain import UrdfText
 from lompr_predictor.scheduling import lower_job
 
 #: The child's module (run with `-m`, never imported here: it loads the trainer).
@@ -51,6 +53,8 @@ RESULT_JSON = 'result.json'
 GRAPH_NAME = 'candidate.onnx'
 GRAPH_OUTPUTS_NAME = 'candidate_outputs.npy'
 STDERR_NAME = 'stderr.txt'
+#: In its work folder, the robot description an attempt reads when the node's came as text.
+DESCRIPTION_NAME = 'robot_description.urdf'
 #: Adapted model files (`attempt.new_model_path`).
 MODEL_GLOB = 'adapted-*.pt'
 
@@ -81,7 +85,8 @@ class ModelInForce:
 
     path: str
     sha256: str
-    robot_description: str | None  # URDF file; None: the packaged one
+    robot_description: str | UrdfText | None  # URDF file, or its text as received; None:
+    # the packaged one
     frame: str
 
 
@@ -141,10 +146,14 @@ class Adaptation:
         self.state.attempts += 1
         work = self.folder / f'{WORK_PREFIX}{os.getpid()}-{self.state.attempts}'
         work.mkdir()
+        description = model.robot_description
+        if isinstance(description, UrdfText):  # the attempt reads a file: the text received
+            write_atomic(work / DESCRIPTION_NAME, description.xml.encode('utf-8'))
+            description = str(work / DESCRIPTION_NAME)
         request = {'parent': model.path, 'parent_sha256': model.sha256,
                    'models_folder': str(self.folder), 'work_folder': str(work),
                    'margin': self.settings.margin, 'max_epochs': self.settings.max_epochs,
-                   'robot_description': model.robot_description, 'frame': model.frame,
+                   'robot_description': description, 'frame': model.frame,
                    'seed': self.state.attempts, 'info': info}
         command = [sys.executable, '-m', ATTEMPT_MODULE, '--fd', str(store.fd), '--window-ns',
                    str(self.window_ns), '--request', json.dumps(request),

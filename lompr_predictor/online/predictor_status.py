@@ -40,6 +40,7 @@ class Lifecycle:
     state: str  # rclpy's label: unconfigured, inactive, active, finalized
     autostart: bool
     configure_error: str | None  # why the last configure failed (None after a success)
+    waiting: str = 'waiting for configure'  # what an unconfigured node waits for
 
     @property
     def active(self) -> bool:
@@ -98,8 +99,8 @@ def model_status(lifecycle: Lifecycle, model_path: str, core: OnlinePredictor | 
         if lifecycle.configure_error is not None:
             return Status(Level.ERROR, f'unconfigured: configure failed: '
                                        f'{lifecycle.configure_error}', values)
-        return Status(Level.WARN, f'{lifecycle.state}: no model loaded (waiting for '
-                                  'configure)', values)
+        return Status(Level.WARN, f'{lifecycle.state}: no model loaded ({lifecycle.waiting})',
+                      values)
     model = core.model
     metadata = model.metadata
     values.update({

@@ -50,10 +50,8 @@ from lompr_predictor.ros.node_base import (
 )
 from lompr_predictor.ros.parameters import parameter
 from lompr_predictor.ros.robot_description import (
-    description_topic,
-    hardware_id,
-    start_when_described,
-    waiting_for,
+    DESCRIPTION_TOPIC_HELP,
+    RobotSource,
 )
 from lompr_predictor.stamps import NS_PER_SECOND, period_ns
 
@@ -80,10 +78,7 @@ class CommandCompensatorSettings(SchedulingSettings):
         'robot_description_topic if set, else the packaged LOMPR description, whose closed '
         'chain has no joint-space command path (refused)', read_only=True)
     robot_description_topic: str = parameter(
-        '', 'std_msgs/String topic the robot description comes on, as robot_state_publisher '
-        'publishes it (transient local), used when robot_description_file is empty: '
-        'configure waits for it (with autostart the node configures when it comes); empty: '
-        'off', read_only=True)
+        '', DESCRIPTION_TOPIC_HELP, read_only=True)
     base_frame: str = parameter(
         '', "URDF frame the offsets are in (the predictor's frame_id); empty: the URDF's root",
         read_only=True)
@@ -172,13 +167,13 @@ class CommandCompensatorNode(NodeBase[CommandCompensatorSettings], ManagedNode, 
         self._problems_at_last_report = 0
         self.command_rate = self.rate_meter(settings.rate_window)
         self.offset_rate = self.rate_meter(settings.rate_window)
-        #: The robot description's topic, when the node reads it there (else None).
-        self.description = description_topic(self, self.start_when_ready)
+        #: Where its URDF comes from (a file, or the topic the cell shares).
+        self.description = RobotSource(self)
         diagnostics = self.start_diagnostics(settings.diagnostics_topic,
                                              settings.diagnostics_period,
-                                             hardware_id(self, self.description))
+                                             self.description.hardware_id)
         diagnostics.add('command path', self.status)
-        start_when_described(self, self.description)
+        self.description.start()
 
     # -- lifecycle --------------------------------------------------------------------------
 
@@ -189,8 +184,7 @@ class CommandCompensatorNode(NodeBase[CommandCompensatorSettings], ManagedNode, 
 
     def _configure(self) -> None:
         settings = self.settings
-        chain = load_chain(settings.spec(self.description.text() if self.description
-                                         else None))
+        chain = load_chain(settings.spec(self.description.text()))
         core = CommandCompensator(chain, settings.limits,
                                   f'{settings.frame_prefix}{chain.base_frame}')
         self._order = core.joint_order(settings.controller_joints or chain.joint_names)
@@ -278,11 +272,11 @@ class CommandCompensatorNode(NodeBase[CommandCompensatorSettings], ManagedNode, 
             'passed_total': self.published, 'dropped_inactive': self.dropped_inactive,
             **(self.core.counts() if self.core is not None else {}),
             'last_problem': self.last_problem, **self.callback_values(),
-            **(self.description.values() if self.description else {})}
+            **self.description.values()}
         if self.core is None:
+            waiting = self.configure_error or self.description.waiting_for()
             return Status(Level.ERROR if self.configure_error else Level.WARN,
-                          f'unconfigured: {self.configure_error or waiting_for(self.description)}',
-                          values)
+                          f'unconfigured: {waiting}', values)
         problems = sum(self.core.outcomes[reason] for reason in BAD_INPUT) + self.core.clamped
         new, self._problems_at_last_report = (problems - self._problems_at_last_report,
                                               problems)

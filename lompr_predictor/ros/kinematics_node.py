@@ -62,12 +62,7 @@ from lompr_predictor.ros.node_base import (
     NodeBase,
     node_help,
 )
-from lompr_predictor.ros.robot_description import (
-    description_topic,
-    hardware_id,
-    start_when_described,
-    waiting_for,
-)
+from lompr_predictor.ros.robot_description import RobotSource
 from lompr_predictor.ros.wire import PoseStampedWriter, WireError, read_joint_state
 from lompr_predictor.stamps import period_ns
 
@@ -122,25 +117,25 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], ManagedNode, LifecycleNod
         self._pose_writer = PoseStampedWriter(settings.frame)
         #: The commanded joints' path (None without `command_topic`, or unconfigured).
         self.commands: CommandPath | None = None
-        #: The robot description's topic, when the node reads it there (else None).
-        self.description = description_topic(self, self.start_when_ready)
+        #: Where its URDF comes from (a file, or the topic the cell shares).
+        self.description = RobotSource(self)
         diagnostics = self.start_diagnostics(
             settings.diagnostics_topic, settings.diagnostics_period,
-            hardware_id=hardware_id(self, self.description))
+            hardware_id=self.description.hardware_id)
         meters = KinematicsMeters(self.solve_time, self.rejected, self.input_rate,
                                   self.output_rate)
         self.statuses = KinematicsDiagnostics(diagnostics, meters, self.readings,
                                               commands=bool(settings.command_topic))
-        start_when_described(self, self.description)
+        self.description.start()
 
     def readings(self) -> KinematicsReadings:
         """What the statuses read at a report."""
         commands = self.commands
         return KinematicsReadings(
             settings=self.settings, lifecycle_state=self.lifecycle_state, active=self.active,
-            configure_error=self.configure_error, waiting_for=waiting_for(self.description),
+            configure_error=self.configure_error, waiting_for=self.description.waiting_for(),
             chain=self.chain, measured=self.measured, dropped_inactive=self.dropped_inactive,
-            description_values=self.description.values() if self.description else {},
+            description_values=self.description.values(),
             callback_values=self.callback_values(),
             commands=None if commands is None else commands.status)
 
@@ -153,8 +148,7 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], ManagedNode, LifecycleNod
 
     def _configure(self) -> None:
         settings = self.settings
-        source = (self.description.text() if self.description else
-                  settings.robot_description_file or None)
+        source = self.description.text() or settings.robot_description_file or None
         chain = load_chain(RobotSpec(source, settings.base_frame, settings.tip_frame,
                                      settings.joint_names))
         self.chain = chain

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 from lompr_predictor.ros.node_base import FrameSettings
 from lompr_predictor.ros.parameters import parameter
+from lompr_predictor.ros.robot_description import DESCRIPTION_TOPIC_HELP
 
 
 def _joint_names_problem(names: tuple[str, ...]) -> str | None:
@@ -27,10 +28,7 @@ class KinematicsNodeSettings(FrameSettings):
         'serial chain; empty: robot_description_topic if set, else the packaged nominal '
         'LOMPR description', read_only=True)
     robot_description_topic: str = parameter(
-        '', 'std_msgs/String topic the robot description comes on, as robot_state_publisher '
-        'publishes it (transient local), used when robot_description_file is empty: '
-        'configure waits for it (with autostart the node configures when it comes); empty: '
-        'off', read_only=True)
+        '', DESCRIPTION_TOPIC_HELP, read_only=True)
     base_frame: str = parameter(
         '', "URDF frame the tool pose is expressed in; empty: the URDF's root (the LOMPR: "
         'its robot frame)', read_only=True)

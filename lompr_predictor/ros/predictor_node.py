@@ -14,9 +14,7 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-from rclpy.clock import ClockChange, JumpThreshold, TimeJump
 from rclpy.context import Context
-from rclpy.duration import Duration
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
@@ -26,7 +24,7 @@ from lompr_predictor.errors import LomprError
 from lompr_predictor.monitoring import LatencyRecorder
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_status import Lifecycle
-from lompr_predictor.robot.description import robot_name
+from lompr_predictor.ros.clock_jumps import ClockJumps
 from lompr_predictor.ros.common import run_node
 from lompr_predictor.ros.managed import ManagedNode
 from lompr_predictor.ros.node_base import NodeBase, node_help
@@ -47,6 +45,7 @@ from lompr_predictor.ros.predictor_settings import (
     PredictorNodeSettings,
 )
 from lompr_predictor.ros.predictor_store import WRITE_SERVICE, WriteSamples
+from lompr_predictor.ros.robot_description import RobotSource
 from lompr_predictor.runtime.predictor_runtime import PredictorRuntime, RuntimeHooks
 from lompr_predictor.threads import set_torch_threads
 
@@ -75,19 +74,16 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
             settings.frame, self._active_core, self.outputs.publish, self.warn_throttled,
             lambda: self.rate_meter(settings.rate_window))
         self.read_end_pose = self.guard(END_POSE.what, self.inputs.on_end_pose)
+        #: Where its URDF comes from (a file, or the topic the cell shares).
+        self.description = RobotSource(self)
         self.diagnostics = PredictorDiagnostics(
             self.start_diagnostics(settings.diagnostics_topic, settings.diagnostics_period,
-                                   hardware_id=robot_name(settings.robot_description_file
-                                                          or None)),
+                                   hardware_id=self.description.hardware_id),
             PredictorMeters(self.inputs.pose_rate, self.inputs.reference_rate,
                             self.inputs.preview_rate, self.outputs), self.readings)
-        # backward jumps (a simulator reset), a change of time source (its start: staleness timer)
-        self._jump_handle = self.get_clock().create_jump_callback(
-            JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1),
-                          on_clock_change=True),
-            post_callback=self.guard('clock jump', self._on_clock_jump))
+        self._clock_jumps = ClockJumps(self, self._on_clock_jump)
         if not deferred:
-            self.start()
+            self.description.start()
 
     @property
     def core(self) -> OnlinePredictor:
@@ -126,7 +122,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         """Configure the runtime (the model, the core, the store, the adaptation), then the
         endpoints, services and timers (or why not)."""
         settings, runtime = self.settings, self.runtime
-        error = runtime.configure(settings)
+        error = runtime.configure(settings, self.description.text())
         if error is not None:
             return error
         core = self.core
@@ -162,7 +158,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         self.runtime.release()
 
     def destroy_node(self) -> None:
-        self._jump_handle.unregister()
+        self._clock_jumps.close()
         self.runtime.release()
         super().destroy_node()
 
@@ -179,15 +175,11 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         if self.active:
             self.outputs.publish(self.runtime.check_stale(), time.perf_counter())
 
-    def _on_clock_jump(self, jump: TimeJump) -> None:
+    def _on_clock_jump(self, changed: bool, back_by_ns: int) -> None:
         """The clock went back (a simulator reset) or changed source (use_sim_time set)."""
-        changed = jump.clock_change in (ClockChange.ROS_TIME_ACTIVATED,
-                                        ClockChange.ROS_TIME_DEACTIVATED)
-        if changed or jump.delta.nanoseconds < 0:
-            text, outputs = self.runtime.clock_jumped(changed, -jump.delta.nanoseconds,
-                                                      self.active)
-            self.warn_throttled('clock jump', text)
-            self.outputs.publish(outputs, time.perf_counter())
+        text, outputs = self.runtime.clock_jumped(changed, back_by_ns, self.active)
+        self.warn_throttled('clock jump', text)
+        self.outputs.publish(outputs, time.perf_counter())
 
     def on_callback_failure(self, where: str) -> None:
         """Empty the window and cancel the offset in force: nothing half-done is published."""
@@ -219,7 +211,8 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         clock_values = {**self.runtime.clock_values(),
                         'dropped_inactive': self.inputs.dropped_inactive}
         return PredictorReadings(
-            Lifecycle(self.lifecycle_state, settings.autostart, self.configure_error),
+            Lifecycle(self.lifecycle_state, settings.autostart, self.configure_error,
+                      self.description.waiting_for()),
             settings, self.runtime, clock_values, self.callback_values(), self.clock_ns())
 
 
@@ -236,7 +229,7 @@ def build_entry_point(context: Context, end_poses_in_process_on: str | None = No
     node.end_pose_in_process = end_poses_in_process_on == node.resolve_topic_name(
         node.settings.end_pose_topic)
     set_torch_threads(node.settings.inference_threads)
-    node.start()
+    node.description.start()
     return node
 
 

@@ -23,6 +23,7 @@ from lompr_predictor.ros.node_base import (
     FrameSettings,
 )
 from lompr_predictor.ros.parameters import parameter
+from lompr_predictor.ros.robot_description import DESCRIPTION_TOPIC_HELP
 from lompr_predictor.scheduling import TRAINING_NICE
 from lompr_predictor.stamps import GAP_FACTOR
 
@@ -66,7 +67,10 @@ class PredictorCoreSettings(FrameSettings):
     robot_description_file: str = parameter(
         '', 'URDF of the robot (its calibrated geometry), the one the model must have been '
         "trained for: it gives the features' kinematics and its sha256 is checked; "
-        'empty: the packaged nominal LOMPR description', read_only=True)
+        'empty: robot_description_topic if set, else the packaged nominal LOMPR description',
+        read_only=True)
+    robot_description_topic: str = parameter(
+        '', DESCRIPTION_TOPIC_HELP, read_only=True)
     base_frame: str = parameter(
         '', "the URDF frame the poses are in; empty: the model file's (the description's "
         'for the LOMPR)', read_only=True)

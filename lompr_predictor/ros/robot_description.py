@@ -7,6 +7,7 @@ by the same sha256 as the file it came from."""
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from typing import Any
 
@@ -21,6 +22,11 @@ from lompr_predictor.ros.node_base import Endpoint, NodeBase
 #: robot_state_publisher's publisher of `robot_description`: the latest kept for late joiners.
 DESCRIPTION_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
+#: The description of every node's `robot_description_topic` parameter.
+DESCRIPTION_TOPIC_HELP = (
+    'std_msgs/String topic the robot description comes on, as robot_state_publisher '
+    'publishes it (transient local), used when robot_description_file is empty: configure '
+    'waits for it (with autostart the node configures when it comes); empty: off')
 ROBOT_DESCRIPTION = Endpoint('subscription', String, 'robot_description_topic', DESCRIPTION_QOS,
                              'robot description (URDF)')
 
@@ -59,39 +65,45 @@ class DescriptionTopic:
                 'robot_description_sha256': '' if latest is None else latest.sha256}
 
 
-def waiting_for(description: DescriptionTopic | None) -> str:
-    """What an unconfigured node waits for: its description (`description`, None: it reads
-    a file), or a lifecycle manager's configure."""
-    if description is None or description.latest is not None:
-        return 'waiting for configure'
-    return f'waiting for the robot description on {description.topic}'
+class RobotSource:
+    """Where a managed node's URDF comes from: its `robot_description_file` (empty: the
+    packaged one), or, with `robot_description_topic` set and no file, that topic
+    (`topic`), on whose first description the node configures (with `autostart`)."""
 
+    def __init__(self, node: Any) -> None:
+        """For `node`, a `NodeBase` and `ManagedNode` whose settings are declared."""
+        self._node = node
+        settings = node.settings
+        self.topic = (DescriptionTopic(node, node.start_when_ready)
+                      if settings.robot_description_topic and not settings.robot_description_file
+                      else None)
+        #: The name of the robot for the node's statuses: the file's <robot>; '' when it
+        #: comes on a topic, or the file cannot be read (configure says why).
+        self.hardware_id = ''
+        if self.topic is None:
+            with contextlib.suppress(LomprError):
+                self.hardware_id = robot_name(settings.robot_description_file or None)
 
-def description_topic(node: NodeBase[Any], on_first: Callable[[], None]
-                      ) -> DescriptionTopic | None:
-    """The node's description topic if it reads its URDF there (`robot_description_topic`
-    set, no `robot_description_file`), else None."""
-    settings = node.settings
-    if settings.robot_description_topic and not settings.robot_description_file:
-        return DescriptionTopic(node, on_first)
-    return None
+    def start(self) -> None:
+        """Start the node now (`ManagedNode.start`), or, if its description comes on a
+        topic, say that it waits for it (it starts when the first one comes)."""
+        if self.topic is None:
+            self._node.start()
+        else:
+            self._node.get_logger().info(f'waiting for the robot description on '
+                                         f'{self.topic.topic}')
 
+    def text(self) -> UrdfText | None:
+        """The topic's latest description, None if the node reads a file;
+        `RobotDescriptionError` if it waits for one."""
+        return None if self.topic is None else self.topic.text()
 
-def hardware_id(node: NodeBase[Any], description: DescriptionTopic | None) -> str:
-    """The name of the node's robot for its statuses' hardware_id: the file's <robot>; ''
-    when it comes on a topic, or the file cannot be read (configure says why)."""
-    if description is not None:
-        return ''
-    try:
-        return robot_name(node.settings.robot_description_file or None)
-    except LomprError:
-        return ''
+    def waiting_for(self) -> str:
+        """What the node waits for while unconfigured: its description, or a configure."""
+        if self.topic is None or self.topic.latest is not None:
+            return 'waiting for configure'
+        return f'waiting for the robot description on {self.topic.topic}'
 
-
-def start_when_described(node: Any, description: DescriptionTopic | None) -> None:
-    """Start a managed node now (`ManagedNode.start`), or, if its description comes on a
-    topic, say that it waits for it (it starts when the first one comes)."""
-    if description is None:
-        node.start()
-    else:
-        node.get_logger().info(f'waiting for the robot description on {description.topic}')
+    def values(self) -> dict[str, object]:
+        """Key-values for a status: the topic's, if it reads one."""
+        return {} if self.topic is None else self.topic.values()

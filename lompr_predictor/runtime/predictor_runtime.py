@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -35,7 +35,7 @@ from lompr_predictor.online.offset import CompensationLimits, Output
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.sample_store import SampleStore
 from lompr_predictor.online.store_export import StoreExport
-from lompr_predictor.robot.chain import RobotSpec, description_sha256
+from lompr_predictor.robot.chain import RobotSpec, UrdfText, description_sha256
 
 
 class NotConfiguredError(LomprError):
@@ -124,6 +124,7 @@ class PredictorRuntime:
     def __init__(self, hooks: RuntimeHooks, hash_hint: str = '',
                  fallback_hash_hint: str = '') -> None:
         self._settings: RuntimeSettings | None = None  # the latest snapshot, once configured
+        self._description: UrdfText | None = None  # the URDF as received, if not a file
         self._hooks = hooks
         self._hints = hash_hint, fallback_hash_hint
         self.models = ModelManager()
@@ -136,18 +137,23 @@ class PredictorRuntime:
         self.clock_jumps_back = 0  # the node's clock went back or changed source
         self._clock_started = False  # its clock had read a time (simulated: a /clock came)
 
-    def configure(self, settings: RuntimeSettings) -> LomprError | None:
-        """Load the description, the model (and its fallback), build the guard, the store,
-        the adaptation and the core from `settings`; None, or why not."""
-        self._settings = settings
+    def configure(self, settings: RuntimeSettings, description: UrdfText | None = None
+                  ) -> LomprError | None:
+        """Load the description (`description` as received on a topic, else the settings'
+        file), the model (and its fallback), build the guard, the store, the adaptation and
+        the core from `settings`; None, or why not."""
+        self._settings, self._description = settings, description
         try:
-            sha256 = description_sha256(settings.robot_description_file or None)
+            sha256 = (description.sha256 if description is not None else
+                      description_sha256(settings.robot_description_file or None))
         except LomprError as err:
             return err
+        robot = settings.robot if description is None else replace(settings.robot,
+                                                                    description=description)
         loaded = self.models.configure(ModelRequest(
             settings.model_path, expected_metadata(sha256, settings.window, settings.horizon),
             settings.sample_period, settings.model_sha256, settings.verify_model_hash,
-            self._hints[0], Backend(settings.inference_backend), settings.robot),
+            self._hints[0], Backend(settings.inference_backend), robot),
             settings.fallback_model_path, self._hints[1])
         if not isinstance(loaded, Configured):
             return loaded
@@ -274,7 +280,8 @@ class PredictorRuntime:
     def in_force(self) -> ModelInForce:
         """The model file the core runs, for an adaptation attempt."""
         model, settings = self.running_core().model, self._configured()
-        return ModelInForce(model.path, model.sha256, settings.robot_description_file or None,
+        return ModelInForce(model.path, model.sha256,
+                            self._description or settings.robot_description_file or None,
                             settings.frame)
 
     def provenance(self) -> dict[str, Any]:

@@ -20,6 +20,7 @@ from lompr_predictor.adaptation import scheduler as adaptation
 from lompr_predictor.adaptation.attempt import AttemptRequest
 from lompr_predictor.adaptation.outcome import AttemptOutcome, AttemptResult, Decision
 from lompr_predictor.adaptation.scheduler import (
+    DESCRIPTION_NAME,
     WORK_PREFIX,
     Adaptation,
     AdaptationSettings,
@@ -31,6 +32,7 @@ from lompr_predictor.monitoring import Level
 from lompr_predictor.online.alignment import AlignedSample
 from lompr_predictor.online.sample_store import SampleStore
 from lompr_predictor.processes import PARENT_GONE_EXIT
+from lompr_predictor.robot.chain import UrdfText
 
 SETTINGS = AdaptationSettings(minutes=0.1, period=30.0, margin=0.1, folder='', keep=2,
                               max_epochs=4, nice=10, idle=True)
@@ -217,3 +219,30 @@ def test_a_killed_attempt_is_a_failure_and_leaves_no_work_folder(
 def _sample(k: int) -> AlignedSample:
     return AlignedSample(stamp_ns=10**12 + k * 40_000_000, x=0.0, y=0.0, reference_x=0.0,
                          reference_y=0.0, reference_z=1.0)
+
+
+def test_a_description_received_as_text_reaches_the_attempt_as_a_file(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A node that got its URDF on a topic hands the attempt (a process that reads a file)
+    the text as received, in the attempt's work folder, gone with it."""
+    monkeypatch.setattr(adaptation, 'ATTEMPT_MODULE', 'this_module_reads_its_description')
+    (tmp_path / 'this_module_reads_its_description.py').write_text(
+        'import json, sys\n'
+        'path = json.loads(sys.argv[sys.argv.index("--request") + 1])["robot_description"]\n'
+        f'open({str(tmp_path / "seen.json")!r}, "w").write(json.dumps([path, '
+        'open(path, encoding="utf-8").read()]))\n')
+    monkeypatch.setenv('PYTHONPATH', str(tmp_path))
+    text = UrdfText.of('<robot name="received">\u00b5</robot>', 'topic /robot_description')
+    runs = Adaptation(settings(tmp_path / 'models'))
+    store = SampleStore.for_minutes(0.1, 0.04)
+    try:
+        runs.start(store, ModelInForce('m.pt', 'ab', text, 'lompr_base'), {}, 0)
+        deadline = time.monotonic() + 30
+        while runs.poll(1) is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        runs.close()
+        store.close()
+    path, seen = json.loads((tmp_path / 'seen.json').read_text())
+    assert seen == text.xml and Path(path).parent.name.startswith(WORK_PREFIX)
+    assert Path(path).name == DESCRIPTION_NAME and not Path(path).exists()

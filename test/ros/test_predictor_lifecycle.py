@@ -267,3 +267,32 @@ def test_a_stop_request_during_configure_stops_the_node_within_two_seconds(
         code, stderr = stop_process(process)
     assert stopped_after <= 2.0 and code == 0, stderr
     assert 'active' not in stderr
+
+
+def test_the_robot_description_can_come_on_a_topic(ros: RosHarness, tmp_path: Path) -> None:
+    """With robot_description_topic and no file the predictor waits unconfigured for the URDF
+    robot_state_publisher shares, says so, then configures on it: the packaged description's
+    text binds the packaged description's models (the same sha256)."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import String
+
+    from lompr_predictor.robot.chain import description_sha256
+    from lompr_predictor.robot.description import default_description_path
+
+    model = save_constant(tmp_path / 'model.pt', (1e-6, 2e-6), window=WINDOW, horizon=HORIZON)
+    node = ros.add(PredictorNode(context=ros.context, parameter_overrides=[
+        Parameter('model_path', value=str(model)), Parameter('diagnostics_period', value=0.1),
+        Parameter('robot_description_topic', value='robot_description')]))
+    diagnostics = ros.collect('/diagnostics', DiagnosticArray)
+    assert node.lifecycle_state == 'unconfigured'
+    ros.spin_until(lambda: (latest_status(diagnostics, 'predictor_node: model') or {}).get(
+        '_message') == ('unconfigured: no model loaded (waiting for the robot description on '
+                        '/robot_description)'), what='the node waiting for its description')
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    publisher = ros.node.create_publisher(String, 'robot_description', latched)
+    publisher.publish(String(data=default_description_path().read_text(encoding='utf-8')))
+    ros.spin_until(lambda: node.active, what='configured and active on the description')
+    assert node.core.chain.sha256 == description_sha256()
+    assert node.core.chain.source == 'topic /robot_description'
+    assert node.runtime.in_force().robot_description == node.description.text()
