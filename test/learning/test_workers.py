@@ -306,13 +306,16 @@ def _pid(trial: optuna.trial.FrozenTrial) -> int:
 
 
 def _wait_for_running_trial(study: optuna.Study, owned: Callable[[int], bool],
-                            timeout: float = 180.0) -> optuna.trial.FrozenTrial:
-    """A running trial whose worker's pid is `owned`, mid-training (an epoch reported)."""
+                            timeout: float = 180.0, before: int | None = None
+                            ) -> optuna.trial.FrozenTrial:
+    """A running trial whose worker's pid is `owned`, mid-training (an epoch reported);
+    `before`: one of the study's first `before` trials (so that most of the study is still
+    to come when the caller acts on it)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         for trial in study.get_trials(states=(State.RUNNING,)):
-            if trial.user_attrs.get(WORKER) and trial.intermediate_values and owned(
-                    _pid(trial)):
+            if (trial.user_attrs.get(WORKER) and trial.intermediate_values
+                    and (before is None or trial.number < before) and owned(_pid(trial))):
                 return trial
         time.sleep(0.05)
     pytest.fail('no worker process was seen running a trial')
@@ -443,7 +446,9 @@ def test_a_stopped_training_leaves_no_process_and_resumes(tmp_path: Path,
                                text=True, start_new_session=True)  # its own group, to check
     try:
         study = _journal_study(report, command)
-        _wait_for_running_trial(study, lambda pid: pid in _children(command.pid))
+        # one of the two trials the workers start with: the signal lands mid-study (a trial
+        # seen later may be the last, and the command done before the signal)
+        _wait_for_running_trial(study, lambda pid: pid in _children(command.pid), before=2)
         workers = _children(command.pid)  # the tuning workers (and multiprocessing's tracker)
         niceness = {int(fields[16]) for pid, fields in _processes().items()
                     if pid in workers | {command.pid}}
