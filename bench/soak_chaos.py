@@ -116,6 +116,9 @@ TOPICS = {'joint_states': ('/joint_states', JointState),
           'reference': ('/lompr/reference', PoseStamped),
           'end_pose': ('/lompr/end_pose', PoseStamped)}
 BURST_SECONDS = 2.0  # input bursts [s of sample time]
+#: How far past the first instant a new segment's first /clock may be [ns]: a later one
+#: is the stopped twin's, delivered late (taken, it would start every fault up to it).
+RESTART_TOLERANCE_NS = 1_000_000_000
 BURST_RATE = 50.0  # bad messages a second during a burst
 STALE_SECONDS = 10.0  # how old a stale message's stamp is
 JUMP_SECONDS = 5.0  # a clock jump ahead
@@ -189,6 +192,7 @@ class ChaosMonitor(Node):
         self.first_clocks: list[float] = []  # when each segment's first /clock came [wall]
         self.jumped_ns = 0
         self.segment = 0
+        self.awaiting_restart = False  # a segment began: no /clock of its twin yet
         self.levels: dict[str, int] = {}
         self.events: list[tuple[float, str, int, str]] = []  # wall, status, level, message
         self.offsets = np.full((capacity, 5), np.nan)  # segment, stamp [s], x, y, z
@@ -213,10 +217,15 @@ class ChaosMonitor(Node):
 
     def _on_clock(self, msg: Clock) -> None:
         stamp = stamp_to_ns(msg.clock)
-        if stamp != self.jumped_ns:  # the soak's own jump is not the twin's time
-            if not self.clock_ns:
-                self.first_clocks.append(time.monotonic())
-            self.clock_ns = max(self.clock_ns, stamp)
+        if stamp == self.jumped_ns:  # the soak's own jump is not the twin's time
+            return
+        if self.awaiting_restart:  # a new twin starts at the first instant
+            if stamp > EPOCH_NS + RESTART_TOLERANCE_NS:
+                return  # the stopped twin's, still queued: not the new segment's time
+            self.awaiting_restart = False
+        if not self.clock_ns:
+            self.first_clocks.append(time.monotonic())
+        self.clock_ns = max(self.clock_ns, stamp)
 
     def _on_offset(self, msg: Vector3Stamped) -> None:
         if self.received < len(self.offsets):
@@ -376,6 +385,7 @@ class Chaos:
             return True
         self.segment += 1
         monitor.segment, monitor.clock_ns = self.segment, 0
+        monitor.awaiting_restart = True
         self.start('twin_node')
         return False
 

@@ -167,6 +167,34 @@ def test_the_chaos_soak_schedules_every_fault_and_checks_each_offset() -> None:
     assert counts == '1 1 2 1'
 
 
+def test_the_chaos_soak_takes_a_new_segments_time_from_its_own_twin() -> None:
+    """After a reset the soak's clock (which starts the faults) waits for the new twin's
+    first instant: a /clock of the stopped twin still queued is no time of the new segment
+    (taken, it started every fault up to it at once, their bursts running on for a minute)."""
+    script = (
+        'import sys; sys.path.insert(0, sys.argv[1])\n'
+        'import rclpy\n'
+        'from builtin_interfaces.msg import Time\n'
+        'from rclpy.context import Context\n'
+        'from rosgraph_msgs.msg import Clock\n'
+        'from soak_chaos import EPOCH_NS, ChaosMonitor\n'
+        'context = Context(); rclpy.init(context=context)\n'
+        'monitor = ChaosMonitor(context, 10)\n'
+        'def clock(ns): return Clock(clock=Time(sec=ns // 10**9, nanosec=ns % 10**9))\n'
+        'monitor._on_clock(clock(EPOCH_NS + 51 * 10**9))\n'
+        'monitor.clock_ns, monitor.awaiting_restart = 0, True  # the segment switch\n'
+        'monitor._on_clock(clock(EPOCH_NS + 51_700_000_000))  # the stopped twin, late\n'
+        'late = monitor.clock_ns\n'
+        'monitor._on_clock(clock(EPOCH_NS))\n'
+        'monitor._on_clock(clock(EPOCH_NS + 4_000_000))\n'
+        'print(late, monitor.clock_ns - EPOCH_NS, len(monitor.first_clocks))\n'
+        'monitor.destroy_node(); rclpy.shutdown(context=context)\n')
+    result = subprocess.run([sys.executable, '-c', script, str(BENCH)], capture_output=True,
+                            text=True, timeout=120, check=False)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.splitlines()[-1] == '0 4000000 2'
+
+
 @pytest.mark.slow
 def test_the_chaos_soak_runs_and_writes_its_report(tmp_path: Path) -> None:
     """A minute of the chaos soak through the real nodes: it finishes, runs every sample,
