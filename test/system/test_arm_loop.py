@@ -1,7 +1,8 @@
 # SPDX-License-Identifier: Apache-2.0
 """The serial arm's closed loop, live: twin_node (robot arm, lockstep) -> kinematics_node
 (measured and commanded joints -> end pose and reference) -> predictor_node -> the offset,
-applied by the twin through the joints. And the joint offsets themselves against Pinocchio.
+applied by the twin through the joints (or through command_compensator_node, in one process
+and across processes on /clock).
 
 The compensator is persistence one sample ahead (a model file that predicts the plant error
 of the next sample to be the one just measured), exact and hand-checkable: with it the true
@@ -18,19 +19,16 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pinocchio as pin
 import pytest
 from geometry_msgs.msg import Vector3Stamped
 from model_helpers import persistence_arm_model
 from rclpy.parameter import Parameter
 from ros_helpers import RosHarness, stamp_ns
 
-from lompr_predictor.robot.chain import SerialChain, load_chain
-from lompr_predictor.robot.joint_offsets import tool_offset_to_joints
 from lompr_predictor.ros.kinematics_node import KinematicsNode
 from lompr_predictor.ros.predictor_node import PredictorNode
 from lompr_predictor.ros.twin_node import TwinNode
-from lompr_predictor.twin.arm import BASE_FRAME, arm_description_path, arm_spec
+from lompr_predictor.twin.arm import BASE_FRAME, arm_description_path
 from lompr_predictor.twin.arm_programs import TIP_FRAME
 from lompr_predictor.twin.arm_twin import ArmDigitalTwin
 from lompr_predictor.twin.run_log import read_run_log
@@ -43,41 +41,6 @@ SAMPLES = 400
 #: moves by a few % with it), so both runs wait long enough for every node to be matched
 #: and close at the same sample, the first the predictor can answer.
 FIRST_ANSWER_WAIT = 1.0
-
-
-def _chain() -> SerialChain:
-    chain = load_chain(arm_spec())
-    assert isinstance(chain, SerialChain)
-    return chain
-
-
-@pytest.mark.parametrize('program', ['circle', 'raster', 'figure8'])
-def test_the_joint_offset_moves_the_tool_tip_by_the_offset(program: str) -> None:
-    """FK(q + dq) - FK(q) = (c_x, c_y, 0), orientation kept, to 1e-9 m and 1e-9 rad for a
-    10 um offset at postures along a pass (second order: |dq|^2 times the arm's reach, and
-    the damping's share damping / s^2, each ~1e-10 m here); zero stays exactly zero."""
-    chain = _chain()
-    model, data = chain.model, chain.model.createData()
-    frame = model.getFrameId(TIP_FRAME)
-    twin = ArmDigitalTwin(seed=0, program=program)
-    postures = twin.pass_joints[::150]
-    offsets = 10e-6 * np.column_stack([np.cos(np.arange(len(postures))),
-                                       np.sin(np.arange(len(postures)))])
-    dq = tool_offset_to_joints(chain, TIP_FRAME, postures, offsets, damping=1e-6)
-    for q, delta, offset in zip(postures, dq, offsets, strict=True):
-        pin.framesForwardKinematics(model, data, q)
-        before = data.oMf[frame].copy()
-        pin.framesForwardKinematics(model, data, q + delta)
-        after = data.oMf[frame]
-        np.testing.assert_allclose(after.translation - before.translation,
-                                   [offset[0], offset[1], 0.0], rtol=0, atol=1e-9)
-        assert np.linalg.norm(pin.log3(after.rotation @ before.rotation.T)) < 1e-9
-    # the model's configuration gives the same step as the chain's joints
-    np.testing.assert_allclose(tool_offset_to_joints(model, TIP_FRAME, postures[0], offsets[0]),
-                               dq[0], rtol=1e-12, atol=0)
-    assert not tool_offset_to_joints(chain, TIP_FRAME, postures, np.zeros_like(offsets)).any()
-    with pytest.raises(ValueError, match=r'offset_xy must be \(2,\) or \(N, 2\)'):
-        tool_offset_to_joints(chain, TIP_FRAME, postures, offsets[:1])
 
 
 def _rms_um(error: np.ndarray) -> float:
