@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 from guard_streams import HORIZON, LEAD, PERIOD, guard_rules, random_walk, run_guard
 
-from lompr_predictor.learning.envelope import InputEnvelope, fit_envelope
 from lompr_predictor.online.alignment import AlignedSample
 from lompr_predictor.online.guard import (
     AxisStatus,
@@ -277,22 +276,6 @@ def test_settings_are_checked() -> None:
         guard_rules(margin=1.0)
     with pytest.raises(ValueError, match='window'):
         guard_rules(window_instants=0)
-
-
-def test_envelope_is_the_widened_training_range_of_the_motion_columns() -> None:
-    features = ('error_x', 'error_y', 'ref_x', 'ups1_v')
-    rows = np.array([[1.0, 2.0, 0.0, -0.01], [5.0, -3.0, 0.1, 0.03], [0.0, 0.0, np.nan, 0.0]])
-    envelope = fit_envelope(rows, features, margin=0.1)
-    assert envelope.names == ('ref_x', 'ups1_v')  # the plant error is never checked
-    np.testing.assert_allclose(envelope.low, [-0.01, -0.014])
-    np.testing.assert_allclose(envelope.high, [0.11, 0.034])
-    assert envelope.contains([99.0, -99.0, 0.105, 0.0])
-    assert not envelope.contains([0.0, 0.0, 0.0, 0.04])
-    assert not envelope.contains([0.0, 0.0, math.nan, 0.0])
-    assert envelope.first_outside([0.0, 0.0, 0.0, 0.04]) == 'ups1_v'
-    again = InputEnvelope.from_metadata(envelope.to_metadata(), features)
-    assert again == envelope
-    assert InputEnvelope.from_metadata({}, features) is None
 
 
 def _mixed_run(guard: LiveGuard) -> list[Any]:
