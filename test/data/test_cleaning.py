@@ -38,9 +38,6 @@ from lompr_predictor.data.cleaning import (
 )
 from lompr_predictor.data.features import HISTORY
 from lompr_predictor.data.problem import (
-    build_problem,
-    chronological_split,
-    minmax_range,
     window_ends,
 )
 from lompr_predictor.robot.chain import LomprChain, load_chain
@@ -96,75 +93,6 @@ def test_hampel_rejects_spike_but_not_step_or_trend() -> None:
     spiked[120, 1] -= 15e-6
     np.testing.assert_array_equal(np.flatnonzero(hampel_outliers(spiked, segments, 7, 6.0)),
                                   [50, 120, 300])
-
-
-def test_windows_never_cross_a_gap() -> None:
-    segments = np.array([[0, 30], [30, 35], [35, 80]])
-    window, horizon = 10, 3
-    ends = window_ends(segments, window, horizon)
-    segment_of = np.searchsorted(segments[:, 1], np.arange(80), side='right')
-    for end in ends:
-        rows = np.arange(end - window + 1 - HISTORY, end + horizon + 1)
-        assert len(set(segment_of[rows])) == 1
-    # every admissible window is there: 30 - 2 - 10 - 3 + 1 = 16 and 45 - 2 - 10 - 3 + 1 = 31
-    assert len(ends) == 16 + 31
-    # a preview of 5 samples after each row: the window's last row and the 5 after it, too
-    ahead = window_ends(segments, window, horizon, preview=5)
-    assert set(ahead) <= set(ends) and len(ahead) == 16 - 2 + 31 - 2
-    for end in ahead:
-        assert len(set(segment_of[np.arange(end - window + 1 - HISTORY, end + 6)])) == 1
-    with pytest.raises(ValueError, match='preview'):
-        window_ends(segments, window, horizon, preview=-1)
-
-
-def test_split_is_chronological_and_test_is_last_tenth() -> None:
-    ends = window_ends(np.array([[0, 1000]]), 10, 5)
-    split = chronological_split(np.array([[0, 1000]]), ends, 5, test_fraction=0.1,
-                                validation_fraction=0.2)
-    np.testing.assert_array_equal(split.parts, [[0, 720, 900, 1000]])
-    assert split.training_rows().sum() == 900 and split.training_rows()[:900].all()
-    assert (split.train + 5 < 720).all()
-    assert ((split.validation + 5 >= 720) & (split.validation + 5 < 900)).all()
-    assert (split.test + 5 >= 900).all()
-    assert split.train.max() < split.validation.min() < split.test.min()
-    assert len(split.train) + len(split.validation) + len(split.test) == len(ends)
-
-
-def test_each_recording_is_split_on_its_own() -> None:
-    """Recordings of several programs: each one's last tenth tests and the last part of
-    the rest validates, so every program is trained, validated and scored."""
-    recordings = np.array([[0, 600], [600, 1000]])
-    ends = window_ends(recordings, 10, 5)
-    split = chronological_split(recordings, ends, 5, test_fraction=0.1,
-                                validation_fraction=0.2)
-    np.testing.assert_array_equal(split.parts, [[0, 432, 540, 600], [600, 888, 960, 1000]])
-    for part, low, high in ((split.train, [0, 600], [432, 888]),
-                            (split.validation, [432, 888], [540, 960]),
-                            (split.test, [540, 960], [600, 1000])):
-        target = part + 5
-        first = target < 600
-        assert first.any() and (~first).any()  # both recordings in every part
-        assert ((target >= np.where(first, low[0], low[1]))
-                & (target < np.where(first, high[0], high[1]))).all()
-    rows = split.training_rows()
-    assert rows.sum() == 540 + 360 and rows[:540].all() and rows[600:960].all()
-
-
-def test_minmax_from_training_part_only() -> None:
-    n = 200
-    error = np.zeros((n, 2))
-    error[:150, 0] = np.linspace(-1e-5, 2e-5, 150)
-    error[195, 0] = 9e-5  # in the test part: must not widen the range
-    stamps = np.arange(n, dtype=np.int64) * PERIOD_NS
-    data = CleanData(stamps=stamps, error=error, reference=np.zeros((n, 3)),
-                     segments=np.array([[0, n]]), sample_period=0.04,
-                     chain=load_chain())
-    problem = build_problem(data, 5, 1, test_fraction=0.1, validation_fraction=0.2)
-    np.testing.assert_array_equal(problem.split.parts, [[0, 144, 180, 200]])
-    np.testing.assert_allclose(problem.error_low, [-1e-5, 0.0])
-    np.testing.assert_allclose(problem.error_high, [2e-5, 1.0])  # constant column: min + 1
-    low, high = minmax_range(np.array([[1.0, np.nan], [3.0, 2.0]]))
-    np.testing.assert_allclose([low, high], [[1.0, 2.0], [3.0, 3.0]])
 
 
 def test_clean_recovers_error_through_fk(description: RobotDescription) -> None:
