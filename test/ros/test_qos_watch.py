@@ -1,6 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The `qos` status compares like with like: a default-QoS peer on every endpoint is OK, a
-best-effort publisher into a reliable subscription is WARN."""
+"""ros.qos_watch: the `qos` status compares like with like; a default-QoS peer on every
+endpoint is OK, a best-effort publisher into a reliable subscription is WARN."""
 
 from __future__ import annotations
 
