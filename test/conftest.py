@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from lompr_predictor.ros.domain import isolate_ros_domain
 
@@ -26,6 +26,14 @@ if TYPE_CHECKING:
 def description() -> RobotDescription:
     """The packaged nominal LOMPR description."""
     return load_robot_description()
+
+
+@pytest.fixture(scope='session')
+def arm_model() -> Any:
+    """The packaged serial arm's Pinocchio model (the twin arm's tests)."""
+    from lompr_predictor.twin.arm import load_arm_model
+
+    return load_arm_model()
 
 
 @pytest.fixture
