@@ -4,8 +4,6 @@
 from __future__ import annotations
 
 import math
-import re
-from xml.etree import ElementTree
 
 import numpy as np
 import pytest
@@ -15,16 +13,11 @@ from hypothesis import strategies as st
 from lompr_predictor.errors import (
     ConvergenceError,
     JointLimitError,
-    NameNotFoundError,
-    RobotDescriptionError,
     StrokeLimitError,
     WorkspaceError,
 )
 from lompr_predictor.robot.description import (
-    CELL_FRAME,
-    ROBOT_FRAME,
     RobotDescription,
-    default_description_path,
 )
 from lompr_predictor.robot.kinematics import (
     ForwardKinematics,
@@ -62,17 +55,6 @@ def concentric(rings: int = 5, per_ring: int = 90) -> np.ndarray:
     return np.concatenate([
         np.stack([r * np.cos(angle), r * np.sin(angle), np.full_like(angle, MIRROR_Z)], -1)
         for r in np.linspace(MIRROR_RADIUS / rings, MIRROR_RADIUS, rings)])
-
-
-def test_description_loads_contract_geometry(description: RobotDescription) -> None:
-    geometry = description.geometry
-    phi = np.deg2rad([90.0, 210.0, 330.0])
-    ring = np.stack([np.cos(phi), np.sin(phi), np.zeros(3)], -1)
-    np.testing.assert_allclose(geometry.base_anchors, 0.600 * ring, atol=1e-15)
-    np.testing.assert_allclose(geometry.platform_anchors, 0.250 * ring, atol=1e-15)
-    np.testing.assert_allclose(geometry.head_offset, [0, 0, 0.200])
-    np.testing.assert_allclose(geometry.tool_offset, [0, 0, 0.150])
-    assert len(description.sha256) == 64
 
 
 def test_home_configuration_tip_is_d_plus_h1_h2(description: RobotDescription) -> None:
@@ -185,86 +167,3 @@ def test_batch_marks_bad_rows_invalid(description: RobotDescription) -> None:
     batch = batch_forward_kinematics(description.geometry, bad)
     assert batch.valid.tolist() == [True, False, False, False, False] + [True] * 5
     np.testing.assert_allclose(batch.position[batch.valid], spiral(10)[batch.valid], atol=1e-9)
-
-
-def test_unknown_frame_lists_valid_names(description: RobotDescription) -> None:
-    with pytest.raises(NameNotFoundError, match='tool_tip') as err:
-        description.frame_id('tool_tipp')
-    assert 'tool_tip' in err.value.available
-
-
-def test_description_without_a_branch_is_refused() -> None:
-    xml = default_description_path().read_text()
-    broken = xml.replace('name="ups3"', 'name="ups3_renamed"')
-    with pytest.raises(RobotDescriptionError, match="'ups3'"):
-        RobotDescription(broken, 'broken.urdf')
-
-
-def test_calibrated_description_moves_the_tip(description: RobotDescription) -> None:
-    """Geometry comes from the URDF: moving an anchor changes the answer."""
-    xml = default_description_path().read_text().replace(
-        '<origin xyz="0.0 0.6 0.0" rpy="0 0 0"/>', '<origin xyz="0.0 0.601 0.0" rpy="0 0 0"/>')
-    calibrated = RobotDescription(xml, 'calibrated.urdf')
-    assert calibrated.sha256 != description.sha256
-    joints = inverse_kinematics(description.geometry, spiral(5)).joints
-    nominal = batch_forward_kinematics(description.geometry, joints).position
-    moved = batch_forward_kinematics(calibrated.geometry, joints).position
-    assert np.abs(moved - nominal).max() > 1e-4
-
-
-def test_the_packaged_description_hangs_the_robot_frame_under_a_z_up_world(
-        description: RobotDescription) -> None:
-    """REP 103: the URDF's root is the Z-up cell frame `world`; the robot frame lompr_base
-    (Z down) hangs from it by a fixed joint rotated by pi about X, so a tool tip at z below
-    the fixed platform in lompr_base is at -z in world (TF and RViz show it the right way up)."""
-    import pinocchio as pin
-
-    root = ElementTree.parse(default_description_path()).getroot()
-    children = {joint.find('child').get('link') for joint in root.iter('joint')}  # type: ignore[union-attr]
-    roots = [link.get('name') for link in root.iter('link') if link.get('name') not in children]
-    assert roots == [CELL_FRAME]
-    (placing,) = [joint for joint in root.iter('joint')
-                  if joint.find('child').get('link') == ROBOT_FRAME]  # type: ignore[union-attr]
-    assert placing.get('type') == 'fixed'
-    assert placing.find('parent').get('link') == CELL_FRAME  # type: ignore[union-attr]
-    assert description.base_frame == ROBOT_FRAME
-    joints = inverse_kinematics(description.geometry, spiral(7)).joints
-    tips = batch_forward_kinematics(description.geometry, joints).position
-    cell = pin.buildModelFromXML(description.urdf_xml)  # the whole tree, rooted at world
-    data = cell.createData()
-    tool = cell.getFrameId('tool_tip')
-    for joint_row, tip in zip(joints, tips, strict=True):
-        fk = ForwardKinematics(description)
-        fk.solve(joint_row)
-        q = pin.neutral(cell)
-        for name, value in zip(('up_alpha', 'up_beta', 'up_d'), fk.last_up, strict=True):
-            q[cell.joints[cell.getJointId(name)].idx_q] = value
-        primary = cell.joints[cell.getJointId('head_primary')].idx_q
-        q[primary:primary + 2] = math.cos(joint_row[3]), math.sin(joint_row[3])
-        q[cell.joints[cell.getJointId('head_secondary')].idx_q] = joint_row[4]
-        pin.framesForwardKinematics(cell, data, q)
-        np.testing.assert_allclose(data.oMf[tool].translation, tip * [1.0, -1.0, -1.0],
-                                   rtol=0, atol=1e-12)
-    assert tips[:, 2].min() > 1.0  # the mirror lies below the platform in lompr_base
-
-
-def test_a_description_rooted_at_the_robot_frame_gives_the_same_numbers(
-        description: RobotDescription) -> None:
-    """The kinematics reads the tree below the robot frame only: the same robot without a
-    cell frame above it (as descriptions were before one was added, robot frame `world`)
-    gives bit-identical geometry and forward kinematics."""
-    xml = default_description_path().read_text()
-    bare = re.sub(r'\s*<link name="world"/>|\s*<joint name="world_to_lompr_base".*?</joint>', '',
-                  xml, flags=re.DOTALL).replace('"lompr_base"', '"world"')
-    older = RobotDescription(bare, 'older.urdf')
-    assert older.base_frame == 'world' and older.sha256 != description.sha256
-    for field in ('base_anchors', 'platform_anchors', 'head_offset', 'tool_offset',
-                  'stroke_lower', 'stroke_upper', 'up_lower', 'up_upper'):
-        np.testing.assert_array_equal(getattr(older.geometry, field),
-                                      getattr(description.geometry, field))
-    joints = inverse_kinematics(description.geometry, grid(0.05)).joints
-    assert np.array_equal(batch_forward_kinematics(older.geometry, joints).position,
-                          batch_forward_kinematics(description.geometry, joints).position)
-    now, before = ForwardKinematics(description), ForwardKinematics(older)
-    for row in joints[:50]:
-        assert np.array_equal(now.solve(row).position, before.solve(row).position)
