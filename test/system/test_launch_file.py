@@ -16,10 +16,8 @@ from rcl_interfaces.msg import Log
 from ros_helpers import RosHarness, start_executable, stop_process
 from test_node_docs import load_tool
 
-from lompr_predictor.errors import LomprError
 from lompr_predictor.robot.description import CELL_FRAME
 from lompr_predictor.ros.common import ROSOUT_QOS
-from lompr_predictor.ros.launch_site import root_link, site_parameters
 from lompr_predictor.ros.parameters import parameter_specs
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -38,7 +36,8 @@ EVERY_ARGUMENT = ('namespace:=cell1', 'twin:=true', 'rviz:=true', 'model_path:=/
                   'joint_names:=[b1, b2, b3, c, a]', 'compensation_enabled:=true',
                   'publish_full_joint_state:=true', f'robot_description_file:={ARM}',
                   'frame_prefix:=cell1/', 'base_frame:=base', 'tip_frame:=tool',
-                  'command_topic:=joint_commands', 'autostart:=false')
+                  'command_topic:=joint_commands', 'autostart:=false',
+                  'robot_description_topic:=robot_description')
 
 
 @pytest.fixture(scope='module')
@@ -115,14 +114,16 @@ def test_every_node_gets_its_own_parameters_and_no_other_nodes(prefix: Path) -> 
     kinematics, predictor = nodes['kinematics_node'].parameters, nodes['predictor_node'].parameters
     assert {name: kinematics[name] for name in (
         'joint_names', 'publish_full_joint_state', 'base_frame', 'tip_frame', 'command_topic',
-        'frame_prefix', 'robot_description_file', 'autostart')} == {
+        'frame_prefix', 'robot_description_file', 'autostart', 'robot_description_topic')} == {
         'joint_names': ['b1', 'b2', 'b3', 'c', 'a'], 'publish_full_joint_state': True,
         'base_frame': 'base', 'tip_frame': 'tool', 'command_topic': 'joint_commands',
-        'frame_prefix': 'cell1/', 'robot_description_file': str(ARM), 'autostart': False}
+        'frame_prefix': 'cell1/', 'robot_description_file': str(ARM), 'autostart': False,
+        'robot_description_topic': 'robot_description'}
     assert {name: predictor[name] for name in (
-        'model_path', 'compensation_enabled', 'autostart', 'base_frame', 'tip_frame')} == {
+        'model_path', 'compensation_enabled', 'autostart', 'base_frame', 'tip_frame',
+        'robot_description_topic')} == {
         'model_path': '/m/model.pt', 'compensation_enabled': True, 'autostart': False,
-        'base_frame': 'base', 'tip_frame': 'tool'}
+        'base_frame': 'base', 'tip_frame': 'tool', 'robot_description_topic': 'robot_description'}
     assert 'joint_names' not in predictor and 'model_path' not in kinematics
     assert set(nodes['robot_state_publisher'].parameters) == {
         'robot_description', 'frame_prefix', 'use_sim_time'}
@@ -164,29 +165,6 @@ def test_the_site_file_reaches_robot_state_publisher_and_rviz(
     assert given['robot_state_publisher'].parameters['frame_prefix'] == 'cell2/'
     assert given['rviz2'].arguments[2:] == ['-f', 'cell2/arm_base']
     assert given['kinematics_node'].parameters['frame_prefix'] == 'cell2/'
-
-
-def test_site_parameters_follow_rcl_keys_and_bad_files_are_one_line(tmp_path: Path) -> None:
-    site = tmp_path / 'site.yaml'
-    site.write_text("""
-/**:
-  ros__parameters: {frame_prefix: a/, hardware_id: h}
-/cell1/kinematics_node:
-  ros__parameters: {frame_prefix: b/}
-/**/predictor_node:
-  ros__parameters: {frame_prefix: c/}
-""")
-    assert site_parameters(str(site), 'cell1') == {'frame_prefix': 'b/', 'hardware_id': 'h'}
-    assert site_parameters(str(site), '/cell2') == {'frame_prefix': 'a/', 'hardware_id': 'h'}
-    assert site_parameters(str(site), '', 'predictor_node')['frame_prefix'] == 'c/'
-    assert site_parameters('') == {}
-    site.write_text('- a list\n')
-    with pytest.raises(LomprError, match=f'^params_file {site}: not a mapping of node names$'):
-        site_parameters(str(site))
-    with pytest.raises(LomprError, match='2 root links, needs one'):
-        root_link('<robot name="r"><link name="a"/><link name="b"/></robot>', 'r.urdf')
-    assert root_link((ROOT / 'lompr_predictor/description/lompr.urdf').read_text(),
-                     'lompr.urdf') == CELL_FRAME
 
 
 def test_every_variable_is_an_argument_and_every_argument_is_used() -> None:

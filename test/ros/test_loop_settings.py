@@ -1,34 +1,27 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Both closed-loop modes (one process, three processes) give the nodes the same
-parameters, on the twin's simulated time, and count a run alike."""
+"""ros.loop_settings: both closed-loop modes (one process, three processes) give the nodes
+the same parameters, on the twin's simulated time, and count a run alike."""
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
 pytest.importorskip('rclpy')
 
+from test_loop_processes import command_parameters
+
 from lompr_predictor.online.predictor_counts import PredictorCounts
-from lompr_predictor.ros.closed_loop import run_closed_loop
 from lompr_predictor.ros.loop_processes import loop_commands, ros_value
 from lompr_predictor.ros.loop_settings import (
     TWIN_COUNTS,
-    ClosedLoopError,
     LoopSettings,
     loop_counts,
     loop_parameters,
 )
 
 pytestmark = pytest.mark.ros
-
-def command_parameters(command: list[str]) -> dict[str, str]:
-    """The `-p name:=value` pairs of a command line."""
-    arguments = command[command.index('--ros-args') + 1:]
-    assert arguments[::2] == ['-p'] * (len(arguments) // 2)
-    return dict(argument.split(':=', 1) for argument in arguments[1::2])
 
 
 @pytest.mark.parametrize('settings', [
@@ -61,19 +54,6 @@ def test_both_modes_give_the_nodes_the_same_parameters(settings: LoopSettings,
     assert twin['passes'] == str(settings.lead_in_passes + settings.passes)
     assert 'robot_description_file' not in twin or twin['robot_description_file'] == (
         'robot.urdf')
-
-
-def test_a_real_time_priority_goes_to_the_two_nodes_across_processes_only(
-        tmp_path: Path) -> None:
-    settings = LoopSettings(model_path='model.pt', processes=True, sched_fifo_priority=50)
-    commands = loop_commands(settings, 1, 0.004, tmp_path / 'run.npz')
-    assert {node: command_parameters(command).get('sched_fifo_priority')
-            for node, command in commands.items()} == {
-        'kinematics_node': '50', 'predictor_node': '50', 'twin_node': None}
-    assert 'sched_fifo_priority' not in command_parameters(loop_commands(
-        LoopSettings(model_path='model.pt'), 1, 0.004, tmp_path / 'run.npz')['predictor_node'])
-    with pytest.raises(ClosedLoopError, match='sched_fifo_priority needs the loop across'):
-        run_closed_loop(replace(settings, processes=False))
 
 
 def test_a_long_horizon_lets_the_twin_wait_for_its_offset(tmp_path: Path) -> None:
