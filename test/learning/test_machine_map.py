@@ -21,7 +21,7 @@ from lompr_predictor.learning.machine_map import (
     motion_columns,
     speed_scales,
 )
-from lompr_predictor.learning.map_fit import POSTURE_TERMS, consecutive_pairs, local_deviations
+from lompr_predictor.learning.map_fit import POSTURE_TERMS
 from lompr_predictor.learning.map_prior import PredictionWithPrior, prediction_with_prior
 from lompr_predictor.learning.model_file import script_module
 from lompr_predictor.learning.models import NoChangeNet, PredictorModule, predict_rows
@@ -259,15 +259,6 @@ def test_without_actuator_coordinates_the_map_acts_in_the_tools_axes() -> None:
     assert fitted.fit(rows, error, np.arange(len(rows))) < 1e-10
 
 
-def test_the_fit_pairs_instants_only_within_a_run() -> None:
-    """Pairs `lag` apart are taken where every instant between is listed: not across the
-    gap between two runs' window ends."""
-    instants = np.r_[np.arange(10, 20), np.arange(40, 45)]
-    np.testing.assert_array_equal(consecutive_pairs(instants, 3),
-                                  np.r_[np.arange(10, 17), np.arange(40, 42)])
-    assert len(consecutive_pairs(instants, 10)) == 0
-
-
 def test_the_residual_map_leaves_a_drift_slower_than_its_window_out() -> None:
     """The same slow drift (`test_a_slow_drift...`, here 40 windows long) with the tool's
     x drifting alike: the residual map, fitted on the error's deviations from its mean over
@@ -292,14 +283,6 @@ def test_the_residual_map_leaves_a_drift_slower_than_its_window_out() -> None:
                                        axis=0)) / np.std(expected, axis=0)
     assert (missed['window'] < 0.05).all(), missed
     assert (missed['levels'] > 0.5).all(), missed
-
-
-def test_local_deviations_by_hand() -> None:
-    """Values minus their mean over a centred window of 3 within each run of consecutive
-    instants (two samples at a run's end), a NaN left out of the mean (the last: 50 alone)."""
-    values = np.array([1.0, 2.0, 3.0, 0.0, 0.0, 10.0, 20.0, np.nan, 50.0])
-    got = local_deviations(values, np.array([0, 1, 2, 5, 6, 7, 8]), 3)
-    np.testing.assert_allclose(got, [-0.5, 0.0, 0.5, -5.0, 5.0, np.nan, 0.0])
 
 
 def test_predicted_instant_from_the_plan_or_extrapolated() -> None:
