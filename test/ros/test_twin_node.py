@@ -20,7 +20,7 @@ from sensor_msgs.msg import JointState
 
 from lompr_predictor.robot.description import MEASURED_JOINTS, ROBOT_FRAME
 from lompr_predictor.ros.twin_node import TwinNode
-from lompr_predictor.ros.twin_outputs import TwinChoiceError, twin_path
+from lompr_predictor.ros.twin_outputs import TwinChoiceError
 from lompr_predictor.twin.arm_twin import ArmDigitalTwin
 from lompr_predictor.twin.compensation import CompensationSchedule
 from lompr_predictor.twin.run_log import read_run_log
@@ -292,7 +292,3 @@ def test_a_path_of_the_other_machine_is_refused_in_one_line(
     with pytest.raises(TwinChoiceError, match=re.escape(message)):
         TwinNode(context=ros.context, parameter_overrides=[
             Parameter('robot', value=robot), Parameter('path', value=path)])
-
-
-def test_an_empty_path_is_the_machines_first() -> None:
-    assert (twin_path('lompr', ''), twin_path('arm', '')) == ('spiral', 'circle')
