@@ -1,0 +1,48 @@
+# SPDX-License-Identifier: Apache-2.0
+"""learning.report: report.md as a reader gets it, for an evaluation by hand: the run's
+settings, a table per axis with every model's metrics, the model file's sha256 and where
+else it is, the data counts and a skipped bag (a training's report: test/cli/test_train)."""
+
+from __future__ import annotations
+
+from lompr_predictor.learning.metrics import METRIC_NAMES
+from lompr_predictor.learning.report import markdown, model_label
+
+
+def metrics(scale: float) -> dict[str, dict[str, float]]:
+    return {axis: {name: scale * (k + 1) for k, name in enumerate(METRIC_NAMES)}
+            for axis in ('x', 'y')}
+
+
+def evaluation(**changes: object) -> dict[str, object]:
+    report: dict[str, object] = {
+        'command': 'evaluate', 'horizon': 5, 'window': 25, 'sample_period': 0.001,
+        'split': {'test': 1234}, 'counts': {'joint_read': 2000, 'segments': 2},
+        'bags': [{'path': 'a'}, {'path': 'b', 'skipped_reason': 'truncated'}],
+        'models': {'model': {'metrics': metrics(1.0)},
+                   'persistence': {'metrics': metrics(2.0), 'label': 'Persistence'}},
+        'model_sha256': 'ab' * 32, 'model_file': 'm.pt', 'model_sha256_file': 'm.pt.sha256'}
+    report.update(changes)
+    return report
+
+
+def test_an_evaluation_reads_as_its_settings_tables_file_and_data() -> None:
+    text = markdown(evaluation())
+    lines = text.splitlines()
+    assert lines[0] == '# lompr evaluate report'
+    assert lines[2] == ('Horizon 5 samples (0.005 s), window 25 samples, sample period 1 ms; '
+                        'scored on all 1234 windows of the recordings.')
+    header = lines.index('## Axis X') + 2
+    assert lines[header] == '| metric | Model | Persistence |'
+    assert lines[header + 2] == '| MSE (%^2) | 1 | 2 |'  # the first metric, 1 and 2 x 1
+    assert '| RMSE (um) | 5 | 10 |' in lines  # the fifth metric
+    assert f"Model file `m.pt`, sha256 `{'ab' * 32}` (also in `m.pt.sha256`; pin it" in text
+    assert '- joint_read: 2000' in lines and '- skipped bag b: truncated' in lines
+    without_sidecar = markdown(evaluation(model_sha256_file=None))
+    assert 'also in' not in without_sidecar and '`None`' not in without_sidecar
+
+
+def test_a_model_is_named_by_its_label_else_the_known_name_else_its_key() -> None:
+    assert model_label('x', {'label': 'Mine'}) == 'Mine'
+    assert model_label('bo_lstm', {}) == 'BO-LSTM'
+    assert model_label('ridge_7', {}) == 'ridge_7'
