@@ -19,7 +19,11 @@ import pytest
 from lompr_predictor.robot.description import RobotDescription, load_robot_description
 
 if TYPE_CHECKING:
+    from pathlib import Path
+
     from ros_helpers import RosHarness
+
+    from lompr_predictor.data.bags import Recording
 
 
 @pytest.fixture(scope='session')
@@ -34,6 +38,16 @@ def arm_model() -> Any:
     from lompr_predictor.twin.arm import load_arm_model
 
     return load_arm_model()
+
+
+@pytest.fixture(scope='module')
+def renamed(tmp_path_factory: pytest.TempPathFactory,
+            description: RobotDescription) -> tuple[Path, Recording]:
+    """A bag of a robot whose joints are called `trainer_data.RENAMED`, and its recording
+    (the joint-name tests of the command line)."""
+    from trainer_data import renamed_bag
+
+    return renamed_bag(tmp_path_factory.mktemp('renamed'), description.geometry)
 
 
 @pytest.fixture

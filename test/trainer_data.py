@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -107,3 +108,21 @@ def run_cli(argv: list[str]) -> int:
     evaluate.add_parser(subparsers)
     args = parser.parse_args(argv)
     return int(args.run(args))
+
+
+#: The joint names of a robot that calls its joints otherwise (`renamed_bag`).
+RENAMED = ('b1', 'b2', 'b3', 'c_axis', 'a_axis')
+#: The quickest `lompr train` that still writes a model (one trial of one epoch).
+ONE_EPOCH = ['--trials', '1', '--max-epochs', '1', '--window', '8', '--horizon', '2', '--quiet',
+             '--batch-sizes', '500', '--hidden-units', '4', '--workers', '1', '--restarts', '0']
+
+
+def renamed_bag(folder: Path, geometry: LomprGeometry, samples: int = 1200
+                ) -> tuple[Path, Recording]:
+    """A bag (in `folder`) of a robot whose joints are called `RENAMED`, and its recording:
+    a lissajous path with measurement noise."""
+    recording, _ = synthetic_recording(geometry, samples, noise=2e-7,
+                                       reference=lissajous_reference(samples))
+    recording = dataclasses.replace(
+        recording, joints=dataclasses.replace(recording.joints, names=RENAMED))
+    return write_recording(folder / 'bag', recording), recording

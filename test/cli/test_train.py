@@ -328,15 +328,6 @@ def test_simulate_refuses_a_bad_argument_before_simulating(
 
 
 @pytest.mark.faults
-def test_evaluate_refuses_a_missing_model_and_an_unwritable_report(
-        capsys: pytest.CaptureFixture[str]) -> None:
-    assert 'argument MODEL: must exist' in refused(capsys, 'evaluate', '/nonexistent.pt', 'bag',
-                                                   '--report', '/tmp/x')
-    assert 'argument --report: must be writable' in refused(capsys, 'evaluate', '/', 'bag',
-                                                            '--report', '/proc/x')
-
-
-@pytest.mark.faults
 def test_a_binary_urdf_is_one_line_not_a_traceback(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     urdf = tmp_path / 'robot.urdf'
