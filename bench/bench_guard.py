@@ -221,7 +221,7 @@ def main() -> int:
     print(f"the guard's calls (observe and revise, the envelope check in it), the core's "
           f'{revises} answered samples replayed in blocks: {own:.2f} us per sample (target <= '
           f'{TARGET_US:.0f}); it scored {guard.scored} instants, rows outside the envelope '
-          f'{guard.outside_rows}')
+          f'{guard.envelope.rows_outside}')
     return 0 if own <= TARGET_US else 1
 
 

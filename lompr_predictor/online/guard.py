@@ -29,8 +29,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from lompr_predictor.learning.envelope import InputEnvelope
 from lompr_predictor.online.alignment import AlignedSample
+from lompr_predictor.online.envelope_watch import EnvelopeWatch
 from lompr_predictor.online.guard_scores import (
     AxisStatus,
     GuardReason,
@@ -99,12 +99,9 @@ class LiveGuard:
         self._tolerance_ns = period_ns // 2
         self._decisions = 0  # predictions chosen: an axis's dwell counts them
         self._holding = True  # an axis is in a fallback's hands
-        self._outside = 0.0  # weighted fraction of recent rows outside the envelope
         self._last: tuple[int, XY] | None = None  # the newest sample's stamp and plant error
-        self._enveloped: object = None  # the metadata whose envelope `_envelope` is
-        self._envelope: InputEnvelope | None = None  # None: the model file has none
-        self.outside_rows = 0  # rows outside the envelope, in all
-        self.last_outside = ''  # the column that left the envelope last
+        #: The model's newest rows against its trained envelope.
+        self.envelope = EnvelopeWatch()
         self.published_fallback = 0  # predictions published with an axis held back
 
     @classmethod
@@ -160,16 +157,7 @@ class LiveGuard:
         last, tolerance = self._last, self._tolerance_ns
         if last is None or not -tolerance <= last[0] + self._lead_ns - instant_ns <= tolerance:
             return prediction  # no sample `lead_ns` before: nothing to compare with
-        metadata = slot.model.metadata
-        if metadata is not self._enveloped:  # a model swapped in: its own envelope
-            self._enveloped = metadata
-            self._envelope = InputEnvelope.from_metadata(metadata.envelope, metadata.features)
-        envelope, inside = self._envelope, True
-        if envelope is not None:
-            row = slot.window.newest  # the older rows were checked as they arrived
-            inside = envelope.contains(row)
-            if not inside:
-                self.last_outside = envelope.first_outside(row) or ''
+        inside = self.envelope.inside(slot.model.metadata, slot.window)
         return self.choose(instant_ns, prediction, last[1], inside, slot.prior, slot.map_prior)
 
     def clear(self) -> None:
@@ -191,11 +179,8 @@ class LiveGuard:
         prior_x, prior_y = prior = NO_PRIOR if prior is None else prior
         map_x, map_y = map_prior = NO_PRIOR if map_prior is None else map_prior
         self._scores.expect(instant_ns, model, last_error, prior, map_prior)
-        if not inside_envelope:
-            self.outside_rows += 1
-        self._outside += self._weight * ((0.0 if inside_envelope else 1.0) - self._outside)
         self._decisions += 1
-        outside = self._outside > self._envelope_fraction
+        outside = self.envelope.note(inside_envelope, self._weight) > self._envelope_fraction
         if outside or self._scores.scored >= self._min_scored:
             axis_x, axis_y = self._scores.axes
             hand_over = self._hand_over
@@ -275,8 +260,7 @@ class LiveGuard:
         self.clear()
         self._scores.restart(self._decisions, inherit=inherit)
         self._holding = any(axis.state is not GuardState.MODEL for axis in self._scores.axes)
-        self._outside = 0.0
-        self._enveloped = self._envelope = None
+        self.envelope.restart()
 
     # -- state for diagnostics ------------------------------------------------------------
 
@@ -293,11 +277,6 @@ class LiveGuard:
             return GuardState.MODEL, GuardState.MODEL
         axis_x, axis_y = self._scores.axes
         return axis_x.state, axis_y.state
-
-    @property
-    def outside_fraction(self) -> float:
-        """The weighted fraction of recent rows outside the envelope."""
-        return self._outside
 
     @property
     def scored(self) -> int:

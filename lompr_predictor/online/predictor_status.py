@@ -269,9 +269,9 @@ def guard_status(lifecycle: Lifecycle, guard: LiveGuard | None, envelope: bool) 
     values: dict[str, object] = {'enabled': enabled, 'scored': guard.scored,
                                  'published_with_fallback': guard.published_fallback,
                                  'envelope': envelope, 'outside_envelope_total':
-                                 guard.outside_rows,
-                                 'outside_envelope_fraction': round(guard.outside_fraction, 4),
-                                 'last_outside_column': guard.last_outside}
+                                 guard.envelope.rows_outside,
+                                 'outside_envelope_fraction': round(guard.envelope.fraction, 4),
+                                 'last_outside_column': guard.envelope.last_outside}
     held: list[str] = []
     unproven: list[str] = []
     # a model still unproven once a whole window was scored does not know this program or

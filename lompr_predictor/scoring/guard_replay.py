@@ -112,7 +112,7 @@ def replay_guard(guard: LiveGuard, stamps_ns: np.ndarray, actual: np.ndarray,
     return GuardReplay(published=published, answering=answering,
                        hand_overs=(x.hand_overs, y.hand_overs),
                        hand_backs=(x.hand_backs, y.hand_backs),
-                       outside_envelope=guard.outside_rows, implausible=implausible)
+                       outside_envelope=guard.envelope.rows_outside, implausible=implausible)
 
 
 def replay_model_guard(metadata: ModelMetadata, stamps_ns: np.ndarray, actual: np.ndarray,

@@ -222,7 +222,7 @@ def test_rows_outside_the_envelope_hold_the_model_back() -> None:
     earned = settings.min_scored + HORIZON - 1
     assert held[:earned].all() and not held[earned:100].any()
     assert held[110:150].all() and not held[170:].any()
-    assert guard.outside_rows == 50
+    assert guard.envelope.rows_outside == 50
     x, _ = guard.status()
     assert x.hand_overs == 1 and x.hand_backs == 2
 
@@ -319,8 +319,8 @@ def _mixed_run(guard: LiveGuard) -> list[Any]:
         prediction = (truth[0] + miss[0], truth[1] + miss[1])
         published.append(guard.revise(stamp + LEAD, prediction, slot))  # type: ignore[arg-type]
     return [*before, *published, *map(_as_first_written, guard.status()), guard.scored,
-            guard.outside_rows, guard.last_outside, guard.published_fallback,
-            guard.outside_fraction, guard.holding]
+            guard.envelope.rows_outside, guard.envelope.last_outside, guard.published_fallback,
+            guard.envelope.fraction, guard.holding]
 
 
 def _as_first_written(status: AxisStatus) -> tuple[object, ...]:
