@@ -1,9 +1,10 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The robot description read from a topic, as robot_state_publisher, ros2_control and MoveIt
-share it: std_msgs/String on `robot_description`, reliable and transient local, so that a
-node started later still gets the latest one. A node given such a topic (and no file)
-configures on the text received, the same URDF the rest of the cell uses, bound to models
-by the same sha256 as the file it came from."""
+"""Where a node's robot description comes from (`RobotSource`): its URDF file, or the topic
+robot_state_publisher, ros2_control and MoveIt share it on: std_msgs/String on
+`robot_description`, reliable and transient local, so that a node started later still gets
+the latest one (`DescriptionTopic`). A node given such a topic (and no file) configures on
+the text received, the same URDF the rest of the cell uses, bound to models by the same
+sha256 as the file it came from."""
 
 from __future__ import annotations
 
