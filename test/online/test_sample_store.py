@@ -1,11 +1,10 @@
 # SPDX-License-Identifier: Apache-2.0
 """The predictor node's sample store, ROS-free: the ring (its order, window, restarts and a
-reader racing its writer), the store as a unit of the core, the bag it is written as and the
-child process that writes it."""
+reader racing its writer) and the store as a unit of the core (the bag it is written as:
+test_store_bag; the child process that writes it: test_store_export)."""
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Iterable
 from pathlib import Path
@@ -17,16 +16,10 @@ from fake_clock import FakeClock
 from model_helpers import save_constant
 from test_predictor import HORIZON, NEEDED, PERIOD_NS, WINDOW, feed, limits, spiral, stream
 
-from lompr_predictor.cli import main as lompr_main
-from lompr_predictor.data.bags import bag_sha256, read_recording, write_recording
-from lompr_predictor.data.cleaning import CleaningConfig
-from lompr_predictor.data.loading import BagInputs, load_clean_data
 from lompr_predictor.learning.model_file import load_model
-from lompr_predictor.monitoring import Level
 from lompr_predictor.online import sample_store
 from lompr_predictor.online.alignment import AlignedSample
 from lompr_predictor.online.predictor import OnlinePredictor
-from lompr_predictor.online.predictor_status import Lifecycle, store_status
 from lompr_predictor.online.sample_store import (
     COPY_MARGIN,
     SampleStore,
@@ -35,14 +28,6 @@ from lompr_predictor.online.sample_store import (
     capacity_for,
     ring_bytes,
 )
-from lompr_predictor.online.store_bag import INFO_JSON, write_store_bag
-from lompr_predictor.online.store_export import StoreExport, StoreExportError
-from lompr_predictor.robot.chain import LomprChain
-from lompr_predictor.robot.description import RobotDescription
-from lompr_predictor.robot.kinematics import batch_forward_kinematics
-from lompr_predictor.twin.parameters import load_twin_parameters
-from lompr_predictor.twin.recording import to_recording
-from lompr_predictor.twin.simulation import simulate
 
 T0 = 1_000_000_000_000
 
@@ -181,104 +166,3 @@ def test_in_the_core_it_holds_the_plant_error_and_the_offset_in_force(tmp_path: 
                                atol=1e-17)
     np.testing.assert_array_equal(snapshot.reference, reference)
     store.close()
-
-
-def test_a_store_bag_is_read_back_as_the_plant_error_it_holds(
-        tmp_path: Path, description: RobotDescription) -> None:
-    store = SampleStore(capacity=1000, window_ns=10**15)
-    fill(store, range(300))
-    stored = store.snapshot()
-    bag = write_store_bag(tmp_path / 'samples', stored, {'node': '/predictor_node'})
-    recording = read_recording(bag)
-    assert len(recording.joints.stamps) == 0 and recording.end_pose is not None
-    assert recording.compensation is not None
-    np.testing.assert_array_equal(recording.end_pose.positions[:, :2], stored.measured)
-    np.testing.assert_array_equal(recording.end_pose.positions[:, 2], stored.reference[:, 2])
-    np.testing.assert_array_equal(recording.reference.positions, stored.reference)
-    np.testing.assert_array_equal(recording.compensation.offsets, stored.compensation)
-    info = json.loads((bag / INFO_JSON).read_text())
-    assert info['node'] == '/predictor_node' and info['samples'] == 300
-    assert info['span_seconds'] == pytest.approx(299 * PERIOD_NS * 1e-9)
-    # what the trainer reads: the plant error the core computed, the offset in force
-    data, _ = load_clean_data(BagInputs((str(bag),), cleaning=CleaningConfig(
-        hampel_threshold=1e12)), LomprChain(description))
-    assert data.counts['end_pose_read'] == 300 and data.counts['compensated'] == 300
-    np.testing.assert_array_equal(data.stamps, stored.stamps)
-    np.testing.assert_allclose(data.error, stored.error, rtol=0, atol=1e-15)
-    np.testing.assert_allclose(data.tool_error, stored.measured - stored.reference[:, :2],
-                               rtol=0, atol=1e-15)
-    store.close()
-
-
-def test_a_child_writes_the_store_one_write_at_a_time(tmp_path: Path) -> None:
-    store = SampleStore(capacity=500, window_ns=10**15)
-    export = StoreExport(tmp_path / 'bags', 'lompr_base')
-    with pytest.raises(StoreExportError, match='holds no sample'):
-        export.start(store, {})
-    fill(store, range(200))
-    path = export.start(store, {'node': '/n'})
-    assert path.parent == tmp_path / 'bags' and path.name.startswith('samples-')
-    with pytest.raises(StoreExportError, match='is running'):  # the child takes a second
-        export.start(store, {})
-    fill(store, range(200, 260))  # the node writes on meanwhile
-    assert export.wait(60.0)
-    assert export.state.last_bag == str(path) and export.state.written == 1, export.state
-    recording = read_recording(path)
-    assert recording.end_pose is not None and len(recording.end_pose.stamps) >= 200
-    second = export.start(store, {})
-    assert second != path and export.wait(60.0) and export.state.written == 2
-    store.close()
-
-
-@pytest.mark.faults
-def test_a_write_that_fails_says_why(tmp_path: Path) -> None:
-    store = SampleStore(capacity=100, window_ns=10**15)
-    fill(store, range(10))
-    (tmp_path / 'file').write_text('')
-    unmade = StoreExport(tmp_path / 'file' / 'bags', 'lompr_base')
-    with pytest.raises(OSError):  # the folder cannot be made
-        unmade.start(store, {})
-    assert unmade.state.failed == 1 and 'Not a directory' in unmade.state.last_error
-    status = store_status(Lifecycle('active', True, None), 1.0, store, unmade,
-                          failure_shown=True)
-    assert status.level == Level.WARN and 'the last write failed' in status.message
-    held_over = store_status(Lifecycle('active', True, None), 1.0, store, unmade,
-                             failure_shown=False)  # past its hold: the store holds samples
-    assert held_over.level == Level.OK and 'Not a directory' in str(held_over.values['last_error'])
-    export = StoreExport(tmp_path / 'bags', 'lompr_base')
-    os.ftruncate(store.fd, 32)  # the child finds no ring behind the descriptor
-    export.start(store, {})
-    assert export.wait(60.0)
-    assert export.state.failed == 1 and export.state.written == 0
-    assert 'no sample store' in export.state.last_error, export.state
-    assert not any((tmp_path / 'bags').iterdir())  # nothing half-written
-    store.close()
-
-
-@pytest.mark.slow
-def test_lompr_train_learns_from_a_store_bag_what_the_joint_bag_holds(
-        tmp_path: Path, description: RobotDescription) -> None:
-    """A twin run stored as the node stores it (the end pose, the kinematics node's forward
-    kinematics of the measured joints; no compensation) reads as the twin's joint bag of the
-    same run, and `lompr train` trains on it."""
-    sim = simulate(description, load_twin_parameters(), passes=2, seed=1)
-    tips = batch_forward_kinematics(description.geometry, sim.joints_measured).position
-    store = SampleStore(capacity=len(sim.stamps) + COPY_MARGIN, window_ns=10**15)
-    for stamp, tip, reference in zip(sim.stamps, tips, sim.reference, strict=True):
-        store.observe(AlignedSample(int(stamp), tip[0], tip[1], *reference),
-                      (tip[0] - reference[0], tip[1] - reference[1]), None)
-    bag = write_store_bag(tmp_path / 'store', store.snapshot(), {})
-    store.close()
-    joints = write_recording(tmp_path / 'joints', to_recording(sim)[0])
-    (stored, _), (recorded, _) = (load_clean_data(BagInputs((str(b),)), LomprChain(description))
-                                  for b in (bag, joints))
-    np.testing.assert_array_equal(stored.stamps, recorded.stamps)
-    np.testing.assert_allclose(stored.error, recorded.error, rtol=0, atol=1e-12)
-    assert stored.counts['end_pose_read'] == len(sim.stamps) and stored.counts['joint_read'] == 0
-    np.testing.assert_array_equal(stored.compensation, 0.0)
-    model = tmp_path / 'model.pt'
-    assert lompr_main(['train', str(bag), '--out', str(model), '--report', str(tmp_path / 'r'),
-                       '--trials', '1', '--restarts', '0', '--max-epochs', '2', '--window', '8',
-                       '--horizon', '2', '--workers', '1', '--quiet']) == 0
-    (trained_on,) = load_model(model).metadata.training_bags
-    assert trained_on['sha256'] == bag_sha256(bag)
