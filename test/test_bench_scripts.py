@@ -113,6 +113,15 @@ def test_the_relay_chain_relays_raw_bytes_on_the_nodes_endpoints(ros: RosHarness
                 answer.header.frame_id) == (13, 4_000_300, 'lompr_base')
 
 
+def printed(script: str) -> list[str]:
+    """The lines a Python `script` prints, run with the bench folder as its argv[1] (the
+    bench scripts are no package: the script puts it on its path)."""
+    result = subprocess.run([sys.executable, '-c', script, str(BENCH)], capture_output=True,
+                            text=True, timeout=120, check=False)
+    assert result.returncode == 0, result.stderr[-2000:]
+    return result.stdout.splitlines()
+
+
 def test_the_soak_tells_where_the_unanswered_instants_lie() -> None:
     """The soak's account of a run's unanswered instants: before its first answer, after its
     last, and the holes between by length (a fault's refill is `refill` long or longer)."""
@@ -125,10 +134,7 @@ def test_the_soak_tells_where_the_unanswered_instants_lie() -> None:
         '    answered[hole] = False\n'
         'print(missed_instants(answered, 26))\n'
         'print(missed_instants(np.zeros(4, bool), 26))')
-    result = subprocess.run([sys.executable, '-c', script, str(BENCH)], capture_output=True,
-                            text=True, timeout=120, check=False)
-    assert result.returncode == 0, result.stderr[-2000:]
-    holes, nothing = result.stdout.splitlines()[-2:]
+    holes, nothing = printed(script)[-2:]
     assert holes == ("{'start': (1, 3), 'end': (1, 5), 'single': (1, 1), 'short': (1, 4), "
                      "'refill': (2, 56)}")
     assert nothing == "{'start': (1, 4)}"
@@ -156,10 +162,7 @@ def test_the_chaos_soak_schedules_every_fault_and_checks_each_offset() -> None:
         'found = offset_checks(rows, 5e-4, 5e-5)\n'
         'print(found["non_finite"], found["over_bound"], found["steps_over_limit"],'
         ' found["cancellations_over_limit"])')
-    result = subprocess.run([sys.executable, '-c', script, str(BENCH)], capture_output=True,
-                            text=True, timeout=120, check=False)
-    assert result.returncode == 0, result.stderr[-2000:]
-    rounds, counts = result.stdout.splitlines()[-2:]
+    rounds, counts = printed(script)[-2:]
     assert rounds == str(2 * 15)  # 30 minutes: two rounds of 15 kinds
     # steps: 30 -> 200 um, 200 -> 40 um; not across the segments (0 -> 1) nor the NaN
     # row's; 0.6 mm -> 0 at the first instant is a cancellation (the contract's "no
@@ -189,10 +192,7 @@ def test_the_chaos_soak_takes_a_new_segments_time_from_its_own_twin() -> None:
         'monitor._on_clock(clock(EPOCH_NS + 4_000_000))\n'
         'print(late, monitor.clock_ns - EPOCH_NS, len(monitor.first_clocks))\n'
         'monitor.destroy_node(); rclpy.shutdown(context=context)\n')
-    result = subprocess.run([sys.executable, '-c', script, str(BENCH)], capture_output=True,
-                            text=True, timeout=120, check=False)
-    assert result.returncode == 0, result.stderr[-2000:]
-    assert result.stdout.splitlines()[-1] == '0 4000000 2'
+    assert printed(script)[-1] == '0 4000000 2'
 
 
 @pytest.mark.slow

@@ -42,6 +42,29 @@ def settings(folder: Path, **changes: object) -> AdaptationSettings:
     return AdaptationSettings(**{**vars(SETTINGS), 'folder': str(folder), **changes})
 
 
+def fake_attempt(monkeypatch: pytest.MonkeyPatch, folder: Path, source: str) -> None:
+    """Attempts run the module `source` (written in `folder`) in place of the real one."""
+    monkeypatch.setattr(adaptation, 'ATTEMPT_MODULE', 'fake_attempt')
+    (folder / 'fake_attempt.py').write_text(source)
+    monkeypatch.setenv('PYTHONPATH', os.pathsep.join([str(folder),
+                                                      os.environ.get('PYTHONPATH', '')]))
+
+
+def run_to_its_end(folder: Path, model: ModelInForce) -> None:
+    """One attempt from `model` (its models in `folder`/models), waited for (30 s at most);
+    its work folder is gone afterwards."""
+    runs = Adaptation(settings(folder / 'models'))
+    store = SampleStore.for_minutes(0.1, 0.04)
+    try:
+        runs.start(store, model, {}, 0)
+        deadline = time.monotonic() + 30
+        while runs.poll(1) is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        runs.close()
+        store.close()
+
+
 def test_an_attempt_is_due_after_a_period_of_the_clock_and_a_whole_data_window(
         tmp_path: Path) -> None:
     runs = Adaptation(settings(tmp_path, minutes=0.1, period=30.0))
@@ -163,24 +186,12 @@ def test_an_attempt_is_told_its_node_and_ends_at_once_without_it(
     """The node gives the attempt its pid (`--parent-pid`); an attempt whose parent is not
     that process any more (the node killed outright while the attempt still imported) ends
     before any work, instead of watching its new parent and writing a model for nobody."""
-    monkeypatch.setattr(adaptation, 'ATTEMPT_MODULE', 'this_module_says_its_arguments')
-    (tmp_path / 'this_module_says_its_arguments.py').write_text(
+    fake_attempt(monkeypatch, tmp_path, (
         'import json, sys\n'
-        f'open({str(tmp_path / "argv.json")!r}, "w").write(json.dumps(sys.argv[1:]))\n')
-    monkeypatch.setenv('PYTHONPATH', os.pathsep.join([str(tmp_path),
-                                                      os.environ.get('PYTHONPATH', '')]))
-    runs = Adaptation(settings(tmp_path / 'models'))
-    store = SampleStore.for_minutes(0.1, 0.04)
-    try:
-        runs.start(store, ModelInForce('m.pt', 'ab', None, 'lompr_base'), {}, 0)
-        deadline = time.monotonic() + 30
-        while runs.poll(1) is None and time.monotonic() < deadline:
-            time.sleep(0.05)
-        argv = json.loads((tmp_path / 'argv.json').read_text())
-        assert argv[argv.index('--parent-pid') + 1] == str(os.getpid())
-    finally:
-        runs.close()
-        store.close()
+        f'open({str(tmp_path / "argv.json")!r}, "w").write(json.dumps(sys.argv[1:]))\n'))
+    run_to_its_end(tmp_path, ModelInForce('m.pt', 'ab', None, 'lompr_base'))
+    argv = json.loads((tmp_path / 'argv.json').read_text())
+    assert argv[argv.index('--parent-pid') + 1] == str(os.getpid())
     orphan = subprocess.run(  # its parent is this test, not the pid it is given
         [sys.executable, '-m', 'lompr_predictor.adaptation.attempt', '--fd', '0',
          '--window-ns', '1', '--request', '{}', '--parent-pid', '1'], capture_output=True,
@@ -190,9 +201,7 @@ def test_an_attempt_is_told_its_node_and_ends_at_once_without_it(
 
 def test_a_killed_attempt_is_a_failure_and_leaves_no_work_folder(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(adaptation, 'ATTEMPT_MODULE', 'this_module_sleeps')
-    (tmp_path / 'this_module_sleeps.py').write_text('import time\ntime.sleep(60)\n')
-    monkeypatch.setenv('PYTHONPATH', str(tmp_path))
+    fake_attempt(monkeypatch, tmp_path, 'import time\ntime.sleep(60)\n')
     left_behind = tmp_path / 'models' / f'{WORK_PREFIX}999999999-1'  # a node gone
     left_behind.mkdir(parents=True)
     runs = Adaptation(settings(tmp_path / 'models'))
@@ -225,24 +234,13 @@ def test_a_description_received_as_text_reaches_the_attempt_as_a_file(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A node that got its URDF on a topic hands the attempt (a process that reads a file)
     the text as received, in the attempt's work folder, gone with it."""
-    monkeypatch.setattr(adaptation, 'ATTEMPT_MODULE', 'this_module_reads_its_description')
-    (tmp_path / 'this_module_reads_its_description.py').write_text(
+    fake_attempt(monkeypatch, tmp_path, (
         'import json, sys\n'
         'path = json.loads(sys.argv[sys.argv.index("--request") + 1])["robot_description"]\n'
         f'open({str(tmp_path / "seen.json")!r}, "w").write(json.dumps([path, '
-        'open(path, encoding="utf-8").read()]))\n')
-    monkeypatch.setenv('PYTHONPATH', str(tmp_path))
+        'open(path, encoding="utf-8").read()]))\n'))
     text = UrdfText.of('<robot name="received">\u00b5</robot>', 'topic /robot_description')
-    runs = Adaptation(settings(tmp_path / 'models'))
-    store = SampleStore.for_minutes(0.1, 0.04)
-    try:
-        runs.start(store, ModelInForce('m.pt', 'ab', text, 'lompr_base'), {}, 0)
-        deadline = time.monotonic() + 30
-        while runs.poll(1) is None and time.monotonic() < deadline:
-            time.sleep(0.05)
-    finally:
-        runs.close()
-        store.close()
+    run_to_its_end(tmp_path, ModelInForce('m.pt', 'ab', text, 'lompr_base'))
     path, seen = json.loads((tmp_path / 'seen.json').read_text())
     assert seen == text.xml and Path(path).parent.name.startswith(WORK_PREFIX)
     assert Path(path).name == DESCRIPTION_NAME and not Path(path).exists()
