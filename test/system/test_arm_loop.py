@@ -38,8 +38,8 @@ PROGRAM = 'figure8'
 SAMPLES = 400
 #: [s] How long the twin waits for a sample's answer before the loop's first answer. The
 #: loop's friction makes its ringing depend on the sample it closes at (the RMS of a run
-#: moves by a few % with it), so both runs wait long enough for every node to be matched
-#: and close at the same sample, the first the predictor can answer.
+#: moves by a few % with it), so the runs compared wait long enough for their nodes to be
+#: matched and close at the first sample the predictor can answer (in one process always).
 FIRST_ANSWER_WAIT = 1.0
 
 
@@ -262,8 +262,9 @@ def test_the_arm_loop_through_the_command_compensator_across_processes_on_clock(
         one, one_document = read_run_log(one_log)
     finally:
         ros.shutdown()
-    assert one_document['first_answered'] == first, 'the two runs closed at different samples'
-    settled = slice(first + 10, PROCESS_SAMPLES)
+    # Across processes a first message can go before every subscription is matched, and the
+    # loop then closes a sample later: its ringing differs by a few %, its reduction by less.
+    settled = slice(max(first, int(one_document['first_answered'])) + 10, PROCESS_SAMPLES)
     rms_processes, rms_one = (_rms_um(run['true_error'][settled]) for run in (arrays, one))
     without = _rms_um(ArmDigitalTwin(seed=SEED, program=PROGRAM).step(PROCESS_SAMPLES)
                       .error_true[settled])
@@ -274,7 +275,8 @@ def test_the_arm_loop_through_the_command_compensator_across_processes_on_clock(
         errors='replace').splitlines() if 'passed unchanged' in line]
     print(f'XY true error RMS {rms_processes:.4f} um across processes, {rms_one:.4f} um in '
           f'one process, {without:.4f} um without compensation (reductions '
-          f'{reduction_processes:.4%}, {reduction_one:.4%}); the compensator said: '
+          f'{reduction_processes:.4%}, {reduction_one:.4%}; closed at samples {first}, '
+          f'{one_document["first_answered"]}); the compensator said: '
           f'{unchanged[:3] or "no command passed unchanged"}')
     assert abs(reduction_processes - reduction_one) <= 0.01 * reduction_one
 
