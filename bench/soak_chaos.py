@@ -131,8 +131,12 @@ ANSWERED_TARGET = 0.999
 RSS_TARGET_MB = 20.0
 NODES = ('kinematics_node', 'predictor_node')
 #: The statuses a fault must show on and clear from: the nodes under test. The twin's (the
-#: machine's stand-in) say the late offsets the answered figure counts; they are not judged.
+#: machine's stand-in) say the late offsets the answered figure counts; they are not judged,
+#: but for a CPU hog: a delay that holds back the /clock as much as the samples leaves the
+#: nodes on simulated time looking in time, and only the receiver sees its offsets late (as
+#: command_compensator_node says it for a robot commanded in joints).
 JUDGED = tuple(f'{node}: ' for node in NODES)
+RECEIVER = 'twin_node: compensation'
 ADAPTATION = {'adaptation_enabled': True, 'adaptation_minutes': 0.5,
               'adaptation_period': 40.0, 'adaptation_max_epochs': 3}
 
@@ -519,18 +523,20 @@ def recovery(answered: np.ndarray, fault: Fault) -> int | None:
 
 
 def diagnostics(events: list[tuple[float, str, int, str]], fault: Fault,
-                until: float, visible: float | None = None) -> dict[str, Any]:
-    """What /diagnostics showed of a fault: the statuses that rose above their level before
-    it (from its start to `until`, the next fault or the end), after how many seconds the
-    first did (from `visible`, when the nodes could first see it, if given), and whether
-    all were back by `until` (and when the last came back)."""
+                until: float, visible: float | None = None,
+                judged: tuple[str, ...] = JUDGED) -> dict[str, Any]:
+    """What /diagnostics showed of a fault: the `judged` statuses (names or their
+    beginnings) that rose above their level before it (from its start to `until`, the next
+    fault or the end), after how many seconds the first did (from `visible`, when it could
+    first be seen, if given), and whether all were back by `until` (and when the last came
+    back)."""
     start = fault.started_wall or 0.0
     seen_from = start if visible is None else visible
     levels = dict(fault.before)
     raised: dict[str, str] = {}
     first = cleared = None
     for wall, name, level, message in events:
-        if not start <= wall < until or not name.startswith(JUDGED):
+        if not start <= wall < until or not name.startswith(judged):
             continue
         if level > fault.before.get(name, 0):
             raised.setdefault(name, message)
@@ -543,12 +549,21 @@ def diagnostics(events: list[tuple[float, str, int, str]], fault: Fault,
             'cleared_after_s': cleared if raised and back else None}
 
 
-def _visible(fault: Fault, first_clocks: list[float]) -> float | None:
-    """When the nodes could first see a reset: the new twin's first /clock (its process
-    takes seconds to start, which no node can see); None for the other faults."""
-    if fault.kind != 'reset' or fault.started_wall is None:
+def _visible(fault: Fault, first_clocks: list[float], answered: np.ndarray) -> float | None:
+    """When a fault could first be seen: a reset at the new twin's first /clock (its
+    process takes seconds to start, which no node can see), a CPU hog at the first sample it
+    cost (its wall time from the twin's pace: realtime mode runs a sample a period); None
+    for the other faults (their start)."""
+    if fault.started_wall is None:
         return None
-    return next((wall for wall in first_clocks if wall >= fault.started_wall), None)
+    if fault.kind == 'reset':
+        return next((wall for wall in first_clocks if wall >= fault.started_wall), None)
+    if fault.kind == 'cpu_hog' and fault.start_sample is not None:
+        end = fault.end_sample if fault.end_sample is not None else len(answered)
+        missed = np.flatnonzero(~answered[fault.start_sample:end + 1])
+        if len(missed):
+            return fault.started_wall + int(missed[0]) * PERIOD
+    return None
 
 
 def offset_checks(offsets: np.ndarray, bound: float, step: float) -> dict[str, Any]:
@@ -601,8 +616,10 @@ def summarise(chaos: Chaos, monitor: ChaosMonitor, orphans: list[int],
             **asdict(fault), 'unanswered': int((~span).sum()),
             'recovered_after_s': None if back is None or end is None
             else (back - end) * PERIOD,
-            'diagnostics': diagnostics(monitor.events, fault, until or end_wall,
-                                       _visible(fault, monitor.first_clocks))})
+            'diagnostics': diagnostics(
+                monitor.events, fault, until or end_wall,
+                _visible(fault, monitor.first_clocks, answered),
+                (*JUDGED, RECEIVER) if fault.kind == 'cpu_hog' else JUDGED)})
     quiet = ~outage
     offsets = monitor.offsets[:min(monitor.received, len(monitor.offsets))]
     growth = {}

@@ -195,6 +195,27 @@ def test_the_chaos_soak_takes_a_new_segments_time_from_its_own_twin() -> None:
     assert printed(script)[-1] == '0 4000000 2'
 
 
+def test_a_cpu_hog_is_judged_from_its_first_cost_on_the_receivers_status_too() -> None:
+    """A CPU hog is seen from the first sample it cost, on the nodes' statuses or the twin's
+    compensation status (the receiver, which alone sees offsets late when the hog delays
+    the /clock as much as the samples); another fault is not judged on the twin's."""
+    script = (
+        'import sys; sys.path.insert(0, sys.argv[1]); import numpy as np\n'
+        'from soak_chaos import Fault, PERIOD, RECEIVER, JUDGED, _visible, diagnostics\n'
+        'answered = np.ones(1000, bool); answered[250] = answered[251] = False\n'
+        'hog = Fault("cpu_hog", 0.0, 2.0, started_wall=100.0, start_sample=0,'
+        ' end_sample=500)\n'
+        'seen = _visible(hog, [], answered)\n'
+        'events = [(101.3, RECEIVER, 1, "2 offsets dropped"), (102.3, RECEIVER, 0, "ok")]\n'
+        'shown = diagnostics(events, hog, 110.0, seen, (*JUDGED, RECEIVER))\n'
+        'burst = Fault("nan_reference", 0.0, 2.0, started_wall=100.0, start_sample=0)\n'
+        'other = diagnostics(events, burst, 110.0)\n'
+        'print(round(seen, 6), round(shown["shown_after_s"], 6), shown["cleared"],'
+        ' other["shown_after_s"])')
+    # the hog's first cost: sample 250, one second into it; the receiver warned 0.3 s later
+    assert printed(script)[-1] == f'{100.0 + 250 * 0.004} 0.3 True None'
+
+
 @pytest.mark.slow
 def test_the_chaos_soak_runs_and_writes_its_report(tmp_path: Path) -> None:
     """A minute of the chaos soak through the real nodes: it finishes, runs every sample,

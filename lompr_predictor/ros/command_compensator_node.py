@@ -35,6 +35,7 @@ from lompr_predictor.online.command_compensation import (
     CommandCompensator,
     CommandOutcome,
     CompensatorLimits,
+    OffsetDrop,
 )
 from lompr_predictor.robot.chain import RobotSpec, UrdfText, load_chain
 from lompr_predictor.robot.joint_offsets import DEFAULT_DAMPING
@@ -165,6 +166,7 @@ class CommandCompensatorNode(NodeBase[CommandCompensatorSettings], ManagedNode, 
         self.dropped_inactive = 0  # inputs received while not active
         self.last_problem = ''
         self._problems_at_last_report = 0
+        self._late_at_last_report = 0
         self.command_rate = self.rate_meter(settings.rate_window)
         self.offset_rate = self.rate_meter(settings.rate_window)
         #: Where its URDF comes from (a file, or the topic the cell shares).
@@ -189,6 +191,7 @@ class CommandCompensatorNode(NodeBase[CommandCompensatorSettings], ManagedNode, 
                                   f'{settings.frame_prefix}{chain.base_frame}')
         self._order = core.joint_order(settings.controller_joints or chain.joint_names)
         self.core = core
+        self._problems_at_last_report = self._late_at_last_report = 0  # the new core's counts
         self._output = self.own(self.advertise(OUTPUT))
         if settings.forward_command_topic:
             self._forward = self.own(self.advertise(FORWARD))
@@ -286,6 +289,13 @@ class CommandCompensatorNode(NodeBase[CommandCompensatorSettings], ManagedNode, 
         if new:
             return Status(Level.WARN, f'{new} command(s) bad or clamped since the last report: '
                                       f'{self.last_problem}', values)
+        # the receiver's view of lateness: an offset after its command is one the controller
+        # ran without, whatever the predictor's clock said of it
+        late = self.core.offsets.dropped[OffsetDrop.LATE]
+        new_late, self._late_at_last_report = late - self._late_at_last_report, late
+        if new_late:
+            return Status(Level.WARN, f'{new_late} offset(s) came after their command since '
+                                      'the last report: those commands ran without them', values)
         outcomes = self.core.outcomes
         return Status(Level.OK, f'{values["command_rate_hz"]} Hz, '
                                 f'{outcomes[CommandOutcome.COMPENSATED]} compensated, '

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.parameter import Parameter
 from ros_helpers import RosHarness, latest_status, set_stamp, stamp_ns
@@ -98,6 +98,39 @@ def test_commands_come_out_compensated_on_both_topics(ros: RosHarness) -> None:
         'bad_input_total': '1', 'clamped': '0', 'offsets_dropped.wrong_frame': '1'}
     assert status['last_problem'].endswith('passed unchanged: non-finite joint(s) '
                                            'wrist_1_joint')
+
+
+def test_offsets_after_their_command_are_the_receivers_lateness_on_diagnostics(
+        ros: RosHarness) -> None:
+    """An offset that comes after the command of its instant is one the controller ran
+    without: the status warns with how many since the last report, then is OK again."""
+    chain = load_chain(arm_spec())
+    node = ros.add(CommandCompensatorNode(context=ros.context,
+                                          parameter_overrides=node_parameters()))
+    states = ros.collect('/joint_commands_compensated', JointState, 100)
+    diagnostics = ros.collect('/diagnostics', DiagnosticArray, 100)
+    offsets_out = ros.node.create_publisher(Vector3Stamped, '/lompr/compensation', 100)
+    commands_out = ros.node.create_publisher(JointState, '/joint_commands', 100)
+    for publisher in (offsets_out, commands_out):
+        ros.wait_for_subscribers(publisher)
+    for k in range(3):
+        commands_out.publish(command(k, list(chain.joint_names), list(Q)))
+    ros.spin_until(lambda: len(states) == 3, what='the commands')
+    for k in (0, 1):  # both instants already commanded
+        offsets_out.publish(offset(k, (1e-4, 0.0)))
+    ros.spin_until(lambda: node.offset_rate.total == 2, what='the late offsets')
+    name = f'{node.get_name()}: command path'
+    ros.spin_until(lambda: (latest_status(diagnostics, name) or {}).get(
+        'offsets_dropped.late') == '2', what='the late count')
+    warned = latest_status(diagnostics, name)
+    assert warned is not None
+    assert warned['_message'] == ('2 offset(s) came after their command since the last '
+                                  'report: those commands ran without them')
+    assert warned['_level'] == DiagnosticStatus.WARN and warned['commands.no_offset'] == '3'
+    ros.spin_until(lambda: (latest_status(diagnostics, name) or {}).get('_level')
+                   == DiagnosticStatus.OK, what='the next report')
+    again = latest_status(diagnostics, name)
+    assert again is not None and again['offsets_dropped.late'] == '2'
 
 
 def test_the_lompr_is_refused_at_configure_in_one_line(ros: RosHarness) -> None:
