@@ -38,14 +38,17 @@ dropped by the predictor's overrun policy).
   (`lompr_pipeline`), each with its default parameters and executor (`--executors
   events,single-threaded` compares rclpy's two), then once more beside a training job
   (`lompr train --threads 1` on a small simulated bag, at its default priority, nice +10;
-  `--no-training` skips it). Each run beside the same chain through `relay_chain.py` (the
-  nodes' topics, QoS and executor, raw bytes in and out, no work): the transport floor of
-  this machine, which no node can go below. `--sched-fifo PRIORITY` runs both chains under
-  SCHED_FIFO (the nodes by their `sched_fifo_priority`, the relays by `chrt`). After each
-  run through the nodes, each node's 'callback timing' status (`monitoring.CallbackTimes`,
-  on /diagnostics) over the timed stream: per kind of work (each callback, logging, garbage
-  collection by generation, the executor's own CPU per callback) runs, mean wall and CPU
-  time, p50 / p99 / p99.9 / max.
+  `--no-training` skips it) and, with `--adaptation`, beside a fine-tuning as an adaptation
+  attempt runs it (`lompr train --init`, SCHED_IDLE on one CPU). Each run beside the same
+  chain through `relay_chain.py` (the nodes' topics, QoS and executor, raw bytes in and out,
+  no work): the transport floor of this machine, which no node can go below.
+  `--sched-fifo PRIORITY` runs both chains under SCHED_FIFO (the nodes by their
+  `sched_fifo_priority`, the relays by `chrt`) and this client above them, as a cell runs
+  the driver and controller the client stands for. After each run through the nodes,
+  each node's 'callback timing' status (`monitoring.CallbackTimes`, on /diagnostics) over
+  the timed stream: per kind of work (each callback, logging, garbage collection by
+  generation, the executor's own CPU per callback) runs, mean wall and CPU time, p50 / p99
+  / p99.9 / max.
 
 Targets: at 1 kHz, with a training job beside and without, >= 99.9 % of the samples
 answered and no fewer than the relays of the same run, p99 <= 2 ms across processes and
@@ -115,6 +118,7 @@ from lompr_predictor.ros.common import EXECUTORS, events_executor
 from lompr_predictor.ros.domain import isolate_ros_domain
 from lompr_predictor.ros.predictor_settings import PredictorNodeSettings
 from lompr_predictor.ros.wire import read_stamp
+from lompr_predictor.scheduling import lower_job
 from lompr_predictor.threads import set_torch_threads
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -143,6 +147,7 @@ CALLGRIND_VARIABLE = 'LOMPR_BENCH_UNDER_CALLGRIND'
 CALLGRIND_SAMPLES = 300
 BAG = Path(__file__).resolve().parents[1] / 'bags' / 'twin_spiral_seed1_3passes'
 RELAY = Path(__file__).resolve().parent / 'relay_chain.py'
+LOMPR = str(Path(sys.executable).parent / 'lompr')
 
 
 def timing_module(sample_period: float, horizon: int, preview: int = 0) -> PredictorModule:
@@ -701,6 +706,21 @@ def start(command: list[str], **kwargs: Any) -> subprocess.Popen:
                             text=True, **kwargs)
 
 
+#: With --sched-fifo, the client's priority above the nodes': it stands for the machine's
+#: driver and controller, which a cell runs above them (ros2_control's controller manager
+#: at 50, config/realtime.yaml's nodes at 40).
+CLIENT_ABOVE_NODES = 10
+
+
+def client_policy(priority: int) -> None:
+    """This thread, and the threads it starts from now on (the client's middleware), under
+    SCHED_FIFO at `priority`, or back under the normal policy if 0."""
+    if priority:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    else:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+
 def cpu_seconds(pid: int) -> float:
     """User + system CPU time [s] a process has used so far (/proc)."""
     fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
@@ -755,6 +775,7 @@ def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path | None,
     commands = (relay_commands(mode, horizon * round(period * 1e9), executor, sched_fifo)
                 if model is None else node_commands(mode, model, period, executor, sched_fifo))
     processes = [start(command) for command in commands]
+    client_policy(sched_fifo + CLIENT_ABOVE_NODES if sched_fifo else 0)
     context = Context()
     rclpy.init(context=context)
     client = Client(context)
@@ -808,6 +829,7 @@ def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path | None,
         client.destroy_node()
         context.try_shutdown()
         stop_processes(processes)
+        client_policy(0)
     first = WINDOW + HISTORY - 1
     latencies = []
     for k in range(first, samples):
@@ -829,29 +851,66 @@ def bench_end_to_end(mode: str, rate: int, seconds: float, model: Path | None,
                              for k in OVERRUN_COUNTERS)}
 
 
-@contextlib.contextmanager
-def training_job(directory: Path) -> Iterator[subprocess.Popen]:
-    """`lompr train` with one torch thread on a small simulated bag, beside the bench, for
-    as long as the block runs (its budget is far longer: it is stopped at the end)."""
-    lompr = str(Path(sys.executable).parent / 'lompr')
-    bag = BAG
+def training_bag(directory: Path) -> Path:
+    """The repository's small twin bag, or one simulated into `directory` (once)."""
+    if (BAG / 'metadata.yaml').is_file():
+        return BAG
+    bag = directory / 'training_bag'
     if not (bag / 'metadata.yaml').is_file():
-        bag = directory / 'training_bag'
-        subprocess.run([lompr, 'simulate', '--out', str(bag), '--passes', '3', '--seed', '1'],
+        subprocess.run([LOMPR, 'simulate', '--out', str(bag), '--passes', '3', '--seed', '1'],
                        check=True, capture_output=True)
-    process = start([lompr, 'train', str(bag), '--out', str(directory / 'trained.pt'),
-                     '--report', str(directory / 'training_report'), '--threads', '1',
-                     '--trials', '1000', '--max-epochs', '100000', '--patience', '100000',
-                     '--quiet'], start_new_session=True)
+    return bag
+
+
+@contextlib.contextmanager
+def running_beside(what: str, process: subprocess.Popen) -> Iterator[subprocess.Popen]:
+    """`process` (a `lompr train`) beside the bench for as long as the block runs (its
+    budget is far longer: it is stopped at the end); `what` names it if it stops early."""
     try:
         time.sleep(5.0)  # past start-up (imports, reading the bag): training proper
         if process.poll() is not None:
             errors = process.stderr.read() if process.stderr else ''
-            msg = f'the training job stopped: {errors[-500:]}'
+            msg = f'the {what} stopped: {errors[-500:]}'
             raise RuntimeError(msg)
         yield process
     finally:
         stop_processes([process])  # SIGINT to it alone: it stops its tuning workers itself
+
+
+@contextlib.contextmanager
+def training_job(directory: Path) -> Iterator[subprocess.Popen]:
+    """`lompr train` with one torch thread per tuning worker (its default workers) on a
+    small simulated bag, at its default priority (nice +10), beside the bench."""
+    process = start([LOMPR, 'train', str(training_bag(directory)), '--out',
+                     str(directory / 'trained.pt'), '--report',
+                     str(directory / 'training_report'), '--threads', '1', '--trials', '1000',
+                     '--max-epochs', '100000', '--patience', '100000', '--quiet'],
+                    start_new_session=True)
+    with running_beside('training job', process) as running:
+        yield running
+
+
+@contextlib.contextmanager
+def adaptation_job(directory: Path) -> Iterator[subprocess.Popen]:
+    """A fine-tuning as an adaptation attempt runs it, beside the bench: `lompr train
+    --init` of a model first trained on the small bag, one torch thread, put below the
+    nodes as the predictor puts its attempt (`scheduling.lower_job`: SCHED_IDLE, on one
+    CPU, by the predictor's default adaptation settings)."""
+    bag, parent = training_bag(directory), directory / 'parent.pt'
+    if not parent.is_file():
+        subprocess.run([LOMPR, 'train', str(bag), '--out', str(parent), '--report',
+                        str(directory / 'parent_report'), '--trials', '1', '--max-epochs', '2',
+                        '--workers', '1', '--threads', '1', '--quiet'],
+                       check=True, capture_output=True)
+    process = start([LOMPR, 'train', str(bag), '--init', str(parent), '--out',
+                     str(directory / 'adapted.pt'), '--report',
+                     str(directory / 'adapted_report'), '--threads', '1',
+                     '--max-epochs', '100000', '--patience', '100000', '--quiet'],
+                    start_new_session=True)
+    defaults = PredictorNodeSettings()
+    lower_job(process.pid, defaults.adaptation_nice, defaults.adaptation_idle)
+    with running_beside('adaptation job', process) as running:
+        yield running
 
 
 # -- report ---------------------------------------------------------------------------------
@@ -886,6 +945,9 @@ def main() -> int:
     parser.add_argument('--training', action=argparse.BooleanOptionalAction, default=True,
                         help='run the end-to-end figures once more beside a training job '
                              "(default: yes; the issue's targets hold with and without)")
+    parser.add_argument('--adaptation', action=argparse.BooleanOptionalAction, default=False,
+                        help='run the end-to-end figures once more beside a fine-tuning as an '
+                             'adaptation attempt runs it (default: no)')
     parser.add_argument('--executors', default=EXECUTORS[0],
                         help=f"comma list of the node executables' executors to run the end-"
                              f'to-end figures with, of {", ".join(EXECUTORS)} (default: '
@@ -901,7 +963,8 @@ def main() -> int:
     parser.add_argument('--sched-fifo', type=int, default=0, metavar='PRIORITY',
                         help='if > 0, the end-to-end chains run under SCHED_FIFO at this '
                              'priority: the nodes by their sched_fifo_priority, the relays by '
-                             'chrt; the training job and this client keep the normal policy')
+                             'chrt, and this client 10 above them; the training job keeps '
+                             'the normal policy')
     parser.add_argument('--profile-samples', type=int, default=PROFILE_SAMPLES,
                         help='samples driven through the profile (the first '
                              f'{PROFILE_WARMUP} are not counted)')
@@ -934,6 +997,8 @@ def main() -> int:
                 ('', contextlib.nullcontext())]
             if args.training:
                 loads.append((' + training', training_job(directory)))
+            if args.adaptation:
+                loads.append((' + adaptation', adaptation_job(directory)))
             rates = [int(r) for r in args.rates.split(',')]
             executors = args.executors.split(',')
             for load, job in loads:

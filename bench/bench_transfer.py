@@ -44,8 +44,8 @@ from lompr_predictor.cli.common import add_nice_argument
 from lompr_predictor.data.loading import BagInputs
 from lompr_predictor.learning.baselines import BASELINES, HGB, PERSISTENCE, WithoutPreview
 from lompr_predictor.learning.options import TrainingConfig
-from lompr_predictor.learning.pipeline import train_predictor, write_outputs
 from lompr_predictor.learning.publishing import GENERALIST
+from lompr_predictor.learning.trainer import train_predictor, write_outputs
 from lompr_predictor.robot.paths import PATH_KINDS
 from lompr_predictor.scheduling import lower_priority
 from lompr_predictor.threads import default_workers, set_torch_threads

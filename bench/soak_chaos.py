@@ -526,22 +526,26 @@ def diagnostics(events: list[tuple[float, str, int, str]], fault: Fault,
                 until: float, visible: float | None = None,
                 judged: tuple[str, ...] = JUDGED) -> dict[str, Any]:
     """What /diagnostics showed of a fault: the `judged` statuses (names or their
-    beginnings) that rose above their level before it (from its start to `until`, the next
-    fault or the end), after how many seconds the first did (from `visible`, when it could
-    first be seen, if given), and whether all were back by `until` (and when the last came
-    back)."""
+    beginnings) that rose above their level before it, or above the lowest they fell to
+    since (from its start to `until`, the next fault or the end), after how many seconds
+    the first did (from `visible`, when it could first be seen, if given), and whether all
+    were back by `until` (and when the last came down)."""
     start = fault.started_wall or 0.0
     seen_from = start if visible is None else visible
     levels = dict(fault.before)
+    # a status already up at the start (for an earlier cause) that came down and went up
+    # again shows this fault: a rise counts above the lowest level since the start
+    lowest = dict(fault.before)
     raised: dict[str, str] = {}
     first = cleared = None
     for wall, name, level, message in events:
         if not start <= wall < until or not name.startswith(judged):
             continue
-        if level > fault.before.get(name, 0):
+        lowest[name] = min(lowest.get(name, 0), level)
+        if level > lowest[name]:
             raised.setdefault(name, message)
             first = max(0.0, wall - seen_from) if first is None else first
-        elif name in raised and name in levels and levels[name] > fault.before.get(name, 0):
+        elif name in raised and level < levels.get(name, 0):  # a raised one came down
             cleared = wall - start
         levels[name] = level
     back = all(levels.get(name, 0) <= fault.before.get(name, 0) for name in raised)
@@ -725,6 +729,8 @@ def soak(minutes: float, seed: int, out: Path, wall_limit: float, realtime: bool
         text = report(result, met, seed)
         (out / 'report.json').write_text(json.dumps({**result, 'targets': met}, indent=1,
                                                     default=str))
+        # every level change seen, so that a report can be judged again
+        (out / 'diagnostics.json').write_text(json.dumps(monitor.events))
         (out / 'report.txt').write_text(text + '\n')
         print(text)
     return all(met.values())

@@ -276,6 +276,25 @@ def test_the_layout_check_sees_a_stray_and_a_twin(tmp_path: Path) -> None:
                                          'ros/test_guard.py: its name is taken']
 
 
+def untested_modules(package: Path, tests: Path) -> list[str]:
+    """The package's modules (but `__init__`) without a test file named after them
+    (`test_<module>.py`, in any folder of `tests`)."""
+    names = {path.name for path in tests.rglob('test_*.py')}
+    return [path.relative_to(package).as_posix() for path in sorted(package.rglob('*.py'))
+            if path.name != '__init__.py' and f'test_{path.stem}.py' not in names]
+
+
+def test_every_module_has_a_test_file_named_after_it() -> None:
+    assert untested_modules(PACKAGE, ROOT / 'test') == []
+
+
+def test_the_test_name_check_sees_a_module_without_its_test(tmp_path: Path) -> None:
+    for path in ('pkg/__init__.py', 'pkg/a/alpha.py', 'pkg/b/beta.py', 'test/a/test_beta.py'):
+        (tmp_path / path).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / path).write_text('')
+    assert untested_modules(tmp_path / 'pkg', tmp_path / 'test') == ['a/alpha.py']
+
+
 def import_graph(paths: list[Path], root: Path = PACKAGE.parent) -> dict[str, set[str]]:
     """{module: the package's modules it imports}, every import statement counted (inside
     functions and `if TYPE_CHECKING:` too: a circle there is still one); `from a import b`

@@ -210,10 +210,15 @@ def test_a_cpu_hog_is_judged_from_its_first_cost_on_the_receivers_status_too() -
         'shown = diagnostics(events, hog, 110.0, seen, (*JUDGED, RECEIVER))\n'
         'burst = Fault("nan_reference", 0.0, 2.0, started_wall=100.0, start_sample=0)\n'
         'other = diagnostics(events, burst, 110.0)\n'
+        'hog.before = {RECEIVER: 1}  # up at the start for an earlier late offset\n'
+        'again = [(100.5, RECEIVER, 0, "ok"), *events]\n'
+        'up = diagnostics(again, hog, 110.0, seen, (*JUDGED, RECEIVER))\n'
         'print(round(seen, 6), round(shown["shown_after_s"], 6), shown["cleared"],'
-        ' other["shown_after_s"])')
-    # the hog's first cost: sample 250, one second into it; the receiver warned 0.3 s later
-    assert printed(script)[-1] == f'{100.0 + 250 * 0.004} 0.3 True None'
+        ' other["shown_after_s"], round(up["shown_after_s"], 6), up["cleared"],'
+        ' round(up["cleared_after_s"], 6))')
+    # the hog's first cost: sample 250, one second into it; the receiver warned 0.3 s later,
+    # also when it was up at the hog's start and had come down meanwhile
+    assert printed(script)[-1] == f'{100.0 + 250 * 0.004} 0.3 True None 0.3 True 2.3'
 
 
 @pytest.mark.slow

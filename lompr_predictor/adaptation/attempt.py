@@ -56,7 +56,7 @@ from lompr_predictor.threads import CoreUse, set_torch_threads
 
 if TYPE_CHECKING:  # imported by `attempt`, once the process runs at its lower priority
     from lompr_predictor.learning.model_file import ModelMetadata
-    from lompr_predictor.learning.pipeline import TrainingResult
+    from lompr_predictor.learning.trainer import TrainingResult
 
 #: New model files are named this, then the UTC time and a number.
 MODEL_PREFIX = 'adapted-'
@@ -146,7 +146,7 @@ def attempt(samples: StoredSamples, request: AttemptRequest) -> AttemptResult:
     result. `LomprError` (one line) when the samples cannot make a fine-tuning."""
     from lompr_predictor.data.loading import BagInputs
     from lompr_predictor.learning.fine_tuning import fine_tune_predictor, parent_settings
-    from lompr_predictor.learning.pipeline import TrainingConfig
+    from lompr_predictor.learning.trainer import TrainingConfig
     from lompr_predictor.online.store_bag import write_store_bag
 
     started = time.perf_counter()

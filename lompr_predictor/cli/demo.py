@@ -290,7 +290,7 @@ def _train(args: argparse.Namespace, budget: dict[str, int], bags: tuple[Path, .
            model: Path, report: Path, preview: int = 0) -> None:
     """What `lompr train` does (with `--preview preview`), on the recordings, with the
     demo's budget and space."""
-    from lompr_predictor.learning.pipeline import train_predictor, write_outputs
+    from lompr_predictor.learning.trainer import train_predictor, write_outputs
 
     tuned = budget['trials'] > 1  # else --quick: the first point once, no restarts
     space = SPACE if tuned else dataclasses.replace(

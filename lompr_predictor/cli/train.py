@@ -15,7 +15,7 @@ commands, on several machines, share one study through `--storage` and `--study-
 extra workers run `--workers-only` (trials only), and the normal command finishes the study
 (runs what its budget still lacks, then writes the model and report from the best trial).
 
-The pipeline is `learning.pipeline` (`train_predictor`, `run_workers`); this module turns
+The pipeline is `learning.trainer` (`train_predictor`, `run_workers`); this module turns
 the command line into its `TrainingConfig`, sets the thread count and prints where the
 results went.
 """
@@ -205,7 +205,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from lompr_predictor.learning.pipeline import run_workers, train_predictor, write_outputs
+    from lompr_predictor.learning.trainer import run_workers, train_predictor, write_outputs
 
     if args.init and args.workers_only:
         raise LomprError('--init fine-tunes without a tuning study: no --workers-only')

@@ -70,13 +70,13 @@ from lompr_predictor.learning.models import (
     predict_rows,
 )
 from lompr_predictor.learning.options import TrainingConfig, TrainSettings
-from lompr_predictor.learning.pipeline import (
+from lompr_predictor.learning.report import base_report, irreducible_fields
+from lompr_predictor.learning.trainer import (
     TrainingResult,
     check_config,
     network_predictions,
     read_problem,
 )
-from lompr_predictor.learning.report import base_report, irreducible_fields
 from lompr_predictor.learning.training import TrainedModel, train_network
 from lompr_predictor.robot.chain import load_chain, spec_with_model
 
@@ -188,7 +188,7 @@ def check_rebuilt(module: PredictorModule, parent: LoadedModel, rows: np.ndarray
 
 def fine_tune_predictor(config: TrainingConfig, init: str | Path) -> TrainingResult:
     """Fine-tune the model file `init` on the config's bags (module docstring); nothing is
-    written (`pipeline.write_outputs` writes the result)."""
+    written (`trainer.write_outputs` writes the result)."""
     check_config(config)
     started = time.perf_counter()
     chain = load_chain(config.robot)

@@ -34,7 +34,7 @@ from lompr_predictor.online.input_stamps import InputStamps
 from lompr_predictor.online.model_slot import Fallback, ModelSlot, ModelSlots, check_model
 from lompr_predictor.online.offset import XY, ZERO, CompensationLimits, OffsetGate, Output
 from lompr_predictor.online.predictor_counts import PredictorCounts
-from lompr_predictor.online.preview import Planned, PlannedPath, PlanReader, PreviewDrop
+from lompr_predictor.online.preview import Planned, PlannedPath, PreviewDrop, ReferencePreview
 from lompr_predictor.online.sample_units import LiveAccuracy, PlausibleChange, SampleUnit
 from lompr_predictor.online.timing import OverrunGuard
 from lompr_predictor.robot.chain import KinematicChain, load_chain
@@ -69,9 +69,8 @@ class OnlinePredictor:
         self._stamps = InputStamps(self.dropped, stream.max_future_stamp)
         self._rules = StreamRules(stream, period)
         self._stale = StaleWatch(stream.stale_after, clock)
-        self.plan = PlannedPath(stream.gap_factor * period, stream.preview_tolerance)
-        self._reader = PlanReader(self.plan, self.preview * period,
-                                  period_ns(stream.stale_after))
+        self._preview = ReferencePreview(self.preview, period, stream.gap_factor * period,
+                                         stream.preview_tolerance, period_ns(stream.stale_after))
         #: Durations of the network calls of every slot [s].
         self.inference_time = LatencyRecorder(latency_samples)
         #: The model's slot; the fallback's (None without one) answers where the plan is
@@ -101,7 +100,7 @@ class OnlinePredictor:
         if stamp_ns is None:
             return []
         outputs: list[Output] = []
-        if self.preview and not self.plan.check(stamp_ns, x, y, z):
+        if self._preview.contradicts(stamp_ns, x, y, z):
             self.primary.window.plan_lost()  # and what was predicted from the plan is cancelled
             outputs = self.gate.cancel(PreviewDrop.CONTRADICTED, self._alignment.newest_pose_ns)
         events = self._alignment.add_reference(stamp_ns, x, y, z)
@@ -181,9 +180,14 @@ class OnlinePredictor:
         return self.primary.model
 
     @property
+    def plan(self) -> PlannedPath:
+        """The planned reference taken from the previews (empty without a preview)."""
+        return self._preview.plan
+
+    @property
     def preview_stale(self) -> bool:
         """No plan for the stale time: a preview model cannot predict."""
-        return self._reader.stale
+        return self._preview.stale
 
     @property
     def last_bad_stamp(self) -> str | None:
@@ -197,16 +201,8 @@ class OnlinePredictor:
 
     def counts(self) -> PredictorCounts:
         """The counters as one snapshot (`predictor_counts`)."""
-        gate, overrun = self.gate, self.overrun
-        return PredictorCounts(
-            dropped={str(k): n for k, n in self.dropped.counts().items()},
-            faults={str(k): n for k, n in self.faults.counts().items()},
-            predictions=self.predictions_made, clamped=gate.clamped,
-            step_limited=gate.step_limited, zeros_published=gate.zeros_published,
-            reclamped=gate.reclamped, inference_skipped_late=overrun.inference_skipped_late,
-            late_outputs_dropped=overrun.late_outputs_dropped,
-            outputs_in_time=overrun.outputs_in_time,
-            outputs_after_instant=overrun.outputs_after_instant)
+        return PredictorCounts.taken(self.dropped, self.faults, self.predictions_made,
+                                     self.gate, self.overrun)
 
     # -- the per-sample path --------------------------------------------------------------
 
@@ -256,14 +252,9 @@ class OnlinePredictor:
                       outputs: list[Output]) -> ModelSlot | None:
         """Push the sample into every slot's window; the first slot whose window is full
         (the model's, else the fallback's), None while none is."""
-        planned = None
-        if self.preview:
-            reader = self._reader
-            was_stale = reader.stale
-            planned = reader.at_sample(sample.stamp_ns, self._now)
-            if reader.stale and not was_stale and self.fallback is None:
-                outputs += self.gate.cancel(PreviewDrop.MISSING,
-                                            self._alignment.newest_pose_ns)
+        planned, went_stale = self._preview.at_sample(sample.stamp_ns, self._now)
+        if went_stale and self.fallback is None:
+            outputs += self.gate.cancel(PreviewDrop.MISSING, self._alignment.newest_pose_ns)
         return self.slots.push(sample.stamp_ns, error, (sample.reference_x, sample.reference_y,
                                                         sample.reference_z), planned)
 
@@ -271,7 +262,7 @@ class OnlinePredictor:
         """Take the inputs as starting afresh at `stamp_ns` (None: anew), the waiting poses
         dropped under `reason`; the plan, idle time and the overrun estimate start again."""
         self._alignment.rewind(stamp_ns, reason)
-        self._reader.restart()
+        self._preview.restart()
         self._stale.restart()
         self.overrun.restart()
 

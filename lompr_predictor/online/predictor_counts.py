@@ -1,10 +1,10 @@
 # SPDX-License-Identifier: Apache-2.0
 """What the predictor core counted, as one snapshot, and its form on /diagnostics.
 
-`OnlinePredictor.counts()` makes a `PredictorCounts`; the node's statuses write it as
-key-values (`status_counts`) and whoever reads those statuses back, the cross-process
-closed loop, gets the same snapshot (`read_counts`): one pair of functions, so a key
-renamed on one side cannot silently read as nothing on the other.
+`OnlinePredictor.counts()` makes a `PredictorCounts` (`PredictorCounts.taken`); the
+node's statuses write it as key-values (`status_counts`) and whoever reads those statuses
+back, the cross-process closed loop, gets the same snapshot (`read_counts`): one pair of
+functions, so a key renamed on one side cannot silently read as nothing on the other.
 """
 
 from __future__ import annotations
@@ -13,6 +13,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from lompr_predictor.errors import LomprError
+from lompr_predictor.monitoring import RejectionCounter
+from lompr_predictor.online.offset import OffsetGate
+from lompr_predictor.online.timing import OverrunGuard
 
 #: The statuses (their names after '<node>: ') the counts are written into.
 INPUTS_STATUS = 'inputs'
@@ -51,6 +54,21 @@ class PredictorCounts:
     #: judged on the node's clock (`timing.OverrunGuard.lateness_ns`).
     outputs_in_time: int = 0
     outputs_after_instant: int = 0
+
+    @classmethod
+    def taken(cls, dropped: RejectionCounter, faults: RejectionCounter, predictions: int,
+              gate: OffsetGate, overrun: OverrunGuard) -> PredictorCounts:
+        """The snapshot of a core's counters: its inputs dropped and faults by reason, its
+        predictions, its offset gate's and overrun policy's counts."""
+        return cls(
+            dropped={str(k): n for k, n in dropped.counts().items()},
+            faults={str(k): n for k, n in faults.counts().items()},
+            predictions=predictions, clamped=gate.clamped, step_limited=gate.step_limited,
+            zeros_published=gate.zeros_published, reclamped=gate.reclamped,
+            inference_skipped_late=overrun.inference_skipped_late,
+            late_outputs_dropped=overrun.late_outputs_dropped,
+            outputs_in_time=overrun.outputs_in_time,
+            outputs_after_instant=overrun.outputs_after_instant)
 
     @property
     def overruns(self) -> int:

@@ -237,3 +237,41 @@ class PlanReader:
         if now_ns - self._planned_ns >= self.stale_after_ns:
             self.stale = True
         return None
+
+
+class ReferencePreview:
+    """The plan a model of `steps` samples of preview reads (none if 0): the previews taken
+    (`PlannedPath`), read with each sample (`PlanReader`) and checked against the reference
+    as it comes; for the core, one object that answers the same whether the model reads a
+    plan or not."""
+
+    def __init__(self, steps: int, sample_period_ns: int, max_step_ns: float,
+                 tolerance: float, stale_after_ns: int) -> None:
+        self.steps = steps
+        self.plan = PlannedPath(max_step_ns, tolerance)
+        self.reader = PlanReader(self.plan, steps * sample_period_ns, stale_after_ns)
+
+    def contradicts(self, stamp_ns: int, x: float, y: float, z: float) -> bool:
+        """Whether the reference commanded at `stamp_ns` contradicts the plan (which is then
+        dropped: `PlannedPath.check`); never without a preview."""
+        return bool(self.steps) and not self.plan.check(stamp_ns, x, y, z)
+
+    def at_sample(self, stamp_ns: int,
+                  now_ns: int) -> tuple[tuple[int, float, float, float] | None, bool]:
+        """What the sample at `stamp_ns` reads (`PlanReader.at_sample`; None without a
+        preview) and whether the plan went stale with it (what was predicted from the plan
+        is then to be cancelled)."""
+        if not self.steps:
+            return None, False
+        was_stale = self.reader.stale
+        planned = self.reader.at_sample(stamp_ns, now_ns)
+        return planned, self.reader.stale and not was_stale
+
+    @property
+    def stale(self) -> bool:
+        """No plan for the stale time: a preview model cannot predict."""
+        return self.reader.stale
+
+    def restart(self) -> None:
+        """The streams start again: no plan, not stale."""
+        self.reader.restart()

@@ -124,7 +124,7 @@ def test_the_command_line_names_the_flags_of_a_refused_combination(
 def test_existing_studies_keep_their_names() -> None:
     """A study's name is a hash of its definition: declaring the options anew must not
     rename the studies made before (a rerun would start afresh instead of resuming)."""
-    from lompr_predictor.learning.pipeline import study_definition
+    from lompr_predictor.learning.trainer import study_definition
     from lompr_predictor.learning.tuning import study_name_for
 
     sources = [BagSource(path='/x', sha256='ab' * 32)]

@@ -9,6 +9,8 @@ import math
 
 import pytest
 
+from lompr_predictor.monitoring import RejectionCounter
+from lompr_predictor.online.offset import CompensationLimits, OffsetGate
 from lompr_predictor.online.predictor_counts import (
     INPUTS_STATUS,
     PREDICTION_STATUS,
@@ -17,6 +19,7 @@ from lompr_predictor.online.predictor_counts import (
     read_counts,
     status_counts,
 )
+from lompr_predictor.online.timing import OverrunGuard
 
 COUNTS = PredictorCounts(
     dropped={'non_finite': 3, 'out_of_order': 0}, faults={'gap': 2, 'stale': 1},
@@ -56,3 +59,20 @@ def test_a_missing_status_or_count_is_named() -> None:
         read_counts({INPUTS_STATUS: {'faults.gap': '1'},
                      PREDICTION_STATUS: as_diagnostics(status_counts(COUNTS))[
                          PREDICTION_STATUS]})
+
+
+def test_a_snapshot_takes_each_count_from_where_the_core_keeps_it() -> None:
+    """`PredictorCounts.taken`: the reasons as strings, every count from its owner."""
+    dropped, faults = RejectionCounter(('non_finite', 'gap')), RejectionCounter(('stale',))
+    dropped.add('non_finite', 3)
+    faults.add('stale')
+    gate = OffsetGate(CompensationLimits(1e-3, 1e-4, True), 4_000_000)
+    gate.clamped, gate.step_limited, gate.zeros_published, gate.reclamped = 4, 5, 6, 7
+    overrun = OverrunGuard(4_000_000, 1_000_000)
+    overrun.inference_skipped_late, overrun.late_outputs_dropped = 2, 1
+    overrun.outputs_in_time, overrun.outputs_after_instant = 90, 7
+    taken = PredictorCounts.taken(dropped, faults, 100, gate, overrun)
+    assert taken == PredictorCounts(
+        dropped={'non_finite': 3, 'gap': 0}, faults={'stale': 1}, predictions=100, clamped=4,
+        step_limited=5, zeros_published=6, reclamped=7, inference_skipped_late=2,
+        late_outputs_dropped=1, outputs_in_time=90, outputs_after_instant=7)

@@ -19,7 +19,12 @@ from lompr_predictor.monitoring import RateMeter
 from lompr_predictor.online.offset import CompensationLimits, Output
 from lompr_predictor.online.predictor import OnlinePredictor
 from lompr_predictor.online.predictor_status import Lifecycle, preview_status
-from lompr_predictor.online.preview import PLAN_REACH, PlannedPath, PreviewDrop
+from lompr_predictor.online.preview import (
+    PLAN_REACH,
+    PlannedPath,
+    PreviewDrop,
+    ReferencePreview,
+)
 from lompr_predictor.robot.description import load_robot_description
 from lompr_predictor.robot.kinematics import VerticalToolBranches
 
@@ -101,6 +106,28 @@ def test_a_bad_preview_is_refused_whole_with_its_reason() -> None:
     assert plan.horizon_ns is None
     assert {k: n for k, n in plan.dropped.counts().items() if n} == {
         'empty': 1, 'non_finite': 1, 'out_of_order': 1, 'past': 1}
+
+
+def test_a_reference_preview_reads_the_plan_ahead_and_says_once_when_it_went_stale() -> None:
+    """Without preview steps it reads nothing and nothing contradicts it; with them each
+    sample reads the plan `steps` periods ahead, and the sample after which no plan came for
+    the stale time is the one that says the plan went stale (once, until a plan comes)."""
+    none = ReferencePreview(0, PERIOD_NS, 2.5 * PERIOD_NS, 1e-6, 2 * PERIOD_NS)
+    none.plan.add(T0 + np.arange(1, 3) * PERIOD_NS, np.ones((2, 3)))
+    assert none.at_sample(T0, 0) == (None, False) and not none.contradicts(T0 + PERIOD_NS, 0, 0, 0)
+    preview = ReferencePreview(2, PERIOD_NS, 2.5 * PERIOD_NS, 1e-6, 2 * PERIOD_NS)
+    stamps = T0 + np.arange(1, 5) * PERIOD_NS
+    positions = np.stack([np.arange(1, 5) * 1e-3, np.zeros(4), np.full(4, 1.1)], -1)
+    assert preview.plan.add(stamps, positions) is None
+    planned, went_stale = preview.at_sample(T0 + PERIOD_NS, 0)
+    assert planned is not None and planned[0] == T0 + 3 * PERIOD_NS and not went_stale
+    assert planned[1:] == pytest.approx((3e-3, 0.0, 1.1), abs=1e-15)
+    assert preview.contradicts(T0 + 2 * PERIOD_NS, 5e-3, 0.0, 1.1)  # 3 mm off: dropped
+    readings = [preview.at_sample(T0 + k * PERIOD_NS, (k - 2) * PERIOD_NS) for k in range(3, 7)]
+    assert [r[1] for r in readings] == [False, True, False, False]  # 2 periods without
+    assert all(r[0] is None for r in readings) and preview.stale
+    preview.restart()
+    assert not preview.stale and preview.plan.horizon_ns is None
 
 
 def test_predictions_with_a_preview_equal_offline_ones(preview_model: LoadedModel) -> None:

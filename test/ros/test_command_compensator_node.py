@@ -13,6 +13,7 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.parameter import Parameter
+from rclpy.publisher import Publisher
 from ros_helpers import RosHarness, latest_status, set_stamp, stamp_ns
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
@@ -52,6 +53,15 @@ def command(k: int, names: list[str], positions: list[float]) -> JointState:
     return msg
 
 
+def inputs_of(ros: RosHarness) -> tuple[Publisher, Publisher]:
+    """Publishers of the node's offsets and commands, each matched with the node."""
+    offsets_out = ros.node.create_publisher(Vector3Stamped, '/lompr/compensation', 100)
+    commands_out = ros.node.create_publisher(JointState, '/joint_commands', 100)
+    for publisher in (offsets_out, commands_out):
+        ros.wait_for_subscribers(publisher)
+    return offsets_out, commands_out
+
+
 def test_commands_come_out_compensated_on_both_topics(ros: RosHarness) -> None:
     chain = load_chain(arm_spec())
     assert isinstance(chain, SerialChain)
@@ -62,10 +72,7 @@ def test_commands_come_out_compensated_on_both_topics(ros: RosHarness) -> None:
     states = ros.collect('/joint_commands_compensated', JointState, 100)
     arrays = ros.collect('/forward_position_controller/commands', Float64MultiArray, 100)
     diagnostics = ros.collect('/diagnostics', DiagnosticArray, 100)
-    offsets_out = ros.node.create_publisher(Vector3Stamped, '/lompr/compensation', 100)
-    commands_out = ros.node.create_publisher(JointState, '/joint_commands', 100)
-    for publisher in (offsets_out, commands_out):
-        ros.wait_for_subscribers(publisher)
+    offsets_out, commands_out = inputs_of(ros)
     ros.wait_for_publishers('/forward_position_controller/commands')
     for k, xy in OFFSETS.items():
         offsets_out.publish(offset(k, xy))
@@ -109,10 +116,7 @@ def test_offsets_after_their_command_are_the_receivers_lateness_on_diagnostics(
                                           parameter_overrides=node_parameters()))
     states = ros.collect('/joint_commands_compensated', JointState, 100)
     diagnostics = ros.collect('/diagnostics', DiagnosticArray, 100)
-    offsets_out = ros.node.create_publisher(Vector3Stamped, '/lompr/compensation', 100)
-    commands_out = ros.node.create_publisher(JointState, '/joint_commands', 100)
-    for publisher in (offsets_out, commands_out):
-        ros.wait_for_subscribers(publisher)
+    offsets_out, commands_out = inputs_of(ros)
     for k in range(3):
         commands_out.publish(command(k, list(chain.joint_names), list(Q)))
     ros.spin_until(lambda: len(states) == 3, what='the commands')

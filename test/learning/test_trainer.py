@@ -1,0 +1,72 @@
+# SPDX-License-Identifier: Apache-2.0
+"""learning.trainer as a library call (what `lompr train` runs; the command itself:
+test/cli/test_train): a config refused before any bag is read, recordings too short for the
+window refused in one line, and a run whose model file, sidecar and report agree."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+from pathlib import Path
+
+import pytest
+from trainer_data import ONE_EPOCH, write_synthetic_bag
+
+from lompr_predictor.cli import train
+from lompr_predictor.learning.model_file import load_model
+from lompr_predictor.learning.options import OptionError, TrainingConfig
+from lompr_predictor.learning.trainer import (
+    DataError,
+    check_config,
+    read_problem,
+    train_predictor,
+    write_outputs,
+)
+from lompr_predictor.robot.chain import load_chain
+from lompr_predictor.robot.description import RobotDescription
+
+
+def config_of(bag: Path, out: Path, *extra: str) -> TrainingConfig:
+    """The config `lompr train BAG --out ... --report ...` (the quickest training) makes."""
+    parser = argparse.ArgumentParser()
+    train.add_parser(parser.add_subparsers())
+    args = parser.parse_args(['train', str(bag), '--out', str(out / 'model.pt'), '--report',
+                              str(out / 'report'), *ONE_EPOCH, *extra])
+    return train.training_config(args)
+
+
+def test_a_config_without_a_report_folder_is_refused_before_any_bag(tmp_path: Path) -> None:
+    config = dataclasses.replace(config_of(tmp_path / 'no_bag', tmp_path), report_dir=None)
+    with pytest.raises(OptionError, match=r'^the model_path and the report_dir are needed to '
+                                          r'finish the study'):
+        check_config(config)
+
+
+def test_recordings_too_short_for_the_window_are_one_line(tmp_path: Path,
+                                                          description: RobotDescription) -> None:
+    bag = write_synthetic_bag(tmp_path / 'bag', description.geometry, 30)
+    config = config_of(bag, tmp_path, '--window', '25')
+    with pytest.raises(DataError) as refused:
+        read_problem(config, load_chain(config.robot))
+    assert '\n' not in str(refused.value) and 'window' in str(refused.value)
+
+
+def test_the_model_file_its_sidecar_and_the_report_name_the_same_model(
+        tmp_path: Path, description: RobotDescription) -> None:
+    bag = write_synthetic_bag(tmp_path / 'bag', description.geometry, 1200)
+    config = config_of(bag, tmp_path)
+    result = train_predictor(config)
+    assert (result.metadata.window, result.metadata.horizon) == (8, 2)
+    digest = write_outputs(config, result)
+    model = tmp_path / 'model.pt'
+    assert digest == hashlib.sha256(model.read_bytes()).hexdigest()
+    assert (tmp_path / 'model.pt.sha256').read_text().split()[0] == digest
+    report = json.loads((tmp_path / 'report' / 'report.json').read_text())
+    assert report['model_sha256'] == digest and report['model_file'] == str(model.resolve())
+    timings = report['timings']
+    assert timings['writing_seconds'] > 0.0
+    assert timings['read_clean_fk_seconds'] + timings['tuning_seconds'] <= timings[
+        'total_seconds']
+    assert load_model(model, sha256=digest).metadata == result.metadata
