@@ -893,14 +893,14 @@ def training_job(directory: Path) -> Iterator[subprocess.Popen]:
 @contextlib.contextmanager
 def adaptation_job(directory: Path) -> Iterator[subprocess.Popen]:
     """A fine-tuning as an adaptation attempt runs it, beside the bench: `lompr train
-    --init` of a model first trained on the small bag, one torch thread, put below the
+    --init` of a BO-LSTM first trained on the small bag, one torch thread, put below the
     nodes as the predictor puts its attempt (`scheduling.lower_job`: SCHED_IDLE, on one
     CPU, by the predictor's default adaptation settings)."""
     bag, parent = training_bag(directory), directory / 'parent.pt'
     if not parent.is_file():
         subprocess.run([LOMPR, 'train', str(bag), '--out', str(parent), '--report',
                         str(directory / 'parent_report'), '--trials', '1', '--max-epochs', '2',
-                        '--workers', '1', '--threads', '1', '--quiet'],
+                        '--workers', '1', '--threads', '1', '--publish', 'bo_lstm', '--quiet'],
                        check=True, capture_output=True)
     process = start([LOMPR, 'train', str(bag), '--init', str(parent), '--out',
                      str(directory / 'adapted.pt'), '--report',
