@@ -253,23 +253,14 @@ def train_network(
     it (`_fit`).
     """
     torch.manual_seed(settings.seed)
-    split = problem.split
     module, rows = _starting_module(problem, model_type, hyperparameters, residual=residual,
                                     relative_errors=relative_errors, machine_map=machine_map,
                                     network_inputs=network_inputs, init=init)
-    validation_ends = evenly_spaced(split.validation, settings.epoch_windows)
-    train_y, validation_y = (module.normalise_targets(rows.targets(problem, ends, residual))
-                             for ends in (split.train, validation_ends))
-    data = _FitData(ScaledRows(module, rows.rows), split.train, validation_ends, train_y,
-                    validation_y, problem.window, int(hyperparameters['batch_size']),
-                    min(len(split.train), settings.epoch_windows))
+    data = _FitData.of(problem, module, rows, residual=residual, settings=settings,
+                       batch=int(hyperparameters['batch_size']))
     schedule = _Schedule(module.net, model_type, hyperparameters,
                          settings.max_epochs * math.ceil(data.epoch_size / data.batch))
-    record = _Record(math.inf, copy.deepcopy(module.net.state_dict()))
-    if init is not None:  # where fine-tuning starts is a candidate too
-        module.net.eval()
-        record.start_loss = data.validation_loss(module.net)
-        record.best = record.start_loss if math.isfinite(record.start_loss) else math.inf
+    record = _Record.starting(module.net, data, fine_tuning=init is not None)
     started = time.perf_counter()
     with progress_bar(range(1, settings.max_epochs + 1), desc=label or model_type,
                       unit='epoch', leave=False, disable=not progress) as epochs:
@@ -318,6 +309,19 @@ class _FitData:
     batch: int
     epoch_size: int  # training windows per epoch
 
+    @classmethod
+    def of(cls, problem: LearningProblem, module: PredictorModule, rows: NetworkRows, *,
+           residual: bool, settings: TrainSettings, batch: int) -> _FitData:
+        """The training part's windows and at most `settings.epoch_windows` of the
+        validation part's, evenly spaced (an epoch scores them all)."""
+        split = problem.split
+        validation_ends = evenly_spaced(split.validation, settings.epoch_windows)
+        train_y, validation_y = (module.normalise_targets(rows.targets(problem, ends, residual))
+                                 for ends in (split.train, validation_ends))
+        return cls(ScaledRows(module, rows.rows), split.train, validation_ends, train_y,
+                   validation_y, problem.window, batch,
+                   min(len(split.train), settings.epoch_windows))
+
     def validation_loss(self, net: nn.Module) -> float:
         return validation_loss(net, self.inputs, self.validation_ends, self.validation_y,
                                self.window)
@@ -334,6 +338,17 @@ class _Record:
     history: list[float] = field(default_factory=list)
     pruned_epoch: int = 0
     start_loss: float = math.nan
+
+    @classmethod
+    def starting(cls, net: nn.Module, data: _FitData, *, fine_tuning: bool) -> _Record:
+        """The record before the first epoch. Fine-tuning's starting weights are a
+        candidate too (epoch 0): the result is never worse on validation than its parent."""
+        record = cls(math.inf, copy.deepcopy(net.state_dict()))
+        if fine_tuning:
+            net.eval()
+            record.start_loss = data.validation_loss(net)
+            record.best = record.start_loss if math.isfinite(record.start_loss) else math.inf
+        return record
 
 
 def _fit(net: nn.Module, schedule: _Schedule, data: _FitData, record: _Record,
