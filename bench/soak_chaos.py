@@ -17,7 +17,8 @@ schedule (seeded by `--seed`, written as JSON beside the report) injects, one fa
 - `corrupt_model`: the user offers a corrupt model file (its sha256 beside it, so that the
   load itself refuses it);
 - `kill_attempt`: the running adaptation attempt (a child process of the predictor) gets
-  SIGKILL (the slot waits for one to start);
+  SIGKILL within `KILL_YOUNGER_THAN` of its start (the slot waits for one to start; one near
+  its end may have written its result, and its kill would cost nothing);
 - `unwritable_folder`: the adaptation folder is replaced by a file for a while (root ignores
   permission bits), while the user also asks the store for ~/write_samples into it;
 - `cpu_hog`: two busy processes (both cores) for a while.
@@ -124,6 +125,7 @@ STALE_SECONDS = 10.0  # how old a stale message's stamp is
 JUMP_SECONDS = 5.0  # a clock jump ahead
 HOG_SECONDS = 60.0  # the CPU hog, at most (a short slot: 60 % of it)
 UNWRITABLE_SECONDS = 60.0  # the adaptation folder unwritable, at most (same)
+KILL_YOUNGER_THAN = 3.0  # s: an attempt killed with its work ahead of it
 RECOVERED_SAMPLES = 25  # answered in a row: the loop is back
 STATUS_PERIOD = 1.0  # the nodes' diagnostics_period (their default)
 RSS_EVERY = 5.0
@@ -286,6 +288,16 @@ def _cmdline(pid: int) -> str:
         return ''
 
 
+def age_seconds(pid: int) -> float:
+    """How long process `pid` has run (inf if it is gone): from its start in /proc."""
+    try:
+        started_ticks = int(Path(f'/proc/{pid}/stat').read_text().rpartition(')')[2].split()[19])
+        uptime = float(Path('/proc/uptime').read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return math.inf
+    return uptime - started_ticks / os.sysconf('SC_CLK_TCK')
+
+
 def alive(pid: int) -> bool:
     try:
         state = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()[0]
@@ -443,6 +455,8 @@ class Chaos:
             for pid in children(self.processes['predictor_node'].pid):
                 if '--parent-pid' not in _cmdline(pid):
                     continue  # a store export, not an attempt
+                if age_seconds(pid) > KILL_YOUNGER_THAN:
+                    continue  # may be writing its result: a kill then costs nothing
                 with contextlib.suppress(OSError):
                     os.kill(pid, signal.SIGKILL)
                     fault.note = f'SIGKILL to attempt process {pid}'

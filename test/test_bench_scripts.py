@@ -140,6 +140,21 @@ def test_the_soak_tells_where_the_unanswered_instants_lie() -> None:
     assert nothing == "{'start': (1, 4)}"
 
 
+def test_the_chaos_soak_kills_only_an_attempt_that_has_just_started() -> None:
+    """The age the soak reads from /proc: a process started now is under the kill limit,
+    one that has run past it is not (it may have written its result), a gone one never is."""
+    script = (
+        'import sys, time, subprocess; sys.path.insert(0, sys.argv[1])\n'
+        'from soak_chaos import KILL_YOUNGER_THAN, age_seconds\n'
+        'young = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])\n'
+        'print(0.0 <= age_seconds(young.pid) < 1.0)\n'
+        'time.sleep(KILL_YOUNGER_THAN + 0.5)\n'
+        'print(age_seconds(young.pid) > KILL_YOUNGER_THAN)\n'
+        'young.kill(); young.wait()\n'
+        'print(age_seconds(young.pid))')
+    assert printed(script)[-3:] == ['True', 'True', 'inf']
+
+
 def test_the_chaos_soak_schedules_every_fault_and_checks_each_offset() -> None:
     """The chaos soak's seeded schedule holds every fault kind once per round, in order, each
     inside the run after the settling time, the same for the same seed; its offset check
