@@ -288,10 +288,16 @@ def _cmdline(pid: int) -> str:
         return ''
 
 
+def _stat_fields(pid: int) -> list[str]:
+    """The fields of /proc/PID/stat after the command name (the state first); OSError if
+    the process is gone."""
+    return Path(f'/proc/{pid}/stat').read_text().rpartition(')')[2].split()
+
+
 def age_seconds(pid: int) -> float:
     """How long process `pid` has run (inf if it is gone): from its start in /proc."""
     try:
-        started_ticks = int(Path(f'/proc/{pid}/stat').read_text().rpartition(')')[2].split()[19])
+        started_ticks = int(_stat_fields(pid)[19])
         uptime = float(Path('/proc/uptime').read_text().split()[0])
     except (OSError, ValueError, IndexError):
         return math.inf
@@ -300,10 +306,9 @@ def age_seconds(pid: int) -> float:
 
 def alive(pid: int) -> bool:
     try:
-        state = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()[0]
+        return _stat_fields(pid)[0] != 'Z'
     except OSError:
         return False
-    return state != 'Z'
 
 
 class Chaos:
