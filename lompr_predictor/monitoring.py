@@ -206,7 +206,9 @@ class LogThrottle:
         self._last[key] = now
         suppressed = self._suppressed.pop(key, 0)
         if suppressed and last is not None:
-            return f'{text} ({suppressed} more like this in the last {now - last:.1f} s)'
+            span = now - last
+            when = f'in the last {span:.1f} s' if span >= 0.0 else 'before the clock went back'
+            return f'{text} ({suppressed} more like this {when})'
         return text
 
 

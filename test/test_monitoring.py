@@ -178,6 +178,17 @@ def test_log_throttle_passes_one_per_period_and_counts_the_rest() -> None:
     assert throttle.filter('nan', 'NaN in ups2') is None
 
 
+def test_log_throttle_says_when_the_suppressed_came_before_the_clock_went_back() -> None:
+    clock = FakeClock()
+    throttle = LogThrottle(period=5.0, clock=clock)
+    assert throttle.filter('frame', 'wrong frame') == 'wrong frame'
+    clock.now += 1.0
+    assert throttle.filter('frame', 'wrong frame') is None
+    clock.now -= 30.0  # a simulator reset: no negative span in the summary
+    assert throttle.filter('frame', 'wrong frame') == (
+        'wrong frame (1 more like this before the clock went back)')
+
+
 def test_status_defaults_and_levels_match_diagnostic_msgs() -> None:
     status = Status(Level.WARN, 'slow')
     assert dict(status.values) == {}

@@ -3,7 +3,7 @@
 
 - `DiagnosticsPublisher`: each registered provider's status on /diagnostics about once a
   second (the model of ros/diagnostics' diagnostic_updater), one status per timer tick, sent
-  as soon as it is read.
+  as soon as it is read; on wall time while a simulated clock stands still.
 - `spin_until`: spin an executor until a condition holds or a deadline passes.
 - `events_executor`: rclpy's `EventsExecutor` on a context; `make_executor` picks it or the
   `SingleThreadedExecutor` by name (`EXECUTORS`).
@@ -28,6 +28,7 @@ from types import FrameType
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import Log
+from rclpy.clock import Clock, ClockType
 from rclpy.context import Context
 from rclpy.duration import Duration
 from rclpy.event_handler import PublisherEventCallbacks
@@ -99,7 +100,18 @@ class DiagnosticsPublisher:
     for milliseconds, and a status read at the start of a report but sent at its end would
     show a fault up to two periods late instead of one. diagnostic_aggregator and rqt keep
     the latest status by name, so one array per status reads as one per report.
+
+    The ticks follow the node's clock, as diagnostic_updater's do; a second timer, of the
+    steady clock, ticks in their place while that clock stands still for longer than
+    `STALLED_TICKS` ticks: on simulated time a /clock that stopped (a paused simulator, a
+    simulator restarted whose new publisher this node has not yet discovered, one held back
+    by a loaded machine) would otherwise silence the node's status just when its inputs go
+    wrong.
     """
+
+    #: Ticks of wall time without a tick of the node's clock after which the steady timer
+    #: ticks instead (over one, so that the two do not race on a running clock).
+    STALLED_TICKS = 1.5
 
     def __init__(
         self, node: Node, topic: str = '/diagnostics', period: float = 1.0,
@@ -121,17 +133,28 @@ class DiagnosticsPublisher:
         self._providers: list[tuple[str, Callable[[], Status]]] = []
         self._next = 0  # the provider the next tick reads
         self._last_tick_ns = node.get_clock().now().nanoseconds
+        self._last_tick_wall = time.monotonic()
         self.period = period
         self.publisher = self._publisher = node.create_publisher(
             DiagnosticArray, topic, qos, qos_overriding_options=qos_overriding_options,
             event_callbacks=event_callbacks)
-        callback = self.step if guard is None else guard('diagnostics', self.step)
-        self._timer = node.create_timer(period, callback)
+        wrap = guard or (lambda _where, function: function)
+        self._timer = node.create_timer(period, wrap('diagnostics', self.step))
+        self._steady_timer = node.create_timer(
+            period, wrap('diagnostics on wall time', self._on_steady_tick),
+            clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def add(self, name: str, provider: Callable[[], Status]) -> None:
         """Register a status provider under `name`."""
         self._providers.append((f'{self._prefix}: {name}', provider))
-        self._timer.timer_period_ns = round(self.period * 1e9 / len(self._providers))
+        tick_ns = round(self.period * 1e9 / len(self._providers))
+        self._timer.timer_period_ns = self._steady_timer.timer_period_ns = tick_ns
+
+    def _on_steady_tick(self) -> None:
+        """A tick of wall time: a status if the node's clock has not ticked for a while."""
+        tick = self._timer.timer_period_ns * 1e-9
+        if time.monotonic() - self._last_tick_wall >= self.STALLED_TICKS * tick:
+            self.step()
 
     def step(self) -> None:
         """One tick: the next provider's status, sent. A tick that comes late takes the
@@ -143,6 +166,7 @@ class DiagnosticsPublisher:
         now = self._node.get_clock().now().nanoseconds
         missed = (now - self._last_tick_ns) // max(self._timer.timer_period_ns, 1)
         self._last_tick_ns = now
+        self._last_tick_wall = time.monotonic()
         sec, nanosec = divmod(now, 1_000_000_000)
         for _ in range(int(min(max(missed, 1), len(self._providers)))):
             name, provider = self._providers[self._next]

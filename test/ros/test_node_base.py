@@ -279,6 +279,23 @@ def test_diagnostics_publisher_publishes_every_provider(ros: RosHarness) -> None
     assert 'ZeroDivisionError: no samples' in broken_status.message
 
 
+def test_diagnostics_go_on_in_wall_time_while_the_simulated_clock_stands_still(
+        ros: RosHarness) -> None:
+    # simulated time and no /clock: the node's clock stands at zero and its timers never fire
+    node = ros.add(Node('stalled_clock_test', context=ros.context,
+                        parameter_overrides=[Parameter('use_sim_time', value=True)]))
+    diagnostics = DiagnosticsPublisher(node, topic='/test_stalled_diagnostics', period=0.2)
+    diagnostics.add('inputs', lambda: Status(Level.WARN, 'samples out of order'))
+    diagnostics.add('model', lambda: Status(Level.OK, 'loaded'))
+    arrays = ros.collect('/test_stalled_diagnostics', DiagnosticArray)
+    ros.spin_until(lambda: len(arrays) >= 4, what='statuses while the clock stands still')
+    assert node.get_clock().now().nanoseconds == 0
+    names = [array.status[0].name for array in arrays[:4]]
+    assert names == ['stalled_clock_test: inputs', 'stalled_clock_test: model'] * 2
+    assert all(array.header.stamp.sec == 0 == array.header.stamp.nanosec
+               for array in arrays[:4])  # stamped by the node's clock, as ever
+
+
 def test_run_node_help_lists_parameters_and_qos_overrides(
         capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as exit_info:
