@@ -393,13 +393,16 @@ class CallbackTimes:
                 self.measured_runs += 1
 
     def apart(self, function: Callable[..., object], *args: object) -> None:
-        """Run `function(*args)`, work that is not this node's (another node's callback
-        called from one of this node's), outside the time of the run it is called from."""
+        """Run `function(*args)`, work that is not part of the run it is called from
+        (another node's callback called from one of this node's, a status sent between two
+        samples), outside that run's time; a run it `measure`s is an outermost one."""
         wall, cpu = time.perf_counter_ns(), time.thread_time_ns()
         self.apart_runs += 1
+        depth, self._depth = self._depth, 0
         try:
             function(*args)
         finally:
+            self._depth = depth
             self._apart_cpu_ns += time.thread_time_ns() - cpu
             self._apart_wall_ns += time.perf_counter_ns() - wall
 

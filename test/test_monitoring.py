@@ -282,6 +282,33 @@ def test_work_run_apart_is_out_of_the_run_it_is_called_from(
     assert times.measured_runs == 2 and times.apart_runs == 2
 
 
+def test_a_run_measured_apart_inside_another_counts_as_an_outermost_run(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A status sent between two samples from within the sample's callback is a run of its
+    own: its row has its time, the callback's has not, and the CPU the executor's row is
+    reckoned from has both."""
+    now = [0]
+
+    class FakeTime:
+        perf_counter_ns = thread_time_ns = staticmethod(lambda: now[0])
+
+    monkeypatch.setattr(monitoring, 'time', FakeTime)
+    times = CallbackTimes()
+
+    def take(ns: int) -> None:
+        now[0] += ns
+
+    def end_pose() -> None:
+        take(100_000)
+        times.apart(times.measure, 'diagnostics', take, 300_000)
+
+    times.measure('end pose', end_pose)
+    assert times.rows['end pose'].sum_ns == 100_000
+    assert times.rows['diagnostics'].sum_ns == 300_000
+    assert times.measured_cpu_ns == 400_000
+    assert (times.measured_runs, times.apart_runs) == (2, 1)  # one callback dispatched
+
+
 def test_callback_times_records_garbage_collections_by_generation() -> None:
     times = CallbackTimes()
     gc.callbacks.append(times.on_gc)

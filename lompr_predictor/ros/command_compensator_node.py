@@ -175,6 +175,7 @@ class CommandCompensatorNode(NodeBase[CommandCompensatorSettings], ManagedNode, 
                                              settings.diagnostics_period,
                                              self.description.hardware_id)
         diagnostics.add('command path', self.status)
+        self._between_commands = diagnostics.between_samples  # a waiting status goes then
         self.description.start()
 
     # -- lifecycle --------------------------------------------------------------------------
@@ -259,6 +260,7 @@ class CommandCompensatorNode(NodeBase[CommandCompensatorSettings], ManagedNode, 
         if self._forward is not None and answer.joints:
             self._forward.publish(Float64MultiArray(
                 data=[answer.joints[k] for k in self._order]))
+        self._between_commands()
 
     def _warn(self, key: str, text: str) -> None:
         self.last_problem = text

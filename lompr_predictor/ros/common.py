@@ -3,7 +3,8 @@
 
 - `DiagnosticsPublisher`: each registered provider's status on /diagnostics about once a
   second (the model of ros/diagnostics' diagnostic_updater), one status per timer tick, sent
-  as soon as it is read; on wall time while a simulated clock stands still.
+  as soon as it is read, between two samples while they flow; on wall time while a
+  simulated clock stands still.
 - `spin_until`: spin an executor until a condition holds or a deadline passes.
 - `events_executor`: rclpy's `EventsExecutor` on a context; `make_executor` picks it or the
   `SingleThreadedExecutor` by name (`EXECUTORS`).
@@ -18,6 +19,7 @@ import argparse
 import contextlib
 import gc
 import itertools
+import math
 import signal
 import sys
 import time
@@ -107,6 +109,13 @@ class DiagnosticsPublisher:
     simulator restarted whose new publisher this node has not yet discovered, one held back
     by a loaded machine) would otherwise silence the node's status just when its inputs go
     wrong.
+
+    While a node's samples flow, a tick waits for the node's next quiet moment: the node
+    calls `between_samples` once it has sent what an input asked of it, when the next
+    input is about a sample period away. A status read at a random moment would hold the
+    sample arriving during it (a closed loop at 250 Hz has 4 ms for the whole round trip),
+    one read there costs no sample anything. A tick still waiting at the next is sent then
+    (with the one missed), so statuses go on when the samples stop.
     """
 
     #: Ticks of wall time without a tick of the node's clock after which the steady timer
@@ -119,10 +128,13 @@ class DiagnosticsPublisher:
         qos_overriding_options: QoSOverridingOptions | None = None,
         guard: Callable[[str, Callable[[], None]], Callable[[], None]] | None = None,
         event_callbacks: PublisherEventCallbacks | None = None,
+        apart: Callable[[Callable[[], None]], None] | None = None,
     ) -> None:
         """`qos`: diagnostic_aggregator and rqt subscribe reliable with depth 10, the
         default; `guard(where, callback)` wraps the timer callback (a node base's policy);
-        `event_callbacks` of the publisher (a node base's QoS event counting)."""
+        `event_callbacks` of the publisher (a node base's QoS event counting); `apart(work)`
+        runs a tick sent from within a callback (`between_samples`) outside that callback's
+        time (a node base's `CallbackTimes.apart`)."""
         self._node = node
         self._hardware_id = hardware_id
         if not node.has_parameter(USE_FQN_PARAMETER):
@@ -139,7 +151,11 @@ class DiagnosticsPublisher:
             DiagnosticArray, topic, qos, qos_overriding_options=qos_overriding_options,
             event_callbacks=event_callbacks)
         wrap = guard or (lambda _where, function: function)
-        self._timer = node.create_timer(period, wrap('diagnostics', self.step))
+        self._apart = apart or (lambda function: function())
+        self._waiting = False  # a tick came while samples flow: sent between two
+        self._last_quiet = -math.inf  # when the node last said it was between samples
+        self._step_between = wrap('diagnostics between samples', self.step)
+        self._timer = node.create_timer(period, wrap('diagnostics', self._on_tick))
         self._steady_timer = node.create_timer(
             period, wrap('diagnostics on wall time', self._on_steady_tick),
             clock=Clock(clock_type=ClockType.STEADY_TIME))
@@ -150,10 +166,30 @@ class DiagnosticsPublisher:
         tick_ns = round(self.period * 1e9 / len(self._providers))
         self._timer.timer_period_ns = self._steady_timer.timer_period_ns = tick_ns
 
+    def between_samples(self) -> None:
+        """The node has just sent what an input asked of it: a tick waiting for this is
+        sent now (class docstring)."""
+        self._last_quiet = time.monotonic()
+        if self._waiting:
+            self._waiting = False
+            self._apart(self._step_between)
+
+    def _on_tick(self) -> None:
+        """A tick of the node's clock: a status now, or at the node's next quiet moment if
+        samples flow (it said it was between two within the last tick)."""
+        tick = self._timer.timer_period_ns * 1e-9
+        self._last_tick_wall = now = time.monotonic()
+        if self._waiting or now - self._last_quiet > tick:
+            self._waiting = False
+            self.step()
+        else:
+            self._waiting = True
+
     def _on_steady_tick(self) -> None:
         """A tick of wall time: a status if the node's clock has not ticked for a while."""
         tick = self._timer.timer_period_ns * 1e-9
         if time.monotonic() - self._last_tick_wall >= self.STALLED_TICKS * tick:
+            self._waiting = False
             self.step()
 
     def step(self) -> None:
@@ -166,7 +202,6 @@ class DiagnosticsPublisher:
         now = self._node.get_clock().now().nanoseconds
         missed = (now - self._last_tick_ns) // max(self._timer.timer_period_ns, 1)
         self._last_tick_ns = now
-        self._last_tick_wall = time.monotonic()
         sec, nanosec = divmod(now, 1_000_000_000)
         for _ in range(int(min(max(missed, 1), len(self._providers)))):
             name, provider = self._providers[self._next]

@@ -122,6 +122,8 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], ManagedNode, LifecycleNod
         diagnostics = self.start_diagnostics(
             settings.diagnostics_topic, settings.diagnostics_period,
             hardware_id=self.description.hardware_id)
+        #: Called once an end pose is out: a status waiting for that goes now.
+        self.between_samples = diagnostics.between_samples
         meters = KinematicsMeters(self.solve_time, self.rejected, self.input_rate,
                                   self.output_rate)
         self.statuses = KinematicsDiagnostics(diagnostics, meters, self.readings,
@@ -210,6 +212,7 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], ManagedNode, LifecycleNod
             self.publish_full_joint_state(measured, sec, nanosec, joints)
         for reader in self.end_pose_readers:
             self.callback_times.apart(reader, end_pose)
+        self.between_samples()
 
     def solve(self, stream: JointStream, data: bytes, now_ns: int, rejected: RejectionCounter
               ) -> tuple[int, int, ToolPose, list[float]] | None:

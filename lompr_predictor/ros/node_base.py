@@ -423,7 +423,8 @@ class NodeBase(_NodeType, Generic[S]):
             self, topic, period, hardware_id=getattr(self.settings, 'hardware_id', '')
             or hardware_id, qos=copy.copy(DIAGNOSTICS_QOS),
             qos_overriding_options=QOS_OVERRIDING, guard=self.guard,
-            event_callbacks=self.qos_watch.publisher_events(topic))
+            event_callbacks=self.qos_watch.publisher_events(topic),
+            apart=self.callback_times.apart)
         self.qos_watch.watch(diagnostics.publisher)
         diagnostics.add('qos', self.qos_watch.status)
         diagnostics.add('callback timing', lambda: self.callback_times.status(

@@ -56,7 +56,7 @@ class PredictorReadings:
 class PredictorDiagnostics:
     """The statuses 'model', 'inputs', 'reference preview', 'prediction', 'guard',
     'sample store' and 'adaptation' of one predictor node, read from `read()` at each
-    report."""
+    report, sent between two samples while they flow (once the outputs are out)."""
 
     def __init__(self, publisher: DiagnosticsPublisher, meters: PredictorMeters,
                  read: Callable[[], PredictorReadings]) -> None:
@@ -74,6 +74,7 @@ class PredictorDiagnostics:
         publisher.add('guard', self.guard_status)
         publisher.add('sample store', self.store_status)
         publisher.add('adaptation', self.adaptation_status)
+        meters.outputs.between_samples = publisher.between_samples
 
     def model_status(self) -> Status:
         now = self._read()

@@ -28,6 +28,9 @@ class OutputPublisher:
         self._warn = warn  # (key, text): a throttled warning
         self._predictions: Publisher | None = None
         self._compensations: Publisher | None = None
+        #: Called once an input's outputs are sent: the node is between two samples (its
+        #: diagnostics send a status waiting for that, `DiagnosticsPublisher.between_samples`).
+        self.between_samples: Callable[[], None] = lambda: None
 
     def attach(self, predictions: Publisher, compensations: Publisher) -> None:
         self._predictions, self._compensations = predictions, compensations
@@ -51,6 +54,8 @@ class OutputPublisher:
             elif output.reason is None:
                 self.latency.record(time.perf_counter() - start)
                 self.rate.tick()
+        if outputs:
+            self.between_samples()
 
     def _vector(self, stamp_ns: int, xy: XY) -> bytes:
         sec, nanosec = divmod(stamp_ns, NS_PER_SECOND)

@@ -259,18 +259,21 @@ class TwinNode(NodeBase[TwinNodeSettings], Node):
         return self.total_samples is not None and self.twin.next_index >= self.total_samples
 
     def on_compensation(self, msg: Vector3Stamped) -> None:
-        """Queue an offset for its instant; in lockstep, run that instant if it is next."""
+        """Queue an offset for its instant; in lockstep, run that instant if it is next. Once
+        the next instant has its offset the twin is between samples (a status waits for it)."""
         if not self.settings.compensation_enabled:
             self.ignored_compensations += 1
             return
         stamp = stamp_to_ns(msg.header.stamp)
         offset = (msg.vector.x, msg.vector.y, msg.vector.z)
         self.schedule.offer(stamp, offset, self.twin.next_index)
+        if not self.schedule.has(self.twin.next_index):
+            return
         mode = self.settings.mode
-        if ((mode == 'lockstep' or (mode == 'paced' and self._waiting))
-                and self.schedule.has(self.twin.next_index)):
+        if mode == 'lockstep' or (mode == 'paced' and self._waiting):
             self._waiting = False
             self._advance()
+        self._diagnostics.between_samples()
 
     def _on_paced_timer(self) -> None:
         """A tick of the paced mode: the next sample if its offset is there (or it has

@@ -289,11 +289,47 @@ def test_diagnostics_go_on_in_wall_time_while_the_simulated_clock_stands_still(
     diagnostics.add('model', lambda: Status(Level.OK, 'loaded'))
     arrays = ros.collect('/test_stalled_diagnostics', DiagnosticArray)
     ros.spin_until(lambda: len(arrays) >= 4, what='statuses while the clock stands still')
+    first = len(arrays)
+    ros.spin_for(2.0)
+    # at the rate of the ticks (one every 0.1 s), not every other one
+    assert len(arrays) - first >= 14
     assert node.get_clock().now().nanoseconds == 0
     names = [array.status[0].name for array in arrays[:4]]
     assert names == ['stalled_clock_test: inputs', 'stalled_clock_test: model'] * 2
     assert all(array.header.stamp.sec == 0 == array.header.stamp.nanosec
                for array in arrays[:4])  # stamped by the node's clock, as ever
+
+
+def test_diagnostics_wait_for_the_node_between_two_samples_while_they_flow(
+        ros: RosHarness) -> None:
+    node = ros.add(Node('quiet_moment_test', context=ros.context))
+    diagnostics = DiagnosticsPublisher(node, topic='/test_quiet_diagnostics', period=1.0)
+    between = [False]  # whether the node is inside `between_samples` right now
+    read: list[tuple[float, bool]] = []  # (when, between) of every status read
+
+    def status() -> Status:
+        read.append((time.monotonic(), between[0]))
+        return Status(Level.OK, 'fine')
+
+    for name in ('inputs', 'model'):  # a tick every 0.5 s
+        diagnostics.add(name, status)
+
+    def answer() -> None:  # a sample answered every 10 ms
+        between[0] = True
+        diagnostics.between_samples()
+        between[0] = False
+
+    stream = node.create_timer(0.01, answer)
+    ros.spin_for(2.2)
+    node.destroy_timer(stream)
+    stopped = time.monotonic()
+    ros.spin_for(1.3)
+    flowing = [inside for when, inside in read if when < stopped]
+    after = [inside for when, inside in read if when >= stopped]
+    # while samples flow every status is read between two of them, none at its tick
+    assert len(flowing) >= 3 and all(flowing[1:])
+    # once they stop, the ticks send the statuses again (the one waiting among them)
+    assert len(after) >= 2 and not any(after)
 
 
 def test_run_node_help_lists_parameters_and_qos_overrides(

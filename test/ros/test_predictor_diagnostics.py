@@ -29,9 +29,13 @@ class Statuses:
 
     def __init__(self) -> None:
         self.read: dict[str, Callable[[], Status]] = {}
+        self.told_between_samples = 0
 
     def add(self, name: str, status: Callable[[], Status]) -> None:
         self.read[name] = status
+
+    def between_samples(self) -> None:
+        self.told_between_samples += 1
 
 
 def diagnostics_of(tmp_path: Path) -> tuple[Statuses, PredictorRuntime, PredictorMeters]:
@@ -52,10 +56,12 @@ def diagnostics_of(tmp_path: Path) -> tuple[Statuses, PredictorRuntime, Predicto
 
 def test_the_statuses_are_registered_in_the_order_an_operator_reads_them(
         tmp_path: Path) -> None:
-    statuses, _, _ = diagnostics_of(tmp_path)
+    statuses, _, meters = diagnostics_of(tmp_path)
     assert list(statuses.read) == ['model', 'inputs', 'reference preview', 'prediction',
                                    'guard', 'sample store', 'adaptation']
     assert statuses.read['adaptation']().message.startswith('off')
+    meters.outputs.between_samples()  # outputs sent: the statuses hear it
+    assert statuses.told_between_samples == 1
 
 
 def test_faults_and_late_outputs_warn_for_the_report_they_happened_in(tmp_path: Path) -> None:

@@ -1,7 +1,8 @@
 # SPDX-License-Identifier: Apache-2.0
 """ros.predictor_outputs: each output of the core as the two Vector3Stamped messages, the
 offset first, stamped with its instant to the nanosecond; a fault's zero warned and not
-timed; nothing published while detached."""
+timed; nothing published while detached; the node told it is between two samples once
+an input's outputs are out."""
 
 from __future__ import annotations
 
@@ -57,3 +58,17 @@ def test_outputs_go_out_offset_first_stamped_with_their_instant() -> None:
     outputs.detach()
     outputs.publish(batch, time.perf_counter())
     assert len(sent) == 4
+
+
+def test_the_node_hears_it_is_between_samples_once_an_inputs_outputs_are_out() -> None:
+    sent: list[tuple[str, Vector3Stamped]] = []
+    outputs = OutputPublisher('lompr_base', RateMeter(5.0), LatencyRecorder(10),
+                              lambda key, text: None)
+    publishers: Any = (Recorder('predicted_error', sent), Recorder('compensation', sent))
+    outputs.attach(*publishers)
+    heard: list[int] = []  # how many messages were out each time
+    outputs.between_samples = lambda: heard.append(len(sent))
+    outputs.publish([], time.perf_counter())  # an input that completed no sample
+    outputs.publish([Output(INSTANT, (1e-6, 0.0), (-1e-6, 0.0), None, INSTANT)],
+                    time.perf_counter())
+    assert heard == [2]  # once, after both messages
