@@ -43,6 +43,7 @@ class RejectionCounter:
 
     def __init__(self, reasons: Iterable[str] = ()) -> None:
         self._counts: dict[str, int] = dict.fromkeys(reasons, 0)
+        self._total = 0
 
     def add(self, reason: str, count: int = 1) -> None:
         """Count `count` more inputs dropped for `reason`."""
@@ -50,14 +51,15 @@ class RejectionCounter:
             msg = f'a rejection count cannot be negative, got {count}'
             raise ValueError(msg)
         self._counts[reason] = self._counts.get(reason, 0) + count
+        self._total += count
 
     def __getitem__(self, reason: str) -> int:
         return self._counts.get(reason, 0)
 
     @property
     def total(self) -> int:
-        """Inputs dropped for any reason."""
-        return sum(self._counts.values())
+        """Inputs dropped for any reason (kept as they come: a node reads it a sample)."""
+        return self._total
 
     def counts(self) -> dict[str, int]:
         """A copy of the counts, reasons in first-seen order."""

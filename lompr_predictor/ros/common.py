@@ -3,8 +3,8 @@
 
 - `DiagnosticsPublisher`: each registered provider's status on /diagnostics about once a
   second (the model of ros/diagnostics' diagnostic_updater), one status per timer tick, sent
-  as soon as it is read, between two samples while they flow; on wall time while a
-  simulated clock stands still.
+  as soon as it is read, between two samples while they flow, one the node saw go wrong out
+  of its turn; on wall time while a simulated clock stands still.
 - `spin_until`: spin an executor until a condition holds or a deadline passes.
 - `events_executor`: rclpy's `EventsExecutor` on a context; `make_executor` picks it or the
   `SingleThreadedExecutor` by name (`EXECUTORS`).
@@ -113,9 +113,13 @@ class DiagnosticsPublisher:
     While a node's samples flow, a tick waits for the node's next quiet moment: the node
     calls `between_samples` once it has sent what an input asked of it, when the next
     input is about a sample period away. A status read at a random moment would hold the
-    sample arriving during it (a closed loop at 250 Hz has 4 ms for the whole round trip),
-    one read there costs no sample anything. A tick still waiting at the next is sent then
+    sample arriving during it (a closed loop may have one sample period for its whole round
+    trip); one read there costs no sample anything. A tick still waiting at the next is sent then
     (with the one missed), so statuses go on when the samples stop.
+
+    A status whose concern the node has just seen go wrong (a sample dropped, the clock
+    gone back) need not wait for its turn in the round: the node asks for it (`soon`) and
+    it goes at the node's next quiet moment or tick, at most once a period out of turn.
     """
 
     #: Ticks of wall time without a tick of the node's clock after which the steady timer
@@ -154,7 +158,9 @@ class DiagnosticsPublisher:
         self._apart = apart or (lambda function: function())
         self._waiting = False  # a tick came while samples flow: sent between two
         self._last_quiet = -math.inf  # when the node last said it was between samples
-        self._step_between = wrap('diagnostics between samples', self.step)
+        self._soon: list[tuple[str, Callable[[], Status]]] = []  # asked for out of turn
+        self._out_of_turn: dict[str, float] = {}  # when each was last asked for [s]
+        self._step_between = wrap('diagnostics between samples', self._send_waiting)
         self._timer = node.create_timer(period, wrap('diagnostics', self._on_tick))
         self._steady_timer = node.create_timer(
             period, wrap('diagnostics on wall time', self._on_steady_tick),
@@ -166,13 +172,35 @@ class DiagnosticsPublisher:
         tick_ns = round(self.period * 1e9 / len(self._providers))
         self._timer.timer_period_ns = self._steady_timer.timer_period_ns = tick_ns
 
+    def soon(self, name: str) -> None:
+        """Send the status `name` at the node's next quiet moment or tick, whichever comes
+        first, out of its turn (class docstring); one asked for again within a period
+        waits for its turn."""
+        full = f'{self._prefix}: {name}'
+        now = time.monotonic()
+        if now - self._out_of_turn.get(full, -math.inf) < self.period:
+            return
+        provider = next((p for p in self._providers if p[0] == full), None)
+        if provider is None:
+            msg = f'no status {name!r} on this node'
+            raise ValueError(msg)
+        self._out_of_turn[full] = now
+        self._soon.append(provider)
+
     def between_samples(self) -> None:
-        """The node has just sent what an input asked of it: a tick waiting for this is
-        sent now (class docstring)."""
+        """The node has just sent what an input asked of it: what waits for this (a tick,
+        a status asked for) is sent now (class docstring)."""
         self._last_quiet = time.monotonic()
-        if self._waiting:
-            self._waiting = False
+        if self._waiting or self._soon:
             self._apart(self._step_between)
+
+    def _send_waiting(self) -> None:
+        """The statuses asked for, and the tick's if one came while samples flow."""
+        tick, self._waiting = self._waiting, False
+        if tick:
+            self.step()
+        else:
+            self._send([], self._node.get_clock().now().nanoseconds)
 
     def _on_tick(self) -> None:
         """A tick of the node's clock: a status now, or at the node's next quiet moment if
@@ -193,19 +221,28 @@ class DiagnosticsPublisher:
             self.step()
 
     def step(self) -> None:
-        """One tick: the next provider's status, sent. A tick that comes late takes the
-        ticks it missed too (up to one of each provider): on simulated time a timer fires
-        at most once per /clock step, and a /clock coarser than the tick would otherwise
-        stretch the period."""
+        """One tick: the statuses asked for out of turn (`soon`), then the next
+        provider's. A tick that comes late takes the ticks it missed too (up to one of each
+        provider): on simulated time a timer fires at most once per /clock step, and a
+        /clock coarser than the tick would otherwise stretch the period."""
         if not self._providers:
             return
         now = self._node.get_clock().now().nanoseconds
         missed = (now - self._last_tick_ns) // max(self._timer.timer_period_ns, 1)
         self._last_tick_ns = now
-        sec, nanosec = divmod(now, 1_000_000_000)
+        turn: list[tuple[str, Callable[[], Status]]] = []
         for _ in range(int(min(max(missed, 1), len(self._providers)))):
-            name, provider = self._providers[self._next]
+            turn.append(self._providers[self._next])
             self._next = (self._next + 1) % len(self._providers)
+        self._send(turn, now)
+
+    def _send(self, turn: list[tuple[str, Callable[[], Status]]], now_ns: int) -> None:
+        """Read and send, each in an array stamped `now_ns`, the statuses asked for out of
+        turn, then those of `turn` not among them."""
+        due, self._soon = self._soon, []
+        due += [provider for provider in turn if provider not in due]
+        sec, nanosec = divmod(now_ns, 1_000_000_000)
+        for name, provider in due:
             array = DiagnosticArray(status=[self._status(name, provider)])
             array.header.stamp.sec, array.header.stamp.nanosec = sec, nanosec
             self._publisher.publish(array)

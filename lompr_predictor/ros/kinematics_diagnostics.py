@@ -54,6 +54,12 @@ class KinematicsReadings:
     commands: Callable[[], Status] | None  # the commanded joints' status, configured
 
 
+#: The statuses of the measured and of the commanded joints (the node asks for them out of
+#: turn when it drops one: `DiagnosticsPublisher.soon`).
+JOINT_STATES_STATUS = 'joint states'
+COMMANDS_STATUS = 'commanded joints'
+
+
 class KinematicsDiagnostics:
     """The statuses 'joint states', 'forward kinematics' and (with `command_topic`)
     'commanded joints' of one kinematics node, read from `read()` at each report."""
@@ -62,10 +68,10 @@ class KinematicsDiagnostics:
                  read: Callable[[], KinematicsReadings], commands: bool) -> None:
         self._meters, self._read = meters, read
         self._rejected_at_last_report = 0
-        publisher.add('joint states', self.input_status)
+        publisher.add(JOINT_STATES_STATUS, self.input_status)
         publisher.add('forward kinematics', self.kinematics_status)
         if commands:
-            publisher.add('commanded joints', self.commands_status)
+            publisher.add(COMMANDS_STATUS, self.commands_status)
 
     def input_status(self) -> Status:
         """Diagnostics of /joint_states: rate, counts, rejections by reason (a rejection

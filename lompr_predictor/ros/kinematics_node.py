@@ -49,6 +49,8 @@ from lompr_predictor.robot.joint_stream import (
 from lompr_predictor.robot.kinematics import ToolPose
 from lompr_predictor.ros.common import run_node
 from lompr_predictor.ros.kinematics_diagnostics import (
+    COMMANDS_STATUS,
+    JOINT_STATES_STATUS,
     KinematicsDiagnostics,
     KinematicsMeters,
     KinematicsReadings,
@@ -124,6 +126,7 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], ManagedNode, LifecycleNod
             hardware_id=self.description.hardware_id)
         #: Called once an end pose is out: a status waiting for that goes now.
         self.between_samples = diagnostics.between_samples
+        self._status_soon = diagnostics.soon  # a status whose concern just went wrong
         meters = KinematicsMeters(self.solve_time, self.rejected, self.input_rate,
                                   self.output_rate)
         self.statuses = KinematicsDiagnostics(diagnostics, meters, self.readings,
@@ -254,7 +257,9 @@ class KinematicsNode(NodeBase[KinematicsNodeSettings], ManagedNode, LifecycleNod
     def _reject(self, rejected: RejectionCounter, reason: JointStateDrop, sec: int,
                 nanosec: int, err: Exception) -> None:
         rejected.add(reason)
-        what = 'end pose' if rejected is self.rejected else 'commanded pose'
+        measured = rejected is self.rejected
+        self._status_soon(JOINT_STATES_STATUS if measured else COMMANDS_STATUS)
+        what = 'end pose' if measured else 'commanded pose'
         self.warn_throttled(f'{what} {reason}', f'no {what} for the joint state at '
                                                 f'{sec}.{nanosec:09d} ({reason}): {err}')
 

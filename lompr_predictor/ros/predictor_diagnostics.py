@@ -75,6 +75,12 @@ class PredictorDiagnostics:
         publisher.add('sample store', self.store_status)
         publisher.add('adaptation', self.adaptation_status)
         meters.outputs.between_samples = publisher.between_samples
+        self._publisher = publisher
+
+    def problem_seen(self) -> None:
+        """An input dropped, a fault, the clock gone back: the 'inputs' status goes with
+        the next tick, out of its turn (`DiagnosticsPublisher.soon`)."""
+        self._publisher.soon(INPUTS_STATUS)
 
     def model_status(self) -> Status:
         now = self._read()

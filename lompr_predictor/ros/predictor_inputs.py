@@ -5,7 +5,8 @@ Three streams, each read without deserialising (`wire`): the measured tool tip, 
 reference (the commanded tool pose) and, for a model that reads one, the reference preview.
 A message that cannot be used is dropped and counted by reason (a pose in another frame
 under the core's drops, a preview under its plan's); a sample arriving while the node is not
-active is counted (`dropped_inactive`).
+active is counted (`dropped_inactive`). A pose the core dropped or faulted on is told at once
+(`problem_seen`: the node's status about its inputs goes out of its turn).
 """
 
 from __future__ import annotations
@@ -49,6 +50,9 @@ class PredictorInputs:
         self.pose_rate, self.reference_rate, self.preview_rate = (rate_meter()
                                                                   for _ in range(3))
         self.dropped_inactive = 0  # samples received while the node was not active
+        #: Called after a pose the core dropped or faulted on (once per such input).
+        self.problem_seen: Callable[[], None] = lambda: None
+        self._problems = 0  # the core's drops and faults after the last pose
 
     def endpoints(self, core: OnlinePredictor, end_pose_in_process: bool
                   ) -> list[tuple[Endpoint, Callable[[bytes], None]]]:
@@ -73,13 +77,17 @@ class PredictorInputs:
         start = time.perf_counter()
         (self.reference_rate if reference else self.pose_rate).tick()
         core = self._core()
-        if core is None or not self._in_frame(
-                core, msg, *(READ_REFERENCE if reference else READ_END_POSE)):
+        if core is None:
             return
-        sec, nanosec, x, y, z = read_pose_stamped(msg)
-        stamp = Stamp(sec, nanosec)
-        self._publish(core.add_reference(stamp, x, y, z) if reference
-                      else core.add_pose(stamp, x, y), start)
+        if self._in_frame(core, msg, *(READ_REFERENCE if reference else READ_END_POSE)):
+            sec, nanosec, x, y, z = read_pose_stamped(msg)
+            stamp = Stamp(sec, nanosec)
+            self._publish(core.add_reference(stamp, x, y, z) if reference
+                          else core.add_pose(stamp, x, y), start)
+        problems = core.dropped.total + core.faults.total
+        if problems != self._problems:  # also when a new core starts its counts afresh
+            self._problems = problems
+            self.problem_seen()
 
     def on_reference_preview(self, msg: bytes) -> None:
         """One serialized planned path: refused whole (counted, never a fault) if unreadable,

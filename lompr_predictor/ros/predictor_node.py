@@ -81,6 +81,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
                                    hardware_id=self.description.hardware_id),
             PredictorMeters(self.inputs.pose_rate, self.inputs.reference_rate,
                             self.inputs.preview_rate, self.outputs), self.readings)
+        self.inputs.problem_seen = self.diagnostics.problem_seen
         self._clock_jumps = ClockJumps(self, self._on_clock_jump)
         if not deferred:
             self.description.start()
@@ -179,6 +180,7 @@ class PredictorNode(NodeBase[PredictorNodeSettings], ManagedNode, LifecycleNode)
         """The clock went back (a simulator reset) or changed source (use_sim_time set)."""
         text, outputs = self.runtime.clock_jumped(changed, back_by_ns, self.active)
         self.warn_throttled('clock jump', text)
+        self.diagnostics.problem_seen()
         self.outputs.publish(outputs, time.perf_counter())
 
     def on_callback_failure(self, where: str) -> None:

@@ -162,6 +162,26 @@ def test_bad_inputs_are_dropped_counted_and_next_good_answered(
     assert kinematics is not None and kinematics['warm_start_resets'] == '1'
 
 
+def test_a_dropped_joint_state_brings_its_status_out_of_its_turn(
+        ros: RosHarness, description: RobotDescription) -> None:
+    """With a round of 50 s no status is read in its turn here: the drop asks for the
+    'joint states' status, which goes once the next good sample is answered."""
+    wiring = Wiring(ros, diagnostics_period=50.0)
+    good = inverse_kinematics(description.geometry, KNOWN_TIPS[:2]).joints
+    nan = good[0].copy()
+    nan[2] = math.nan
+    ros.spin_for(0.3)  # the statuses sent at the start
+    first = len(wiring.diagnostics)
+    wiring.publish([joint_state(20.00, good[0]), joint_state(20.04, nan),
+                    joint_state(20.08, good[1])])
+    ros.spin_until(lambda: len(wiring.poses) == 2, what='the two good samples answered')
+    ros.spin_until(lambda: len(wiring.diagnostics) > first, what='a status out of turn')
+    ros.spin_for(0.2)
+    sent = [array.status[0] for array in wiring.diagnostics[first:]]
+    assert [status.name for status in sent] == ['kinematics_node: joint states']
+    assert sent[0].level == DiagnosticStatus.WARN
+
+
 def test_unreadable_bytes_are_malformed_and_next_good_answered(
         ros: RosHarness, description: RobotDescription) -> None:
     """The node takes joint states raw (`ros.wire`): bytes that are no JointState are

@@ -332,6 +332,30 @@ def test_diagnostics_wait_for_the_node_between_two_samples_while_they_flow(
     assert len(after) >= 2 and not any(after)
 
 
+def test_a_status_asked_for_goes_with_the_next_tick_out_of_its_turn_once_a_period(
+        ros: RosHarness) -> None:
+    node = ros.add(Node('soon_test', context=ros.context))
+    diagnostics = DiagnosticsPublisher(node, topic='/test_soon_diagnostics', period=40.0)
+    for name in ('a', 'b', 'c', 'd'):  # a tick every 10 s: none in this test, `step` drives
+        diagnostics.add(name, lambda: Status(Level.OK, 'fine'))
+    arrays = ros.collect('/test_soon_diagnostics', DiagnosticArray)
+    ros.wait_for_subscribers(diagnostics.publisher)
+    diagnostics.step()  # the round: a
+    diagnostics.soon('c')
+    diagnostics.soon('c')  # asked again: still once
+    diagnostics.step()  # c out of its turn, then the round's b
+    diagnostics.soon('c')  # within the period: waits for its turn
+    diagnostics.step()  # the round's c
+    diagnostics.soon('d')
+    diagnostics.between_samples()  # asked for: sent at the node's next quiet moment
+    ros.spin_until(lambda: len(arrays) >= 5, what='five statuses')
+    ros.spin_for(0.2)
+    names = [array.status[0].name.removeprefix('soon_test: ') for array in arrays]
+    assert names == ['a', 'c', 'b', 'c', 'd']  # d once: asked for, and its turn
+    with pytest.raises(ValueError, match="no status 'e'"):
+        diagnostics.soon('e')
+
+
 def test_run_node_help_lists_parameters_and_qos_overrides(
         capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as exit_info:

@@ -1,7 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
 """ros.predictor_inputs, without a node: serialized poses and previews turned into calls of a
 real core; another frame, unreadable bytes and an inactive node dropped, each under its own
-count; what is subscribed for which model."""
+count, a drop or fault told once; what is subscribed for which model."""
 
 from __future__ import annotations
 
@@ -97,6 +97,24 @@ def test_another_frame_unreadable_bytes_and_an_inactive_node_are_each_counted(
     harness.inputs.on_end_pose(pose(1, 0.0, 0.0))
     harness.inputs.on_reference_preview(serialize_message(planned))
     assert harness.inputs.dropped_inactive == 2 and harness.published == []
+
+
+def test_a_pose_the_core_dropped_or_faulted_on_is_told_once(tmp_path: Path) -> None:
+    harness = Harness(tmp_path)
+    told: list[int] = []  # the core's drops and faults each time the inputs told
+    core = harness.core
+    harness.inputs.problem_seen = lambda: told.append(core.dropped.total + core.faults.total)
+    for k in range(3):
+        harness.inputs.on_reference(pose(k, 0.001 * k, 0.0))
+        harness.inputs.on_end_pose(pose(k, 0.001 * k, 0.0))
+    assert told == []  # good samples: nothing to tell
+    harness.inputs.on_end_pose(pose(3, 0.0, 0.0, frame='world'))  # dropped in the node
+    harness.inputs.on_reference(pose(3, float('nan'), 0.0))  # dropped by the core
+    harness.inputs.on_reference(pose(4, 0.004, 0.0))
+    # told once per such input: after the frame drop, after the NaN (a drop and a fault of
+    # the stream at once), not after the good reference that follows
+    assert told == [1, 3]
+    assert core.faults.total == 1
 
 
 def test_the_preview_is_subscribed_only_for_a_model_that_reads_one(tmp_path: Path) -> None:
