@@ -6,6 +6,7 @@ from __future__ import annotations
 import gc
 import math
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -247,21 +248,28 @@ def test_callback_times_rows_measure_wall_and_cpu_and_nested_runs_count_once() -
     assert with_histograms['work.p99_us'] == values['work.p99_us']
 
 
-def test_work_run_apart_is_out_of_the_run_it_is_called_from(
-        monkeypatch: pytest.MonkeyPatch) -> None:
-    """Another node's callback called from one of this node's (the pipeline's end pose) is
-    not this node's time: the run around it is recorded without it, also when it raises,
-    and the measured CPU counts only the run's own."""
-    now = [0]  # both clocks advance only when the work says so [ns]
+@pytest.fixture
+def take(monkeypatch: pytest.MonkeyPatch) -> Callable[[int], None]:
+    """`take(ns)`: work of `ns` nanoseconds, the only thing that advances monitoring's
+    wall and CPU clocks."""
+    now = [0]
 
     class FakeTime:
         perf_counter_ns = thread_time_ns = staticmethod(lambda: now[0])
 
     monkeypatch.setattr(monitoring, 'time', FakeTime)
-    times = CallbackTimes()
 
-    def take(ns: int) -> None:
+    def work(ns: int) -> None:
         now[0] += ns
+    return work
+
+
+def test_work_run_apart_is_out_of_the_run_it_is_called_from(
+        take: Callable[[int], None]) -> None:
+    """Another node's callback called from one of this node's (the pipeline's end pose) is
+    not this node's time: the run around it is recorded without it, also when it raises,
+    and the measured CPU counts only the run's own."""
+    times = CallbackTimes()
 
     def failing() -> None:
         take(4_000)
@@ -283,20 +291,11 @@ def test_work_run_apart_is_out_of_the_run_it_is_called_from(
 
 
 def test_a_run_measured_apart_inside_another_counts_as_an_outermost_run(
-        monkeypatch: pytest.MonkeyPatch) -> None:
+        take: Callable[[int], None]) -> None:
     """A status sent between two samples from within the sample's callback is a run of its
     own: its row has its time, the callback's has not, and the CPU the executor's row is
     reckoned from has both."""
-    now = [0]
-
-    class FakeTime:
-        perf_counter_ns = thread_time_ns = staticmethod(lambda: now[0])
-
-    monkeypatch.setattr(monitoring, 'time', FakeTime)
     times = CallbackTimes()
-
-    def take(ns: int) -> None:
-        now[0] += ns
 
     def end_pose() -> None:
         take(100_000)
