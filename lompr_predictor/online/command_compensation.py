@@ -16,8 +16,11 @@ What it never does: change a command it has no offset for (passed bit for bit, c
 value or already beyond a joint limit is passed unchanged, counted by reason, with one line
 saying what was wrong; an offset in another frame, non-finite, larger than `max_offset`, or
 for an instant already commanded is dropped, counted; one whose instant went by without a
-command is dropped as `stale`. The LOMPR's closed chain is commanded in tool tips (the
-reference plus the offset): it has no joint-space command path, and is refused.
+command is dropped as `stale`. Offsets and commands come from two processes in no set order:
+`OffsetBuffer.due` tells a command whose offset is still to come (the offsets kept up so
+far), which a node may hold a moment for it rather than pass unchanged. The LOMPR's closed
+chain is commanded in tool tips (the reference plus the offset): it has no joint-space
+command path, and is refused.
 """
 
 from __future__ import annotations
@@ -103,6 +106,7 @@ class OffsetBuffer:
         self._values: list[XY] = []
         self.dropped = RejectionCounter(OffsetDrop)
         self.commanded_ns: int | None = None  # the newest command's stamp
+        self.newest_ns: int | None = None  # the latest instant an offset was kept for
 
     def __len__(self) -> int:
         return len(self._instants)
@@ -121,6 +125,8 @@ class OffsetBuffer:
             return OffsetDrop.SUPERSEDED
         self._instants.insert(at, instant_ns)
         self._values.insert(at, value)
+        if self.newest_ns is None or instant_ns > self.newest_ns:
+            self.newest_ns = instant_ns
         if len(self._instants) > self.capacity:
             self._forget(1)
         return None
@@ -140,11 +146,21 @@ class OffsetBuffer:
             self.commanded_ns = stamp_ns
         return value
 
+    def due(self, stamp_ns: int) -> bool:
+        """Whether the offset for the command stamped `stamp_ns` is still to come: none is
+        kept for its instant or a later one (offsets come in the order of their instants),
+        and the offsets kept up with the previous command (a predictor that stopped is not
+        waited for)."""
+        newest, tolerance = self.newest_ns, self.tolerance_ns
+        if newest is None or newest >= stamp_ns - tolerance:
+            return False
+        return self.commanded_ns is None or newest >= self.commanded_ns - tolerance
+
     def clear(self) -> None:
         """Forget every offset and the newest command (a restart)."""
         self._instants.clear()
         self._values.clear()
-        self.commanded_ns = None
+        self.commanded_ns = self.newest_ns = None
 
     def _forget(self, count: int, *, used: bool = False) -> None:
         if count - used > 0:

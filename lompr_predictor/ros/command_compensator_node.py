@@ -9,10 +9,12 @@ it is for, in the chain's base frame) and answers each commanded JointState of
 JointState (the command's names and every other field kept) and, with
 `forward_command_topic`, as a Float64MultiArray in `controller_joints` order, what a
 ros2_control forward position controller reads on its `~/commands`. A command without an
-offset for its instant goes out unchanged; a bad one goes out unchanged on the JointState
-(on the array only if every joint is there and finite), counted, with one warning line.
-While the node is not active nothing is published (counted as `dropped_inactive`). The
-LOMPR's closed chain has no joint-space command path: configure refuses it in one line.
+offset for its instant goes out unchanged, after waiting up to `offset_wait` (wall time)
+if its offset is due (`OffsetBuffer.due`: the offsets kept up so far); a bad one goes out
+unchanged on the JointState (on the array only if every joint is there and finite),
+counted, with one warning line. While the node is not active nothing is published
+(counted as `dropped_inactive`). The LOMPR's closed chain has no joint-space command path:
+configure refuses it in one line.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from geometry_msgs.msg import Vector3Stamped
+from rclpy.clock import Clock, ClockType
 from rclpy.context import Context
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.publisher import Publisher
@@ -112,6 +115,11 @@ class CommandCompensatorSettings(SchedulingSettings):
         0.002, "an offset is a command's if its stamp is within this [s] of the command's "
         '(half the sample period); older offsets are dropped as stale', minimum=1e-6,
         maximum=1.0, read_only=True)
+    offset_wait: float = parameter(
+        0.001, 'a command whose offset is due (the offsets kept up with the commands so far) '
+        'waits up to this [s] of wall time for it before going out unchanged: offsets and '
+        'commands come from two processes in no set order; 0: never waits', minimum=0.0,
+        maximum=1.0, read_only=True)
     max_joint_step: float = parameter(
         0.01, 'largest joint offset [rad, or m for a prismatic joint] of any joint: a larger '
         'one is scaled down as a whole (the tool moves along the offset, less far)',
@@ -167,6 +175,14 @@ class CommandCompensatorNode(NodeBase[CommandCompensatorSettings], ManagedNode, 
         self.last_problem = ''
         self._problems_at_last_report = 0
         self._late_at_last_report = 0
+        self.held = 0  # commands that waited for their offset
+        self.held_in_vain = 0  # of those, the ones whose offset never came in offset_wait
+        self._waiting: JointState | None = None  # the command waiting for its offset
+        #: Ends a command's wait on wall time: a simulated clock stands still meanwhile.
+        self._wait_timer = self.start_timer(
+            settings.offset_wait or 1.0, 'command wait over', self._on_wait_over,
+            clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self._wait_timer.cancel()
         self.command_rate = self.rate_meter(settings.rate_window)
         self.offset_rate = self.rate_meter(settings.rate_window)
         #: Where its URDF comes from (a file, or the topic the cell shares).
@@ -209,9 +225,14 @@ class CommandCompensatorNode(NodeBase[CommandCompensatorSettings], ManagedNode, 
         return super().on_activate(state)
 
     def stop_output(self) -> None:
-        """Forget the offsets held: none computed before is applied after a restart."""
+        """Forget the offsets held and a command waiting for one: none computed before is
+        applied after a restart."""
         if self.core is not None:
             self.core.reset()
+        if self._waiting is not None:
+            self._wait_timer.cancel()
+            self._waiting = None
+            self.dropped_inactive += 1
 
     def release(self) -> None:
         self.destroy_owned()
@@ -239,6 +260,8 @@ class CommandCompensatorNode(NodeBase[CommandCompensatorSettings], ManagedNode, 
         if problem is not None:
             self._warn(problem.split(':')[0], f'offset for {_stamp_text(msg)} dropped: '
                                               f'{problem}')
+        if self._waiting is not None and not self.core.offsets.due(_stamp_ns(self._waiting)):
+            self._answer_waiting()
 
     def on_command(self, msg: JointState) -> None:
         """Publish one command compensated by the offset for its instant (or unchanged)."""
@@ -246,6 +269,30 @@ class CommandCompensatorNode(NodeBase[CommandCompensatorSettings], ManagedNode, 
         if self.core is None or not self.active or self._output is None:
             self.dropped_inactive += 1
             return
+        self._answer_waiting()  # a command never waits behind a later one
+        if self.settings.offset_wait > 0 and self.core.offsets.due(_stamp_ns(msg)):
+            self._waiting = msg
+            self.held += 1
+            self._wait_timer.reset()
+            return
+        self._answer(msg)
+
+    def _on_wait_over(self) -> None:
+        """The waiting command's offset did not come in `offset_wait`: it goes unchanged."""
+        if self._waiting is not None:
+            self.held_in_vain += 1
+            self._answer_waiting()
+
+    def _answer_waiting(self) -> None:
+        """Answer the command waiting for its offset, if one is."""
+        if self._waiting is not None:
+            self._wait_timer.cancel()
+            msg, self._waiting = self._waiting, None
+            self._answer(msg)
+
+    def _answer(self, msg: JointState) -> None:
+        """Publish `msg` compensated by the offset held for its instant, or unchanged."""
+        assert self.core is not None and self._output is not None
         answer = self.core.compensate(_stamp_ns(msg), msg.name, msg.position)
         if answer.problem:
             self._warn(answer.outcome, f'command at {_stamp_text(msg)} passed unchanged: '
@@ -275,6 +322,7 @@ class CommandCompensatorNode(NodeBase[CommandCompensatorSettings], ManagedNode, 
             'command_rate_hz': round(self.command_rate.rate(), 3),
             'offset_rate_hz': round(self.offset_rate.rate(), 3),
             'passed_total': self.published, 'dropped_inactive': self.dropped_inactive,
+            'commands_held': self.held, 'held_in_vain': self.held_in_vain,
             **(self.core.counts() if self.core is not None else {}),
             'last_problem': self.last_problem, **self.callback_values(),
             **self.description.values()}

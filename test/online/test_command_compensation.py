@@ -106,6 +106,25 @@ def test_the_newest_offset_for_an_instant_wins() -> None:
     assert offsets.dropped[OffsetDrop.STALE] == 0 and len(offsets) == 0
 
 
+def test_an_offset_is_due_only_while_the_offsets_keep_up_with_the_commands() -> None:
+    offsets = OffsetBuffer(PERIOD_NS // 2)
+    instant = [T0 + k * PERIOD_NS for k in range(6)]
+    assert not offsets.due(instant[0])  # no offset yet: nothing to wait for
+    offsets.add(instant[0], (1.0, 0.0))
+    assert not offsets.due(instant[0]) and offsets.due(instant[1])
+    assert offsets.take(instant[0]) == (1.0, 0.0)
+    assert offsets.due(instant[1])  # the offsets kept up with the last command
+    offsets.add(instant[2], (2.0, 0.0))  # instant 1 skipped: a later one is here
+    assert not offsets.due(instant[1]) and not offsets.due(instant[2])
+    assert offsets.take(instant[1]) is None and offsets.take(instant[2]) == (2.0, 0.0)
+    assert offsets.take(instant[3]) is None  # went without its offset
+    assert not offsets.due(instant[4])  # fell behind: a stopped predictor is not waited for
+    offsets.add(instant[4] + 1_000_000, (4.0, 0.0))  # back, within the tolerance
+    assert not offsets.due(instant[4]) and offsets.due(instant[5])
+    offsets.clear()
+    assert not offsets.due(instant[5])
+
+
 def test_the_joint_step_is_bounded_and_the_limits_clamp(chain: SerialChain) -> None:
     core = compensator(chain, CompensatorLimits(PERIOD_NS // 2, 1e-4, 1e-3))
     core.add_offset(T0, FRAME, 5e-4, 0.0)

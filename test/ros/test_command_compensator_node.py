@@ -137,6 +137,46 @@ def test_offsets_after_their_command_are_the_receivers_lateness_on_diagnostics(
     assert again is not None and again['offsets_dropped.late'] == '2'
 
 
+def test_a_command_ahead_of_its_offset_waits_for_it_but_never_for_a_stopped_predictor(
+        ros: RosHarness) -> None:
+    """Offsets and commands from two processes come in no set order: a command whose
+    offset is due waits for it (up to offset_wait) and goes out compensated; one whose offset
+    never comes goes out unchanged after the wait, and the next is not held."""
+    chain = load_chain(arm_spec())
+    node = ros.add(CommandCompensatorNode(context=ros.context,
+                                          parameter_overrides=node_parameters(offset_wait=0.5)))
+    states = ros.collect('/joint_commands_compensated', JointState, 100)
+    diagnostics = ros.collect('/diagnostics', DiagnosticArray, 100)
+    offsets_out, commands_out = inputs_of(ros)
+    names, base = list(chain.joint_names), chain.tool_positions(np.array([Q]))[0][0]
+    offsets_out.publish(offset(0, (1e-4, 0.0)))
+    ros.spin_until(lambda: node.offset_rate.total == 1, what='the first offset')
+    commands_out.publish(command(0, names, list(Q)))
+    ros.spin_until(lambda: len(states) == 1, what='the first command')
+    commands_out.publish(command(1, names, list(Q)))  # ahead of its offset
+    ros.spin_until(lambda: node.held == 1, what='the command held')
+    ros.spin_for(0.1)
+    assert len(states) == 1
+    offsets_out.publish(offset(1, (-2e-4, 1e-4)))
+    ros.spin_until(lambda: len(states) == 2, what='the held command')
+    moved = chain.tool_positions(np.array([states[1].position]))[0][0] - base
+    np.testing.assert_allclose(moved[:2], (-2e-4, 1e-4), rtol=0, atol=1e-7)
+    commands_out.publish(command(2, names, list(Q)))  # its offset never comes
+    ros.spin_until(lambda: len(states) == 3, what='the command after its wait')
+    assert tuple(states[2].position) == Q and node.held_in_vain == 1
+    commands_out.publish(command(3, names, list(Q)))  # the offsets fell behind: no wait
+    ros.spin_until(lambda: len(states) == 4, what='the next command')
+    name = f'{node.get_name()}: command path'
+    ros.spin_until(lambda: (latest_status(diagnostics, name) or {}).get('passed_total') == '4',
+                   what='the counts')
+    status = latest_status(diagnostics, name)
+    assert status is not None
+    assert {key: status[key] for key in ('commands_held', 'held_in_vain', 'commands.compensated',
+                                         'commands.no_offset', 'offsets_dropped.late')} == {
+        'commands_held': '2', 'held_in_vain': '1', 'commands.compensated': '2',
+        'commands.no_offset': '2', 'offsets_dropped.late': '0'}
+
+
 def test_the_lompr_is_refused_at_configure_in_one_line(ros: RosHarness) -> None:
     with pytest.raises(CommandPathError, match=r'^robot description .*lompr\.urdf is the LOMPR '
                                                'closed chain, commanded in tool tips'):
