@@ -37,7 +37,7 @@ Targets: >= 99.9 % answered in time outside outages; no non-finite or out-of-bou
 no step over the slew limit; RSS growth < 20 MB in the second half; no orphan process or
 file; every fault on /diagnostics within one status period and cleared after recovery
 (a CPU hog that cost no sample leaves nothing to show).
-Run: .venv/bin/python bench/soak_chaos.py [--minutes M] [--seed S] [--out DIR]
+Run: .venv/bin/python bench/soak_chaos.py [--minutes M] [--seed S] [--horizon N] [--out DIR]
 (exit code 1 on a miss)
 """
 
@@ -316,9 +316,9 @@ class Chaos:
     faults injected as the twin's sample time reaches them, RSS and child processes."""
 
     def __init__(self, model: Path, out: Path, faults: list[Fault], samples: int,
-                 realtime: bool) -> None:
+                 realtime: bool, horizon: int = HORIZON) -> None:
         self.model, self.out, self.faults = model, out, faults
-        self.realtime = realtime
+        self.realtime, self.horizon = realtime, horizon
         self.folder = out / 'adaptation'
         self.tmp = out / 'tmp'  # the nodes' TMPDIR: what is left in it is theirs
         for path in (self.folder, self.tmp):
@@ -344,7 +344,7 @@ class Chaos:
             predictor_parameters={**ADAPTATION, 'adaptation_folder': str(self.folder),
                                   'store_folder': str(self.folder / 'samples')})
         log = self.out / f'run_{segment}.npz'
-        command = loop_commands(settings, HORIZON, PERIOD, log)[node]
+        command = loop_commands(settings, self.horizon, PERIOD, log)[node]
         if not self.realtime:
             return command
         if node == 'twin_node':
@@ -687,12 +687,14 @@ def targets(result: dict[str, Any]) -> dict[str, bool]:
         'every fault cleared after recovery': all(d['cleared'] for d in shown)}
 
 
-def report(result: dict[str, Any], met: dict[str, bool], seed: int) -> str:
+def report(result: dict[str, Any], met: dict[str, bool], seed: int,
+           horizon: int = HORIZON) -> str:
     """The report as text."""
     quiet = max(result['quiet_samples'], 1)
     lines = [f'chaos soak, seed {seed}: {result["samples_run"]} of {result["samples_planned"]} '
              f'samples at {1 / PERIOD:g} Hz ({result["samples_run"] * PERIOD / 60:.2f} min of '
-             f'sample time)' + (f'; stopped: {result["stopped"]}' if result['stopped'] else ''),
+             f'sample time), offsets {horizon} sample(s) ahead'
+             + (f'; stopped: {result["stopped"]}' if result['stopped'] else ''),
              f'  offsets received {result["offsets_received"]}, samples answered in time '
              f'{result["answered_in_time"]}; outside outages {result["quiet_answered"]} of '
              f'{result["quiet_samples"]} ({result["quiet_answered"] / quiet:.4%}), '
@@ -716,15 +718,16 @@ def _fmt(value: float | None) -> str:
     return '-' if value is None else f'{value:.2f}'
 
 
-def soak(minutes: float, seed: int, out: Path, wall_limit: float, realtime: bool) -> bool:
-    """Run the soak into `out` (schedule.json, report.json, report.txt); whether every
-    target was met."""
+def soak(minutes: float, seed: int, out: Path, wall_limit: float, realtime: bool,
+         horizon: int = HORIZON) -> bool:
+    """Run the soak into `out` (schedule.json, report.json, report.txt), the model
+    predicting `horizon` samples ahead; whether every target was met."""
     out.mkdir(parents=True, exist_ok=True)
     faults = schedule(minutes, seed)
     (out / 'schedule.json').write_text(json.dumps([asdict(f) for f in faults], indent=1))
     samples = round(minutes * 60 / PERIOD)
-    model = bench.default_model(out / 'model.pt', PERIOD, HORIZON, fine_tunable=True)
-    chaos = Chaos(model, out, faults, samples, realtime)
+    model = bench.default_model(out / 'model.pt', PERIOD, horizon, fine_tunable=True)
+    chaos = Chaos(model, out, faults, samples, realtime, horizon)
     context = Context()
     rclpy.init(context=context)
     monitor = ChaosMonitor(context, samples + samples // 2)
@@ -745,7 +748,7 @@ def soak(minutes: float, seed: int, out: Path, wall_limit: float, realtime: bool
         context.try_shutdown()
         result = summarise(chaos, monitor, orphans, end_wall)
         met = targets(result)
-        text = report(result, met, seed)
+        text = report(result, met, seed, horizon)
         (out / 'report.json').write_text(json.dumps({**result, 'targets': met}, indent=1,
                                                     default=str))
         # every level change seen, so that a report can be judged again
@@ -761,6 +764,9 @@ def main() -> int:
                         help='sample time [min] (default 60)')
     parser.add_argument('--seed', type=int, default=0, help='of the fault schedule')
     parser.add_argument('--out', default='soak_chaos_out', help='report folder')
+    parser.add_argument('--horizon', type=int, default=HORIZON,
+                        help=f"samples ahead the model predicts, its offsets' lead (default "
+                        f'{HORIZON}); more: a control of how much lead the machine needs')
     parser.add_argument('--wall-limit', type=float, default=0.0,
                         help='stop after this many wall seconds (default: 3 x the sample time)')
     parser.add_argument('--scheduling', choices=('realtime', 'normal'), default='realtime',
@@ -770,6 +776,8 @@ def main() -> int:
     args = parser.parse_args()
     if not args.minutes >= 1.0:
         parser.error(f'--minutes must be >= 1, got {args.minutes}')
+    if args.horizon < 1:
+        parser.error(f'--horizon must be >= 1, got {args.horizon}')
     set_torch_threads(1)
     isolate_ros_domain()  # this soak talks only to itself
     realtime = args.scheduling == 'realtime'
@@ -782,7 +790,7 @@ def main() -> int:
     out = Path(args.out)
     shutil.rmtree(out, ignore_errors=True)
     return 0 if soak(args.minutes, args.seed, out,
-                     args.wall_limit or 180.0 * args.minutes, realtime) else 1
+                     args.wall_limit or 180.0 * args.minutes, realtime, args.horizon) else 1
 
 
 if __name__ == '__main__':
