@@ -590,11 +590,18 @@ def _visible(fault: Fault, first_clocks: list[float], answered: np.ndarray) -> f
 
 
 def offset_checks(offsets: np.ndarray, bound: float, step: float) -> dict[str, Any]:
-    """Non-finite offsets, XY norms over `bound`, changes over `step` between offsets of
-    consecutive instants (same segment, one period apart)."""
-    rows = offsets[np.lexsort((offsets[:, 1], offsets[:, 0]))]
+    """Non-finite offsets and XY norms over `bound` among every offset published (rows of
+    segment, instant [s], x, y, z in the order received), changes over `step` between the
+    offsets applied at consecutive instants (same segment, one period apart): the newest
+    for an instant, as a controller applies them (a cancel re-sends, as zero, the instants
+    already published: with offsets more than one sample ahead, several)."""
+    finite_all = np.isfinite(offsets[:, 2:]).all(axis=1)
+    over_bound = int((np.linalg.norm(offsets[finite_all, 2:4], axis=1) > bound * (1 + 1e-6))
+                     .sum())
+    rows = offsets[np.lexsort((offsets[:, 1], offsets[:, 0]))]  # stable: newest last
+    superseded = (np.diff(rows[:, 0]) == 0) & (np.diff(rows[:, 1]) == 0)
+    rows = rows[np.r_[~superseded, True]] if len(rows) else rows
     xy = rows[:, 2:4]
-    finite = np.isfinite(rows[:, 2:]).all(axis=1)
     norm = np.linalg.norm(xy, axis=1)
     next_ = (np.diff(rows[:, 0]) == 0) & (np.abs(np.diff(rows[:, 1]) - PERIOD) < 0.25 * PERIOD)
     change = np.linalg.norm(np.diff(xy, axis=0), axis=1)
@@ -602,8 +609,7 @@ def offset_checks(offsets: np.ndarray, bound: float, step: float) -> dict[str, A
     # controller applies as well when none comes; counted apart, not as a step
     cancelled = (norm[1:] == 0.0) & next_ & (change > step * (1 + 1e-6))
     over = np.flatnonzero(next_ & (change > step * (1 + 1e-6)) & ~cancelled)
-    return {'non_finite': int((~finite).sum()),
-            'over_bound': int((norm[finite] > bound * (1 + 1e-6)).sum()),
+    return {'non_finite': int((~finite_all).sum()), 'over_bound': over_bound,
             'steps_over_limit': len(over), 'cancellations_over_limit': int(cancelled.sum()),
             # the first few: (segment, instant [s] after the epoch, change [um])
             'steps_at': [(int(rows[i + 1, 0]), round(rows[i + 1, 1] - EPOCH_NS * 1e-9, 3),

@@ -185,6 +185,26 @@ def test_the_chaos_soak_schedules_every_fault_and_checks_each_offset() -> None:
     assert counts == '1 1 2 1'
 
 
+def test_the_chaos_soak_judges_the_step_between_the_offsets_applied() -> None:
+    """Offsets two samples ahead, then a cancel re-sending both instants already published
+    as zero: the step check judges the newest offset of each instant (what a controller
+    applies), not one superseded; every message counts for the bound."""
+    script = (
+        'import sys; sys.path.insert(0, sys.argv[1]); import numpy as np\n'
+        'from soak_chaos import PERIOD, offset_checks\n'
+        't = 1.7e9 + np.arange(4) * PERIOD\n'
+        'received = [(0, 4e-5), (1, 4.5e-5), (2, 9e-5), (1, 0.0), (2, 0.0), (3, 4e-5),'
+        ' (3, 7e-4)]\n'
+        'rows = np.array([[0, t[k], x, 0, 0] for k, x in received])\n'
+        'found = offset_checks(rows[:-1], 5e-4, 5e-5)\n'
+        'print(found["over_bound"], found["steps_over_limit"], found["cancellations_over_limit"])\n'
+        'found = offset_checks(rows, 5e-4, 5e-5)\n'
+        'print(found["over_bound"], found["steps_over_limit"], found["cancellations_over_limit"])')
+    # superseded: 45 -> 0 and 90 -> 0 um; applied 40, 0, 0, 40: no step over 50 um; the
+    # last message, 0.7 mm for instant 3, is over the bound and 0.7 mm from instant 2's zero
+    assert printed(script)[-2:] == ['0 0 0', '1 1 0']
+
+
 def test_the_chaos_soak_takes_a_new_segments_time_from_its_own_twin() -> None:
     """After a reset the soak's clock (which starts the faults) waits for the new twin's
     first instant: a /clock of the stopped twin still queued is no time of the new segment

@@ -169,6 +169,11 @@ class Adaptation:
         self._work, self._started_ns = work, now_ns
         self.state.running_pid, self.state.error = self._process.pid, ''
 
+    def ended(self) -> bool:
+        """Whether an attempt's process has ended and awaits `poll` (one waitpid: cheap
+        enough for every status tick, so that a killed attempt is told at once)."""
+        return self._process is not None and self._process.poll() is not None
+
     def poll(self, now_ns: int) -> AttemptOutcome | None:
         """The outcome of an attempt that has ended (None while one runs, or none ran), seen
         at the node's clock `now_ns`; its work folder is deleted."""

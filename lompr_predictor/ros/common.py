@@ -119,7 +119,9 @@ class DiagnosticsPublisher:
 
     A status whose concern the node has just seen go wrong (a sample dropped, the clock
     gone back) need not wait for its turn in the round: the node asks for it (`soon`) and
-    it goes at the node's next quiet moment or tick, at most once a period out of turn.
+    it goes at the node's next quiet moment or tick, at most once a period out of turn. A
+    concern no input tells of (a child process that ended) is `watch`ed: a cheap check at
+    every tick asks for its status when it holds.
     """
 
     #: Ticks of wall time without a tick of the node's clock after which the steady timer
@@ -160,6 +162,7 @@ class DiagnosticsPublisher:
         self._last_quiet = -math.inf  # when the node last said it was between samples
         self._soon: list[tuple[str, Callable[[], Status]]] = []  # asked for out of turn
         self._out_of_turn: dict[str, float] = {}  # when each was last asked for [s]
+        self._watched: list[tuple[str, Callable[[], bool]]] = []
         self._step_between = wrap('diagnostics between samples', self._send_waiting)
         self._timer = node.create_timer(period, wrap('diagnostics', self._on_tick))
         self._steady_timer = node.create_timer(
@@ -176,16 +179,28 @@ class DiagnosticsPublisher:
         """Send the status `name` at the node's next quiet moment or tick, whichever comes
         first, out of its turn (class docstring); one asked for again within a period
         waits for its turn."""
-        full = f'{self._prefix}: {name}'
+        provider = self._provider(name)
         now = time.monotonic()
-        if now - self._out_of_turn.get(full, -math.inf) < self.period:
+        if now - self._out_of_turn.get(provider[0], -math.inf) < self.period:
             return
+        self._out_of_turn[provider[0]] = now
+        self._soon.append(provider)
+
+    def _provider(self, name: str) -> tuple[str, Callable[[], Status]]:
+        """The provider registered as `name` (ValueError: none is)."""
+        full = f'{self._prefix}: {name}'
         provider = next((p for p in self._providers if p[0] == full), None)
         if provider is None:
             msg = f'no status {name!r} on this node'
             raise ValueError(msg)
-        self._out_of_turn[full] = now
-        self._soon.append(provider)
+        return provider
+
+    def watch(self, name: str, changed: Callable[[], bool]) -> None:
+        """Ask for the status `name` out of its turn (`soon`) at any tick at which
+        `changed()` holds: a check cheap enough for every tick, of a concern no input
+        tells of."""
+        self._provider(name)  # a name of this node's, or ValueError now
+        self._watched.append((name, changed))
 
     def between_samples(self) -> None:
         """The node has just sent what an input asked of it: what waits for this (a tick,
@@ -221,12 +236,15 @@ class DiagnosticsPublisher:
             self.step()
 
     def step(self) -> None:
-        """One tick: the statuses asked for out of turn (`soon`), then the next
+        """One tick: the statuses asked for out of turn (`soon`, `watch`), then the next
         provider's. A tick that comes late takes the ticks it missed too (up to one of each
         provider): on simulated time a timer fires at most once per /clock step, and a
         /clock coarser than the tick would otherwise stretch the period."""
         if not self._providers:
             return
+        for name, changed in self._watched:
+            if changed():
+                self.soon(name)
         now = self._node.get_clock().now().nanoseconds
         missed = (now - self._last_tick_ns) // max(self._timer.timer_period_ns, 1)
         self._last_tick_ns = now

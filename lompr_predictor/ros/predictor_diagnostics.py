@@ -74,6 +74,7 @@ class PredictorDiagnostics:
         publisher.add('guard', self.guard_status)
         publisher.add('sample store', self.store_status)
         publisher.add('adaptation', self.adaptation_status)
+        publisher.watch('adaptation', self._attempt_ended)
         meters.outputs.between_samples = publisher.between_samples
         self._publisher = publisher
 
@@ -81,6 +82,11 @@ class PredictorDiagnostics:
         """An input dropped, a fault, the clock gone back: the 'inputs' status goes with
         the next tick, out of its turn (`DiagnosticsPublisher.soon`)."""
         self._publisher.soon(INPUTS_STATUS)
+
+    def _attempt_ended(self) -> bool:
+        """Whether an adaptation attempt has ended (killed, or done) and is not yet told."""
+        adaptation = self._read().runtime.adaptation
+        return adaptation is not None and adaptation.adaptation.ended()
 
     def model_status(self) -> Status:
         now = self._read()

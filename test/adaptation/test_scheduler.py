@@ -210,12 +210,13 @@ def test_a_killed_attempt_is_a_failure_and_leaves_no_work_folder(
         runs.start(store, ModelInForce('m.pt', 'ab', None, 'lompr_base'), {}, 0)
         assert not left_behind.exists()
         pid = runs.state.running_pid
-        assert pid and runs.poll(1) is None
+        assert pid and runs.poll(1) is None and not runs.ended()
         os.kill(pid, signal.SIGKILL)
         deadline = time.monotonic() + 30
-        while (outcome := runs.poll(7 * 10**9)) is None and time.monotonic() < deadline:
+        while not runs.ended() and time.monotonic() < deadline:
             time.sleep(0.05)
-        assert outcome is not None and outcome.decision == 'failed'
+        outcome = runs.poll(7 * 10**9)
+        assert outcome is not None and outcome.decision == 'failed' and not runs.ended()
         assert (outcome.started_clock_ns, outcome.ended_clock_ns) == (0, 7 * 10**9)
         assert outcome.result.reason == 'the attempt process was killed by signal 9'
         assert runs.state.running_pid == 0

@@ -356,6 +356,27 @@ def test_a_status_asked_for_goes_with_the_next_tick_out_of_its_turn_once_a_perio
         diagnostics.soon('e')
 
 
+def test_a_watched_status_goes_out_of_its_turn_at_the_tick_its_check_holds(
+        ros: RosHarness) -> None:
+    node = ros.add(Node('watch_test', context=ros.context))
+    diagnostics = DiagnosticsPublisher(node, topic='/test_watch_diagnostics', period=40.0)
+    for name in ('a', 'b', 'c', 'd'):  # a tick every 10 s: none in this test, `step` drives
+        diagnostics.add(name, lambda: Status(Level.OK, 'fine'))
+    ended = [False, False, True, True, False]  # the check's answer at each tick
+    diagnostics.watch('d', lambda: ended.pop(0))
+    arrays = ros.collect('/test_watch_diagnostics', DiagnosticArray)
+    ros.wait_for_subscribers(diagnostics.publisher)
+    for _ in range(5):
+        diagnostics.step()
+    ros.spin_until(lambda: len(arrays) >= 6, what='six statuses')
+    ros.spin_for(0.2)
+    names = [array.status[0].name.removeprefix('watch_test: ') for array in arrays]
+    assert names == ['a', 'b', 'd', 'c', 'd', 'a']  # held twice: once a period out of turn
+    assert not ended
+    with pytest.raises(ValueError, match="no status 'e'"):
+        diagnostics.watch('e', lambda: True)
+
+
 def test_run_node_help_lists_parameters_and_qos_overrides(
         capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as exit_info:

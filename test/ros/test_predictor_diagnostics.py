@@ -8,7 +8,9 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from pathlib import Path
+from types import SimpleNamespace
 
+import pytest
 from fake_clock import FakeClock
 from model_helpers import save_constant
 
@@ -29,10 +31,14 @@ class Statuses:
 
     def __init__(self) -> None:
         self.read: dict[str, Callable[[], Status]] = {}
+        self.watched: dict[str, Callable[[], bool]] = {}
         self.told_between_samples = 0
 
     def add(self, name: str, status: Callable[[], Status]) -> None:
         self.read[name] = status
+
+    def watch(self, name: str, changed: Callable[[], bool]) -> None:
+        self.watched[name] = changed
 
     def between_samples(self) -> None:
         self.told_between_samples += 1
@@ -60,8 +66,20 @@ def test_the_statuses_are_registered_in_the_order_an_operator_reads_them(
     assert list(statuses.read) == ['model', 'inputs', 'reference preview', 'prediction',
                                    'guard', 'sample store', 'adaptation']
     assert statuses.read['adaptation']().message.startswith('off')
+    assert list(statuses.watched) == ['adaptation'] and not statuses.watched['adaptation']()
     meters.outputs.between_samples()  # outputs sent: the statuses hear it
     assert statuses.told_between_samples == 1
+
+
+def test_an_adaptation_attempt_that_ended_is_watched_for_at_every_tick(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    statuses, runtime, _ = diagnostics_of(tmp_path)
+    ended = [True]
+    monkeypatch.setattr(runtime, 'adaptation', SimpleNamespace(
+        adaptation=SimpleNamespace(ended=lambda: ended[0])))
+    assert statuses.watched['adaptation']()
+    ended[0] = False
+    assert not statuses.watched['adaptation']()
 
 
 def test_faults_and_late_outputs_warn_for_the_report_they_happened_in(tmp_path: Path) -> None:
