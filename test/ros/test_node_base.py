@@ -332,14 +332,21 @@ def test_diagnostics_wait_for_the_node_between_two_samples_while_they_flow(
     assert len(after) >= 2 and not any(after)
 
 
+def four_statuses(ros: RosHarness, name: str) -> tuple[DiagnosticsPublisher, list[Any]]:
+    """Node `name`'s publisher of statuses a, b, c, d, ticking every 10 s (no tick in a
+    test: `step` drives it), and the arrays it sends."""
+    node = ros.add(Node(name, context=ros.context))
+    diagnostics = DiagnosticsPublisher(node, topic=f'/{name}_diagnostics', period=40.0)
+    for status in ('a', 'b', 'c', 'd'):
+        diagnostics.add(status, lambda: Status(Level.OK, 'fine'))
+    arrays = ros.collect(f'/{name}_diagnostics', DiagnosticArray)
+    ros.wait_for_subscribers(diagnostics.publisher)
+    return diagnostics, arrays
+
+
 def test_a_status_asked_for_goes_with_the_next_tick_out_of_its_turn_once_a_period(
         ros: RosHarness) -> None:
-    node = ros.add(Node('soon_test', context=ros.context))
-    diagnostics = DiagnosticsPublisher(node, topic='/test_soon_diagnostics', period=40.0)
-    for name in ('a', 'b', 'c', 'd'):  # a tick every 10 s: none in this test, `step` drives
-        diagnostics.add(name, lambda: Status(Level.OK, 'fine'))
-    arrays = ros.collect('/test_soon_diagnostics', DiagnosticArray)
-    ros.wait_for_subscribers(diagnostics.publisher)
+    diagnostics, arrays = four_statuses(ros, 'soon_test')
     diagnostics.step()  # the round: a
     diagnostics.soon('c')
     diagnostics.soon('c')  # asked again: still once
@@ -358,14 +365,9 @@ def test_a_status_asked_for_goes_with_the_next_tick_out_of_its_turn_once_a_perio
 
 def test_a_watched_status_goes_out_of_its_turn_at_the_tick_its_check_holds(
         ros: RosHarness) -> None:
-    node = ros.add(Node('watch_test', context=ros.context))
-    diagnostics = DiagnosticsPublisher(node, topic='/test_watch_diagnostics', period=40.0)
-    for name in ('a', 'b', 'c', 'd'):  # a tick every 10 s: none in this test, `step` drives
-        diagnostics.add(name, lambda: Status(Level.OK, 'fine'))
+    diagnostics, arrays = four_statuses(ros, 'watch_test')
     ended = [False, False, True, True, False]  # the check's answer at each tick
     diagnostics.watch('d', lambda: ended.pop(0))
-    arrays = ros.collect('/test_watch_diagnostics', DiagnosticArray)
-    ros.wait_for_subscribers(diagnostics.publisher)
     for _ in range(5):
         diagnostics.step()
     ros.spin_until(lambda: len(arrays) >= 6, what='six statuses')
