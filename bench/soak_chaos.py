@@ -199,6 +199,7 @@ class ChaosMonitor(Node):
         self.jumped_ns = 0
         self.segment = 0
         self.awaiting_restart = False  # a segment began: no /clock of its twin yet
+        self.previous_end_ns = 0  # the last /clock of the segment before
         self.levels: dict[str, int] = {}
         self.events: list[tuple[float, str, int, str]] = []  # wall, status, level, message
         self.offsets = np.full((capacity, 5), np.nan)  # segment, stamp [s], x, y, z
@@ -226,12 +227,20 @@ class ChaosMonitor(Node):
         if stamp == self.jumped_ns:  # the soak's own jump is not the twin's time
             return
         if self.awaiting_restart:  # a new twin starts at the first instant
-            if stamp > EPOCH_NS + RESTART_TOLERANCE_NS:
-                return  # the stopped twin's, still queued: not the new segment's time
+            # the stopped twin's /clock still queued lies at its segment's end; the new
+            # twin's may be first heard seconds in (discovered late on a loaded machine)
+            if (stamp > EPOCH_NS + RESTART_TOLERANCE_NS
+                    and stamp >= self.previous_end_ns - RESTART_TOLERANCE_NS):
+                return
             self.awaiting_restart = False
         if not self.clock_ns:
             self.first_clocks.append(time.monotonic())
         self.clock_ns = max(self.clock_ns, stamp)
+
+    def restart(self, segment: int) -> None:
+        """A new segment (a new twin from the first instant): its time from its own /clock."""
+        self.previous_end_ns, self.clock_ns = self.clock_ns, 0
+        self.segment, self.awaiting_restart = segment, True
 
     def _on_offset(self, msg: Vector3Stamped) -> None:
         if self.received < len(self.offsets):
@@ -405,8 +414,7 @@ class Chaos:
         if self.segment + 2 == len(self.bounds):
             return True
         self.segment += 1
-        monitor.segment, monitor.clock_ns = self.segment, 0
-        monitor.awaiting_restart = True
+        monitor.restart(self.segment)
         self.start('twin_node')
         return False
 

@@ -208,7 +208,8 @@ def test_the_chaos_soak_judges_the_step_between_the_offsets_applied() -> None:
 def test_the_chaos_soak_takes_a_new_segments_time_from_its_own_twin() -> None:
     """After a reset the soak's clock (which starts the faults) waits for the new twin's
     first instant: a /clock of the stopped twin still queued is no time of the new segment
-    (taken, it started every fault up to it at once, their bursts running on for a minute)."""
+    (taken, it started every fault up to it at once, their bursts running on for a minute);
+    the new twin's is taken even when first heard seconds in (discovered late)."""
     script = (
         'import sys; sys.path.insert(0, sys.argv[1])\n'
         'import rclpy\n'
@@ -220,14 +221,18 @@ def test_the_chaos_soak_takes_a_new_segments_time_from_its_own_twin() -> None:
         'monitor = ChaosMonitor(context, 10)\n'
         'def clock(ns): return Clock(clock=Time(sec=ns // 10**9, nanosec=ns % 10**9))\n'
         'monitor._on_clock(clock(EPOCH_NS + 51 * 10**9))\n'
-        'monitor.clock_ns, monitor.awaiting_restart = 0, True  # the segment switch\n'
-        'monitor._on_clock(clock(EPOCH_NS + 51_700_000_000))  # the stopped twin, late\n'
+        'monitor.restart(1)  # the segment switch\n'
+        'monitor._on_clock(clock(EPOCH_NS + 50_700_000_000))  # the stopped twin, late\n'
         'late = monitor.clock_ns\n'
         'monitor._on_clock(clock(EPOCH_NS))\n'
         'monitor._on_clock(clock(EPOCH_NS + 4_000_000))\n'
         'print(late, monitor.clock_ns - EPOCH_NS, len(monitor.first_clocks))\n'
+        'monitor._on_clock(clock(EPOCH_NS + 40 * 10**9))  # segment 1 runs on\n'
+        'monitor.restart(2)\n'
+        'monitor._on_clock(clock(EPOCH_NS + 3 * 10**9))  # the new twin, heard 3 s in\n'
+        'print(monitor.clock_ns - EPOCH_NS, len(monitor.first_clocks))\n'
         'monitor.destroy_node(); rclpy.shutdown(context=context)\n')
-    assert printed(script)[-1] == '0 4000000 2'
+    assert printed(script)[-2:] == ['0 4000000 2', '3000000000 3']
 
 
 def test_a_cpu_hog_is_judged_from_its_first_cost_on_the_receivers_status_too() -> None:
