@@ -4,9 +4,11 @@
 Safety rules (docs/safety.md, docs/nodes.md):
 
 - The offset for an instant is minus the prediction for it, clamped to `max_compensation`
-  (XY norm, direction kept) and to `max_step` change from the previous offset (XY norm of
-  the change), so it never jumps, also when it starts or resumes. The clamp is the last
-  operation: every offset published satisfies the clamp in force when it is published.
+  (XY norm, direction kept), low-passed (first order, cutoff `bandwidth`, 0: none: above a
+  servo's bandwidth the plant error echoes the offset back into the prediction, docs/nodes.md)
+  and limited to `max_step` change from the previous offset (XY norm), so it never jumps,
+  also when it starts or resumes. The clamp is last: every offset published satisfies the
+  clamp in force when it is published.
 - Limits changed at run time hold from the very next output: a lowered `max_compensation`
   re-issues, clamped, every offset already published for an instant still to come (reason
   'clamp_lowered') and clamps the offset the step limit starts from. That is the one case
@@ -46,6 +48,7 @@ class CompensationLimits:
     max_compensation: float  # XY norm of the offset
     max_step: float  # XY norm of its change from one sample to the next
     enabled: bool  # False: shadow mode, predictions go on, every offset is zero
+    bandwidth: float = 0.0  # [Hz] cutoff of the offset's low-pass; 0: none
 
 
 #: An X/Y pair [m], on Python floats: the per-sample path builds no arrays.
@@ -130,6 +133,7 @@ class OffsetGate:
     def __init__(self, limits: CompensationLimits, period_ns: int) -> None:
         self.limits = limits
         self._period_ns = period_ns
+        self._smoothing = smoothing_factor(limits.bandwidth, period_ns)
         self._compensations = InstantSchedule(period_ns // 2)
         self._predictions = InstantSchedule(period_ns // 2)
         self._offset = ZERO
@@ -190,6 +194,7 @@ class OffsetGate:
         the step limit starts from."""
         disabled = self.limits.enabled and not limits.enabled
         self.limits = limits
+        self._smoothing = smoothing_factor(limits.bandwidth, self._period_ns)
         if disabled:
             return self.cancel(GateReason.COMPENSATION_DISABLED, newest_pose_ns)
         limit = limits.max_compensation
@@ -206,7 +211,8 @@ class OffsetGate:
         self._offset = ZERO
 
     def _bounded(self, x: float, y: float) -> XY:
-        """The offset for the wanted offset (x, y): clamped, step-limited, clamped."""
+        """The offset for the wanted offset (x, y): clamped, low-passed, step-limited,
+        clamped."""
         limits = self.limits
         if not limits.enabled:
             return ZERO
@@ -216,6 +222,9 @@ class OffsetGate:
             x, y = x * scale, y * scale
             self.clamped += 1
         offset_x, offset_y = self._offset
+        if self._smoothing < 1.0:
+            x = offset_x + (x - offset_x) * self._smoothing
+            y = offset_y + (y - offset_y) * self._smoothing
         change_x, change_y = x - offset_x, y - offset_y
         step = math.hypot(change_x, change_y)
         if step > limits.max_step:
@@ -224,6 +233,15 @@ class OffsetGate:
             self.step_limited += 1
         # The clamp is the last operation, whatever the offset the step started from.
         return _clamped(x, y, limits.max_compensation)
+
+
+def smoothing_factor(bandwidth: float, period_ns: int) -> float:
+    """The share of the way to the wanted offset the offset goes per instant: a first-order
+    low-pass of cutoff `bandwidth` [Hz] sampled every `period_ns` (its step response exact at
+    the instants); 1 (none) for a bandwidth of 0."""
+    if bandwidth <= 0.0:
+        return 1.0
+    return 1.0 - math.exp(-2.0 * math.pi * bandwidth * period_ns * 1e-9)
 
 
 def _clamped(x: float, y: float, limit: float) -> XY:

@@ -64,6 +64,11 @@ class PredictorCoreSettings(FrameSettings):
     max_compensation_step: float = parameter(
         5e-5, 'largest change of the offset [m] (XY norm) from one sample to the next',
         minimum=0.0, maximum=0.01)
+    compensation_bandwidth: float = parameter(
+        15.0, 'cutoff [Hz] of the first-order low-pass the offset passes (0: none): a servo '
+        'follows an offset only up to its bandwidth, and above it the plant error measured '
+        'echoes the offset back into the prediction; keep it near the servo bandwidth',
+        minimum=0.0, maximum=1000.0)
     robot_description_file: str = parameter(
         '', 'URDF of the robot (its calibrated geometry), the one the model must have been '
         "trained for: it gives the features' kinematics and its sha256 is checked; "
@@ -170,7 +175,7 @@ class PredictorCoreSettings(FrameSettings):
     @property
     def limits(self) -> CompensationLimits:
         return CompensationLimits(self.max_compensation, self.max_compensation_step,
-                                  self.compensation_enabled)
+                                  self.compensation_enabled, self.compensation_bandwidth)
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
-"""online.offset alone: clamp, step limit, schedule by instant, cancel, shadow mode."""
+"""online.offset alone: clamp, low-pass, step limit, schedule by instant, cancel, shadow
+mode."""
 
 from __future__ import annotations
 
@@ -12,7 +13,11 @@ from lompr_predictor.online.offset import (
     CompensationLimits,
     InstantSchedule,
     OffsetGate,
+    smoothing_factor,
 )
+from lompr_predictor.robot.description import load_robot_description
+from lompr_predictor.twin.digital_twin import DigitalTwin
+from lompr_predictor.twin.parameters import load_twin_parameters
 
 PERIOD_NS = 40_000_000
 T0 = 1_700_000_000_000_000_000
@@ -29,8 +34,9 @@ def held(value: XY | None) -> XY:
 
 
 def gate(max_compensation: float = 1e-3, max_step: float = 1.0,
-         enabled: bool = True) -> OffsetGate:
-    return OffsetGate(CompensationLimits(max_compensation, max_step, enabled), PERIOD_NS)
+         enabled: bool = True, bandwidth: float = 0.0) -> OffsetGate:
+    return OffsetGate(CompensationLimits(max_compensation, max_step, enabled, bandwidth),
+                      PERIOD_NS)
 
 
 def test_the_offset_is_clamped_in_norm_with_its_direction_kept() -> None:
@@ -51,6 +57,45 @@ def test_the_offset_ramps_by_at_most_max_step() -> None:
     np.testing.assert_allclose(compensations, [20e-6, 40e-6, 50e-6, 50e-6, 50e-6], atol=1e-15)
     assert offsets.step_limited == 2
     np.testing.assert_allclose(offsets.offset_in_force, [50e-6, 0.0], atol=1e-15)
+
+
+def test_the_offset_follows_a_step_as_a_first_order_low_pass_of_its_bandwidth() -> None:
+    # 2 Hz at 25 Hz: the share per instant is 1 - exp(-2 pi 2 0.04) = 0.39508...
+    share = 1.0 - np.exp(-2.0 * np.pi * 2.0 * 0.04)
+    assert smoothing_factor(2.0, PERIOD_NS) == pytest.approx(0.3950774, abs=1e-7)
+    offsets = gate(bandwidth=2.0)
+    compensations = [offsets.publish(at(k), (-100e-6, 0.0), at(k)).compensation[0]
+                     for k in range(4)]
+    expected = [100e-6 * (1.0 - (1.0 - share) ** (k + 1)) for k in range(4)]
+    np.testing.assert_allclose(compensations, expected, rtol=0, atol=1e-15)
+    assert offsets.step_limited == 0
+
+
+def test_a_low_pass_offset_never_alternates_at_the_sample_rate() -> None:
+    # a prediction alternating +-100 um from one instant to the next (all the servo cannot
+    # follow): 1 Hz at 25 Hz leaves +-12.5 um of it, share / (2 - share) of the swing
+    share = smoothing_factor(1.0, PERIOD_NS)
+    offsets = gate(bandwidth=1.0)
+    compensations = [offsets.publish(at(k), ((-1) ** k * 100e-6, 0.0), at(k)).compensation[0]
+                     for k in range(200)]
+    settled = np.array(compensations[100:])
+    np.testing.assert_allclose(np.abs(settled), 100e-6 * share / (2.0 - share), rtol=1e-9)
+    assert np.all(np.sign(settled[:-1]) != np.sign(settled[1:]))
+
+
+def test_without_a_bandwidth_the_offset_is_minus_the_prediction_to_the_bit() -> None:
+    offsets = gate(bandwidth=0.0)
+    for k, value in enumerate((1.234567e-4, -3.21e-5, 7.77e-6)):
+        assert offsets.publish(at(k), (value, -value), at(k)).compensation == (-value, value)
+    assert smoothing_factor(0.0, PERIOD_NS) == 1.0
+
+
+def test_a_new_bandwidth_holds_from_the_next_offset() -> None:
+    offsets = gate(bandwidth=0.0)
+    assert offsets.publish(at(0), (-100e-6, 0.0), at(0)).compensation[0] == 100e-6
+    offsets.set_limits(CompensationLimits(1e-3, 1.0, True, 2.0), at(0))
+    halfway = offsets.publish(at(1), (0.0, 0.0), at(1)).compensation[0]
+    assert halfway == pytest.approx(100e-6 * (1.0 - smoothing_factor(2.0, PERIOD_NS)), abs=1e-15)
 
 
 def test_what_was_published_is_found_by_instant_within_half_a_period() -> None:
@@ -118,3 +163,42 @@ def test_a_zero_or_tiny_limit_still_gives_finite_offsets(limit: float) -> None:
     output = offsets.publish(at(1), (1e-3, 1e-3), at(0))
     assert np.isfinite(output.compensation).all()
     assert np.hypot(*output.compensation) <= limit * (1 + 1e-12)
+
+
+def closed_loop_persistence(bandwidth: float, lead: int, samples: int) -> dict[str, np.ndarray]:
+    """The 250 Hz twin (preset highrate) in closed loop with the persistence compensator
+    `lead` samples ahead through a gate of the node's default bounds: the offset for
+    instant n is minus the plant error at n - lead. Per sample: true error, offset [m]."""
+    twin = DigitalTwin(load_robot_description(None), load_twin_parameters(preset='highrate'),
+                       seed=0, path='spiral')
+    period_ns = round(twin.sample_period * 1e9)
+    offsets = OffsetGate(CompensationLimits(5e-4, 5e-5, True, bandwidth), period_ns)
+    plant_errors: list[XY] = []
+    true_error, applied = np.zeros((samples, 2)), np.zeros((samples, 2))
+    for n in range(samples):
+        prediction = plant_errors[n - lead] if n >= lead else (0.0, 0.0)
+        x, y = offsets.publish(at(n), prediction, at(n)).compensation
+        block = twin.step(1, np.array([[x, y, 0.0]]))
+        plant_errors.append((float(block.plant_error_true[0, 0]),
+                             float(block.plant_error_true[0, 1])))
+        true_error[n], applied[n] = block.error_true[0, :2], (x, y)
+    return {'true_error': true_error, 'offset': applied}
+
+
+def test_the_low_pass_stops_persistence_alternating_through_a_servo_that_lags() -> None:
+    # Two samples ahead, each offset answers the plant error two instants before, which
+    # holds the echo of the offset itself where the servo lags (~180 degrees at 125 Hz): a
+    # mode alternating from sample to sample grows until the step limit holds it. Through
+    # the low-pass it dies out and the true error drops with it.
+    samples, settled = 3000, slice(1500, None)
+    runs = {bandwidth: closed_loop_persistence(bandwidth, 2, samples) for bandwidth in (0, 15)}
+
+    def rms(values: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(values[settled] ** 2)))
+
+    change = {b: rms(np.diff(run['offset'], axis=0)) for b, run in runs.items()}
+    error = {b: rms(run['true_error']) for b, run in runs.items()}
+    assert change[0] > 20e-6  # about the step limit (50 um XY) shared by X and Y
+    assert change[15] < 1e-6
+    assert error[15] < error[0] / 3
+    assert rms(runs[15]['offset']) > 10e-6  # still compensating: the plant error is ~15 um

@@ -494,7 +494,8 @@ def test_a_lowered_clamp_holds_from_the_next_output() -> None:
 
 LIMITS = st.tuples(st.sampled_from([0.0, 1e-6, 2e-5, 1e-4, 5e-4, 1e-2]),  # max_compensation
                    st.sampled_from([0.0, 1e-7, 5e-6, 5e-5, 1e-2]),  # max_step
-                   st.sampled_from([True, True, True, False]))  # enabled
+                   st.sampled_from([True, True, True, False]),  # enabled
+                   st.sampled_from([0.0, 0.0, 1.0, 15.0, 1e3]))  # bandwidth [Hz]
 EVENT = st.one_of(
     st.tuples(st.just('limits'), LIMITS),
     st.tuples(st.just('sample'),
@@ -509,11 +510,12 @@ EVENT = st.one_of(
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(start=LIMITS, events=st.lists(EVENT, min_size=1, max_size=30))
 def test_clamp_and_slew_are_never_exceeded_under_random_parameter_changes(
-        amplified: LoadedModel, start: tuple[float, float, bool],
+        amplified: LoadedModel, start: tuple[float, float, bool, float],
         events: list[tuple[str, Any]]) -> None:
     """Property: every offset published is within the clamp in force when it is published;
     every offset from a prediction differs from the one the slew starts from (the previous
-    one, clamped by a lowered limit, zero after a cancel) by at most the step in force;
+    one, clamped by a lowered limit, zero after a cancel) by at most the step in force,
+    whatever the low-pass;
     a cancel is zero; shadow mode publishes zeros."""
     core = OnlinePredictor(amplified, stream(), CompensationLimits(*start), clock=lambda: 0)
     limits = CompensationLimits(*start)

@@ -105,9 +105,10 @@ class Plant:
 
 def predictor(ros: RosHarness, **overrides: object) -> PredictorNode:
     # the guard off: these tests read the model's own offsets, not persistence's while the
-    # model is unproven (the guard has its own tests)
+    # model is unproven (the guard has its own tests); the low-pass off: they read the
+    # offset as minus the prediction, step-limited
     parameters = {'diagnostics_period': 0.1, 'compensation_enabled': True,
-                  'guard_enabled': False, **overrides}
+                  'guard_enabled': False, 'compensation_bandwidth': 0.0, **overrides}
     node: PredictorNode = ros.add(PredictorNode(
         context=ros.context,
         parameter_overrides=[Parameter(k, value=v) for k, v in parameters.items()]))

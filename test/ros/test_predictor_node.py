@@ -101,10 +101,13 @@ class Wiring:
         # the loaded machine between two samples is no fault; for the same reason an output
         # is late (overrun, dropped) only after a minute, unless a test is about that
         # the guard off unless a test is about it: with it on persistence answers until the
-        # model earns control, and the tests of everything else read the model's output
+        # model earns control, and the tests of everything else read the model's output;
+        # the offset's low-pass off too: they check the offset against the clamp and the
+        # step limit alone (the low-pass has its own tests, online/test_offset.py)
         parameters = {'model_path': str(model), 'diagnostics_period': 0.1,
                       'stale_periods': 1000.0, 'late_tolerance': 60.0,
-                      'compensation_enabled': True, 'guard_enabled': False, **overrides}
+                      'compensation_enabled': True, 'guard_enabled': False,
+                      'compensation_bandwidth': 0.0, **overrides}
         self.ros = ros
         self.node: PredictorNode = ros.add(PredictorNode(
             context=ros.context,
@@ -468,10 +471,12 @@ def test_executable_with_params_file_refuses_a_mismatched_model_in_one_line(tmp_
 def test_one_process_pipeline_answers_joint_states(
         ros: RosHarness, description: RobotDescription, tmp_path: Path) -> None:
     model = save_constant(tmp_path / 'c.pt', (-7e-6, 3e-6), window=WINDOW, horizon=HORIZON)
-    # the guard off: the constant model's offsets, not persistence's while it is unproven
+    # the guard off: the constant model's offsets, not persistence's while it is unproven;
+    # the low-pass off: the offset is the constant at once
     process = start_executable('pipeline', '-p', f'predictor_node:model_path:={model}',
                                '-p', 'predictor_node:compensation_enabled:=true',
-                               '-p', 'predictor_node:guard_enabled:=false')
+                               '-p', 'predictor_node:guard_enabled:=false',
+                               '-p', 'predictor_node:compensation_bandwidth:=0.0')
     try:
         compensations = ros.collect('/lompr/compensation', Vector3Stamped, 100)
         joints = ros.node.create_publisher(JointState, '/joint_states', 100)
@@ -517,9 +522,10 @@ def test_one_process_pipeline_answers_joint_states(
 
 def pipeline_parameters(model: Path, **overrides: object) -> dict[str, list[Parameter]]:
     """The predictor's parameters of an in-process pipeline test (as `Wiring`'s: staleness
-    and lateness out of a loaded machine's way, the guard off)."""
+    and lateness out of a loaded machine's way, the guard and the low-pass off)."""
     values = {'model_path': str(model), 'compensation_enabled': True, 'guard_enabled': False,
-              'stale_periods': 1000.0, 'late_tolerance': 60.0, **overrides}
+              'compensation_bandwidth': 0.0, 'stale_periods': 1000.0, 'late_tolerance': 60.0,
+              **overrides}
     return {'predictor_node': [Parameter(k, value=v) for k, v in values.items()]}
 
 

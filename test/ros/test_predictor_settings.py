@@ -18,7 +18,7 @@ def test_every_core_guard_and_adaptation_setting_is_its_parameter() -> None:
     changed = dataclasses.replace(
         settings, gap_factor=3.5, late_tolerance=0.002, guard_margin=0.2, guard_window=7.0,
         adaptation_margin=0.3, adaptation_keep=9, max_compensation=1e-4,
-        max_compensation_step=2e-5, compensation_enabled=True,
+        max_compensation_step=2e-5, compensation_enabled=True, compensation_bandwidth=4.0,
         robot_description_file='/r.urdf', base_frame='b', tip_frame='t')
     stream = changed.stream(0.001)
     assert isinstance(stream, StreamSettings) and stream.sample_period == 0.001
@@ -33,7 +33,7 @@ def test_every_core_guard_and_adaptation_setting_is_its_parameter() -> None:
     for item in dataclasses.fields(changed.adaptation):
         assert getattr(changed.adaptation, item.name) == getattr(changed,
                                                                  f'adaptation_{item.name}')
-    assert changed.limits == CompensationLimits(1e-4, 2e-5, True)
+    assert changed.limits == CompensationLimits(1e-4, 2e-5, True, 4.0)
     assert changed.robot == RobotSpec('/r.urdf', 'b', 't')
     assert settings.robot == RobotSpec(None, '', '')  # the packaged LOMPR, the file's frames
     assert settings.compensation_enabled is False  # shadow mode unless the site says so
