@@ -22,8 +22,10 @@ the test part is the default: the chronologically last 10 %) and reads its repor
 failed training leaves its rows empty, its message under the table and the exit code 1.
 
 It prints the commands it ran and one table: per run (h, K) and axis the test RMSE [um] of
-every model in the report and its ratio to persistence on the same windows, and the wall
-time of the training; `--out FILE` also writes the table as Markdown.
+every model in the report and its ratio to persistence on the same windows, the BO-LSTM's
+margin over the best baseline with its t on the test part (the report's standing: below
+1.645 in size, within chance), and the wall time of the training; `--out FILE` also
+writes the table as Markdown.
 """
 
 from __future__ import annotations
@@ -207,11 +209,25 @@ def cell(run: Run, name: str, axis: str) -> str:
     return f'{rmse:.1f} ({rmse / base:.2f})'
 
 
+def margin(run: Run, axis: str) -> str:
+    """The BO-LSTM's RMSE over the best baseline's, minus 1, and its t on the test part
+    (the report's standing; positive: behind), '-' if the report has none."""
+    standing = run.report.get('standings', {}).get(axis, {})
+    if 'bo_lstm_vs_best_baseline' not in standing:
+        return '-'
+    t = standing.get('bo_lstm_vs_best_baseline_t')
+    return (f"{100 * standing['bo_lstm_vs_best_baseline']:+.1f} % "
+            f"{SHORT.get(standing['best_baseline'], standing['best_baseline'])}"
+            + ('' if t is None else f' (t {t:+.2f})'))
+
+
 def table_rows(runs: list[Run], names: list[str]) -> tuple[list[str], list[list[str]]]:
-    """The table's head and rows: per run and axis, every model's cell and the wall time."""
-    head = ['h', 'K', 'axis', *(SHORT.get(name, name) for name in names), 'train s']
+    """The table's head and rows: per run and axis, every model's cell, the BO-LSTM's margin
+    over the best baseline and the wall time."""
+    head = ['h', 'K', 'axis', *(SHORT.get(name, name) for name in names),
+            'BO-LSTM vs best', 'train s']
     rows = [[str(run.horizon), str(run.preview), axis.upper(),
-             *(cell(run, name, axis) for name in names),
+             *(cell(run, name, axis) for name in names), margin(run, axis),
              f'{run.seconds:.0f}' + (' failed' if run.failure else '')]
             for run in runs for axis in AXES]
     return head, rows

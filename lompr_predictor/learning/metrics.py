@@ -1,6 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
 """The seed paper's Table 1 metrics (docs/interface.md, metrics), per axis, and who leads by
-them (`standings`).
+them (`standings`), with whether the scored part can tell the leader at all
+(`loss_difference_t`).
 
 For a prediction p and the actual error a on the test window, with the training range
 [low, high] of the error on that axis:
@@ -80,6 +81,29 @@ def score_predictions(predictions: Mapping[str, np.ndarray], actual: np.ndarray,
             for name, predicted in predictions.items()}
 
 
+#: The one-sided 5 % point of the standard normal: one model's loss exceeds another's by more
+#: than chance at that level when the t of their difference is above it.
+CRITICAL_T = 1.645
+
+
+def loss_difference_t(difference: np.ndarray) -> float:
+    """The t statistic of the mean of a loss difference series: its mean over the standard
+    error of the means of ceil(sqrt(n)) long consecutive blocks (a Diebold-Mariano t whose
+    correlated neighbours are not counted as independent evidence); 0 for a series of zeros,
+    infinite for a constant positive one, 0 with fewer than two blocks (nothing to tell)."""
+    n = len(difference)
+    length = int(np.ceil(np.sqrt(n)))
+    blocks = n // length if length else 0
+    if blocks < 2:
+        return 0.0
+    means = np.asarray(difference[:blocks * length], dtype=np.float64).reshape(
+        blocks, length).mean(axis=1)
+    mean, spread = float(means.mean()), float(means.std(ddof=1))
+    if spread == 0.0:
+        return 0.0 if mean == 0.0 else float(np.copysign(np.inf, mean))
+    return mean / (spread / np.sqrt(blocks))
+
+
 def ratios(metrics: dict[str, dict[str, float]],
            baseline: dict[str, dict[str, float]]) -> dict[str, dict[str, Any]]:
     """Each metric divided by the baseline's (the paper's 'x % of BP' headline)."""
@@ -88,17 +112,19 @@ def ratios(metrics: dict[str, dict[str, float]],
             for axis, values in metrics.items()}
 
 
-def standings(models: Mapping[str, Any],
-              published: Mapping[str, str] | None = None) -> dict[str, dict[str, Any]]:
+def standings(models: Mapping[str, Any], published: Mapping[str, str] | None = None,
+              errors: Mapping[str, np.ndarray] | None = None) -> dict[str, dict[str, Any]]:
     """Per axis, where the BO-LSTM stands on the test part by RMSE: the model that leads
     (of all), the best baseline (every model but the BO-LSTM's own: its fallback, what it
     publishes, `OWN_MODELS`) and the BO-LSTM's RMSE over that baseline's, minus 1
     (negative: it leads by that share; 0: a tie, as on an axis the error has no part in);
-    and the model the
-    axis publishes (`published`: axis -> its key, by default the BO-LSTM), with its RMSE
-    over the best baseline's, minus 1."""
+    and the model the axis publishes (`published`: axis -> its key, by default the BO-LSTM),
+    with its RMSE over the best baseline's, minus 1. With each model's (B, 2) test errors
+    (`errors`), also the t of each one's squared error minus the best baseline's
+    (`loss_difference_t`; positive: behind it): below `CRITICAL_T` in size, the test part
+    cannot tell them apart."""
     out: dict[str, dict[str, Any]] = {}
-    for axis in TARGETS:
+    for i, axis in enumerate(TARGETS):
         rmse = {name: float(entry['metrics'][axis]['rmse_um'])
                 for name, entry in models.items()}
         baselines = {name: value for name, value in rmse.items() if name not in OWN_MODELS}
@@ -111,7 +137,18 @@ def standings(models: Mapping[str, Any],
                      'bo_lstm_vs_best_baseline': _share(rmse['bo_lstm'], theirs),
                      'published': chosen, 'published_rmse_um': rmse[chosen],
                      'published_vs_best_baseline': _share(rmse[chosen], theirs)}
+        if errors is not None:
+            out[axis].update(
+                bo_lstm_vs_best_baseline_t=_t_against(errors, 'bo_lstm', best, i),
+                published_vs_best_baseline_t=_t_against(errors, chosen, best, i))
     return out
+
+
+def _t_against(errors: Mapping[str, np.ndarray], name: str, baseline: str, axis: int) -> float:
+    """`loss_difference_t` of `name`'s squared error [um^2] minus `baseline`'s on one axis."""
+    ours, theirs = (np.asarray(errors[key][:, axis], dtype=np.float64) * 1e6
+                    for key in (name, baseline))
+    return loss_difference_t(ours ** 2 - theirs ** 2)
 
 
 def _share(ours: float, theirs: float) -> float:
@@ -127,7 +164,9 @@ NOT_EXPORTABLE = ('hgb', 'hgb_no_preview')
 
 def standing_text(axis: str, standing: Mapping[str, Any], labels: Mapping[str, str]) -> str:
     """One line on where the BO-LSTM stands on `axis` (`standings`), models by `labels`,
-    and what the axis publishes where that is not the BO-LSTM or a baseline leads it."""
+    and what the axis publishes where that is not the BO-LSTM or a baseline leads it; a
+    margin the test part cannot tell from chance (its t, where the standing has one) says
+    so."""
     share = standing['bo_lstm_vs_best_baseline']
     best = labels.get(standing['best_baseline'], standing['best_baseline'])
     if share < 0:
@@ -136,15 +175,24 @@ def standing_text(axis: str, standing: Mapping[str, Any], labels: Mapping[str, s
         text = f'{axis.upper()}: the BO-LSTM ties {best}'
     else:
         text = f'{axis.upper()}: {best} leads, the BO-LSTM {100 * share:.1f} % behind it'
+    text += _chance(share, standing.get('bo_lstm_vs_best_baseline_t'))
     chosen = standing.get('published', 'bo_lstm')
     published_share = standing.get('published_vs_best_baseline', share)
     if chosen != 'bo_lstm':
         label = labels.get(chosen) or PUBLISHED_LABELS.get(chosen, chosen)
         text += (f"; {label} published (the validation part's choice), "
-                 f'{_behind(published_share, best)}')
+                 f'{_behind(published_share, best)}'
+                 + _chance(published_share, standing.get('published_vs_best_baseline_t')))
     if standing['best_baseline'] in NOT_EXPORTABLE and published_share > 0:
         text += f'; {best} cannot be exported to TorchScript'
     return text
+
+
+def _chance(share: float, t: float | None) -> str:
+    """' (within chance: t ...)' where a margin `share` has a t below `CRITICAL_T` in size."""
+    if t is None or share == 0 or abs(t) >= CRITICAL_T:
+        return ''
+    return f' (within chance on the test part: t {t:+.2f})'
 
 
 def _behind(share: float, best: str) -> str:

@@ -33,6 +33,7 @@ import torch
 from torch import nn
 
 from lompr_predictor.data.features import TARGETS
+from lompr_predictor.learning.metrics import CRITICAL_T, loss_difference_t
 
 #: The report's and the metadata's names of the candidates an axis can publish (the
 #: generalist: a paired BO-LSTM's second network, `models.PairedNet`).
@@ -112,29 +113,8 @@ class PublishedModule(nn.Module):
 
 #: The report's names of the candidates an axis can publish, in `PublishedModule`'s order.
 MEMBERS = (NETWORK, GENERALIST, RIDGE)
-#: The one-sided 5 % point of the standard normal: a candidate is left out only if its
-#: validation loss exceeds the best's by more than chance at that level.
-CRITICAL_T = 1.645
 #: The key under which the report scores a published mean (`Publication.published_key`).
 PUBLISHED = 'published'
-
-
-def loss_difference_t(difference: np.ndarray) -> float:
-    """The t statistic of the mean of a loss difference series: its mean over the standard
-    error of the means of ceil(sqrt(n)) long consecutive blocks (so that correlated
-    neighbours are not counted as independent evidence); 0 for a series of zeros, infinite
-    for a constant positive one, 0 with fewer than two blocks (nothing to tell)."""
-    n = len(difference)
-    length = int(np.ceil(np.sqrt(n)))
-    blocks = n // length if length else 0
-    if blocks < 2:
-        return 0.0
-    means = np.asarray(difference[:blocks * length], dtype=np.float64).reshape(
-        blocks, length).mean(axis=1)
-    mean, spread = float(means.mean()), float(means.std(ddof=1))
-    if spread == 0.0:
-        return 0.0 if mean == 0.0 else float(np.copysign(np.inf, mean))
-    return mean / (spread / np.sqrt(blocks))
 
 
 @dataclass(frozen=True)

@@ -212,10 +212,12 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
                                      config.inputs.cleaning.gap_factor)
     models['bo_lstm'].update(training_seconds=tuned.training_seconds,
                              hyperparameters=tuned.params, target=RESIDUAL_TARGET)
-    report = _report(config, problem, data, sources, models, tuned, publication)
+    standing = standings(models, publication.published_keys, {
+        name: predictions - scored.actual for name, predictions in scored.predictions.items()})
+    report = _report(config, problem, data, sources, models, tuned, publication, standing)
     scoring_seconds = time.perf_counter() - scoring_started
     metadata = _model_metadata(config, problem, tuned, machine_map, chain, trained_on,
-                               models, publication, baselines[RIDGE.name])
+                               models, publication, baselines[RIDGE.name], standing)
     total = time.perf_counter() - started
     # where the time went; write_outputs adds writing_seconds
     report['timings'] = {'read_clean_fk_seconds': read_seconds,
@@ -265,9 +267,10 @@ def network_predictions(module: Any, problem: LearningProblem,
 def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tuned,
                     machine_map: MachineMap | None, chain: KinematicChain,
                     trained_on: list[BagSource], models: dict[str, dict[str, Any]],
-                    publication: Publication, ridge: FittedBaseline) -> ModelMetadata:
+                    publication: Publication, ridge: FittedBaseline,
+                    standing: dict[str, dict[str, Any]]) -> ModelMetadata:
     """The metadata the model file carries (docs/interface.md, the model file); the test
-    metrics are the BO-LSTM's, the standing says what each axis publishes."""
+    metrics are the BO-LSTM's, the standing (`standings`) says what each axis publishes."""
     published = ({'published': {axis: list(members)
                                 for axis, members in publication.members.items()},
                   'ridge': {**ridge.fitted.details['hyperparameters'],
@@ -297,7 +300,7 @@ def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tu
                             for s in trained_on if not s.skipped_reason),
         seed=config.seed, library_versions=library_versions(),
         test_metrics=models['bo_lstm']['metrics'],
-        standing=standings(models, publication.published_keys),
+        standing=standing,
         machine_map=machine_map.metadata() if machine_map is not None else {},
         envelope=fit_envelope(problem.rows[problem.split.training_rows()],
                               problem.features).to_metadata())
@@ -482,7 +485,8 @@ def _tune(config: TrainingConfig, problem: LearningProblem, machine_map: Machine
 
 def _report(config: TrainingConfig, problem: LearningProblem, data: CleanData,
             sources: list[BagSource], models: dict[str, dict[str, Any]],
-            tuned: _Tuned, publication: Publication) -> dict[str, Any]:
+            tuned: _Tuned, publication: Publication,
+            standing: dict[str, dict[str, Any]]) -> dict[str, Any]:
     report = base_report('train', problem, data, sources, config.inputs.cleaning)
     bp_seconds = models[BP.name]['training_seconds']
     report.update(
@@ -490,7 +494,7 @@ def _report(config: TrainingConfig, problem: LearningProblem, data: CleanData,
         ratios_to_bp=ratios(models['bo_lstm']['metrics'], models['bp']['metrics']),
         bo_lstm_beats={name: beats(models['bo_lstm']['metrics'], models[name]['metrics'])
                        for name in models if name != 'bo_lstm'},
-        standings=standings(models, publication.published_keys),
+        standings=standing,
         published=publication.report(),
         training_time_ratio_lstm_to_bp=(tuned.training_seconds / bp_seconds
                                         if bp_seconds else None),

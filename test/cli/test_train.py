@@ -407,6 +407,11 @@ def test_a_preview_model_records_its_preview_and_the_report_shows_the_plain_base
     assert content['published']['x']['model'] == 'ridge'
     assert evaluation['models']['model']['metrics']['x']['rmse_um'] == pytest.approx(
         content['standings']['x']['published_rmse_um'], rel=1e-9)
+    # each margin with its t on the test part, the same in the report and the model file
+    for axis in ('x', 'y'):
+        standing = content['standings'][axis]
+        assert {'bo_lstm_vs_best_baseline_t', 'published_vs_best_baseline_t'} <= set(standing)
+        assert loaded.metadata.standing[axis] == standing
 
 
 @pytest.mark.faults

@@ -8,6 +8,7 @@ import pytest
 
 from lompr_predictor.learning.metrics import (
     axis_metrics,
+    loss_difference_t,
     ratios,
     standing_text,
     standings,
@@ -93,6 +94,42 @@ def test_standings_name_the_leader_and_the_bo_lstms_margin_by_hand() -> None:
     tie = standings(_models(persistence=(0.0, 1.0), bo_lstm=(0.0, 0.5)))['x']
     assert tie['bo_lstm_vs_best_baseline'] == 0.0
     assert standing_text('x', tie, {}) == 'X: the BO-LSTM ties persistence'
+
+
+def test_the_loss_difference_t_statistic_by_hand() -> None:
+    """Nine values: three blocks of three, block means 2, 3, 4: t = 3 / (1 / sqrt 3); a
+    constant positive difference is infinite, zeros and a series of one block are 0."""
+    assert loss_difference_t(np.array([1, 2, 3, 2, 3, 4, 3, 4, 5.0])) == pytest.approx(
+        3 * np.sqrt(3), rel=1e-12)
+    assert loss_difference_t(np.full(16, 2.0)) == np.inf
+    assert loss_difference_t(np.zeros(16)) == 0.0
+    assert loss_difference_t(np.array([5.0, 1.0, 2.0])) == 0.0
+
+
+def test_standings_with_the_test_errors_give_each_margins_t_and_say_when_it_is_chance(
+) -> None:
+    """By hand (100 samples, ten blocks of ten, errors in um): the ridge's error is 1 on
+    both axes; the BO-LSTM's is 0.5 on X (squared difference -0.75 everywhere: t minus
+    infinity, a lead beyond chance) and on Y sqrt(1 + d), d per block +-0.5, +-0.2, +-0.4,
+    +-0.1, +-0.3 plus 0.01 (mean 0.01, block spread of ten values: t 0.01 / (s / sqrt 10)),
+    within chance."""
+    deltas = np.repeat([0.5, -0.5, 0.2, -0.2, 0.4, -0.4, 0.1, -0.1, 0.3, -0.3], 10) + 0.01
+    ridge = np.ones((100, 2)) * 1e-6
+    ours = np.column_stack([np.full(100, 0.5), np.sqrt(1 + deltas)]) * 1e-6
+    models = _models(ridge=(1.0, 1.0), bo_lstm=(0.5, float(np.sqrt(np.mean(1 + deltas)))))
+    table = standings(models, None, {'ridge': ridge, 'bo_lstm': ours})
+    assert table['x']['bo_lstm_vs_best_baseline_t'] == -np.inf
+    assert table['x']['published_vs_best_baseline_t'] == -np.inf
+    block_means = deltas.reshape(10, 10).mean(axis=1)
+    expected = 0.01 / (block_means.std(ddof=1) / np.sqrt(10))
+    assert table['y']['bo_lstm_vs_best_baseline_t'] == pytest.approx(expected, rel=1e-9)
+    assert standing_text('x', table['x'], {}) == 'X: the BO-LSTM leads, 50.0 % below ridge'
+    assert standing_text('y', table['y'], {}) == (
+        f'Y: ridge leads, the BO-LSTM 0.5 % behind it (within chance on the test part: '
+        f't +{expected:.2f})')
+    published = standings(models, {'x': 'ridge', 'y': 'ridge'}, {'ridge': ridge,
+                                                                 'bo_lstm': ours})
+    assert published['y']['published_vs_best_baseline_t'] == 0.0  # the ridge itself
 
 
 def test_standings_say_what_each_axis_publishes_and_that_trees_cannot_be_exported() -> None:

@@ -28,7 +28,6 @@ from lompr_predictor.learning.publishing import (
     PUBLISHED,
     PublishedModule,
     choose,
-    loss_difference_t,
     published_module,
     published_predictions,
 )
@@ -58,16 +57,6 @@ def test_the_ridge_module_predicts_as_the_ridge_baseline(problem: LearningProble
     single = scripted(windows.float()).double().numpy()
     assert np.max(np.abs(single - expected)) <= 1e-6 * scale
     assert set(fitted.details['validation_rmse_um']) == {'x', 'y'}
-
-
-def test_the_loss_difference_t_statistic_by_hand() -> None:
-    """Nine values: three blocks of three, block means 2, 3, 4: t = 3 / (1 / sqrt 3); a
-    constant positive difference is infinite, zeros and a series of one block are 0."""
-    assert loss_difference_t(np.array([1, 2, 3, 2, 3, 4, 3, 4, 5.0])) == pytest.approx(
-        3 * np.sqrt(3), rel=1e-12)
-    assert loss_difference_t(np.full(16, 2.0)) == np.inf
-    assert loss_difference_t(np.zeros(16)) == 0.0
-    assert loss_difference_t(np.array([5.0, 1.0, 2.0])) == 0.0
 
 
 def test_each_axis_publishes_the_mean_of_the_candidates_the_validation_part_cannot_tell_apart(
