@@ -189,7 +189,8 @@ def standing_text(axis: str, standing: Mapping[str, Any], labels: Mapping[str, s
 
 
 def _chance(share: float, t: float | None) -> str:
-    """' (within chance: t ...)' where a margin `share` has a t below `CRITICAL_T` in size."""
+    """' (within chance on the test part: t ...)' where a margin `share` has a t below
+    `CRITICAL_T` in size; nothing for a tie or a margin without its t."""
     if t is None or share == 0 or abs(t) >= CRITICAL_T:
         return ''
     return f' (within chance on the test part: t {t:+.2f})'
