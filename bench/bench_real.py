@@ -23,9 +23,9 @@ failed training leaves its rows empty, its message under the table and the exit 
 
 It prints the commands it ran and one table: per run (h, K) and axis the test RMSE [um] of
 every model in the report and its ratio to persistence on the same windows, the BO-LSTM's
-margin over the best baseline with its t on the test part (the report's standing: below
-1.645 in size, within chance), and the wall time of the training; `--out FILE` also
-writes the table as Markdown.
+and its committee's margins over the best baseline with their t on the test part (the
+report's standing: below 1.645 in size, within chance), and the wall time of the training;
+`--out FILE` also writes the table as Markdown.
 """
 
 from __future__ import annotations
@@ -171,7 +171,7 @@ def train(bag: Path, work: Path, horizon: int, preview: int, args: argparse.Name
 SHORT = {'persistence': 'Persistence', 'bp': 'BP', 'ridge': 'Ridge', 'hgb': 'HGB',
          'ridge_no_preview': 'Ridge -K', 'hgb_no_preview': 'HGB -K',
          'machine_map': 'Map prior', 'bo_lstm': 'BO-LSTM', 'bo_lstm_generalist': 'Generalist',
-         PUBLISHED: 'Published'}
+         'bo_lstm_committee': 'Committee', PUBLISHED: 'Published'}
 
 
 def model_names(runs: list[Run]) -> list[str]:
@@ -187,6 +187,8 @@ def legend(runs: list[Run], names: list[str]) -> str:
     labels = {'bo_lstm': 'BO-LSTM (the tuned model)',
               'bo_lstm_generalist': "BO-LSTM on the machine map's residuals alone (a paired "
                                     "model's fallback)",
+              'bo_lstm_committee': "the mean of the study's best networks (what a published "
+                                   "mean runs in the BO-LSTM's place)",
               PUBLISHED: "what the model file answers per axis (report.json's 'published': "
                          'the mean of the candidates the validation part kept)'}
     labels.update({name: str(model['label']) for run in runs
@@ -209,25 +211,27 @@ def cell(run: Run, name: str, axis: str) -> str:
     return f'{rmse:.1f} ({rmse / base:.2f})'
 
 
-def margin(run: Run, axis: str) -> str:
-    """The BO-LSTM's RMSE over the best baseline's, minus 1, and its t on the test part
-    (the report's standing; positive: behind), '-' if the report has none."""
+def margin(run: Run, axis: str, model: str = 'bo_lstm') -> str:
+    """The BO-LSTM's (or its `model='committee'`'s) RMSE over the best baseline's, minus 1,
+    and its t on the test part (the report's standing; positive: behind), '-' if the report
+    has none."""
     standing = run.report.get('standings', {}).get(axis, {})
-    if 'bo_lstm_vs_best_baseline' not in standing:
+    if f'{model}_vs_best_baseline' not in standing:
         return '-'
-    t = standing.get('bo_lstm_vs_best_baseline_t')
-    return (f"{100 * standing['bo_lstm_vs_best_baseline']:+.1f} % "
+    t = standing.get(f'{model}_vs_best_baseline_t')
+    return (f"{100 * standing[f'{model}_vs_best_baseline']:+.1f} % "
             f"{SHORT.get(standing['best_baseline'], standing['best_baseline'])}"
             + ('' if t is None else f' (t {t:+.2f})'))
 
 
 def table_rows(runs: list[Run], names: list[str]) -> tuple[list[str], list[list[str]]]:
-    """The table's head and rows: per run and axis, every model's cell, the BO-LSTM's margin
-    over the best baseline and the wall time."""
+    """The table's head and rows: per run and axis, every model's cell, the BO-LSTM's and
+    its committee's margins over the best baseline and the wall time."""
     head = ['h', 'K', 'axis', *(SHORT.get(name, name) for name in names),
-            'BO-LSTM vs best', 'train s']
+            'BO-LSTM vs best', 'Committee vs best', 'train s']
     rows = [[str(run.horizon), str(run.preview), axis.upper(),
              *(cell(run, name, axis) for name in names), margin(run, axis),
+             margin(run, axis, 'committee'),
              f'{run.seconds:.0f}' + (' failed' if run.failure else '')]
             for run in runs for axis in AXES]
     return head, rows

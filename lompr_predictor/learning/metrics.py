@@ -27,7 +27,9 @@ from lompr_predictor.data.features import TARGETS
 from lompr_predictor.stamps import seconds_since
 
 #: The trained model's keys in a report: what it is compared with is every other model.
-OWN_MODELS = ('bo_lstm', 'bo_lstm_generalist', 'published')
+OWN_MODELS = ('bo_lstm', 'bo_lstm_generalist', 'bo_lstm_committee', 'published')
+#: The report's key of the BO-LSTM's committee (the mean of the study's best networks).
+COMMITTEE = 'bo_lstm_committee'
 METRIC_NAMES = ('mse_pct', 'rmse_pct', 'mae_pct', 'mse_um2', 'rmse_um', 'mae_um',
                 'iae', 'ise', 'itae', 'itse')
 
@@ -119,10 +121,11 @@ def standings(models: Mapping[str, Any], published: Mapping[str, str] | None = N
     publishes, `OWN_MODELS`) and the BO-LSTM's RMSE over that baseline's, minus 1
     (negative: it leads by that share; 0: a tie, as on an axis the error has no part in);
     and the model the axis publishes (`published`: axis -> its key, by default the BO-LSTM),
-    with its RMSE over the best baseline's, minus 1. With each model's (B, 2) test errors
-    (`errors`), also the t of each one's squared error minus the best baseline's
-    (`loss_difference_t`; positive: behind it): below `CRITICAL_T` in size, the test part
-    cannot tell them apart."""
+    with its RMSE over the best baseline's, minus 1; likewise the BO-LSTM's committee where
+    the report scores one (`COMMITTEE`). With each model's (B, 2) test errors (`errors`),
+    also the t of each one's squared error minus the best baseline's (`loss_difference_t`;
+    positive: behind it): below `CRITICAL_T` in size, the test part cannot tell them
+    apart."""
     out: dict[str, dict[str, Any]] = {}
     for i, axis in enumerate(TARGETS):
         rmse = {name: float(entry['metrics'][axis]['rmse_um'])
@@ -137,10 +140,16 @@ def standings(models: Mapping[str, Any], published: Mapping[str, str] | None = N
                      'bo_lstm_vs_best_baseline': _share(rmse['bo_lstm'], theirs),
                      'published': chosen, 'published_rmse_um': rmse[chosen],
                      'published_vs_best_baseline': _share(rmse[chosen], theirs)}
+        if COMMITTEE in rmse:
+            out[axis].update(committee_rmse_um=rmse[COMMITTEE],
+                             committee_vs_best_baseline=_share(rmse[COMMITTEE], theirs))
         if errors is not None:
             out[axis].update(
                 bo_lstm_vs_best_baseline_t=_t_against(errors, 'bo_lstm', best, i),
                 published_vs_best_baseline_t=_t_against(errors, chosen, best, i))
+            if COMMITTEE in rmse:
+                out[axis]['committee_vs_best_baseline_t'] = _t_against(errors, COMMITTEE,
+                                                                       best, i)
     return out
 
 
@@ -157,16 +166,17 @@ def _share(ours: float, theirs: float) -> float:
 
 
 #: What `standing_text` calls a published model its caller has no label for.
-PUBLISHED_LABELS = {'published': 'the mean of the candidates kept'}
+PUBLISHED_LABELS = {'published': 'the mean of the candidates kept',
+                    COMMITTEE: 'its committee (the mean of the best networks)'}
 #: Baselines that have no form a model file can hold (trees: no TorchScript).
 NOT_EXPORTABLE = ('hgb', 'hgb_no_preview')
 
 
 def standing_text(axis: str, standing: Mapping[str, Any], labels: Mapping[str, str]) -> str:
     """One line on where the BO-LSTM stands on `axis` (`standings`), models by `labels`,
-    and what the axis publishes where that is not the BO-LSTM or a baseline leads it; a
-    margin the test part cannot tell from chance (its t, where the standing has one) says
-    so."""
+    then its committee where the report scored one, and what the axis publishes where that
+    is not the BO-LSTM or a baseline leads it; a margin the test part cannot tell from
+    chance (its t, where the standing has one) says so."""
     share = standing['bo_lstm_vs_best_baseline']
     best = labels.get(standing['best_baseline'], standing['best_baseline'])
     if share < 0:
@@ -176,6 +186,10 @@ def standing_text(axis: str, standing: Mapping[str, Any], labels: Mapping[str, s
     else:
         text = f'{axis.upper()}: {best} leads, the BO-LSTM {100 * share:.1f} % behind it'
     text += _chance(share, standing.get('bo_lstm_vs_best_baseline_t'))
+    if 'committee_vs_best_baseline' in standing:
+        committee_share = standing['committee_vs_best_baseline']
+        text += (f'; its committee {_behind(committee_share, best)}'
+                 + _chance(committee_share, standing.get('committee_vs_best_baseline_t')))
     chosen = standing.get('published', 'bo_lstm')
     published_share = standing.get('published_vs_best_baseline', share)
     if chosen != 'bo_lstm':
@@ -197,7 +211,7 @@ def _chance(share: float, t: float | None) -> str:
 
 
 def _behind(share: float, best: str) -> str:
-    """How the published model stands against the best baseline `best`."""
+    """How a model (published, or the committee) stands against the best baseline `best`."""
     if share < 0:
         return f'{-100 * share:.1f} % below {best}'
     return f'as good as {best}' if share == 0 else f'{100 * share:.1f} % behind {best}'

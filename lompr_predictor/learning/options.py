@@ -33,6 +33,7 @@ from lompr_predictor.data.problem import DEFAULT_HORIZON, DEFAULT_WINDOW
 from lompr_predictor.declarations import Declaration, declarations, declared
 from lompr_predictor.errors import LomprError
 from lompr_predictor.learning.space import (
+    DEFAULT_COMMITTEE,
     DEFAULT_RESTARTS,
     DEFAULT_SPACE,
     DEFAULT_TRIALS,
@@ -188,6 +189,10 @@ class TrainingConfig:
         DEFAULT_RESTARTS, 'after the tuning trials, train the best point again with this '
         'many other seeds; the lowest validation loss becomes the model (default {default})',
         minimum=0)
+    committee: int = option(
+        DEFAULT_COMMITTEE, "where an axis publishes a mean (--publish best), the BO-LSTM's "
+        "place in it goes to the mean of the study's best this many networks (1: the "
+        'best alone; default {default})', minimum=1, recorded=True)
     seed: int = option(0, 'seed of the study and of every training (default {default})',
                        minimum=0, study='always')
     max_epochs: int = option(

@@ -1,25 +1,31 @@
 # SPDX-License-Identifier: Apache-2.0
 """What `lompr train` publishes: per axis, the equal-weight mean of the candidates (the tuned
 BO-LSTM, its generalist, the ridge baseline) that the validation part cannot tell from the best
-of them, so that the model file does not bet on a margin the data cannot show.
+of them, so that the model file does not bet on a margin the data cannot show; in such a mean
+the BO-LSTM's place goes to its committee (the mean of the study's best networks).
 
 Why (docs/training.md, docs/lab/learner_real_data.md): at high rates a closed-form ridge over
 the window predicts about as well as the network, and which leads changes along a recording;
 the network's validation RMSE is optimistic (its tuning and early stopping chose it there).
 The mean of predictors alike in size but not in their errors beats each; one clearly worse
-is left out (on the LOMPR twin the network alone is published). Per axis (`choose`): each
-candidate's squared error on the validation part (the ridge as fitted on the training part,
+is left out (on the LOMPR twin the network alone is published). So among the tuned networks:
+the point a study ends on turns on a few trials, and on real recordings the mean of its best
+few networks predicts better than its best alone. Per axis (`choose`): each candidate's
+squared error on the validation part (the ridge as fitted on the training part,
 `baselines.Ridge`); the best by mean; every other kept unless its loss difference to the best
 is positive at the one-sided 5 % level (`CRITICAL_T`; a Diebold-Mariano t whose standard
 error comes from block means, `loss_difference_t`, since neighbouring errors are correlated);
-equal weights (weights fitted on that part would inherit its optimism). The test part stays
-the honest score of what was chosen.
+equal weights (weights fitted on that part would inherit its optimism); in a mean that keeps
+the network, the committee stands in for it. Where every axis publishes the network alone,
+it stays alone (one network to run, a file that can be fine-tuned). The test part stays the
+honest score of what was chosen.
 
 `RidgeModule` is the ridge as a raw-SI module of the model file's contract; `PublishedModule`
-answers each axis with its weights over the network, its generalist and the ridge, keeping the
-network's `candidates` for the live guard. A file that is not the network alone is not
-fine-tuned (`model_type`; the node's adaptation says it cannot adapt it). Boosted trees have
-no TorchScript form: where they lead, the report says so.
+answers each axis with its weights over the network, its generalist, the ridge and the
+committee (the network and the other `members`), keeping the network's `candidates` for the
+live guard. A file that is not the network alone is not fine-tuned (`model_type`; the node's
+adaptation says it cannot adapt it). Boosted trees have no TorchScript form: where they lead,
+the report says so.
 """
 
 from __future__ import annotations
@@ -33,10 +39,11 @@ import torch
 from torch import nn
 
 from lompr_predictor.data.features import TARGETS
-from lompr_predictor.learning.metrics import CRITICAL_T, loss_difference_t
+from lompr_predictor.learning.metrics import COMMITTEE, CRITICAL_T, loss_difference_t
 
 #: The report's and the metadata's names of the candidates an axis can publish (the
-#: generalist: a paired BO-LSTM's second network, `models.PairedNet`).
+#: generalist: a paired BO-LSTM's second network, `models.PairedNet`; `COMMITTEE`: the mean
+#: of the network and the study's next best networks).
 NETWORK, GENERALIST, RIDGE = 'bo_lstm', 'bo_lstm_generalist', 'ridge'
 
 
@@ -79,20 +86,24 @@ class RidgeModule(nn.Module):
 
 
 class PublishedModule(nn.Module):
-    """The network's module with each axis answered by `weights` (2, 3) over the network's
-    prediction, its generalist's and `ridge`'s (module docstring): the same contract
-    (`forward`), the same `candidates` after the first two columns, so the node, its live
-    guard and `lompr evaluate` run it as they run the network."""
+    """The network's module with each axis answered by `weights` (2, 4) over the network's
+    prediction, its generalist's, `ridge`'s and the committee's (module docstring): the same
+    contract (`forward`), the same `candidates` after the first two columns, so the node, its
+    live guard and `lompr evaluate` run it as they run the network."""
 
     if TYPE_CHECKING:  # for the type checker only (see `models.PredictorModule`)
         weights: torch.Tensor
 
-    def __init__(self, network: Any, ridge: RidgeModule, weights: np.ndarray) -> None:
-        """`network`: a `models.PredictorModule` or its scripted form; `weights` (2, 3) in
-        the order of `MEMBERS`, zero on the generalist's column for an unpaired network."""
+    def __init__(self, network: Any, ridge: RidgeModule, weights: np.ndarray,
+                 members: Sequence[Any] = ()) -> None:
+        """`network`: a `models.PredictorModule` or its scripted form; `weights` (2, 4) in
+        the order of `MEMBERS`, zero on the generalist's column for an unpaired network and
+        on the committee's without `members` (the committee's other networks, raw-SI modules
+        of the same windows)."""
         super().__init__()
         self.network = network
         self.ridge = ridge
+        self.members = nn.ModuleList(members)
         self.register_buffer('weights', torch.tensor(np.asarray(weights), dtype=torch.float64))
         self.use_map = bool(network.use_map)
         #: a paired network's candidates carry its generalist (`map_prior.is_paired`)
@@ -108,11 +119,15 @@ class PublishedModule(nn.Module):
         own = weights[:, 0] * network[:, :2] + weights[:, 2] * self.ridge(windows)
         if self.paired:
             own = own + weights[:, 1] * network[:, 2:4]
+        committee = network[:, :2]
+        for member in self.members:
+            committee = committee + member(windows)
+        own = own + weights[:, 3] * committee / (1 + len(self.members))
         return torch.cat([own, network[:, 2:]], 1)
 
 
 #: The report's names of the candidates an axis can publish, in `PublishedModule`'s order.
-MEMBERS = (NETWORK, GENERALIST, RIDGE)
+MEMBERS = (NETWORK, GENERALIST, RIDGE, COMMITTEE)
 #: The key under which the report scores a published mean (`Publication.published_key`).
 PUBLISHED = 'published'
 
@@ -128,14 +143,15 @@ class Publication:
 
     @property
     def weights(self) -> np.ndarray:
-        """(2, 3) equal weights of each axis's members, in `MEMBERS`' order."""
+        """(2, 4) equal weights of each axis's members, in `MEMBERS`' order."""
         return np.array([[1.0 / len(self.members[axis]) if name in self.members[axis] else 0.0
                           for name in MEMBERS] for axis in TARGETS])
 
     @property
     def model_type(self) -> str:
         """The model file's `model_type`: 'lstm' (fine-tunable) only if every axis is the
-        network alone, 'ridge' if every axis is the ridge alone, else 'ensemble'."""
+        network alone, 'ridge' if every axis is the ridge alone, else 'ensemble' (a mean,
+        or the committee)."""
         kinds = {self.members[axis] for axis in TARGETS}
         return ('lstm' if kinds == {(NETWORK,)} else 'ridge' if kinds == {(RIDGE,)}
                 else 'ensemble')
@@ -175,26 +191,33 @@ class Publication:
 
 
 #: The candidates' names in the report's lines.
-LABELS = {NETWORK: 'BO-LSTM', GENERALIST: 'its generalist', RIDGE: 'ridge'}
+LABELS = {NETWORK: 'BO-LSTM', GENERALIST: 'its generalist', RIDGE: 'ridge',
+          COMMITTEE: 'its committee'}
 
 
 def choose(validation_errors: Mapping[str, np.ndarray],
            network_only: bool = False) -> Publication:
     """Per axis the candidates not worse than the best at `CRITICAL_T` (module docstring),
     from each candidate's (B, 2) signed errors on the validation part [m]; the network on
-    every axis if `network_only` (a model to fine-tune)."""
+    every axis if `network_only` (a model to fine-tune). A `COMMITTEE` among them is no
+    candidate of its own: it takes the network's place in a mean (its t is against the
+    axis's best all the same)."""
     squared = {name: (np.asarray(errors, dtype=np.float64) * 1e6) ** 2
                for name, errors in validation_errors.items()}
     members: dict[str, tuple[str, ...]] = {}
     t_statistic: dict[str, dict[str, float]] = {name: {} for name in squared}
     for i, axis in enumerate(TARGETS):
-        best = min(squared, key=lambda name: float(squared[name][:, i].mean()))
+        best = min((name for name in squared if name != COMMITTEE),
+                   key=lambda name: float(squared[name][:, i].mean()))
         for name, values in squared.items():
             t_statistic[name][axis] = (0.0 if name == best else
                                        loss_difference_t(values[:, i] - squared[best][:, i]))
-        kept = tuple(name for name in MEMBERS if name in squared
+        kept = tuple(name for name in MEMBERS if name in squared and name != COMMITTEE
                      and t_statistic[name][axis] < CRITICAL_T)
         members[axis] = (NETWORK,) if network_only else kept
+    if COMMITTEE in squared and {members[axis] for axis in TARGETS} != {(NETWORK,)}:
+        members = {axis: tuple(COMMITTEE if name == NETWORK else name for name in kept)
+                   for axis, kept in members.items()}
     return Publication(members=members, t_statistic=t_statistic, validation_rmse_um={
         name: {axis: float(np.sqrt(values[:, i].mean())) for i, axis in enumerate(TARGETS)}
         for name, values in squared.items()})
@@ -214,10 +237,13 @@ def rmse_um(predicted: np.ndarray, actual: np.ndarray) -> dict[str, float]:
     return {axis: float(np.sqrt(np.mean(error[:, i] ** 2))) for i, axis in enumerate(TARGETS)}
 
 
-def published_module(network: Any, ridge: RidgeModule | None,
-                     publication: Publication) -> Any:
+def published_module(network: Any, ridge: RidgeModule | None, publication: Publication,
+                     members: Sequence[Any] = ()) -> Any:
     """The module to write: the network itself where every axis is the network's alone,
-    else a `PublishedModule`."""
+    else a `PublishedModule` (with the committee's other networks, `members`, where an axis
+    publishes the committee)."""
     if ridge is None or publication.model_type == 'lstm':
         return network
-    return PublishedModule(network, ridge, publication.weights)
+    committee = any(COMMITTEE in kept for kept in publication.members.values())
+    return PublishedModule(network, ridge, publication.weights,
+                           members if committee else ())

@@ -39,6 +39,7 @@ TUNING_PLOT = 'tuning_history.png'
 #: `baselines.Baseline.label`); any other model is shown by its key.
 MODEL_LABELS = {'parent': 'Parent (--init)', 'bo_lstm': 'BO-LSTM', 'model': 'Model',
                 'bo_lstm_generalist': 'BO-LSTM, machine inputs only (its fallback)',
+                'bo_lstm_committee': "BO-LSTM committee (the mean of the study's best networks)",
                 'published': 'Published (mean of the candidates kept)',
                 'model_guarded': 'Model + live guard',
                 'model_prior': "Prior of the model (the guard's fallback)",

@@ -84,6 +84,7 @@ from lompr_predictor.learning.options import (
 )
 from lompr_predictor.learning.pairing import paired_module, train_generalist
 from lompr_predictor.learning.publishing import (
+    COMMITTEE,
     GENERALIST,
     NETWORK,
     PUBLISHED,
@@ -107,6 +108,7 @@ from lompr_predictor.learning.storage import (
 from lompr_predictor.learning.training import NORMALISATION
 from lompr_predictor.learning.tuning import (
     best_trial,
+    committee_trials,
     history,
     open_study,
     restart_index,
@@ -140,6 +142,7 @@ class _Tuned:
     training_seconds: float  # the best trial's training time
     tuning_seconds: float  # the whole study's wall time in this run
     best_model_seconds: float  # loading (or retraining) the best trial's module
+    members: tuple[ExportedModule, ...]  # the committee's networks beside the best's
     generalist_seconds: float  # training a paired model's generalist (`pairing.py`)
     report: dict[str, Any]
 
@@ -202,9 +205,9 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     baselines = fit_baselines(problem, FitContext(config.settings, config.progress,
                                                   machine_map))
     scoring_started = time.perf_counter()
-    publication = _publication(tuned.module, baselines[RIDGE.name], problem,
+    publication = _publication(tuned, baselines[RIDGE.name], problem,
                                config.publish == NETWORK)
-    predicted = network_predictions(tuned.module, problem)
+    predicted = network_predictions(tuned.module, problem, members=tuned.members)
     if PUBLISHED in publication.report_keys:
         predicted[PUBLISHED] = published_predictions(publication, {
             **predicted, RIDGE.name: baselines[RIDGE.name].fitted.predict(problem.split.test)})
@@ -233,35 +236,45 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     if config.test_inputs is not None:
         report['test_part'] = 'every window of the test bags: ' + ', '.join(
             config.test_inputs.bags)
-    module = published_module(tuned.module, baselines[RIDGE.name].fitted.module, publication)
+    module = published_module(tuned.module, baselines[RIDGE.name].fitted.module, publication,
+                              tuned.members)
     return TrainingResult(module=script_module(module), metadata=metadata, report=report,
                           test_part=scored)
 
 
-def _publication(network: Any, ridge: FittedBaseline, problem: LearningProblem,
+def _publication(tuned: _Tuned, ridge: FittedBaseline, problem: LearningProblem,
                  network_only: bool) -> Publication:
     """Per axis, the candidates the validation part cannot tell from its best: the BO-LSTM,
-    its generalist (a paired network), the ridge (`publishing.choose`)."""
+    its generalist (a paired network), the ridge, the committee in the BO-LSTM's place in a
+    mean (`publishing.choose`)."""
     validation = problem.split.validation
     actual = problem.error[validation + problem.horizon]
-    errors = {name: predicted - actual for name, predicted
-              in network_predictions(network, problem, validation).items()}
+    errors = {name: predicted - actual for name, predicted in network_predictions(
+        tuned.module, problem, validation, members=tuned.members).items()}
     if ridge.fitted.validation_prediction is not None:
         errors[RIDGE.name] = ridge.fitted.validation_prediction - actual
     return choose(errors, network_only)
 
 
-def network_predictions(module: Any, problem: LearningProblem,
-                        ends: np.ndarray | None = None) -> dict[str, np.ndarray]:
+def network_predictions(module: Any, problem: LearningProblem, ends: np.ndarray | None = None,
+                        members: tuple[Any, ...] = ()) -> dict[str, np.ndarray]:
     """The trained BO-LSTM's predictions of the windows ending at `ends` (by default the
-    test part's; key 'bo_lstm'), and with a paired network its generalist's
-    (`GENERALIST`), from one call."""
+    test part's; key 'bo_lstm'), with a paired network its generalist's (`GENERALIST`),
+    from one call, and with the committee's other networks (`members`) its mean
+    (`COMMITTEE`)."""
     test = problem.split.test if ends is None else ends
     if not is_paired(module):
-        return {'bo_lstm': predict_rows(module, problem.rows, test, problem.window)}
-    three = predict_rows(PredictionWithCandidates(module), problem.rows, test, problem.window,
-                         width=3 * len(TARGETS))  # the prediction, the generalist's, the map's
-    return {'bo_lstm': three[:, :len(TARGETS)], GENERALIST: three[:, len(TARGETS):-len(TARGETS)]}
+        predicted = {'bo_lstm': predict_rows(module, problem.rows, test, problem.window)}
+    else:
+        three = predict_rows(PredictionWithCandidates(module), problem.rows, test,
+                             problem.window, width=3 * len(TARGETS))  # + generalist's, map's
+        predicted = {'bo_lstm': three[:, :len(TARGETS)],
+                     GENERALIST: three[:, len(TARGETS):-len(TARGETS)]}
+    if members:
+        predicted[COMMITTEE] = np.mean([predicted['bo_lstm'], *(
+            predict_rows(member, problem.rows, test, problem.window) for member in members)],
+            axis=0)
+    return predicted
 
 
 def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tuned,
@@ -278,6 +291,8 @@ def _model_metadata(config: TrainingConfig, problem: LearningProblem, tuned: _Tu
                                      'last row, then the last error, standardised',
                             'target': RESIDUAL_TARGET}}
                  if publication.model_type != 'lstm' else {})
+    if any(COMMITTEE in members for members in publication.members.values()):
+        published['committee'] = tuned.report['committee']  # its trials, the best first
     return ModelMetadata(
         features=problem.features, preview=problem.preview, window=problem.window,
         horizon=problem.horizon,
@@ -450,6 +465,8 @@ def _tune(config: TrainingConfig, problem: LearningProblem, machine_map: Machine
     best = best_trial(study)
     params = objective.params_of(best)
     module, seconds = objective.model_of(best)
+    committee = committee_trials(study, config.committee)
+    members = tuple(objective.model_of(trial)[0] for trial in committee[1:])
     best_model_seconds = time.perf_counter() - started
     generalist_seconds = 0.0
     if config.network_inputs == 'paired' and machine_map is not None:
@@ -475,11 +492,14 @@ def _tune(config: TrainingConfig, problem: LearningProblem, machine_map: Machine
               'trials_run_now': run.trials_run, 'local_workers': list(run.workers),
               'workers': worker_counts(study),
               'best_trial': best.number, 'best_value': best.value, 'best_params': params,
+              'committee': [{'trial': trial.number, 'value': trial.value,
+                             'params': objective.params_of(trial)} for trial in committee],
               'trials': trials,
               # the thread count in effect (set by the entry point): the times depend on it
               'settings': {**vars(config.settings), 'threads': torch.get_num_threads()}}
     return _Tuned(module=module, params=params, training_seconds=seconds,
                   tuning_seconds=run.seconds, best_model_seconds=best_model_seconds,
+                  members=members,
                   generalist_seconds=generalist_seconds, report=report)
 
 

@@ -490,3 +490,15 @@ def best_trial(study: optuna.Study) -> optuna.trial.FrozenTrial:
     if DUPLICATE_OF in best.user_attrs:
         return study.trials[int(best.user_attrs[DUPLICATE_OF])]
     return best
+
+
+def committee_trials(study: optuna.Study, size: int) -> list[FrozenTrial]:
+    """The `best_trial` and after it the study's next best complete trials (lowest
+    validation loss first, restarts included), `size` in all if it has that many: each
+    one that trained a model (a duplicate repeats the model of the trial it names)."""
+    best = best_trial(study)
+    others = sorted((trial for trial in study.get_trials(deepcopy=False, states=(
+                     TrialState.COMPLETE,)) if trial.number != best.number
+                     and DUPLICATE_OF not in trial.user_attrs and trial.value is not None),
+                    key=lambda trial: (trial.value, trial.number))
+    return [best, *others[:max(0, size - 1)]]

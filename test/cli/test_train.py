@@ -75,7 +75,7 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
     content = json.loads((report / 'report.json').read_text())
     assert content['counts']['bags'] == 2 and content['counts']['kept'] == 2400
     assert set(content['models']) == {'persistence', 'bp', 'ridge', 'hgb', 'machine_map',
-                                      'bo_lstm', 'bo_lstm_generalist'}
+                                      'bo_lstm', 'bo_lstm_generalist', 'bo_lstm_committee'}
     for baseline in ('persistence', 'bp', 'ridge', 'hgb', 'machine_map'):  # per axis, metric
         beaten = content['bo_lstm_beats'][baseline]
         assert set(beaten) == {'x', 'y'}
@@ -85,6 +85,12 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
     assert content['tuning']['trials_spent'] == 2 + 1  # and one restart of the best point
     assert content['tuning']['restarts_run'] == 1
     assert content['tuning']['best_restart'] in (0, 1)
+    # the committee (by default five networks): here every trial's, the best first, by loss
+    committee = content['tuning']['committee']
+    assert committee[0]['trial'] == content['tuning']['best_trial'] and len(committee) == 3
+    assert [entry['value'] for entry in committee] == sorted(entry['value']
+                                                             for entry in committee)
+    assert 'committee_vs_best_baseline_t' in content['standings']['x']
     # each bag (1200 samples) is split on its own: its last tenth tests
     assert content['split']['recording_parts'] == [[0, 918, 1080, 1200],
                                                    [1200, 2118, 2280, 2400]]
@@ -394,7 +400,8 @@ def test_a_preview_model_records_its_preview_and_the_report_shows_the_plain_base
     # every window also has its last row's 4 samples after it: 2 fewer than with horizon 2
     assert content['split']['test'] == 1200 - 2 - 8 + 1 - 4
     assert set(content['models']) == {'persistence', 'bp', 'ridge', 'hgb', 'ridge_no_preview',
-                                      'hgb_no_preview', 'machine_map', 'bo_lstm'}
+                                      'hgb_no_preview', 'machine_map', 'bo_lstm',
+                                      'bo_lstm_committee'}
     assert set(content['bo_lstm_beats']) == set(content['models']) - {'bo_lstm'}
     text = (report / 'report.md').read_text()
     assert 'reference preview 4 samples' in text and '| HGB (no preview) |' in text

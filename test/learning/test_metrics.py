@@ -130,6 +130,23 @@ def test_standings_with_the_test_errors_give_each_margins_t_and_say_when_it_is_c
     published = standings(models, {'x': 'ridge', 'y': 'ridge'}, {'ridge': ridge,
                                                                  'bo_lstm': ours})
     assert published['y']['published_vs_best_baseline_t'] == 0.0  # the ridge itself
+    assert 'committee_rmse_um' not in table['x']  # no committee scored: none in the standing
+    # a committee whose errors are the BO-LSTM's on X and the ridge's on Y: its margins and
+    # t are the BO-LSTM's on X, nothing on Y; it is none of the baselines
+    committee = np.column_stack([ours[:, 0], ridge[:, 1]])
+    models['bo_lstm_committee'] = _models(bo_lstm_committee=(0.5, 1.0))['bo_lstm_committee']
+    with_committee = standings(models, None, {'ridge': ridge, 'bo_lstm': ours,
+                                              'bo_lstm_committee': committee})
+    assert with_committee['x']['best_baseline'] == 'ridge'
+    assert with_committee['x']['committee_rmse_um'] == 0.5
+    assert with_committee['x']['committee_vs_best_baseline'] == -0.5
+    assert with_committee['x']['committee_vs_best_baseline_t'] == -np.inf
+    assert with_committee['y']['committee_vs_best_baseline'] == 0.0
+    assert with_committee['y']['committee_vs_best_baseline_t'] == 0.0
+    assert standing_text('x', with_committee['x'], {}) == (
+        'X: the BO-LSTM leads, 50.0 % below ridge; its committee 50.0 % below ridge')
+    assert standing_text('y', with_committee['y'], {}).endswith(
+        '; its committee as good as ridge')
 
 
 def test_standings_say_what_each_axis_publishes_and_that_trees_cannot_be_exported() -> None:

@@ -72,7 +72,7 @@ def test_the_declared_defaults_are_lompr_trains() -> None:
             assert getattr(config, name) == spec.default, name
     assert flag_of('model_path') == '--out' and flag_of('machine_map') == '--no-machine-map'
     assert recorded_options(config) == {'network_inputs': 'paired', 'publish': 'best',
-                                        'max_epochs': 120,
+                                        'committee': 5, 'max_epochs': 120,
                                         'patience': 8, 'epoch_windows': 20_000}
     assert study_options(config) == {'horizon': 1, 'window': 25, 'seed': 0}
 

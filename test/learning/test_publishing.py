@@ -1,7 +1,8 @@
 # SPDX-License-Identifier: Apache-2.0
 """What `lompr train` publishes (`learning/publishing.py`): the ridge baseline as a model
 file's module, the per-axis candidates kept on the validation part (the block t statistic
-by hand), a model file that publishes their mean."""
+by hand), the committee in the network's place in a mean, a model file that publishes
+their mean."""
 
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from lompr_predictor.learning.models import (
     predict_rows,
 )
 from lompr_predictor.learning.publishing import (
+    COMMITTEE,
     GENERALIST,
     NETWORK,
     PUBLISHED,
@@ -77,7 +79,7 @@ def test_each_axis_publishes_the_mean_of_the_candidates_the_validation_part_cann
     assert abs(publication.t_statistic[RIDGE_KEY]['y']) < 1e-9
     assert abs(publication.t_statistic[NETWORK]['y']) < 1e-9
     assert publication.validation_rmse_um[RIDGE_KEY] == pytest.approx({'x': 2.0, 'y': 1.0})
-    assert publication.weights.tolist() == [[1.0, 0.0, 0.0], [0.5, 0.0, 0.5]]
+    assert publication.weights.tolist() == [[1.0, 0.0, 0.0, 0.0], [0.5, 0.0, 0.5, 0.0]]
     assert publication.published_keys == {'x': NETWORK, 'y': PUBLISHED}
     assert publication.model_type == 'ensemble'
     assert publication.report()['y']['members'] == [NETWORK, RIDGE_KEY]
@@ -94,6 +96,32 @@ def test_each_axis_publishes_the_mean_of_the_candidates_the_validation_part_cann
     assert choose({NETWORK: 2 * network, RIDGE_KEY: network}).model_type == 'ridge'
 
 
+def test_a_mean_runs_the_committee_in_the_networks_place() -> None:
+    """The candidates of the test above with a committee whose errors are 0.9 of the
+    network's: X (the network alone) and Y (network and ridge) publish the committee in the
+    network's place, its t against the network (the best) negative; its prediction enters
+    the mean as the network's did. Where every axis keeps the network alone, it stays alone
+    (the committee left out however good)."""
+    ones = np.tile([1.0, -1.0], 50)
+    network = np.stack([ones, ones], 1) * 1e-6
+    d = np.repeat([0.5, -0.5, 0.2, -0.2, 0.4, -0.4, 0.1, -0.1, 0.3, -0.3], 10)
+    ridge = np.stack([2 * ones, ones * np.sqrt(1 + d)], 1) * 1e-6
+    publication = choose({NETWORK: network, RIDGE_KEY: ridge, COMMITTEE: 0.9 * network})
+    assert publication.members == {'x': (COMMITTEE,), 'y': (COMMITTEE, RIDGE_KEY)}
+    assert publication.weights.tolist() == [[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.5, 0.5]]
+    assert publication.published_keys == {'x': COMMITTEE, 'y': PUBLISHED}
+    assert publication.model_type == 'ensemble'
+    assert publication.t_statistic[COMMITTEE]['x'] < 0
+    assert publication.validation_rmse_um[COMMITTEE] == pytest.approx({'x': 0.9, 'y': 0.9})
+    predictions = {NETWORK: np.array([[1.0, 2.0]]), RIDGE_KEY: np.array([[3.0, 4.0]]),
+                   COMMITTEE: np.array([[5.0, 6.0]])}
+    assert published_predictions(publication, predictions).tolist() == [[5.0, 5.0]]
+    alone = choose({NETWORK: network, RIDGE_KEY: 2 * network, COMMITTEE: 0.5 * network})
+    assert alone.members == {'x': (NETWORK,), 'y': (NETWORK,)}
+    assert alone.model_type == 'lstm'
+    assert published_module('network', None, alone, ['member']) == 'network'
+
+
 def test_a_model_file_publishing_the_ridge_loads_and_evaluates(
         tmp_path: Path, problem: LearningProblem) -> None:
     """A network (here persistence) with the ridge on X and the mean of both on Y: the file
@@ -102,7 +130,7 @@ def test_a_model_file_publishing_the_ridge_loads_and_evaluates(
     fitted = RIDGE.fit(problem, FitContext())
     assert fitted.module is not None
     module = PublishedModule(persistence_module(FEATURES), fitted.module,
-                             np.array([[0.0, 0.0, 1.0], [0.5, 0.0, 0.5]]))
+                             np.array([[0.0, 0.0, 1.0, 0.0], [0.5, 0.0, 0.5, 0.0]]))
     path = save_model(tmp_path / 'm.pt', module, metadata(
         window=4, horizon=3, model_type='ensemble'))
     loaded = load_model(path)
@@ -117,6 +145,36 @@ def test_a_model_file_publishing_the_ridge_loads_and_evaluates(
     with pytest.raises(FineTuneError, match="this one is 'ensemble'"):
         load_parent(path, _FineTuneConfig(),  # type: ignore[arg-type]
                     loaded.metadata.robot_description_sha256)
+
+
+def test_a_model_file_publishing_a_committee_averages_its_networks(
+        tmp_path: Path, problem: LearningProblem) -> None:
+    """A committee of a network (persistence) and one member (the ridge's module), published
+    alone on X and with the ridge on Y: the file predicts X as the mean of persistence and
+    the ridge, Y as half the ridge plus half that mean, by hand to 1e-9; `published_module`
+    gives it the members only where an axis publishes the committee."""
+    fitted = RIDGE.fit(problem, FitContext())
+    assert fitted.module is not None
+    ones = np.tile([1.0, -1.0], 50)
+    network = np.stack([ones, ones], 1) * 1e-6
+    d = np.repeat([0.5, -0.5, 0.2, -0.2, 0.4, -0.4, 0.1, -0.1, 0.3, -0.3], 10)
+    ridge_errors = np.stack([2 * ones, ones * np.sqrt(1 + d)], 1) * 1e-6
+    publication = choose({NETWORK: network, RIDGE_KEY: ridge_errors, COMMITTEE: network})
+    member = script_module(fitted.module)
+    module = published_module(persistence_module(FEATURES), fitted.module, publication,
+                              [member])
+    path = save_model(tmp_path / 'm.pt', module, metadata(
+        window=4, horizon=3, model_type='ensemble'))
+    ends = problem.split.test
+    got = predict_rows(load_model(path).module, problem.rows, ends, 4)
+    ridge, persistence = fitted.predict(ends), problem.error[ends]
+    committee = (persistence + ridge) / 2
+    scale = np.max(np.abs(ridge))
+    assert np.max(np.abs(got[:, 0] - committee[:, 0])) <= 1e-9 * scale
+    assert np.max(np.abs(got[:, 1] - (ridge[:, 1] + committee[:, 1]) / 2)) <= 1e-9 * scale
+    without = choose({NETWORK: network, RIDGE_KEY: ridge_errors})
+    assert len(published_module(persistence_module(FEATURES), fitted.module, without,
+                                [member]).members) == 0
 
 
 class _FineTuneConfig:

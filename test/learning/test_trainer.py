@@ -1,7 +1,8 @@
 # SPDX-License-Identifier: Apache-2.0
 """learning.trainer as a library call (what `lompr train` runs; the command itself:
 test/cli/test_train): a config refused before any bag is read, recordings too short for the
-window refused in one line, and a run whose model file, sidecar and report agree."""
+window refused in one line, a run whose model file, sidecar and report agree, a published
+committee that predicts in its file as the report scored it."""
 
 from __future__ import annotations
 
@@ -11,12 +12,17 @@ import hashlib
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from trainer_data import ONE_EPOCH, write_synthetic_bag
 
 from lompr_predictor.cli import train
-from lompr_predictor.learning.model_file import load_model
+from lompr_predictor.learning import trainer
+from lompr_predictor.learning.metrics import COMMITTEE
+from lompr_predictor.learning.model_file import load_checkpoint, load_model
+from lompr_predictor.learning.models import predict_rows
 from lompr_predictor.learning.options import OptionError, TrainingConfig
+from lompr_predictor.learning.publishing import NETWORK, PUBLISHED, RIDGE, Publication
 from lompr_predictor.learning.trainer import (
     DataError,
     check_config,
@@ -70,3 +76,42 @@ def test_the_model_file_its_sidecar_and_the_report_name_the_same_model(
     assert timings['read_clean_fk_seconds'] + timings['tuning_seconds'] <= timings[
         'total_seconds']
     assert load_model(model, sha256=digest).metadata == result.metadata
+
+
+def test_a_published_committee_predicts_in_the_file_as_in_the_report(
+        tmp_path: Path, description: RobotDescription,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Three trials, a committee of three; the validation part's choice made a tie between
+    the network and the ridge on both axes (the ridge given the network's errors), so each
+    axis publishes the committee and the ridge: the file holds the other two networks and
+    predicts the test part as the report scored it (to 1e-9 m), and the committee's
+    prediction is the mean of its networks' (their checkpoints, by hand)."""
+    real_choose = trainer.choose
+
+    def tie(errors: dict[str, np.ndarray], network_only: bool = False) -> Publication:
+        return real_choose({NETWORK: errors[NETWORK], RIDGE: errors[NETWORK],
+                            COMMITTEE: errors[COMMITTEE]}, network_only)
+
+    monkeypatch.setattr(trainer, 'choose', tie)
+    bag = write_synthetic_bag(tmp_path / 'bag', description.geometry, 1200)
+    config = config_of(bag, tmp_path, '--trials', '3', '--committee', '3')
+    result = train_predictor(config)
+    assert {axis: entry['members'] for axis, entry in result.report['published'].items()} == {
+        'x': [COMMITTEE, RIDGE], 'y': [COMMITTEE, RIDGE]}
+    committee = result.report['tuning']['committee']
+    assert len(committee) == 3 and result.metadata.model_type == 'ensemble'
+    write_outputs(config, result)
+    loaded = load_model(tmp_path / 'model.pt')
+    assert len(list(loaded.module.members.children())) == 2
+    assert loaded.metadata.hyperparameters['committee'] == committee
+    assert loaded.metadata.hyperparameters['published']['x'] == [COMMITTEE, RIDGE]
+    problem = read_problem(config, load_chain(config.robot))[1]
+    test = problem.split.test
+    got = predict_rows(loaded.module, problem.rows, test, problem.window)
+    assert np.max(np.abs(got - result.test_part.predictions[PUBLISHED])) <= 1e-9
+    study = result.report['tuning']['study_name']
+    checkpoints = [load_checkpoint(config.checkpoint_dir / f"{study}-{entry['trial']}.pt")
+                   for entry in committee]
+    mean = np.mean([predict_rows(module, problem.rows, test, problem.window)
+                    for module in checkpoints], axis=0)
+    assert np.max(np.abs(mean - result.test_part.predictions[COMMITTEE])) <= 1e-9

@@ -1,5 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Bayesian tuning: finds a toy objective's best point; an interrupted study resumes."""
+"""Bayesian tuning: finds a toy objective's best point; an interrupted study resumes; the
+committee's trials."""
 
 from __future__ import annotations
 
@@ -13,10 +14,12 @@ from lompr_predictor.learning.space import PAPER_SPACE
 from lompr_predictor.learning.storage import StudyStorage, default_storage, open_storage
 from lompr_predictor.learning.tuning import (
     _WAIT,
+    DUPLICATE_OF,
     RESTART,
     WORKER,
     _next_trial,
     best_trial,
+    committee_trials,
     finished_twin,
     history,
     open_study,
@@ -118,6 +121,26 @@ def test_a_repeated_point_is_found_not_retrained(storage: StudyStorage) -> None:
     run_study(study, storage, objective, progress=False)
     assert evaluated == [0]
     assert study.trials[1].value == study.trials[0].value
+
+
+def test_the_committee_is_the_best_trial_then_the_next_best_models() -> None:
+    """Trials with losses 3, 1, 1 (a duplicate of trial 1), 2, 0.5 (pruned), 2 (a tie with
+    trial 3: the earlier first) and one failed: the committee of four is trials 1, 3, 5, 0
+    (the duplicate trained no model, the pruned and failed ones do not count); of one, the
+    best alone; asked for more than there are, every model."""
+    study = optuna.create_study()
+    distribution = {'x': optuna.distributions.FloatDistribution(0.0, 1.0)}
+    states = optuna.trial.TrialState
+    for value, attrs, state in ((3.0, {}, states.COMPLETE), (1.0, {}, states.COMPLETE),
+                                (1.0, {DUPLICATE_OF: 1}, states.COMPLETE),
+                                (2.0, {}, states.COMPLETE), (0.5, {}, states.PRUNED),
+                                (2.0, {}, states.COMPLETE), (None, {}, states.FAIL)):
+        study.add_trial(optuna.trial.create_trial(
+            params={'x': 0.5}, distributions=distribution, state=state, user_attrs=attrs,
+            value=value, intermediate_values={0: value} if state == states.PRUNED else None))
+    assert [trial.number for trial in committee_trials(study, 4)] == [1, 3, 5, 0]
+    assert [trial.number for trial in committee_trials(study, 1)] == [1]
+    assert [trial.number for trial in committee_trials(study, 9)] == [1, 3, 5, 0]
 
 
 def test_restarts_run_the_best_point_again_after_the_budget(storage: StudyStorage) -> None:
