@@ -129,15 +129,18 @@ def test_the_committee_is_the_best_trial_then_the_next_best_models() -> None:
     (the duplicate trained no model, the pruned and failed ones do not count); of one, the
     best alone; asked for more than there are, every model."""
     study = optuna.create_study()
-    distribution = {'x': optuna.distributions.FloatDistribution(0.0, 1.0)}
+    distribution: dict[str, optuna.distributions.BaseDistribution] = {
+        'x': optuna.distributions.FloatDistribution(0.0, 1.0)}
     states = optuna.trial.TrialState
     for value, attrs, state in ((3.0, {}, states.COMPLETE), (1.0, {}, states.COMPLETE),
                                 (1.0, {DUPLICATE_OF: 1}, states.COMPLETE),
                                 (2.0, {}, states.COMPLETE), (0.5, {}, states.PRUNED),
-                                (2.0, {}, states.COMPLETE), (None, {}, states.FAIL)):
+                                (2.0, {}, states.COMPLETE), (0.0, {}, states.FAIL)):
+        complete = state == states.COMPLETE
         study.add_trial(optuna.trial.create_trial(
             params={'x': 0.5}, distributions=distribution, state=state, user_attrs=attrs,
-            value=value, intermediate_values={0: value} if state == states.PRUNED else None))
+            value=value if complete else None,
+            intermediate_values={0: value} if state == states.PRUNED else None))
     assert [trial.number for trial in committee_trials(study, 4)] == [1, 3, 5, 0]
     assert [trial.number for trial in committee_trials(study, 1)] == [1]
     assert [trial.number for trial in committee_trials(study, 9)] == [1, 3, 5, 0]
