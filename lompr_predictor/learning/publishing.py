@@ -41,6 +41,9 @@ from torch import nn
 from lompr_predictor.data.features import TARGETS
 from lompr_predictor.learning.metrics import COMMITTEE, CRITICAL_T, loss_difference_t
 
+if TYPE_CHECKING:
+    from lompr_predictor.learning.models import PredictorModule
+
 #: The report's and the metadata's names of the candidates an axis can publish (the
 #: generalist: a paired BO-LSTM's second network, `models.PairedNet`; `COMMITTEE`: the mean
 #: of the network and the study's next best networks).
@@ -103,7 +106,9 @@ class PublishedModule(nn.Module):
         super().__init__()
         self.network = network
         self.ridge = ridge
-        self.members = nn.ModuleList(members)
+        self.members = (SharedMapMembers(members) if shares_one_map(members)
+                        else MemberSum(members))
+        self.committee_size = 1 + len(members)
         self.register_buffer('weights', torch.tensor(np.asarray(weights), dtype=torch.float64))
         self.use_map = bool(network.use_map)
         #: a paired network's candidates carry its generalist (`map_prior.is_paired`)
@@ -119,11 +124,65 @@ class PublishedModule(nn.Module):
         own = weights[:, 0] * network[:, :2] + weights[:, 2] * self.ridge(windows)
         if self.paired:
             own = own + weights[:, 1] * network[:, 2:4]
-        committee = network[:, :2]
-        for member in self.members:
-            committee = committee + member(windows)
-        own = own + weights[:, 3] * committee / (1 + len(self.members))
+        committee = (network[:, :2] + self.members(windows)) / self.committee_size
+        own = own + weights[:, 3] * committee
         return torch.cat([own, network[:, 2:]], 1)
+
+
+class MemberSum(nn.Module):
+    """The sum of the committee's other networks' predictions (B, 2) [m] (zero without
+    any): each its own module on the raw windows."""
+
+    def __init__(self, members: Sequence[Any]) -> None:
+        super().__init__()
+        self.members = nn.ModuleList(members)
+        self.n_outputs = len(TARGETS)
+
+    def forward(self, windows: torch.Tensor) -> torch.Tensor:
+        total = torch.zeros((windows.shape[0], self.n_outputs), dtype=windows.dtype)
+        for member in self.members:
+            total = total + member(windows)
+        return total
+
+
+class SharedMapMembers(nn.Module):
+    """`MemberSum` of networks that read one machine map (`shares_one_map`): the map's
+    residual rows and prior computed once for all, each network then on those rows, as its
+    own `candidates` would (the same numbers; the map is a third of a member's time)."""
+
+    if TYPE_CHECKING:  # for the type checker only: what the module list holds
+        members: list[PredictorModule]
+
+    def __init__(self, members: Sequence[Any]) -> None:
+        super().__init__()
+        self.members = nn.ModuleList(members)  # type: ignore[assignment]
+        self.n_outputs = len(TARGETS)
+
+    def forward(self, windows: torch.Tensor) -> torch.Tensor:
+        first = self.members[0]
+        levels, change = first.machine_map.levels_and_change(windows)
+        errors = windows.index_select(2, first.error_columns)
+        inputs = torch.cat([windows, errors - levels], 2)
+        prior = errors.select(1, -1) + change
+        total = torch.zeros_like(prior)
+        for member in self.members:
+            total = total + member._predict(inputs, prior)[:, :self.n_outputs]
+        return total
+
+
+def shares_one_map(members: Sequence[Any]) -> bool:
+    """Whether the `members` (raw-SI modules) are `models.PredictorModule`s (or their
+    scripted form) that predict a change from one machine map's prior: every one on a map
+    with the same coefficients and error columns, residual."""
+    if not members or not all(bool(getattr(member, 'use_map', False))
+                              and bool(getattr(member, 'residual', False))
+                              for member in members):
+        return False
+    first = members[0].state_dict()
+    names = [name for name in first if name.startswith('machine_map.')] + ['error_columns']
+    return all(set(member.state_dict()) >= set(names)
+               and all(torch.equal(member.state_dict()[name], first[name]) for name in names)
+               for member in members[1:])
 
 
 #: The report's names of the candidates an axis can publish, in `PublishedModule`'s order.

@@ -173,8 +173,8 @@ def test_a_model_file_publishing_a_committee_averages_its_networks(
     assert np.max(np.abs(got[:, 0] - committee[:, 0])) <= 1e-9 * scale
     assert np.max(np.abs(got[:, 1] - (ridge[:, 1] + committee[:, 1]) / 2)) <= 1e-9 * scale
     without = choose({NETWORK: network, RIDGE_KEY: ridge_errors})
-    assert len(published_module(persistence_module(FEATURES), fitted.module, without,
-                                [member]).members) == 0
+    assert published_module(persistence_module(FEATURES), fitted.module, without,
+                            [member]).committee_size == 1
 
 
 class _FineTuneConfig:

@@ -2,7 +2,7 @@
 """learning.trainer as a library call (what `lompr train` runs; the command itself:
 test/cli/test_train): a config refused before any bag is read, recordings too short for the
 window refused in one line, a run whose model file, sidecar and report agree, a published
-committee that predicts in its file as the report scored it."""
+committee that predicts in its file (and through ONNX Runtime) as the report scored it."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from trainer_data import ONE_EPOCH, write_synthetic_bag
 
 from lompr_predictor.cli import train
@@ -22,7 +23,13 @@ from lompr_predictor.learning.metrics import COMMITTEE
 from lompr_predictor.learning.model_file import load_checkpoint, load_model
 from lompr_predictor.learning.models import predict_rows
 from lompr_predictor.learning.options import OptionError, TrainingConfig
-from lompr_predictor.learning.publishing import NETWORK, PUBLISHED, RIDGE, Publication
+from lompr_predictor.learning.publishing import (
+    NETWORK,
+    PUBLISHED,
+    RIDGE,
+    Publication,
+    shares_one_map,
+)
 from lompr_predictor.learning.trainer import (
     DataError,
     check_config,
@@ -30,6 +37,7 @@ from lompr_predictor.learning.trainer import (
     train_predictor,
     write_outputs,
 )
+from lompr_predictor.online.inference import select_backend
 from lompr_predictor.robot.chain import load_chain
 from lompr_predictor.robot.description import RobotDescription
 
@@ -102,7 +110,11 @@ def test_a_published_committee_predicts_in_the_file_as_in_the_report(
     assert len(committee) == 3 and result.metadata.model_type == 'ensemble'
     write_outputs(config, result)
     loaded = load_model(tmp_path / 'model.pt')
-    assert len(list(loaded.module.members.children())) == 2
+    # the members read one machine map: it is computed once for both; ONNX Runtime (the
+    # node's backend) serves the file, agreeing with TorchScript (else it raises)
+    assert loaded.module.members.original_name == 'SharedMapMembers'
+    assert select_backend(loaded, 'onnxruntime')[0].name == 'onnxruntime'
+    assert len(list(loaded.module.members.members.children())) == 2
     assert loaded.metadata.hyperparameters['committee'] == committee
     assert loaded.metadata.hyperparameters['published']['x'] == [COMMITTEE, RIDGE]
     problem = read_problem(config, load_chain(config.robot))[1]
@@ -115,3 +127,10 @@ def test_a_published_committee_predicts_in_the_file_as_in_the_report(
     mean = np.mean([predict_rows(module, problem.rows, test, problem.window)
                     for module in checkpoints], axis=0)
     assert np.max(np.abs(mean - result.test_part.predictions[COMMITTEE])) <= 1e-9
+    # members whose maps differ in one coefficient do not share it
+    assert shares_one_map(checkpoints[1:])
+    other = load_checkpoint(config.checkpoint_dir / f"{study}-{committee[2]['trial']}.pt")
+    name = next(key for key in other.state_dict() if key.startswith('machine_map.'))
+    with torch.no_grad():
+        other.state_dict()[name].add_(1.0)
+    assert not shares_one_map([checkpoints[1], other])
