@@ -23,9 +23,9 @@ honest score of what was chosen.
 `RidgeModule` is the ridge as a raw-SI module of the model file's contract; `PublishedModule`
 answers each axis with its weights over the network, its generalist, the ridge and the
 committee (the network and the other members, `MemberSum`, or `SharedMapMembers` where they
-read one machine map), keeping the network's `candidates` for the live guard. A file that is not the network alone is not fine-tuned (`model_type`; the node's
-adaptation says it cannot adapt it). Boosted trees have no TorchScript form: where they lead,
-the report says so.
+read one machine map), keeping the network's `candidates` for the live guard. A file that is
+not the network alone is not fine-tuned (`model_type`; the node's adaptation says it cannot
+adapt it). Boosted trees have no TorchScript form: where they lead, the report says so.
 """
 
 from __future__ import annotations
