@@ -26,10 +26,10 @@ import numpy as np
 from lompr_predictor.data.features import TARGETS
 from lompr_predictor.stamps import seconds_since
 
-#: The trained model's keys in a report: what it is compared with is every other model.
-OWN_MODELS = ('bo_lstm', 'bo_lstm_generalist', 'bo_lstm_committee', 'published')
 #: The report's key of the BO-LSTM's committee (the mean of the study's best networks).
 COMMITTEE = 'bo_lstm_committee'
+#: The trained model's keys in a report: what it is compared with is every other model.
+OWN_MODELS = ('bo_lstm', 'bo_lstm_generalist', COMMITTEE, 'published')
 METRIC_NAMES = ('mse_pct', 'rmse_pct', 'mae_pct', 'mse_um2', 'rmse_um', 'mae_um',
                 'iae', 'ise', 'itae', 'itse')
 
