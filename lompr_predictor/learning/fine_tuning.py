@@ -268,7 +268,8 @@ def _fine_tuning_part(parent: LoadedModel, trained: TrainedModel,
             'best_epoch': trained.best_epoch, 'validation_loss_start': trained.start_loss,
             'validation_loss_best': trained.validation_loss,
             'validation_loss_history': trained.history,
-            'kept_the_parent_weights': trained.best_epoch == 0}
+            'highway_refitted': trained.highway_refitted,
+            'kept_the_parent_weights': trained.best_epoch == 0 and not trained.highway_refitted}
 
 
 def _metadata(parent: LoadedModel, problem: LearningProblem, trained_on: list[Any],

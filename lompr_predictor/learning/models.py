@@ -16,6 +16,7 @@ takes raw SI windows (float64, (B, window, features)) and returns the plant X/Y 
   The LSTM's last state goes through an MLP head, beside a linear "autoregressive highway"
   on the flattened window (as LSTNet): the linear part carries noise averaging and the
   path's extrapolation, the LSTM the non-linear rest (friction and backlash at reversals).
+  A new network's highway starts at the closed-form ridge over its window (`linear_start`).
   With 'paired' inputs (the default) two networks run side by side (`PairedNet`): one reads
   every feature and learns the programs it was trained on (the prediction); the other
   reads the map's residuals alone and holds on programs it was not (the fallback the live

@@ -142,6 +142,7 @@ class TrainSettings:
     patience: int = PATIENCE
     seed: int = 0
     epoch_windows: int = EPOCH_WINDOWS  # training (and validation) windows per epoch, at most
+    linear_start: bool = True  # a new LSTM starts at the ridge over its window (`linear_start`)
 
 
 @dataclass(frozen=True)
@@ -206,6 +207,11 @@ class TrainingConfig:
         'scored per epoch likewise): the cost of an epoch is bounded at any sample rate '
         '(default {default}: every window of 20 passes at 25 Hz, an eighth of them at '
         '250 Hz)', minimum=1, metavar='N', recorded=True)
+    linear_start: bool = option(
+        True, "start each new LSTM's linear part from SGD's random weights, not from the "
+        'closed-form ridge regression over its window (the default starts there, the head '
+        'at zero, and keeps that start unless an epoch predicts the validation part better)',
+        recorded=True)
     storage: str | None = option(
         None, 'where the tuning study lives: postgresql://USER@HOST/DB (shared by several '
         'machines), sqlite:///FILE, or a journal file path (default: study.journal in the '

@@ -78,6 +78,7 @@ from lompr_predictor.learning.objective import NetworkObjective
 from lompr_predictor.learning.options import (
     OptionError,
     TrainingConfig,
+    TrainSettings,
     check_options,
     recorded_options,
     study_options,
@@ -407,7 +408,15 @@ def study_definition(config: TrainingConfig, sources: list[BagSource],
             # only with the map, which came later: studies without it keep their names
             **({'machine_map': True, 'network_inputs': config.network_inputs}
                if config.machine_map else {}),
-            'settings': vars(config.settings), 'model_type': 'lstm'}
+            'settings': _study_settings(config.settings), 'model_type': 'lstm'}
+
+
+def _study_settings(settings: TrainSettings) -> dict[str, Any]:
+    """The training loop's settings as a study records them: the ridge start only when on
+    (it came later: studies trained without it keep their names with --no-linear-start,
+    and a default study is a new one, its trials not mixed with theirs)."""
+    return {name: value for name, value in vars(settings).items()
+            if name != 'linear_start' or value}
 
 
 def _topics(topics: BagTopics) -> list[str]:

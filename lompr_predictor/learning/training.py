@@ -25,9 +25,12 @@ import torch
 from torch import nn
 
 from lompr_predictor.data.problem import LearningProblem, minmax_range
+from lompr_predictor.learning.linear_start import fit_ridge, refit_highways, start_from
 from lompr_predictor.learning.machine_map import MachineMap
 from lompr_predictor.learning.models import (
     LSTM_STEPS,
+    LstmNet,
+    PairedNet,
     PredictorModule,
     ScaledRows,
     build_network,
@@ -65,6 +68,9 @@ class TrainedModel:
     history: list[float] = field(default_factory=list)  # validation loss per epoch
     pruned_epoch: int = 0  # epoch at which the tuning pruner stopped it (0: not stopped)
     start_loss: float = math.nan  # validation loss of the weights it started from (`init`)
+    #: fine-tuning: the epochs started from `init` with its highways fitted again to the new
+    #: data (`linear_start.refit_highways`), which predicted its validation part better
+    highway_refitted: bool = False
 
 
 RANGE_SAMPLE = 20000  # training windows that set the input normalisation
@@ -260,7 +266,11 @@ def train_network(
                        batch=int(hyperparameters['batch_size']))
     schedule = _Schedule(module.net, model_type, hyperparameters,
                          settings.max_epochs * math.ceil(data.epoch_size / data.batch))
-    record = _Record.starting(module.net, data, fine_tuning=init is not None)
+    ridge_started = (settings.linear_start and init is None and isinstance(module.net, LstmNet)
+                     and _ridge_start(module.net, data))
+    record = _Record.starting(module.net, data, counts=init is not None or ridge_started)
+    refitted = settings.linear_start and init is not None and _refit_start(module.net, data,
+                                                                           record)
     started = time.perf_counter()
     with progress_bar(range(1, settings.max_epochs + 1), desc=label or model_type,
                       unit='epoch', leave=False, disable=not progress) as epochs:
@@ -274,7 +284,8 @@ def train_network(
                         relative_errors=relative_errors,
                         validation_loss=record.best, epochs=record.epoch,
                         best_epoch=record.best_epoch, seconds=seconds, history=record.history,
-                        pruned_epoch=record.pruned_epoch, start_loss=record.start_loss)
+                        pruned_epoch=record.pruned_epoch, start_loss=record.start_loss,
+                        highway_refitted=refitted)
 
 
 def _starting_module(problem: LearningProblem, model_type: str,
@@ -294,6 +305,33 @@ def _starting_module(problem: LearningProblem, model_type: str,
                         steps=int(hyperparameters.get('lstm_steps', LSTM_STEPS)),
                         machine_map=machine_map, network_inputs=network_inputs,
                         inputs=rows), rows
+
+
+def _ridge_start(net: LstmNet, data: _FitData) -> bool:
+    """Start `net` at the ridge over its own window (`linear_start`); False when there is
+    nothing to regress on."""
+    fit = fit_ridge(lambda ends: data.inputs.windows(ends, data.window), data.train_ends,
+                    data.train_y, data.validation_ends, data.validation_y)
+    if fit is not None:
+        start_from(net, fit)
+    return fit is not None
+
+
+def _refit_start(net: nn.Module, data: _FitData, record: _Record) -> bool:
+    """Fine-tuning: `net` (the parent's weights, scored in `record`) with its highways
+    fitted again to the new data (`linear_start.refit_highways`) where that predicts the
+    validation part better, the epochs' start and epoch 0's candidate; else as it was."""
+    if not isinstance(net, (LstmNet, PairedNet)):
+        return False
+    refit_highways(net, lambda ends: data.inputs.windows(ends, data.window), data.train_ends,
+                   data.train_y, data.validation_ends, data.validation_y)
+    net.eval()
+    loss = data.validation_loss(net)
+    if not loss < record.best:
+        net.load_state_dict(record.best_state)
+        return False
+    record.best, record.best_state = loss, copy.deepcopy(net.state_dict())
+    return True
 
 
 @dataclass(frozen=True)
@@ -340,11 +378,12 @@ class _Record:
     start_loss: float = math.nan
 
     @classmethod
-    def starting(cls, net: nn.Module, data: _FitData, *, fine_tuning: bool) -> _Record:
-        """The record before the first epoch. Fine-tuning's starting weights are a
-        candidate too (epoch 0): the result is never worse on validation than its parent."""
+    def starting(cls, net: nn.Module, data: _FitData, *, counts: bool) -> _Record:
+        """The record before the first epoch. Where the starting weights `counts` (a
+        fine-tuned parent, a ridge start) they are a candidate too (epoch 0): the result is
+        never worse on validation than where it started."""
         record = cls(math.inf, copy.deepcopy(net.state_dict()))
-        if fine_tuning:
+        if counts:
             net.eval()
             record.start_loss = data.validation_loss(net)
             record.best = record.start_loss if math.isfinite(record.start_loss) else math.inf

@@ -114,12 +114,12 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
     assert len(loaded.metadata.normalisation['feature_centre']) == len(FEATURES) + 4
     assert loaded.metadata.hyperparameters['network_inputs'] == 'paired'
     # each axis publishes the candidates the validation part cannot tell from its best:
-    # here, two epochs on a smooth error, the ridge alone on both (the network is then
-    # inside the file beside it)
+    # here, two epochs on a smooth error, the ridge alone on X and the committee alone on Y
+    # (a file of both: 'ensemble')
     assert {axis: entry['model'] for axis, entry in content['published'].items()} == {
-        'x': 'ridge', 'y': 'ridge'} == {axis: entry['published'] for axis, entry
-                                        in loaded.metadata.standing.items()}
-    assert loaded.metadata.model_type == 'ridge'
+        'x': 'ridge', 'y': 'bo_lstm_committee'} == {axis: entry['published'] for axis, entry
+                                                    in loaded.metadata.standing.items()}
+    assert loaded.metadata.model_type == 'ensemble'
     assert 'Published, per axis' in (report / 'report.md').read_text()
     generalist = loaded.module.network.net.machine_columns.tolist()
     assert [columns[k] for k in generalist] == ['map_residual_x - last row',

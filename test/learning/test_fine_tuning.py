@@ -103,7 +103,8 @@ def test_init_fine_tunes_on_the_new_plant_and_names_its_parent(
     # the normalisation and the map's structure are the parent's constants; the network
     # moved (the map's coefficients: below)
     state, parent_state = after.module.state_dict(), before.module.state_dict()
-    coefficients = ('machine_map.branch_coefficients', 'machine_map.posture_coefficients')
+    coefficients = tuple(f'machine_map.{level}{name}_coefficients'
+                         for level in ('', 'level_') for name in ('branch', 'posture'))
     constants = [k for k in state if not k.startswith('net.') and k not in coefficients]
     assert constants and all(torch.equal(state[k], parent_state[k]) for k in constants)
     assert any(not torch.equal(state[k], parent_state[k]) for k in state if k.startswith('net.'))
@@ -121,9 +122,10 @@ def test_init_fine_tunes_on_the_new_plant_and_names_its_parent(
     assert set(losses) == {'kept', 'refitted'}
     assert refit['decision'] == min(losses, key=losses.get)
     assert part['validation_loss_best'] == losses[refit['decision']]
-    moved = not torch.equal(state[coefficients[0]], parent_state[coefficients[0]])
-    assert moved == (refit['decision'] == 'refitted')
-    assert (meta.machine_map == old.machine_map) == (not moved)
+    # refitted, the map's and the residual map's coefficients both moved
+    moved = [not torch.equal(state[k], parent_state[k]) for k in coefficients[::2]]
+    assert moved == [refit['decision'] == 'refitted'] * 2
+    assert (meta.machine_map == old.machine_map) == (not any(moved))
     models = document['models']
     assert set(models) == {'persistence', 'machine_map', 'parent', 'bo_lstm'}
     # the parent does not know the new lag (on X, along the path's faster axis, many times

@@ -58,7 +58,7 @@ def test_objective_trains_checkpoints_and_skips_a_repeated_point(
         path = checkpoint_path(tmp_path / 'trials', 'objective', trial.number)
         assert trial.user_attrs['checkpoint'] == str(path.resolve()) and path.is_file()
         assert trial.user_attrs['training_seconds'] > 0
-        assert 1 <= trial.user_attrs['best_epoch'] <= 2
+        assert 0 <= trial.user_attrs['best_epoch'] <= 2  # 0: the ridge start
     assert not checkpoint_path(tmp_path / 'trials', 'objective', 1).exists()
     best = best_trial(study)
     assert best.number in (0, 2) and objective.params_of(best) == {
@@ -85,7 +85,9 @@ def test_a_restart_trains_its_point_with_another_seed_and_is_not_pruned(
     storage = open_storage(default_storage(tmp_path))
     study = open_study(storage, 'restart', seed=0, budget=1, restarts=1)
     study.pruner = optuna.pruners.ThresholdPruner(upper=0.0)  # prunes every reporting trial
-    settings = TrainSettings(max_epochs=3, seed=1)
+    # from random weights: a ridge start is the same for every seed, and three epochs on
+    # this data may not leave it
+    settings = TrainSettings(max_epochs=3, seed=1, linear_start=False)
     objective = NetworkObjective(study, problem, SPACE, settings, tmp_path / 'trials')
     assert run_study(study, storage, objective, progress=False) == 2
     first, restart = study.trials

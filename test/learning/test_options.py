@@ -73,8 +73,10 @@ def test_the_declared_defaults_are_lompr_trains() -> None:
     assert flag_of('model_path') == '--out' and flag_of('machine_map') == '--no-machine-map'
     assert recorded_options(config) == {'network_inputs': 'paired', 'publish': 'best',
                                         'committee': 5, 'max_epochs': 120,
-                                        'patience': 8, 'epoch_windows': 20_000}
+                                        'patience': 8, 'epoch_windows': 20_000,
+                                        'linear_start': True}
     assert study_options(config) == {'horizon': 1, 'window': 25, 'seed': 0}
+    assert flag_of('linear_start') == '--no-linear-start'
 
 
 def train_args(options: list[str]) -> argparse.Namespace:
@@ -129,9 +131,14 @@ def test_existing_studies_keep_their_names() -> None:
 
     sources = [BagSource(path='/x', sha256='ab' * 32)]
     description: Any = SimpleNamespace(sha256='cd' * 32, kind='lompr')
-    names = [study_name_for(study_definition(TrainingConfig(inputs=BagInputs(bags=('/x',)),
-                                                            **changes), sources, description))
-             # studies before the paired default read the map's residuals ('machine')
+
+    def name(**changes: Any) -> str:
+        config = TrainingConfig(inputs=BagInputs(bags=('/x',)), **changes)
+        return study_name_for(study_definition(config, sources, description))
+
+    # studies before the paired default read the map's residuals ('machine'); before the
+    # ridge start, they trained without it
+    names = [name(linear_start=False, **changes)
              for changes in ({'network_inputs': 'machine'},
                              {'preview': 3, 'network_inputs': 'machine'},
                              {'machine_map': False, 'network_inputs': 'all'},
@@ -139,3 +146,5 @@ def test_existing_studies_keep_their_names() -> None:
                               'max_epochs': 12})]
     assert names == ['lompr-b23347a584d1556a', 'lompr-73728b7dbaa0ecb9',
                      'lompr-c09400e26ae36cea', 'lompr-292ea3169ed19aa3']
+    # trials trained from the ridge are another study's
+    assert name(network_inputs='machine') != names[0]
