@@ -18,6 +18,8 @@ grid serves every window length and feature count.
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -70,6 +72,35 @@ def fit_ridge(windows: Callable[[np.ndarray], torch.Tensor], train_ends: np.ndar
         if best is None or loss < best.validation_loss:
             best = LinearFit(weight.T.copy(), bias, penalty, loss)
     return best
+
+
+class RidgeFits:
+    """The ridge fits of one study's trainings by their data's digest: its trials fit the same
+    ridge wherever they read the same columns (the hyperparameters do not enter it), so a
+    tuning process fits each once. Keeps the latest few."""
+
+    def __init__(self, kept: int = 4) -> None:
+        self._kept = kept
+        self._fits: OrderedDict[str, LinearFit | None] = OrderedDict()
+
+    def fit(self, windows: Callable[[np.ndarray], torch.Tensor], train_ends: np.ndarray,
+            train_targets: torch.Tensor, validation_ends: np.ndarray,
+            validation_targets: torch.Tensor, *, rows: torch.Tensor) -> LinearFit | None:
+        """`fit_ridge` of these arguments, fitted once: `rows` are the (scaled) rows the
+        windows are taken from, which with the ends and targets decide the fit."""
+        digest = hashlib.sha256()
+        for part in (rows, train_targets, validation_targets):
+            digest.update(part.numpy().tobytes())
+        for ends in (train_ends, validation_ends):
+            digest.update(np.ascontiguousarray(ends, dtype=np.int64).tobytes())
+        digest.update(windows(train_ends[:1]).numpy().tobytes())  # the window's shape, scaling
+        key = digest.hexdigest()
+        if key not in self._fits:
+            self._fits[key] = fit_ridge(windows, train_ends, train_targets, validation_ends,
+                                        validation_targets)
+            while len(self._fits) > self._kept:
+                self._fits.popitem(last=False)
+        return self._fits[key]
 
 
 def start_from(net: LstmNet, fit: LinearFit) -> None:

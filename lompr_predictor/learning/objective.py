@@ -24,13 +24,14 @@ process working on the same study builds the same objective and carries on.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import optuna
 
 from lompr_predictor.data.problem import LearningProblem
+from lompr_predictor.learning.linear_start import RidgeFits
 from lompr_predictor.learning.machine_map import MachineMap
 from lompr_predictor.learning.model_file import (
     ExportedModule,
@@ -64,6 +65,8 @@ class NetworkObjective:
     #: and what the network reads of its rows (`models.network_columns`).
     machine_map: MachineMap | None = None
     network_inputs: str = 'all'
+    #: this process's ridge starts: the trials reading the same columns share one
+    ridge_fits: RidgeFits = field(default_factory=RidgeFits)
 
     def __call__(self, trial: optuna.Trial) -> float:
         params = self.space.suggest(trial)
@@ -89,7 +92,8 @@ class NetworkObjective:
         settings = replace(self.settings, seed=self.settings.seed + restart)
         return train_network(self.problem, self.model_type, params, settings, trial=trial,
                              prune=not restart, progress=self.progress, label=label,
-                             machine_map=self.machine_map, network_inputs=self.network_inputs)
+                             machine_map=self.machine_map, network_inputs=self.network_inputs,
+                             ridge_fits=self.ridge_fits)
 
     def checkpoint(self, trial_number: int) -> Path:
         """This study's checkpoint path of trial `trial_number`."""

@@ -245,7 +245,10 @@ def _tuning_lines(tuning: Mapping[str, Any] | None) -> list[str]:
              f"{tuning['trials_run_now']} in this run); best trial {tuning['best_trial']} "
              f"with validation MSE {tuning['best_value']:.4g}: {tuning['best_params']}"
              + (f", restart {tuning['best_restart']} (seed + {tuning['best_restart']})"
-                if tuning.get('best_restart') else '') + '.', '']
+                if tuning.get('best_restart') else '') + '.'
+             + (' Its best epoch is 0, its ridge start: no epoch predicted the validation part '
+                'better than the ridge over its window (its LSTM adds nothing there).'
+                if tuning.get('best_epoch') == 0 else ''), '']
     if 'trials_complete' in tuning:
         lines += [f"Budget {tuning['budget']} trials and {tuning.get('restarts', 0)} "
                   "restarts of the best point with other seeds (the lowest validation "

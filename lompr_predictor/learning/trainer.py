@@ -501,6 +501,7 @@ def _tune(config: TrainingConfig, problem: LearningProblem, machine_map: Machine
               'trials_run_now': run.trials_run, 'local_workers': list(run.workers),
               'workers': worker_counts(study),
               'best_trial': best.number, 'best_value': best.value, 'best_params': params,
+              'best_epoch': best.user_attrs.get('best_epoch'),
               'committee': [{'trial': trial.number, 'value': trial.value,
                              'params': objective.params_of(trial)} for trial in committee],
               'trials': trials,

@@ -25,7 +25,12 @@ import torch
 from torch import nn
 
 from lompr_predictor.data.problem import LearningProblem, minmax_range
-from lompr_predictor.learning.linear_start import fit_ridge, refit_highways, start_from
+from lompr_predictor.learning.linear_start import (
+    RidgeFits,
+    fit_ridge,
+    refit_highways,
+    start_from,
+)
 from lompr_predictor.learning.machine_map import MachineMap
 from lompr_predictor.learning.models import (
     LSTM_STEPS,
@@ -246,6 +251,7 @@ def train_network(
     machine_map: MachineMap | None = None,
     network_inputs: str = 'all',
     init: PredictorModule | None = None,
+    ridge_fits: RidgeFits | None = None,
 ) -> TrainedModel:
     """Train one network on `problem`; hyperparameters: batch_size, hidden, learning_rate,
     and optionally weight_decay (default 0), lstm_steps (default `LSTM_STEPS`) and
@@ -256,7 +262,7 @@ def train_network(
     normalisation kept (`machine_map`, `network_inputs` and the structural hyperparameters
     are its own), and its starting weights count as epoch 0's: the result is never worse
     on validation than where it started. `trial`, `prune`: an Optuna trial that may stop
-    it (`_fit`).
+    it (`_fit`). `ridge_fits`: the study's ridge starts, each fitted once (`linear_start`).
     """
     torch.manual_seed(settings.seed)
     module, rows = _starting_module(problem, model_type, hyperparameters, residual=residual,
@@ -267,7 +273,7 @@ def train_network(
     schedule = _Schedule(module.net, model_type, hyperparameters,
                          settings.max_epochs * math.ceil(data.epoch_size / data.batch))
     ridge_started = (settings.linear_start and init is None and isinstance(module.net, LstmNet)
-                     and _ridge_start(module.net, data))
+                     and _ridge_start(module.net, data, ridge_fits))
     record = _Record.starting(module.net, data, counts=init is not None or ridge_started)
     refitted = settings.linear_start and init is not None and _refit_start(module.net, data,
                                                                            record)
@@ -307,11 +313,12 @@ def _starting_module(problem: LearningProblem, model_type: str,
                         inputs=rows), rows
 
 
-def _ridge_start(net: LstmNet, data: _FitData) -> bool:
-    """Start `net` at the ridge over its own window (`linear_start`); False when there is
-    nothing to regress on."""
-    fit = fit_ridge(lambda ends: data.inputs.windows(ends, data.window), data.train_ends,
-                    data.train_y, data.validation_ends, data.validation_y)
+def _ridge_start(net: LstmNet, data: _FitData, fits: RidgeFits | None) -> bool:
+    """Start `net` at the ridge over its own window (`linear_start`; from `fits` when given);
+    False when there is nothing to regress on."""
+    arguments = (lambda ends: data.inputs.windows(ends, data.window), data.train_ends,
+                 data.train_y, data.validation_ends, data.validation_y)
+    fit = fit_ridge(*arguments) if fits is None else fits.fit(*arguments, rows=data.inputs.rows)
     if fit is not None:
         start_from(net, fit)
     return fit is not None

@@ -85,6 +85,7 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
     assert content['tuning']['trials_spent'] == 2 + 1  # and one restart of the best point
     assert content['tuning']['restarts_run'] == 1
     assert content['tuning']['best_restart'] in (0, 1)
+    assert content['tuning']['best_epoch'] in (0, 1, 2)  # 0: the best network's ridge start
     # the committee (by default five networks): here every trial's, the best first, by loss
     committee = content['tuning']['committee']
     assert committee[0]['trial'] == content['tuning']['best_trial'] and len(committee) == 3

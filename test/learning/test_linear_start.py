@@ -1,8 +1,9 @@
 # SPDX-License-Identifier: Apache-2.0
 """learning.linear_start: the ridge over the flattened windows against scikit-learn's at the
 same penalty (1e-9), its penalty the validation part's choice, a network started from it
-predicting what it predicts, a trained network never worse on validation than it, and a
-fine-tuned one starting from its highways fitted again where that validates better."""
+predicting what it predicts, a trained network never worse on validation than it, a
+fine-tuned one starting from its highways fitted again where that validates better, and a
+study's trainings on the same data fitting it once."""
 
 from __future__ import annotations
 
@@ -17,9 +18,10 @@ from trainer_data import lissajous_reference, synthetic_recording
 
 from lompr_predictor.data.cleaning import clean_recordings
 from lompr_predictor.data.problem import LearningProblem, build_problem
-from lompr_predictor.learning import training
+from lompr_predictor.learning import linear_start, training
 from lompr_predictor.learning.linear_start import (
     RELATIVE_PENALTIES,
+    RidgeFits,
     fit_ridge,
     refit_highways,
     start_from,
@@ -175,3 +177,29 @@ def test_fine_tuning_starts_from_the_refit_where_it_validates_better(
                          progress=False, init=parent)
     assert not kept.highway_refitted and kept.validation_loss == kept.start_loss
     assert kept.start_loss == pytest.approx(refitted.start_loss, rel=1e-9)
+
+
+def test_a_studys_trainings_on_the_same_data_fit_their_ridge_once(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    rows, targets, _ = noisy_linear_data(3)
+    ends = np.arange(WINDOW - 1, 600)
+    calls = []
+
+    def counted(*args: object) -> object:
+        calls.append(args)
+        return fit_ridge(*args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(linear_start, 'fit_ridge', counted)
+    fits = RidgeFits(kept=2)
+    data = (windows_of(rows), ends[:400], targets[:400], ends[400:], targets[400:])
+    first = fits.fit(*data, rows=rows)
+    assert fits.fit(*data, rows=rows) is first and len(calls) == 1
+    direct = fit_ridge(*data)
+    assert first is not None and direct is not None
+    np.testing.assert_array_equal(first.weight, direct.weight)
+    # other targets, other rows, other ends: fitted anew
+    fits.fit(*data[:2], 2 * targets[:400], *data[3:], rows=rows)
+    fits.fit(windows_of(rows + 1), *data[1:], rows=rows + 1)
+    fits.fit(data[0], ends[:300], targets[:300], *data[3:], rows=rows)
+    assert len(calls) == 4
+    assert fits.fit(*data, rows=rows) is not first and len(calls) == 5  # kept: the latest two

@@ -1,7 +1,8 @@
 # SPDX-License-Identifier: Apache-2.0
 """learning.report: report.md as a reader gets it, for an evaluation by hand: the run's
 settings, a table per axis with every model's metrics, the model file's sha256 and where
-else it is, the data counts and a skipped bag (a training's report: test/cli/test_train)."""
+else it is, the data counts and a skipped bag, the tuning's line on a network that kept its
+ridge start (a training's report: test/cli/test_train)."""
 
 from __future__ import annotations
 
@@ -46,3 +47,16 @@ def test_a_model_is_named_by_its_label_else_the_known_name_else_its_key() -> Non
     assert model_label('x', {'label': 'Mine'}) == 'Mine'
     assert model_label('bo_lstm', {}) == 'BO-LSTM'
     assert model_label('ridge_7', {}) == 'ridge_7'
+
+
+def test_a_network_that_kept_its_ridge_start_is_said_so() -> None:
+    tuning = {'study_name': 's', 'trials_spent': 3, 'trials_run_now': 3, 'best_trial': 1,
+              'best_value': 0.5, 'best_params': {'hidden': 8}, 'best_epoch': 0}
+    study = next(line for line in markdown(evaluation(tuning=tuning)).splitlines()
+                 if line.startswith('Study `s`'))
+    assert study == ("Study `s` (3 trials spent, 3 in this run); best trial 1 with validation "
+                     "MSE 0.5: {'hidden': 8}. Its best epoch is 0, its ridge start: no epoch "
+                     'predicted the validation part better than the ridge over its window (its '
+                     'LSTM adds nothing there).')
+    trained = markdown(evaluation(tuning={**tuning, 'best_epoch': 7}))
+    assert "{'hidden': 8}." in trained and 'ridge start' not in trained
