@@ -272,11 +272,8 @@ def train_network(
                        batch=int(hyperparameters['batch_size']))
     schedule = _Schedule(module.net, model_type, hyperparameters,
                          settings.max_epochs * math.ceil(data.epoch_size / data.batch))
-    ridge_started = (settings.linear_start and init is None and isinstance(module.net, LstmNet)
-                     and _ridge_start(module.net, data, ridge_fits))
-    record = _Record.starting(module.net, data, counts=init is not None or ridge_started)
-    refitted = settings.linear_start and init is not None and _refit_start(module.net, data,
-                                                                           record)
+    record, refitted = _start(module.net, data, settings, fine_tuning=init is not None,
+                              ridge_fits=ridge_fits)
     started = time.perf_counter()
     with progress_bar(range(1, settings.max_epochs + 1), desc=label or model_type,
                       unit='epoch', leave=False, disable=not progress) as epochs:
@@ -311,6 +308,19 @@ def _starting_module(problem: LearningProblem, model_type: str,
                         steps=int(hyperparameters.get('lstm_steps', LSTM_STEPS)),
                         machine_map=machine_map, network_inputs=network_inputs,
                         inputs=rows), rows
+
+
+def _start(net: nn.Module, data: _FitData, settings: TrainSettings, *, fine_tuning: bool,
+           ridge_fits: RidgeFits | None) -> tuple[_Record, bool]:
+    """Where the epochs start, as the record before the first: a new LSTM at its ridge start,
+    a fine-tuned network at its parent's weights or those with its highways refitted
+    (`linear_start`), each counted as epoch 0; else random weights, not counted. Also
+    whether the highways were refitted."""
+    ridge_started = (settings.linear_start and not fine_tuning and isinstance(net, LstmNet)
+                     and _ridge_start(net, data, ridge_fits))
+    record = _Record.starting(net, data, counts=fine_tuning or ridge_started)
+    refitted = settings.linear_start and fine_tuning and _refit_start(net, data, record)
+    return record, refitted
 
 
 def _ridge_start(net: LstmNet, data: _FitData, fits: RidgeFits | None) -> bool:
