@@ -248,7 +248,7 @@ def _tuning_lines(tuning: Mapping[str, Any] | None) -> list[str]:
                 if tuning.get('best_restart') else '') + '.'
              + (' Its best epoch is 0, its ridge start: no epoch predicted the validation part '
                 'better than the ridge over its window (its LSTM adds nothing there).'
-                if tuning.get('best_epoch') == 0 else ''), '']
+                if tuning.get('best_epoch') == 0 else '') + _committee_text(tuning), '']
     if 'trials_complete' in tuning:
         lines += [f"Budget {tuning['budget']} trials and {tuning.get('restarts', 0)} "
                   "restarts of the best point with other seeds (the lowest validation "
@@ -265,6 +265,17 @@ def _tuning_lines(tuning: Mapping[str, Any] | None) -> list[str]:
         lines.append('')
     lines.append(f'![tuning history]({TUNING_PLOT})')
     return lines
+
+
+def _committee_text(tuning: Mapping[str, Any]) -> str:
+    """The committee's size where it is below the size asked for and the study had the
+    trials: trials with a chosen one's validation loss to the last bit are one function."""
+    size, asked = len(tuning.get('committee', ())), tuning.get('committee_asked', 0)
+    if size >= min(asked, tuning.get('trials_complete', 0)):
+        return ''
+    return (f' Its committee is {size} of the {asked} networks asked for: the other complete '
+            "trials' validation losses equal a member's to the last bit: the same function "
+            '(as where each ended at its ridge start), which the committee runs once.')
 
 
 def _fine_tuning_lines(fine_tuning: Mapping[str, Any] | None) -> list[str]:

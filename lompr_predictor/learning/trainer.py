@@ -504,6 +504,7 @@ def _tune(config: TrainingConfig, problem: LearningProblem, machine_map: Machine
               'best_epoch': best.user_attrs.get('best_epoch'),
               'committee': [{'trial': trial.number, 'value': trial.value,
                              'params': objective.params_of(trial)} for trial in committee],
+              'committee_asked': config.committee,
               'trials': trials,
               # the thread count in effect (set by the entry point): the times depend on it
               'settings': {**vars(config.settings), 'threads': torch.get_num_threads()}}

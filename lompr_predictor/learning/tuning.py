@@ -495,10 +495,18 @@ def best_trial(study: optuna.Study) -> optuna.trial.FrozenTrial:
 def committee_trials(study: optuna.Study, size: int) -> list[FrozenTrial]:
     """The `best_trial` and after it the study's next best complete trials (lowest
     validation loss first, restarts included), `size` in all if it has that many: each
-    one that trained a model (a duplicate repeats the model of the trial it names)."""
+    one that trained a model (a duplicate repeats the model of the trial it names) and
+    whose validation loss no chosen trial has to the last bit, since two networks that
+    both ended at the same ridge start are one function that would be run twice."""
     best = best_trial(study)
     others = sorted((trial for trial in study.get_trials(deepcopy=False, states=(
                      TrialState.COMPLETE,)) if trial.number != best.number
                      and DUPLICATE_OF not in trial.user_attrs and trial.value is not None),
                     key=lambda trial: (trial.value, trial.number))
-    return [best, *others[:max(0, size - 1)]]
+    chosen = [best]
+    for trial in others:
+        if len(chosen) >= size:
+            break
+        if all(trial.value != member.value for member in chosen):
+            chosen.append(trial)
+    return chosen

@@ -2,7 +2,7 @@
 """learning.report: report.md as a reader gets it, for an evaluation by hand: the run's
 settings, a table per axis with every model's metrics, the model file's sha256 and where
 else it is, the data counts and a skipped bag, the tuning's line on a network that kept its
-ridge start (a training's report: test/cli/test_train)."""
+ridge start and on a committee smaller than asked (a training's report: test/cli/test_train)."""
 
 from __future__ import annotations
 
@@ -60,3 +60,18 @@ def test_a_network_that_kept_its_ridge_start_is_said_so() -> None:
                      'LSTM adds nothing there).')
     trained = markdown(evaluation(tuning={**tuning, 'best_epoch': 7}))
     assert "{'hidden': 8}." in trained and 'ridge start' not in trained
+
+
+def test_a_committee_below_its_size_says_why() -> None:
+    """Five networks asked, four trials complete, one distinct: the line says one of five
+    and why; a study of one trial, or a full committee, says nothing on it."""
+    tuning = {'study_name': 's', 'trials_spent': 4, 'trials_run_now': 4, 'best_trial': 1,
+              'best_value': 0.5, 'best_params': {'hidden': 8}, 'best_epoch': 0,
+              'committee': [{'trial': 1, 'value': 0.5}], 'committee_asked': 5,
+              'trials_complete': 4, 'budget': 4, 'trials_pruned': 0, 'trials_failed': 0,
+              'workers': {}}
+    text = markdown(evaluation(tuning=tuning))
+    assert ("Its committee is 1 of the 5 networks asked for: the other complete trials' "
+            "validation losses equal a member's to the last bit") in text
+    for changes in ({'trials_complete': 1}, {'committee_asked': 1}):
+        assert 'Its committee' not in markdown(evaluation(tuning={**tuning, **changes}))

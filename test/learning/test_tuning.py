@@ -124,10 +124,11 @@ def test_a_repeated_point_is_found_not_retrained(storage: StudyStorage) -> None:
 
 
 def test_the_committee_is_the_best_trial_then_the_next_best_models() -> None:
-    """Trials with losses 3, 1, 1 (a duplicate of trial 1), 2, 0.5 (pruned), 2 (a tie with
-    trial 3: the earlier first) and one failed: the committee of four is trials 1, 3, 5, 0
-    (the duplicate trained no model, the pruned and failed ones do not count); of one, the
-    best alone; asked for more than there are, every model."""
+    """Trials with losses 3, 1, 1 (a duplicate of trial 1), 2, 0.5 (pruned), 2 (the same
+    loss as trial 3 to the last bit: one function, the earlier kept), one failed and 2.5: the
+    committee of four is trials 1, 3, 7, 0 (the duplicate trained no model, the tie would run
+    trial 3's function twice, the pruned and failed ones do not count); of one, the best
+    alone; asked for more than there are, every distinct model."""
     study = optuna.create_study()
     distribution: dict[str, optuna.distributions.BaseDistribution] = {
         'x': optuna.distributions.FloatDistribution(0.0, 1.0)}
@@ -135,15 +136,16 @@ def test_the_committee_is_the_best_trial_then_the_next_best_models() -> None:
     for value, attrs, state in ((3.0, {}, states.COMPLETE), (1.0, {}, states.COMPLETE),
                                 (1.0, {DUPLICATE_OF: 1}, states.COMPLETE),
                                 (2.0, {}, states.COMPLETE), (0.5, {}, states.PRUNED),
-                                (2.0, {}, states.COMPLETE), (0.0, {}, states.FAIL)):
+                                (2.0, {}, states.COMPLETE), (0.0, {}, states.FAIL),
+                                (2.5, {}, states.COMPLETE)):
         complete = state == states.COMPLETE
         study.add_trial(optuna.trial.create_trial(
             params={'x': 0.5}, distributions=distribution, state=state, user_attrs=attrs,
             value=value if complete else None,
             intermediate_values={0: value} if state == states.PRUNED else None))
-    assert [trial.number for trial in committee_trials(study, 4)] == [1, 3, 5, 0]
+    assert [trial.number for trial in committee_trials(study, 4)] == [1, 3, 7, 0]
     assert [trial.number for trial in committee_trials(study, 1)] == [1]
-    assert [trial.number for trial in committee_trials(study, 9)] == [1, 3, 5, 0]
+    assert [trial.number for trial in committee_trials(study, 9)] == [1, 3, 7, 0]
 
 
 def test_restarts_run_the_best_point_again_after_the_budget(storage: StudyStorage) -> None:
