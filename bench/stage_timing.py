@@ -43,7 +43,7 @@ def core_steps(core: OnlinePredictor) -> list[tuple[str, object, str]]:
     return [('stamp', core._stamps, 'pose_ns'), ('stamp', core._stamps, 'reference_ns'),
             ('alignment', core._alignment, 'add_pose'),
             ('alignment', core._alignment, 'add_reference'),
-            ('plant error', core, '_plant_error'), ('feature rows', core, '_feature_rows'),
+            ('plant error', core._errors, 'of'), ('feature rows', core, '_feature_rows'),
             ('overrun', core._answers, 'worth_inferring'),
             *(('inference', slot, 'predict') for slot in core.slots.all),
             ('offset gate', core._answers, 'publish')]

@@ -6,11 +6,12 @@ are tested alone: the stamps of its inputs (`input_stamps`), the alignment by st
 (`alignment`), the fault rules (`faults`), a model slot per model (`model_slot`: the model,
 its window of feature rows and its runner), the plan of a model that reads the reference
 preview (`preview`), the chain of units that see every sample and prediction
-(`sample_units`, the live accuracy first), and the answer of an instant (`answers`: the
-units' revision, the overrun policy of `timing`, the offset gate of `offset`). Per aligned
-sample it computes the plant error (docs/interface.md, the error), pushes the rows of every
-slot's window, lets the first full slot (the model's, else the fallback's) predict and hands
-the prediction to the answer. Any fault empties the windows and cancels the offset in force.
+(`sample_units`, the live accuracy first), the plant error they are shown (`plant_error`),
+and the answer of an instant (`answers`: the units' revision, the overrun policy of
+`timing`, the offset gate of `offset`). Per aligned sample it takes the plant error
+(docs/interface.md, the error), pushes the rows of every slot's window, lets the first full
+slot (the model's, else the fallback's) predict and hands the prediction to the answer. Any
+fault empties the windows and cancels the offset in force.
 
 Time is one clock, the caller's, in integer nanoseconds (the node's ROS clock, simulated
 under use_sim_time), read when an input call begins and again after each inference (the
@@ -32,7 +33,8 @@ from lompr_predictor.online.faults import FaultReason, StaleWatch, StreamRules, 
 from lompr_predictor.online.inference import InferenceBackend
 from lompr_predictor.online.input_stamps import InputStamps
 from lompr_predictor.online.model_slot import Fallback, ModelSlot, ModelSlots, check_model
-from lompr_predictor.online.offset import XY, ZERO, CompensationLimits, OffsetGate, Output
+from lompr_predictor.online.offset import XY, CompensationLimits, OffsetGate, Output
+from lompr_predictor.online.plant_error import PlantErrors
 from lompr_predictor.online.predictor_counts import PredictorCounts
 from lompr_predictor.online.preview import Planned, PlannedPath, PreviewDrop, ReferencePreview
 from lompr_predictor.online.sample_units import LiveAccuracy, PlausibleChange, SampleUnit
@@ -67,7 +69,6 @@ class OnlinePredictor:
         #: Input samples not used, by reason (`alignment.DropReason`).
         self.dropped = self._alignment.dropped
         self._stamps = InputStamps(self.dropped, stream.max_future_stamp)
-        self._rules = StreamRules(stream, period)
         self._stale = StaleWatch(stream.stale_after, clock)
         self._preview = ReferencePreview(self.preview, period, stream.gap_factor * period,
                                          stream.preview_tolerance, period_ns(stream.stale_after))
@@ -83,11 +84,12 @@ class OnlinePredictor:
         #: RMS of truth - prediction over the last predicted instants (`rms()`).
         self.accuracy = LiveAccuracy(stream.accuracy_samples)
         self.plausible = PlausibleChange()  # the last word before the offset gate
-        self._units: tuple[SampleUnit, ...] = (self.accuracy, *units, self.plausible)
+        self._errors = PlantErrors(StreamRules(stream, period), self.gate,
+                                   (self.accuracy, *units, self.plausible))
         self.faults = RejectionCounter(FaultReason)
         self.last_fault: FaultReason | None = None
         self.overrun = OverrunGuard(self._lead_ns, period_ns(stream.late_tolerance))
-        self._answers = Answers(self._units, self.gate, self.overrun, self._lead_ns, clock)
+        self._answers = Answers(self._errors.units, self.gate, self.overrun, self._lead_ns, clock)
 
     # -- inputs ---------------------------------------------------------------------------
 
@@ -218,8 +220,12 @@ class OnlinePredictor:
 
     def _use_sample(self, sample: AlignedSample, outputs: list[Output]) -> None:
         """Append the outputs of one aligned sample to `outputs`."""
-        error = self._plant_error(sample, outputs)
-        slot = self._feature_rows(sample, error, outputs)
+        reason = self._errors.interval_fault(self.primary.window.last_stamp_ns,
+                                             sample.stamp_ns)
+        if reason is not None:
+            outputs += self._fault(reason)
+        self._stale.used(self._now)
+        slot = self._feature_rows(sample, self._errors.of(sample), outputs)
         if slot is None or not self._answers.worth_inferring(sample.stamp_ns, self._now):
             return
         prediction = slot.predict()
@@ -228,25 +234,6 @@ class OnlinePredictor:
             return
         self._now = self._answers.publish(sample.stamp_ns, prediction, slot, self._now,
                                           outputs)
-
-    def _plant_error(self, sample: AlignedSample, outputs: list[Output]) -> XY:
-        """The plant error at the sample's stamp, after the interval rules, shown to the
-        units with the prediction published for its instant."""
-        stamp_ns = sample.stamp_ns
-        previous = self.primary.window.last_stamp_ns
-        if previous is not None:
-            reason = self._rules.interval_fault(previous, stamp_ns)
-            if reason is not None:
-                outputs += self._fault(reason)
-        self._stale.used(self._now)
-        gate = self.gate
-        offset_x, offset_y = gate.offset_for(stamp_ns) or ZERO
-        error = (sample.x - sample.reference_x - offset_x,
-                 sample.y - sample.reference_y - offset_y)
-        published = gate.prediction_for(stamp_ns)
-        for unit in self._units:
-            unit.observe(sample, error, published)
-        return error
 
     def _feature_rows(self, sample: AlignedSample, error: XY,
                       outputs: list[Output]) -> ModelSlot | None:
@@ -269,8 +256,7 @@ class OnlinePredictor:
     def _clear(self) -> None:
         """Empty every window and clear the units."""
         self.slots.clear()
-        for unit in self._units:
-            unit.clear()
+        self._errors.clear()
 
     def _fault(self, reason: FaultReason) -> list[Output]:
         """Empty the window; cancel the offsets in force (`offset.OffsetGate.cancel`)."""
