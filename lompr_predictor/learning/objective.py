@@ -83,8 +83,6 @@ class NetworkObjective:
         trial.set_user_attr('best_epoch', trained.best_epoch)
         if trained.pruned_epoch:
             trial.set_user_attr('pruned_epoch', trained.pruned_epoch)
-        if trained.trained_vs_start_t is not None:
-            trial.set_user_attr('trained_vs_start_t', trained.trained_vs_start_t)
         return trained.validation_loss
 
     def train(self, params: Mapping[str, Any], *, trial: optuna.Trial | None = None,

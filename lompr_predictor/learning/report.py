@@ -29,7 +29,7 @@ from lompr_predictor.data.cleaning import CleanData, CleaningConfig
 from lompr_predictor.data.features import TARGETS
 from lompr_predictor.data.problem import LearningProblem
 from lompr_predictor.files import write_atomic, write_json
-from lompr_predictor.learning.metrics import CRITICAL_T, METRIC_NAMES, standing_text
+from lompr_predictor.learning.metrics import METRIC_NAMES, standing_text
 from lompr_predictor.plots import pyplot, save_figure
 
 GROUND_TRUTH_JSON = 'lompr_ground_truth.json'
@@ -246,7 +246,9 @@ def _tuning_lines(tuning: Mapping[str, Any] | None) -> list[str]:
              f"with validation MSE {tuning['best_value']:.4g}: {tuning['best_params']}"
              + (f", restart {tuning['best_restart']} (seed + {tuning['best_restart']})"
                 if tuning.get('best_restart') else '') + '.'
-             + _start_text(tuning) + _committee_text(tuning), '']
+             + (' Its best epoch is 0, its ridge start: no epoch predicted the validation part '
+                'better than the ridge over its window (its LSTM adds nothing there).'
+                if tuning.get('best_epoch') == 0 else '') + _committee_text(tuning), '']
     if 'trials_complete' in tuning:
         lines += [f"Budget {tuning['budget']} trials and {tuning.get('restarts', 0)} "
                   "restarts of the best point with other seeds (the lowest validation "
@@ -263,19 +265,6 @@ def _tuning_lines(tuning: Mapping[str, Any] | None) -> list[str]:
         lines.append('')
     lines.append(f'![tuning history]({TUNING_PLOT})')
     return lines
-
-
-def _start_text(tuning: Mapping[str, Any]) -> str:
-    """Where the best network kept its ridge start: why (no epoch beat it on validation, or
-    none beyond chance)."""
-    if tuning.get('best_epoch') != 0:
-        return ''
-    t = tuning.get('trained_vs_start_t')
-    gain = ('' if t is None else
-            f" (its best epoch's gain had t {t:.2f}, below {CRITICAL_T}: within chance)")
-    return (' Its best epoch is 0, its ridge start: no epoch predicted the validation part '
-            f'better than the ridge over its window beyond chance{gain}, so its LSTM adds '
-            'nothing there.')
 
 
 def _committee_text(tuning: Mapping[str, Any]) -> str:

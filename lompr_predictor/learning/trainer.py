@@ -502,7 +502,6 @@ def _tune(config: TrainingConfig, problem: LearningProblem, machine_map: Machine
               'workers': worker_counts(study),
               'best_trial': best.number, 'best_value': best.value, 'best_params': params,
               'best_epoch': best.user_attrs.get('best_epoch'),
-              'trained_vs_start_t': best.user_attrs.get('trained_vs_start_t'),
               'committee': [{'trial': trial.number, 'value': trial.value,
                              'params': objective.params_of(trial)} for trial in committee],
               'committee_asked': config.committee,

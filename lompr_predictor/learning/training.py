@@ -32,7 +32,6 @@ from lompr_predictor.learning.linear_start import (
     start_from,
 )
 from lompr_predictor.learning.machine_map import MachineMap
-from lompr_predictor.learning.metrics import CRITICAL_T, loss_difference_t
 from lompr_predictor.learning.models import (
     LSTM_STEPS,
     LstmNet,
@@ -77,9 +76,6 @@ class TrainedModel:
     #: fine-tuning: the epochs started from `init` with its highways fitted again to the new
     #: data (`linear_start.refit_highways`), which predicted its validation part better
     highway_refitted: bool = False
-    #: The block t of the best trained epoch's validation gain over the start's (epoch 0),
-    #: where one beat it; below `metrics.CRITICAL_T` the start is kept (`_settle`)
-    trained_vs_start_t: float | None = None
 
 
 RANGE_SAMPLE = 20000  # training windows that set the input normalisation
@@ -172,19 +168,18 @@ def build_module(problem: LearningProblem, model_type: str, hidden: int, *, resi
     return module.with_fixed_targets(targets)
 
 
-def window_losses(net: nn.Module, inputs: ScaledRows, ends: np.ndarray,
-                  targets: torch.Tensor, window: int) -> np.ndarray:
-    """(len(ends),) the squared error of `net` on each window's normalised targets, the
-    mean over its outputs, in the windows' order; in batches without gradients."""
-    losses = []
+def validation_loss(net: nn.Module, inputs: ScaledRows, ends: np.ndarray,
+                    targets: torch.Tensor, window: int) -> float:
+    """Mean squared error of `net` on normalised targets, in batches without gradients."""
+    total, outputs = 0.0, targets.shape[1]
     with torch.no_grad():
         for start in range(0, len(ends), EVAL_BATCH):
             x = inputs.windows(ends[start:start + EVAL_BATCH], window)
             output = net(x)
             diff = output - each_output(output, targets[start:start + EVAL_BATCH])
-            squared = diff.double() ** 2
-            losses.append(squared.mean(dim=1).numpy())
-    return np.concatenate(losses)
+            total += float((diff * diff).sum())
+            outputs = output.shape[1]
+    return total / (len(ends) * outputs)
 
 
 def each_output(output: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
@@ -284,7 +279,6 @@ def train_network(
                       unit='epoch', leave=False, disable=not progress) as epochs:
         _fit(module.net, schedule, data, record, epochs, settings,
              np.random.default_rng(settings.seed), trial, prune=prune)
-    record.settle(module.net, data)
     seconds = time.perf_counter() - started
     module.net.load_state_dict(record.best_state)
     module.eval()
@@ -294,8 +288,7 @@ def train_network(
                         validation_loss=record.best, epochs=record.epoch,
                         best_epoch=record.best_epoch, seconds=seconds, history=record.history,
                         pruned_epoch=record.pruned_epoch, start_loss=record.start_loss,
-                        highway_refitted=refitted,
-                        trained_vs_start_t=record.trained_vs_start_t)
+                        highway_refitted=refitted)
 
 
 def _starting_module(problem: LearningProblem, model_type: str,
@@ -355,7 +348,6 @@ def _refit_start(net: nn.Module, data: _FitData, record: _Record) -> bool:
         net.load_state_dict(record.best_state)
         return False
     record.best, record.best_state = loss, copy.deepcopy(net.state_dict())
-    record.start = (record.best, record.best_state)
     return True
 
 
@@ -385,14 +377,9 @@ class _FitData:
                    validation_y, problem.window, batch,
                    min(len(split.train), settings.epoch_windows))
 
-    def window_losses(self, net: nn.Module) -> np.ndarray:
-        """`net`'s loss on each validation window, in order (`window_losses`)."""
-        return window_losses(net, self.inputs, self.validation_ends, self.validation_y,
-                             self.window)
-
     def validation_loss(self, net: nn.Module) -> float:
-        """`net`'s mean squared error on the validation windows, normalised units."""
-        return float(self.window_losses(net).mean())
+        return validation_loss(net, self.inputs, self.validation_ends, self.validation_y,
+                               self.window)
 
 
 @dataclass
@@ -406,9 +393,6 @@ class _Record:
     history: list[float] = field(default_factory=list)
     pruned_epoch: int = 0
     start_loss: float = math.nan
-    #: epoch 0's candidate, (validation loss, weights), where the start counts
-    start: tuple[float, dict[str, Any]] | None = None
-    trained_vs_start_t: float | None = None  # `_settle`
 
     @classmethod
     def starting(cls, net: nn.Module, data: _FitData, *, counts: bool) -> _Record:
@@ -420,26 +404,7 @@ class _Record:
             net.eval()
             record.start_loss = data.validation_loss(net)
             record.best = record.start_loss if math.isfinite(record.start_loss) else math.inf
-            record.start = (record.best, record.best_state)
         return record
-
-    def settle(self, net: nn.Module, data: _FitData) -> None:
-        """Keep the best trained epoch only where the validation part tells its gain over
-        the start apart from chance (a one-sided block t of the window losses' difference at
-        `CRITICAL_T`), else the start: a network picked by its validation loss among many
-        epochs and trials shows a gain that small validation parts do not repeat on new
-        data, and the start (a ridge over the window, a parent model) is the safer bet.
-        `net` ends with the kept weights."""
-        if self.start is None or self.best_epoch == 0:
-            return
-        start_loss, start_state = self.start
-        net.load_state_dict(start_state)
-        net.eval()
-        losses_at_start = data.window_losses(net)
-        net.load_state_dict(self.best_state)
-        self.trained_vs_start_t = loss_difference_t(losses_at_start - data.window_losses(net))
-        if self.trained_vs_start_t < CRITICAL_T:
-            self.best, self.best_state, self.best_epoch = start_loss, start_state, 0
 
 
 def _fit(net: nn.Module, schedule: _Schedule, data: _FitData, record: _Record,
