@@ -42,7 +42,12 @@ from lompr_predictor.learning.model_file import (
 from lompr_predictor.learning.options import TrainSettings
 from lompr_predictor.learning.space import SearchSpace
 from lompr_predictor.learning.training import TrainedModel, train_network
-from lompr_predictor.learning.tuning import DUPLICATE_OF, finished_twin, restart_index
+from lompr_predictor.learning.tuning import (
+    BEST_EPOCH,
+    DUPLICATE_OF,
+    finished_twin,
+    restart_index,
+)
 
 
 def checkpoint_path(folder: str | Path, study_name: str, trial_number: int) -> Path:
@@ -80,7 +85,7 @@ class NetworkObjective:
         path = save_checkpoint(self.checkpoint(trial.number), trained.module)
         trial.set_user_attr('checkpoint', str(path.resolve()))
         trial.set_user_attr('training_seconds', trained.seconds)
-        trial.set_user_attr('best_epoch', trained.best_epoch)
+        trial.set_user_attr(BEST_EPOCH, trained.best_epoch)
         if trained.pruned_epoch:
             trial.set_user_attr('pruned_epoch', trained.pruned_epoch)
         return trained.validation_loss

@@ -248,7 +248,8 @@ def _tuning_lines(tuning: Mapping[str, Any] | None) -> list[str]:
                 if tuning.get('best_restart') else '') + '.'
              + (' Its best epoch is 0, its ridge start: no epoch predicted the validation part '
                 'better than the ridge over its window (its LSTM adds nothing there).'
-                if tuning.get('best_epoch') == 0 else '') + _committee_text(tuning), '']
+                if tuning.get('best_epoch') == 0 else '') + _restarts_text(tuning)
+             + _committee_text(tuning), '']
     if 'trials_complete' in tuning:
         lines += [f"Budget {tuning['budget']} trials and {tuning.get('restarts', 0)} "
                   "restarts of the best point with other seeds (the lowest validation "
@@ -265,6 +266,16 @@ def _tuning_lines(tuning: Mapping[str, Any] | None) -> list[str]:
         lines.append('')
     lines.append(f'![tuning history]({TUNING_PLOT})')
     return lines
+
+
+def _restarts_text(tuning: Mapping[str, Any]) -> str:
+    """Why restarts asked for were not run: the best network is its start, which every
+    seed begins at (`tuning.BEST_EPOCH`)."""
+    asked, run = tuning.get('restarts', 0), tuning.get('restarts_run', 0)
+    if tuning.get('best_epoch') != 0 or run >= asked:
+        return ''
+    return (f' Its point was restarted {run} of the {asked} times asked for: every seed '
+            'starts at that same ridge, so another seed has nothing else to begin from.')
 
 
 def _committee_text(tuning: Mapping[str, Any]) -> str:

@@ -108,6 +108,7 @@ from lompr_predictor.learning.storage import (
 )
 from lompr_predictor.learning.training import NORMALISATION
 from lompr_predictor.learning.tuning import (
+    BEST_EPOCH,
     best_trial,
     committee_trials,
     history,
@@ -501,7 +502,7 @@ def _tune(config: TrainingConfig, problem: LearningProblem, machine_map: Machine
               'trials_run_now': run.trials_run, 'local_workers': list(run.workers),
               'workers': worker_counts(study),
               'best_trial': best.number, 'best_value': best.value, 'best_params': params,
-              'best_epoch': best.user_attrs.get('best_epoch'),
+              'best_epoch': best.user_attrs.get(BEST_EPOCH),
               'committee': [{'trial': trial.number, 'value': trial.value,
                              'params': objective.params_of(trial)} for trial in committee],
               'committee_asked': config.committee,

@@ -7,9 +7,10 @@ number of workers run on one study.
 the settings that define a study and its budget; `run_trials` takes a trial only while
 complete + pruned + running trials stay within the budget, fails the trials of dead
 workers (heartbeats) and queues their points again, then trains the best point again with
-other seeds (restarts). An interrupted run resumes with the same command, the trial a stop
-cut short (Ctrl-C, SIGTERM) failed and its point queued again. What a trial does is the
-objective's business (`objective.py`); this module knows studies only.
+other seeds (restarts), unless the best network is its start, which every seed shares. An
+interrupted run resumes with the same command, the trial a stop cut short (Ctrl-C,
+SIGTERM) failed and its point queued again. What a trial does is the objective's business
+(`objective.py`); this module knows studies only.
 """
 
 from __future__ import annotations
@@ -57,6 +58,9 @@ DUPLICATE_OF = 'duplicate_of'
 WORKER = 'worker'
 #: User attribute of a restart trial: its index k (trained with the seed + k, not pruned).
 RESTART = 'restart'
+#: User attribute of a trial: the epoch its network is from; 0 is its start, counted only
+#: when the start does not depend on the seed (the ridge start, `training.train_network`).
+BEST_EPOCH = 'best_epoch'
 #: Study user attributes: the settings that define the study, its budget (tuning trials)
 #: and its restarts of the best point.
 DEFINITION_ATTR = 'definition'
@@ -274,8 +278,8 @@ def _next_trial(study: optuna.Study, storage: StudyStorage, worker: str) -> Any:
     """Under the study's lock: fail dead workers' trials, then the next trial if a slot is
     free (a queued point first, then a tuning trial, then a restart of the best point so
     far), `_WAIT` if running trials hold every slot (or a restart waits for a running trial
-    to finish a point it can restart), None once every slot is spent (or no trial finished
-    a point and none is running)."""
+    to finish a point it can restart), None once every slot is spent (or no finished point
+    can be restarted and none is running)."""
     with storage.lock(study.study_name):
         for dead in storage.fail_stale(study):
             _log.warning('trial %d (worker %s) stopped sending heartbeats: marked failed, its '
@@ -288,7 +292,7 @@ def _next_trial(study: optuna.Study, storage: StudyStorage, worker: str) -> Any:
         tuning = counts.spent + counts.running - counts.restarts
         restart = not counts.waiting and tuning >= budget
         if restart and not _enqueue_restart(study):
-            return _WAIT if counts.running else None  # nothing finished to restart
+            return _WAIT if counts.running else None  # nothing to restart (yet)
         with warnings.catch_warnings():  # ask/tell is our optimize loop, heartbeats included
             warnings.filterwarnings('ignore', message='Heartbeat of storage is supposed')
             trial = study.ask()
@@ -308,10 +312,15 @@ def _next_trial(study: optuna.Study, storage: StudyStorage, worker: str) -> Any:
 
 
 def _enqueue_restart(study: optuna.Study) -> bool:
-    """Queue the next restart of the best point so far (False: no trial has finished)."""
+    """Queue the next restart of the best point so far; False when no trial has finished,
+    or when the best network is its start (`BEST_EPOCH` 0): that start is the same for every
+    seed, so a restart would begin at the very function it is to improve on, and its epochs
+    had not done so with the first seed."""
     if not study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
         return False
     best = best_trial(study)
+    if best.user_attrs.get(BEST_EPOCH) == 0:
+        return False
     index = 1 + max((restart_index(t) for t in study.get_trials(deepcopy=False)), default=0)
     study.enqueue_trial(dict(best.params), user_attrs={RESTART: index})
     return True
@@ -409,8 +418,9 @@ class StudyProgress:
             return
         self._stop.set()
         self._thread.join()
-        if kind is None:
+        if kind is None:  # the study is over: restarts it did not need are not owed
             self.update()
+            self._bar.total = self._bar.n
         self._bar.close()
 
     def _run(self) -> None:

@@ -62,6 +62,19 @@ def test_a_network_that_kept_its_ridge_start_is_said_so() -> None:
     assert "{'hidden': 8}." in trained and 'ridge start' not in trained
 
 
+def test_restarts_not_run_at_a_ridge_start_are_said_so() -> None:
+    """Two restarts asked, none run, the best network its ridge start: the line says so;
+    every restart run, or a network trained past its start, says nothing on restarts."""
+    tuning = {'study_name': 's', 'trials_spent': 3, 'trials_run_now': 3, 'best_trial': 1,
+              'best_value': 0.5, 'best_params': {'hidden': 8}, 'best_epoch': 0,
+              'restarts': 2, 'restarts_run': 0}
+    assert ('Its point was restarted 0 of the 2 times asked for: every seed starts at that '
+            'same ridge, so another seed has nothing else to begin from.'
+            in markdown(evaluation(tuning=tuning)))
+    for changes in ({'restarts_run': 2}, {'best_epoch': 7}):
+        assert 'restarted' not in markdown(evaluation(tuning={**tuning, **changes}))
+
+
 def test_a_committee_below_its_size_says_why() -> None:
     """Five networks asked, four trials complete, one distinct: the line says one of five
     and why; a study of one trial, or a full committee, says nothing on it."""

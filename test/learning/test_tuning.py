@@ -14,6 +14,7 @@ from lompr_predictor.learning.space import PAPER_SPACE
 from lompr_predictor.learning.storage import StudyStorage, default_storage, open_storage
 from lompr_predictor.learning.tuning import (
     _WAIT,
+    BEST_EPOCH,
     DUPLICATE_OF,
     RESTART,
     WORKER,
@@ -188,6 +189,33 @@ def test_a_restart_waits_for_a_finished_point(storage: StudyStorage) -> None:
     study.tell(first, toy(first))
     restart = _next_trial(study, storage, 'b:2')
     assert restart_index(restart) == 1 and PAPER_SPACE.suggest(restart) == point
+
+
+def test_no_restart_of_a_network_at_its_start(storage: StudyStorage) -> None:
+    """The best trial's network is its start (every seed's): no restart is run, and a
+    worker waits while a tuning trial runs that may still beat it; once that one has
+    trained past its start it is the best point, and the one restarted."""
+    study = open_study(storage, 'at-start', budget=2, restarts=2)
+    first, second = _next_trial(study, storage, 'a:1'), _next_trial(study, storage, 'b:2')
+    PAPER_SPACE.suggest(first)
+    point = PAPER_SPACE.suggest(second)
+    first.set_user_attr(BEST_EPOCH, 0)
+    study.tell(first, 1.0)
+    assert _next_trial(study, storage, 'a:1') is _WAIT  # the second may still beat it
+    second.set_user_attr(BEST_EPOCH, 4)
+    study.tell(second, 0.9)
+    restart = _next_trial(study, storage, 'a:1')
+    assert restart_index(restart) == 1 and PAPER_SPACE.suggest(restart) == point
+
+    def at_start(trial: optuna.Trial) -> float:
+        PAPER_SPACE.suggest(trial)
+        trial.set_user_attr(BEST_EPOCH, 0)
+        return 1.0 + trial.number  # trial 0's ridge start is the best network
+
+    study = open_study(storage, 'all-at-start', budget=3, restarts=2)
+    assert run_study(study, storage, at_start, progress=False) == 3
+    assert trial_counts(study).restarts == 0
+    assert _next_trial(study, storage, 'me:1') is None
 
 
 def test_no_restart_without_a_finished_point(storage: StudyStorage) -> None:
