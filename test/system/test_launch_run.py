@@ -255,8 +255,16 @@ def test_the_command_path_closes_the_twin_arms_loop_through_the_compensator(
                   'command_topic:=joint_commands', f'model_path:={arm_model}',
                   'compensation_enabled:=true') as process:
         wait_for_nodes(ros, process, (*NODES, 'command_compensator_node'))
-        ros.spin_until(lambda: len(compensated) >= 200 and len(forward) >= 200, START_TIMEOUT,
-                       'compensated commands of the twin arm')
+
+        def paired() -> bool:
+            # each of the three readers matches its writer on its own (discovery), so count
+            # only compensated commands whose nominal command and array were received too
+            stamps, arrays = {stamp_ns(msg) for msg in nominal}, {tuple(m.data) for m in forward}
+            return sum(stamp_ns(msg) in stamps and tuple(msg.position) in arrays
+                       for msg in compensated) >= 200
+
+        ros.spin_until(paired, START_TIMEOUT, 'compensated commands of the twin arm beside '
+                       'their nominal commands and arrays')
         mode = parameters(ros, 'twin_node', ['mode'])
     assert mode == {'mode': 'paced'}
     commanded = {stamp_ns(msg): np.array(msg.position) for msg in nominal}
