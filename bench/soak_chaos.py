@@ -26,8 +26,9 @@ schedule (seeded by `--seed`, written as JSON beside the report) injects, one fa
 Reported (text and JSON in `--out`): per fault, when /diagnostics showed it (a status of a
 node above its level just before) and when it cleared, and the time to recover (the first
 sample after the fault from which `RECOVERED_SAMPLES` in a row were answered in time);
-overall: offsets received, samples answered in time outside the faults' outages, any
-non-finite offset, over max_compensation, a step over max_compensation_step, RSS growth in
+overall: offsets received, samples answered in time outside the faults' outages (and,
+beside it, outside the intervals the host stole the CPUs in: `host_steal`), any non-finite
+offset, over max_compensation, a step over max_compensation_step, RSS growth in
 the second half, orphan processes and files left behind. A run that cannot finish (a node
 exits, `--wall-limit`) still writes its report of what it saw. `--scheduling realtime`
 (default) runs the cell as the launch file does (the nodes under SCHED_FIFO 40), the twin as
@@ -69,6 +70,7 @@ import rclpy
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, Vector3Stamped
+from host_steal import HostSteal, steal_line
 from rcl_interfaces.msg import Parameter as ParameterMessage
 from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParametersAtomically
@@ -129,6 +131,7 @@ KILL_YOUNGER_THAN = 3.0  # s: an attempt killed with its work ahead of it
 RECOVERED_SAMPLES = 25  # answered in a row: the loop is back
 STATUS_PERIOD = 1.0  # the nodes' diagnostics_period (their default)
 RSS_EVERY = 5.0
+STEAL_EVERY = 1.0  # s between readings of the host's steal
 ANSWERED_TARGET = 0.999
 RSS_TARGET_MB = 20.0
 NODES = ('kinematics_node', 'predictor_node')
@@ -342,6 +345,7 @@ class Chaos:
         self.pending: dict[int, Any] = {}  # fault index -> service future
         self.stopped = ''
         self.processes: dict[str, subprocess.Popen[bytes]] = {}
+        self.steal = HostSteal()
 
     def command(self, node: str, segment: int) -> list[str]:
         """The executable of `node`, the twin's for `segment` (its samples, its run log)."""
@@ -379,7 +383,7 @@ class Chaos:
         for node in ('kinematics_node', 'predictor_node', 'twin_node'):
             self.start(node)
         started = time.monotonic()
-        next_rss = next_children = started
+        next_rss = next_children = next_steal = started
         while True:
             executor.spin_once(timeout_sec=0.005)
             now = time.monotonic()
@@ -396,6 +400,9 @@ class Chaos:
             if now >= next_children:
                 self.seen_children.update(children(self.processes['predictor_node'].pid))
                 next_children += 0.2
+            if now >= next_steal:
+                self.steal.record(self.sample(monitor))
+                next_steal += STEAL_EVERY
             self._faults(monitor, self.sample(monitor), now)
 
     def _twin_done(self, monitor: ChaosMonitor) -> bool:
@@ -673,7 +680,8 @@ def summarise(chaos: Chaos, monitor: ChaosMonitor, orphans: list[int],
             'rss_mb': {n: [chaos.rss[0][1][i], chaos.rss[-1][1][i]] for i, n in
                        enumerate(NODES)} if chaos.rss else {},
             'rss_growth_second_half_mb': growth, 'orphans': orphans,
-            'left_behind': left_behind(chaos), 'faults': faults}
+            'left_behind': left_behind(chaos), 'faults': faults,
+            'host_steal': chaos.steal.summary(answered, quiet)}
 
 
 def targets(result: dict[str, Any]) -> dict[str, bool]:
@@ -713,6 +721,7 @@ def report(result: dict[str, Any], met: dict[str, bool], seed: int,
              f'{result["answered_in_time"]}; outside outages {result["quiet_answered"]} of '
              f'{result["quiet_samples"]} ({result["quiet_answered"] / quiet:.4%}), '
              f'{result["outage_samples"]} samples in outages',
+             steal_line(result['host_steal']),
              f'  offsets: {result["offsets"]}',
              f'  RSS [MB] start/end: {result["rss_mb"]}, second-half growth: '
              f'{result["rss_growth_second_half_mb"]}',

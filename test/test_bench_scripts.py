@@ -140,6 +140,40 @@ def test_the_soak_tells_where_the_unanswered_instants_lie() -> None:
     assert nothing == "{'start': (1, 4)}"
 
 
+def test_the_host_steal_is_told_apart_by_the_samples_it_held_back(tmp_path: Path) -> None:
+    """The steal of each interval between readings of /proc/stat (its share of all CPU
+    time), the samples of the intervals over the burst limit, and the answered share
+    outside them; a file that is not /proc/stat's records nothing."""
+    stat = tmp_path / 'stat'
+    script = (
+        'import sys; sys.path.insert(0, sys.argv[1]); import numpy as np\n'
+        'from pathlib import Path\n'
+        'from host_steal import HostSteal, steal_line\n'
+        f'stat = Path({str(stat)!r}); steal = HostSteal(stat)\n'
+        '# user nice system idle iowait irq softirq steal, then guest guest_nice\n'
+        'for sample, (busy, idle, stolen) in zip((0, 100, 200, 300), ((0, 0, 0), '
+        '(100, 80, 20), (190, 180, 30), (200, 300, 30))):\n'
+        '    stat.write_text(f"cpu  {busy} 0 0 {idle} 0 0 0 {stolen} 0 0\\ncpu0 1 2\\n")\n'
+        '    steal.record(sample)\n'
+        'print([(a, b, round(p, 6)) for a, b, p in steal.intervals])\n'
+        'answered = np.ones(300, bool); answered[[5, 150, 250]] = False\n'
+        'quiet = np.ones(300, bool); quiet[250:260] = False\n'
+        'summary = steal.summary(answered, quiet)\n'
+        'print(summary["burst_intervals"], summary["quiet_samples_outside_bursts"], '
+        'summary["quiet_answered_outside_bursts"], round(summary["steal_max_percent"], 6))\n'
+        'print(steal_line(summary))\n'
+        'stat.write_text("intr 1 2 3\\n"); other = HostSteal(stat); other.record(0)\n'
+        'other.record(10); print(other.intervals, steal_line(other.summary(answered, quiet)))')
+    intervals, figures, line, nothing = printed(script)[-4:]
+    # 20 of 200 jiffies stolen; 10 of 200; none of 120
+    assert intervals == '[(0, 100, 10.0), (100, 200, 5.0), (200, 300, 0.0)]'
+    # only the first interval is over 5 %: samples 100-299 lie outside it, 10 not quiet
+    assert figures == '1 190 189 10.0'
+    assert line.endswith('1 of 3 intervals over 5 %; outside them answered in time 189 of '
+                         '190 (99.4737%)')
+    assert nothing == '[]   host steal: not recorded (no /proc/stat)'
+
+
 def test_the_chaos_soak_kills_only_an_attempt_that_has_just_started() -> None:
     """The age the soak reads from /proc: a process started now is under the kill limit,
     one that has run past it is not (it may have written its result), a gone one never is."""
@@ -280,3 +314,9 @@ def test_the_chaos_soak_runs_and_writes_its_report(tmp_path: Path) -> None:
     assert [f['kind'] for f in report['faults']] == [f['kind'] for f in scheduled]
     assert all(f['started_wall'] is not None for f in report['faults'])
     assert (out / 'report.txt').read_text().startswith('chaos soak, seed 0: 15000 of 15000')
+    # the host's steal read about once a second of the run, its quiet samples a subset
+    steal = report['host_steal']
+    assert steal['recorded'] and steal['intervals'] >= 30
+    assert steal['quiet_answered_outside_bursts'] <= steal['quiet_samples_outside_bursts'] \
+        <= report['quiet_samples']
+    assert '  host steal: mean ' in (out / 'report.txt').read_text()
