@@ -6,7 +6,7 @@ guests (the steal column of /proc/stat), not because of the code. A soak records
 about once a second with the sample index it had reached (`HostSteal.record`) and reports
 its in-time share outside the intervals whose steal is over `BURST_PERCENT` beside the share
 over all samples, so that a miss by the host and a miss by the nodes read apart. Without
-/proc/stat (not Linux) nothing is recorded and the report says so.
+a readable /proc/stat (not Linux) or two readings, nothing is recorded and the report says so.
 """
 
 from __future__ import annotations
@@ -79,7 +79,7 @@ class HostSteal:
 def steal_line(summary: dict[str, Any]) -> str:
     """The report's line of `HostSteal.summary`."""
     if not summary.get('recorded'):
-        return '  host steal: not recorded (no /proc/stat)'
+        return '  host steal: not recorded (no readable /proc/stat, or under two readings)'
     outside = max(summary['quiet_samples_outside_bursts'], 1)
     return (f'  host steal: mean {summary["steal_mean_percent"]:.2f} %, largest '
             f'{summary["steal_max_percent"]:.1f} % of an interval; '
