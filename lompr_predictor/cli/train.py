@@ -55,6 +55,7 @@ from lompr_predictor.learning.options import (
     TrainingConfig,
     flag_of,
     option_specs,
+    shortest_window,
 )
 from lompr_predictor.learning.space import (
     DEFAULT_SPACE,
@@ -149,21 +150,22 @@ def _add_space_arguments(parser: argparse.ArgumentParser) -> None:
                              'row)')
 
 
-def search_space(args: argparse.Namespace, window: int) -> SearchSpace:
+def search_space(args: argparse.Namespace, window: int | None) -> SearchSpace:
     """The named space (`--space`) with the lists given on the command line (each value
     checked by argparse) instead, checked against the window (`SpaceError`, exit 2, before
-    any bag is read)."""
+    any bag is read; None: the default for the recordings' rate, at its shortest)."""
     given = {name: getattr(args, name) for name in
              ('batch_sizes', 'hidden_units', 'learning_rates', 'weight_decays', 'lstm_steps',
               'error_levels')}
     space = dataclasses.replace(SPACES[args.space],
                                 **{name: values for name, values in given.items() if values})
-    space.check(window)
+    space.check(shortest_window(window))
     return space
 
 
-def learning_shape(args: argparse.Namespace) -> tuple[int, int, int]:
-    """(window, horizon, preview): as given, else the --init model's, else the defaults."""
+def learning_shape(args: argparse.Namespace) -> tuple[int | None, int, int]:
+    """(window, horizon, preview): as given, else the --init model's, else the defaults (the
+    window's None: the default for the recordings' rate, `problem.default_window`)."""
     specs = option_specs()
     defaults = (specs['window'].default, specs['horizon'].default, specs['preview'].default)
     if args.init:

@@ -21,8 +21,12 @@ from lompr_predictor.data.features import HISTORY, base_features, feature_names
 from lompr_predictor.errors import LomprError
 from lompr_predictor.robot.description import BRANCH_JOINTS
 
-#: Defaults of the learning problem, in one place (`lompr train` uses these).
-DEFAULT_WINDOW = 25  # samples per window
+#: Defaults of the learning problem, in one place (`lompr train` uses these). The window's
+#: default is a span of the machine's time (`default_window`): as many samples as the
+#: recording holds in `WINDOW_SECONDS`, never fewer than `MIN_WINDOW` (at 25 Hz a tenth of
+#: a second is 2.5 samples, too short a history for the network to read a motion's course).
+WINDOW_SECONDS = 0.1
+MIN_WINDOW = 25
 DEFAULT_HORIZON = 1  # samples between a window's last row and the predicted one
 TEST_FRACTION = 0.1  # the chronologically last part of the samples: the test part
 VALIDATION_FRACTION = 0.15  # the last part of the rest: validation (tuning, early stopping)
@@ -170,12 +174,23 @@ def without_preview(problem: LearningProblem) -> LearningProblem:
                    preview=0)
 
 
-def build_problem(data: CleanData, window: int = DEFAULT_WINDOW,
+def default_window(sample_period: float) -> int:
+    """Samples per window unless given: `WINDOW_SECONDS` at the recording's `sample_period`
+    [s], at least `MIN_WINDOW` (25 at 25 and 250 Hz, 100 at 1 kHz)."""
+    if not sample_period > 0:
+        msg = f'the sample period must be > 0 s, got {sample_period!r}'
+        raise ProblemError(msg)
+    return max(MIN_WINDOW, round(WINDOW_SECONDS / sample_period))
+
+
+def build_problem(data: CleanData, window: int | None = None,
                   horizon: int = DEFAULT_HORIZON, *, preview: int = 0,
                   test_fraction: float = TEST_FRACTION,
                   validation_fraction: float = VALIDATION_FRACTION) -> LearningProblem:
     """Windows, chronological split and training-range normalisation of `data`, with the
-    preview block of `preview` samples in the rows (0: none)."""
+    preview block of `preview` samples in the rows (0: none); `window` None: the default
+    for its sample rate (`default_window`)."""
+    window = default_window(data.sample_period) if window is None else window
     ends = window_ends(data.regular_runs(), window, horizon, preview)
     split = chronological_split(data.recordings, ends, horizon, test_fraction=test_fraction,
                                 validation_fraction=validation_fraction, preview=preview)
@@ -186,13 +201,15 @@ def build_problem(data: CleanData, window: int = DEFAULT_WINDOW,
                            preview=preview, actuators=data.chain.actuators)
 
 
-def train_test_problem(train: CleanData, test: CleanData, window: int = DEFAULT_WINDOW,
+def train_test_problem(train: CleanData, test: CleanData, window: int | None = None,
                        horizon: int = DEFAULT_HORIZON, *, preview: int = 0,
                        validation_fraction: float = VALIDATION_FRACTION) -> LearningProblem:
     """Train on some recordings, test on others (e.g. another seed of the same machine, or
     another program): each of `train`'s recordings split chronologically into training and
     validation (its last `validation_fraction`), every window of `test` the test part. The
-    rows of `test` follow those of `train`; no window spans both."""
+    rows of `test` follow those of `train`; no window spans both. `window` None: the
+    default for `train`'s sample rate (`default_window`)."""
+    window = default_window(train.sample_period) if window is None else window
     n_train = len(train)
     ends = np.concatenate([window_ends(train.regular_runs(), window, horizon, preview),
                            window_ends(test.regular_runs(), window, horizon, preview) + n_train])

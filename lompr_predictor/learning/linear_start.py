@@ -14,6 +14,11 @@ The ridge is fitted on the same normalised windows and targets as the network (c
 an intercept, the highway's bias), on at most `RIDGE_SAMPLE` training windows evenly spaced;
 its penalties are relative to the mean eigenvalue of the inputs' scatter matrix, so that one
 grid serves every window length and feature count.
+
+Where the training windows are few for the highway's width (a short recording at a high
+rate, its window long in samples), SGD's steps move the highway off the ridge to fit noise
+the ridge's penalty kept out: there the highway is held at its start and only the LSTM and
+its head train (`holds_highway`).
 """
 
 from __future__ import annotations
@@ -35,6 +40,9 @@ RIDGE_SAMPLE = 20000
 #: Penalties tried, as multiples of the mean eigenvalue of the centred inputs' scatter matrix.
 RELATIVE_PENALTIES = tuple(10.0 ** k for k in range(-6, 2))
 CHUNK = 4096  # windows gathered at a time
+#: The 'auto' rule holds a highway at its ridge start when the training windows number
+#: fewer than this per input of the highway (docs/training.md has the machines behind it).
+HOLD_BELOW_WINDOWS_PER_INPUT = 25
 
 
 @dataclass(frozen=True)
@@ -112,6 +120,15 @@ def start_from(net: LstmNet, fit: LinearFit) -> None:
     with torch.no_grad():
         last.weight.zero_()
         last.bias.zero_()
+
+
+def holds_highway(net: LstmNet, training_windows: int, rule: str) -> bool:
+    """Whether `net`'s highway stays at its ridge start while the rest trains: `rule` 'held'
+    or 'trained' (`options.HIGHWAY_RULES`), or 'auto': held when `training_windows` are
+    fewer than `HOLD_BELOW_WINDOWS_PER_INPUT` per input of the highway."""
+    if rule == 'auto':
+        return training_windows < HOLD_BELOW_WINDOWS_PER_INPUT * net.highway.in_features
+    return rule == 'held'
 
 
 def set_highway(net: LstmNet, fit: LinearFit) -> None:

@@ -45,6 +45,7 @@ from lompr_predictor.learning.training import TrainedModel, train_network
 from lompr_predictor.learning.tuning import (
     BEST_EPOCH,
     DUPLICATE_OF,
+    HIGHWAY_HELD,
     finished_twin,
     restart_index,
 )
@@ -86,6 +87,7 @@ class NetworkObjective:
         trial.set_user_attr('checkpoint', str(path.resolve()))
         trial.set_user_attr('training_seconds', trained.seconds)
         trial.set_user_attr(BEST_EPOCH, trained.best_epoch)
+        trial.set_user_attr(HIGHWAY_HELD, trained.highway_held)
         if trained.pruned_epoch:
             trial.set_user_attr('pruned_epoch', trained.pruned_epoch)
         return trained.validation_loss

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from lompr_predictor.data.loading import BagInputs
-from lompr_predictor.data.problem import DEFAULT_HORIZON, DEFAULT_WINDOW
+from lompr_predictor.data.problem import DEFAULT_HORIZON, MIN_WINDOW, WINDOW_SECONDS
 from lompr_predictor.declarations import Declaration, declarations, declared
 from lompr_predictor.errors import LomprError
 from lompr_predictor.learning.space import (
@@ -62,6 +62,8 @@ EPOCH_WINDOWS = 20_000
 #: `max_epochs` of a fine-tuning (`lompr train --init`) unless given: a bounded fine-tuning,
 #: a quarter of a training's schedule.
 FINE_TUNE_EPOCHS = 30
+#: How a new LSTM's linear highway trains after its ridge start (`linear_start.holds_highway`).
+HIGHWAY_RULES = ('auto', 'trained', 'held')
 #: The trials' checkpoints in the report folder unless `checkpoints` names another.
 CHECKPOINT_FOLDER = 'trials'
 #: What a string option holds, for its check and its command-line type.
@@ -143,6 +145,7 @@ class TrainSettings:
     seed: int = 0
     epoch_windows: int = EPOCH_WINDOWS  # training (and validation) windows per epoch, at most
     linear_start: bool = True  # a new LSTM starts at the ridge over its window (`linear_start`)
+    highway: str = 'auto'  # whether that start's highway trains on (`HIGHWAY_RULES`)
 
 
 @dataclass(frozen=True)
@@ -161,8 +164,10 @@ class TrainingConfig:
     horizon: int = option(
         DEFAULT_HORIZON, "samples between the window's last row and the predicted instant "
         "(default {default}, or the --init model's)", minimum=1, study='always')
-    window: int = option(DEFAULT_WINDOW, "samples per window (default {default}, or the "
-                         "--init model's)", minimum=1, study='always')
+    window: int | None = option(
+        None, f'samples per window (default: {WINDOW_SECONDS:g} s of the recording, at least '
+        f"{MIN_WINDOW} samples: {MIN_WINDOW} at 25 and 250 Hz, 100 at 1 kHz; or the --init "
+        "model's)", minimum=1, study='always')
     preview: int = option(
         0, 'also read the planned reference K samples after each row of the window '
         "(K = --horizon reaches the predicted instant), taken from the bags' reference "
@@ -212,6 +217,11 @@ class TrainingConfig:
         'closed-form ridge regression over its window (the default starts there, the head '
         'at zero, and keeps that start unless an epoch predicts the validation part better)',
         recorded=True)
+    highway: str = option(
+        'auto', "after the ridge start, a new LSTM's linear highway is 'trained' with the "
+        "rest, or 'held' there (only the LSTM and its head train), or 'auto' (default): held "
+        'where the training windows number fewer than 25 per input of the highway (a short '
+        'recording at a high rate), trained otherwise', choices=HIGHWAY_RULES, recorded=True)
     storage: str | None = option(
         None, 'where the tuning study lives: postgresql://USER@HOST/DB (shared by several '
         'machines), sqlite:///FILE, or a journal file path (default: study.journal in the '
@@ -297,6 +307,12 @@ def recorded_options(config: TrainingConfig) -> dict[str, Any]:
     """The options the model file's metadata records (`recorded`), by name."""
     return {name: getattr(config, name) for name, spec in option_specs(type(config)).items()
             if spec.recorded}
+
+
+def shortest_window(window: int | None) -> int:
+    """The window a search space is checked against before the recording's rate is known:
+    the one given, else the shortest a default can be (`problem.default_window`)."""
+    return MIN_WINDOW if window is None else window
 
 
 def study_options(config: TrainingConfig) -> dict[str, Any]:

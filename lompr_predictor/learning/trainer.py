@@ -28,6 +28,7 @@ point sets it; worker processes take the caller's).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from functools import partial
@@ -81,6 +82,7 @@ from lompr_predictor.learning.options import (
     TrainSettings,
     check_options,
     recorded_options,
+    shortest_window,
     study_options,
 )
 from lompr_predictor.learning.pairing import paired_module, train_generalist
@@ -109,6 +111,7 @@ from lompr_predictor.learning.storage import (
 from lompr_predictor.learning.training import NORMALISATION
 from lompr_predictor.learning.tuning import (
     BEST_EPOCH,
+    HIGHWAY_HELD,
     best_trial,
     committee_trials,
     history,
@@ -170,7 +173,7 @@ def check_config(config: TrainingConfig, *, finishing: bool = True) -> StorageSp
     (`storage.parse_storage`); the storage it names. `finishing`: `train_predictor`'s
     needs, else `run_workers`'."""
     check_options(config, finishing=finishing)
-    config.space.check(config.window)
+    config.space.check(shortest_window(config.window))
     text = config.storage or default_storage(_report_dir(config))
     return parse_storage(text, heartbeat=config.heartbeat)
 
@@ -185,6 +188,7 @@ def run_workers(config: TrainingConfig) -> WorkerSummary:
     data, sources = load_clean_data(config.inputs, chain)
     read_seconds = time.perf_counter() - started
     problem = _problem(data, None, config)
+    config = _with_window(config, problem)
     machine_map = _machine_map(config, problem, data, chain)
     study, run = _run_study(config, problem, machine_map, sources, chain, storage)
     counts = trial_counts(study)
@@ -202,6 +206,7 @@ def train_predictor(config: TrainingConfig) -> TrainingResult:
     started = time.perf_counter()
     data, problem, trained_on, sources = read_problem(config, chain)
     read_seconds = time.perf_counter() - started
+    config = _with_window(config, problem)
     machine_map = _machine_map(config, problem, data, chain)
     tuned = _tune(config, problem, machine_map, sources, chain, storage)
     baselines = fit_baselines(problem, FitContext(config.settings, config.progress,
@@ -379,6 +384,13 @@ def _problem(data: CleanData, test: CleanData | None, config: TrainingConfig) ->
         raise DataError(str(err)) from err
 
 
+def _with_window(config: TrainingConfig, problem: LearningProblem) -> TrainingConfig:
+    """`config` with the window its problem was built with: the one given, or the default
+    for the recording's rate (`problem.default_window`), which the study's definition, the
+    report and the model file then record."""
+    return dataclasses.replace(config, window=problem.window)
+
+
 def _model_path(config: TrainingConfig) -> Path:
     if config.model_path is None:
         raise OptionError('no model file to write: give a model_path', ('model_path',))
@@ -415,9 +427,10 @@ def study_definition(config: TrainingConfig, sources: list[BagSource],
 def _study_settings(settings: TrainSettings) -> dict[str, Any]:
     """The training loop's settings as a study records them: the ridge start only when on
     (it came later: studies trained without it keep their names with --no-linear-start,
-    and a default study is a new one, its trials not mixed with theirs)."""
+    and a default study is a new one, its trials not mixed with theirs), the highway's rule
+    only when not 'auto' (likewise later)."""
     return {name: value for name, value in vars(settings).items()
-            if name != 'linear_start' or value}
+            if (name != 'linear_start' or value) and (name != 'highway' or value != 'auto')}
 
 
 def _topics(topics: BagTopics) -> list[str]:
@@ -503,6 +516,7 @@ def _tune(config: TrainingConfig, problem: LearningProblem, machine_map: Machine
               'workers': worker_counts(study),
               'best_trial': best.number, 'best_value': best.value, 'best_params': params,
               'best_epoch': best.user_attrs.get(BEST_EPOCH),
+              'best_highway_held': best.user_attrs.get(HIGHWAY_HELD),
               'committee': [{'trial': trial.number, 'value': trial.value,
                              'params': objective.params_of(trial)} for trial in committee],
               'committee_asked': config.committee,

@@ -28,6 +28,7 @@ from lompr_predictor.data.problem import LearningProblem, minmax_range
 from lompr_predictor.learning.linear_start import (
     RidgeFits,
     fit_ridge,
+    holds_highway,
     refit_highways,
     start_from,
 )
@@ -76,6 +77,8 @@ class TrainedModel:
     #: fine-tuning: the epochs started from `init` with its highways fitted again to the new
     #: data (`linear_start.refit_highways`), which predicted its validation part better
     highway_refitted: bool = False
+    #: a new LSTM's highway held at its ridge start while the rest trained (`_ridge_start`)
+    highway_held: bool = False
 
 
 RANGE_SAMPLE = 20000  # training windows that set the input normalisation
@@ -274,12 +277,14 @@ def train_network(
                          settings.max_epochs * math.ceil(data.epoch_size / data.batch))
     record, refitted = _start(module.net, data, settings, fine_tuning=init is not None,
                               ridge_fits=ridge_fits)
+    held = isinstance(module.net, LstmNet) and not module.net.highway.weight.requires_grad
     started = time.perf_counter()
     with progress_bar(range(1, settings.max_epochs + 1), desc=label or model_type,
                       unit='epoch', leave=False, disable=not progress) as epochs:
         _fit(module.net, schedule, data, record, epochs, settings,
              np.random.default_rng(settings.seed), trial, prune=prune)
     seconds = time.perf_counter() - started
+    module.net.requires_grad_(True)  # a held highway is held for this training only
     module.net.load_state_dict(record.best_state)
     module.eval()
     return TrainedModel(module=module, model_type=model_type,
@@ -288,7 +293,7 @@ def train_network(
                         validation_loss=record.best, epochs=record.epoch,
                         best_epoch=record.best_epoch, seconds=seconds, history=record.history,
                         pruned_epoch=record.pruned_epoch, start_loss=record.start_loss,
-                        highway_refitted=refitted)
+                        highway_refitted=refitted, highway_held=held)
 
 
 def _starting_module(problem: LearningProblem, model_type: str,
@@ -317,20 +322,22 @@ def _start(net: nn.Module, data: _FitData, settings: TrainSettings, *, fine_tuni
     (`linear_start`), each counted as epoch 0; else random weights, not counted. Also
     whether the highways were refitted."""
     ridge_started = (settings.linear_start and not fine_tuning and isinstance(net, LstmNet)
-                     and _ridge_start(net, data, ridge_fits))
+                     and _ridge_start(net, data, ridge_fits, settings.highway))
     record = _Record.starting(net, data, counts=fine_tuning or ridge_started)
     refitted = settings.linear_start and fine_tuning and _refit_start(net, data, record)
     return record, refitted
 
 
-def _ridge_start(net: LstmNet, data: _FitData, fits: RidgeFits | None) -> bool:
-    """Start `net` at the ridge over its own window (`linear_start`; from `fits` when given);
-    False when there is nothing to regress on."""
+def _ridge_start(net: LstmNet, data: _FitData, fits: RidgeFits | None, highway: str) -> bool:
+    """Start `net` at the ridge over its own window (`linear_start`; from `fits` when given),
+    its highway held there by the `highway` rule (`linear_start.holds_highway`); False when
+    there is nothing to regress on."""
     arguments = (lambda ends: data.inputs.windows(ends, data.window), data.train_ends,
                  data.train_y, data.validation_ends, data.validation_y)
     fit = fit_ridge(*arguments) if fits is None else fits.fit(*arguments, rows=data.inputs.rows)
     if fit is not None:
         start_from(net, fit)
+        net.highway.requires_grad_(not holds_highway(net, len(data.train_ends), highway))
     return fit is not None
 
 

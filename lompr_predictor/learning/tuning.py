@@ -61,6 +61,9 @@ RESTART = 'restart'
 #: User attribute of a trial: the epoch its network is from; 0 is its start, counted only
 #: when the start does not depend on the seed (the ridge start, `training.train_network`).
 BEST_EPOCH = 'best_epoch'
+#: A trial's user attribute: its network's highway held at its ridge start
+#: (`training.TrainedModel.highway_held`).
+HIGHWAY_HELD = 'highway_held'
 #: Study user attributes: the settings that define the study, its budget (tuning trials)
 #: and its restarts of the best point.
 DEFINITION_ATTR = 'definition'

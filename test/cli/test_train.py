@@ -64,19 +64,26 @@ def test_off_a_terminal_training_writes_a_plain_line_per_stage(
     # each trial's and each final model's epochs
     assert 'tuning: 2/2 trial' in stages
     assert {'trial 0: 2/2 epoch', 'generalist: 2/2 epoch', 'BP: 2/2 epoch'} <= set(stages)
+    # a few hundred windows for a highway of 8 rows: the default rule held it
+    tuning = json.loads((tmp_path / 'report' / 'report.json').read_text())['tuning']
+    assert tuning['best_highway_held'] is True
 
 
 def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[Path]) -> None:
     model, report = tmp_path / 'model.pt', tmp_path / 'report'
     level = ['--error-levels', 'yes']  # the network sees the error level too
-    assert run(['train', *map(str, bags), '--out', str(model), '--report', str(report), *FAST,
-                *level]) == 0
+    # its highway trained (the default holds it on so few windows): every trial then ends
+    # at its ridge start, what the restart's and the committee's checks below are about
+    command = ['train', *map(str, bags), '--out', str(model), '--report', str(report), *FAST,
+               *level, '--highway', 'trained']
+    assert run(command) == 0
     for name in ('report.json', 'report.md', 'prediction_test.png', 'tuning_history.png'):
         assert (report / name).is_file()
     content = json.loads((report / 'report.json').read_text())
     assert content['counts']['bags'] == 2 and content['counts']['kept'] == 2400
     assert set(content['models']) == {'persistence', 'bp', 'ridge', 'hgb', 'machine_map',
                                       'bo_lstm', 'bo_lstm_generalist'}
+    assert content['tuning']['best_highway_held'] is False
     for baseline in ('persistence', 'bp', 'ridge', 'hgb', 'machine_map'):  # per axis, metric
         beaten = content['bo_lstm_beats'][baseline]
         assert set(beaten) == {'x', 'y'}
@@ -136,8 +143,7 @@ def test_train_writes_model_and_report_then_evaluate(tmp_path: Path, bags: list[
     assert loaded.metadata.test_metrics['x']['rmse_um'] == pytest.approx(
         content['models']['bo_lstm']['metrics']['x']['rmse_um'])
     # the same command again: the study is resumed, its budget already spent
-    assert run(['train', *map(str, bags), '--out', str(model), '--report', str(report), *FAST,
-                *level]) == 0
+    assert run(command) == 0
     again = json.loads((report / 'report.json').read_text())
     assert again['tuning']['trials_run_now'] == 0 and again['tuning']['trials_spent'] == 2
     scored = tmp_path / 'scored'

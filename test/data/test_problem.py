@@ -5,20 +5,25 @@ only."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
-from trainer_data import PERIOD_NS
+from trainer_data import PERIOD_NS, synthetic_recording
 
-from lompr_predictor.data.cleaning import CleanData
+from lompr_predictor.data.cleaning import CleanData, clean_recordings
 from lompr_predictor.data.features import HISTORY
 from lompr_predictor.data.problem import (
+    MIN_WINDOW,
     ProblemError,
     build_problem,
     chronological_split,
+    default_window,
     minmax_range,
     window_ends,
 )
-from lompr_predictor.robot.chain import load_chain
+from lompr_predictor.robot.chain import LomprChain, load_chain
+from lompr_predictor.robot.description import RobotDescription
 
 
 def test_windows_never_cross_a_gap() -> None:
@@ -98,3 +103,18 @@ def test_a_part_without_windows_names_the_options_that_make_them() -> None:
                             validation_fraction=0.01)
     with pytest.raises(ValueError, match='the test fraction must lie in'):
         chronological_split(np.array([[0, 40]]), ends, 5, test_fraction=1.0)
+
+
+def test_the_default_window_is_a_tenth_of_a_second_of_at_least_25_samples(
+        description: RobotDescription) -> None:
+    assert [default_window(period) for period in (0.04, 0.004, 0.001, 0.0005, 1 / 300)] == [
+        MIN_WINDOW, MIN_WINDOW, 100, 200, 30]
+    with pytest.raises(ProblemError, match=r'^the sample period must be > 0 s, got 0\.0$'):
+        default_window(0.0)
+    recording, _ = synthetic_recording(description.geometry, 3000)
+    clean = clean_recordings([recording], LomprChain(description))
+    assert clean.sample_period == pytest.approx(0.04)
+    # the problem's window unless given: the recording's rate decides it
+    assert build_problem(clean).window == 25
+    assert build_problem(dataclasses.replace(clean, sample_period=1e-3)).window == 100
+    assert build_problem(dataclasses.replace(clean, sample_period=1e-3), 40).window == 40

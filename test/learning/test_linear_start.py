@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import pytest
@@ -20,9 +21,12 @@ from lompr_predictor.data.cleaning import clean_recordings
 from lompr_predictor.data.problem import LearningProblem, build_problem
 from lompr_predictor.learning import linear_start, training
 from lompr_predictor.learning.linear_start import (
+    HOLD_BELOW_WINDOWS_PER_INPUT,
     RELATIVE_PENALTIES,
+    LinearFit,
     RidgeFits,
     fit_ridge,
+    holds_highway,
     refit_highways,
     start_from,
 )
@@ -102,15 +106,21 @@ def problem(description: RobotDescription) -> LearningProblem:
                          horizon=10)
 
 
-def test_a_trained_network_is_never_worse_on_validation_than_its_ridge_start(
-        problem: LearningProblem, monkeypatch: pytest.MonkeyPatch) -> None:
-    fits = []
+@pytest.fixture
+def fits(monkeypatch: pytest.MonkeyPatch) -> list[LinearFit | None]:
+    """Every ridge the training loop fits, in order."""
+    made: list[LinearFit | None] = []
 
     def recorded(*args: object, **kwargs: object) -> object:
-        fits.append(fit_ridge(*args, **kwargs))  # type: ignore[arg-type]
-        return fits[-1]
+        made.append(fit_ridge(*args, **kwargs))  # type: ignore[arg-type]
+        return made[-1]
 
     monkeypatch.setattr(training, 'fit_ridge', recorded)
+    return made
+
+
+def test_a_trained_network_is_never_worse_on_validation_than_its_ridge_start(
+        problem: LearningProblem, fits: list[LinearFit | None]) -> None:
     settings = TrainSettings(max_epochs=3, patience=3, seed=3)
     trained = train_network(problem, 'lstm', {'batch_size': 200, 'hidden': 8,
                                               'learning_rate': 0.01}, settings, progress=False)
@@ -128,6 +138,42 @@ def test_a_trained_network_is_never_worse_on_validation_than_its_ridge_start(
     assert isinstance(net, LstmNet) and fit is not None
     np.testing.assert_allclose(net.highway.weight.detach().double().numpy(), fit.weight,
                                rtol=0, atol=1e-6)
+
+
+def test_auto_holds_a_highway_too_wide_for_its_training_windows() -> None:
+    net = LstmNet(FEATURES, WINDOW, hidden=4)
+    enough = HOLD_BELOW_WINDOWS_PER_INPUT * WINDOW * FEATURES
+    assert holds_highway(net, enough - 1, 'auto') and not holds_highway(net, enough, 'auto')
+    assert holds_highway(net, 10 ** 9, 'held') and not holds_highway(net, 1, 'trained')
+
+
+def test_a_held_highway_stays_at_its_ridge_start_while_the_lstm_and_head_train(
+        problem: LearningProblem, fits: list[LinearFit | None],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    highway_trains = []
+    fit_epochs = training._fit
+
+    def spied(net: LstmNet, *args: Any, **kwargs: Any) -> None:
+        highway_trains.append(net.highway.weight.requires_grad)
+        fit_epochs(net, *args, **kwargs)
+
+    monkeypatch.setattr(training, '_fit', spied)
+    trained = {rule: train_network(problem, 'lstm', {'batch_size': 200, 'hidden': 8,
+                                                     'learning_rate': 0.01},
+                                   TrainSettings(max_epochs=3, patience=3, seed=3,
+                                                 highway=rule), progress=False)
+               for rule in ('held', 'trained')}
+    assert highway_trains == [False, True] and len(fits) == 2
+    held, fit = trained['held'], fits[0]
+    assert held.highway_held and not trained['trained'].highway_held
+    net = held.module.net
+    assert isinstance(net, LstmNet) and held.best_epoch > 0 and fit is not None
+    np.testing.assert_allclose(net.highway.weight.detach().double().numpy(), fit.weight,
+                               rtol=0, atol=1e-6)
+    last = net.head[-1]  # the head left its zero start
+    assert isinstance(last, torch.nn.Linear) and last.weight.abs().max() > 1e-3
+    # held for that training only: a fine-tuning of it trains every weight
+    assert all(parameter.requires_grad for parameter in net.parameters())
 
 
 def test_a_refit_fits_each_highway_to_what_its_lstm_leaves() -> None:

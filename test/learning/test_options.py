@@ -74,8 +74,9 @@ def test_the_declared_defaults_are_lompr_trains() -> None:
     assert recorded_options(config) == {'network_inputs': 'paired', 'publish': 'best',
                                         'committee': 5, 'max_epochs': 120,
                                         'patience': 8, 'epoch_windows': 20_000,
-                                        'linear_start': True}
-    assert study_options(config) == {'horizon': 1, 'window': 25, 'seed': 0}
+                                        'linear_start': True, 'highway': 'auto'}
+    # the window's default waits for the recording's rate (`problem.default_window`)
+    assert study_options(config) == {'horizon': 1, 'window': None, 'seed': 0}
     assert flag_of('linear_start') == '--no-linear-start'
 
 
@@ -133,7 +134,8 @@ def test_existing_studies_keep_their_names() -> None:
     description: Any = SimpleNamespace(sha256='cd' * 32, kind='lompr')
 
     def name(**changes: Any) -> str:
-        config = TrainingConfig(inputs=BagInputs(bags=('/x',)), **changes)
+        # the window as a 25 Hz recording resolves it (`trainer._with_window`)
+        config = TrainingConfig(inputs=BagInputs(bags=('/x',)), window=25, **changes)
         return study_name_for(study_definition(config, sources, description))
 
     # studies before the paired default read the map's residuals ('machine'); before the
@@ -148,3 +150,5 @@ def test_existing_studies_keep_their_names() -> None:
                      'lompr-c09400e26ae36cea', 'lompr-292ea3169ed19aa3']
     # trials trained from the ridge are another study's
     assert name(network_inputs='machine') != names[0]
+    # so are those whose highway a rule other than the default's held or trained
+    assert name(highway='held') != name() != name(highway='trained')

@@ -60,6 +60,10 @@ def test_a_network_that_kept_its_ridge_start_is_said_so() -> None:
                      'LSTM adds nothing there).')
     trained = markdown(evaluation(tuning={**tuning, 'best_epoch': 7}))
     assert "{'hidden': 8}." in trained and 'ridge start' not in trained
+    held = markdown(evaluation(tuning={**tuning, 'best_epoch': 7, 'best_highway_held': True}))
+    assert ("{'hidden': 8}. Its linear highway was held at its ridge start (too few training "
+            "windows for the highway's width to train it on, `--highway`); its LSTM and head "
+            'trained.') in held
 
 
 def test_restarts_not_run_at_a_ridge_start_are_said_so() -> None:

@@ -67,6 +67,15 @@ def test_recordings_too_short_for_the_window_are_one_line(tmp_path: Path,
     assert '\n' not in str(refused.value) and 'window' in str(refused.value)
 
 
+def test_a_config_without_a_window_takes_its_recordings_default(
+        tmp_path: Path, description: RobotDescription) -> None:
+    bag = write_synthetic_bag(tmp_path / 'bag', description.geometry, 300)
+    config = dataclasses.replace(config_of(bag, tmp_path), window=None)
+    check_config(config)  # the space checked against the shortest default window
+    problem = read_problem(config, load_chain(config.robot))[1]
+    assert problem.sample_period == pytest.approx(0.04) and problem.window == 25
+
+
 def test_the_model_file_its_sidecar_and_the_report_name_the_same_model(
         tmp_path: Path, description: RobotDescription) -> None:
     bag = write_synthetic_bag(tmp_path / 'bag', description.geometry, 1200)
