@@ -33,6 +33,7 @@ import torch
 from torch import nn
 
 from lompr_predictor.learning.models import LstmNet, PairedNet
+from lompr_predictor.learning.options import HOLD_BELOW_WINDOWS_PER_INPUT
 
 #: Training windows the ridge is fitted on, at most (evenly spaced): its scatter matrix is
 #: settled long before, and the cost stays a fraction of an epoch's.
@@ -40,9 +41,6 @@ RIDGE_SAMPLE = 20000
 #: Penalties tried, as multiples of the mean eigenvalue of the centred inputs' scatter matrix.
 RELATIVE_PENALTIES = tuple(10.0 ** k for k in range(-6, 2))
 CHUNK = 4096  # windows gathered at a time
-#: The 'auto' rule holds a highway at its ridge start when the training windows number
-#: fewer than this per input of the highway (docs/training.md has the machines behind it).
-HOLD_BELOW_WINDOWS_PER_INPUT = 25
 
 
 @dataclass(frozen=True)

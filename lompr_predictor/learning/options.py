@@ -64,6 +64,9 @@ EPOCH_WINDOWS = 20_000
 FINE_TUNE_EPOCHS = 30
 #: How a new LSTM's linear highway trains after its ridge start (`linear_start.holds_highway`).
 HIGHWAY_RULES = ('auto', 'trained', 'held')
+#: The 'auto' rule holds a highway at its ridge start when the training windows number
+#: fewer than this per input of the highway (docs/training.md has the machines behind it).
+HOLD_BELOW_WINDOWS_PER_INPUT = 25
 #: The trials' checkpoints in the report folder unless `checkpoints` names another.
 CHECKPOINT_FOLDER = 'trials'
 #: What a string option holds, for its check and its command-line type.
@@ -220,8 +223,9 @@ class TrainingConfig:
     highway: str = option(
         'auto', "after the ridge start, a new LSTM's linear highway is 'trained' with the "
         "rest, or 'held' there (only the LSTM and its head train), or 'auto' (default): held "
-        'where the training windows number fewer than 25 per input of the highway (a short '
-        'recording at a high rate), trained otherwise', choices=HIGHWAY_RULES, recorded=True)
+        f'where the training windows number fewer than {HOLD_BELOW_WINDOWS_PER_INPUT} per '
+        'input of the highway (a short recording at a high rate), trained otherwise',
+        choices=HIGHWAY_RULES, recorded=True)
     storage: str | None = option(
         None, 'where the tuning study lives: postgresql://USER@HOST/DB (shared by several '
         'machines), sqlite:///FILE, or a journal file path (default: study.journal in the '

@@ -251,7 +251,8 @@ def _tuning_lines(tuning: Mapping[str, Any] | None) -> list[str]:
                 if tuning.get('best_epoch') == 0 else '')
              + (" Its linear highway was held at its ridge start (too few training windows "
                 "for the highway's width to train it on, `--highway`); its LSTM and head "
-                'trained.' if tuning.get('best_highway_held') else '') + _restarts_text(tuning)
+                'trained.' if tuning.get('best_highway_held') and tuning.get('best_epoch') != 0
+                else '') + _restarts_text(tuning)
              + _committee_text(tuning), '']
     if 'trials_complete' in tuning:
         lines += [f"Budget {tuning['budget']} trials and {tuning.get('restarts', 0)} "

@@ -278,13 +278,8 @@ def train_network(
     record, refitted = _start(module.net, data, settings, fine_tuning=init is not None,
                               ridge_fits=ridge_fits)
     held = isinstance(module.net, LstmNet) and not module.net.highway.weight.requires_grad
-    started = time.perf_counter()
-    with progress_bar(range(1, settings.max_epochs + 1), desc=label or model_type,
-                      unit='epoch', leave=False, disable=not progress) as epochs:
-        _fit(module.net, schedule, data, record, epochs, settings,
-             np.random.default_rng(settings.seed), trial, prune=prune)
-    seconds = time.perf_counter() - started
-    module.net.requires_grad_(True)  # a held highway is held for this training only
+    seconds = _train_epochs(module.net, schedule, data, record, settings, trial, prune=prune,
+                            bar=label or model_type, progress=progress)
     module.net.load_state_dict(record.best_state)
     module.eval()
     return TrainedModel(module=module, model_type=model_type,
@@ -294,6 +289,21 @@ def train_network(
                         best_epoch=record.best_epoch, seconds=seconds, history=record.history,
                         pruned_epoch=record.pruned_epoch, start_loss=record.start_loss,
                         highway_refitted=refitted, highway_held=held)
+
+
+def _train_epochs(net: nn.Module, schedule: _Schedule, data: _FitData, record: _Record,
+                  settings: TrainSettings, trial: Any, *, prune: bool, bar: str,
+                  progress: bool) -> float:
+    """Every epoch of one training (`_fit`) under a progress bar named `bar`; their wall
+    time [s]. A highway held at its ridge start is held for this training only: trainable
+    again after (a fine-tuning of the network trains every weight)."""
+    started = time.perf_counter()
+    with progress_bar(range(1, settings.max_epochs + 1), desc=bar, unit='epoch', leave=False,
+                      disable=not progress) as epochs:
+        _fit(net, schedule, data, record, epochs, settings, np.random.default_rng(settings.seed),
+             trial, prune=prune)
+    net.requires_grad_(True)
+    return time.perf_counter() - started
 
 
 def _starting_module(problem: LearningProblem, model_type: str,

@@ -21,7 +21,6 @@ from lompr_predictor.data.cleaning import clean_recordings
 from lompr_predictor.data.problem import LearningProblem, build_problem
 from lompr_predictor.learning import linear_start, training
 from lompr_predictor.learning.linear_start import (
-    HOLD_BELOW_WINDOWS_PER_INPUT,
     RELATIVE_PENALTIES,
     LinearFit,
     RidgeFits,
@@ -31,6 +30,7 @@ from lompr_predictor.learning.linear_start import (
     start_from,
 )
 from lompr_predictor.learning.models import LstmNet, PairedNet, error_columns, gather_windows
+from lompr_predictor.learning.options import HOLD_BELOW_WINDOWS_PER_INPUT
 from lompr_predictor.learning.training import TrainSettings, train_network
 from lompr_predictor.robot.chain import LomprChain
 from lompr_predictor.robot.description import RobotDescription

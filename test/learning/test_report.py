@@ -64,6 +64,9 @@ def test_a_network_that_kept_its_ridge_start_is_said_so() -> None:
     assert ("{'hidden': 8}. Its linear highway was held at its ridge start (too few training "
             "windows for the highway's width to train it on, `--highway`); its LSTM and head "
             'trained.') in held
+    # a network that is its ridge start says that alone
+    at_start = markdown(evaluation(tuning={**tuning, 'best_highway_held': True}))
+    assert 'Its best epoch is 0' in at_start and 'highway was held' not in at_start
 
 
 def test_restarts_not_run_at_a_ridge_start_are_said_so() -> None:
